@@ -1,0 +1,19 @@
+//! Finite elements: P1 tetrahedra, linear elasticity, loads, constraints and sparse solvers.
+//!
+//! Units: lengths mm, stresses kPa, forces mN, energies mN·mm (µJ). Vectors over nodes are
+//! node-major (`3·node + axis`). [`StiffnessSystem`] assembles once per mesh (in parallel over node
+//! columns), [`StiffnessSystem::factorize`] eliminates Dirichlet dofs and factorizes the free block
+//! with faer's sparse Cholesky (AMD ordering) once; [`FactorizedSystem`] then solves any number of
+//! load cases. [`sag`] is the project's reference problem (gravity sag of a liver).
+
+pub mod assembly;
+pub mod element;
+pub mod loads;
+mod material;
+pub mod post;
+pub mod sag;
+mod solver;
+
+pub use assembly::{BlockPattern, LameField};
+pub use material::LinearMaterial;
+pub use solver::{Dirichlet, FactorInfo, FactorizedSystem, FemError, NodeSpring, StiffnessSystem};

@@ -1,0 +1,397 @@
+//! Linear-elastic systems: stiffness with springs, Dirichlet constraints, and a sparse Cholesky
+//! factorization (faer, AMD fill-reducing ordering, supernodal when worthwhile) that is computed
+//! once and reused for any number of right-hand sides.
+
+use super::assembly::{BlockPattern, LameField, assemble_linear_stiffness};
+use super::material::LinearMaterial;
+use crate::mesh::TetMesh;
+use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
+use faer::sparse::{SparseColMat, SymbolicSparseColMat};
+use faer::{Mat, MatMut, MatRef, Side};
+use std::time::Instant;
+
+/// Errors from building or solving an elastic system; each says how to fix the input.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FemError {
+    /// A parameter is out of range.
+    #[error("invalid parameter {field}: {message}")]
+    InvalidParameter {
+        /// The parameter's name.
+        field: &'static str,
+        /// What is wrong.
+        message: String,
+    },
+    /// A tet has zero volume, so its stiffness is undefined.
+    #[error("tet {tet} is degenerate (zero volume); fix or remove it before solving")]
+    DegenerateTet {
+        /// Tet index.
+        tet: usize,
+    },
+    /// The constrained stiffness is not positive definite: rigid motion is not prevented.
+    #[error(
+        "stiffness matrix is not positive definite after constraints ({free} free dofs): the constraints and springs do not prevent rigid motion of every component"
+    )]
+    NotPositiveDefinite {
+        /// Free dofs.
+        free: usize,
+    },
+    /// Every dof is constrained: nothing to solve.
+    #[error("every degree of freedom is constrained; nothing to solve")]
+    NothingFree,
+    /// The factorization failed for another reason (e.g. out of memory).
+    #[error("sparse factorization failed: {0}")]
+    Factorization(String),
+}
+
+/// A linear spring from a node to its rest position: force `−K·u` with `K` a 3×3 SPD matrix (mN/mm).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NodeSpring {
+    /// Node index.
+    pub node: u32,
+    /// Spring stiffness matrix (mN/mm).
+    pub stiffness: [[f64; 3]; 3],
+}
+
+impl NodeSpring {
+    /// Isotropic spring of stiffness `k` (mN/mm).
+    pub fn isotropic(node: u32, k: f64) -> Self {
+        Self {
+            node,
+            stiffness: [[k, 0.0, 0.0], [0.0, k, 0.0], [0.0, 0.0, k]],
+        }
+    }
+
+    /// Spring with stiffness `k_normal` along the unit normal `n` and `k_tangent` across it (mN/mm):
+    /// `K = k_t I + (k_n − k_t) n nᵀ` (a sliding support when `k_tangent = 0`).
+    pub fn normal_tangent(node: u32, n: [f64; 3], k_normal: f64, k_tangent: f64) -> Self {
+        let mut s = [[0.0; 3]; 3];
+        for a in 0..3 {
+            for b in 0..3 {
+                s[a][b] = (k_normal - k_tangent) * n[a] * n[b] + if a == b { k_tangent } else { 0.0 };
+            }
+        }
+        Self { node, stiffness: s }
+    }
+}
+
+/// Dirichlet constraints: a prescribed value (mm) for some degrees of freedom `3·node + axis`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dirichlet {
+    value: Vec<Option<f64>>,
+}
+
+impl Dirichlet {
+    /// No constraint on a mesh of `nodes` nodes.
+    pub fn new(nodes: usize) -> Self {
+        Self {
+            value: vec![None; 3 * nodes],
+        }
+    }
+
+    /// Fixes all three components of each node to zero.
+    pub fn fix_nodes(&mut self, nodes: &[u32]) -> &mut Self {
+        for &n in nodes {
+            self.prescribe_node(n, [0.0; 3]);
+        }
+        self
+    }
+
+    /// Prescribes a node's displacement (mm).
+    pub fn prescribe_node(&mut self, node: u32, u: [f64; 3]) -> &mut Self {
+        for (a, &ua) in u.iter().enumerate() {
+            self.value[3 * node as usize + a] = Some(ua);
+        }
+        self
+    }
+
+    /// Prescribes one component (`axis` 0, 1, 2) of a node's displacement (mm).
+    pub fn prescribe_dof(&mut self, node: u32, axis: usize, value: f64) -> &mut Self {
+        self.value[3 * node as usize + axis] = Some(value);
+        self
+    }
+
+    /// Prescribed value of a dof, if constrained.
+    pub fn get(&self, dof: usize) -> Option<f64> {
+        self.value[dof]
+    }
+
+    /// Number of constrained dofs.
+    pub fn count(&self) -> usize {
+        self.value.iter().filter(|v| v.is_some()).count()
+    }
+
+    /// Number of dofs (3 × nodes).
+    pub fn len(&self) -> usize {
+        self.value.len()
+    }
+
+    /// True when there are no dofs at all.
+    pub fn is_empty(&self) -> bool {
+        self.value.is_empty()
+    }
+}
+
+/// The assembled stiffness of a mesh (full symmetric, springs included), in mN/mm.
+#[derive(Debug, Clone)]
+pub struct StiffnessSystem {
+    pattern: BlockPattern,
+    values: Vec<f64>,
+}
+
+impl StiffnessSystem {
+    /// Assembles homogeneous linear elasticity. Rejects invalid materials and degenerate tets.
+    pub fn linear(mesh: &TetMesh, material: &LinearMaterial) -> Result<Self, FemError> {
+        material
+            .validate()
+            .map_err(|message| FemError::InvalidParameter {
+                field: "material",
+                message,
+            })?;
+        let (l, m) = material.lame();
+        Self::linear_field(mesh, &LameField::Uniform(l, m))
+    }
+
+    /// Assembles linear elasticity with Lamé parameters given per tet (or uniform).
+    pub fn linear_field(mesh: &TetMesh, lame: &LameField) -> Result<Self, FemError> {
+        if let LameField::PerTet(v) = lame
+            && v.len() != mesh.num_tets()
+        {
+            return Err(FemError::InvalidParameter {
+                field: "lame",
+                message: format!("{} per-tet values for {} tets", v.len(), mesh.num_tets()),
+            });
+        }
+        for t in 0..mesh.num_tets() {
+            if mesh.tet_volume(t) == 0.0 {
+                return Err(FemError::DegenerateTet { tet: t });
+            }
+        }
+        let pattern = BlockPattern::new(mesh);
+        let values = assemble_linear_stiffness(mesh, &pattern, lame);
+        Ok(Self { pattern, values })
+    }
+
+    /// Adds node springs to the diagonal blocks.
+    pub fn add_springs(&mut self, springs: &[NodeSpring]) -> Result<(), FemError> {
+        for s in springs {
+            let i = s.node as usize;
+            if i >= self.pattern.nodes {
+                return Err(FemError::InvalidParameter {
+                    field: "springs",
+                    message: format!("node {} out of range ({} nodes)", s.node, self.pattern.nodes),
+                });
+            }
+            for a in 0..3 {
+                for b in 0..3 {
+                    let idx = self
+                        .pattern
+                        .value_index(i, a, i, b)
+                        .expect("diagonal block is always in the pattern");
+                    self.values[idx] += s.stiffness[b][a];
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Number of dofs (3 × nodes).
+    pub fn dofs(&self) -> usize {
+        3 * self.pattern.nodes
+    }
+
+    /// The sparsity pattern.
+    pub fn pattern(&self) -> &BlockPattern {
+        &self.pattern
+    }
+
+    /// The matrix as a faer sparse matrix (copies the values).
+    pub fn matrix(&self) -> SparseColMat<usize, f64> {
+        self.pattern.to_matrix(self.values.clone())
+    }
+
+    /// `K·u` (mN) for a full displacement vector (mm).
+    pub fn apply(&self, u: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; self.dofs()];
+        let p = &self.pattern;
+        for col in 0..self.dofs() {
+            let uc = u[col];
+            if uc == 0.0 {
+                continue;
+            }
+            for k in p.col_ptr[col]..p.col_ptr[col + 1] {
+                out[p.row_idx[k]] += self.values[k] * uc;
+            }
+        }
+        out
+    }
+
+    /// Strain (+ spring) energy `uᵀKu/2` in mN·mm (= µJ).
+    pub fn energy(&self, u: &[f64]) -> f64 {
+        0.5 * self.apply(u).iter().zip(u).map(|(a, b)| a * b).sum::<f64>()
+    }
+
+    /// Factorizes the free-free block under the given constraints.
+    pub fn factorize(&self, bc: &Dirichlet) -> Result<FactorizedSystem, FemError> {
+        let t0 = Instant::now();
+        let n = self.dofs();
+        if bc.len() != n {
+            return Err(FemError::InvalidParameter {
+                field: "dirichlet",
+                message: format!("{} dofs in constraints for a {n}-dof system", bc.len()),
+            });
+        }
+        let mut free_of_dof = vec![usize::MAX; n];
+        let mut free = Vec::with_capacity(n);
+        for (d, slot) in free_of_dof.iter_mut().enumerate() {
+            if bc.get(d).is_none() {
+                *slot = free.len();
+                free.push(d);
+            }
+        }
+        if free.is_empty() {
+            return Err(FemError::NothingFree);
+        }
+        // Lower triangle of K_ff.
+        let p = &self.pattern;
+        let mut col_ptr = Vec::with_capacity(free.len() + 1);
+        let mut row_idx = Vec::new();
+        let mut vals = Vec::new();
+        col_ptr.push(0);
+        for (fc, &c) in free.iter().enumerate() {
+            for k in p.col_ptr[c]..p.col_ptr[c + 1] {
+                let fr = free_of_dof[p.row_idx[k]];
+                if fr != usize::MAX && fr >= fc {
+                    row_idx.push(fr);
+                    vals.push(self.values[k]);
+                }
+            }
+            col_ptr.push(row_idx.len());
+        }
+        let nf = free.len();
+        let symbolic = SymbolicSparseColMat::new_checked(nf, nf, col_ptr, None, row_idx);
+        let kff = SparseColMat::new(symbolic, vals);
+        let extract_s = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let sym = SymbolicLlt::try_new(kff.symbolic(), Side::Lower)
+            .map_err(|e| FemError::Factorization(format!("{e:?}")))?;
+        let symbolic_s = t1.elapsed().as_secs_f64();
+        let t2 = Instant::now();
+        let llt = Llt::try_new_with_symbolic(sym, kff.as_ref(), Side::Lower)
+            .map_err(|_| FemError::NotPositiveDefinite { free: nf })?;
+        let numeric_s = t2.elapsed().as_secs_f64();
+        // Lift of the prescribed values: K·u_c restricted to free dofs.
+        let mut uc = vec![0.0; n];
+        let mut any = false;
+        for (d, v) in uc.iter_mut().enumerate() {
+            if let Some(x) = bc.get(d) {
+                *v = x;
+                any |= x != 0.0;
+            }
+        }
+        let lift = if any { self.apply(&uc) } else { vec![0.0; n] };
+        Ok(FactorizedSystem {
+            free,
+            free_of_dof,
+            llt,
+            prescribed: uc,
+            lift,
+            info: FactorInfo {
+                dofs: n,
+                free_dofs: nf,
+                nnz_lower: kff.compute_nnz(),
+                extract_s,
+                symbolic_s,
+                numeric_s,
+            },
+        })
+    }
+}
+
+/// What the factorization did, with stage timings (seconds).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct FactorInfo {
+    /// Total dofs.
+    pub dofs: usize,
+    /// Free (unconstrained) dofs.
+    pub free_dofs: usize,
+    /// Stored entries of the lower triangle of K_ff.
+    pub nnz_lower: usize,
+    /// Time to extract K_ff.
+    pub extract_s: f64,
+    /// Time for the symbolic factorization (ordering, elimination tree, supernodes).
+    pub symbolic_s: f64,
+    /// Time for the numeric Cholesky factorization.
+    pub numeric_s: f64,
+}
+
+/// A factorized constrained system; solve it for as many load vectors as needed.
+#[derive(Debug, Clone)]
+pub struct FactorizedSystem {
+    free: Vec<usize>,
+    free_of_dof: Vec<usize>,
+    llt: Llt<usize, f64>,
+    prescribed: Vec<f64>,
+    lift: Vec<f64>,
+    info: FactorInfo,
+}
+
+impl FactorizedSystem {
+    /// Factorization facts and timings.
+    pub fn info(&self) -> FactorInfo {
+        self.info
+    }
+
+    /// Free dofs in order (`free[k]` is the global dof of free unknown `k`).
+    pub fn free_dofs(&self) -> &[usize] {
+        &self.free
+    }
+
+    /// Index of a global dof among the free unknowns, or `None` if constrained.
+    pub fn free_index(&self, dof: usize) -> Option<usize> {
+        self.free_of_dof
+            .get(dof)
+            .copied()
+            .filter(|&i| i != usize::MAX)
+    }
+
+    /// Solves for the full displacement (mm) under a full load vector `f` (mN, 3 × nodes):
+    /// constrained dofs take their prescribed values.
+    pub fn solve(&self, f: &[f64]) -> Vec<f64> {
+        let mut rhs = Mat::<f64>::zeros(self.free.len(), 1);
+        for (k, &d) in self.free.iter().enumerate() {
+            rhs[(k, 0)] = f[d] - self.lift[d];
+        }
+        self.llt.solve_in_place(rhs.as_mut());
+        let mut u = self.prescribed.clone();
+        for (k, &d) in self.free.iter().enumerate() {
+            u[d] = rhs[(k, 0)];
+        }
+        u
+    }
+
+    /// Solves `K_ff X = B` in place for many right-hand sides given on the free dofs only
+    /// (rows = free unknowns, one column per load case; homogeneous constraints).
+    pub fn solve_free_in_place(&self, rhs: MatMut<'_, f64>) {
+        self.llt.solve_in_place(rhs);
+    }
+
+    /// Solves for many full load vectors (columns of `f`, 3n rows) with homogeneous constraints
+    /// (prescribed values are not applied); returns full displacements, one column per load.
+    pub fn solve_many_homogeneous(&self, f: MatRef<'_, f64>) -> Mat<f64> {
+        let mut rhs = Mat::<f64>::zeros(self.free.len(), f.ncols());
+        for j in 0..f.ncols() {
+            for (k, &d) in self.free.iter().enumerate() {
+                rhs[(k, j)] = f[(d, j)];
+            }
+        }
+        self.llt.solve_in_place(rhs.as_mut());
+        let mut u = Mat::<f64>::zeros(f.nrows(), f.ncols());
+        for j in 0..f.ncols() {
+            for (k, &d) in self.free.iter().enumerate() {
+                u[(d, j)] = rhs[(k, j)];
+            }
+        }
+        u
+    }
+}

@@ -1,0 +1,10 @@
+//! LIBR+: intraoperative liver registration.
+//!
+//! Layers (dependencies point one way): [`mesh`] (tet meshes, surfaces, file formats) ←
+//! [`fem`] (linear elasticity, loads, constraints, sparse Cholesky). Later issues add `phantom`,
+//! `register`, `gcn`, `eval`, `discover`. Units: millimetres, kPa, mN; frame LPS.
+#![forbid(unsafe_code)]
+
+pub mod fem;
+pub mod mesh;
+pub mod util;
