@@ -1,1 +1,415 @@
-fn main(){}
+//! `librplus`: the command-line entry point. Thin: parses arguments, calls the library, prints.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use librplus::fem::{self, LameField, sag};
+use librplus::mesh::io::{self, DataArray, MeshFile, Unit, WriteOptions};
+use librplus::mesh::{TetMesh, TriSurface, quality};
+use serde_json::{Value, json};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Parser)]
+#[command(name = "librplus", version, about = "LIBR+ intraoperative liver registration")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Inspect and convert meshes.
+    #[command(subcommand)]
+    Mesh(MeshCmd),
+    /// Finite-element reference problems.
+    #[command(subcommand)]
+    Fem(FemCmd),
+    /// Whole-pipeline benchmarks with stage timings.
+    #[command(subcommand)]
+    Bench(BenchCmd),
+}
+
+#[derive(Args, Clone)]
+struct Common {
+    /// Length unit of input files (mm, cm or m); meshes are held in millimetres.
+    #[arg(long, default_value = "mm")]
+    unit: Unit,
+    /// Print one JSON object on stdout instead of human-readable text.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Subcommand)]
+enum MeshCmd {
+    /// Counts, volume, quality, components and bounding box of a mesh or surface file.
+    Info {
+        /// Mesh file (.vtu .vtp .vtk .msh .obj .stl).
+        file: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Converts between formats (by extension); output in millimetres.
+    Convert {
+        /// Input file.
+        input: PathBuf,
+        /// Output file (.vtu .vtp .vtk .msh .obj .stl); a tet mesh written to a surface format
+        /// writes its boundary.
+        output: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Write ASCII instead of binary where the format has both.
+        #[arg(long)]
+        ascii: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum FemCmd {
+    /// Gravity sag: E = 5 kPa, ν = 0.45, 0.0104 mN/mm³ along +y, top 20% of the y-range fixed.
+    Sag {
+        /// Tetrahedral mesh file.
+        #[arg(long)]
+        mesh: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Write the mesh with `displacement` (mm) and `fixed` point data (.vtu, .vtk, ...).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCmd {
+    /// LIBR preload workload: assemble, factorize once, solve `rhs` unit-load right-hand sides.
+    Basis {
+        /// Tetrahedral mesh file.
+        #[arg(long)]
+        mesh: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Number of right-hand sides.
+        #[arg(long, default_value_t = 300)]
+        rhs: usize,
+        /// Repetitions; medians are reported.
+        #[arg(long, default_value_t = 1)]
+        repeat: usize,
+        /// Seed for the random load positions.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Err(e) = run(cli) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Mesh(MeshCmd::Info { file, common }) => mesh_info(&file, &common),
+        Command::Mesh(MeshCmd::Convert {
+            input,
+            output,
+            common,
+            ascii,
+        }) => mesh_convert(&input, &output, &common, ascii),
+        Command::Fem(FemCmd::Sag { mesh, common, out }) => fem_sag(&mesh, &common, out.as_deref()),
+        Command::Bench(BenchCmd::Basis {
+            mesh,
+            common,
+            rhs,
+            repeat,
+            seed,
+        }) => bench_basis(&mesh, &common, rhs, repeat, seed),
+    }
+}
+
+/// Prints `value` as JSON, or as `key: value` lines.
+fn emit(json: bool, value: &Value) {
+    if json {
+        println!("{value}");
+        return;
+    }
+    if let Value::Object(map) = value {
+        for (k, v) in map {
+            match v {
+                Value::Object(inner) => {
+                    println!("{k}:");
+                    for (ik, iv) in inner {
+                        println!("  {ik}: {}", human(iv));
+                    }
+                }
+                _ => println!("{k}: {}", human(v)),
+            }
+        }
+    }
+}
+
+fn human(v: &Value) -> String {
+    match v {
+        Value::Number(n) => match n.as_f64() {
+            Some(x) if n.is_f64() => format!("{x:.6}"),
+            _ => n.to_string(),
+        },
+        Value::String(s) => s.clone(),
+        other => other.to_string(),
+    }
+}
+
+fn read_file(path: &Path, unit: Unit) -> Result<MeshFile> {
+    Ok(io::read(path, unit)?)
+}
+
+/// Reads a volume mesh for FEM: flips inverted tets (with a note), rejects degenerate ones.
+fn load_volume(path: &Path, unit: Unit) -> Result<(TetMesh, usize)> {
+    let file = read_file(path, unit)?;
+    if file.tets.is_empty() {
+        bail!(
+            "{}: has no tetrahedra ({} triangles): a volume mesh is needed",
+            path.display(),
+            file.triangles.len()
+        );
+    }
+    let mut mesh = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
+    let flipped = mesh.orient_positive();
+    if flipped > 0 {
+        eprintln!(
+            "note: {}: {flipped} of {} tets were negatively oriented and have been flipped",
+            path.display(),
+            mesh.num_tets()
+        );
+    }
+    for p in mesh.problems(1) {
+        if !matches!(p, librplus::mesh::MeshError::UnusedNode { .. }) {
+            bail!("{}: {p}", path.display());
+        }
+    }
+    Ok((mesh, flipped))
+}
+
+fn bbox_json(lo: [f64; 3], hi: [f64; 3]) -> Value {
+    json!({"min": lo, "max": hi, "size": [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]]})
+}
+
+fn mesh_info(path: &Path, c: &Common) -> Result<()> {
+    let file = read_file(path, c.unit)?;
+    let out = if !file.tets.is_empty() {
+        let mesh = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
+        let problems = mesh.problems(usize::MAX);
+        let count = |f: fn(&librplus::mesh::MeshError) -> bool| problems.iter().filter(|p| f(p)).count();
+        let inverted = count(|p| matches!(p, librplus::mesh::MeshError::InvertedTet { .. }));
+        let degenerate = count(|p| matches!(p, librplus::mesh::MeshError::DegenerateTet { .. }));
+        let unused = count(|p| matches!(p, librplus::mesh::MeshError::UnusedNode { .. }));
+        let mut oriented = mesh.clone();
+        oriented.orient_positive();
+        let surface = oriented.boundary_surface()?;
+        let st = surface.stats();
+        let q = quality::summary(&mesh);
+        let (lo, hi) = mesh.bounding_box();
+        json!({
+            "file": path.display().to_string(),
+            "kind": "tetrahedral",
+            "unit_in": c.unit.to_string(),
+            "nodes": mesh.num_nodes(),
+            "tets": mesh.num_tets(),
+            "surface_triangles": st.triangles,
+            "surface_nodes": st.vertices,
+            "volume_mm3": mesh.tet_volumes().iter().map(|v| v.abs()).sum::<f64>(),
+            "signed_volume_mm3": mesh.volume(),
+            "min_dihedral_deg": q.min_dihedral_deg,
+            "max_dihedral_deg": q.max_dihedral_deg,
+            "min_radius_ratio": q.min_radius_ratio,
+            "mean_radius_ratio": q.mean_radius_ratio,
+            "components": mesh.num_components(),
+            "inverted_tets": inverted,
+            "degenerate_tets": degenerate,
+            "unused_nodes": unused,
+            "surface_closed": st.closed,
+            "surface_genus": st.genus,
+            "surface_area_mm2": st.area_mm2,
+            "other_triangles_in_file": file.triangles.len(),
+            "skipped_cells": file.skipped_cells,
+            "point_data": file.point_data.iter().map(|a| &a.name).collect::<Vec<_>>(),
+            "bbox_mm": bbox_json(lo, hi),
+        })
+    } else if !file.triangles.is_empty() {
+        let s = TriSurface::from_file(&file).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let st = s.stats();
+        let (lo, hi) = s.bounding_box();
+        let largest = s.largest_component().stats();
+        json!({
+            "file": path.display().to_string(),
+            "kind": "surface",
+            "unit_in": c.unit.to_string(),
+            "nodes": file.nodes.len(),
+            "tets": 0,
+            "surface_triangles": st.triangles,
+            "surface_nodes": st.vertices,
+            "volume_mm3": st.signed_volume_mm3.abs(),
+            "signed_volume_mm3": st.signed_volume_mm3,
+            "orientation": if st.signed_volume_mm3 >= 0.0 { "outward" } else { "inward" },
+            "min_dihedral_deg": Value::Null,
+            "components": st.components,
+            "closed": st.closed,
+            "consistently_oriented": st.consistently_oriented,
+            "genus": st.genus,
+            "area_mm2": st.area_mm2,
+            "largest_component": largest,
+            "skipped_cells": file.skipped_cells,
+            "bbox_mm": bbox_json(lo, hi),
+        })
+    } else {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in &file.nodes {
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        json!({
+            "file": path.display().to_string(),
+            "kind": "points",
+            "nodes": file.nodes.len(),
+            "tets": 0,
+            "surface_triangles": 0,
+            "skipped_cells": file.skipped_cells,
+            "bbox_mm": bbox_json(lo, hi),
+        })
+    };
+    emit(c.json, &out);
+    Ok(())
+}
+
+fn mesh_convert(input: &Path, output: &Path, c: &Common, ascii: bool) -> Result<()> {
+    let mut file = read_file(input, c.unit)?;
+    let surface_out = matches!(
+        io::Format::from_path(output)?,
+        io::Format::Obj | io::Format::Stl | io::Format::Vtp
+    );
+    if surface_out && file.triangles.is_empty() && !file.tets.is_empty() {
+        let mut mesh = TetMesh::from_file(&file)?;
+        mesh.orient_positive();
+        file.triangles = mesh.boundary()?.triangles;
+        file.tets.clear();
+        file.cell_data.clear();
+    }
+    io::write(output, &file, WriteOptions { binary: !ascii })?;
+    emit(
+        c.json,
+        &json!({
+            "input": input.display().to_string(),
+            "output": output.display().to_string(),
+            "nodes": file.nodes.len(),
+            "tets": file.tets.len(),
+            "triangles": file.triangles.len(),
+            "point_data": file.point_data.iter().map(|a| &a.name).collect::<Vec<_>>(),
+        }),
+    );
+    Ok(())
+}
+
+fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
+    let t0 = Instant::now();
+    let (mesh, flipped) = load_volume(path, c.unit)?;
+    let read_s = t0.elapsed().as_secs_f64();
+    let params = sag::SagParams::default();
+    let r = sag::solve(&mesh, &params)?;
+    if let Some(out) = out {
+        let fixed = sag::fixed_nodes(&mesh, params.fixed_fraction);
+        let mut mask = vec![0.0; mesh.num_nodes()];
+        for &n in &fixed {
+            mask[n as usize] = 1.0;
+        }
+        let (l, m) = params.material.lame();
+        let fields = fem::post::tet_fields(&mesh, &LameField::Uniform(l, m), &r.displacement);
+        let mut file = mesh.to_file();
+        file.point_data = vec![
+            DataArray::new("displacement", 3, r.displacement.clone()),
+            DataArray::new("fixed", 1, mask),
+        ];
+        if !file.tets.is_empty() {
+            file.cell_data = vec![
+                DataArray::new("von_mises_kpa", 1, fields.iter().map(|f| f.von_mises_kpa).collect()),
+                DataArray::new("strain_energy", 1, fields.iter().map(|f| f.energy).collect()),
+            ];
+        }
+        io::write(out, &file, WriteOptions::default())?;
+    }
+    let out_json = json!({
+        "mesh": path.display().to_string(),
+        "nodes": mesh.num_nodes(),
+        "tets": mesh.num_tets(),
+        "flipped_tets": flipped,
+        "fixed_nodes": r.fixed_nodes,
+        "free_dofs": r.factor.free_dofs,
+        "E_kPa": params.material.youngs_modulus_kpa,
+        "nu": params.material.poisson_ratio,
+        "body_force_mN_per_mm3": params.body_force,
+        "max_disp_mm": r.max_disp_mm,
+        "mean_disp_mm": r.mean_disp_mm,
+        "strain_energy": r.strain_energy,
+        "strain_energy_unit": "mN·mm",
+        "timings_s": {
+            "read": read_s,
+            "assemble": r.timings.assemble_s,
+            "factor": r.timings.factor_s,
+            "solve": r.timings.solve_s,
+            "total": t0.elapsed().as_secs_f64(),
+        },
+        "out": out.map(|p| p.display().to_string()),
+    });
+    emit(c.json, &out_json);
+    Ok(())
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn bench_basis(path: &Path, c: &Common, rhs: usize, repeat: usize, seed: u64) -> Result<()> {
+    if rhs == 0 {
+        bail!("--rhs must be at least 1");
+    }
+    let (mesh, _) = load_volume(path, c.unit)?;
+    let bar = indicatif::ProgressBar::new(repeat.max(1) as u64).with_message("bench basis");
+    let mut runs = Vec::new();
+    for _ in 0..repeat.max(1) {
+        runs.push(fem::basis_bench::run(&mesh, rhs, seed)?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let pick = |f: fn(&fem::basis_bench::BasisBench) -> f64| median(runs.iter().map(f).collect());
+    let first = &runs[0];
+    let out = json!({
+        "mesh": path.display().to_string(),
+        "nodes": first.nodes,
+        "tets": first.tets,
+        "dofs_free": first.dofs_free,
+        "nrhs": rhs,
+        "repeat": runs.len(),
+        "threads": rayon::current_num_threads(),
+        "assemble_s": pick(|r| r.assemble_s),
+        "factor_s": pick(|r| r.factor_s),
+        "factor_symbolic_s": pick(|r| r.factor.symbolic_s),
+        "factor_numeric_s": pick(|r| r.factor.numeric_s),
+        "solve_all_s": pick(|r| r.solve_all_s),
+        "solve_per_rhs_ms": 1e3 * pick(|r| r.solve_all_s) / rhs as f64,
+        "total_s": pick(|r| r.total_s),
+        "nnz_lower": first.factor.nnz_lower,
+        "max_rel_residual": runs.iter().map(|r| r.max_rel_residual).fold(0.0, f64::max),
+    });
+    emit(c.json, &out);
+    Ok(())
+}

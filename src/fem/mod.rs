@@ -7,6 +7,7 @@
 //! load cases. [`sag`] is the project's reference problem (gravity sag of a liver).
 
 pub mod assembly;
+pub mod basis_bench;
 pub mod element;
 pub mod loads;
 mod material;
