@@ -17,7 +17,11 @@ fn patch_test_linear_field_reproduced_inside() {
     mesh.validate().unwrap();
     let mat = LinearMaterial::new(4.0, 0.45);
     let sys = StiffnessSystem::linear(&mesh, &mat).unwrap();
-    let a = [[0.02, -0.01, 0.03], [0.015, -0.02, 0.01], [-0.005, 0.025, 0.01]];
+    let a = [
+        [0.02, -0.01, 0.03],
+        [0.015, -0.02, 0.01],
+        [-0.005, 0.025, 0.01],
+    ];
     let c = [0.3, -0.2, 0.1];
     let field = |p: [f64; 3]| -> [f64; 3] {
         let mut u = c;
@@ -137,13 +141,22 @@ fn uniaxial_tension_bar_matches_analytic() {
         .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
         .collect();
     let mut f = vec![0.0; 3 * mesh.num_nodes()];
-    loads::add_traction(&mut f, mesh.nodes(), &end, &vec![[sigma, 0.0, 0.0]; end.len()]);
+    loads::add_traction(
+        &mut f,
+        mesh.nodes(),
+        &end,
+        &vec![[sigma, 0.0, 0.0]; end.len()],
+    );
     let u = sys.factorize(&bc).unwrap().solve(&f);
     let e = mat.youngs_modulus_kpa;
     let nu = mat.poisson_ratio;
     let mut worst = 0.0f64;
     for (i, p) in mesh.nodes().iter().enumerate() {
-        let exact = [sigma * p[0] / e, -nu * sigma * p[1] / e, -nu * sigma * p[2] / e];
+        let exact = [
+            sigma * p[0] / e,
+            -nu * sigma * p[1] / e,
+            -nu * sigma * p[2] / e,
+        ];
         for k in 0..3 {
             worst = worst.max((u[3 * i + k] - exact[k]).abs());
         }
@@ -202,9 +215,14 @@ fn springs_support_without_dirichlet() {
     for n in 0..mesh.num_nodes() as u32 {
         loads::add_point_load(&mut f, n, [0.1, -0.3, 0.2]);
     }
-    let u = sys.factorize(&Dirichlet::new(mesh.num_nodes())).unwrap().solve(&f);
+    let u = sys
+        .factorize(&Dirichlet::new(mesh.num_nodes()))
+        .unwrap()
+        .solve(&f);
     for c in u.chunks_exact(3) {
-        assert!((c[0] - 0.2).abs() < 1e-10 && (c[1] + 0.6).abs() < 1e-10 && (c[2] - 0.4).abs() < 1e-10);
+        assert!(
+            (c[0] - 0.2).abs() < 1e-10 && (c[1] + 0.6).abs() < 1e-10 && (c[2] - 0.4).abs() < 1e-10
+        );
     }
     // A normal-only spring (sliding support) leaves tangential motion free: not positive definite.
     let mut sliding = StiffnessSystem::linear(&mesh, &LinearMaterial::default()).unwrap();
@@ -212,7 +230,11 @@ fn springs_support_without_dirichlet() {
         .map(|n| NodeSpring::normal_tangent(n, [0.0, 0.0, 1.0], 1.0, 0.0))
         .collect();
     sliding.add_springs(&s).unwrap();
-    assert!(sliding.factorize(&Dirichlet::new(mesh.num_nodes())).is_err());
+    assert!(
+        sliding
+            .factorize(&Dirichlet::new(mesh.num_nodes()))
+            .is_err()
+    );
 }
 
 /// An unconstrained body cannot be factorized; the error says why.
@@ -220,7 +242,9 @@ fn springs_support_without_dirichlet() {
 fn unconstrained_system_is_reported() {
     let mesh = box_mesh([1.0, 1.0, 1.0], [1, 1, 1], 0.0);
     let sys = StiffnessSystem::linear(&mesh, &LinearMaterial::default()).unwrap();
-    let err = sys.factorize(&Dirichlet::new(mesh.num_nodes())).unwrap_err();
+    let err = sys
+        .factorize(&Dirichlet::new(mesh.num_nodes()))
+        .unwrap_err();
     assert!(err.to_string().contains("rigid motion"), "{err}");
     assert!(StiffnessSystem::linear(&mesh, &LinearMaterial::new(5.0, 0.5)).is_err());
 }
@@ -244,7 +268,12 @@ fn cantilever_tip(n: usize, mat: &LinearMaterial, len: f64, h: f64, load: f64) -
         .collect();
     let mut f = vec![0.0; 3 * mesh.num_nodes()];
     let tau = load / (h * h);
-    loads::add_traction(&mut f, mesh.nodes(), &end, &vec![[0.0, 0.0, tau]; end.len()]);
+    loads::add_traction(
+        &mut f,
+        mesh.nodes(),
+        &end,
+        &vec![[0.0, 0.0, tau]; end.len()],
+    );
     let u = sys.factorize(&bc).unwrap().solve(&f);
     // Mean vertical displacement of the end-face nodes.
     let tip: Vec<f64> = (0..mesh.num_nodes())
@@ -271,20 +300,30 @@ fn cantilever_converges_to_timoshenko() {
         let tip = cantilever_tip(n, &mat, len, h, load);
         tips.push(tip);
         let err = (tip - exact).abs() / exact;
-        eprintln!("cantilever n={n}: tip {tip:.6} vs Timoshenko {exact:.6}: error {:.2}%", 100.0 * err);
+        eprintln!(
+            "cantilever n={n}: tip {tip:.6} vs Timoshenko {exact:.6}: error {:.2}%",
+            100.0 * err
+        );
         errors.push(err);
     }
     for w in errors.windows(2) {
         assert!(w[1] < w[0], "error must fall under refinement: {errors:?}");
     }
-    assert!(*errors.last().unwrap() < 0.03, "finest error {:?}", errors.last());
+    assert!(
+        *errors.last().unwrap() < 0.03,
+        "finest error {:?}",
+        errors.last()
+    );
     // Richardson extrapolation of the last three meshes lands on beam theory.
     let (a, b, c) = (tips[1], tips[2], tips[3]);
     let ratio = (b - a) / (c - b);
     let extrapolated = c + (c - b) / (ratio - 1.0);
     let order = ratio.log2();
     let err = (extrapolated - exact).abs() / exact;
-    eprintln!("observed order {order:.2}, extrapolated tip {extrapolated:.6}: error {:.2}%", 100.0 * err);
+    eprintln!(
+        "observed order {order:.2}, extrapolated tip {extrapolated:.6}: error {:.2}%",
+        100.0 * err
+    );
     assert!(order > 1.0, "convergence order {order}");
     assert!(err < 0.01);
 }

@@ -114,7 +114,12 @@ fn vtp_round_trip_surface_and_point_set() {
     assert_eq!(back.point_data, points.point_data);
     assert_eq!(back.skipped_cells, 5, "one Verts cell per point");
     // A tet-only mesh has no PolyData representation.
-    let err = write_bytes(&two_tets(), Format::Vtp, WriteOptions::default(), Path::new("x.vtp"));
+    let err = write_bytes(
+        &two_tets(),
+        Format::Vtp,
+        WriteOptions::default(),
+        Path::new("x.vtp"),
+    );
     assert!(err.unwrap_err().to_string().contains("surfaces only"));
 }
 
@@ -128,23 +133,42 @@ fn vtk_legacy_round_trip() {
     }
     let s = surface();
     for binary in [false, true] {
-        assert_eq!(read_ok(&write_as(&s, Format::VtkLegacy, binary), Format::VtkLegacy), s);
+        assert_eq!(
+            read_ok(&write_as(&s, Format::VtkLegacy, binary), Format::VtkLegacy),
+            s
+        );
     }
     // Arrays with more than 4 components go to a FIELD block; names with spaces survive.
     let mut wide = two_tets();
-    wide.point_data = vec![DataArray::new("stress tensor", 6, (0..30).map(f64::from).collect())];
+    wide.point_data = vec![DataArray::new(
+        "stress tensor",
+        6,
+        (0..30).map(f64::from).collect(),
+    )];
     for binary in [false, true] {
-        assert_eq!(read_ok(&write_as(&wide, Format::VtkLegacy, binary), Format::VtkLegacy), wide);
+        assert_eq!(
+            read_ok(
+                &write_as(&wide, Format::VtkLegacy, binary),
+                Format::VtkLegacy
+            ),
+            wide
+        );
     }
 }
 
 #[test]
 fn msh_round_trip() {
-    let mut m = two_tets();
-    m.triangles = surface().triangles;
+    let m = two_tets();
     let bytes = write_as(&m, Format::Msh, false);
     assert!(bytes.starts_with(b"$MeshFormat\n2.2 0 8\n$EndMeshFormat\n"));
     assert_eq!(read_ok(&bytes, Format::Msh), m);
+    // With tets and triangles, cell data (over the tets) is not written: $ElementData would not
+    // cover every element.
+    let mut both = two_tets();
+    both.triangles = surface().triangles;
+    let back = read_ok(&write_as(&both, Format::Msh, false), Format::Msh);
+    both.cell_data.clear();
+    assert_eq!(back, both);
     let s = surface();
     assert_eq!(read_ok(&write_as(&s, Format::Msh, false), Format::Msh), s);
 }
@@ -155,7 +179,12 @@ fn obj_round_trip() {
     let back = read_ok(&write_as(&s, Format::Obj, false), Format::Obj);
     assert_eq!(back.nodes, s.nodes);
     assert_eq!(back.triangles, s.triangles);
-    let err = write_bytes(&two_tets(), Format::Obj, WriteOptions::default(), Path::new("x.obj"));
+    let err = write_bytes(
+        &two_tets(),
+        Format::Obj,
+        WriteOptions::default(),
+        Path::new("x.obj"),
+    );
     assert!(err.unwrap_err().to_string().contains("surfaces only"));
 }
 
@@ -194,7 +223,10 @@ fn write_and_read_files_on_disk_with_units() {
             assert!((a - 10.0 * b).abs() < 1e-12, "{ext}");
         }
         // Non-length arrays are not scaled.
-        assert_eq!(back.point_array("temperature"), m.point_array("temperature"));
+        assert_eq!(
+            back.point_array("temperature"),
+            m.point_array("temperature")
+        );
     }
 }
 
@@ -253,12 +285,24 @@ struct TetArrays {
 fn tet_arrays(big_endian: bool) -> TetArrays {
     let f32s = |v: &[f32]| -> Vec<u8> {
         v.iter()
-            .flat_map(|x| if big_endian { x.to_be_bytes() } else { x.to_le_bytes() })
+            .flat_map(|x| {
+                if big_endian {
+                    x.to_be_bytes()
+                } else {
+                    x.to_le_bytes()
+                }
+            })
             .collect()
     };
     let i32s = |v: &[i32]| -> Vec<u8> {
         v.iter()
-            .flat_map(|x| if big_endian { x.to_be_bytes() } else { x.to_le_bytes() })
+            .flat_map(|x| {
+                if big_endian {
+                    x.to_be_bytes()
+                } else {
+                    x.to_le_bytes()
+                }
+            })
             .collect()
     };
     TetArrays {
@@ -301,7 +345,9 @@ fn zlib(data: &[u8]) -> Vec<u8> {
 fn b64_zlib(data: &[u8], block: usize, h64: bool, be: bool) -> String {
     let chunks: Vec<&[u8]> = data.chunks(block).collect();
     let compressed: Vec<Vec<u8>> = chunks.iter().map(|c| zlib(c)).collect();
-    let last = chunks.last().map_or(0, |c| if c.len() == block { 0 } else { c.len() });
+    let last = chunks
+        .last()
+        .map_or(0, |c| if c.len() == block { 0 } else { c.len() });
     let mut hdr = header(chunks.len() as u64, h64, be);
     hdr.extend(header(block as u64, h64, be));
     hdr.extend(header(last as u64, h64, be));
@@ -335,7 +381,10 @@ fn vtu_inline(attrs: &str, enc: &dyn Fn(&[u8]) -> String, a: &TetArrays) -> Stri
 }
 
 fn check_tet(m: &MeshFile) {
-    assert_eq!(m.nodes, vec![[0., 0., 0.], [1., 0., 0.], [0., 1., 0.], [0., 0., 1.]]);
+    assert_eq!(
+        m.nodes,
+        vec![[0., 0., 0.], [1., 0., 0.], [0., 1., 0.], [0., 0., 1.]]
+    );
     assert_eq!(m.tets, vec![[0, 1, 2, 3]]);
     assert_eq!(m.point_array("displacement").unwrap().values, vec![0.5; 12]);
 }
@@ -361,7 +410,11 @@ fn vtu_binary_variants() {
     }
     // header_type defaults to UInt32.
     let a = tet_arrays(false);
-    let plain = vtu_inline(r#"byte_order="LittleEndian""#, &|d| b64_joined(d, false, false), &a);
+    let plain = vtu_inline(
+        r#"byte_order="LittleEndian""#,
+        &|d| b64_joined(d, false, false),
+        &a,
+    );
     check_tet(&read_ok(plain.as_bytes(), Format::Vtu));
 }
 
@@ -395,7 +448,11 @@ fn vtu_appended(base64: bool, compressed: bool) -> Vec<u8> {
         offsets.push(at);
         at += b.len();
     }
-    let comp = if compressed { r#" compressor="vtkZLibDataCompressor""# } else { "" };
+    let comp = if compressed {
+        r#" compressor="vtkZLibDataCompressor""#
+    } else {
+        ""
+    };
     let enc = if base64 { "base64" } else { "raw" };
     let mut out = format!(
         r#"<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64"{comp}>
@@ -447,7 +504,7 @@ fn vtp_sample_polys_strips_verts_lines() {
     assert_eq!(m.nodes.len(), 5);
     assert_eq!(
         m.triangles,
-        vec![[0, 1, 2], [0, 2, 3], [1, 2, 4], [0, 1, 3], [1, 3, 2]]
+        vec![[0, 1, 2], [0, 2, 3], [1, 2, 4], [0, 1, 3], [3, 1, 2]]
     );
     assert_eq!(m.skipped_cells, 2);
     // Cell order is verts, lines, polys, strips: the polygons have values 3 and 4, the strip 5.
@@ -497,10 +554,20 @@ fn vtk_legacy_ascii_unstructured_grid() {
     assert_eq!(m.tets, vec![[0, 1, 2, 3]]);
     assert_eq!(m.triangles, vec![[1, 2, 4]]);
     assert_eq!(m.skipped_cells, 1);
-    assert_eq!(m.point_array("temperature").unwrap().values, vec![1., 2., 3., 4., 5.]);
+    assert_eq!(
+        m.point_array("temperature").unwrap().values,
+        vec![1., 2., 3., 4., 5.]
+    );
     assert_eq!(m.point_array("displacement").unwrap().components, 3);
-    assert_eq!(m.cell_data[0], DataArray::new("region id", 2, vec![7.0, 8.0]));
-    assert_eq!(m.cell_data[1].values, vec![0.1f32 as f64]);
+    assert_eq!(
+        m.cell_data[0],
+        DataArray::new("region id", 2, vec![7.0, 8.0])
+    );
+    assert_eq!(
+        m.cell_data[1].values,
+        vec![0.1],
+        "ASCII keeps the written value"
+    );
 }
 
 const VTK_51: &str = "# vtk DataFile Version 5.1
@@ -546,8 +613,12 @@ fn vtk_legacy_51_offsets_connectivity() {
 
 /// A binary POLYDATA: two polygons (a triangle and a quad), a strip, a line, with scalars.
 fn vtk_binary_polydata() -> Vec<u8> {
-    let mut b = b"# vtk DataFile Version 3.0\nvtk output\nBINARY\nDATASET POLYDATA\nPOINTS 5 float\n".to_vec();
-    for x in [0f32, 0., 0., 1., 0., 0., 1., 1., 0., 0., 1., 0., 10., 32., 13.] {
+    let mut b =
+        b"# vtk DataFile Version 3.0\nvtk output\nBINARY\nDATASET POLYDATA\nPOINTS 5 float\n"
+            .to_vec();
+    for x in [
+        0f32, 0., 0., 1., 0., 0., 1., 1., 0., 0., 1., 0., 10., 32., 13.,
+    ] {
         b.extend(x.to_be_bytes());
     }
     b.extend(b"\nPOLYGONS 2 9\n");
@@ -576,10 +647,14 @@ fn vtk_binary_polydata() -> Vec<u8> {
 fn vtk_legacy_binary_polydata() {
     let m = read_ok(&vtk_binary_polydata(), Format::VtkLegacy);
     assert_eq!(m.nodes.len(), 5);
-    assert_eq!(m.nodes[4], [10.0, 32.0, 13.0], "binary data may hold whitespace bytes");
+    assert_eq!(
+        m.nodes[4],
+        [10.0, 32.0, 13.0],
+        "binary data may hold whitespace bytes"
+    );
     assert_eq!(
         m.triangles,
-        vec![[0, 1, 2], [0, 1, 2], [0, 2, 3], [0, 1, 3], [1, 3, 2]]
+        vec![[0, 1, 2], [0, 1, 2], [0, 2, 3], [0, 1, 3], [3, 1, 2]]
     );
     assert_eq!(m.skipped_cells, 1);
     assert_eq!(m.point_data[0].values, vec![1., 2., 3., 4., 5.]);
@@ -661,10 +736,17 @@ fn msh_v22_sample() {
     let m = read_ok(MSH_V22.as_bytes(), Format::Msh);
     assert_eq!(m.nodes[0], [0.0, 0.0, 0.0]);
     // Node ids 3 1 7 2 9 map to indices 0..5 in file order.
-    assert_eq!(m.tets, vec![[0, 1, 2, 3], [1, 2, 3, 4]], "tet10 keeps its corners");
+    assert_eq!(
+        m.tets,
+        vec![[0, 1, 2, 3], [1, 2, 3, 4]],
+        "tet10 keeps its corners"
+    );
     assert_eq!(m.triangles, vec![[0, 1, 4], [0, 4, 2]], "the quad is split");
     assert_eq!(m.skipped_cells, 2);
-    assert_eq!(m.point_data, vec![DataArray::new("pressure", 1, vec![30., 10., 70., 20., 90.])]);
+    assert_eq!(
+        m.point_data,
+        vec![DataArray::new("pressure", 1, vec![30., 10., 70., 20., 90.])]
+    );
 }
 
 const MSH_V41: &str = "$MeshFormat
@@ -738,7 +820,10 @@ unknown statement here
 fn obj_sample() {
     let m = read_ok(OBJ_SAMPLE.as_bytes(), Format::Obj);
     assert_eq!(m.nodes.len(), 4);
-    assert_eq!(m.triangles, vec![[0, 1, 2], [0, 2, 3], [0, 2, 3], [1, 2, 3]]);
+    assert_eq!(
+        m.triangles,
+        vec![[0, 1, 2], [0, 2, 3], [0, 2, 3], [1, 2, 3]]
+    );
     assert_eq!(m.skipped_cells, 1);
 }
 
@@ -771,7 +856,10 @@ fn stl_binary(header: &[u8]) -> Vec<u8> {
     let mut b = header.to_vec();
     b.resize(80, b' ');
     b.extend(2u32.to_le_bytes());
-    let tris = [[[0f32, 0., 0.], [0., 1., 0.], [1., 0., 0.]], [[0., 0., 0.], [1., 0., 0.], [-0., 0., 1.]]];
+    let tris = [
+        [[0f32, 0., 0.], [0., 1., 0.], [1., 0., 0.]],
+        [[0., 0., 0.], [1., 0., 0.], [-0., 0., 1.]],
+    ];
     for t in tris {
         b.extend([0u8; 12]);
         for p in t {
@@ -799,60 +887,116 @@ fn stl_binary_sample_even_when_it_starts_with_solid() {
 #[test]
 fn obj_errors() {
     let e = read_err(b"# x\nv 1 2 3\nv 1 2\n", Format::Obj);
-    assert!(e.contains(":3:") && e.contains("expected 3 coordinates after 'v', found 2"), "{e}");
+    assert!(
+        e.contains(":3:") && e.contains("expected 3 coordinates after 'v', found 2"),
+        "{e}"
+    );
     let e = read_err(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", Format::Obj);
     assert!(e.contains(":4:") && e.contains("found 'x'"), "{e}");
     let e = read_err(b"v 0 0 0\nf 1 -3 1\n", Format::Obj);
-    assert!(e.contains(":2:") && e.contains("relative vertex index -3"), "{e}");
+    assert!(
+        e.contains(":2:") && e.contains("relative vertex index -3"),
+        "{e}"
+    );
     let e = read_err(b"v 0 0 0\nv 1 0 0\nf 1 2 9\n", Format::Obj);
     assert!(e.contains(":3:") && e.contains("vertex 9"), "{e}");
     let e = read_err(b"v 0 0 0\nf 1 1\n", Format::Obj);
-    assert!(e.contains(":2:") && e.contains("at least 3 vertices"), "{e}");
+    assert!(
+        e.contains(":2:") && e.contains("at least 3 vertices"),
+        "{e}"
+    );
 }
 
 #[test]
 fn msh_errors() {
-    let truncated: String = MSH_V1.lines().take(4).map(|l| format!("{l}\n")).collect();
+    let truncated: String = MSH_V1.lines().take(5).map(|l| format!("{l}\n")).collect();
     let e = read_err(truncated.as_bytes(), Format::Msh);
-    assert!(e.contains("file ended while reading node 4 of 5 in $NOD section"), "{e}");
+    assert!(
+        e.contains("file ended while reading node 4 of 5 in $NOD section"),
+        "{e}"
+    );
     let bad_id = MSH_V1.replace("3 2 2 2 3 20 30 55", "3 2 2 2 3 20 30 56");
     let e = read_err(bad_id.as_bytes(), Format::Msh);
-    assert!(e.contains(":11:") && e.contains("node 56"), "{e}");
-    let e = read_err(MSH_V1.replace("40 0 0 1", "40 0 zero 1").as_bytes(), Format::Msh);
-    assert!(e.contains(":5:") && e.contains("found 'zero'"), "{e}");
+    assert!(e.contains(":13:") && e.contains("node 56"), "{e}");
+    let e = read_err(
+        MSH_V1.replace("40 0 0 1", "40 0 zero 1").as_bytes(),
+        Format::Msh,
+    );
+    assert!(e.contains(":6:") && e.contains("found 'zero'"), "{e}");
     let e = read_err(b"$MeshFormat\n2.2 1 8\n$EndMeshFormat\n", Format::Msh);
     assert!(e.contains(":2:") && e.contains("binary .msh"), "{e}");
-    let e = read_err(MSH_V41.replace("3 100 500 501 502", "3 100 500 501").as_bytes(), Format::Msh);
-    assert!(e.contains(":30:") && e.contains("has 3 nodes, expected 4"), "{e}");
-    let e = read_err(MSH_V22.replace("$EndNodes", "$EndNode").as_bytes(), Format::Msh);
-    assert!(e.contains(":16:") && e.contains("expected $EndNodes"), "{e}");
+    let e = read_err(
+        MSH_V41
+            .replace("3 100 500 501 502", "3 100 500 501")
+            .as_bytes(),
+        Format::Msh,
+    );
+    assert!(
+        e.contains(":31:") && e.contains("has 3 nodes, expected 4"),
+        "{e}"
+    );
+    let e = read_err(
+        MSH_V22.replace("$EndNodes", "$EndNode").as_bytes(),
+        Format::Msh,
+    );
+    assert!(
+        e.contains(":15:") && e.contains("expected $EndNodes"),
+        "{e}"
+    );
 }
 
 #[test]
 fn vtk_legacy_errors() {
     let cut = &VTK_ASCII_UG[..VTK_ASCII_UG.find("0 0 1 1 1 1").unwrap()];
     let e = read_err(cut.as_bytes(), Format::VtkLegacy);
-    assert!(e.contains("file ended while reading POINTS") && e.contains(":9:"), "{e}");
-    let e = read_err(VTK_ASCII_UG.replace("4 0 1 2 3", "4 0 1 two 3").as_bytes(), Format::VtkLegacy);
+    assert!(
+        e.contains("file ended while reading POINTS") && e.contains(":9:"),
+        "{e}"
+    );
+    let e = read_err(
+        VTK_ASCII_UG.replace("4 0 1 2 3", "4 0 1 two 3").as_bytes(),
+        Format::VtkLegacy,
+    );
     assert!(e.contains(":12:") && e.contains("found 'two'"), "{e}");
-    let e = read_err(b"# vtk DataFile Version 3.0\nx\nASCII\nDATASET STRUCTURED_POINTS\n", Format::VtkLegacy);
+    let e = read_err(
+        b"# vtk DataFile Version 3.0\nx\nASCII\nDATASET STRUCTURED_POINTS\n",
+        Format::VtkLegacy,
+    );
     assert!(e.contains("STRUCTURED_POINTS"), "{e}");
     let e = read_err(b"hello\n", Format::VtkLegacy);
     assert!(e.contains(":1:") && e.contains("DataFile Version"), "{e}");
     let bin = vtk_binary_polydata();
     let e = read_err(&bin[..120], Format::VtkLegacy);
-    assert!(e.contains("offset") && e.contains("file ended while reading"), "{e}");
+    assert!(
+        e.contains("offset") && e.contains("file ended while reading"),
+        "{e}"
+    );
 }
 
 #[test]
 fn vtk_xml_errors() {
-    let e = read_err(VTU_ASCII.replace("0 1 2 3 4</DataArray>", "0 1 2 3</DataArray>").as_bytes(), Format::Vtu);
-    assert!(e.contains(":7:") && e.contains("'t' has 4 tuples, expected 5"), "{e}");
-    let e = read_err(VTU_ASCII.replace("</Cells>", "</Cellz>").as_bytes(), Format::Vtu);
+    let e = read_err(
+        VTU_ASCII
+            .replace("0 1 2 3 4</DataArray>", "0 1 2 3</DataArray>")
+            .as_bytes(),
+        Format::Vtu,
+    );
+    assert!(
+        e.contains(":7:") && e.contains("'t' has 4 tuples, expected 5"),
+        "{e}"
+    );
+    let e = read_err(
+        VTU_ASCII.replace("</Cells>", "</Cellz>").as_bytes(),
+        Format::Vtu,
+    );
     assert!(e.contains("malformed XML"), "{e}");
     let a = tet_arrays(false);
-    let broken = vtu_inline(r#"byte_order="LittleEndian""#, &|d| b64_joined(d, false, false), &a)
-        .replacen("format=\"binary\">\n  ", "format=\"binary\">\n  !!", 1);
+    let broken = vtu_inline(
+        r#"byte_order="LittleEndian""#,
+        &|d| b64_joined(d, false, false),
+        &a,
+    )
+    .replacen("format=\"binary\">\n  ", "format=\"binary\">\n  !!", 1);
     let e = read_err(broken.as_bytes(), Format::Vtu);
     assert!(e.contains("displacement") && e.contains("base64"), "{e}");
     let mut raw = vtu_appended(false, false);
@@ -865,14 +1009,23 @@ fn vtk_xml_errors() {
 
 #[test]
 fn stl_errors() {
-    let e = read_err(STL_ASCII.replace("vertex 0 1 0", "vertex 0 1").as_bytes(), Format::Stl);
-    assert!(e.contains(":5:") && e.contains("expected a vertex coordinate"), "{e}");
+    let e = read_err(
+        STL_ASCII.replace("vertex 0 1 0", "vertex 0 1").as_bytes(),
+        Format::Stl,
+    );
+    assert!(
+        e.contains(":5:") && e.contains("expected 3 coordinates after 'vertex', found 2"),
+        "{e}"
+    );
     let cut = &STL_ASCII[..STL_ASCII.find("endsolid").unwrap()];
     let e = read_err(cut.as_bytes(), Format::Stl);
     assert!(e.contains("file ended early"), "{e}");
     let b = stl_binary(b"bin");
     let e = read_err(&b[..150], Format::Stl);
-    assert!(e.contains("offset 150") && e.contains("facet 2 of 2"), "{e}");
+    assert!(
+        e.contains("offset 150") && e.contains("facet 2 of 2"),
+        "{e}"
+    );
     let e = read_err(&b[..40], Format::Stl);
     assert!(e.contains("offset 40"), "{e}");
 }
@@ -964,7 +1117,16 @@ fn huge_declared_counts_do_not_allocate_or_panic() {
     assert!(e.contains("facet 1 of 4294967295"), "{e}");
     let z = vtu_inline(
         r#"compressor="vtkZLibDataCompressor" header_type="UInt64""#,
-        &|_| B64.encode([u64::MAX.to_le_bytes(), 1u64.to_le_bytes(), 0u64.to_le_bytes()].concat()),
+        &|_| {
+            B64.encode(
+                [
+                    u64::MAX.to_le_bytes(),
+                    1u64.to_le_bytes(),
+                    0u64.to_le_bytes(),
+                ]
+                .concat(),
+            )
+        },
         &tet_arrays(false),
     );
     let e = read_err(z.as_bytes(), Format::Vtu);
@@ -1027,7 +1189,11 @@ fn real_files_survive_a_round_trip_through_every_format() {
         assert_eq!(back.tets, liver.tets, "{format:?}");
     }
     let surf = read(data!("sofa_liver.vtk"), Unit::Mm).unwrap();
-    for (format, binary) in [(Format::Vtp, true), (Format::Obj, false), (Format::Stl, false)] {
+    for (format, binary) in [
+        (Format::Vtp, true),
+        (Format::Obj, false),
+        (Format::Stl, false),
+    ] {
         let back = read_ok(&write_as(&surf, format, binary), format);
         assert_eq!(back.triangles.len(), surf.triangles.len(), "{format:?}");
         assert_eq!(coords_of(&back), coords_of(&surf), "{format:?}");

@@ -83,7 +83,11 @@ fn sofa_liver_smooth_obj_facts() {
     assert!(st.closed && st.consistently_oriented);
     assert_eq!(st.genus, 0);
     assert!(st.signed_volume_mm3 > 0.0, "outward");
-    assert!(close(st.signed_volume_mm3, 39.27, 1e-3), "{}", st.signed_volume_mm3);
+    assert!(
+        close(st.signed_volume_mm3, 39.27, 1e-3),
+        "{}",
+        st.signed_volume_mm3
+    );
     // Same frame as sofa_liver.msh: bounding boxes nearly coincide.
     let tets = TetMesh::from_file(&io::read(data("sofa_liver.msh"), Unit::Mm).unwrap()).unwrap();
     let (a, b) = (s.bounding_box(), tets.bounding_box());
@@ -106,7 +110,11 @@ fn sofa_liver_vtk_facts() {
     assert!(st.closed && st.consistently_oriented);
     assert_eq!(st.genus, 0);
     assert!(st.signed_volume_mm3 < 0.0, "faces inward");
-    assert!(close(-st.signed_volume_mm3, 1_477_000.0, 2e-3), "{}", st.signed_volume_mm3);
+    assert!(
+        close(-st.signed_volume_mm3, 1_477_000.0, 2e-3),
+        "{}",
+        st.signed_volume_mm3
+    );
     let (lo, hi) = big.bounding_box();
     let size = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]];
     for (got, want) in size.iter().zip([194.0, 154.0, 157.0]) {
@@ -120,21 +128,26 @@ fn sofa_liver_vtk_facts() {
 /// `fem sag` on sofa_liver.msh (cm) agrees node by node with scikit-fem (tests/reference).
 #[test]
 fn sag_matches_scikit_fem_reference() {
-    let reference: serde_json::Value = serde_json::from_str(include_str!(
-        "reference/sofa_liver_sag_skfem.json"
-    ))
-    .unwrap();
+    let reference: serde_json::Value =
+        serde_json::from_str(include_str!("reference/sofa_liver_sag_skfem.json")).unwrap();
     let file = io::read(data("sofa_liver.msh"), Unit::Cm).unwrap();
     let mesh = TetMesh::from_file(&file).unwrap();
     let r = sag::solve(&mesh, &sag::SagParams::default()).unwrap();
-    assert_eq!(r.fixed_nodes as u64, reference["fixed_nodes"].as_u64().unwrap());
+    assert_eq!(
+        r.fixed_nodes as u64,
+        reference["fixed_nodes"].as_u64().unwrap()
+    );
     let uref: Vec<[f64; 3]> = reference["displacement_mm"]
         .as_array()
         .unwrap()
         .iter()
         .map(|v| {
             let a = v.as_array().unwrap();
-            [a[0].as_f64().unwrap(), a[1].as_f64().unwrap(), a[2].as_f64().unwrap()]
+            [
+                a[0].as_f64().unwrap(),
+                a[1].as_f64().unwrap(),
+                a[2].as_f64().unwrap(),
+            ]
         })
         .collect();
     assert_eq!(uref.len(), mesh.num_nodes());
@@ -157,11 +170,21 @@ fn sag_matches_scikit_fem_reference() {
             assert_eq!(d, 0.0, "fixed node {i} must not move");
         }
     }
-    eprintln!("sag vs scikit-fem: max |Δu|/|u|max = {worst_vs_max:e}, max per-node rel = {worst_node_rel:e}");
+    eprintln!(
+        "sag vs scikit-fem: max |Δu|/|u|max = {worst_vs_max:e}, max per-node rel = {worst_node_rel:e}"
+    );
     assert!(worst_vs_max <= 1e-6);
     assert!(worst_node_rel <= 1e-6);
     let e_ref = reference["strain_energy"].as_f64().unwrap();
     assert!(close(r.strain_energy, e_ref, 1e-6));
-    assert!(close(r.max_disp_mm, reference["max_disp_mm"].as_f64().unwrap(), 1e-6));
-    assert!(close(r.mean_disp_mm, reference["mean_disp_mm"].as_f64().unwrap(), 1e-6));
+    assert!(close(
+        r.max_disp_mm,
+        reference["max_disp_mm"].as_f64().unwrap(),
+        1e-6
+    ));
+    assert!(close(
+        r.mean_disp_mm,
+        reference["mean_disp_mm"].as_f64().unwrap(),
+        1e-6
+    ));
 }

@@ -10,7 +10,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Parser)]
-#[command(name = "librplus", version, about = "LIBR+ intraoperative liver registration")]
+#[command(
+    name = "librplus",
+    version,
+    about = "LIBR+ intraoperative liver registration"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -78,6 +82,23 @@ enum FemCmd {
     },
 }
 
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum OrderingArg {
+    /// Geometric nested dissection.
+    Nd,
+    /// Approximate minimum degree.
+    Amd,
+}
+
+impl From<OrderingArg> for fem::Ordering {
+    fn from(o: OrderingArg) -> Self {
+        match o {
+            OrderingArg::Nd => fem::Ordering::NestedDissection,
+            OrderingArg::Amd => fem::Ordering::Amd,
+        }
+    }
+}
+
 #[derive(Subcommand)]
 enum BenchCmd {
     /// LIBR preload workload: assemble, factorize once, solve `rhs` unit-load right-hand sides.
@@ -96,6 +117,9 @@ enum BenchCmd {
         /// Seed for the random load positions.
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Fill-reducing ordering: nd (geometric nested dissection) or amd.
+        #[arg(long, default_value = "nd")]
+        ordering: OrderingArg,
     },
 }
 
@@ -123,7 +147,8 @@ fn run(cli: Cli) -> Result<()> {
             rhs,
             repeat,
             seed,
-        }) => bench_basis(&mesh, &common, rhs, repeat, seed),
+            ordering,
+        }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
     }
 }
 
@@ -199,7 +224,8 @@ fn mesh_info(path: &Path, c: &Common) -> Result<()> {
     let out = if !file.tets.is_empty() {
         let mesh = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
         let problems = mesh.problems(usize::MAX);
-        let count = |f: fn(&librplus::mesh::MeshError) -> bool| problems.iter().filter(|p| f(p)).count();
+        let count =
+            |f: fn(&librplus::mesh::MeshError) -> bool| problems.iter().filter(|p| f(p)).count();
         let inverted = count(|p| matches!(p, librplus::mesh::MeshError::InvertedTet { .. }));
         let degenerate = count(|p| matches!(p, librplus::mesh::MeshError::DegenerateTet { .. }));
         let unused = count(|p| matches!(p, librplus::mesh::MeshError::UnusedNode { .. }));
@@ -236,7 +262,8 @@ fn mesh_info(path: &Path, c: &Common) -> Result<()> {
             "bbox_mm": bbox_json(lo, hi),
         })
     } else if !file.triangles.is_empty() {
-        let s = TriSurface::from_file(&file).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let s =
+            TriSurface::from_file(&file).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         let st = s.stats();
         let (lo, hi) = s.bounding_box();
         let largest = s.largest_component().stats();
@@ -333,8 +360,16 @@ fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
         ];
         if !file.tets.is_empty() {
             file.cell_data = vec![
-                DataArray::new("von_mises_kpa", 1, fields.iter().map(|f| f.von_mises_kpa).collect()),
-                DataArray::new("strain_energy", 1, fields.iter().map(|f| f.energy).collect()),
+                DataArray::new(
+                    "von_mises_kpa",
+                    1,
+                    fields.iter().map(|f| f.von_mises_kpa).collect(),
+                ),
+                DataArray::new(
+                    "strain_energy",
+                    1,
+                    fields.iter().map(|f| f.energy).collect(),
+                ),
             ];
         }
         io::write(out, &file, WriteOptions::default())?;
@@ -378,7 +413,14 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
-fn bench_basis(path: &Path, c: &Common, rhs: usize, repeat: usize, seed: u64) -> Result<()> {
+fn bench_basis(
+    path: &Path,
+    c: &Common,
+    rhs: usize,
+    repeat: usize,
+    seed: u64,
+    ordering: fem::Ordering,
+) -> Result<()> {
     if rhs == 0 {
         bail!("--rhs must be at least 1");
     }
@@ -386,7 +428,7 @@ fn bench_basis(path: &Path, c: &Common, rhs: usize, repeat: usize, seed: u64) ->
     let bar = indicatif::ProgressBar::new(repeat.max(1) as u64).with_message("bench basis");
     let mut runs = Vec::new();
     for _ in 0..repeat.max(1) {
-        runs.push(fem::basis_bench::run(&mesh, rhs, seed)?);
+        runs.push(fem::basis_bench::run(&mesh, rhs, seed, ordering)?);
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -408,6 +450,8 @@ fn bench_basis(path: &Path, c: &Common, rhs: usize, repeat: usize, seed: u64) ->
         "solve_per_rhs_ms": 1e3 * pick(|r| r.solve_all_s) / rhs as f64,
         "total_s": pick(|r| r.total_s),
         "nnz_lower": first.factor.nnz_lower,
+        "nnz_factor": first.factor.nnz_factor,
+        "ordering": first.factor.ordering,
         "max_rel_residual": runs.iter().map(|r| r.max_rel_residual).fold(0.0, f64::max),
     });
     emit(c.json, &out);

@@ -86,8 +86,13 @@ impl BlockPattern {
     pub fn to_matrix(&self, values: Vec<f64>) -> SparseColMat<usize, f64> {
         let n = 3 * self.nodes;
         // The pattern is sorted and in range by construction.
-        let symbolic =
-            SymbolicSparseColMat::new_checked(n, n, self.col_ptr.clone(), None, self.row_idx.clone());
+        let symbolic = SymbolicSparseColMat::new_checked(
+            n,
+            n,
+            self.col_ptr.clone(),
+            None,
+            self.row_idx.clone(),
+        );
         SparseColMat::new(symbolic, values)
     }
 }

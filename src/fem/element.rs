@@ -155,8 +155,16 @@ mod tests {
         let (g, v) = p1_gradients(&p).unwrap();
         let eps = strain(&g, &u);
         let sig = stress(&eps, lambda, mu);
-        let e_c: f64 = 0.5 * v * (0..3).flat_map(|a| (0..3).map(move |b| (a, b))).map(|(a, b)| sig[a][b] * eps[a][b]).sum::<f64>();
-        assert!((e_k - e_c).abs() < 1e-12 * e_c.abs().max(1.0), "{e_k} {e_c}");
+        let e_c: f64 = 0.5
+            * v
+            * (0..3)
+                .flat_map(|a| (0..3).map(move |b| (a, b)))
+                .map(|(a, b)| sig[a][b] * eps[a][b])
+                .sum::<f64>();
+        assert!(
+            (e_k - e_c).abs() < 1e-12 * e_c.abs().max(1.0),
+            "{e_k} {e_c}"
+        );
     }
 
     #[test]

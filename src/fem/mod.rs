@@ -11,10 +11,14 @@ pub mod basis_bench;
 pub mod element;
 pub mod loads;
 mod material;
+pub mod ordering;
 pub mod post;
 pub mod sag;
 mod solver;
 
 pub use assembly::{BlockPattern, LameField};
 pub use material::LinearMaterial;
-pub use solver::{Dirichlet, FactorInfo, FactorizedSystem, FemError, NodeSpring, StiffnessSystem};
+pub use solver::{
+    CholeskyFactor, Dirichlet, FactorInfo, FactorizedSystem, FemError, NodeSpring, Ordering,
+    StiffnessSystem,
+};

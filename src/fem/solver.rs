@@ -4,12 +4,28 @@
 
 use super::assembly::{BlockPattern, LameField, assemble_linear_stiffness};
 use super::material::LinearMaterial;
+use super::ordering::nested_dissection;
+use crate::mesh::NodeAdjacency;
 use crate::mesh::TetMesh;
-use faer::linalg::solvers::Solve;
-use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::perm::PermRef;
+use faer::sparse::linalg::cholesky::{
+    LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+};
 use faer::sparse::{SparseColMat, SymbolicSparseColMat};
-use faer::{Mat, MatMut, MatRef, Side};
+use faer::{Conj, Mat, MatMut, MatRef, Par, Side};
+use std::sync::Arc;
 use std::time::Instant;
+
+/// Fill-reducing ordering used by the sparse Cholesky factorization.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+pub enum Ordering {
+    /// Geometric nested dissection on the mesh nodes (default; least fill on 3-D meshes).
+    #[default]
+    NestedDissection,
+    /// faer's approximate minimum degree.
+    Amd,
+}
 
 /// Errors from building or solving an elastic system; each says how to fix the input.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -68,7 +84,8 @@ impl NodeSpring {
         let mut s = [[0.0; 3]; 3];
         for a in 0..3 {
             for b in 0..3 {
-                s[a][b] = (k_normal - k_tangent) * n[a] * n[b] + if a == b { k_tangent } else { 0.0 };
+                s[a][b] =
+                    (k_normal - k_tangent) * n[a] * n[b] + if a == b { k_tangent } else { 0.0 };
             }
         }
         Self { node, stiffness: s }
@@ -137,6 +154,8 @@ impl Dirichlet {
 pub struct StiffnessSystem {
     pattern: BlockPattern,
     values: Vec<f64>,
+    coords: Vec<[f64; 3]>,
+    ordering: Ordering,
 }
 
 impl StiffnessSystem {
@@ -169,7 +188,49 @@ impl StiffnessSystem {
         }
         let pattern = BlockPattern::new(mesh);
         let values = assemble_linear_stiffness(mesh, &pattern, lame);
-        Ok(Self { pattern, values })
+        Ok(Self {
+            pattern,
+            values,
+            coords: mesh.nodes().to_vec(),
+            ordering: Ordering::default(),
+        })
+    }
+
+    /// Chooses the fill-reducing ordering for later factorizations.
+    pub fn set_ordering(&mut self, ordering: Ordering) {
+        self.ordering = ordering;
+    }
+
+    /// Permutation of the free dofs (`fwd[new] = old`) for the chosen ordering, if not AMD.
+    fn free_permutation(
+        &self,
+        free_of_dof: &[usize],
+        nf: usize,
+    ) -> Option<(Vec<usize>, Vec<usize>)> {
+        match self.ordering {
+            Ordering::Amd => None,
+            Ordering::NestedDissection => {
+                let adj = NodeAdjacency {
+                    offsets: self.pattern.node_ptr.clone(),
+                    neighbors: self.pattern.block_rows.clone(),
+                };
+                let order = nested_dissection(&self.coords, &adj);
+                let mut fwd = Vec::with_capacity(nf);
+                for node in order {
+                    for a in 0..3 {
+                        let f = free_of_dof[3 * node as usize + a];
+                        if f != usize::MAX {
+                            fwd.push(f);
+                        }
+                    }
+                }
+                let mut inv = vec![0usize; nf];
+                for (new, &old) in fwd.iter().enumerate() {
+                    inv[old] = new;
+                }
+                Some((fwd, inv))
+            }
+        }
     }
 
     /// Adds node springs to the diagonal blocks.
@@ -179,7 +240,10 @@ impl StiffnessSystem {
             if i >= self.pattern.nodes {
                 return Err(FemError::InvalidParameter {
                     field: "springs",
-                    message: format!("node {} out of range ({} nodes)", s.node, self.pattern.nodes),
+                    message: format!(
+                        "node {} out of range ({} nodes)",
+                        s.node, self.pattern.nodes
+                    ),
                 });
             }
             for a in 0..3 {
@@ -273,13 +337,20 @@ impl StiffnessSystem {
         let kff = SparseColMat::new(symbolic, vals);
         let extract_s = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
-        let sym = SymbolicLlt::try_new(kff.symbolic(), Side::Lower)
+        let perm = self.free_permutation(&free_of_dof, nf);
+        let ord = match &perm {
+            Some((fwd, inv)) => SymmetricOrdering::Custom(PermRef::new_checked(fwd, inv, nf)),
+            None => SymmetricOrdering::Amd,
+        };
+        let sym = factorize_symbolic_cholesky(kff.symbolic(), Side::Lower, ord, Default::default())
             .map_err(|e| FemError::Factorization(format!("{e:?}")))?;
+        let sym = Arc::new(sym);
         let symbolic_s = t1.elapsed().as_secs_f64();
         let t2 = Instant::now();
-        let llt = Llt::try_new_with_symbolic(sym, kff.as_ref(), Side::Lower)
+        let llt = CholeskyFactor::numeric(sym, kff.as_ref())
             .map_err(|_| FemError::NotPositiveDefinite { free: nf })?;
         let numeric_s = t2.elapsed().as_secs_f64();
+        let nnz_factor = llt.symbolic.len_val();
         // Lift of the prescribed values: K·u_c restricted to free dofs.
         let mut uc = vec![0.0; n];
         let mut any = false;
@@ -300,6 +371,8 @@ impl StiffnessSystem {
                 dofs: n,
                 free_dofs: nf,
                 nnz_lower: kff.compute_nnz(),
+                nnz_factor,
+                ordering: self.ordering,
                 extract_s,
                 symbolic_s,
                 numeric_s,
@@ -317,6 +390,10 @@ pub struct FactorInfo {
     pub free_dofs: usize,
     /// Stored entries of the lower triangle of K_ff.
     pub nnz_lower: usize,
+    /// Stored entries of the Cholesky factor L (fill-in included).
+    pub nnz_factor: usize,
+    /// Ordering used.
+    pub ordering: Ordering,
     /// Time to extract K_ff.
     pub extract_s: f64,
     /// Time for the symbolic factorization (ordering, elimination tree, supernodes).
@@ -330,7 +407,7 @@ pub struct FactorInfo {
 pub struct FactorizedSystem {
     free: Vec<usize>,
     free_of_dof: Vec<usize>,
-    llt: Llt<usize, f64>,
+    llt: CholeskyFactor,
     prescribed: Vec<f64>,
     lift: Vec<f64>,
     info: FactorInfo,
@@ -376,6 +453,11 @@ impl FactorizedSystem {
         self.llt.solve_in_place(rhs);
     }
 
+    /// The Cholesky factor (shared symbolic part + numeric values).
+    pub fn factor(&self) -> &CholeskyFactor {
+        &self.llt
+    }
+
     /// Solves for many full load vectors (columns of `f`, 3n rows) with homogeneous constraints
     /// (prescribed values are not applied); returns full displacements, one column per load.
     pub fn solve_many_homogeneous(&self, f: MatRef<'_, f64>) -> Mat<f64> {
@@ -393,5 +475,83 @@ impl FactorizedSystem {
             }
         }
         u
+    }
+}
+
+/// A sparse Cholesky factor `P K Pᵀ = L Lᵀ`: the symbolic part (ordering, elimination tree,
+/// supernodes) is shared by `Arc` so it can be reused for new values with the same pattern.
+#[derive(Debug, Clone)]
+pub struct CholeskyFactor {
+    symbolic: Arc<SymbolicCholesky<usize>>,
+    values: Vec<f64>,
+}
+
+impl CholeskyFactor {
+    /// Numeric factorization of `a` (lower triangle stored) with a precomputed symbolic part.
+    pub fn numeric(
+        symbolic: Arc<SymbolicCholesky<usize>>,
+        a: faer::sparse::SparseColMatRef<'_, usize, f64>,
+    ) -> Result<Self, faer::sparse::linalg::LltError> {
+        let par = faer::get_global_parallelism();
+        let mut values = vec![0.0; symbolic.len_val()];
+        let mut mem = MemBuffer::try_new(
+            symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()),
+        )
+        .map_err(faer::sparse::FaerError::from)?;
+        symbolic.factorize_numeric_llt::<f64>(
+            &mut values,
+            a,
+            Side::Lower,
+            Default::default(),
+            par,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )?;
+        Ok(Self { symbolic, values })
+    }
+
+    /// The shared symbolic factorization.
+    pub fn symbolic(&self) -> &Arc<SymbolicCholesky<usize>> {
+        &self.symbolic
+    }
+
+    /// Solves `K X = B` in place (one column per right-hand side), in parallel over columns
+    /// blocks when there are many.
+    pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
+        let threads = rayon::current_num_threads();
+        if threads > 1 && rhs.ncols() >= 2 * threads {
+            // Independent column blocks, one sequential solve per thread: no synchronisation
+            // inside the supernodal sweeps, which scale poorly on few cores.
+            self.solve_split(rhs, threads);
+        } else {
+            self.solve_block(rhs, faer::get_global_parallelism());
+        }
+    }
+
+    fn solve_split(&self, rhs: MatMut<'_, f64>, parts: usize) {
+        if parts <= 1 || rhs.ncols() < 2 {
+            self.solve_block(rhs, Par::Seq);
+            return;
+        }
+        let left = parts / 2;
+        let split = rhs.ncols() * left / parts;
+        let (a, b) = rhs.split_at_col_mut(split);
+        rayon::join(
+            || self.solve_split(a, left),
+            || self.solve_split(b, parts - left),
+        );
+    }
+
+    fn solve_block(&self, rhs: MatMut<'_, f64>, par: Par) {
+        let mut mem = MemBuffer::new(
+            self.symbolic
+                .solve_in_place_scratch::<f64>(rhs.ncols(), par),
+        );
+        LltRef::new(&self.symbolic, &self.values).solve_in_place_with_conj(
+            Conj::No,
+            rhs,
+            par,
+            MemStack::new(&mut mem),
+        );
     }
 }

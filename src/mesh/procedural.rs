@@ -7,7 +7,11 @@ use super::TetMesh;
 /// axis with a fixed pseudo-random sequence so the tets are irregular but still positive.
 pub fn box_mesh(size: [f64; 3], divisions: [usize; 3], jitter: f64) -> TetMesh {
     let [nx, ny, nz] = divisions.map(|d| d.max(1));
-    let h = [size[0] / nx as f64, size[1] / ny as f64, size[2] / nz as f64];
+    let h = [
+        size[0] / nx as f64,
+        size[1] / ny as f64,
+        size[2] / nz as f64,
+    ];
     let id = |i: usize, j: usize, k: usize| (i + (nx + 1) * (j + (ny + 1) * k)) as u32;
     let mut rng = crate::util::SplitMix64::new(0x5eed);
     let mut nodes = Vec::with_capacity((nx + 1) * (ny + 1) * (nz + 1));
@@ -26,7 +30,14 @@ pub fn box_mesh(size: [f64; 3], divisions: [usize; 3], jitter: f64) -> TetMesh {
             }
         }
     }
-    const PERMS: [[usize; 3]; 6] = [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]];
+    const PERMS: [[usize; 3]; 6] = [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ];
     let mut tets = Vec::with_capacity(6 * nx * ny * nz);
     for k in 0..nz {
         for j in 0..ny {

@@ -214,7 +214,9 @@ impl TriSurface {
         for &c in &ids {
             sizes[c as usize] += 1;
         }
-        let best = (0..count).max_by_key(|&c| (sizes[c], usize::MAX - c)).unwrap_or(0) as u32;
+        let best = (0..count)
+            .max_by_key(|&c| (sizes[c], usize::MAX - c))
+            .unwrap_or(0) as u32;
         let triangles = self
             .triangles
             .iter()

@@ -19,7 +19,9 @@ pub enum MeshError {
         tets: usize,
     },
     /// A tet refers to a node that does not exist.
-    #[error("tet {tet} refers to node {node}, but the mesh has only {nodes} nodes (0-based indices)")]
+    #[error(
+        "tet {tet} refers to node {node}, but the mesh has only {nodes} nodes (0-based indices)"
+    )]
     IndexOutOfRange {
         /// Tet index.
         tet: usize,
@@ -596,7 +598,10 @@ mod tests {
         // tet 1: det[(−1,1,0),(0,1,0),(−1,0,1)] = −1 → inverted; tet 2 is flat (z = 0).
         let problems = m.problems(10);
         assert!(matches!(problems[0], MeshError::InvertedTet { tet: 1, .. }));
-        assert!(matches!(problems[1], MeshError::DegenerateTet { tet: 2, .. }));
+        assert!(matches!(
+            problems[1],
+            MeshError::DegenerateTet { tet: 2, .. }
+        ));
         assert!(matches!(problems[2], MeshError::UnusedNode { node: 5 }));
         assert!(problems[0].to_string().contains("tet 1 is inverted"));
         assert_eq!(m.orient_positive(), 1);
@@ -618,7 +623,14 @@ mod tests {
             }
         );
         let e = TetMesh::new(vec![[0.; 3]; 4], vec![[0, 1, 1, 3]]).unwrap_err();
-        assert!(matches!(e, MeshError::RepeatedNode { tet: 0, node: 1, .. }));
+        assert!(matches!(
+            e,
+            MeshError::RepeatedNode {
+                tet: 0,
+                node: 1,
+                ..
+            }
+        ));
         let e = TetMesh::new(vec![[0., f64::NAN, 0.]; 4], vec![[0, 1, 2, 3]]).unwrap_err();
         assert!(matches!(e, MeshError::NonFiniteNode { node: 0, .. }));
         assert!(matches!(

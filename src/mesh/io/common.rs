@@ -42,7 +42,7 @@ pub(super) fn shown(token: &str) -> String {
 
 /// Capacity to reserve for `n` items when at most `limit` could follow in the input.
 pub(super) fn capped(n: usize, limit: usize) -> usize {
-    n.min(limit).min(1 << 24)
+    n.min(limit).min(1 << 20)
 }
 
 /// Appends a float in its shortest round-trip form (exponent notation for extreme magnitudes).
@@ -213,7 +213,7 @@ impl CellCollector {
     pub(super) fn add_vtk(&mut self, vtk_type: u8, n: &[u32], src: usize) -> Result<(), String> {
         let need = match vtk_type {
             5 => 3,
-            8 | 9 | 10 => 4,
+            8..=10 => 4,
             22 => 6,
             23 => 8,
             24 => 10,
@@ -315,10 +315,7 @@ pub(super) fn gather(a: &DataArray, idx: &[usize]) -> Option<Vec<f64>> {
 }
 
 /// Splits a concatenation of ends-offsets and connectivity into cells, checking the offsets.
-pub(super) fn split_cells<'a>(
-    offsets: &[f64],
-    conn: &'a [u32],
-) -> Result<Vec<&'a [u32]>, String> {
+pub(super) fn split_cells<'a>(offsets: &[f64], conn: &'a [u32]) -> Result<Vec<&'a [u32]>, String> {
     let mut cells = Vec::with_capacity(offsets.len());
     let mut start = 0usize;
     for (i, &o) in offsets.iter().enumerate() {

@@ -18,6 +18,8 @@ use std::path::Path;
 struct Lines<'a> {
     it: std::iter::Enumerate<std::str::Lines<'a>>,
     last: usize,
+    /// Length of the text (bounds allocations).
+    len: usize,
     path: &'a Path,
 }
 
@@ -36,8 +38,13 @@ impl<'a> Lines<'a> {
     /// The next line, or an error saying the file ended while reading `what`.
     fn need(&mut self, what: impl FnOnce() -> String) -> Result<(usize, &'a str), IoError> {
         let last = self.last;
-        self.next()
-            .ok_or_else(|| line_err(self.path, last.max(1), format!("file ended while reading {}", what())))
+        self.next().ok_or_else(|| {
+            line_err(
+                self.path,
+                last.max(1),
+                format!("file ended while reading {}", what()),
+            )
+        })
     }
 
     /// Reads the end marker of a section.
@@ -65,27 +72,51 @@ impl<'a> Lines<'a> {
         Err(line_err(
             self.path,
             self.last.max(line),
-            format!("file ended inside the ${name} section started on line {line}: expected {marker}"),
+            format!(
+                "file ended inside the ${name} section started on line {line}: expected {marker}"
+            ),
         ))
     }
 }
 
 /// Parses an integer token; `what` names the expected value.
-fn int<T: std::str::FromStr>(tok: Option<&str>, path: &Path, line: usize, what: &str) -> Result<T, IoError> {
+fn int<T: std::str::FromStr>(
+    tok: Option<&str>,
+    path: &Path,
+    line: usize,
+    what: &str,
+) -> Result<T, IoError> {
     match tok {
-        Some(t) => t
-            .parse()
-            .map_err(|_| line_err(path, line, format!("expected {what} (an integer), found '{}'", shown(t)))),
-        None => Err(line_err(path, line, format!("expected {what}, found end of line"))),
+        Some(t) => t.parse().map_err(|_| {
+            line_err(
+                path,
+                line,
+                format!("expected {what} (an integer), found '{}'", shown(t)),
+            )
+        }),
+        None => Err(line_err(
+            path,
+            line,
+            format!("expected {what}, found end of line"),
+        )),
     }
 }
 
 /// Parses a float token; `what` names the expected value.
 fn float(tok: Option<&str>, path: &Path, line: usize, what: &str) -> Result<f64, IoError> {
     match tok {
-        Some(t) => parse_f64(t)
-            .ok_or_else(|| line_err(path, line, format!("expected {what} (a number), found '{}'", shown(t)))),
-        None => Err(line_err(path, line, format!("expected {what}, found end of line"))),
+        Some(t) => parse_f64(t).ok_or_else(|| {
+            line_err(
+                path,
+                line,
+                format!("expected {what} (a number), found '{}'", shown(t)),
+            )
+        }),
+        None => Err(line_err(
+            path,
+            line,
+            format!("expected {what}, found end of line"),
+        )),
     }
 }
 
@@ -157,6 +188,7 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
     let mut lines = Lines {
         it: text.lines().enumerate(),
         last: 0,
+        len: text.len(),
         path,
     };
     let mut m = Msh::default();
@@ -165,7 +197,10 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
             return Err(line_err(
                 path,
                 line,
-                format!("expected a section header such as $MeshFormat, $Nodes or $NOD, found '{}'", shown(l)),
+                format!(
+                    "expected a section header such as $MeshFormat, $Nodes or $NOD, found '{}'",
+                    shown(l)
+                ),
             ));
         };
         match name {
@@ -235,17 +270,23 @@ impl Msh {
             return Err(line_err(
                 path,
                 line,
-                format!("Gmsh format version {version} is not supported; expected 1, 2.x, 4.0 or 4.1"),
+                format!(
+                    "Gmsh format version {version} is not supported; expected 1, 2.x, 4.0 or 4.1"
+                ),
             ));
         });
         lines.end("$EndMeshFormat", "the version line")
     }
 
     fn add_node(&mut self, id: u64, p: [f64; 3], path: &Path, line: usize) -> Result<(), IoError> {
-        let idx = u32::try_from(self.nodes.len())
-            .map_err(|_| line_err(path, line, "too many nodes"))?;
+        let idx =
+            u32::try_from(self.nodes.len()).map_err(|_| line_err(path, line, "too many nodes"))?;
         if self.ids.insert(id, idx).is_some() {
-            return Err(line_err(path, line, format!("node id {id} is defined twice")));
+            return Err(line_err(
+                path,
+                line,
+                format!("node id {id} is defined twice"),
+            ));
         }
         self.node_tags.push(id);
         self.nodes.push(p);
@@ -253,10 +294,20 @@ impl Msh {
     }
 
     /// Reads `x y z` from tokens.
-    fn coords<'a>(t: &mut impl Iterator<Item = &'a str>, path: &Path, line: usize, node: u64) -> Result<[f64; 3], IoError> {
+    fn coords<'a>(
+        t: &mut impl Iterator<Item = &'a str>,
+        path: &Path,
+        line: usize,
+        node: u64,
+    ) -> Result<[f64; 3], IoError> {
         let mut p = [0.0; 3];
         for (c, axis) in p.iter_mut().zip(["x", "y", "z"]) {
-            *c = float(t.next(), path, line, &format!("the {axis} coordinate of node {node}"))?;
+            *c = float(
+                t.next(),
+                path,
+                line,
+                &format!("the {axis} coordinate of node {node}"),
+            )?;
         }
         Ok(p)
     }
@@ -265,8 +316,13 @@ impl Msh {
     fn nodes_v1_v2(&mut self, lines: &mut Lines, section: &str, end: &str) -> Result<(), IoError> {
         let path = lines.path;
         let (line, l) = lines.need(|| format!("the node count of the {section} section"))?;
-        let n: usize = int(l.split_ascii_whitespace().next(), path, line, "the number of nodes")?;
-        self.nodes.reserve(capped(n, lines.it.size_hint().1.unwrap_or(0)));
+        let n: usize = int(
+            l.split_ascii_whitespace().next(),
+            path,
+            line,
+            "the number of nodes",
+        )?;
+        self.nodes.reserve(capped(n, lines.len / 8));
         for k in 0..n {
             let (line, l) = lines.need(|| format!("node {} of {n} in {section} section", k + 1))?;
             let mut t = l.split_ascii_whitespace();
@@ -285,9 +341,14 @@ impl Msh {
         let mut t = l.split_ascii_whitespace();
         let blocks: usize = int(t.next(), path, line, "the number of entity blocks")?;
         let total: usize = int(t.next(), path, line, "the number of nodes")?;
-        self.nodes.reserve(capped(total, lines.it.size_hint().1.unwrap_or(0)));
+        self.nodes.reserve(capped(total, lines.len / 8));
         for b in 0..blocks {
-            let (line, l) = lines.need(|| format!("the header of node block {} of {blocks} in $Nodes section", b + 1))?;
+            let (line, l) = lines.need(|| {
+                format!(
+                    "the header of node block {} of {blocks} in $Nodes section",
+                    b + 1
+                )
+            })?;
             let mut t = l.split_ascii_whitespace();
             let what = "a node block header (entityDim entityTag parametric numNodes)";
             for _ in 0..3 {
@@ -297,19 +358,33 @@ impl Msh {
             if v41 {
                 let mut tags = Vec::with_capacity(capped(n, 1 << 16));
                 while tags.len() < n {
-                    let (line, l) = lines.need(|| format!("node tag {} of {n} in block {} of $Nodes section", tags.len() + 1, b + 1))?;
+                    let (line, l) = lines.need(|| {
+                        format!(
+                            "node tag {} of {n} in block {} of $Nodes section",
+                            tags.len() + 1,
+                            b + 1
+                        )
+                    })?;
                     for tok in l.split_ascii_whitespace() {
                         tags.push(int::<u64>(Some(tok), path, line, "a node tag")?);
                     }
                 }
                 for (k, &id) in tags.iter().enumerate() {
-                    let (line, l) = lines.need(|| format!("the coordinates of node {} of {n} in block {} of $Nodes section", k + 1, b + 1))?;
+                    let (line, l) = lines.need(|| {
+                        format!(
+                            "the coordinates of node {} of {n} in block {} of $Nodes section",
+                            k + 1,
+                            b + 1
+                        )
+                    })?;
                     let p = Self::coords(&mut l.split_ascii_whitespace(), path, line, id)?;
                     self.add_node(id, p, path, line)?;
                 }
             } else {
                 for k in 0..n {
-                    let (line, l) = lines.need(|| format!("node {} of {n} in block {} of $Nodes section", k + 1, b + 1))?;
+                    let (line, l) = lines.need(|| {
+                        format!("node {} of {n} in block {} of $Nodes section", k + 1, b + 1)
+                    })?;
                     let mut t = l.split_ascii_whitespace();
                     let id: u64 = int(t.next(), path, line, "a node tag")?;
                     let p = Self::coords(&mut t, path, line, id)?;
@@ -321,7 +396,10 @@ impl Msh {
             return Err(line_err(
                 path,
                 lines.last,
-                format!("the $Nodes header declares {total} nodes, but the blocks hold {}", self.nodes.len()),
+                format!(
+                    "the $Nodes header declares {total} nodes, but the blocks hold {}",
+                    self.nodes.len()
+                ),
             ));
         }
         lines.end("$EndNodes", &format!("{blocks} node blocks"))
@@ -331,16 +409,31 @@ impl Msh {
     fn elements_v1_v2(&mut self, lines: &mut Lines) -> Result<(), IoError> {
         let path = lines.path;
         let v1 = self.version == Some(Version::V1);
-        let (section, end) = if v1 { ("$ELM", "$ENDELM") } else { ("$Elements", "$EndElements") };
+        let (section, end) = if v1 {
+            ("$ELM", "$ENDELM")
+        } else {
+            ("$Elements", "$EndElements")
+        };
         let (line, l) = lines.need(|| format!("the element count of the {section} section"))?;
-        let n: usize = int(l.split_ascii_whitespace().next(), path, line, "the number of elements")?;
+        let n: usize = int(
+            l.split_ascii_whitespace().next(),
+            path,
+            line,
+            "the number of elements",
+        )?;
         for k in 0..n {
-            let (line, l) = lines.need(|| format!("element {} of {n} in {section} section", k + 1))?;
+            let (line, l) =
+                lines.need(|| format!("element {} of {n} in {section} section", k + 1))?;
             let toks: Vec<&str> = l.split_ascii_whitespace().collect();
             let num: u64 = int(toks.first().copied(), path, line, "an element number")?;
             let etype: u64 = int(toks.get(1).copied(), path, line, "an element type")?;
             let nodes = if v1 {
-                let nn: usize = int(toks.get(4).copied(), path, line, "the number of nodes of the element")?;
+                let nn: usize = int(
+                    toks.get(4).copied(),
+                    path,
+                    line,
+                    "the number of nodes of the element",
+                )?;
                 let rest = toks.get(5..).unwrap_or(&[]);
                 if rest.len() != nn {
                     return Err(line_err(
@@ -353,7 +446,11 @@ impl Msh {
             } else {
                 let ntags: usize = int(toks.get(2).copied(), path, line, "the number of tags")?;
                 toks.get(3 + ntags.min(toks.len())..).ok_or_else(|| {
-                    line_err(path, line, format!("element {num} declares {ntags} tags but the line ends early"))
+                    line_err(
+                        path,
+                        line,
+                        format!("element {num} declares {ntags} tags but the line ends early"),
+                    )
                 })?
             };
             self.add_element(num, etype, nodes, path, line)?;
@@ -368,14 +465,27 @@ impl Msh {
         let mut t = l.split_ascii_whitespace();
         let blocks: usize = int(t.next(), path, line, "the number of entity blocks")?;
         for b in 0..blocks {
-            let (line, l) = lines.need(|| format!("the header of element block {} of {blocks} in $Elements section", b + 1))?;
+            let (line, l) = lines.need(|| {
+                format!(
+                    "the header of element block {} of {blocks} in $Elements section",
+                    b + 1
+                )
+            })?;
             let mut t = l.split_ascii_whitespace();
             let what = "an element block header (entityDim entityTag elementType numElements)";
-            let (_, _): (i64, i64) = (int(t.next(), path, line, what)?, int(t.next(), path, line, what)?);
+            for _ in 0..2 {
+                int::<i64>(t.next(), path, line, what)?;
+            }
             let etype: u64 = int(t.next(), path, line, "the element type of the block")?;
             let n: usize = int(t.next(), path, line, "the number of elements in the block")?;
             for k in 0..n {
-                let (line, l) = lines.need(|| format!("element {} of {n} in block {} of $Elements section", k + 1, b + 1))?;
+                let (line, l) = lines.need(|| {
+                    format!(
+                        "element {} of {n} in block {} of $Elements section",
+                        k + 1,
+                        b + 1
+                    )
+                })?;
                 let toks: Vec<&str> = l.split_ascii_whitespace().collect();
                 let num: u64 = int(toks.first().copied(), path, line, "an element tag")?;
                 self.add_element(num, etype, toks.get(1..).unwrap_or(&[]), path, line)?;
@@ -385,10 +495,22 @@ impl Msh {
     }
 
     /// Maps node ids and keeps or skips the element.
-    fn add_element(&mut self, num: u64, etype: u64, ids: &[&str], path: &Path, line: usize) -> Result<(), IoError> {
+    fn add_element(
+        &mut self,
+        num: u64,
+        etype: u64,
+        ids: &[&str],
+        path: &Path,
+        line: usize,
+    ) -> Result<(), IoError> {
         let mut n = Vec::with_capacity(ids.len());
         for tok in ids {
-            let id: u64 = int(Some(tok), path, line, &format!("a node id in element {num}"))?;
+            let id: u64 = int(
+                Some(tok),
+                path,
+                line,
+                &format!("a node id in element {num}"),
+            )?;
             let idx = self.ids.get(&id).ok_or_else(|| {
                 line_err(path, line, format!("element {num} refers to node {id}, which is not defined in the nodes section"))
             })?;
@@ -407,7 +529,10 @@ impl Msh {
             return Err(line_err(
                 path,
                 line,
-                format!("element {num} of type {etype} ({name}) has {} nodes, expected {need}", n.len()),
+                format!(
+                    "element {num} of type {etype} ({name}) has {} nodes, expected {need}",
+                    n.len()
+                ),
             ));
         }
         match k {
@@ -433,7 +558,8 @@ impl Msh {
         let resolve = |raw: Vec<RawData>, tags: &[u64]| -> Vec<DataArray> {
             raw.into_iter()
                 .filter_map(|d| {
-                    let rows: Option<Vec<usize>> = tags.iter().map(|t| d.tags.get(t).copied()).collect();
+                    let rows: Option<Vec<usize>> =
+                        tags.iter().map(|t| d.tags.get(t).copied()).collect();
                     let a = DataArray::new(d.name, d.components, d.values);
                     let values = gather(&a, &rows?)?;
                     Some(DataArray::new(a.name, a.components, values))
@@ -441,7 +567,11 @@ impl Msh {
                 .collect()
         };
         let point_data = resolve(self.node_data, &self.node_tags);
-        let cell_tags = if self.tets.is_empty() { &self.tri_tags } else { &self.tet_tags };
+        let cell_tags = if self.tets.is_empty() {
+            &self.tri_tags
+        } else {
+            &self.tet_tags
+        };
         let cell_data = resolve(self.elem_data, cell_tags);
         MeshFile {
             nodes: self.nodes,
@@ -460,7 +590,12 @@ fn read_data(lines: &mut Lines, section: &str) -> Result<RawData, IoError> {
     let path = lines.path;
     let mut tag_list = |kind: &str| -> Result<Vec<(usize, &str)>, IoError> {
         let (line, l) = lines.need(|| format!("the number of {kind} tags in ${section}"))?;
-        let n: usize = int(l.split_ascii_whitespace().next(), path, line, &format!("the number of {kind} tags"))?;
+        let n: usize = int(
+            l.split_ascii_whitespace().next(),
+            path,
+            line,
+            &format!("the number of {kind} tags"),
+        )?;
         (0..n.min(64))
             .map(|k| lines.need(|| format!("{kind} tag {} of {n} in ${section}", k + 1)))
             .collect()
@@ -482,7 +617,11 @@ fn read_data(lines: &mut Lines, section: &str) -> Result<RawData, IoError> {
     let count = int_tag(2, "the number of entries", 0)?;
     if components == 0 || components > 1024 {
         let line = ints.get(1).map_or(lines.last, |&(l, _)| l);
-        return Err(line_err(path, line, format!("expected 1 to 1024 components in ${section}, found {components}")));
+        return Err(line_err(
+            path,
+            line,
+            format!("expected 1 to 1024 components in ${section}, found {components}"),
+        ));
     }
     let mut d = RawData {
         name,
@@ -491,11 +630,17 @@ fn read_data(lines: &mut Lines, section: &str) -> Result<RawData, IoError> {
         values: Vec::with_capacity(capped(count, 1 << 16) * components),
     };
     for k in 0..count {
-        let (line, l) = lines.need(|| format!("entry {} of {count} in ${section} '{}'", k + 1, d.name))?;
+        let (line, l) =
+            lines.need(|| format!("entry {} of {count} in ${section} '{}'", k + 1, d.name))?;
         let mut t = l.split_ascii_whitespace();
         let tag: u64 = int(t.next(), path, line, "a node or element tag")?;
         for c in 0..components {
-            let v = float(t.next(), path, line, &format!("value {} of {components} for tag {tag}", c + 1))?;
+            let v = float(
+                t.next(),
+                path,
+                line,
+                &format!("value {} of {components} for tag {tag}", c + 1),
+            )?;
             d.values.push(v);
         }
         d.tags.insert(tag, k);
@@ -504,10 +649,12 @@ fn read_data(lines: &mut Lines, section: &str) -> Result<RawData, IoError> {
     Ok(d)
 }
 
-/// Writes Gmsh v2.2 ASCII: nodes, tetrahedra (type 4), triangles (type 2), and point and cell
-/// data as `$NodeData`/`$ElementData`.
+/// Writes Gmsh v2.2 ASCII: nodes, tetrahedra (type 4), triangles (type 2), point data as
+/// `$NodeData`, and cell data as `$ElementData` when the mesh has only one kind of cell.
 pub(crate) fn write(file: &MeshFile) -> Result<Vec<u8>, String> {
-    let mut o = String::with_capacity(60 * file.nodes.len() + 40 * (file.tets.len() + file.triangles.len()));
+    let mut o = String::with_capacity(
+        60 * file.nodes.len() + 40 * (file.tets.len() + file.triangles.len()),
+    );
     o.push_str("$MeshFormat\n2.2 0 8\n$EndMeshFormat\n");
     let _ = writeln!(o, "$Nodes\n{}", file.nodes.len());
     for (i, p) in file.nodes.iter().enumerate() {
@@ -519,19 +666,36 @@ pub(crate) fn write(file: &MeshFile) -> Result<Vec<u8>, String> {
     let mut num = 0usize;
     for t in &file.tets {
         num += 1;
-        let _ = writeln!(o, "{num} 4 2 1 1 {} {} {} {}", t[0] as u64 + 1, t[1] as u64 + 1, t[2] as u64 + 1, t[3] as u64 + 1);
+        let _ = writeln!(
+            o,
+            "{num} 4 2 1 1 {} {} {} {}",
+            t[0] as u64 + 1,
+            t[1] as u64 + 1,
+            t[2] as u64 + 1,
+            t[3] as u64 + 1
+        );
     }
     let first_tri = num + 1;
     for t in &file.triangles {
         num += 1;
-        let _ = writeln!(o, "{num} 2 2 2 2 {} {} {}", t[0] as u64 + 1, t[1] as u64 + 1, t[2] as u64 + 1);
+        let _ = writeln!(
+            o,
+            "{num} 2 2 2 2 {} {} {}",
+            t[0] as u64 + 1,
+            t[1] as u64 + 1,
+            t[2] as u64 + 1
+        );
     }
     o.push_str("$EndElements\n");
     for a in &file.point_data {
         write_data(&mut o, "NodeData", a, 1)?;
     }
+    // Readers such as meshio expect `$ElementData` to cover every element, so cell data (which
+    // belongs to the tetrahedra, or to the triangles when there are none) is written only when
+    // the file holds one kind of element.
     let first = if file.tets.is_empty() { first_tri } else { 1 };
-    for a in &file.cell_data {
+    let one_kind = file.tets.is_empty() || file.triangles.is_empty();
+    for a in file.cell_data.iter().filter(|_| one_kind) {
         write_data(&mut o, "ElementData", a, first)?;
     }
     Ok(o.into_bytes())
@@ -548,10 +712,20 @@ fn push_xyz(o: &mut String, p: &[f64; 3]) {
 /// Writes one data block whose tuples belong to tags `first`, `first + 1`, ...
 fn write_data(o: &mut String, section: &str, a: &DataArray, first: usize) -> Result<(), String> {
     if a.components == 0 || a.values.len() % a.components != 0 {
-        return Err(format!("data array '{}' has {} values, not a multiple of {} components", a.name, a.values.len(), a.components));
+        return Err(format!(
+            "data array '{}' has {} values, not a multiple of {} components",
+            a.name,
+            a.values.len(),
+            a.components
+        ));
     }
     let name = a.name.replace('"', "'");
-    let _ = writeln!(o, "${section}\n1\n\"{name}\"\n1\n0\n3\n0\n{}\n{}", a.components, a.len());
+    let _ = writeln!(
+        o,
+        "${section}\n1\n\"{name}\"\n1\n0\n3\n0\n{}\n{}",
+        a.components,
+        a.len()
+    );
     for (k, tuple) in a.values.chunks_exact(a.components).enumerate() {
         let _ = write!(o, "{}", first + k);
         for &v in tuple {

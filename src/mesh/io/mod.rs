@@ -196,9 +196,7 @@ pub enum IoError {
         message: String,
     },
     /// The extension is not one of the supported formats.
-    #[error(
-        "{path}: unsupported file extension (expected .vtu, .vtp, .vtk, .msh, .obj or .stl)"
-    )]
+    #[error("{path}: unsupported file extension (expected .vtu, .vtp, .vtk, .msh, .obj or .stl)")]
     UnknownFormat {
         /// File path.
         path: PathBuf,
@@ -290,7 +288,11 @@ pub fn read_bytes(
 }
 
 /// Writes a mesh file in millimetres, choosing the format by extension.
-pub fn write(path: impl AsRef<Path>, file: &MeshFile, options: WriteOptions) -> Result<(), IoError> {
+pub fn write(
+    path: impl AsRef<Path>,
+    file: &MeshFile,
+    options: WriteOptions,
+) -> Result<(), IoError> {
     let path = path.as_ref();
     let format = Format::from_path(path)?;
     let bytes = write_bytes(file, format, options, path)?;

@@ -26,7 +26,8 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
                 file.nodes.push(p);
             }
             Some("f") => {
-                let face = read_face(tokens, file.nodes.len()).map_err(|m| line_err(path, line, m))?;
+                let face =
+                    read_face(tokens, file.nodes.len()).map_err(|m| line_err(path, line, m))?;
                 if let Some(&m) = face.iter().max() {
                     if max_ref.is_none_or(|(old, _)| m > old) {
                         max_ref = Some((m, line));
@@ -62,8 +63,13 @@ fn read_vertex<'a>(tokens: impl Iterator<Item = &'a str>) -> Result<[f64; 3], St
     let mut p = [0.0; 3];
     let mut n = 0;
     for t in tokens.take(3) {
-        p[n] = parse_f64(t)
-            .ok_or_else(|| format!("expected a number for coordinate {} after 'v', found '{}'", n + 1, shown(t)))?;
+        p[n] = parse_f64(t).ok_or_else(|| {
+            format!(
+                "expected a number for coordinate {} after 'v', found '{}'",
+                n + 1,
+                shown(t)
+            )
+        })?;
         n += 1;
     }
     if n < 3 {
@@ -78,7 +84,10 @@ fn read_face<'a>(tokens: impl Iterator<Item = &'a str>, nverts: usize) -> Result
     for t in tokens {
         let first = t.split('/').next().unwrap_or("");
         let k: i64 = first.parse().map_err(|_| {
-            format!("expected a vertex index (forms a, a/b, a//c, a/b/c) after 'f', found '{}'", shown(t))
+            format!(
+                "expected a vertex index (forms a, a/b, a//c, a/b/c) after 'f', found '{}'",
+                shown(t)
+            )
         })?;
         let idx = if k > 0 {
             k - 1
@@ -130,7 +139,12 @@ pub(crate) fn write(file: &MeshFile, path: &Path) -> Result<Vec<u8>, String> {
         out.push('\n');
     }
     for t in &file.triangles {
-        out.push_str(&format!("f {} {} {}\n", t[0] as u64 + 1, t[1] as u64 + 1, t[2] as u64 + 1));
+        out.push_str(&format!(
+            "f {} {} {}\n",
+            t[0] as u64 + 1,
+            t[1] as u64 + 1,
+            t[2] as u64 + 1
+        ));
     }
     Ok(out.into_bytes())
 }

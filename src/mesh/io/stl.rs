@@ -6,7 +6,9 @@
 //! into one node, so the result is an indexed mesh. Writes binary or ASCII with normals computed
 //! from the triangles.
 
-use super::common::{line_err, offset_err, parse_f64, push_f64, shown, surface_only, triangle_normal};
+use super::common::{
+    line_err, offset_err, parse_f64, push_f64, shown, surface_only, triangle_normal,
+};
 use super::{IoError, MeshFile, WriteOptions};
 use std::collections::HashMap;
 use std::path::Path;
@@ -52,7 +54,10 @@ fn is_binary(bytes: &[u8]) -> bool {
         .position(|b| !b.is_ascii_whitespace())
         .unwrap_or(bytes.len());
     let head = &bytes[start..];
-    if !head.get(..5).is_some_and(|h| h.eq_ignore_ascii_case(b"solid")) {
+    if !head
+        .get(..5)
+        .is_some_and(|h| h.eq_ignore_ascii_case(b"solid"))
+    {
         return true;
     }
     let window = &head[..head.len().min(1024)];
@@ -198,22 +203,21 @@ fn read_ascii(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
         }
         facets += 1;
         let context = format!("in facet {facets}");
-        expect(&mut tk, "normal", &context)?;
-        for _ in 0..3 {
-            number(&mut tk, path, "a normal component", &context)?;
-        }
+        let line = expect(&mut tk, "normal", &context)?;
+        coords(&mut tk, path, line, "normal")?;
         expect(&mut tk, "outer", &context)?;
         expect(&mut tk, "loop", &context)?;
         let mut poly = Vec::with_capacity(3);
         while tk.peek().is_some_and(|t| t.eq_ignore_ascii_case("vertex")) {
-            tk.next();
-            let mut p = [0.0; 3];
-            for c in &mut p {
-                *c = number(&mut tk, path, "a vertex coordinate", &context)?;
-            }
+            let line = tk.next().map_or(0, |(l, _)| l);
+            let p = coords(&mut tk, path, line, "vertex")?;
             poly.push(w.node(p));
         }
-        let line = expect(&mut tk, "endloop", &format!("after the vertices of facet {facets}"))?;
+        let line = expect(
+            &mut tk,
+            "endloop",
+            &format!("after the vertices of facet {facets}"),
+        )?;
         if poly.len() < 3 {
             return Err(line_err(
                 path,
@@ -233,34 +237,54 @@ fn read_ascii(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
     })
 }
 
-/// Reads one number token.
-fn number(tk: &mut Tokens, path: &Path, what: &str, context: &str) -> Result<f64, IoError> {
-    match tk.next() {
-        Some((line, t)) => parse_f64(t).ok_or_else(|| {
-            line_err(path, line, format!("expected {what} {context}, found '{}'", shown(t)))
-        }),
-        None => Err(line_err(
-            path,
-            tk.last_line,
-            format!("file ended early: expected {what} {context}"),
-        )),
+/// Reads three numbers that must follow on the same line as the keyword `after`.
+fn coords(tk: &mut Tokens, path: &Path, line: usize, after: &str) -> Result<[f64; 3], IoError> {
+    let mut p = [0.0; 3];
+    for (k, c) in p.iter_mut().enumerate() {
+        match tk.tokens.get(tk.pos) {
+            Some(&(l, t)) if l == line => {
+                tk.pos += 1;
+                *c = parse_f64(t).ok_or_else(|| {
+                    line_err(
+                        path,
+                        line,
+                        format!("expected a number after '{after}', found '{}'", shown(t)),
+                    )
+                })?;
+            }
+            _ => {
+                return Err(line_err(
+                    path,
+                    line,
+                    format!("expected 3 coordinates after '{after}', found {k}"),
+                ));
+            }
+        }
     }
+    Ok(p)
 }
 
 /// Writes the triangles as binary (per `options.binary`) or ASCII STL.
-pub(crate) fn write(file: &MeshFile, options: WriteOptions, _path: &Path) -> Result<Vec<u8>, String> {
+pub(crate) fn write(
+    file: &MeshFile,
+    options: WriteOptions,
+    _path: &Path,
+) -> Result<Vec<u8>, String> {
     surface_only(file, "STL")?;
     let corners = |t: &[u32; 3]| -> Result<[[f64; 3]; 3], String> {
         let p = |i: u32| {
-            file.nodes
-                .get(i as usize)
-                .copied()
-                .ok_or_else(|| format!("triangle refers to node {i}, but the mesh has {} nodes", file.nodes.len()))
+            file.nodes.get(i as usize).copied().ok_or_else(|| {
+                format!(
+                    "triangle refers to node {i}, but the mesh has {} nodes",
+                    file.nodes.len()
+                )
+            })
         };
         Ok([p(t[0])?, p(t[1])?, p(t[2])?])
     };
     if options.binary {
-        let n = u32::try_from(file.triangles.len()).map_err(|_| "too many triangles for STL".to_string())?;
+        let n = u32::try_from(file.triangles.len())
+            .map_err(|_| "too many triangles for STL".to_string())?;
         let mut out = Vec::with_capacity(84 + 50 * file.triangles.len());
         let mut header = b"LIBR+ binary STL, units mm".to_vec();
         header.resize(80, b' ');

@@ -24,6 +24,8 @@ struct Cur<'a> {
     line: usize,
     binary: bool,
     binary_seen: bool,
+    /// Line of the last token read (where the file ended, for text files).
+    tok_line: usize,
     path: &'a Path,
 }
 
@@ -53,11 +55,27 @@ impl<'a> Cur<'a> {
         }
     }
 
+    /// Error for a file that ended early, at the line of the last token.
+    fn eof(&self, msg: impl Into<String>) -> IoError {
+        if self.binary_seen {
+            offset_err(self.path, self.b.len(), msg)
+        } else {
+            line_err(self.path, self.tok_line, msg)
+        }
+    }
+
     /// Next whitespace-separated token.
     fn token(&mut self) -> Option<&'a [u8]> {
         self.skip_ws();
+        if self.pos < self.b.len() {
+            self.tok_line = self.line;
+        }
         let start = self.pos;
-        while self.b.get(self.pos).is_some_and(|c| !c.is_ascii_whitespace()) {
+        while self
+            .b
+            .get(self.pos)
+            .is_some_and(|c| !c.is_ascii_whitespace())
+        {
             self.pos += 1;
         }
         (self.pos > start).then(|| &self.b[start..self.pos])
@@ -97,15 +115,19 @@ impl<'a> Cur<'a> {
     fn word(&mut self, what: &str) -> Result<String, IoError> {
         match self.token() {
             Some(t) => Ok(String::from_utf8_lossy(t).into_owned()),
-            None => Err(self.err(format!("file ended early: expected {what}"))),
+            None => Err(self.eof(format!("file ended early: expected {what}"))),
         }
     }
 
     /// A non-negative integer token.
     fn count(&mut self, what: &str) -> Result<usize, IoError> {
         let t = self.word(what)?;
-        t.parse()
-            .map_err(|_| self.err(format!("expected {what} (a non-negative integer), found '{}'", shown(&t))))
+        t.parse().map_err(|_| {
+            self.err(format!(
+                "expected {what} (a non-negative integer), found '{}'",
+                shown(&t)
+            ))
+        })
     }
 
     /// Reads `n` values of type `dtype` (text tokens or big-endian binary).
@@ -132,11 +154,20 @@ impl<'a> Cur<'a> {
         let mut out = Vec::with_capacity(capped(n, remaining / 2 + 1));
         for k in 0..n {
             let Some(t) = self.token() else {
-                return Err(self.err(format!("file ended while reading {what}: value {} of {n}", k + 1)));
+                return Err(self.eof(format!(
+                    "file ended while reading {what}: value {} of {n}",
+                    k + 1
+                )));
             };
-            let v = std::str::from_utf8(t).ok().and_then(|s| s.parse::<f64>().ok());
+            let v = std::str::from_utf8(t)
+                .ok()
+                .and_then(|s| s.parse::<f64>().ok());
             out.push(v.ok_or_else(|| {
-                self.err(format!("expected a number in {what} (value {} of {n}), found '{}'", k + 1, lossy(t)))
+                self.err(format!(
+                    "expected a number in {what} (value {} of {n}), found '{}'",
+                    k + 1,
+                    lossy(t)
+                ))
             })?);
         }
         Ok(out)
@@ -189,7 +220,9 @@ fn decode_name(s: &str) -> String {
     let mut out = Vec::with_capacity(b.len());
     let mut i = 0;
     while i < b.len() {
-        let hex = b.get(i + 1..i + 3).and_then(|h| std::str::from_utf8(h).ok());
+        let hex = b
+            .get(i + 1..i + 3)
+            .and_then(|h| std::str::from_utf8(h).ok());
         match (b[i], hex.and_then(|h| u8::from_str_radix(h, 16).ok())) {
             (b'%', Some(v)) => {
                 out.push(v);
@@ -212,6 +245,7 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
         line: 1,
         binary: false,
         binary_seen: false,
+        tok_line: 1,
         path,
     };
     let polydata = header(&mut c)?;
@@ -242,27 +276,42 @@ fn header(c: &mut Cur) -> Result<bool, IoError> {
         return Err(line_err(
             c.path,
             1,
-            format!("expected '# vtk DataFile Version x.y', found '{}'", shown(first.trim())),
+            format!(
+                "expected '# vtk DataFile Version x.y', found '{}'",
+                shown(first.trim())
+            ),
         ));
     };
     let version = first[at + "datafile version".len()..].trim();
-    let major: u32 = version.split('.').next().and_then(|m| m.parse().ok()).unwrap_or(0);
+    let major: u32 = version
+        .split('.')
+        .next()
+        .and_then(|m| m.parse().ok())
+        .unwrap_or(0);
     if !(1..=5).contains(&major) {
         return Err(line_err(
             c.path,
             1,
-            format!("unsupported legacy VTK version '{}': expected 2.0 to 5.1", shown(version)),
+            format!(
+                "unsupported legacy VTK version '{}': expected 2.0 to 5.1",
+                shown(version)
+            ),
         ));
     }
     if c.pos >= c.b.len() {
-        return Err(c.err("file ended early: expected a title line"));
+        return Err(c.eof("file ended early: expected a title line"));
     }
     c.rest_of_line();
     let mode = c.word("ASCII or BINARY")?;
     c.binary = match mode.to_ascii_uppercase().as_str() {
         "ASCII" => false,
         "BINARY" => true,
-        _ => return Err(c.err(format!("expected ASCII or BINARY, found '{}'", shown(&mode)))),
+        _ => {
+            return Err(c.err(format!(
+                "expected ASCII or BINARY, found '{}'",
+                shown(&mode)
+            )));
+        }
     };
     c.rest_of_line();
     let kw = c.word("DATASET")?;
@@ -299,7 +348,9 @@ fn section(c: &mut Cur, p: &mut Parsed, key: &str) -> Result<(), IoError> {
             let n = c.count("the number of points")?;
             let t = dtype(c, "POINTS")?;
             c.rest_of_line();
-            let n3 = n.checked_mul(3).ok_or_else(|| c.err("point count too large"))?;
+            let n3 = n
+                .checked_mul(3)
+                .ok_or_else(|| c.err("point count too large"))?;
             p.points = c.values(n3, t, "POINTS")?;
         }
         "CELLS" => p.cells = Some(cells(c, "CELLS")?),
@@ -332,11 +383,18 @@ fn section(c: &mut Cur, p: &mut Parsed, key: &str) -> Result<(), IoError> {
             c.word("a lookup table name")?;
             let n = c.count("the lookup table size")?;
             c.rest_of_line();
-            let n4 = n.checked_mul(4).ok_or_else(|| c.err("lookup table too large"))?;
+            let n4 = n
+                .checked_mul(4)
+                .ok_or_else(|| c.err("lookup table too large"))?;
             let t = if c.binary { DType::U8 } else { DType::F64 };
             c.values(n4, t, "LOOKUP_TABLE")?;
         }
-        "SCALARS" | "VECTORS" | "NORMALS" | "TEXTURE_COORDINATES" | "TENSORS" | "TENSORS6"
+        "SCALARS"
+        | "VECTORS"
+        | "NORMALS"
+        | "TEXTURE_COORDINATES"
+        | "TENSORS"
+        | "TENSORS6"
         | "COLOR_SCALARS" => attribute(c, p, key)?,
         _ => {
             return Err(c.err(format!(
@@ -360,7 +418,10 @@ fn cells(c: &mut Cur, key: &str) -> Result<Cells, IoError> {
         let offs = c.values(n, t, &format!("{key} OFFSETS"))?;
         let kw = c.word("CONNECTIVITY")?;
         if !kw.eq_ignore_ascii_case("CONNECTIVITY") {
-            return Err(c.err(format!("expected CONNECTIVITY after the {key} offsets, found '{}'", shown(&kw))));
+            return Err(c.err(format!(
+                "expected CONNECTIVITY after the {key} offsets, found '{}'",
+                shown(&kw)
+            )));
         }
         let t = dtype(c, "CONNECTIVITY")?;
         c.rest_of_line();
@@ -393,7 +454,9 @@ fn cells(c: &mut Cur, key: &str) -> Result<Cells, IoError> {
         k += 1 + nodes.len();
     }
     if k != size {
-        return Err(c.err(format!("{key}: the {n} cells use {k} values, but the declared size is {size}")));
+        return Err(c.err(format!(
+            "{key}: the {n} cells use {k} values, but the declared size is {size}"
+        )));
     }
     Ok(out)
 }
@@ -423,7 +486,10 @@ fn attribute(c: &mut Cur, p: &mut Parsed, key: &str) -> Result<(), IoError> {
         return Err(c.err(format!("expected an array name after {key}")));
     };
     let word = |i: usize, what: &str| -> Result<&str, IoError> {
-        words.get(i).copied().ok_or_else(|| c.err(format!("expected {what} after {key} {}", shown(&name))))
+        words
+            .get(i)
+            .copied()
+            .ok_or_else(|| c.err(format!("expected {what} after {key} {}", shown(&name))))
     };
     let parse_count = |s: &str, what: &str| -> Result<usize, IoError> {
         s.parse::<usize>()
@@ -432,7 +498,13 @@ fn attribute(c: &mut Cur, p: &mut Parsed, key: &str) -> Result<(), IoError> {
             .ok_or_else(|| c.err(format!("expected {what} (1 to 1024), found '{}'", shown(s))))
     };
     let type_of = |s: &str| -> Result<DType, IoError> {
-        DType::from_legacy(s).ok_or_else(|| c.err(format!("unsupported data type '{}' for {key} {}", shown(s), shown(&name))))
+        DType::from_legacy(s).ok_or_else(|| {
+            c.err(format!(
+                "unsupported data type '{}' for {key} {}",
+                shown(s),
+                shown(&name)
+            ))
+        })
     };
     let (comps, t, scale) = match key {
         "SCALARS" => {
@@ -464,7 +536,9 @@ fn attribute(c: &mut Cur, p: &mut Parsed, key: &str) -> Result<(), IoError> {
             }
         }
     };
-    let total = n.checked_mul(comps).ok_or_else(|| c.err("array too large"))?;
+    let total = n
+        .checked_mul(comps)
+        .ok_or_else(|| c.err("array too large"))?;
     let mut values = c.values(total, t, &format!("{key} {}", name))?;
     if scale != 1.0 {
         values.iter_mut().for_each(|v| *v *= scale);
@@ -485,11 +559,19 @@ fn field(c: &mut Cur, p: &mut Parsed) -> Result<(), IoError> {
             continue;
         }
         let name = decode_name(&name);
-        let comps = c.count(&format!("the number of components of field array '{}'", shown(&name)))?;
-        let tuples = c.count(&format!("the number of tuples of field array '{}'", shown(&name)))?;
+        let comps = c.count(&format!(
+            "the number of components of field array '{}'",
+            shown(&name)
+        ))?;
+        let tuples = c.count(&format!(
+            "the number of tuples of field array '{}'",
+            shown(&name)
+        ))?;
         let t = dtype(c, &format!("field array '{}'", shown(&name)))?;
         c.rest_of_line();
-        let total = comps.checked_mul(tuples).ok_or_else(|| c.err("field array too large"))?;
+        let total = comps
+            .checked_mul(tuples)
+            .ok_or_else(|| c.err("field array too large"))?;
         let values = c.values(total, t, &format!("field array '{}'", shown(&name)))?;
         if c.peek_is("METADATA") {
             c.token();
@@ -498,7 +580,10 @@ fn field(c: &mut Cur, p: &mut Parsed) -> Result<(), IoError> {
         match p.target {
             Target::Point(n) | Target::Cell(n) if comps > 0 => {
                 if tuples != n {
-                    return Err(c.err(format!("field array '{}' has {tuples} tuples, expected {n}", shown(&name))));
+                    return Err(c.err(format!(
+                        "field array '{}' has {tuples} tuples, expected {n}",
+                        shown(&name)
+                    )));
                 }
                 push_array(p, DataArray::new(name, comps, values));
             }
@@ -510,7 +595,11 @@ fn field(c: &mut Cur, p: &mut Parsed) -> Result<(), IoError> {
 
 /// Turns the parsed sections into a mesh.
 fn assemble(p: Parsed, path: &Path) -> Result<MeshFile, IoError> {
-    let nodes: Vec<[f64; 3]> = p.points.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    let nodes: Vec<[f64; 3]> = p
+        .points
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
     let mut cc = CellCollector::default();
     let mut ncells = 0usize;
     let err = |m: String| content_err(path, m);
@@ -545,10 +634,15 @@ fn assemble(p: Parsed, path: &Path) -> Result<MeshFile, IoError> {
         ncells = cells.len();
     }
     if let Some(n) = p.point_n.filter(|&n| n != nodes.len()) {
-        return Err(err(format!("POINT_DATA declares {n} tuples, but POINTS has {} points", nodes.len())));
+        return Err(err(format!(
+            "POINT_DATA declares {n} tuples, but POINTS has {} points",
+            nodes.len()
+        )));
     }
     if let Some(n) = p.cell_n.filter(|&n| n != ncells) {
-        return Err(err(format!("CELL_DATA declares {n} tuples, but the file has {ncells} cells")));
+        return Err(err(format!(
+            "CELL_DATA declares {n} tuples, but the file has {ncells} cells"
+        )));
     }
     Ok(cc.finish(nodes, p.point_data, p.cell_data))
 }
@@ -622,7 +716,10 @@ fn counted<const K: usize>(cells: &[[u32; K]]) -> Result<Vec<i32>, String> {
     for c in cells {
         v.push(K as i32);
         for &i in c {
-            v.push(i32::try_from(i).map_err(|_| format!("node index {i} does not fit the legacy VTK int type"))?);
+            v.push(
+                i32::try_from(i)
+                    .map_err(|_| format!("node index {i} does not fit the legacy VTK int type"))?,
+            );
         }
     }
     Ok(v)
@@ -637,7 +734,12 @@ fn write_arrays(o: &mut Out, key: &str, n: usize, arrays: &[DataArray]) -> Resul
     let mut field = Vec::new();
     for a in arrays {
         if a.components == 0 || a.values.len() != n * a.components {
-            return Err(format!("data array '{}' has {} values; expected {n} tuples of {}", a.name, a.values.len(), a.components));
+            return Err(format!(
+                "data array '{}' has {} values; expected {n} tuples of {}",
+                a.name,
+                a.values.len(),
+                a.components
+            ));
         }
         match a.components {
             3 => o.text(&format!("VECTORS {} double\n", encode_name(&a.name))),
@@ -656,7 +758,11 @@ fn write_arrays(o: &mut Out, key: &str, n: usize, arrays: &[DataArray]) -> Resul
     if !field.is_empty() {
         o.text(&format!("FIELD FieldData {}\n", field.len()));
         for a in field {
-            o.text(&format!("{} {} {n} double\n", encode_name(&a.name), a.components));
+            o.text(&format!(
+                "{} {} {n} double\n",
+                encode_name(&a.name),
+                a.components
+            ));
             o.f64s(&a.values, a.components);
         }
     }

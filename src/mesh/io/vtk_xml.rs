@@ -49,7 +49,10 @@ struct El {
 
 impl El {
     fn attr(&self, key: &str) -> Option<&str> {
-        self.attrs.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
+        self.attrs
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
     }
 
     fn child(&self, name: &str) -> Option<&El> {
@@ -62,13 +65,17 @@ impl El {
 
     /// The `DataArray` child with this `Name`.
     fn named_array(&self, name: &str) -> Option<&El> {
-        self.children("DataArray").find(|c| c.attr("Name") == Some(name))
+        self.children("DataArray")
+            .find(|c| c.attr("Name") == Some(name))
     }
 }
 
 /// 1-based line of a byte offset.
 fn line_of(bytes: &[u8], pos: usize) -> usize {
-    1 + bytes[..pos.min(bytes.len())].iter().filter(|&&b| b == b'\n').count()
+    1 + bytes[..pos.min(bytes.len())]
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count()
 }
 
 /// Builds an element from a start tag.
@@ -80,12 +87,22 @@ fn element(e: &BytesStart, pos: usize, bytes: &[u8], path: &Path) -> Result<El, 
     };
     for a in e.attributes() {
         let a = a.map_err(|err| {
-            line_err(path, line_of(bytes, pos), format!("malformed attribute in <{}>: {err}", el.name))
+            line_err(
+                path,
+                line_of(bytes, pos),
+                format!("malformed attribute in <{}>: {err}", el.name),
+            )
         })?;
         let key = String::from_utf8_lossy(a.key.local_name().as_ref()).into_owned();
         let value = a
             .unescape_value()
-            .map_err(|err| line_err(path, line_of(bytes, pos), format!("malformed attribute '{key}': {err}")))?
+            .map_err(|err| {
+                line_err(
+                    path,
+                    line_of(bytes, pos),
+                    format!("malformed attribute '{key}': {err}"),
+                )
+            })?
             .into_owned();
         el.attrs.push((key, value));
     }
@@ -105,7 +122,11 @@ fn parse_xml(xml: &[u8], path: &Path) -> Result<El, IoError> {
         match event {
             Event::Start(e) => {
                 if stack.len() > MAX_DEPTH {
-                    return Err(line_err(path, line_of(xml, pos), "XML elements nested too deeply"));
+                    return Err(line_err(
+                        path,
+                        line_of(xml, pos),
+                        "XML elements nested too deeply",
+                    ));
                 }
                 stack.push(element(&e, pos, xml, path)?);
             }
@@ -146,7 +167,11 @@ fn push_text(stack: &mut [El], t: &[u8]) {
 
 /// Decodes base64 text that may be several separately padded streams, ignoring whitespace.
 fn b64_decode(text: &[u8]) -> Result<Vec<u8>, String> {
-    let clean: Vec<u8> = text.iter().filter(|c| !c.is_ascii_whitespace()).copied().collect();
+    let clean: Vec<u8> = text
+        .iter()
+        .filter(|c| !c.is_ascii_whitespace())
+        .copied()
+        .collect();
     let mut out = Vec::with_capacity(clean.len() / 4 * 3 + 3);
     let mut rest = &clean[..];
     let mut at = 0usize;
@@ -174,7 +199,10 @@ struct Appended<'a> {
 }
 
 /// Splits the file at `<AppendedData`: the XML before it and the data after the `_` marker.
-fn split_appended<'a>(bytes: &'a [u8], path: &Path) -> Result<(&'a [u8], Option<Appended<'a>>), IoError> {
+fn split_appended<'a>(
+    bytes: &'a [u8],
+    path: &Path,
+) -> Result<(&'a [u8], Option<Appended<'a>>), IoError> {
     const TAG: &[u8] = b"<AppendedData";
     let Some(p) = bytes.windows(TAG.len()).position(|w| w == TAG) else {
         return Ok((bytes, None));
@@ -197,7 +225,10 @@ fn split_appended<'a>(bytes: &'a [u8], path: &Path) -> Result<(&'a [u8], Option<
             return Err(line_err(
                 path,
                 line_of(bytes, p),
-                format!("AppendedData encoding '{}' is not supported: expected raw or base64", shown(other)),
+                format!(
+                    "AppendedData encoding '{}' is not supported: expected raw or base64",
+                    shown(other)
+                ),
             ));
         }
     };
@@ -206,7 +237,11 @@ fn split_appended<'a>(bytes: &'a [u8], path: &Path) -> Result<(&'a [u8], Option<
         u += 1;
     }
     if bytes.get(u) != Some(&b'_') {
-        return Err(offset_err(path, u, "expected '_' at the start of the AppendedData content"));
+        return Err(offset_err(
+            path,
+            u,
+            "expected '_' at the start of the AppendedData content",
+        ));
     }
     let start = u + 1;
     let mut data = &bytes[start..];
@@ -255,14 +290,13 @@ impl Ctx<'_> {
                 b.len()
             ));
         };
-        let mut v = Vec::with_capacity(1);
-        let t = if self.header64 { DType::U64 } else { DType::U32 };
-        t.decode(s, self.big_endian, &mut v);
-        let v = v.first().copied().unwrap_or(0.0);
-        usize::try_from(v as u64)
-            .ok()
-            .filter(|_| v < 1.8e19)
-            .ok_or_else(|| format!("block header value {v} is too large"))
+        let v = match (s.len(), self.big_endian) {
+            (8, false) => u64::from_le_bytes(std::array::from_fn(|i| s[i])),
+            (8, true) => u64::from_be_bytes(std::array::from_fn(|i| s[i])),
+            (_, false) => u32::from_le_bytes(std::array::from_fn(|i| s[i])) as u64,
+            (_, true) => u32::from_be_bytes(std::array::from_fn(|i| s[i])) as u64,
+        };
+        usize::try_from(v).map_err(|_| format!("block header value {v} is too large"))
     }
 
     /// Decodes header + data bytes (uncompressed or zlib blocks) into values.
@@ -302,7 +336,9 @@ impl Ctx<'_> {
         let block = self.header(b, 1)?;
         let last = self.header(b, 2)?;
         if nblocks > b.len() / h {
-            return Err(format!("the compression header declares {nblocks} blocks, more than the data can hold"));
+            return Err(format!(
+                "the compression header declares {nblocks} blocks, more than the data can hold"
+            ));
         }
         let mut at = h * (3 + nblocks);
         let mut out = Vec::new();
@@ -315,7 +351,11 @@ impl Ctx<'_> {
                     b.len().saturating_sub(at)
                 ));
             };
-            let expect = if i + 1 == nblocks && last != 0 { last } else { block };
+            let expect = if i + 1 == nblocks && last != 0 {
+                last
+            } else {
+                block
+            };
             let before = out.len();
             flate2::read::ZlibDecoder::new(comp)
                 .take(expect as u64 + 1)
@@ -336,19 +376,32 @@ impl Ctx<'_> {
     /// Reads the values of an appended array at `offset`.
     fn appended(&self, el: &El, label: &str, dtype: DType) -> Result<Vec<f64>, IoError> {
         let Some(app) = &self.appended else {
-            return Err(self.err(el, format!("{label} has format=\"appended\" but the file has no <AppendedData> section")));
+            return Err(self.err(
+                el,
+                format!(
+                    "{label} has format=\"appended\" but the file has no <AppendedData> section"
+                ),
+            ));
         };
         let off_text = el.attr("offset").unwrap_or("");
-        let offset: usize = off_text
-            .trim()
-            .parse()
-            .map_err(|_| self.err(el, format!("{label}: expected an integer offset attribute, found '{}'", shown(off_text))))?;
+        let offset: usize = off_text.trim().parse().map_err(|_| {
+            self.err(
+                el,
+                format!(
+                    "{label}: expected an integer offset attribute, found '{}'",
+                    shown(off_text)
+                ),
+            )
+        })?;
         let file_off = app.start.saturating_add(offset);
         let Some(rest) = app.data.get(offset..) else {
             return Err(offset_err(
                 self.path,
                 file_off,
-                format!("{label}: appended offset {offset} is past the end of the appended data ({} bytes)", app.data.len()),
+                format!(
+                    "{label}: appended offset {offset} is past the end of the appended data ({} bytes)",
+                    app.data.len()
+                ),
             ));
         };
         let result = if app.base64 {
@@ -381,7 +434,15 @@ impl Ctx<'_> {
                 .parse::<usize>()
                 .ok()
                 .filter(|c| (1..=4096).contains(c))
-                .ok_or_else(|| self.err(el, format!("{label}: NumberOfComponents '{}' is not between 1 and 4096", shown(s))))?,
+                .ok_or_else(|| {
+                    self.err(
+                        el,
+                        format!(
+                            "{label}: NumberOfComponents '{}' is not between 1 and 4096",
+                            shown(s)
+                        ),
+                    )
+                })?,
         };
         let values = match el.attr("format").unwrap_or("ascii") {
             "ascii" => self.ascii(el, &label)?,
@@ -390,11 +451,23 @@ impl Ctx<'_> {
                 .map_err(|m| self.err(el, format!("{label} (binary): {m}")))?,
             "appended" => self.appended(el, &label, dtype)?,
             other => {
-                return Err(self.err(el, format!("{label}: format '{}' is not one of ascii, binary, appended", shown(other))));
+                return Err(self.err(
+                    el,
+                    format!(
+                        "{label}: format '{}' is not one of ascii, binary, appended",
+                        shown(other)
+                    ),
+                ));
             }
         };
         if values.len() % comps != 0 {
-            return Err(self.err(el, format!("{label} has {} values, not a multiple of its {comps} components", values.len())));
+            return Err(self.err(
+                el,
+                format!(
+                    "{label} has {} values, not a multiple of its {comps} components",
+                    values.len()
+                ),
+            ));
         }
         if let Some(n) = expected {
             if n.checked_mul(comps) != Some(values.len()) {
@@ -409,20 +482,42 @@ impl Ctx<'_> {
 
     fn ascii(&self, el: &El, label: &str) -> Result<Vec<f64>, IoError> {
         let mut out = Vec::with_capacity(capped(el.text.len() / 2, usize::MAX));
-        for (k, t) in el.text.split(|c| c.is_ascii_whitespace()).filter(|t| !t.is_empty()).enumerate() {
-            let v = std::str::from_utf8(t).ok().and_then(|s| s.parse::<f64>().ok());
+        for (k, t) in el
+            .text
+            .split(|c| c.is_ascii_whitespace())
+            .filter(|t| !t.is_empty())
+            .enumerate()
+        {
+            let v = std::str::from_utf8(t)
+                .ok()
+                .and_then(|s| s.parse::<f64>().ok());
             out.push(v.ok_or_else(|| {
-                self.err(el, format!("{label}: expected a number (value {}), found '{}'", k + 1, shown(&String::from_utf8_lossy(t))))
+                self.err(
+                    el,
+                    format!(
+                        "{label}: expected a number (value {}), found '{}'",
+                        k + 1,
+                        shown(&String::from_utf8_lossy(t))
+                    ),
+                )
             })?);
         }
         Ok(out)
     }
 
     /// Reads a `DataArray` named `name` from `section` as node indices.
-    fn indices(&self, section: &El, name: &str, expected: Option<usize>) -> Result<Vec<f64>, IoError> {
-        let el = section
-            .named_array(name)
-            .ok_or_else(|| self.err(section, format!("<{}> has no DataArray named '{name}'", section.name)))?;
+    fn indices(
+        &self,
+        section: &El,
+        name: &str,
+        expected: Option<usize>,
+    ) -> Result<Vec<f64>, IoError> {
+        let el = section.named_array(name).ok_or_else(|| {
+            self.err(
+                section,
+                format!("<{}> has no DataArray named '{name}'", section.name),
+            )
+        })?;
         Ok(self.array(el, expected)?.values)
     }
 
@@ -442,7 +537,14 @@ impl Ctx<'_> {
             None if !required => Ok(0),
             None => Err(self.err(el, format!("<{}> has no {key} attribute", el.name))),
             Some(s) => s.trim().parse().map_err(|_| {
-                self.err(el, format!("{key} of <{}> is '{}', expected a non-negative integer", el.name, shown(s)))
+                self.err(
+                    el,
+                    format!(
+                        "{key} of <{}> is '{}', expected a non-negative integer",
+                        el.name,
+                        shown(s)
+                    ),
+                )
             }),
         }
     }
@@ -456,9 +558,18 @@ impl Ctx<'_> {
         };
         let a = self.array(el, Some(n))?;
         if a.components != 3 {
-            return Err(self.err(el, format!("Points DataArray has {} components, expected 3", a.components)));
+            return Err(self.err(
+                el,
+                format!(
+                    "Points DataArray has {} components, expected 3",
+                    a.components
+                ),
+            ));
         }
-        Ok(a.values.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+        Ok(a.values
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect())
     }
 }
 
@@ -486,7 +597,14 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
         app.offsets.sort_unstable();
     }
     let bad = |key: &str, v: &str, want: &str| {
-        line_err(path, line_of(bytes, vtk.pos), format!("VTKFile {key} '{}' is not supported: expected {want}", shown(v)))
+        line_err(
+            path,
+            line_of(bytes, vtk.pos),
+            format!(
+                "VTKFile {key} '{}' is not supported: expected {want}",
+                shown(v)
+            ),
+        )
     };
     let big_endian = match vtk.attr("byte_order").unwrap_or("LittleEndian") {
         "LittleEndian" => false,
@@ -515,12 +633,18 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
     if kind != "UnstructuredGrid" && kind != "PolyData" {
         return Err(bad("type", kind, "UnstructuredGrid or PolyData"));
     }
-    let grid = vtk
-        .child(kind)
-        .ok_or_else(|| ctx.err(vtk, format!("<VTKFile type=\"{kind}\"> has no <{kind}> element")))?;
+    let grid = vtk.child(kind).ok_or_else(|| {
+        ctx.err(
+            vtk,
+            format!("<VTKFile type=\"{kind}\"> has no <{kind}> element"),
+        )
+    })?;
     let pieces: Vec<&El> = grid.children("Piece").collect();
     let [piece] = pieces[..] else {
-        return Err(ctx.err(grid, format!("expected exactly one <Piece>, found {}", pieces.len())));
+        return Err(ctx.err(
+            grid,
+            format!("expected exactly one <Piece>, found {}", pieces.len()),
+        ));
     };
     if kind == "UnstructuredGrid" {
         read_vtu(&ctx, piece)
@@ -535,9 +659,12 @@ fn read_vtu(ctx: &Ctx, piece: &El) -> Result<MeshFile, IoError> {
     let nodes = ctx.points(piece, np)?;
     let mut cc = CellCollector::default();
     if nc > 0 {
-        let cells = piece
-            .child("Cells")
-            .ok_or_else(|| ctx.err(piece, format!("<Piece> declares {nc} cells but has no <Cells>")))?;
+        let cells = piece.child("Cells").ok_or_else(|| {
+            ctx.err(
+                piece,
+                format!("<Piece> declares {nc} cells but has no <Cells>"),
+            )
+        })?;
         let conn = to_indices(&ctx.indices(cells, "connectivity", None)?, "connectivity")
             .map_err(|m| ctx.err(cells, m))?;
         let offsets = ctx.indices(cells, "offsets", Some(nc))?;
@@ -546,7 +673,12 @@ fn read_vtu(ctx: &Ctx, piece: &El) -> Result<MeshFile, IoError> {
         for (i, (cell, &t)) in split.iter().zip(&types).enumerate() {
             let t = to_index(t)
                 .and_then(|t| u8::try_from(t).ok())
-                .ok_or_else(|| ctx.err(cells, format!("types value {i} is {t}, not a VTK cell type")))?;
+                .ok_or_else(|| {
+                    ctx.err(
+                        cells,
+                        format!("types value {i} is {t}, not a VTK cell type"),
+                    )
+                })?;
             cc.add_vtk(t, cell, i).map_err(|m| ctx.err(cells, m))?;
         }
     }
@@ -570,9 +702,12 @@ fn read_vtp(ctx: &Ctx, piece: &El) -> Result<MeshFile, IoError> {
         if n == 0 {
             continue;
         }
-        let sec = piece
-            .child(section)
-            .ok_or_else(|| ctx.err(piece, format!("<Piece> declares {key}=\"{n}\" but has no <{section}>")))?;
+        let sec = piece.child(section).ok_or_else(|| {
+            ctx.err(
+                piece,
+                format!("<Piece> declares {key}=\"{n}\" but has no <{section}>"),
+            )
+        })?;
         let conn = to_indices(&ctx.indices(sec, "connectivity", None)?, "connectivity")
             .map_err(|m| ctx.err(sec, m))?;
         let offsets = ctx.indices(sec, "offsets", Some(n))?;
@@ -641,7 +776,10 @@ impl XmlOut {
         };
         self.line(
             indent,
-            &format!("<DataArray type=\"{ty}\" Name=\"{}\"{comps_attr} format=\"{format}\">", escape(name)),
+            &format!(
+                "<DataArray type=\"{ty}\" Name=\"{}\"{comps_attr} format=\"{format}\">",
+                escape(name)
+            ),
         );
         let pad = "  ".repeat(indent + 1);
         if self.binary {
@@ -652,12 +790,17 @@ impl XmlOut {
             };
             raw.extend_from_slice(&(size as u64).to_le_bytes());
             match &vals {
-                Vals::F64(v) => v.iter().for_each(|x| raw.extend_from_slice(&x.to_le_bytes())),
-                Vals::I64(v) => v.iter().for_each(|x| raw.extend_from_slice(&x.to_le_bytes())),
+                Vals::F64(v) => v
+                    .iter()
+                    .for_each(|x| raw.extend_from_slice(&x.to_le_bytes())),
+                Vals::I64(v) => v
+                    .iter()
+                    .for_each(|x| raw.extend_from_slice(&x.to_le_bytes())),
                 Vals::U8(v) => raw.extend_from_slice(v),
             }
             self.s.push_str(&pad);
-            self.s.push_str(&base64::engine::general_purpose::STANDARD.encode(&raw));
+            self.s
+                .push_str(&base64::engine::general_purpose::STANDARD.encode(&raw));
             self.s.push('\n');
         } else {
             let per_line = if comps > 1 { comps } else { 6 };
@@ -756,7 +899,10 @@ pub(crate) fn write_vtu(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, Str
     };
     x.head(
         "UnstructuredGrid",
-        &format!("NumberOfPoints=\"{}\" NumberOfCells=\"{nc}\"", file.nodes.len()),
+        &format!(
+            "NumberOfPoints=\"{}\" NumberOfCells=\"{nc}\"",
+            file.nodes.len()
+        ),
     );
     x.data("PointData", file.nodes.len(), &file.point_data)?;
     x.data("CellData", nc, &file.cell_data)?;
@@ -774,7 +920,11 @@ pub(crate) fn write_vtp(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, Str
         binary: o.binary,
     };
     let polys = !file.triangles.is_empty();
-    let (nv, npoly) = if polys { (0, file.triangles.len()) } else { (np, 0) };
+    let (nv, npoly) = if polys {
+        (0, file.triangles.len())
+    } else {
+        (np, 0)
+    };
     x.head(
         "PolyData",
         &format!(
