@@ -1,7 +1,7 @@
 //! Physics checks of the linear-elastic FEM against closed-form solutions and invariants.
 
 use librplus::fem::{
-    Dirichlet, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads, post,
+    Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads, post,
 };
 use librplus::mesh::TetMesh;
 use librplus::mesh::procedural::box_mesh;
@@ -52,11 +52,25 @@ fn patch_test_linear_field_reproduced_inside() {
     }
     eprintln!("patch test: worst relative interior error {worst:e}");
     assert!(worst <= 1e-10, "patch test error {worst:e}");
-    // Constant strain in every tet equals sym(A).
+    // Constant strain in every tet equals sym(A); stress is Hooke's law of it.
     let (l, m) = mat.lame();
+    let eps = [
+        a[0][0],
+        a[1][1],
+        a[2][2],
+        0.5 * (a[0][1] + a[1][0]),
+        0.5 * (a[1][2] + a[2][1]),
+        0.5 * (a[0][2] + a[2][0]),
+    ];
+    let tr = eps[0] + eps[1] + eps[2];
+    let sig: Vec<f64> = (0..6)
+        .map(|k| 2.0 * m * eps[k] + if k < 3 { l * tr } else { 0.0 })
+        .collect();
     for f in post::tet_fields(&mesh, &LameField::Uniform(l, m), &u) {
-        assert!((f.strain[0] - a[0][0]).abs() < 1e-10);
-        assert!((f.strain[3] - 0.5 * (a[0][1] + a[1][0])).abs() < 1e-10);
+        for k in 0..6 {
+            assert!((f.strain[k] - eps[k]).abs() < 1e-12, "strain {k}");
+            assert!((f.stress[k] - sig[k]).abs() < 1e-10, "stress {k}");
+        }
     }
 }
 
@@ -237,7 +251,7 @@ fn springs_support_without_dirichlet() {
     );
 }
 
-/// An unconstrained body cannot be factorized; the error says why.
+/// An unconstrained body cannot be factorized; the error says why and where.
 #[test]
 fn unconstrained_system_is_reported() {
     let mesh = box_mesh([1.0, 1.0, 1.0], [1, 1, 1], 0.0);
@@ -245,8 +259,84 @@ fn unconstrained_system_is_reported() {
     let err = sys
         .factorize(&Dirichlet::new(mesh.num_nodes()))
         .unwrap_err();
-    assert!(err.to_string().contains("rigid motion"), "{err}");
+    assert!(err.to_string().contains("move rigidly"), "{err}");
     assert!(StiffnessSystem::linear(&mesh, &LinearMaterial::new(5.0, 0.5)).is_err());
+    // Two separate boxes, only the first fixed: the second is reported as a floating part.
+    let a = box_mesh([1.0, 1.0, 1.0], [2, 2, 2], 0.1);
+    let n = a.num_nodes() as u32;
+    let mut nodes = a.nodes().to_vec();
+    nodes.extend(a.nodes().iter().map(|p| [p[0] + 3.0, p[1], p[2]]));
+    let mut tets = a.tets().to_vec();
+    tets.extend(a.tets().iter().map(|t| t.map(|v| v + n)));
+    let two = TetMesh::new(nodes, tets).unwrap();
+    let sys = StiffnessSystem::linear(&two, &LinearMaterial::default()).unwrap();
+    let mut bc = Dirichlet::new(two.num_nodes());
+    bc.fix_nodes(&[0, 1, 2, 3, 4, 5, 6, 7, 8]);
+    let err = sys.factorize(&bc).unwrap_err();
+    assert!(
+        matches!(err, FemError::FloatingPart { part: 1, node, .. } if node >= n as usize),
+        "{err}"
+    );
+    // A node no tet uses is named.
+    let mut nodes = a.nodes().to_vec();
+    nodes.push([9.0, 9.0, 9.0]);
+    let spare = TetMesh::new(nodes, a.tets().to_vec()).unwrap();
+    let sys = StiffnessSystem::linear(&spare, &LinearMaterial::default()).unwrap();
+    let mut bc = Dirichlet::new(spare.num_nodes());
+    bc.fix_nodes(&[0]);
+    let err = sys.factorize(&bc).unwrap_err();
+    assert_eq!(err, FemError::UnusedNode { node: n as usize });
+}
+
+/// Heterogeneous stiffness: a bar of two materials in series under end traction stretches by
+/// σ(L₁/E₁ + L₂/E₂) (uniaxial stress; ν = 0 so the layers do not constrain each other).
+#[test]
+fn heterogeneous_bar_in_series() {
+    let (len, w) = (4.0, 1.0);
+    let mesh = box_mesh([len, w, w], [8, 2, 2], 0.0);
+    let (e1, e2) = (2.0, 10.0);
+    let lame: Vec<(f64, f64)> = (0..mesh.num_tets())
+        .map(|t| {
+            let p = mesh.tet_points(t);
+            let cx = p.iter().map(|q| q[0]).sum::<f64>() / 4.0;
+            let e = if cx < len / 2.0 { e1 } else { e2 };
+            LinearMaterial::new(e, 0.0).lame()
+        })
+        .collect();
+    let sys = StiffnessSystem::linear_field(&mesh, &LameField::PerTet(lame)).unwrap();
+    let mut bc = Dirichlet::new(mesh.num_nodes());
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        for (axis, &c) in p.iter().enumerate() {
+            if on(c, 0.0) {
+                bc.prescribe_dof(i as u32, axis, 0.0);
+            }
+        }
+    }
+    let b = mesh.boundary().unwrap();
+    let end: Vec<[u32; 3]> = b
+        .triangles
+        .iter()
+        .copied()
+        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
+        .collect();
+    let sigma = 0.5;
+    let mut f = vec![0.0; 3 * mesh.num_nodes()];
+    loads::add_traction(
+        &mut f,
+        mesh.nodes(),
+        &end,
+        &vec![[sigma, 0.0, 0.0]; end.len()],
+    );
+    let u = sys.factorize(&bc).unwrap().solve(&f);
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        let x = p[0];
+        let exact = if x <= len / 2.0 {
+            sigma * x / e1
+        } else {
+            sigma * (len / 2.0) / e1 + sigma * (x - len / 2.0) / e2
+        };
+        assert!((u[3 * i] - exact).abs() < 1e-10, "node {i} at x={x}");
+    }
 }
 
 /// Tip deflection of a cantilever (clamped at x = 0, shear traction on the end face).

@@ -188,8 +188,17 @@ fn read_file(path: &Path, unit: Unit) -> Result<MeshFile> {
     Ok(io::read(path, unit)?)
 }
 
-/// Reads a volume mesh for FEM: flips inverted tets (with a note), rejects degenerate ones.
-fn load_volume(path: &Path, unit: Unit) -> Result<(TetMesh, usize)> {
+/// A volume mesh prepared for FEM, with what was changed on the way.
+struct Volume {
+    mesh: TetMesh,
+    flipped: usize,
+    removed_unused: usize,
+}
+
+/// Reads a volume mesh for FEM: flips inverted tets (with a note; a warning when orientation is
+/// mixed, which often means a tangled mesh), removes nodes no tet uses, rejects degenerate,
+/// duplicate and non-manifold tets, naming the file and the tet.
+fn load_volume(path: &Path, unit: Unit) -> Result<Volume> {
     let file = read_file(path, unit)?;
     if file.tets.is_empty() {
         bail!(
@@ -200,19 +209,37 @@ fn load_volume(path: &Path, unit: Unit) -> Result<(TetMesh, usize)> {
     }
     let mut mesh = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
     let flipped = mesh.orient_positive();
-    if flipped > 0 {
+    if flipped == mesh.num_tets() {
         eprintln!(
-            "note: {}: {flipped} of {} tets were negatively oriented and have been flipped",
+            "note: {}: all {flipped} tets were negatively oriented and have been flipped",
+            path.display()
+        );
+    } else if flipped > 0 {
+        eprintln!(
+            "warning: {}: {flipped} of {} tets were negatively oriented (mixed orientation) and have been flipped; if the mesh is tangled the results are wrong",
             path.display(),
             mesh.num_tets()
         );
     }
-    for p in mesh.problems(1) {
-        if !matches!(p, librplus::mesh::MeshError::UnusedNode { .. }) {
-            bail!("{}: {p}", path.display());
-        }
+    let removed_unused = mesh.num_nodes() - mesh.used_nodes().iter().filter(|&&u| u).count();
+    if removed_unused > 0 {
+        mesh.remove_unused_nodes();
+        eprintln!(
+            "note: {}: removed {removed_unused} nodes that no tetrahedron uses (outputs use the remaining {} nodes, in file order)",
+            path.display(),
+            mesh.num_nodes()
+        );
     }
-    Ok((mesh, flipped))
+    if let Some(p) = mesh.problems(1).into_iter().next() {
+        bail!("{}: {p}", path.display());
+    }
+    mesh.boundary()
+        .with_context(|| path.display().to_string())?;
+    Ok(Volume {
+        mesh,
+        flipped,
+        removed_unused,
+    })
 }
 
 fn bbox_json(lo: [f64; 3], hi: [f64; 3]) -> Value {
@@ -231,18 +258,24 @@ fn mesh_info(path: &Path, c: &Common) -> Result<()> {
         let unused = count(|p| matches!(p, librplus::mesh::MeshError::UnusedNode { .. }));
         let mut oriented = mesh.clone();
         oriented.orient_positive();
-        let surface = oriented.boundary_surface()?;
-        let st = surface.stats();
+        // A broken boundary (non-manifold or overlapping tets) is reported, not fatal, here.
+        let (st, surface_error) = match oriented.boundary_surface() {
+            Ok(surface) => (Some(surface.stats()), None),
+            Err(e) => (None, Some(e.to_string())),
+        };
         let q = quality::summary(&mesh);
         let (lo, hi) = mesh.bounding_box();
+        let st_val = |f: fn(&librplus::mesh::SurfaceStats) -> Value| {
+            st.as_ref().map(f).unwrap_or(Value::Null)
+        };
         json!({
             "file": path.display().to_string(),
             "kind": "tetrahedral",
             "unit_in": c.unit.to_string(),
             "nodes": mesh.num_nodes(),
             "tets": mesh.num_tets(),
-            "surface_triangles": st.triangles,
-            "surface_nodes": st.vertices,
+            "surface_triangles": st_val(|s| s.triangles.into()),
+            "surface_nodes": st_val(|s| s.vertices.into()),
             "volume_mm3": mesh.tet_volumes().iter().map(|v| v.abs()).sum::<f64>(),
             "signed_volume_mm3": mesh.volume(),
             "min_dihedral_deg": q.min_dihedral_deg,
@@ -253,9 +286,10 @@ fn mesh_info(path: &Path, c: &Common) -> Result<()> {
             "inverted_tets": inverted,
             "degenerate_tets": degenerate,
             "unused_nodes": unused,
-            "surface_closed": st.closed,
-            "surface_genus": st.genus,
-            "surface_area_mm2": st.area_mm2,
+            "surface_closed": st_val(|s| s.closed.into()),
+            "surface_genus": st_val(|s| s.genus.into()),
+            "surface_area_mm2": st_val(|s| s.area_mm2.into()),
+            "surface_error": surface_error,
             "other_triangles_in_file": file.triangles.len(),
             "skipped_cells": file.skipped_cells,
             "point_data": file.point_data.iter().map(|a| &a.name).collect::<Vec<_>>(),
@@ -318,9 +352,12 @@ fn mesh_convert(input: &Path, output: &Path, c: &Common, ascii: bool) -> Result<
         io::Format::Obj | io::Format::Stl | io::Format::Vtp
     );
     if surface_out && file.triangles.is_empty() && !file.tets.is_empty() {
-        let mut mesh = TetMesh::from_file(&file)?;
+        let mut mesh = TetMesh::from_file(&file).with_context(|| input.display().to_string())?;
         mesh.orient_positive();
-        file.triangles = mesh.boundary()?.triangles;
+        file.triangles = mesh
+            .boundary()
+            .with_context(|| input.display().to_string())?
+            .triangles;
         file.tets.clear();
         file.cell_data.clear();
     }
@@ -340,8 +377,23 @@ fn mesh_convert(input: &Path, output: &Path, c: &Common, ascii: bool) -> Result<
 }
 
 fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
+    if let Some(out) = out
+        && matches!(
+            io::Format::from_path(out)?,
+            io::Format::Obj | io::Format::Stl | io::Format::Vtp
+        )
+    {
+        bail!(
+            "{}: a surface format cannot hold the volume result; use .vtu, .vtk or .msh",
+            out.display()
+        );
+    }
     let t0 = Instant::now();
-    let (mesh, flipped) = load_volume(path, c.unit)?;
+    let Volume {
+        mesh,
+        flipped,
+        removed_unused,
+    } = load_volume(path, c.unit)?;
     let read_s = t0.elapsed().as_secs_f64();
     let params = sag::SagParams::default();
     let r = sag::solve(&mesh, &params)?;
@@ -379,6 +431,7 @@ fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
         "nodes": mesh.num_nodes(),
         "tets": mesh.num_tets(),
         "flipped_tets": flipped,
+        "removed_unused_nodes": removed_unused,
         "fixed_nodes": r.fixed_nodes,
         "free_dofs": r.factor.free_dofs,
         "E_kPa": params.material.youngs_modulus_kpa,
@@ -424,7 +477,15 @@ fn bench_basis(
     if rhs == 0 {
         bail!("--rhs must be at least 1");
     }
-    let (mesh, _) = load_volume(path, c.unit)?;
+    let mesh = load_volume(path, c.unit)?.mesh;
+    let rhs_bytes = 3.0 * mesh.num_nodes() as f64 * rhs as f64 * 8.0;
+    if rhs_bytes > 8.0 * (1u64 << 30) as f64 {
+        bail!(
+            "--rhs {rhs} on {} nodes needs {:.1} GiB for the right-hand sides alone (limit 8 GiB); use fewer",
+            mesh.num_nodes(),
+            rhs_bytes / (1u64 << 30) as f64
+        );
+    }
     let bar = indicatif::ProgressBar::new(repeat.max(1) as u64).with_message("bench basis");
     let mut runs = Vec::new();
     for _ in 0..repeat.max(1) {

@@ -74,6 +74,18 @@ pub fn fixed_nodes(mesh: &TetMesh, fixed_fraction: f64) -> Vec<u32> {
 
 /// Solves the sag problem.
 pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> {
+    if !(params.fixed_fraction >= 0.0 && params.fixed_fraction < 1.0) {
+        return Err(FemError::InvalidParameter {
+            field: "fixed_fraction",
+            message: format!("must be in [0, 1), got {}", params.fixed_fraction),
+        });
+    }
+    if !params.body_force.iter().all(|b| b.is_finite()) {
+        return Err(FemError::InvalidParameter {
+            field: "body_force",
+            message: format!("must be finite, got {:?}", params.body_force),
+        });
+    }
     let t0 = Instant::now();
     let system = StiffnessSystem::linear(mesh, &params.material)?;
     let assemble_s = t0.elapsed().as_secs_f64();
@@ -94,7 +106,7 @@ pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> 
         .collect();
     Ok(SagResult {
         fixed_nodes: fixed.len(),
-        max_disp_mm: mags.iter().copied().fold(0.0, f64::max),
+        max_disp_mm: mags.iter().copied().fold(0.0, super::basis_bench::nan_max),
         mean_disp_mm: mags.iter().sum::<f64>() / mags.len() as f64,
         strain_energy: system.energy(&u),
         displacement: u,

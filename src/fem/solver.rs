@@ -38,19 +38,47 @@ pub enum FemError {
         /// What is wrong.
         message: String,
     },
-    /// A tet has zero volume, so its stiffness is undefined.
-    #[error("tet {tet} is degenerate (zero volume); fix or remove it before solving")]
+    /// A tet has (numerically) zero volume, so its stiffness is undefined.
+    #[error(
+        "tet {tet} is degenerate (volume {volume:e} mm³, below 1e-10 × its longest edge cubed); fix or remove it before solving"
+    )]
     DegenerateTet {
         /// Tet index.
         tet: usize,
+        /// Its signed volume (mm³).
+        volume: f64,
     },
     /// The constrained stiffness is not positive definite: rigid motion is not prevented.
     #[error(
-        "stiffness matrix is not positive definite after constraints ({free} free dofs): the constraints and springs do not prevent rigid motion of every component"
+        "stiffness matrix is not positive definite after constraints ({free} free dofs; first bad pivot at node {node}, axis {axis}): the constraints and springs do not prevent rigid motion of every part of the mesh"
     )]
     NotPositiveDefinite {
         /// Free dofs.
         free: usize,
+        /// Node of the first non-positive pivot (the part that can still move rigidly).
+        node: usize,
+        /// Axis (0, 1, 2) of that pivot.
+        axis: usize,
+    },
+    /// A face-connected part of the mesh has no constrained dof and no spring: it can move freely.
+    #[error(
+        "mesh part {part} ({tets} tets, containing node {node}) has no constrained dof and no spring, so it can move rigidly; fix some of its nodes or add springs"
+    )]
+    FloatingPart {
+        /// Part index (face-connected component).
+        part: usize,
+        /// Number of tets in it.
+        tets: usize,
+        /// One of its nodes.
+        node: usize,
+    },
+    /// A node belongs to no tetrahedron and is not constrained: its stiffness is zero.
+    #[error(
+        "node {node} belongs to no tetrahedron and is not constrained (remove unused nodes, e.g. TetMesh::remove_unused_nodes, or fix them)"
+    )]
+    UnusedNode {
+        /// Node index.
+        node: usize,
     },
     /// Every dof is constrained: nothing to solve.
     #[error("every degree of freedom is constrained; nothing to solve")]
@@ -79,8 +107,15 @@ impl NodeSpring {
     }
 
     /// Spring with stiffness `k_normal` along the unit normal `n` and `k_tangent` across it (mN/mm):
-    /// `K = k_t I + (k_n − k_t) n nᵀ` (a sliding support when `k_tangent = 0`).
+    /// `K = k_t I + (k_n − k_t) n nᵀ` (a sliding support when `k_tangent = 0`); `n` is normalised
+    /// here (a zero `n` gives an isotropic spring `k_tangent`).
     pub fn normal_tangent(node: u32, n: [f64; 3], k_normal: f64, k_tangent: f64) -> Self {
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        let n = if len > 0.0 {
+            n.map(|x| x / len)
+        } else {
+            [0.0; 3]
+        };
         let mut s = [[0.0; 3]; 3];
         for a in 0..3 {
             for b in 0..3 {
@@ -156,6 +191,10 @@ pub struct StiffnessSystem {
     values: Vec<f64>,
     coords: Vec<[f64; 3]>,
     ordering: Ordering,
+    /// Face-connected parts: (tet count, nodes).
+    parts: Vec<(usize, Vec<u32>)>,
+    /// Nodes that carry a spring.
+    sprung: Vec<bool>,
 }
 
 impl StiffnessSystem {
@@ -181,19 +220,81 @@ impl StiffnessSystem {
                 message: format!("{} per-tet values for {} tets", v.len(), mesh.num_tets()),
             });
         }
+        let check = |field: &'static str, l: f64, m: f64| {
+            if l.is_finite() && m.is_finite() && m > 0.0 && 3.0 * l + 2.0 * m > 0.0 {
+                Ok(())
+            } else {
+                Err(FemError::InvalidParameter {
+                    field,
+                    message: format!(
+                        "Lamé parameters (λ = {l}, μ = {m}) must be finite with μ > 0 and 3λ + 2μ > 0"
+                    ),
+                })
+            }
+        };
+        match lame {
+            LameField::Uniform(l, m) => check("lame", *l, *m)?,
+            LameField::PerTet(v) => {
+                for &(l, m) in v {
+                    check("lame (per tet)", l, m)?;
+                }
+            }
+        }
         for t in 0..mesh.num_tets() {
-            if mesh.tet_volume(t) == 0.0 {
-                return Err(FemError::DegenerateTet { tet: t });
+            let p = mesh.tet_points(t);
+            let v = crate::mesh::vec3::tet_signed_volume(&p);
+            let lmax = crate::mesh::longest_edge(&p);
+            if v.abs() <= crate::mesh::DEGENERATE_REL * lmax.powi(3) || !v.is_finite() {
+                return Err(FemError::DegenerateTet { tet: t, volume: v });
             }
         }
         let pattern = BlockPattern::new(mesh);
         let values = assemble_linear_stiffness(mesh, &pattern, lame);
+        let (part_of_tet, nparts) = mesh.face_components();
+        let mut parts: Vec<(usize, Vec<u32>)> = vec![(0, Vec::new()); nparts];
+        for (t, &c) in part_of_tet.iter().enumerate() {
+            parts[c as usize].0 += 1;
+            parts[c as usize].1.extend_from_slice(&mesh.tets()[t]);
+        }
+        for p in &mut parts {
+            p.1.sort_unstable();
+            p.1.dedup();
+        }
         Ok(Self {
             pattern,
             values,
             coords: mesh.nodes().to_vec(),
             ordering: Ordering::default(),
+            parts,
+            sprung: vec![false; mesh.num_nodes()],
         })
+    }
+
+    /// Checks that every free dof has stiffness and every face-connected part is held by some
+    /// constraint or spring (otherwise the factorization would fail or be meaningless).
+    fn check_supported(&self, free_of_dof: &[usize]) -> Result<(), FemError> {
+        let p = &self.pattern;
+        for node in 0..p.nodes {
+            let touched = p.tet_ptr[node + 1] > p.tet_ptr[node];
+            let free = (0..3).any(|a| free_of_dof[3 * node + a] != usize::MAX);
+            if !touched && free && !self.sprung[node] {
+                return Err(FemError::UnusedNode { node });
+            }
+        }
+        for (k, (tets, nodes)) in self.parts.iter().enumerate() {
+            let held = nodes.iter().any(|&v| {
+                let v = v as usize;
+                self.sprung[v] || (0..3).any(|a| free_of_dof[3 * v + a] == usize::MAX)
+            });
+            if !held {
+                return Err(FemError::FloatingPart {
+                    part: k,
+                    tets: *tets,
+                    node: nodes.first().copied().unwrap_or(0) as usize,
+                });
+            }
+        }
+        Ok(())
     }
 
     /// Chooses the fill-reducing ordering for later factorizations.
@@ -214,7 +315,10 @@ impl StiffnessSystem {
                     offsets: self.pattern.node_ptr.clone(),
                     neighbors: self.pattern.block_rows.clone(),
                 };
-                let order = nested_dissection(&self.coords, &adj);
+                let active: Vec<bool> = (0..self.pattern.nodes)
+                    .map(|i| (0..3).any(|a| free_of_dof[3 * i + a] != usize::MAX))
+                    .collect();
+                let order = nested_dissection(&self.coords, &adj, &active);
                 let mut fwd = Vec::with_capacity(nf);
                 for node in order {
                     for a in 0..3 {
@@ -233,18 +337,38 @@ impl StiffnessSystem {
         }
     }
 
-    /// Adds node springs to the diagonal blocks.
+    /// Adds node springs to the diagonal blocks. Each spring matrix must be finite, symmetric and
+    /// positive semidefinite (checked: symmetric to 1e-12 relative, non-negative diagonal).
     pub fn add_springs(&mut self, springs: &[NodeSpring]) -> Result<(), FemError> {
-        for s in springs {
+        for (k, s) in springs.iter().enumerate() {
             let i = s.node as usize;
+            let bad = |message: String| FemError::InvalidParameter {
+                field: "springs",
+                message: format!("spring {k} (node {}): {message}", s.node),
+            };
             if i >= self.pattern.nodes {
-                return Err(FemError::InvalidParameter {
-                    field: "springs",
-                    message: format!(
-                        "node {} out of range ({} nodes)",
-                        s.node, self.pattern.nodes
-                    ),
-                });
+                return Err(bad(format!(
+                    "node out of range ({} nodes)",
+                    self.pattern.nodes
+                )));
+            }
+            let m = &s.stiffness;
+            let scale = m.iter().flatten().fold(0.0f64, |a, b| a.max(b.abs()));
+            if !m.iter().flatten().all(|x| x.is_finite()) {
+                return Err(bad(format!("non-finite stiffness {m:?}")));
+            }
+            for a in 0..3 {
+                if m[a][a] < 0.0 {
+                    return Err(bad(format!("negative diagonal stiffness {m:?}")));
+                }
+                for b in 0..3 {
+                    if (m[a][b] - m[b][a]).abs() > 1e-12 * scale {
+                        return Err(bad(format!("stiffness matrix is not symmetric {m:?}")));
+                    }
+                }
+            }
+            if scale > 0.0 {
+                self.sprung[i] = true;
             }
             for a in 0..3 {
                 for b in 0..3 {
@@ -290,6 +414,17 @@ impl StiffnessSystem {
         out
     }
 
+    /// ‖K‖∞: the largest absolute row sum (mN/mm), for scaled residuals.
+    pub fn row_sum_norm(&self) -> f64 {
+        let mut rows = vec![0.0f64; self.dofs()];
+        for col in 0..self.dofs() {
+            for k in self.pattern.col_ptr[col]..self.pattern.col_ptr[col + 1] {
+                rows[self.pattern.row_idx[k]] += self.values[k].abs();
+            }
+        }
+        rows.into_iter().fold(0.0, f64::max)
+    }
+
     /// Strain (+ spring) energy `uᵀKu/2` in mN·mm (= µJ).
     pub fn energy(&self, u: &[f64]) -> f64 {
         0.5 * self.apply(u).iter().zip(u).map(|(a, b)| a * b).sum::<f64>()
@@ -316,6 +451,17 @@ impl StiffnessSystem {
         if free.is_empty() {
             return Err(FemError::NothingFree);
         }
+        for d in 0..n {
+            if let Some(v) = bc.get(d)
+                && !v.is_finite()
+            {
+                return Err(FemError::InvalidParameter {
+                    field: "dirichlet",
+                    message: format!("node {} axis {} has non-finite value {v}", d / 3, d % 3),
+                });
+            }
+        }
+        self.check_supported(&free_of_dof)?;
         // Lower triangle of K_ff.
         let p = &self.pattern;
         let mut col_ptr = Vec::with_capacity(free.len() + 1);
@@ -347,8 +493,24 @@ impl StiffnessSystem {
         let sym = Arc::new(sym);
         let symbolic_s = t1.elapsed().as_secs_f64();
         let t2 = Instant::now();
-        let llt = CholeskyFactor::numeric(sym, kff.as_ref())
-            .map_err(|_| FemError::NotPositiveDefinite { free: nf })?;
+        let llt = CholeskyFactor::numeric(sym.clone(), kff.as_ref()).map_err(|e| match e {
+            faer::sparse::linalg::LltError::Numeric(
+                faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index },
+            ) => {
+                // Map the pivot back through the fill-reducing permutation to a node and axis.
+                let original = sym
+                    .perm()
+                    .map(|p| p.arrays().0.get(index).copied().unwrap_or(index))
+                    .unwrap_or(index);
+                let dof = free.get(original).copied().unwrap_or(0);
+                FemError::NotPositiveDefinite {
+                    free: nf,
+                    node: dof / 3,
+                    axis: dof % 3,
+                }
+            }
+            other => FemError::Factorization(format!("{other:?}")),
+        })?;
         let numeric_s = t2.elapsed().as_secs_f64();
         let nnz_factor = llt.symbolic.len_val();
         // Lift of the prescribed values: K·u_c restricted to free dofs.

@@ -14,4 +14,6 @@ mod tet_mesh;
 pub(crate) mod vec3;
 
 pub use surface::{SurfaceStats, TriSurface};
-pub use tet_mesh::{BoundarySurface, MeshError, NodeAdjacency, TetMesh};
+pub use tet_mesh::{
+    BoundarySurface, DEGENERATE_REL, MeshError, NodeAdjacency, TetMesh, longest_edge,
+};

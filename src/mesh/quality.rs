@@ -139,7 +139,8 @@ mod tests {
         for a in &d[3..] {
             assert!((a - e).abs() < 1e-10, "{a} vs {e}");
         }
-        assert!(radius_ratio(&p) < 1.0 && radius_ratio(&p) > 0.5);
+        // 3·r_in/r_circ = 3/(3+√3) · 2/√3 = √3 − 1 for the trirectangular corner.
+        assert!((radius_ratio(&p) - (3f64.sqrt() - 1.0)).abs() < 1e-14);
     }
 
     #[test]

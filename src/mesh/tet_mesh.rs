@@ -76,6 +76,16 @@ pub enum MeshError {
         /// Node index.
         node: usize,
     },
+    /// Two tets lie on the same side of a shared face (duplicate or overlapping elements).
+    #[error(
+        "tets {tets:?} overlap: both lie on the same side of their shared face {face:?} (duplicate or tangled elements)"
+    )]
+    OverlappingTets {
+        /// The two tets.
+        tets: [usize; 2],
+        /// The face's nodes (sorted).
+        face: [u32; 3],
+    },
     /// More than two tets share a face.
     #[error("face {face:?} is shared by more than two tetrahedra (non-manifold mesh)")]
     NonManifoldFace {
@@ -307,8 +317,8 @@ impl TetMesh {
         map
     }
 
-    /// Boundary faces (faces of exactly one tet), oriented outward for positively oriented tets.
-    pub fn boundary(&self) -> Result<BoundarySurface, MeshError> {
+    /// All tet faces as (sorted node triple, tet, local face), sorted by triple.
+    fn sorted_faces(&self) -> Vec<([u32; 3], u32, u8)> {
         let mut faces: Vec<([u32; 3], u32, u8)> = Vec::with_capacity(self.tets.len() * 4);
         for (t, tet) in self.tets.iter().enumerate() {
             for (f, lf) in TET_FACES.iter().enumerate() {
@@ -318,6 +328,26 @@ impl TetMesh {
             }
         }
         faces.sort_unstable_by_key(|a| a.0);
+        faces
+    }
+
+    /// Winding of a tet's outward face relative to its sorted key (true = even permutation),
+    /// corrected for the tet's own orientation.
+    fn face_winding(&self, t: u32, f: u8) -> bool {
+        let tet = self.tets[t as usize];
+        let lf = TET_FACES[f as usize];
+        let (a, b, c) = (tet[lf[0]], tet[lf[1]], tet[lf[2]]);
+        // Even permutation of (min, mid, max) ⇔ even number of inversions.
+        let inversions = (a > b) as u8 + (a > c) as u8 + (b > c) as u8;
+        let even = inversions % 2 == 0;
+        even ^ (self.tet_volume(t as usize) < 0.0)
+    }
+
+    /// Boundary faces (faces of exactly one tet), oriented outward for positively oriented tets.
+    /// Fails on non-manifold faces (three or more tets) and on two tets lying on the same side of
+    /// their shared face (duplicates or tangles).
+    pub fn boundary(&self) -> Result<BoundarySurface, MeshError> {
+        let faces = self.sorted_faces();
         let mut triangles = Vec::new();
         let mut tet_of_triangle = Vec::new();
         let mut i = 0;
@@ -334,7 +364,16 @@ impl TetMesh {
                     triangles.push([tet[lf[0]], tet[lf[1]], tet[lf[2]]]);
                     tet_of_triangle.push(t);
                 }
-                2 => {}
+                2 => {
+                    let (t1, f1) = (faces[i].1, faces[i].2);
+                    let (t2, f2) = (faces[i + 1].1, faces[i + 1].2);
+                    if self.face_winding(t1, f1) == self.face_winding(t2, f2) {
+                        return Err(MeshError::OverlappingTets {
+                            tets: [t1 as usize, t2 as usize],
+                            face: faces[i].0,
+                        });
+                    }
+                }
                 _ => return Err(MeshError::NonManifoldFace { face: faces[i].0 }),
             }
             i = j;
@@ -347,6 +386,31 @@ impl TetMesh {
             tet_of_triangle,
             nodes,
         })
+    }
+
+    /// Face-connected components (tets sharing a face are connected; tets meeting only at a node
+    /// or edge are not, since they can hinge): a component id per tet, and the count.
+    pub fn face_components(&self) -> (Vec<u32>, usize) {
+        let faces = self.sorted_faces();
+        let mut uf = UnionFind::new(self.tets.len());
+        for w in faces.windows(2) {
+            if w[0].0 == w[1].0 {
+                uf.union(w[0].1, w[1].1);
+            }
+        }
+        let mut id_of_root = vec![u32::MAX; self.tets.len()];
+        let mut count = 0u32;
+        let ids = (0..self.tets.len() as u32)
+            .map(|t| {
+                let r = uf.find(t) as usize;
+                if id_of_root[r] == u32::MAX {
+                    id_of_root[r] = count;
+                    count += 1;
+                }
+                id_of_root[r]
+            })
+            .collect();
+        (ids, count as usize)
     }
 
     /// The boundary as a standalone [`TriSurface`] over all mesh nodes (interior nodes unused).
@@ -513,8 +577,8 @@ pub(crate) fn bounding_box(points: &[[f64; 3]]) -> ([f64; 3], [f64; 3]) {
     (lo, hi)
 }
 
-/// Longest edge of a tet.
-pub(crate) fn longest_edge(p: &[[f64; 3]; 4]) -> f64 {
+/// Longest edge of a tet (mm).
+pub fn longest_edge(p: &[[f64; 3]; 4]) -> f64 {
     TET_EDGES
         .iter()
         .map(|e| vec3::norm(vec3::sub(p[e[1]], p[e[0]])))
@@ -649,6 +713,33 @@ mod tests {
         let adj = m.node_adjacency();
         assert_eq!(adj.of(0), &[1, 2, 3]);
         assert_eq!(adj.of(5), &[4, 6, 7]);
+    }
+
+    #[test]
+    fn duplicate_tets_and_hinges_are_detected() {
+        let nodes = vec![
+            [0., 0., 0.],
+            [1., 0., 0.],
+            [0., 1., 0.],
+            [0., 0., 1.],
+            [1., 1., 1.],
+        ];
+        let dup = TetMesh::new(nodes.clone(), vec![[0, 1, 2, 3], [0, 1, 2, 3]]).unwrap();
+        assert!(matches!(
+            dup.boundary().unwrap_err(),
+            MeshError::OverlappingTets { tets: [0, 1], .. }
+        ));
+        // Two tets sharing face (1,2,3) from opposite sides are fine.
+        let mut good = TetMesh::new(nodes.clone(), vec![[0, 1, 2, 3], [4, 1, 3, 2]]).unwrap();
+        good.orient_positive();
+        assert_eq!(good.boundary().unwrap().triangles.len(), 6);
+        assert_eq!(good.face_components().1, 1);
+        // Sharing only node 0: one node-connected component, two face-connected parts.
+        let mut nodes2 = nodes;
+        nodes2.extend([[-1., 0., 0.], [0., -1., 0.], [0., 0., -1.]]);
+        let hinge = TetMesh::new(nodes2, vec![[0, 1, 2, 3], [0, 5, 7, 6]]).unwrap();
+        assert_eq!(hinge.num_components(), 1);
+        assert_eq!(hinge.face_components().1, 2);
     }
 
     #[test]

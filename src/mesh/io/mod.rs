@@ -6,12 +6,12 @@
 //!
 //! | extension | read | write |
 //! | --- | --- | --- |
-//! | `.vtu` | VTK XML UnstructuredGrid: ascii, base64 binary (header UInt32/UInt64), zlib-compressed | ascii or base64 binary |
-//! | `.vtp` | VTK XML PolyData (triangles, or vertices for point sets), same encodings | base64 binary |
-//! | `.vtk` | legacy VTK 2.0–5.1 ASCII and BINARY (big-endian), UNSTRUCTURED_GRID and POLYDATA | ASCII or BINARY |
+//! | `.vtu` | VTK XML UnstructuredGrid: ascii, inline base64 (UInt32/UInt64 headers, either byte order), zlib-compressed, appended raw or base64 | ascii or base64 binary |
+//! | `.vtp` | VTK XML PolyData: polys (fan-triangulated), strips, verts (point sets); same encodings | ascii or base64 binary |
+//! | `.vtk` | legacy VTK 2.0–5.1 ASCII and BINARY (big-endian), UNSTRUCTURED_GRID and POLYDATA | ASCII or BINARY (4.2) |
 //! | `.msh` | Gmsh v1 (`$NOD`/`$ELM`), v2.2 ASCII, v4.1 ASCII; non-contiguous node ids mapped | v2.2 ASCII |
-//! | `.obj` | Wavefront OBJ (`v`, `f` with `v/vt/vn` forms, polygons fan-triangulated) | `v`/`f` |
-//! | `.stl` | ASCII and binary STL (vertices welded exactly) | binary |
+//! | `.obj` | Wavefront OBJ (`v`, `f` with `v/vt/vn` forms, negative indices, polygons fan-triangulated) | `v`/`f` |
+//! | `.stl` | ASCII and binary STL (vertices welded when bit-identical) | binary or ASCII |
 //!
 //! Units: each reader takes the unit of the file ([`Unit`]); coordinates are scaled to millimetres
 //! on read, and so are point-data arrays that hold lengths (those named `displacement`,

@@ -1,0 +1,181 @@
+//! End-to-end tests of the `librplus` command line on the real livers in `../shared/data`.
+
+use serde_json::Value;
+use std::path::PathBuf;
+use std::process::Command;
+
+fn data(name: &str) -> String {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data")
+        .join(name)
+        .display()
+        .to_string()
+}
+
+fn librplus(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_librplus"))
+        .args(args)
+        .output()
+        .expect("run librplus");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn json(args: &[&str]) -> Value {
+    let (ok, stdout, stderr) = librplus(args);
+    assert!(ok, "librplus {args:?} failed: {stderr}");
+    serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("not JSON ({e}): {stdout}"))
+}
+
+#[test]
+fn mesh_info_reports_the_contract_keys() {
+    let v = json(&[
+        "mesh",
+        "info",
+        &data("sofa_liver.msh"),
+        "--unit",
+        "cm",
+        "--json",
+    ]);
+    assert_eq!(v["nodes"], 181);
+    assert_eq!(v["tets"], 596);
+    assert_eq!(v["surface_triangles"], 276);
+    assert_eq!(v["components"], 1);
+    let vol = v["volume_mm3"].as_f64().unwrap();
+    assert!((vol - 36_560.0).abs() < 40.0, "{vol}");
+    let dihedral = v["min_dihedral_deg"].as_f64().unwrap();
+    assert!(dihedral > 0.0 && dihedral < 70.53);
+    let size = &v["bbox_mm"]["size"];
+    assert!((size[0].as_f64().unwrap() - 64.8259).abs() < 1e-3);
+    // Surfaces report enclosed volume and orientation.
+    let s = json(&["mesh", "info", &data("sofa_liver.vtk"), "--json"]);
+    assert_eq!(s["kind"], "surface");
+    assert_eq!(s["orientation"], "inward");
+    assert_eq!(s["largest_component"]["triangles"], 9988);
+}
+
+#[test]
+fn fem_sag_writes_displacement_that_reads_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sag.vtu");
+    let v = json(&[
+        "fem",
+        "sag",
+        "--mesh",
+        &data("sofa_liver.msh"),
+        "--unit",
+        "cm",
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    let max = v["max_disp_mm"].as_f64().unwrap();
+    assert!((max - 3.238790313769437).abs() < 1e-9, "{max}");
+    assert_eq!(v["fixed_nodes"], 60);
+    let file = librplus::mesh::io::read(&out, librplus::mesh::io::Unit::Mm).unwrap();
+    let d = file.point_array("displacement").unwrap();
+    assert_eq!((d.components, d.len()), (3, 181));
+    let back = d
+        .values
+        .chunks_exact(3)
+        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+        .fold(0.0, f64::max);
+    assert!((back - max).abs() < 1e-12);
+}
+
+#[test]
+fn mesh_convert_round_trips_between_formats() {
+    let dir = tempfile::tempdir().unwrap();
+    let vtk = dir.path().join("liver2.vtk");
+    let stl = dir.path().join("liver2.stl");
+    json(&[
+        "mesh",
+        "convert",
+        &data("sofa_liver2.msh"),
+        vtk.to_str().unwrap(),
+        "--json",
+    ]);
+    let a = json(&["mesh", "info", &data("sofa_liver2.msh"), "--json"]);
+    let b = json(&["mesh", "info", vtk.to_str().unwrap(), "--json"]);
+    for key in ["nodes", "tets", "surface_triangles", "components"] {
+        assert_eq!(a[key], b[key], "{key}");
+    }
+    assert!((a["volume_mm3"].as_f64().unwrap() - b["volume_mm3"].as_f64().unwrap()).abs() < 1e-9);
+    // A tet mesh written to STL keeps its outward boundary.
+    json(&[
+        "mesh",
+        "convert",
+        vtk.to_str().unwrap(),
+        stl.to_str().unwrap(),
+        "--json",
+    ]);
+    let s = json(&["mesh", "info", stl.to_str().unwrap(), "--json"]);
+    assert_eq!(s["surface_triangles"], 860);
+    assert_eq!(s["orientation"], "outward");
+    assert!(s["closed"].as_bool().unwrap());
+}
+
+#[test]
+fn bad_files_fail_with_a_message_naming_the_place() {
+    let dir = tempfile::tempdir().unwrap();
+    let truncated = dir.path().join("cut.msh");
+    let text = std::fs::read_to_string(data("sofa_liver.msh")).unwrap();
+    std::fs::write(&truncated, &text[..text.len() / 3]).unwrap();
+    let (ok, _, err) = librplus(&["mesh", "info", truncated.to_str().unwrap()]);
+    assert!(!ok);
+    assert!(err.contains("cut.msh") && err.contains("error:"), "{err}");
+    let (ok, _, err) = librplus(&["fem", "sag", "--mesh", &data("sofa_liver.vtk")]);
+    assert!(!ok);
+    assert!(err.contains("no tetrahedra"), "{err}");
+    let (ok, _, err) = librplus(&["mesh", "info", "nowhere.xyz"]);
+    assert!(!ok && err.contains("unsupported file extension"), "{err}");
+    let (ok, _, err) = librplus(&["mesh", "info", &data("sofa_liver.msh"), "--unit", "inch"]);
+    assert!(!ok && err.contains("inch"), "{err}");
+}
+
+#[test]
+fn bench_basis_solves_accurately() {
+    let v = json(&[
+        "bench",
+        "basis",
+        "--mesh",
+        &data("sofa_liver2.msh"),
+        "--rhs",
+        "20",
+        "--json",
+    ]);
+    assert_eq!(v["nrhs"], 20);
+    assert!(v["max_rel_residual"].as_f64().unwrap() < 1e-9);
+    assert!(v["dofs_free"].as_u64().unwrap() > 0);
+}
+
+#[test]
+fn spare_nodes_are_removed_and_the_sag_is_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let spare = dir.path().join("spare.vtu");
+    let mut file =
+        librplus::mesh::io::read(data("sofa_liver.msh"), librplus::mesh::io::Unit::Cm).unwrap();
+    // A node inside the bounding box, used by no tet (as Gmsh leaves geometry points behind).
+    file.nodes.push([-10.0, 30.0, 0.0]);
+    librplus::mesh::io::write(&spare, &file, Default::default()).unwrap();
+    let (ok, stdout, stderr) =
+        librplus(&["fem", "sag", "--mesh", spare.to_str().unwrap(), "--json"]);
+    assert!(ok, "{stderr}");
+    assert!(stderr.contains("removed 1 nodes"), "{stderr}");
+    let v: Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(v["removed_unused_nodes"], 1);
+    assert!((v["max_disp_mm"].as_f64().unwrap() - 3.238790313769437).abs() < 1e-9);
+    // Writing a volume result to a surface format is refused before any work.
+    let (ok, _, err) = librplus(&[
+        "fem",
+        "sag",
+        "--mesh",
+        &data("sofa_liver.msh"),
+        "--out",
+        "x.stl",
+    ]);
+    assert!(!ok && err.contains("surface format"), "{err}");
+}
