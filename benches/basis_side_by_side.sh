@@ -13,7 +13,7 @@ mkdir -p "$meshdir"
 cargo build --release --quiet
 for v in "${vols[@]}"; do
   "$py" ../shared/bench/make_liver_tets.py ../shared/data/sofa_liver.vtk "$meshdir/liver_v$v" "$v" >&2
-  mesh=$(ls "$meshdir"/liver_v"$v"*.vtu | head -1)
+  mesh=$(ls "$meshdir"/liver_v"$v"_*.vtu | head -1)
   for r in $(seq "$runs"); do
     echo "{\"tool\":\"librplus\",\"run\":$r,\"result\":$(target/release/librplus bench basis --mesh "$mesh" --rhs 300 --json)}"
     echo "{\"tool\":\"fem_peer.py\",\"run\":$r,\"result\":$("$py" ../shared/bench/fem_peer.py "$mesh" 300)}"

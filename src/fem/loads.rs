@@ -31,12 +31,20 @@ pub fn add_body_force_per_tet(f: &mut [f64], mesh: &TetMesh, b: &[[f64; 3]]) {
 
 /// Adds constant tractions (kPa = mN/mm²) on triangles: each corner gets `t·A/3`.
 /// `traction` holds one vector per triangle.
+///
+/// # Panics
+/// If `traction.len() != triangles.len()` (a programming error, not user input).
 pub fn add_traction(
     f: &mut [f64],
     nodes: &[[f64; 3]],
     triangles: &[[u32; 3]],
     traction: &[[f64; 3]],
 ) {
+    assert_eq!(
+        traction.len(),
+        triangles.len(),
+        "add_traction: one traction vector per triangle"
+    );
     for (tri, t) in triangles.iter().zip(traction) {
         let area = triangle_area(nodes, tri);
         for &v in tri {

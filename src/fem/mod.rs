@@ -3,7 +3,8 @@
 //! Units: lengths mm, stresses kPa, forces mN, energies mN·mm (µJ). Vectors over nodes are
 //! node-major (`3·node + axis`). [`StiffnessSystem`] assembles once per mesh (in parallel over node
 //! columns), [`StiffnessSystem::factorize`] eliminates Dirichlet dofs and factorizes the free block
-//! with faer's sparse Cholesky (AMD ordering) once; [`FactorizedSystem`] then solves any number of
+//! with faer's supernodal sparse Cholesky once (geometric nested-dissection ordering, see
+//! [`ordering`]; AMD selectable); [`FactorizedSystem`] then solves any number of
 //! load cases. [`sag`] is the project's reference problem (gravity sag of a liver).
 
 pub mod assembly;

@@ -1,6 +1,6 @@
 //! Linear-elastic systems: stiffness with springs, Dirichlet constraints, and a sparse Cholesky
-//! factorization (faer, AMD fill-reducing ordering, supernodal when worthwhile) that is computed
-//! once and reused for any number of right-hand sides.
+//! factorization (faer, supernodal when worthwhile; nested-dissection or AMD fill-reducing
+//! ordering) that is computed once and reused for any number of right-hand sides.
 
 use super::assembly::{BlockPattern, LameField, assemble_linear_stiffness};
 use super::material::LinearMaterial;
@@ -141,7 +141,8 @@ impl Dirichlet {
         }
     }
 
-    /// Fixes all three components of each node to zero.
+    /// Fixes all three components of each node to zero. Panics if a node is out of range (the
+    /// caller builds node lists from the mesh; user-facing code validates first).
     pub fn fix_nodes(&mut self, nodes: &[u32]) -> &mut Self {
         for &n in nodes {
             self.prescribe_node(n, [0.0; 3]);
@@ -311,6 +312,8 @@ impl StiffnessSystem {
         match self.ordering {
             Ordering::Amd => None,
             Ordering::NestedDissection => {
+                // Pattern rows include the node itself; harmless for the ordering (a node is never
+                // on the other side of a cut from itself).
                 let adj = NodeAdjacency {
                     offsets: self.pattern.node_ptr.clone(),
                     neighbors: self.pattern.block_rows.clone(),
