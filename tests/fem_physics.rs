@@ -10,6 +10,29 @@ fn on(x: f64, v: f64) -> bool {
     (x - v).abs() < 1e-9
 }
 
+/// Boundary triangles on the plane x = `len`.
+fn end_face(mesh: &TetMesh, len: f64) -> Vec<[u32; 3]> {
+    mesh.boundary()
+        .unwrap()
+        .triangles
+        .into_iter()
+        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
+        .collect()
+}
+
+/// Symmetry supports of a box at the origin: u_k = 0 on the plane x_k = 0, for each axis.
+fn symmetry_supports(mesh: &TetMesh) -> Dirichlet {
+    let mut bc = Dirichlet::new(mesh.num_nodes());
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        for (axis, &c) in p.iter().enumerate() {
+            if on(c, 0.0) {
+                bc.prescribe_dof(i as u32, axis, 0.0);
+            }
+        }
+    }
+    bc
+}
+
 /// Patch test: any linear displacement imposed on the boundary is reproduced exactly inside.
 #[test]
 fn patch_test_linear_field_reproduced_inside() {
@@ -135,25 +158,8 @@ fn uniaxial_tension_bar_matches_analytic() {
     let mat = LinearMaterial::new(5.0, 0.45);
     let sys = StiffnessSystem::linear(&mesh, &mat).unwrap();
     let sigma = 0.7; // kPa
-    let mut bc = Dirichlet::new(mesh.num_nodes());
-    for (i, p) in mesh.nodes().iter().enumerate() {
-        if on(p[0], 0.0) {
-            bc.prescribe_dof(i as u32, 0, 0.0);
-        }
-        if on(p[1], 0.0) {
-            bc.prescribe_dof(i as u32, 1, 0.0);
-        }
-        if on(p[2], 0.0) {
-            bc.prescribe_dof(i as u32, 2, 0.0);
-        }
-    }
-    let b = mesh.boundary().unwrap();
-    let end: Vec<[u32; 3]> = b
-        .triangles
-        .iter()
-        .copied()
-        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
-        .collect();
+    let bc = symmetry_supports(&mesh);
+    let end = end_face(&mesh, len);
     let mut f = vec![0.0; 3 * mesh.num_nodes()];
     loads::add_traction(
         &mut f,
@@ -304,21 +310,8 @@ fn heterogeneous_bar_in_series() {
         })
         .collect();
     let sys = StiffnessSystem::linear_field(&mesh, &LameField::PerTet(lame)).unwrap();
-    let mut bc = Dirichlet::new(mesh.num_nodes());
-    for (i, p) in mesh.nodes().iter().enumerate() {
-        for (axis, &c) in p.iter().enumerate() {
-            if on(c, 0.0) {
-                bc.prescribe_dof(i as u32, axis, 0.0);
-            }
-        }
-    }
-    let b = mesh.boundary().unwrap();
-    let end: Vec<[u32; 3]> = b
-        .triangles
-        .iter()
-        .copied()
-        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
-        .collect();
+    let bc = symmetry_supports(&mesh);
+    let end = end_face(&mesh, len);
     let sigma = 0.5;
     let mut f = vec![0.0; 3 * mesh.num_nodes()];
     loads::add_traction(
@@ -349,13 +342,7 @@ fn cantilever_tip(n: usize, mat: &LinearMaterial, len: f64, h: f64, load: f64) -
         .collect();
     let mut bc = Dirichlet::new(mesh.num_nodes());
     bc.fix_nodes(&clamped);
-    let b = mesh.boundary().unwrap();
-    let end: Vec<[u32; 3]> = b
-        .triangles
-        .iter()
-        .copied()
-        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
-        .collect();
+    let end = end_face(&mesh, len);
     let mut f = vec![0.0; 3 * mesh.num_nodes()];
     let tau = load / (h * h);
     loads::add_traction(

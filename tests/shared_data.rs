@@ -12,6 +12,20 @@ fn data(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// Triangles as sorted node triples, sorted: compares triangle sets regardless of winding.
+fn as_sets(triangles: &[[u32; 3]]) -> Vec<[u32; 3]> {
+    let mut v: Vec<[u32; 3]> = triangles
+        .iter()
+        .map(|t| {
+            let mut s = *t;
+            s.sort_unstable();
+            s
+        })
+        .collect();
+    v.sort_unstable();
+    v
+}
+
 fn close(a: f64, b: f64, rel: f64) -> bool {
     (a - b).abs() <= rel * b.abs()
 }
@@ -47,29 +61,10 @@ fn sofa_liver2_msh_facts() {
     mesh.validate().unwrap();
     assert!(close(mesh.volume(), 1.125, 1e-3), "{}", mesh.volume());
     // The file's own boundary triangles are exactly the mesh boundary (as sets of node triples).
-    let mut ours: Vec<[u32; 3]> = mesh
-        .boundary()
-        .unwrap()
-        .triangles
-        .iter()
-        .map(|t| {
-            let mut s = *t;
-            s.sort_unstable();
-            s
-        })
-        .collect();
-    let mut theirs: Vec<[u32; 3]> = file
-        .triangles
-        .iter()
-        .map(|t| {
-            let mut s = *t;
-            s.sort_unstable();
-            s
-        })
-        .collect();
-    ours.sort_unstable();
-    theirs.sort_unstable();
-    assert_eq!(ours, theirs);
+    assert_eq!(
+        as_sets(&mesh.boundary().unwrap().triangles),
+        as_sets(&file.triangles)
+    );
     assert_eq!(mesh.num_components(), 1);
 }
 

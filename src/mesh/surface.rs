@@ -190,21 +190,7 @@ impl TriSurface {
             uf.union(t[0], t[1]);
             uf.union(t[0], t[2]);
         }
-        let mut id_of_root = vec![u32::MAX; self.nodes.len()];
-        let mut count = 0u32;
-        let ids = self
-            .triangles
-            .iter()
-            .map(|t| {
-                let r = uf.find(t[0]) as usize;
-                if id_of_root[r] == u32::MAX {
-                    id_of_root[r] = count;
-                    count += 1;
-                }
-                id_of_root[r]
-            })
-            .collect();
-        (ids, count as usize)
+        uf.labels(self.triangles.iter().map(|t| t[0]))
     }
 
     /// The component with the most triangles, with unused vertices removed.

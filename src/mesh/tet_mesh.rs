@@ -398,19 +398,7 @@ impl TetMesh {
                 uf.union(w[0].1, w[1].1);
             }
         }
-        let mut id_of_root = vec![u32::MAX; self.tets.len()];
-        let mut count = 0u32;
-        let ids = (0..self.tets.len() as u32)
-            .map(|t| {
-                let r = uf.find(t) as usize;
-                if id_of_root[r] == u32::MAX {
-                    id_of_root[r] = count;
-                    count += 1;
-                }
-                id_of_root[r]
-            })
-            .collect();
-        (ids, count as usize)
+        uf.labels(0..self.tets.len() as u32)
     }
 
     /// The boundary as a standalone [`TriSurface`] over all mesh nodes (interior nodes unused).
@@ -492,21 +480,7 @@ impl TetMesh {
             uf.union(tet[0], tet[2]);
             uf.union(tet[0], tet[3]);
         }
-        let mut id_of_root = vec![u32::MAX; self.nodes.len()];
-        let mut count = 0u32;
-        let ids = self
-            .tets
-            .iter()
-            .map(|tet| {
-                let r = uf.find(tet[0]) as usize;
-                if id_of_root[r] == u32::MAX {
-                    id_of_root[r] = count;
-                    count += 1;
-                }
-                id_of_root[r]
-            })
-            .collect();
-        (ids, count as usize)
+        uf.labels(self.tets.iter().map(|tet| tet[0]))
     }
 
     /// Number of connected components.
@@ -608,6 +582,24 @@ impl UnionFind {
             x = p;
         }
         x
+    }
+
+    /// Compact set labels (0, 1, ... in order of first appearance) for a sequence of elements,
+    /// and the number of distinct sets seen.
+    pub(crate) fn labels(&mut self, elements: impl Iterator<Item = u32>) -> (Vec<u32>, usize) {
+        let mut id_of_root = vec![u32::MAX; self.parent.len()];
+        let mut count = 0u32;
+        let ids = elements
+            .map(|e| {
+                let r = self.find(e) as usize;
+                if id_of_root[r] == u32::MAX {
+                    id_of_root[r] = count;
+                    count += 1;
+                }
+                id_of_root[r]
+            })
+            .collect();
+        (ids, count as usize)
     }
 
     /// Merges the sets of `a` and `b`.
