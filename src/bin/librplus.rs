@@ -79,7 +79,22 @@ enum FemCmd {
         /// Write the mesh with `displacement` (mm) and `fixed` point data (.vtu, .vtk, ...).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Material model: linear elasticity, or compressible Neo-Hookean (same E, ν; also
+        /// reports its difference from the linear solution).
+        #[arg(long, default_value = "linear")]
+        model: ModelArg,
+        /// Multiplies the body force (e.g. 3 for a stronger load to show nonlinearity).
+        #[arg(long, default_value_t = 1.0)]
+        load_scale: f64,
     },
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ModelArg {
+    /// Linear elasticity.
+    Linear,
+    /// Compressible Neo-Hookean, total Lagrangian, Newton with line search and load stepping.
+    NeoHookean,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -140,7 +155,13 @@ fn run(cli: Cli) -> Result<()> {
             common,
             ascii,
         }) => mesh_convert(&input, &output, &common, ascii),
-        Command::Fem(FemCmd::Sag { mesh, common, out }) => fem_sag(&mesh, &common, out.as_deref()),
+        Command::Fem(FemCmd::Sag {
+            mesh,
+            common,
+            out,
+            model,
+            load_scale,
+        }) => fem_sag(&mesh, &common, out.as_deref(), model, load_scale),
         Command::Bench(BenchCmd::Basis {
             mesh,
             common,
@@ -176,6 +197,7 @@ fn emit(json: bool, value: &Value) {
 fn human(v: &Value) -> String {
     match v {
         Value::Number(n) => match n.as_f64() {
+            Some(x) if n.is_f64() && x != 0.0 && x.abs() < 1e-3 => format!("{x:.3e}"),
             Some(x) if n.is_f64() => format!("{x:.6}"),
             _ => n.to_string(),
         },
@@ -376,7 +398,16 @@ fn mesh_convert(input: &Path, output: &Path, c: &Common, ascii: bool) -> Result<
     Ok(())
 }
 
-fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
+fn fem_sag(
+    path: &Path,
+    c: &Common,
+    out: Option<&Path>,
+    model: ModelArg,
+    load_scale: f64,
+) -> Result<()> {
+    if !load_scale.is_finite() {
+        bail!("--load-scale must be finite, got {load_scale}");
+    }
     if let Some(out) = out
         && matches!(
             io::Format::from_path(out)?,
@@ -395,8 +426,40 @@ fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
         removed_unused,
     } = load_volume(path, c.unit)?;
     let read_s = t0.elapsed().as_secs_f64();
-    let params = sag::SagParams::default();
-    let r = sag::solve(&mesh, &params)?;
+    let mut params = sag::SagParams::default();
+    params.body_force = params.body_force.map(|b| b * load_scale);
+    let bar = indicatif::ProgressBar::new_spinner().with_message(match model {
+        ModelArg::Linear => "solving linear sag",
+        ModelArg::NeoHookean => "solving Neo-Hookean sag (Newton, load steps)",
+    });
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let r = match model {
+        ModelArg::Linear => sag::solve(&mesh, &params)?,
+        ModelArg::NeoHookean => {
+            sag::solve_neo_hookean(&mesh, &params, &fem::hyperelastic::NewtonParams::default())?
+        }
+    };
+    // The nonlinear result is reported together with its difference from the linear one.
+    let vs_linear = if model == ModelArg::NeoHookean {
+        let lin = sag::solve(&mesh, &params)?;
+        let d: Vec<f64> = r
+            .displacement
+            .chunks_exact(3)
+            .zip(lin.displacement.chunks_exact(3))
+            .map(|(a, b)| {
+                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+            })
+            .collect();
+        Some(json!({
+            "linear_max_disp_mm": lin.max_disp_mm,
+            "linear_mean_disp_mm": lin.mean_disp_mm,
+            "mean_node_difference_mm": d.iter().sum::<f64>() / d.len().max(1) as f64,
+            "max_node_difference_mm": d.iter().copied().fold(0.0, f64::max),
+        }))
+    } else {
+        None
+    };
+    bar.finish_and_clear();
     if let Some(out) = out {
         let fixed = sag::fixed_nodes(&mesh, params.fixed_fraction);
         let mut mask = vec![0.0; mesh.num_nodes()];
@@ -404,6 +467,7 @@ fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
             mask[n as usize] = 1.0;
         }
         let (l, m) = params.material.lame();
+        // Small-strain fields (for Neo-Hookean results these are the linearized measures).
         let fields = fem::post::tet_fields(&mesh, &LameField::Uniform(l, m), &r.displacement);
         let mut file = mesh.to_file();
         file.point_data = vec![
@@ -433,10 +497,16 @@ fn fem_sag(path: &Path, c: &Common, out: Option<&Path>) -> Result<()> {
         "flipped_tets": flipped,
         "removed_unused_nodes": removed_unused,
         "fixed_nodes": r.fixed_nodes,
-        "free_dofs": r.factor.free_dofs,
+        "model": match model {
+            ModelArg::Linear => "linear",
+            ModelArg::NeoHookean => "neo-hookean",
+        },
+        "free_dofs": r.free_dofs,
         "E_kPa": params.material.youngs_modulus_kpa,
         "nu": params.material.poisson_ratio,
         "body_force_mN_per_mm3": params.body_force,
+        "newton": r.newton,
+        "vs_linear": vs_linear,
         "max_disp_mm": r.max_disp_mm,
         "mean_disp_mm": r.mean_disp_mm,
         "strain_energy": r.strain_energy,

@@ -128,6 +128,21 @@ pub fn assemble_linear_stiffness(
         .into_par_iter()
         .map(|t| p1_gradients(&mesh.tet_points(t)).map(|(g, v)| (g, v.abs())))
         .collect();
+    assemble_blocks(pattern, mesh.tets(), |t, lj, li| {
+        let (g, v) = geo[t]?;
+        let (lambda, mu) = lame.at(t);
+        Some(stiffness_block(g[lj], g[li], v, lambda, mu))
+    })
+}
+
+/// Assembles a block matrix on `pattern` in parallel over node columns. `block(t, lj, li)` returns
+/// the 3×3 block of tet `t` coupling its local node `lj` (rows) to local node `li` (columns), or
+/// `None` to skip the tet. Each node column is written by one thread only, in a fixed order, so the
+/// result is deterministic.
+pub fn assemble_blocks<F>(pattern: &BlockPattern, tets: &[[u32; 4]], block: F) -> Vec<f64>
+where
+    F: Fn(usize, usize, usize) -> Option<[[f64; 3]; 3]> + Sync,
+{
     let mut values = vec![0.0; pattern.nnz()];
     // Split the value array into one slice per node (its three columns are contiguous).
     let mut slices: Vec<&mut [f64]> = Vec::with_capacity(pattern.nodes);
@@ -138,21 +153,18 @@ pub fn assemble_linear_stiffness(
         slices.push(head);
         rest = tail;
     }
-    let tets = mesh.tets();
     slices.into_par_iter().enumerate().for_each(|(i, out)| {
         let rows = &pattern.block_rows[pattern.node_ptr[i]..pattern.node_ptr[i + 1]];
         let stride = 3 * rows.len();
         for &t in &pattern.tet_of_node[pattern.tet_ptr[i]..pattern.tet_ptr[i + 1]] {
             let t = t as usize;
-            let Some((g, v)) = geo[t] else { continue };
-            let (lambda, mu) = lame.at(t);
             let tet = tets[t];
             let Some(li) = tet.iter().position(|&x| x as usize == i) else {
                 continue;
             };
             for (lj, &j) in tet.iter().enumerate() {
                 // Block (row node j, column node i).
-                let k = stiffness_block(g[lj], g[li], v, lambda, mu);
+                let Some(k) = block(t, lj, li) else { break };
                 let Ok(pos) = rows.binary_search(&j) else {
                     continue;
                 };

@@ -10,6 +10,7 @@
 pub mod assembly;
 pub mod basis_bench;
 pub mod element;
+pub mod hyperelastic;
 pub mod loads;
 mod material;
 pub mod ordering;
@@ -21,5 +22,5 @@ pub use assembly::{BlockPattern, LameField};
 pub use material::LinearMaterial;
 pub use solver::{
     CholeskyFactor, Dirichlet, FactorInfo, FactorizedSystem, FemError, NodeSpring, Ordering,
-    StiffnessSystem,
+    ReducedPattern, StiffnessSystem,
 };

@@ -4,7 +4,8 @@
 //! patient in LPS), nodes with `y > y_min + 0.8·(y_max − y_min)` fixed. Used by `librplus fem sag`
 //! and checked node by node against scikit-fem.
 
-use super::{Dirichlet, FactorInfo, FemError, LinearMaterial, StiffnessSystem, loads};
+use super::hyperelastic::{HyperelasticModel, NewtonInfo, NewtonParams};
+use super::{Dirichlet, FemError, LameField, LinearMaterial, StiffnessSystem, loads};
 use crate::mesh::TetMesh;
 use std::time::Instant;
 
@@ -41,10 +42,12 @@ pub struct SagResult {
     pub max_disp_mm: f64,
     /// Mean nodal displacement magnitude over all nodes (mm).
     pub mean_disp_mm: f64,
-    /// Strain energy `uᵀKu/2` (mN·mm).
+    /// Strain energy (mN·mm): `uᵀKu/2` for the linear model, `∫W dV` for Neo-Hookean.
     pub strain_energy: f64,
-    /// Factorization facts.
-    pub factor: FactorInfo,
+    /// Free dofs.
+    pub free_dofs: usize,
+    /// Newton solver facts (Neo-Hookean model only).
+    pub newton: Option<NewtonInfo>,
     /// Stage timings (s).
     pub timings: SagTimings,
 }
@@ -54,9 +57,11 @@ pub struct SagResult {
 pub struct SagTimings {
     /// Stiffness assembly (pattern + values).
     pub assemble_s: f64,
-    /// Constraint elimination + symbolic + numeric Cholesky.
+    /// Constraint elimination + symbolic + numeric Cholesky (all Newton iterations for
+    /// Neo-Hookean).
     pub factor_s: f64,
-    /// Load assembly + back-substitution.
+    /// Load assembly + back-substitution (the whole Newton loop less factorizations for
+    /// Neo-Hookean).
     pub solve_s: f64,
 }
 
@@ -72,8 +77,14 @@ pub fn fixed_nodes(mesh: &TetMesh, fixed_fraction: f64) -> Vec<u32> {
         .collect()
 }
 
-/// Solves the sag problem.
-pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> {
+fn check(params: &SagParams) -> Result<(), FemError> {
+    params
+        .material
+        .validate()
+        .map_err(|message| FemError::InvalidParameter {
+            field: "material",
+            message,
+        })?;
     if !(params.fixed_fraction >= 0.0 && params.fixed_fraction < 1.0) {
         return Err(FemError::InvalidParameter {
             field: "fixed_fraction",
@@ -86,6 +97,63 @@ pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> 
             message: format!("must be finite, got {:?}", params.body_force),
         });
     }
+    Ok(())
+}
+
+fn summarize(u: Vec<f64>, fixed_nodes: usize, strain_energy: f64) -> SagResult {
+    let mags: Vec<f64> = u
+        .chunks_exact(3)
+        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+        .collect();
+    SagResult {
+        fixed_nodes,
+        max_disp_mm: mags.iter().copied().fold(0.0, super::basis_bench::nan_max),
+        mean_disp_mm: mags.iter().sum::<f64>() / mags.len().max(1) as f64,
+        strain_energy,
+        displacement: u,
+        free_dofs: 0,
+        newton: None,
+        timings: SagTimings {
+            assemble_s: 0.0,
+            factor_s: 0.0,
+            solve_s: 0.0,
+        },
+    }
+}
+
+/// Solves the sag problem with the compressible Neo-Hookean model (same E, ν, loads and
+/// supports): the nonlinear counterpart used to show what the linear model misses.
+pub fn solve_neo_hookean(
+    mesh: &TetMesh,
+    params: &SagParams,
+    newton: &NewtonParams,
+) -> Result<SagResult, FemError> {
+    check(params)?;
+    let t0 = Instant::now();
+    let (l, m) = params.material.lame();
+    let model = HyperelasticModel::new(mesh, LameField::Uniform(l, m))?;
+    let assemble_s = t0.elapsed().as_secs_f64();
+    let fixed = fixed_nodes(mesh, params.fixed_fraction);
+    let mut bc = Dirichlet::new(mesh.num_nodes());
+    bc.fix_nodes(&fixed);
+    let mut f = vec![0.0; 3 * mesh.num_nodes()];
+    loads::add_body_force(&mut f, mesh, params.body_force);
+    let (u, info) = model.solve(&bc, &f, newton)?;
+    let energy = model.energy(&u).unwrap_or(f64::NAN);
+    let mut r = summarize(u, fixed.len(), energy);
+    r.free_dofs = 3 * mesh.num_nodes() - bc.count();
+    r.timings = SagTimings {
+        assemble_s,
+        factor_s: info.factor_s + info.symbolic_s,
+        solve_s: info.total_s - info.factor_s - info.symbolic_s,
+    };
+    r.newton = Some(info);
+    Ok(r)
+}
+
+/// Solves the sag problem.
+pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> {
+    check(params)?;
     let t0 = Instant::now();
     let system = StiffnessSystem::linear(mesh, &params.material)?;
     let assemble_s = t0.elapsed().as_secs_f64();
@@ -100,21 +168,13 @@ pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> 
     loads::add_body_force(&mut f, mesh, params.body_force);
     let u = fact.solve(&f);
     let solve_s = t2.elapsed().as_secs_f64();
-    let mags: Vec<f64> = u
-        .chunks_exact(3)
-        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
-        .collect();
-    Ok(SagResult {
-        fixed_nodes: fixed.len(),
-        max_disp_mm: mags.iter().copied().fold(0.0, super::basis_bench::nan_max),
-        mean_disp_mm: mags.iter().sum::<f64>() / mags.len() as f64,
-        strain_energy: system.energy(&u),
-        displacement: u,
-        factor: fact.info(),
-        timings: SagTimings {
-            assemble_s,
-            factor_s,
-            solve_s,
-        },
-    })
+    let mut r = summarize(u, fixed.len(), 0.0);
+    r.strain_energy = system.energy(&r.displacement);
+    r.free_dofs = fact.info().free_dofs;
+    r.timings = SagTimings {
+        assemble_s,
+        factor_s,
+        solve_s,
+    };
+    Ok(r)
 }

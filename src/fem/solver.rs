@@ -80,6 +80,18 @@ pub enum FemError {
         /// Node index.
         node: usize,
     },
+    /// A nonlinear solve did not converge even with the smallest load step.
+    #[error(
+        "nonlinear solve did not converge: reached {load_fraction:.4} of the load after {iterations} Newton iterations ({reason})"
+    )]
+    NotConverged {
+        /// Fraction of the load reached (last converged step).
+        load_fraction: f64,
+        /// Newton iterations spent.
+        iterations: usize,
+        /// Why the last step failed.
+        reason: String,
+    },
     /// Every dof is constrained: nothing to solve.
     #[error("every degree of freedom is constrained; nothing to solve")]
     NothingFree,
@@ -196,6 +208,8 @@ pub struct StiffnessSystem {
     parts: Vec<(usize, Vec<u32>)>,
     /// Nodes that carry a spring.
     sprung: Vec<bool>,
+    /// Springs added so far.
+    springs: Vec<NodeSpring>,
 }
 
 impl StiffnessSystem {
@@ -268,6 +282,7 @@ impl StiffnessSystem {
             ordering: Ordering::default(),
             parts,
             sprung: vec![false; mesh.num_nodes()],
+            springs: Vec::new(),
         })
     }
 
@@ -373,6 +388,7 @@ impl StiffnessSystem {
             if scale > 0.0 {
                 self.sprung[i] = true;
             }
+            self.springs.push(*s);
             for a in 0..3 {
                 for b in 0..3 {
                     let idx = self
@@ -435,24 +451,12 @@ impl StiffnessSystem {
 
     /// Factorizes the free-free block under the given constraints.
     pub fn factorize(&self, bc: &Dirichlet) -> Result<FactorizedSystem, FemError> {
-        let t0 = Instant::now();
         let n = self.dofs();
         if bc.len() != n {
             return Err(FemError::InvalidParameter {
                 field: "dirichlet",
                 message: format!("{} dofs in constraints for a {n}-dof system", bc.len()),
             });
-        }
-        let mut free_of_dof = vec![usize::MAX; n];
-        let mut free = Vec::with_capacity(n);
-        for (d, slot) in free_of_dof.iter_mut().enumerate() {
-            if bc.get(d).is_none() {
-                *slot = free.len();
-                free.push(d);
-            }
-        }
-        if free.is_empty() {
-            return Err(FemError::NothingFree);
         }
         for d in 0..n {
             if let Some(v) = bc.get(d)
@@ -464,58 +468,11 @@ impl StiffnessSystem {
                 });
             }
         }
-        self.check_supported(&free_of_dof)?;
-        // Lower triangle of K_ff.
-        let p = &self.pattern;
-        let mut col_ptr = Vec::with_capacity(free.len() + 1);
-        let mut row_idx = Vec::new();
-        let mut vals = Vec::new();
-        col_ptr.push(0);
-        for (fc, &c) in free.iter().enumerate() {
-            for k in p.col_ptr[c]..p.col_ptr[c + 1] {
-                let fr = free_of_dof[p.row_idx[k]];
-                if fr != usize::MAX && fr >= fc {
-                    row_idx.push(fr);
-                    vals.push(self.values[k]);
-                }
-            }
-            col_ptr.push(row_idx.len());
-        }
-        let nf = free.len();
-        let symbolic = SymbolicSparseColMat::new_checked(nf, nf, col_ptr, None, row_idx);
-        let kff = SparseColMat::new(symbolic, vals);
-        let extract_s = t0.elapsed().as_secs_f64();
-        let t1 = Instant::now();
-        let perm = self.free_permutation(&free_of_dof, nf);
-        let ord = match &perm {
-            Some((fwd, inv)) => SymmetricOrdering::Custom(PermRef::new_checked(fwd, inv, nf)),
-            None => SymmetricOrdering::Amd,
-        };
-        let sym = factorize_symbolic_cholesky(kff.symbolic(), Side::Lower, ord, Default::default())
-            .map_err(|e| FemError::Factorization(format!("{e:?}")))?;
-        let sym = Arc::new(sym);
-        let symbolic_s = t1.elapsed().as_secs_f64();
+        let constrained: Vec<bool> = (0..n).map(|d| bc.get(d).is_some()).collect();
+        let reduced = ReducedPattern::new(self, &constrained)?;
         let t2 = Instant::now();
-        let llt = CholeskyFactor::numeric(sym.clone(), kff.as_ref()).map_err(|e| match e {
-            faer::sparse::linalg::LltError::Numeric(
-                faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index },
-            ) => {
-                // Map the pivot back through the fill-reducing permutation to a node and axis.
-                let original = sym
-                    .perm()
-                    .map(|p| p.arrays().0.get(index).copied().unwrap_or(index))
-                    .unwrap_or(index);
-                let dof = free.get(original).copied().unwrap_or(0);
-                FemError::NotPositiveDefinite {
-                    free: nf,
-                    node: dof / 3,
-                    axis: dof % 3,
-                }
-            }
-            other => FemError::Factorization(format!("{other:?}")),
-        })?;
+        let llt = reduced.factor(&self.values)?;
         let numeric_s = t2.elapsed().as_secs_f64();
-        let nnz_factor = llt.symbolic.len_val();
         // Lift of the prescribed values: K·u_c restricted to free dofs.
         let mut uc = vec![0.0; n];
         let mut any = false;
@@ -526,22 +483,178 @@ impl StiffnessSystem {
             }
         }
         let lift = if any { self.apply(&uc) } else { vec![0.0; n] };
+        let info = FactorInfo {
+            dofs: n,
+            free_dofs: reduced.free.len(),
+            nnz_lower: reduced.row_idx.len(),
+            nnz_factor: llt.symbolic.len_val(),
+            ordering: self.ordering,
+            extract_s: reduced.extract_s,
+            symbolic_s: reduced.symbolic_s,
+            numeric_s,
+        };
         Ok(FactorizedSystem {
-            free,
-            free_of_dof,
+            reduced: Arc::new(reduced),
             llt,
             prescribed: uc,
             lift,
-            info: FactorInfo {
-                dofs: n,
-                free_dofs: nf,
-                nnz_lower: kff.compute_nnz(),
-                nnz_factor,
-                ordering: self.ordering,
-                extract_s,
-                symbolic_s,
-                numeric_s,
-            },
+            info,
+        })
+    }
+
+    /// The springs added so far.
+    pub fn springs(&self) -> &[NodeSpring] {
+        &self.springs
+    }
+
+    /// Adds the springs' stiffness into a value array laid out on this system's pattern.
+    pub fn add_spring_values(&self, values: &mut [f64]) {
+        for s in &self.springs {
+            let i = s.node as usize;
+            for a in 0..3 {
+                for b in 0..3 {
+                    if let Some(idx) = self.pattern.value_index(i, a, i, b) {
+                        values[idx] += s.stiffness[b][a];
+                    }
+                }
+            }
+        }
+    }
+
+    /// Spring forces `K_s u` (mN) for a full displacement (mm).
+    pub fn spring_force(&self, u: &[f64]) -> Vec<f64> {
+        let mut f = vec![0.0; self.dofs()];
+        for s in &self.springs {
+            let i = s.node as usize;
+            for a in 0..3 {
+                for b in 0..3 {
+                    f[3 * i + a] += s.stiffness[a][b] * u[3 * i + b];
+                }
+            }
+        }
+        f
+    }
+}
+
+/// The free-free block of a stiffness pattern under a set of constrained dofs, with its symbolic
+/// Cholesky factorization (ordering, elimination tree, supernodes). Computed once and reused for
+/// every matrix on the same pattern, e.g. each Newton iteration of a nonlinear solve.
+#[derive(Debug, Clone)]
+pub struct ReducedPattern {
+    free: Vec<usize>,
+    free_of_dof: Vec<usize>,
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+    /// For each stored entry of the reduced lower triangle, its index in the full values.
+    source: Vec<usize>,
+    symbolic: Arc<SymbolicCholesky<usize>>,
+    extract_s: f64,
+    symbolic_s: f64,
+}
+
+impl ReducedPattern {
+    /// Eliminates the constrained dofs (`constrained[dof]`) of `system`'s pattern, checks that
+    /// what remains is held, and computes the symbolic factorization with the system's ordering.
+    pub fn new(system: &StiffnessSystem, constrained: &[bool]) -> Result<Self, FemError> {
+        let t0 = Instant::now();
+        let n = system.dofs();
+        let mut free_of_dof = vec![usize::MAX; n];
+        let mut free = Vec::with_capacity(n);
+        for (d, slot) in free_of_dof.iter_mut().enumerate() {
+            if !constrained[d] {
+                *slot = free.len();
+                free.push(d);
+            }
+        }
+        if free.is_empty() {
+            return Err(FemError::NothingFree);
+        }
+        system.check_supported(&free_of_dof)?;
+        // Lower triangle of K_ff.
+        let p = &system.pattern;
+        let mut col_ptr = Vec::with_capacity(free.len() + 1);
+        let mut row_idx = Vec::new();
+        let mut source = Vec::new();
+        col_ptr.push(0);
+        for (fc, &c) in free.iter().enumerate() {
+            for k in p.col_ptr[c]..p.col_ptr[c + 1] {
+                let fr = free_of_dof[p.row_idx[k]];
+                if fr != usize::MAX && fr >= fc {
+                    row_idx.push(fr);
+                    source.push(k);
+                }
+            }
+            col_ptr.push(row_idx.len());
+        }
+        let nf = free.len();
+        let sym_mat =
+            SymbolicSparseColMat::new_checked(nf, nf, col_ptr.clone(), None, row_idx.clone());
+        let extract_s = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let perm = system.free_permutation(&free_of_dof, nf);
+        let ord = match &perm {
+            Some((fwd, inv)) => SymmetricOrdering::Custom(PermRef::new_checked(fwd, inv, nf)),
+            None => SymmetricOrdering::Amd,
+        };
+        let symbolic =
+            factorize_symbolic_cholesky(sym_mat.as_ref(), Side::Lower, ord, Default::default())
+                .map_err(|e| FemError::Factorization(format!("{e:?}")))?;
+        Ok(Self {
+            free,
+            free_of_dof,
+            col_ptr,
+            row_idx,
+            source,
+            symbolic: Arc::new(symbolic),
+            extract_s,
+            symbolic_s: t1.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Free dofs in order (`free[k]` is the global dof of free unknown `k`).
+    pub fn free_dofs(&self) -> &[usize] {
+        &self.free
+    }
+
+    /// Index of a global dof among the free unknowns, or `None` if constrained.
+    pub fn free_index(&self, dof: usize) -> Option<usize> {
+        self.free_of_dof
+            .get(dof)
+            .copied()
+            .filter(|&i| i != usize::MAX)
+    }
+
+    /// Numeric Cholesky factorization of the free block of `values` (laid out on the full
+    /// pattern); names the node of a non-positive pivot.
+    pub fn factor(&self, values: &[f64]) -> Result<CholeskyFactor, FemError> {
+        let nf = self.free.len();
+        let vals: Vec<f64> = self.source.iter().map(|&k| values[k]).collect();
+        let sym = SymbolicSparseColMat::new_checked(
+            nf,
+            nf,
+            self.col_ptr.clone(),
+            None,
+            self.row_idx.clone(),
+        );
+        let kff = SparseColMat::new(sym, vals);
+        CholeskyFactor::numeric(self.symbolic.clone(), kff.as_ref()).map_err(|e| match e {
+            faer::sparse::linalg::LltError::Numeric(
+                faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index },
+            ) => {
+                // Map the pivot back through the fill-reducing permutation to a node and axis.
+                let original = self
+                    .symbolic
+                    .perm()
+                    .map(|p| p.arrays().0.get(index).copied().unwrap_or(index))
+                    .unwrap_or(index);
+                let dof = self.free.get(original).copied().unwrap_or(0);
+                FemError::NotPositiveDefinite {
+                    free: nf,
+                    node: dof / 3,
+                    axis: dof % 3,
+                }
+            }
+            other => FemError::Factorization(format!("{other:?}")),
         })
     }
 }
@@ -570,8 +683,7 @@ pub struct FactorInfo {
 /// A factorized constrained system; solve it for as many load vectors as needed.
 #[derive(Debug, Clone)]
 pub struct FactorizedSystem {
-    free: Vec<usize>,
-    free_of_dof: Vec<usize>,
+    reduced: Arc<ReducedPattern>,
     llt: CholeskyFactor,
     prescribed: Vec<f64>,
     lift: Vec<f64>,
@@ -586,27 +698,29 @@ impl FactorizedSystem {
 
     /// Free dofs in order (`free[k]` is the global dof of free unknown `k`).
     pub fn free_dofs(&self) -> &[usize] {
-        &self.free
+        &self.reduced.free
     }
 
     /// Index of a global dof among the free unknowns, or `None` if constrained.
     pub fn free_index(&self, dof: usize) -> Option<usize> {
-        self.free_of_dof
-            .get(dof)
-            .copied()
-            .filter(|&i| i != usize::MAX)
+        self.reduced.free_index(dof)
+    }
+
+    /// The reduced pattern with its symbolic factorization (shareable for refactorizations).
+    pub fn reduced(&self) -> &Arc<ReducedPattern> {
+        &self.reduced
     }
 
     /// Solves for the full displacement (mm) under a full load vector `f` (mN, 3 × nodes):
     /// constrained dofs take their prescribed values.
     pub fn solve(&self, f: &[f64]) -> Vec<f64> {
-        let mut rhs = Mat::<f64>::zeros(self.free.len(), 1);
-        for (k, &d) in self.free.iter().enumerate() {
+        let mut rhs = Mat::<f64>::zeros(self.reduced.free.len(), 1);
+        for (k, &d) in self.reduced.free.iter().enumerate() {
             rhs[(k, 0)] = f[d] - self.lift[d];
         }
         self.llt.solve_in_place(rhs.as_mut());
         let mut u = self.prescribed.clone();
-        for (k, &d) in self.free.iter().enumerate() {
+        for (k, &d) in self.reduced.free.iter().enumerate() {
             u[d] = rhs[(k, 0)];
         }
         u
@@ -626,16 +740,16 @@ impl FactorizedSystem {
     /// Solves for many full load vectors (columns of `f`, 3n rows) with homogeneous constraints
     /// (prescribed values are not applied); returns full displacements, one column per load.
     pub fn solve_many_homogeneous(&self, f: MatRef<'_, f64>) -> Mat<f64> {
-        let mut rhs = Mat::<f64>::zeros(self.free.len(), f.ncols());
+        let mut rhs = Mat::<f64>::zeros(self.reduced.free.len(), f.ncols());
         for j in 0..f.ncols() {
-            for (k, &d) in self.free.iter().enumerate() {
+            for (k, &d) in self.reduced.free.iter().enumerate() {
                 rhs[(k, j)] = f[(d, j)];
             }
         }
         self.llt.solve_in_place(rhs.as_mut());
         let mut u = Mat::<f64>::zeros(f.nrows(), f.ncols());
         for j in 0..f.ncols() {
-            for (k, &d) in self.free.iter().enumerate() {
+            for (k, &d) in self.reduced.free.iter().enumerate() {
                 u[(d, j)] = rhs[(k, j)];
             }
         }

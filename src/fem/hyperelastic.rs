@@ -1,0 +1,471 @@
+//! Compressible Neo-Hookean solid, total Lagrangian, P1 tets: the ground-truth mechanics.
+//!
+//! Strain energy density `W(F) = μ/2 (tr FᵀF − 3) − μ ln J + λ/2 (ln J)²` (Bonet & Wood,
+//! "Nonlinear Continuum Mechanics for Finite Element Analysis", §6.4.3), with first Piola–Kirchhoff
+//! stress `P = μ (F − F⁻ᵀ) + λ ln J F⁻ᵀ` and the consistent tangent
+//! `∂P_iJ/∂F_kL = μ δ_ik δ_JL + λ F⁻¹_Ji F⁻¹_Lk + (μ − λ ln J) F⁻¹_Jk F⁻¹_Li`. At small strain it
+//! reduces to linear elasticity with the same Lamé parameters. Loads are dead loads (body forces,
+//! tractions and pressure given on the reference configuration), plus linear node springs and
+//! prescribed displacements. [`HyperelasticModel::solve`] runs Newton's method with a backtracking
+//! line search on the total potential energy and adaptive load stepping; a deformation that does not
+//! converge is an error, never a result. The symbolic Cholesky factorization is computed once and
+//! reused by every Newton iteration.
+
+use super::assembly::{LameField, assemble_blocks};
+use super::element::p1_gradients;
+use super::solver::{Dirichlet, FemError, NodeSpring, ReducedPattern, StiffnessSystem};
+use crate::mesh::TetMesh;
+use faer::Mat;
+use rayon::prelude::*;
+use std::time::Instant;
+
+type M3 = [[f64; 3]; 3];
+
+fn det3(m: &M3) -> f64 {
+    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+}
+
+/// Inverse transpose `F⁻ᵀ` and `J = det F`; `None` when `J ≤ 0` (inverted element).
+fn inv_transpose(f: &M3) -> Option<(M3, f64)> {
+    let j = det3(f);
+    if j <= 0.0 || !j.is_finite() {
+        return None;
+    }
+    // Cofactor matrix / J = F⁻ᵀ.
+    let c = [
+        [
+            f[1][1] * f[2][2] - f[1][2] * f[2][1],
+            f[1][2] * f[2][0] - f[1][0] * f[2][2],
+            f[1][0] * f[2][1] - f[1][1] * f[2][0],
+        ],
+        [
+            f[0][2] * f[2][1] - f[0][1] * f[2][2],
+            f[0][0] * f[2][2] - f[0][2] * f[2][0],
+            f[0][1] * f[2][0] - f[0][0] * f[2][1],
+        ],
+        [
+            f[0][1] * f[1][2] - f[0][2] * f[1][1],
+            f[0][2] * f[1][0] - f[0][0] * f[1][2],
+            f[0][0] * f[1][1] - f[0][1] * f[1][0],
+        ],
+    ];
+    Some((c.map(|r| r.map(|x| x / j)), j))
+}
+
+/// Neo-Hookean energy density `W` (kPa = mN·mm/mm³) at deformation gradient `F`; `None` if `J ≤ 0`.
+pub fn energy_density(f: &M3, lambda: f64, mu: f64) -> Option<f64> {
+    let j = det3(f);
+    if j <= 0.0 || !j.is_finite() {
+        return None;
+    }
+    let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
+    let lj = j.ln();
+    Some(0.5 * mu * (i1 - 3.0) - mu * lj + 0.5 * lambda * lj * lj)
+}
+
+/// First Piola–Kirchhoff stress `P = μ (F − F⁻ᵀ) + λ ln J F⁻ᵀ` (kPa); `None` if `J ≤ 0`.
+pub fn pk1(f: &M3, lambda: f64, mu: f64) -> Option<M3> {
+    let (fit, j) = inv_transpose(f)?;
+    let c = lambda * j.ln() - mu;
+    let mut p = [[0.0; 3]; 3];
+    for a in 0..3 {
+        for b in 0..3 {
+            p[a][b] = mu * f[a][b] + c * fit[a][b];
+        }
+    }
+    Some(p)
+}
+
+/// Parameters of the Newton solver with load stepping.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct NewtonParams {
+    /// Converged when ‖r_free‖ ≤ `tolerance` · max(‖f_ext‖, ‖f_int‖) (relative force residual).
+    /// Default 1e-9.
+    pub tolerance: f64,
+    /// Newton iterations allowed per load step before the step is cut. Default 30.
+    pub max_iterations: usize,
+    /// First load increment as a fraction of the full load. Default 0.25.
+    pub initial_step: f64,
+    /// Smallest load increment before giving up. Default 1e-4.
+    pub min_step: f64,
+    /// Line-search halvings allowed per iteration. Default 20.
+    pub max_halvings: usize,
+}
+
+impl Default for NewtonParams {
+    fn default() -> Self {
+        Self {
+            tolerance: 1e-9,
+            max_iterations: 30,
+            initial_step: 0.25,
+            min_step: 1e-4,
+            max_halvings: 20,
+        }
+    }
+}
+
+/// What the nonlinear solve did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct NewtonInfo {
+    /// Accepted load steps.
+    pub load_steps: usize,
+    /// Load steps that failed and were cut in half.
+    pub cutbacks: usize,
+    /// Newton iterations over all steps (accepted and failed).
+    pub iterations: usize,
+    /// Final relative force residual.
+    pub relative_residual: f64,
+    /// Time assembling internal forces and tangents (s).
+    pub assemble_s: f64,
+    /// Time in numeric factorizations (s).
+    pub factor_s: f64,
+    /// Time in the symbolic factorization (once) (s).
+    pub symbolic_s: f64,
+    /// Total time (s).
+    pub total_s: f64,
+}
+
+/// Per-tet reference geometry.
+#[derive(Debug, Clone, Copy)]
+struct RefTet {
+    g: [[f64; 3]; 4],
+    v0: f64,
+}
+
+/// A Neo-Hookean model of a mesh: reference geometry, material field, springs and the sparsity
+/// pattern; evaluates energy, internal forces and tangents, and solves loaded equilibria.
+#[derive(Debug, Clone)]
+pub struct HyperelasticModel {
+    tets: Vec<[u32; 4]>,
+    reference: Vec<RefTet>,
+    lame: LameField,
+    system: StiffnessSystem,
+}
+
+impl HyperelasticModel {
+    /// Builds the model; rejects degenerate tets and invalid Lamé parameters (as the linear model).
+    pub fn new(mesh: &TetMesh, lame: LameField) -> Result<Self, FemError> {
+        let system = StiffnessSystem::linear_field(mesh, &lame)?;
+        let reference = (0..mesh.num_tets())
+            .map(|t| {
+                let (g, v) = p1_gradients(&mesh.tet_points(t)).ok_or(FemError::DegenerateTet {
+                    tet: t,
+                    volume: mesh.tet_volume(t),
+                })?;
+                Ok(RefTet { g, v0: v.abs() })
+            })
+            .collect::<Result<Vec<_>, FemError>>()?;
+        Ok(Self {
+            tets: mesh.tets().to_vec(),
+            reference,
+            lame,
+            system,
+        })
+    }
+
+    /// Adds linear node springs (e.g. posterior support).
+    pub fn add_springs(&mut self, springs: &[NodeSpring]) -> Result<(), FemError> {
+        self.system.add_springs(springs)
+    }
+
+    /// The linear system with the same pattern, material (at small strain) and springs.
+    pub fn linearized(&self) -> &StiffnessSystem {
+        &self.system
+    }
+
+    /// Number of dofs.
+    pub fn dofs(&self) -> usize {
+        self.system.dofs()
+    }
+
+    #[inline]
+    fn lame_at(&self, t: usize) -> (f64, f64) {
+        match &self.lame {
+            LameField::Uniform(l, m) => (*l, *m),
+            LameField::PerTet(v) => v[t],
+        }
+    }
+
+    /// Deformation gradient of tet `t` for the full displacement `u`.
+    #[inline]
+    fn deformation_gradient(&self, t: usize, u: &[f64]) -> M3 {
+        let g = &self.reference[t].g;
+        let tet = self.tets[t];
+        let mut f = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        for (i, &n) in tet.iter().enumerate() {
+            let n = n as usize;
+            for a in 0..3 {
+                let ua = u[3 * n + a];
+                for b in 0..3 {
+                    f[a][b] += ua * g[i][b];
+                }
+            }
+        }
+        f
+    }
+
+    /// Deformation gradient per tet.
+    pub fn deformation_gradients(&self, u: &[f64]) -> Vec<M3> {
+        (0..self.tets.len())
+            .into_par_iter()
+            .map(|t| self.deformation_gradient(t, u))
+            .collect()
+    }
+
+    /// Stored energy (strain + springs) in mN·mm; `None` if any element is inverted.
+    pub fn energy(&self, u: &[f64]) -> Option<f64> {
+        let strain: Option<f64> = (0..self.tets.len())
+            .into_par_iter()
+            .map(|t| {
+                let (l, m) = self.lame_at(t);
+                energy_density(&self.deformation_gradient(t, u), l, m)
+                    .map(|w| w * self.reference[t].v0)
+            })
+            .sum();
+        let ks = self.system.spring_force(u);
+        let springs: f64 = 0.5 * ks.iter().zip(u).map(|(a, b)| a * b).sum::<f64>();
+        strain.map(|s| s + springs)
+    }
+
+    /// Internal nodal forces (mN) including springs; `None` if any element is inverted.
+    pub fn internal_force(&self, u: &[f64]) -> Option<Vec<f64>> {
+        let per_tet: Vec<Option<[[f64; 3]; 4]>> = (0..self.tets.len())
+            .into_par_iter()
+            .map(|t| {
+                let (l, m) = self.lame_at(t);
+                let p = pk1(&self.deformation_gradient(t, u), l, m)?;
+                let RefTet { g, v0 } = self.reference[t];
+                let mut f = [[0.0; 3]; 4];
+                for i in 0..4 {
+                    for a in 0..3 {
+                        f[i][a] = v0 * (p[a][0] * g[i][0] + p[a][1] * g[i][1] + p[a][2] * g[i][2]);
+                    }
+                }
+                Some(f)
+            })
+            .collect();
+        let mut out = self.system.spring_force(u);
+        for (t, f) in per_tet.into_iter().enumerate() {
+            let f = f?;
+            for (i, &n) in self.tets[t].iter().enumerate() {
+                for a in 0..3 {
+                    out[3 * n as usize + a] += f[i][a];
+                }
+            }
+        }
+        Some(out)
+    }
+
+    /// Tangent stiffness values (mN/mm) on the model's pattern, springs included; `None` if any
+    /// element is inverted.
+    pub fn tangent_values(&self, u: &[f64]) -> Option<Vec<f64>> {
+        // Per tet: spatial gradients h = F⁻ᵀ g and the coefficient μ − λ ln J.
+        let kin: Vec<Option<([[f64; 3]; 4], f64)>> = (0..self.tets.len())
+            .into_par_iter()
+            .map(|t| {
+                let (fit, j) = inv_transpose(&self.deformation_gradient(t, u))?;
+                let (l, m) = self.lame_at(t);
+                let g = &self.reference[t].g;
+                let mut h = [[0.0; 3]; 4];
+                for i in 0..4 {
+                    for a in 0..3 {
+                        h[i][a] = fit[a][0] * g[i][0] + fit[a][1] * g[i][1] + fit[a][2] * g[i][2];
+                    }
+                }
+                Some((h, m - l * j.ln()))
+            })
+            .collect();
+        if kin.iter().any(|k| k.is_none()) {
+            return None;
+        }
+        let mut values = assemble_blocks(self.system.pattern(), &self.tets, |t, lj, li| {
+            let (h, c) = kin[t]?;
+            let (l, m) = self.lame_at(t);
+            let RefTet { g, v0 } = self.reference[t];
+            let gg = g[lj][0] * g[li][0] + g[lj][1] * g[li][1] + g[lj][2] * g[li][2];
+            let mut k = [[0.0; 3]; 3];
+            for a in 0..3 {
+                for b in 0..3 {
+                    let diag = if a == b { m * gg } else { 0.0 };
+                    k[a][b] = v0 * (diag + l * h[lj][a] * h[li][b] + c * h[li][a] * h[lj][b]);
+                }
+            }
+            Some(k)
+        });
+        self.system.add_spring_values(&mut values);
+        Some(values)
+    }
+
+    /// Equilibrium under dead loads `f_ext` (mN, full vector) and prescribed displacements `bc`,
+    /// both applied in load steps from zero. Returns the displacement (mm) and what happened.
+    pub fn solve(
+        &self,
+        bc: &Dirichlet,
+        f_ext: &[f64],
+        params: &NewtonParams,
+    ) -> Result<(Vec<f64>, NewtonInfo), FemError> {
+        let t0 = Instant::now();
+        let n = self.dofs();
+        if f_ext.len() != n || bc.len() != n {
+            return Err(FemError::InvalidParameter {
+                field: "loads",
+                message: format!(
+                    "{} load values and {} constraint dofs for a {n}-dof model",
+                    f_ext.len(),
+                    bc.len()
+                ),
+            });
+        }
+        if let Some(i) = f_ext.iter().position(|x| !x.is_finite()) {
+            return Err(FemError::InvalidParameter {
+                field: "loads",
+                message: format!("node {} axis {} has a non-finite load", i / 3, i % 3),
+            });
+        }
+        let constrained: Vec<bool> = (0..n).map(|d| bc.get(d).is_some()).collect();
+        let target: Vec<f64> = (0..n).map(|d| bc.get(d).unwrap_or(0.0)).collect();
+        if let Some(d) = target.iter().position(|x| !x.is_finite()) {
+            return Err(FemError::InvalidParameter {
+                field: "dirichlet",
+                message: format!("node {} axis {} has a non-finite value", d / 3, d % 3),
+            });
+        }
+        let ts = Instant::now();
+        let reduced = ReducedPattern::new(&self.system, &constrained)?;
+        let mut info = NewtonInfo {
+            symbolic_s: ts.elapsed().as_secs_f64(),
+            ..Default::default()
+        };
+        let mut u = vec![0.0; n];
+        let mut s = 0.0;
+        let mut ds = params.initial_step.clamp(params.min_step, 1.0);
+        while s < 1.0 {
+            let s_new = (s + ds).min(1.0);
+            let mut trial = u.clone();
+            for d in 0..n {
+                if constrained[d] {
+                    trial[d] = s_new * target[d];
+                }
+            }
+            match self.newton(&reduced, &mut trial, f_ext, s_new, params, &mut info) {
+                Ok(its) => {
+                    u = trial;
+                    s = s_new;
+                    info.load_steps += 1;
+                    if its <= 6 {
+                        ds = (ds * 1.5).min(1.0);
+                    }
+                }
+                Err(e) => {
+                    info.cutbacks += 1;
+                    ds *= 0.5;
+                    if ds < params.min_step {
+                        return Err(FemError::NotConverged {
+                            load_fraction: s,
+                            iterations: info.iterations,
+                            reason: e,
+                        });
+                    }
+                }
+            }
+        }
+        info.total_s = t0.elapsed().as_secs_f64();
+        Ok((u, info))
+    }
+
+    /// Newton iterations at load factor `s`; `u` holds the prescribed values already. Returns the
+    /// iteration count, or why it failed.
+    fn newton(
+        &self,
+        reduced: &ReducedPattern,
+        u: &mut [f64],
+        f_ext: &[f64],
+        s: f64,
+        params: &NewtonParams,
+        info: &mut NewtonInfo,
+    ) -> Result<usize, String> {
+        let free = reduced.free_dofs();
+        let potential = |u: &[f64]| -> Option<f64> {
+            let e = self.energy(u)?;
+            let w: f64 = f_ext.iter().zip(u).map(|(f, x)| s * f * x).sum();
+            Some(e - w)
+        };
+        let residual = |u: &[f64]| -> Option<(Vec<f64>, f64, f64)> {
+            let fi = self.internal_force(u)?;
+            let r: Vec<f64> = free.iter().map(|&d| fi[d] - s * f_ext[d]).collect();
+            let rn = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let scale = fi
+                .iter()
+                .map(|x| x * x)
+                .sum::<f64>()
+                .sqrt()
+                .max(s * f_ext.iter().map(|x| x * x).sum::<f64>().sqrt());
+            Some((r, rn, scale))
+        };
+        let ta = Instant::now();
+        let (mut r, mut rn, mut scale) =
+            residual(u).ok_or("an element is inverted at the start of the step")?;
+        let mut pi = potential(u).ok_or("an element is inverted at the start of the step")?;
+        info.assemble_s += ta.elapsed().as_secs_f64();
+        for it in 1..=params.max_iterations {
+            info.iterations += 1;
+            if rn <= params.tolerance * scale.max(f64::MIN_POSITIVE) {
+                info.relative_residual = rn / scale.max(f64::MIN_POSITIVE);
+                return Ok(it - 1);
+            }
+            let ta = Instant::now();
+            let values = self
+                .tangent_values(u)
+                .ok_or("inverted element in tangent")?;
+            info.assemble_s += ta.elapsed().as_secs_f64();
+            let tf = Instant::now();
+            let factor = reduced.factor(&values).map_err(|e| e.to_string())?;
+            info.factor_s += tf.elapsed().as_secs_f64();
+            let mut du = Mat::<f64>::zeros(free.len(), 1);
+            for (k, &x) in r.iter().enumerate() {
+                du[(k, 0)] = -x;
+            }
+            factor.solve_in_place(du.as_mut());
+            let slope: f64 = r.iter().enumerate().map(|(k, x)| x * du[(k, 0)]).sum();
+            // Backtracking line search on the potential energy (residual decrease accepted too,
+            // since energy differences drown in round-off near convergence).
+            let mut alpha = 1.0;
+            let mut accepted = false;
+            let base = u.to_vec();
+            for _ in 0..=params.max_halvings {
+                for (k, &d) in free.iter().enumerate() {
+                    u[d] = base[d] + alpha * du[(k, 0)];
+                }
+                let ta = Instant::now();
+                let trial = potential(u).zip(residual(u));
+                info.assemble_s += ta.elapsed().as_secs_f64();
+                if let Some((p_new, (r_new, rn_new, scale_new))) = trial
+                    && (p_new <= pi + 1e-4 * alpha * slope || rn_new < rn)
+                {
+                    pi = p_new;
+                    r = r_new;
+                    rn = rn_new;
+                    scale = scale_new;
+                    accepted = true;
+                    break;
+                }
+                alpha *= 0.5;
+            }
+            if !accepted {
+                u.copy_from_slice(&base);
+                return Err(format!("line search failed at iteration {it}"));
+            }
+        }
+        if rn <= params.tolerance * scale.max(f64::MIN_POSITIVE) {
+            info.relative_residual = rn / scale.max(f64::MIN_POSITIVE);
+            return Ok(params.max_iterations);
+        }
+        Err(format!(
+            "no convergence in {} iterations (relative residual {:.2e})",
+            params.max_iterations,
+            rn / scale.max(f64::MIN_POSITIVE)
+        ))
+    }
+}

@@ -1,0 +1,272 @@
+//! The Neo-Hookean ground-truth solver against finite differences, the linear solver at small
+//! strain, and the analytic homogeneous uniaxial stretch.
+
+use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams, energy_density, pk1};
+use librplus::fem::{Dirichlet, FemError, LameField, LinearMaterial, StiffnessSystem, loads};
+use librplus::mesh::TetMesh;
+use librplus::mesh::procedural::box_mesh;
+use librplus::util::SplitMix64;
+
+fn on(x: f64, v: f64) -> bool {
+    (x - v).abs() < 1e-9
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+fn lame() -> (f64, f64) {
+    LinearMaterial::new(5.0, 0.45).lame()
+}
+
+/// A smooth, moderately large displacement field (strains up to ~15 %).
+fn smooth_field(mesh: &TetMesh) -> Vec<f64> {
+    mesh.nodes()
+        .iter()
+        .flat_map(|p| {
+            [
+                0.12 * p[0] * p[1] + 0.05 * p[2],
+                -0.08 * p[1] * p[2] + 0.1 * p[0],
+                0.06 * p[0] * p[0] - 0.1 * p[2] * p[1],
+            ]
+        })
+        .collect()
+}
+
+#[test]
+fn stress_is_the_derivative_of_the_energy() {
+    let (l, m) = lame();
+    let f = [[1.1, 0.2, -0.05], [0.1, 0.95, 0.15], [-0.1, 0.05, 1.2]];
+    let p = pk1(&f, l, m).unwrap();
+    let h = 1e-6;
+    for a in 0..3 {
+        for b in 0..3 {
+            let mut fp = f;
+            let mut fm = f;
+            fp[a][b] += h;
+            fm[a][b] -= h;
+            let d = (energy_density(&fp, l, m).unwrap() - energy_density(&fm, l, m).unwrap())
+                / (2.0 * h);
+            assert!(
+                (d - p[a][b]).abs() < 1e-7 * p[a][b].abs().max(1.0),
+                "P[{a}][{b}] {d} vs {}",
+                p[a][b]
+            );
+        }
+    }
+    // Stress-free and energy-free at F = I; inverted F has no energy.
+    let id = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    assert!(
+        pk1(&id, l, m)
+            .unwrap()
+            .iter()
+            .flatten()
+            .all(|x| x.abs() < 1e-15)
+    );
+    assert_eq!(energy_density(&id, l, m).unwrap(), 0.0);
+    let inv = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    assert!(energy_density(&inv, l, m).is_none());
+}
+
+#[test]
+fn tangent_and_forces_match_finite_differences() {
+    let mesh = box_mesh([2.0, 1.5, 1.0], [3, 2, 2], 0.3);
+    let (l, m) = lame();
+    let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
+    let u = smooth_field(&mesh);
+    let mut rng = SplitMix64::new(3);
+    let v: Vec<f64> = (0..u.len()).map(|_| rng.next_f64() - 0.5).collect();
+    let f = model.internal_force(&u).unwrap();
+    // Forces are the gradient of the energy.
+    let eps = 1e-6;
+    let shifted = |s: f64| -> Vec<f64> { u.iter().zip(&v).map(|(a, b)| a + s * b).collect() };
+    let de = (model.energy(&shifted(eps)).unwrap() - model.energy(&shifted(-eps)).unwrap())
+        / (2.0 * eps);
+    let fv: f64 = f.iter().zip(&v).map(|(a, b)| a * b).sum();
+    assert!(
+        (de - fv).abs() <= 1e-7 * fv.abs(),
+        "energy derivative {de} vs f·v {fv}"
+    );
+    // Tangent is the derivative of the forces.
+    let k = model
+        .linearized()
+        .pattern()
+        .to_matrix(model.tangent_values(&u).unwrap())
+        .to_dense();
+    let kv: Vec<f64> = (0..u.len())
+        .map(|i| (0..u.len()).map(|j| k[(i, j)] * v[j]).sum())
+        .collect();
+    let fp = model.internal_force(&shifted(eps)).unwrap();
+    let fm = model.internal_force(&shifted(-eps)).unwrap();
+    let fd: Vec<f64> = fp
+        .iter()
+        .zip(&fm)
+        .map(|(a, b)| (a - b) / (2.0 * eps))
+        .collect();
+    let err: Vec<f64> = fd.iter().zip(&kv).map(|(a, b)| a - b).collect();
+    let rel = norm(&err) / norm(&kv);
+    eprintln!("tangent vs central differences: relative error {rel:e}");
+    assert!(rel <= 1e-6, "{rel:e}");
+    // The tangent is symmetric (hyperelastic, dead loads).
+    let n = u.len();
+    for i in 0..n {
+        for j in 0..n {
+            assert!((k[(i, j)] - k[(j, i)]).abs() < 1e-10 * (1.0 + k[(i, i)].abs()));
+        }
+    }
+}
+
+/// Symmetry supports: u_k = 0 on the plane x_k = 0.
+fn symmetry_supports(mesh: &TetMesh) -> Dirichlet {
+    let mut bc = Dirichlet::new(mesh.num_nodes());
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        for (axis, &c) in p.iter().enumerate() {
+            if on(c, 0.0) {
+                bc.prescribe_dof(i as u32, axis, 0.0);
+            }
+        }
+    }
+    bc
+}
+
+#[test]
+fn small_strain_matches_the_linear_solver() {
+    // Compact block clamped at x = 0 under an oblique end traction giving ~0.1 % strain. (A
+    // slender beam would not do: tension stiffening of its bending is a geometric nonlinearity
+    // of a few percent even at this strain.)
+    let (len, w) = (1.5, 1.0);
+    let mesh = box_mesh([len, w, w], [6, 4, 4], 0.2);
+    let mat = LinearMaterial::new(5.0, 0.45);
+    let (l, m) = mat.lame();
+    let mut bc = Dirichlet::new(mesh.num_nodes());
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        if on(p[0], 0.0) {
+            bc.prescribe_node(i as u32, [0.0; 3]);
+        }
+    }
+    let end: Vec<[u32; 3]> = mesh
+        .boundary()
+        .unwrap()
+        .triangles
+        .into_iter()
+        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
+        .collect();
+    let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
+    let linear = StiffnessSystem::linear(&mesh, &mat)
+        .unwrap()
+        .factorize(&bc)
+        .unwrap();
+    // Relative difference between the two solutions at a given strain level.
+    let difference = |strain: f64| {
+        let sigma = strain * mat.youngs_modulus_kpa;
+        let mut f = vec![0.0; 3 * mesh.num_nodes()];
+        loads::add_traction(
+            &mut f,
+            mesh.nodes(),
+            &end,
+            &vec![[sigma, 0.0, 0.3 * sigma]; end.len()],
+        );
+        let ul = linear.solve(&f);
+        let (u, info) = model.solve(&bc, &f, &NewtonParams::default()).unwrap();
+        assert!(info.relative_residual <= 1e-9);
+        let diff: Vec<f64> = u.iter().zip(&ul).map(|(a, b)| a - b).collect();
+        norm(&diff) / norm(&ul)
+    };
+    let rel = difference(1e-3);
+    let rel_small = difference(1e-4);
+    eprintln!("|u_nh - u_lin| / |u_lin|: {rel:e} at 0.1% strain, {rel_small:e} at 0.01%");
+    assert!(rel <= 0.01, "{rel}");
+    // The difference is a nonlinear effect: first order in the load.
+    let ratio = rel / rel_small;
+    assert!((8.0..12.0).contains(&ratio), "ratio {ratio}");
+}
+
+/// Lateral stretch `b` and nominal stress `P₁₁` of uniaxial stress at axial stretch `a`:
+/// `P₂₂ = μ(b − 1/b) + λ ln(a b²)/b = 0`, solved by bisection.
+fn uniaxial_analytic(a: f64, l: f64, m: f64) -> (f64, f64) {
+    let p22 = |b: f64| m * (b - 1.0 / b) + l * (a * b * b).ln() / b;
+    let (mut lo, mut hi) = (0.3, 1.0);
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if p22(mid) > 0.0 {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    let b = 0.5 * (lo + hi);
+    (b, m * (a - 1.0 / a) + l * (a * b * b).ln() / a)
+}
+
+#[test]
+fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
+    let (len, w) = (3.0, 1.0);
+    let mesh = box_mesh([len, w, w], [6, 2, 2], 0.2);
+    let (l, m) = lame();
+    let stretch = 1.3;
+    let mut bc = symmetry_supports(&mesh);
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        if on(p[0], len) {
+            bc.prescribe_dof(i as u32, 0, (stretch - 1.0) * len);
+        }
+    }
+    let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
+    let f = vec![0.0; 3 * mesh.num_nodes()];
+    let (u, info) = model.solve(&bc, &f, &NewtonParams::default()).unwrap();
+    let (b, p11) = uniaxial_analytic(stretch, l, m);
+    // Lateral stretch from the free faces, reaction from the internal forces on the loaded face.
+    let fint = model.internal_force(&u).unwrap();
+    let mut reaction = 0.0;
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        if on(p[0], len) {
+            reaction += fint[3 * i];
+        }
+        if on(p[1], w) {
+            let b_fem = 1.0 + u[3 * i + 1] / w;
+            assert!(
+                (b_fem - b).abs() <= 0.01 * (1.0 - b),
+                "lateral stretch {b_fem} vs {b}"
+            );
+        }
+    }
+    let exact = p11 * w * w;
+    eprintln!(
+        "30% stretch: reaction {reaction:.6} mN vs analytic {exact:.6} (b = {b:.6}); {} steps, {} iterations",
+        info.load_steps, info.iterations
+    );
+    assert!((reaction - exact).abs() <= 0.01 * exact);
+    // The linear model misses the stiffening: its reaction differs by more than 1 %.
+    let lin = StiffnessSystem::linear(&mesh, &LinearMaterial::new(5.0, 0.45)).unwrap();
+    let ul = lin.factorize(&bc).unwrap().solve(&f);
+    let rl: f64 = lin
+        .apply(&ul)
+        .chunks_exact(3)
+        .zip(mesh.nodes())
+        .filter(|(_, p)| on(p[0], len))
+        .map(|(c, _)| c[0])
+        .sum();
+    assert!((rl - exact).abs() > 0.01 * exact, "linear {rl} vs {exact}");
+}
+
+#[test]
+fn impossible_compression_is_reported_not_returned() {
+    // Pushing the end face past the clamped face would invert every element.
+    let mesh = box_mesh([1.0, 1.0, 1.0], [2, 2, 2], 0.0);
+    let (l, m) = lame();
+    let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
+    let mut bc = symmetry_supports(&mesh);
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        if on(p[0], 1.0) {
+            bc.prescribe_dof(i as u32, 0, -1.2);
+        }
+    }
+    let err = model
+        .solve(
+            &bc,
+            &vec![0.0; 3 * mesh.num_nodes()],
+            &NewtonParams::default(),
+        )
+        .unwrap_err();
+    assert!(matches!(err, FemError::NotConverged { .. }), "{err}");
+    assert!(err.to_string().contains("did not converge"));
+}
