@@ -170,6 +170,28 @@ fn sag_matches_scikit_fem_reference() {
     );
     assert!(worst_vs_max <= 1e-6);
     assert!(worst_node_rel <= 1e-6);
+    // Equilibrium: the supports carry exactly the weight (total body force = ρg·V).
+    let weight = 0.0104 * mesh.volume();
+    assert!((r.applied_load_mn[1] - weight).abs() < 1e-9 * weight);
+    for a in 0..3 {
+        assert!(
+            (r.reaction_mn[a] + r.applied_load_mn[a]).abs() < 1e-9 * weight,
+            "axis {a}"
+        );
+    }
+    // The Neo-Hookean counterpart balances the same load (its forces are the reactions).
+    let nh =
+        sag::solve_neo_hookean(&mesh, &sag::SagParams::default(), &Default::default()).unwrap();
+    for a in 0..3 {
+        assert!(
+            (nh.reaction_mn[a] + nh.applied_load_mn[a]).abs() < 1e-6 * weight,
+            "axis {a}"
+        );
+    }
+    assert!(
+        nh.max_disp_mm > r.max_disp_mm,
+        "large-deformation sag differs from linear"
+    );
     let e_ref = reference["strain_energy"].as_f64().unwrap();
     assert!(close(r.strain_energy, e_ref, 1e-6));
     assert!(close(

@@ -510,6 +510,8 @@ fn fem_sag(
         "max_disp_mm": r.max_disp_mm,
         "mean_disp_mm": r.mean_disp_mm,
         "strain_energy": r.strain_energy,
+        "applied_load_mN": r.applied_load_mn,
+        "reaction_mN": r.reaction_mn,
         "strain_energy_unit": "mN·mm",
         "timings_s": {
             "read": read_s,

@@ -42,6 +42,10 @@ pub struct SagResult {
     pub max_disp_mm: f64,
     /// Mean nodal displacement magnitude over all nodes (mm).
     pub mean_disp_mm: f64,
+    /// Total applied body force (mN).
+    pub applied_load_mn: [f64; 3],
+    /// Total support reaction (mN); balances the applied load in equilibrium.
+    pub reaction_mn: [f64; 3],
     /// Strain energy (mN·mm): `uᵀKu/2` for the linear model, `∫W dV` for Neo-Hookean.
     pub strain_energy: f64,
     /// Free dofs.
@@ -111,6 +115,8 @@ fn summarize(u: Vec<f64>, fixed_nodes: usize, strain_energy: f64) -> SagResult {
         mean_disp_mm: mags.iter().sum::<f64>() / mags.len().max(1) as f64,
         strain_energy,
         displacement: u,
+        applied_load_mn: [0.0; 3],
+        reaction_mn: [0.0; 3],
         free_dofs: 0,
         newton: None,
         timings: SagTimings {
@@ -140,7 +146,12 @@ pub fn solve_neo_hookean(
     loads::add_body_force(&mut f, mesh, params.body_force);
     let (u, info) = model.solve(&bc, &f, newton)?;
     let energy = model.energy(&u).unwrap_or(f64::NAN);
+    let fint = model.internal_force(&u).unwrap_or_default();
     let mut r = summarize(u, fixed.len(), energy);
+    for a in 0..3 {
+        r.applied_load_mn[a] = f.iter().skip(a).step_by(3).sum();
+        r.reaction_mn[a] = fint.iter().skip(a).step_by(3).sum::<f64>() - r.applied_load_mn[a];
+    }
     r.free_dofs = 3 * mesh.num_nodes() - bc.count();
     r.timings = SagTimings {
         assemble_s,
@@ -170,6 +181,11 @@ pub fn solve(mesh: &TetMesh, params: &SagParams) -> Result<SagResult, FemError> 
     let solve_s = t2.elapsed().as_secs_f64();
     let mut r = summarize(u, fixed.len(), 0.0);
     r.strain_energy = system.energy(&r.displacement);
+    let reactions = system.reactions(&r.displacement, &f);
+    for a in 0..3 {
+        r.applied_load_mn[a] = f.iter().skip(a).step_by(3).sum();
+        r.reaction_mn[a] = reactions.iter().skip(a).step_by(3).sum();
+    }
     r.free_dofs = fact.info().free_dofs;
     r.timings = SagTimings {
         assemble_s,

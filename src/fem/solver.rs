@@ -433,6 +433,16 @@ impl StiffnessSystem {
         out
     }
 
+    /// Reaction forces `K·u − f` (mN) at every dof: zero (to round-off) at free dofs in
+    /// equilibrium, the support forces at constrained dofs.
+    pub fn reactions(&self, u: &[f64], f: &[f64]) -> Vec<f64> {
+        let mut r = self.apply(u);
+        for (ri, fi) in r.iter_mut().zip(f) {
+            *ri -= fi;
+        }
+        r
+    }
+
     /// ‖K‖∞: the largest absolute row sum (mN/mm), for scaled residuals.
     pub fn row_sum_norm(&self) -> f64 {
         let mut rows = vec![0.0f64; self.dofs()];
