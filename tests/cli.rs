@@ -179,3 +179,49 @@ fn spare_nodes_are_removed_and_the_sag_is_unchanged() {
     ]);
     assert!(!ok && err.contains("surface format"), "{err}");
 }
+
+#[test]
+fn mesh_tetra_meshes_a_real_liver_surface() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("smooth.vtu");
+    let v = json(&[
+        "mesh",
+        "tetra",
+        &data("sofa_liver-smooth.obj"),
+        "--unit",
+        "cm",
+        "--edge-mm",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(
+        v["volume_error_percent"].as_f64().unwrap().abs() < 2.0,
+        "{v}"
+    );
+    assert!(v["min_dihedral_deg"].as_f64().unwrap() >= 8.0, "{v}");
+    let info = json(&["mesh", "info", out.to_str().unwrap(), "--json"]);
+    assert_eq!(info["nodes"], v["nodes"]);
+    assert_eq!(info["inverted_tets"], 0);
+    assert_eq!(info["components"], 1);
+    assert_eq!(info["surface_closed"], true);
+    assert!(info["nodes"].as_u64().unwrap() > 2000);
+    // An open surface is refused with the reason.
+    let open = dir.path().join("open.obj");
+    std::fs::write(
+        &open,
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\n",
+    )
+    .unwrap();
+    let (ok, _, err) = librplus(&[
+        "mesh",
+        "tetra",
+        open.to_str().unwrap(),
+        "--edge-mm",
+        "0.2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("open.obj"), "{err}");
+}

@@ -9,8 +9,10 @@
 pub mod io;
 pub mod procedural;
 pub mod quality;
+pub mod spatial;
 mod surface;
 mod tet_mesh;
+pub mod tetra;
 pub(crate) mod vec3;
 
 pub use surface::{SurfaceStats, TriSurface};
