@@ -9,4 +9,5 @@
 
 pub mod fem;
 pub mod mesh;
+pub mod phantom;
 pub mod util;
