@@ -41,3 +41,48 @@ fn variants_of_the_real_liver_mesh_into_distinct_valid_livers() {
     assert!((volumes[0] - volumes[1]).abs() > 0.01 * base);
     assert!(volumes.iter().all(|v| *v > 0.5 * base && *v < 1.6 * base));
 }
+
+#[test]
+fn real_liver_gets_every_label_and_they_round_trip_through_vtu() {
+    use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
+        .unwrap()
+        .largest_component();
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(10.0)).unwrap();
+    let labels = label(&mesh, &LabelParams::default()).unwrap();
+    let ant = labels.nodes_in(Region::Anterior).len() as f64;
+    let post = labels.nodes_in(Region::Posterior).len() as f64;
+    let share = ant / (ant + post);
+    eprintln!(
+        "anterior share {share:.2}, ridge {}, falciform {}, bare area {}, targets {}",
+        AnatomyLabels::nodes_where(&labels.inferior_ridge).len(),
+        AnatomyLabels::nodes_where(&labels.falciform).len(),
+        AnatomyLabels::nodes_where(&labels.bare_area).len(),
+        labels.targets.len()
+    );
+    assert!(share > 0.25 && share < 0.75, "{share}");
+    assert!(AnatomyLabels::nodes_where(&labels.inferior_ridge).len() >= 10);
+    assert!(AnatomyLabels::nodes_where(&labels.falciform).len() >= 5);
+    assert!(AnatomyLabels::nodes_where(&labels.bare_area).len() >= 10);
+    assert_eq!(labels.targets.len(), 8);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("preop.vtu");
+    let mut file = mesh.to_file();
+    file.point_data = labels.to_point_data();
+    io::write(&out, &file, Default::default()).unwrap();
+    let back = io::read(&out, Unit::Mm).unwrap();
+    let region = back.point_array("region").unwrap();
+    assert_eq!(
+        region.values.iter().filter(|&&r| r == 1.0).count() as f64,
+        ant
+    );
+    assert_eq!(
+        back.point_array("target")
+            .unwrap()
+            .values
+            .iter()
+            .sum::<f64>(),
+        8.0
+    );
+}

@@ -4,4 +4,5 @@
 //! Only data generation uses this module; `register` and `gcn` never import it, since what runs in
 //! surgery cannot see how the ground truth was made.
 
+pub mod labels;
 pub mod shape;
