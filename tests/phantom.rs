@@ -86,3 +86,58 @@ fn real_liver_gets_every_label_and_they_round_trip_through_vtu() {
         8.0
     );
 }
+
+#[test]
+fn vessel_tree_stays_inside_and_stiffens_its_tets() {
+    use librplus::fem::{LameField, LinearMaterial};
+    use librplus::mesh::spatial::SignedDistance;
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
+        .unwrap()
+        .largest_component();
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(6.0)).unwrap();
+    let params = VesselParams::default();
+    let tree = VesselTree::grow(&mesh, &params).unwrap();
+    assert_eq!(
+        tree,
+        VesselTree::grow(&mesh, &params).unwrap(),
+        "deterministic"
+    );
+    // A tree: one parent per point but the root, parents before children, radii never grow.
+    assert_eq!(tree.segments.len() + 1, tree.points.len());
+    assert!(tree.segments.len() >= 7, "{} segments", tree.segments.len());
+    for s in &tree.segments {
+        assert!(s[0] < s[1]);
+        assert!(tree.radii[s[1] as usize] <= tree.radii[s[0] as usize] + 1e-12 || s[0] == 0);
+    }
+    // Every branch end is inside the liver with its radius and margin to spare.
+    let sd = SignedDistance::new(&surface).unwrap();
+    for (p, r) in tree.points.iter().zip(&tree.radii).skip(1) {
+        assert!(
+            -sd.eval(*p) >= r + params.margin_mm - 1e-9,
+            "point {p:?} too close to the surface"
+        );
+    }
+    let inside = tree.tets_inside(&mesh);
+    let vessel_volume: f64 = (0..mesh.num_tets())
+        .filter(|&t| inside[t])
+        .map(|t| mesh.tet_volume(t))
+        .sum();
+    let share = vessel_volume / mesh.volume();
+    eprintln!(
+        "{} segments, vessel volume share {:.3}",
+        tree.segments.len(),
+        share
+    );
+    assert!(share > 0.002 && share < 0.2, "{share}");
+    let mat = LinearMaterial::default();
+    let LameField::PerTet(field) = tree.lame_field(&mesh, &mat, 5.0) else {
+        panic!("per-tet field expected")
+    };
+    let (_, mu) = mat.lame();
+    for (t, (_, m)) in field.iter().enumerate() {
+        let expected = if inside[t] { 5.0 * mu } else { mu };
+        assert!((m - expected).abs() < 1e-12);
+    }
+}

@@ -6,3 +6,4 @@
 
 pub mod labels;
 pub mod shape;
+pub mod vessels;
