@@ -141,3 +141,65 @@ fn vessel_tree_stays_inside_and_stiffens_its_tets() {
         assert!((m - expected).abs() < 1e-12);
     }
 }
+
+/// Ground truth for each pattern: Neo-Hookean, heterogeneous (vessels), springs; versus the linear
+/// homogeneous model under the same loads and supports.
+#[test]
+fn patterns_deform_the_liver_and_the_linear_model_misses_it() {
+    use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams};
+    use librplus::fem::{LameField, LinearMaterial, StiffnessSystem};
+    use librplus::phantom::labels::{LabelParams, label};
+    use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
+        .unwrap()
+        .largest_component();
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(12.0)).unwrap();
+    let labels = label(&mesh, &LabelParams::default()).unwrap();
+    let mat = LinearMaterial::new(5.0, 0.45);
+    let tree = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
+    let lame = tree.lame_field(&mesh, &mat, 5.0);
+    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+        let case = load_case(&mesh, &labels, pattern, &PatternParams::default(), 7).unwrap();
+        let mut model = HyperelasticModel::new(&mesh, lame.clone()).unwrap();
+        model.add_springs(&case.springs).unwrap();
+        let (u, info) = model
+            .solve(&case.dirichlet, &case.load, &NewtonParams::default())
+            .unwrap_or_else(|e| panic!("{pattern:?}: {e} ({})", case.description));
+        let mags: Vec<f64> = u
+            .chunks_exact(3)
+            .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+            .collect();
+        let mean = mags.iter().sum::<f64>() / mags.len() as f64;
+        let max = mags.iter().copied().fold(0.0, f64::max);
+        let mut lin =
+            StiffnessSystem::linear_field(&mesh, &LameField::Uniform(mat.lame().0, mat.lame().1))
+                .unwrap();
+        lin.add_springs(&case.springs).unwrap();
+        let ul = lin.factorize(&case.dirichlet).unwrap().solve(&case.load);
+        let diff = u
+            .chunks_exact(3)
+            .zip(ul.chunks_exact(3))
+            .map(|(a, b)| {
+                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+            })
+            .sum::<f64>()
+            / mags.len() as f64;
+        eprintln!(
+            "{pattern:?}: mean {mean:.1} mm, max {max:.1} mm, linear-homogeneous differs by {diff:.2} mm mean ({} steps, {} its) — {}",
+            info.load_steps, info.iterations, case.description
+        );
+        // Typical displacements of a few to tens of mm, and a discrepancy the linear model misses.
+        assert!(
+            (3.0..60.0).contains(&mean),
+            "{pattern:?}: mean displacement {mean}"
+        );
+        assert!(max < 120.0, "{pattern:?}: max displacement {max}");
+        assert!(
+            diff > 0.5,
+            "{pattern:?}: linear-homogeneous difference {diff}"
+        );
+        assert!(info.relative_residual <= 1e-9);
+    }
+}

@@ -421,7 +421,12 @@ impl HyperelasticModel {
                 .ok_or("inverted element in tangent")?;
             info.assemble_s += ta.elapsed().as_secs_f64();
             let tf = Instant::now();
-            let factor = reduced.factor(&values).map_err(|e| e.to_string())?;
+            let factor = reduced.factor(&values).map_err(|e| match e {
+                FemError::NotPositiveDefinite { node, axis, .. } => format!(
+                    "tangent stiffness not positive definite at node {node}, axis {axis}: a structural instability under this load, or too little support"
+                ),
+                other => other.to_string(),
+            })?;
             info.factor_s += tf.elapsed().as_secs_f64();
             let mut du = Mat::<f64>::zeros(free.len(), 1);
             for (k, &x) in r.iter().enumerate() {

@@ -5,5 +5,6 @@
 //! surgery cannot see how the ground truth was made.
 
 pub mod labels;
+pub mod patterns;
 pub mod shape;
 pub mod vessels;
