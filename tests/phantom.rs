@@ -203,3 +203,54 @@ fn patterns_deform_the_liver_and_the_linear_model_misses_it() {
         assert!(info.relative_residual <= 1e-9);
     }
 }
+
+/// Timing of one ground-truth deformation on a ~9,000-node liver (run in release:
+/// `cargo test --release --test phantom -- --ignored --nocapture`); figures go to BENCHMARKS.md.
+#[test]
+#[ignore]
+fn ground_truth_timing_on_a_9k_node_liver() {
+    use librplus::fem::LinearMaterial;
+    use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams};
+    use librplus::phantom::labels::{LabelParams, label};
+    use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
+        .unwrap()
+        .largest_component();
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(7.6)).unwrap();
+    let labels = label(&mesh, &LabelParams::default()).unwrap();
+    let tree = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
+    let lame = tree.lame_field(&mesh, &LinearMaterial::new(5.0, 0.45), 5.0);
+    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+        for seed in [1, 2] {
+            let t0 = std::time::Instant::now();
+            let case = load_case(&mesh, &labels, pattern, &PatternParams::default(), seed).unwrap();
+            let mut model = HyperelasticModel::new(&mesh, lame.clone()).unwrap();
+            model.add_springs(&case.springs).unwrap();
+            let (u, info) = match model.solve(&case.dirichlet, &case.load, &NewtonParams::default())
+            {
+                Ok(r) => r,
+                Err(e) => {
+                    eprintln!(
+                        "{pattern:?} seed {seed}: FAILED after {:.2} s: {e}",
+                        t0.elapsed().as_secs_f64()
+                    );
+                    continue;
+                }
+            };
+            let mean = u
+                .chunks_exact(3)
+                .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+                .sum::<f64>()
+                / mesh.num_nodes() as f64;
+            eprintln!(
+                "{} nodes, {pattern:?} seed {seed}: {:.2} s total ({} steps, {} iterations), mean displacement {mean:.1} mm",
+                mesh.num_nodes(),
+                t0.elapsed().as_secs_f64(),
+                info.load_steps,
+                info.iterations
+            );
+        }
+    }
+}

@@ -1,8 +1,9 @@
 //! Deformation patterns after the LIBR+ paper, randomised from a seed: what loads the "true organ".
 //!
 //! All patterns include gravity on a supine patient (+y, LPS) and the posterior support: isotropic
-//! springs on the bare-area nodes (stiffness per unit surface area, lumped to nodes) and soft
-//! normal springs on the rest of the posterior surface (the organ bed). On top:
+//! springs on the bare-area nodes (stiffness per unit surface area, lumped to nodes) and softer
+//! springs on the rest of the posterior surface (the organ bed; normal, with 10 % of that
+//! tangentially). On top:
 //!
 //! - **L** (laparoscopic, left-lobe retraction): a patch of the left lobe's inferior ridge is lifted
 //!   anteriorly and superiorly by a retractor (prescribed displacement).
@@ -129,12 +130,9 @@ pub fn load_case(
                 params.bare_area_stiffness * area[i],
             ));
         } else if labels.region[i] == Region::Posterior {
-            springs.push(NodeSpring::normal_tangent(
-                i as u32,
-                normals[i],
-                params.bed_stiffness * area[i],
-                0.0,
-            ));
+            // The bed resists sliding a little too (attachments, friction): 10 % tangentially.
+            let k = params.bed_stiffness * area[i];
+            springs.push(NodeSpring::normal_tangent(i as u32, normals[i], k, 0.1 * k));
         }
     }
     if !labels.bare_area.iter().any(|&b| b) {
