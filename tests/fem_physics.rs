@@ -1,37 +1,13 @@
 //! Physics checks of the linear-elastic FEM against closed-form solutions and invariants.
 
+mod common;
+use common::{end_face, on, symmetry_supports};
+
 use librplus::fem::{
     Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads, post,
 };
 use librplus::mesh::TetMesh;
 use librplus::mesh::procedural::box_mesh;
-
-fn on(x: f64, v: f64) -> bool {
-    (x - v).abs() < 1e-9
-}
-
-/// Boundary triangles on the plane x = `len`.
-fn end_face(mesh: &TetMesh, len: f64) -> Vec<[u32; 3]> {
-    mesh.boundary()
-        .unwrap()
-        .triangles
-        .into_iter()
-        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
-        .collect()
-}
-
-/// Symmetry supports of a box at the origin: u_k = 0 on the plane x_k = 0, for each axis.
-fn symmetry_supports(mesh: &TetMesh) -> Dirichlet {
-    let mut bc = Dirichlet::new(mesh.num_nodes());
-    for (i, p) in mesh.nodes().iter().enumerate() {
-        for (axis, &c) in p.iter().enumerate() {
-            if on(c, 0.0) {
-                bc.prescribe_dof(i as u32, axis, 0.0);
-            }
-        }
-    }
-    bc
-}
 
 /// Patch test: any linear displacement imposed on the boundary is reproduced exactly inside.
 #[test]

@@ -1,15 +1,14 @@
 //! The Neo-Hookean ground-truth solver against finite differences, the linear solver at small
 //! strain, and the analytic homogeneous uniaxial stretch.
 
+mod common;
+use common::{end_face, on, symmetry_supports};
+
 use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams, energy_density, pk1};
 use librplus::fem::{Dirichlet, FemError, LameField, LinearMaterial, StiffnessSystem, loads};
 use librplus::mesh::TetMesh;
 use librplus::mesh::procedural::box_mesh;
 use librplus::util::SplitMix64;
-
-fn on(x: f64, v: f64) -> bool {
-    (x - v).abs() < 1e-9
-}
 
 fn norm(v: &[f64]) -> f64 {
     v.iter().map(|x| x * x).sum::<f64>().sqrt()
@@ -116,19 +115,6 @@ fn tangent_and_forces_match_finite_differences() {
     }
 }
 
-/// Symmetry supports: u_k = 0 on the plane x_k = 0.
-fn symmetry_supports(mesh: &TetMesh) -> Dirichlet {
-    let mut bc = Dirichlet::new(mesh.num_nodes());
-    for (i, p) in mesh.nodes().iter().enumerate() {
-        for (axis, &c) in p.iter().enumerate() {
-            if on(c, 0.0) {
-                bc.prescribe_dof(i as u32, axis, 0.0);
-            }
-        }
-    }
-    bc
-}
-
 #[test]
 fn small_strain_matches_the_linear_solver() {
     // Compact block clamped at x = 0 under an oblique end traction giving ~0.1 % strain. (A
@@ -144,13 +130,7 @@ fn small_strain_matches_the_linear_solver() {
             bc.prescribe_node(i as u32, [0.0; 3]);
         }
     }
-    let end: Vec<[u32; 3]> = mesh
-        .boundary()
-        .unwrap()
-        .triangles
-        .into_iter()
-        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
-        .collect();
+    let end = end_face(&mesh, len);
     let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
     let linear = StiffnessSystem::linear(&mesh, &mat)
         .unwrap()

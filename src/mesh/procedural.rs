@@ -1,6 +1,26 @@
 //! Procedural test meshes (boxes), so tests and benchmarks need no binary fixtures.
 
-use super::TetMesh;
+use super::{TetMesh, TriSurface};
+
+/// The unit cube `[0, 1]³` as 12 outward triangles on 8 vertices.
+pub fn unit_cube_surface() -> TriSurface {
+    let nodes = (0..8)
+        .map(|i| [(i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64])
+        .collect();
+    let quads = [
+        [0, 2, 3, 1],
+        [4, 5, 7, 6],
+        [0, 1, 5, 4],
+        [2, 6, 7, 3],
+        [0, 4, 6, 2],
+        [1, 3, 7, 5],
+    ];
+    let triangles = quads
+        .iter()
+        .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+        .collect();
+    TriSurface::new_unchecked(nodes, triangles)
+}
 
 /// A box `[0, size]` split into `divisions` cubes per axis, each cut into 6 tets around its main
 /// diagonal (Kuhn subdivision, conforming). Interior nodes are moved by up to `jitter · h / 2` per

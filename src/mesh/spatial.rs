@@ -551,24 +551,8 @@ fn solid_angle(p: [f64; 3], t: [[f64; 3]; 3]) -> f64 {
 mod tests {
     use super::*;
 
-    /// Unit cube as 12 outward triangles.
     fn cube() -> TriSurface {
-        let nodes = (0..8)
-            .map(|i| [(i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64])
-            .collect();
-        let quads = [
-            [0, 2, 3, 1],
-            [4, 5, 7, 6],
-            [0, 1, 5, 4],
-            [2, 6, 7, 3],
-            [0, 4, 6, 2],
-            [1, 3, 7, 5],
-        ];
-        let triangles = quads
-            .iter()
-            .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
-            .collect();
-        TriSurface::new(nodes, triangles).unwrap()
+        crate::mesh::procedural::unit_cube_surface()
     }
 
     /// Exact signed distance to the unit cube `[0, 1]³`.

@@ -1,0 +1,33 @@
+//! Helpers shared by the physics test files.
+#![allow(dead_code)]
+
+use librplus::fem::Dirichlet;
+use librplus::mesh::TetMesh;
+
+/// `x` lies on the plane coordinate `v` (to 1e-9 mm).
+pub fn on(x: f64, v: f64) -> bool {
+    (x - v).abs() < 1e-9
+}
+
+/// Boundary triangles on the plane x = `len`.
+pub fn end_face(mesh: &TetMesh, len: f64) -> Vec<[u32; 3]> {
+    mesh.boundary()
+        .unwrap()
+        .triangles
+        .into_iter()
+        .filter(|t| t.iter().all(|&v| on(mesh.nodes()[v as usize][0], len)))
+        .collect()
+}
+
+/// Symmetry supports of a box at the origin: u_k = 0 on the plane x_k = 0, for each axis.
+pub fn symmetry_supports(mesh: &TetMesh) -> Dirichlet {
+    let mut bc = Dirichlet::new(mesh.num_nodes());
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        for (axis, &c) in p.iter().enumerate() {
+            if on(c, 0.0) {
+                bc.prescribe_dof(i as u32, axis, 0.0);
+            }
+        }
+    }
+    bc
+}
