@@ -419,6 +419,11 @@ impl StiffnessSystem {
 
     /// `K·u` (mN) for a full displacement vector (mm).
     pub fn apply(&self, u: &[f64]) -> Vec<f64> {
+        self.apply_values(&self.values, u)
+    }
+
+    /// `A·u` for another matrix `A` with this system's pattern (e.g. a tangent stiffness).
+    pub fn apply_values(&self, values: &[f64], u: &[f64]) -> Vec<f64> {
         let mut out = vec![0.0; self.dofs()];
         let p = &self.pattern;
         for col in 0..self.dofs() {
@@ -427,7 +432,7 @@ impl StiffnessSystem {
                 continue;
             }
             for k in p.col_ptr[col]..p.col_ptr[col + 1] {
-                out[p.row_idx[k]] += self.values[k] * uc;
+                out[p.row_idx[k]] += values[k] * uc;
             }
         }
         out
