@@ -6,12 +6,17 @@ use librplus::mesh::{TriSurface, quality};
 use librplus::phantom::shape::{ShapeVariantParams, variant};
 use std::path::PathBuf;
 
+/// The largest component of `../shared/data/sofa_liver.vtk` (mm).
+fn liver_surface() -> TriSurface {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+    TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
+        .unwrap()
+        .largest_component()
+}
+
 #[test]
 fn variants_of_the_real_liver_mesh_into_distinct_valid_livers() {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-        .unwrap()
-        .largest_component();
+    let surface = liver_surface();
     let base = surface.signed_volume().abs();
     let mut volumes = Vec::new();
     for seed in [1, 2, 3] {
@@ -45,10 +50,7 @@ fn variants_of_the_real_liver_mesh_into_distinct_valid_livers() {
 #[test]
 fn real_liver_gets_every_label_and_they_round_trip_through_vtu() {
     use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-        .unwrap()
-        .largest_component();
+    let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(10.0)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
     let ant = labels.nodes_in(Region::Anterior).len() as f64;
@@ -92,10 +94,7 @@ fn vessel_tree_stays_inside_and_stiffens_its_tets() {
     use librplus::fem::{LameField, LinearMaterial};
     use librplus::mesh::spatial::SignedDistance;
     use librplus::phantom::vessels::{VesselParams, VesselTree};
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-        .unwrap()
-        .largest_component();
+    let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(6.0)).unwrap();
     let params = VesselParams::default();
     let tree = VesselTree::grow(&mesh, &params).unwrap();
@@ -151,10 +150,7 @@ fn patterns_deform_the_liver_and_the_linear_model_misses_it() {
     use librplus::phantom::labels::{LabelParams, label};
     use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
     use librplus::phantom::vessels::{VesselParams, VesselTree};
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-        .unwrap()
-        .largest_component();
+    let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(12.0)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
     let mat = LinearMaterial::new(5.0, 0.45);
@@ -214,10 +210,7 @@ fn ground_truth_timing_on_a_9k_node_liver() {
     use librplus::phantom::labels::{LabelParams, label};
     use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
     use librplus::phantom::vessels::{VesselParams, VesselTree};
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-        .unwrap()
-        .largest_component();
+    let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(7.6)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
     let tree = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();

@@ -86,6 +86,24 @@ fn node_areas(nodes: &[[f64; 3]], triangles: &[[u32; 3]], n: usize) -> Vec<f64> 
     a
 }
 
+/// Adds a uniform traction on the boundary triangles whose three nodes satisfy `inside`; returns
+/// how many triangles were loaded.
+fn push_patch(
+    load: &mut [f64],
+    nodes: &[[f64; 3]],
+    triangles: &[[u32; 3]],
+    traction: [f64; 3],
+    inside: impl Fn(usize) -> bool,
+) -> usize {
+    let patch: Vec<[u32; 3]> = triangles
+        .iter()
+        .copied()
+        .filter(|t| t.iter().all(|&v| inside(v as usize)))
+        .collect();
+    loads::add_traction(load, nodes, &patch, &vec![traction; patch.len()]);
+    patch.len()
+}
+
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
@@ -192,21 +210,15 @@ pub fn load_case(
             let radius = uniform(25.0, 40.0);
             let p = uniform(0.3, 0.8);
             let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(0.2, 0.8)]);
-            let patch: Vec<[u32; 3]> = boundary
-                .triangles
-                .iter()
-                .copied()
-                .filter(|t| t.iter().all(|&v| dist(nodes[v as usize], c) <= radius))
-                .collect();
-            loads::add_traction(
+            let count = push_patch(
                 &mut load,
                 nodes,
-                &patch,
-                &vec![dir.map(|d| d * p); patch.len()],
+                &boundary.triangles,
+                dir.map(|d| d * p),
+                |v| dist(nodes[v], c) <= radius,
             );
             format!(
-                "gravity x{g:.2}; pack at {c:.1?} radius {radius:.1} mm ({} triangles), traction {p:.2} kPa along {dir:.2?}",
-                patch.len()
+                "gravity x{g:.2}; pack at {c:.1?} radius {radius:.1} mm ({count} triangles), traction {p:.2} kPa along {dir:.2?}"
             )
         }
         Pattern::W => {
@@ -234,27 +246,19 @@ pub fn load_case(
             let cy = 0.5 * (lo[1] + hi[1]);
             let p = uniform(0.4, 1.0);
             let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(-0.2, 0.4)]);
-            let patch: Vec<[u32; 3]> = boundary
-                .triangles
-                .iter()
-                .copied()
-                .filter(|t| {
-                    t.iter().all(|&v| {
-                        labels.region[v as usize] == Region::Posterior
-                            && !labels.bare_area[v as usize]
-                            && nodes[v as usize][1] > cy
-                    })
-                })
-                .collect();
-            loads::add_traction(
+            let count = push_patch(
                 &mut load,
                 nodes,
-                &patch,
-                &vec![dir.map(|d| d * p); patch.len()],
+                &boundary.triangles,
+                dir.map(|d| d * p),
+                |v| {
+                    labels.region[v] == Region::Posterior
+                        && !labels.bare_area[v]
+                        && nodes[v][1] > cy
+                },
             );
             format!(
-                "gravity x{g:.2}; posterior packing {p:.2} kPa along {dir:.2?} on {} triangles",
-                patch.len()
+                "gravity x{g:.2}; posterior packing {p:.2} kPa along {dir:.2?} on {count} triangles"
             )
         }
     };
