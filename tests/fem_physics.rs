@@ -1,7 +1,7 @@
 //! Physics checks of the linear-elastic FEM against closed-form solutions and invariants.
 
 mod common;
-use common::{end_face, on, symmetry_supports};
+use common::{end_traction, on, symmetry_supports};
 
 use librplus::fem::{
     Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads, post,
@@ -135,14 +135,7 @@ fn uniaxial_tension_bar_matches_analytic() {
     let sys = StiffnessSystem::linear(&mesh, &mat).unwrap();
     let sigma = 0.7; // kPa
     let bc = symmetry_supports(&mesh);
-    let end = end_face(&mesh, len);
-    let mut f = vec![0.0; 3 * mesh.num_nodes()];
-    loads::add_traction(
-        &mut f,
-        mesh.nodes(),
-        &end,
-        &vec![[sigma, 0.0, 0.0]; end.len()],
-    );
+    let f = end_traction(&mesh, len, [sigma, 0.0, 0.0]);
     let u = sys.factorize(&bc).unwrap().solve(&f);
     let e = mat.youngs_modulus_kpa;
     let nu = mat.poisson_ratio;
@@ -287,15 +280,8 @@ fn heterogeneous_bar_in_series() {
         .collect();
     let sys = StiffnessSystem::linear_field(&mesh, &LameField::PerTet(lame)).unwrap();
     let bc = symmetry_supports(&mesh);
-    let end = end_face(&mesh, len);
     let sigma = 0.5;
-    let mut f = vec![0.0; 3 * mesh.num_nodes()];
-    loads::add_traction(
-        &mut f,
-        mesh.nodes(),
-        &end,
-        &vec![[sigma, 0.0, 0.0]; end.len()],
-    );
+    let f = end_traction(&mesh, len, [sigma, 0.0, 0.0]);
     let u = sys.factorize(&bc).unwrap().solve(&f);
     for (i, p) in mesh.nodes().iter().enumerate() {
         let x = p[0];
@@ -318,15 +304,8 @@ fn cantilever_tip(n: usize, mat: &LinearMaterial, len: f64, h: f64, load: f64) -
         .collect();
     let mut bc = Dirichlet::new(mesh.num_nodes());
     bc.fix_nodes(&clamped);
-    let end = end_face(&mesh, len);
-    let mut f = vec![0.0; 3 * mesh.num_nodes()];
     let tau = load / (h * h);
-    loads::add_traction(
-        &mut f,
-        mesh.nodes(),
-        &end,
-        &vec![[0.0, 0.0, tau]; end.len()],
-    );
+    let f = end_traction(&mesh, len, [0.0, 0.0, tau]);
     let u = sys.factorize(&bc).unwrap().solve(&f);
     // Mean vertical displacement of the end-face nodes.
     let tip: Vec<f64> = (0..mesh.num_nodes())

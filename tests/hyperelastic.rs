@@ -2,10 +2,10 @@
 //! strain, and the analytic homogeneous uniaxial stretch.
 
 mod common;
-use common::{end_face, on, symmetry_supports};
+use common::{end_traction, on, symmetry_supports};
 
 use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams, energy_density, pk1};
-use librplus::fem::{Dirichlet, FemError, LameField, LinearMaterial, StiffnessSystem, loads};
+use librplus::fem::{Dirichlet, FemError, LameField, LinearMaterial, StiffnessSystem};
 use librplus::mesh::TetMesh;
 use librplus::mesh::procedural::box_mesh;
 use librplus::util::SplitMix64;
@@ -130,7 +130,6 @@ fn small_strain_matches_the_linear_solver() {
             bc.prescribe_node(i as u32, [0.0; 3]);
         }
     }
-    let end = end_face(&mesh, len);
     let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
     let linear = StiffnessSystem::linear(&mesh, &mat)
         .unwrap()
@@ -139,13 +138,7 @@ fn small_strain_matches_the_linear_solver() {
     // Relative difference between the two solutions at a given strain level.
     let difference = |strain: f64| {
         let sigma = strain * mat.youngs_modulus_kpa;
-        let mut f = vec![0.0; 3 * mesh.num_nodes()];
-        loads::add_traction(
-            &mut f,
-            mesh.nodes(),
-            &end,
-            &vec![[sigma, 0.0, 0.3 * sigma]; end.len()],
-        );
+        let f = end_traction(&mesh, len, [sigma, 0.0, 0.3 * sigma]);
         let ul = linear.solve(&f);
         let (u, info) = model.solve(&bc, &f, &NewtonParams::default()).unwrap();
         assert!(info.relative_residual <= 1e-9);

@@ -1,7 +1,7 @@
 //! Helpers shared by the physics test files.
 #![allow(dead_code)]
 
-use librplus::fem::Dirichlet;
+use librplus::fem::{Dirichlet, loads};
 use librplus::mesh::TetMesh;
 
 /// `x` lies on the plane coordinate `v` (to 1e-9 mm).
@@ -30,4 +30,12 @@ pub fn symmetry_supports(mesh: &TetMesh) -> Dirichlet {
         }
     }
     bc
+}
+
+/// Load vector of a uniform traction `t` (kPa) on the end face x = `len`.
+pub fn end_traction(mesh: &TetMesh, len: f64, t: [f64; 3]) -> Vec<f64> {
+    let end = end_face(mesh, len);
+    let mut f = vec![0.0; 3 * mesh.num_nodes()];
+    loads::add_traction(&mut f, mesh.nodes(), &end, &vec![t; end.len()]);
+    f
 }
