@@ -5,7 +5,8 @@
 //! stress `P = μ (F − F⁻ᵀ) + λ ln J F⁻ᵀ` and the consistent tangent
 //! `∂P_iJ/∂F_kL = μ δ_ik δ_JL + λ F⁻¹_Ji F⁻¹_Lk + (μ − λ ln J) F⁻¹_Jk F⁻¹_Li`. At small strain it
 //! reduces to linear elasticity with the same Lamé parameters. Loads are dead loads (body forces,
-//! tractions and pressure given on the reference configuration), plus linear node springs and
+//! tractions and pressure given on the reference configuration), plus linear node springs,
+//! unilateral contact springs (a support that pushes but never pulls: [`ContactSpring`]) and
 //! prescribed displacements. [`HyperelasticModel::solve`] runs Newton's method with a backtracking
 //! line search on the total potential energy and adaptive load stepping; a deformation that does not
 //! converge is an error, never a result. The symbolic Cholesky factorization is computed once and
@@ -127,6 +128,34 @@ pub struct NewtonInfo {
     pub total_s: f64,
 }
 
+/// A unilateral (compression-only) support at a node: a penalty contact with a rigid organ bed.
+/// With the outward surface normal `n` and the gap closure `g = u·n`, it stores `k/2 · max(g, 0)²`
+/// and pushes back with `−k g n` only while the node presses into the bed (`g > 0`); a node pulled
+/// away from the bed lifts off freely. A linear model can only represent it as a bilateral spring
+/// `k n nᵀ` ([`ContactSpring::bilateral`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ContactSpring {
+    /// Node index.
+    pub node: u32,
+    /// Outward unit normal (towards the bed).
+    pub normal: [f64; 3],
+    /// Penalty stiffness (mN/mm).
+    pub stiffness: f64,
+}
+
+impl ContactSpring {
+    /// The linear stand-in: a bilateral spring `k n nᵀ` along the normal.
+    pub fn bilateral(&self) -> NodeSpring {
+        NodeSpring::normal_tangent(self.node, self.normal, self.stiffness, 0.0)
+    }
+
+    /// Gap closure `u·n` (mm) for a full displacement vector; positive = pressing into the bed.
+    pub fn closure(&self, u: &[f64]) -> f64 {
+        let i = 3 * self.node as usize;
+        u[i] * self.normal[0] + u[i + 1] * self.normal[1] + u[i + 2] * self.normal[2]
+    }
+}
+
 /// Per-tet reference geometry.
 #[derive(Debug, Clone, Copy)]
 struct RefTet {
@@ -142,6 +171,7 @@ pub struct HyperelasticModel {
     reference: Vec<RefTet>,
     lame: LameField,
     system: StiffnessSystem,
+    contacts: Vec<ContactSpring>,
 }
 
 impl HyperelasticModel {
@@ -162,12 +192,87 @@ impl HyperelasticModel {
             reference,
             lame,
             system,
+            contacts: Vec::new(),
         })
     }
 
     /// Adds linear node springs (e.g. posterior support).
     pub fn add_springs(&mut self, springs: &[NodeSpring]) -> Result<(), FemError> {
         self.system.add_springs(springs)
+    }
+
+    /// Adds unilateral contact springs; normals are normalised here. Rejects out-of-range nodes,
+    /// zero or non-finite normals and negative or non-finite stiffness.
+    pub fn add_contacts(&mut self, contacts: &[ContactSpring]) -> Result<(), FemError> {
+        let nodes = self.dofs() / 3;
+        for (k, c) in contacts.iter().enumerate() {
+            let bad = |message: String| FemError::InvalidParameter {
+                field: "contacts",
+                message: format!("contact {k} (node {}): {message}", c.node),
+            };
+            if c.node as usize >= nodes {
+                return Err(bad(format!("node out of range ({nodes} nodes)")));
+            }
+            let len = c.normal.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if !(len > 0.0 && len.is_finite()) {
+                return Err(bad(format!("normal {:?} has no direction", c.normal)));
+            }
+            if !(c.stiffness >= 0.0 && c.stiffness.is_finite()) {
+                return Err(bad(format!(
+                    "stiffness {} must be finite and ≥ 0",
+                    c.stiffness
+                )));
+            }
+            self.contacts.push(ContactSpring {
+                normal: c.normal.map(|x| x / len),
+                ..*c
+            });
+        }
+        Ok(())
+    }
+
+    /// The contact springs added so far.
+    pub fn contacts(&self) -> &[ContactSpring] {
+        &self.contacts
+    }
+
+    /// Number of contact springs pressing into the bed at `u` (active set).
+    pub fn active_contacts(&self, u: &[f64]) -> usize {
+        self.contacts.iter().filter(|c| c.closure(u) > 0.0).count()
+    }
+
+    fn contact_energy(&self, u: &[f64]) -> f64 {
+        self.contacts
+            .iter()
+            .map(|c| 0.5 * c.stiffness * c.closure(u).max(0.0).powi(2))
+            .sum()
+    }
+
+    fn add_contact_forces(&self, u: &[f64], out: &mut [f64]) {
+        for c in &self.contacts {
+            let g = c.closure(u);
+            if g > 0.0 {
+                for a in 0..3 {
+                    out[3 * c.node as usize + a] += c.stiffness * g * c.normal[a];
+                }
+            }
+        }
+    }
+
+    fn add_contact_values(&self, u: &[f64], values: &mut [f64]) {
+        let pattern = self.system.pattern();
+        for c in &self.contacts {
+            if c.closure(u) > 0.0 {
+                let i = c.node as usize;
+                for a in 0..3 {
+                    for b in 0..3 {
+                        if let Some(idx) = pattern.value_index(i, a, i, b) {
+                            values[idx] += c.stiffness * c.normal[a] * c.normal[b];
+                        }
+                    }
+                }
+            }
+        }
     }
 
     /// The linear system with the same pattern, material (at small strain) and springs.
@@ -226,7 +331,7 @@ impl HyperelasticModel {
             .sum();
         let ks = self.system.spring_force(u);
         let springs: f64 = 0.5 * ks.iter().zip(u).map(|(a, b)| a * b).sum::<f64>();
-        strain.map(|s| s + springs)
+        strain.map(|s| s + springs + self.contact_energy(u))
     }
 
     /// Internal nodal forces (mN) including springs; `None` if any element is inverted.
@@ -247,6 +352,7 @@ impl HyperelasticModel {
             })
             .collect();
         let mut out = self.system.spring_force(u);
+        self.add_contact_forces(u, &mut out);
         for (t, f) in per_tet.into_iter().enumerate() {
             let f = f?;
             for (i, &n) in self.tets[t].iter().enumerate() {
@@ -295,6 +401,7 @@ impl HyperelasticModel {
             Some(k)
         });
         self.system.add_spring_values(&mut values);
+        self.add_contact_values(u, &mut values);
         Some(values)
     }
 

@@ -19,6 +19,7 @@ pub mod sag;
 mod solver;
 
 pub use assembly::{BlockPattern, LameField};
+pub use hyperelastic::ContactSpring;
 pub use material::LinearMaterial;
 pub use solver::{
     CholeskyFactor, Dirichlet, FactorInfo, FactorizedSystem, FemError, NodeSpring, Ordering,

@@ -7,4 +7,6 @@
 pub mod labels;
 pub mod patterns;
 pub mod shape;
+pub mod tissue;
+pub mod truth;
 pub mod vessels;

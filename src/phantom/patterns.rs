@@ -1,9 +1,11 @@
 //! Deformation patterns after the LIBR+ paper, randomised from a seed: what loads the "true organ".
 //!
 //! All patterns include gravity on a supine patient (+y, LPS) and the posterior support: isotropic
-//! springs on the bare-area nodes (stiffness per unit surface area, lumped to nodes) and softer
-//! springs on the rest of the posterior surface (the organ bed; normal, with 10 % of that
-//! tangentially). On top:
+//! springs on the bare-area nodes (stiffness per unit surface area, lumped to nodes, the diaphragm
+//! attachment) and, on the rest of the posterior surface, the organ bed: a unilateral contact
+//! ([`ContactSpring`]: pushes back when the organ presses into it, lets it lift off) plus a weak
+//! isotropic attachment (`attachment_fraction` of the bed stiffness: connective tissue,
+//! friction). The linear model can only carry the bed as bilateral springs. On top:
 //!
 //! - **L** (laparoscopic, left-lobe retraction): a patch of the left lobe's inferior ridge is lifted
 //!   anteriorly and superiorly by a retractor (prescribed displacement).
@@ -17,7 +19,7 @@
 //! Loads are dead loads on the reference configuration (see `fem::hyperelastic`).
 
 use super::labels::{AnatomyLabels, Region};
-use crate::fem::{Dirichlet, NodeSpring, loads};
+use crate::fem::{ContactSpring, Dirichlet, NodeSpring, loads};
 use crate::mesh::{TetMesh, TriSurface};
 use crate::util::SplitMix64;
 
@@ -41,8 +43,12 @@ pub struct PatternParams {
     pub gravity: f64,
     /// Bare-area spring stiffness per unit area (mN/mm per mm²). Default 0.5.
     pub bare_area_stiffness: f64,
-    /// Organ-bed normal spring stiffness per unit area on the posterior surface. Default 0.08.
+    /// Organ-bed contact stiffness per unit area on the posterior surface. Default 0.08.
     pub bed_stiffness: f64,
+    /// Bilateral isotropic attachment of the bed as a fraction of `bed_stiffness`. Default 0.1.
+    pub attachment_fraction: f64,
+    /// Multiplier of every pattern's load magnitudes (lift, pack traction, pressure). Default 1.
+    pub load_scale: f64,
 }
 
 impl Default for PatternParams {
@@ -51,6 +57,8 @@ impl Default for PatternParams {
             gravity: 0.0104,
             bare_area_stiffness: 0.5,
             bed_stiffness: 0.08,
+            attachment_fraction: 0.1,
+            load_scale: 1.0,
         }
     }
 }
@@ -64,10 +72,16 @@ pub struct LoadCase {
     pub seed: u64,
     /// Prescribed displacements (retractor).
     pub dirichlet: Dirichlet,
-    /// Support springs.
+    /// Support springs (bare area, bed attachment).
     pub springs: Vec<NodeSpring>,
-    /// External dead load (mN, node-major).
+    /// Unilateral bed contacts.
+    pub contacts: Vec<ContactSpring>,
+    /// External dead load (mN, node-major): `gravity + surface`.
     pub load: Vec<f64>,
+    /// The gravity part of `load`.
+    pub gravity: Vec<f64>,
+    /// The surface part of `load` (packing tractions, insufflation pressure).
+    pub surface: Vec<f64>,
     /// What was drawn, for provenance.
     pub description: String,
 }
@@ -108,9 +122,33 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
+/// Rotation matrix (row-major) of `angle` radians about the unit `axis` (Rodrigues).
+fn rotation(axis: [f64; 3], angle: f64) -> [[f64; 3]; 3] {
+    let (s, c) = angle.sin_cos();
+    let [x, y, z] = axis;
+    let t = 1.0 - c;
+    [
+        [c + x * x * t, x * y * t - z * s, x * z * t + y * s],
+        [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
+        [z * x * t - y * s, z * y * t + x * s, c + z * z * t],
+    ]
+}
+
 fn unit(v: [f64; 3]) -> [f64; 3] {
     let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
     if l > 0.0 { v.map(|x| x / l) } else { v }
+}
+
+/// Gravity (mN/mm³) on a patient tilted `head_up_deg` (reverse Trendelenburg: gravity gains an
+/// inferior component) and `lateral_deg` (rolled: gravity gains a left/right component); supine
+/// and level it is `+y`.
+pub fn tilted_gravity(magnitude: f64, head_up_deg: f64, lateral_deg: f64) -> [f64; 3] {
+    let (t, p) = (head_up_deg.to_radians(), lateral_deg.to_radians());
+    [
+        magnitude * p.sin() * t.cos(),
+        magnitude * p.cos() * t.cos(),
+        -magnitude * t.sin(),
+    ]
 }
 
 /// Draws a load case of `pattern` for a labelled liver mesh.
@@ -127,8 +165,15 @@ pub fn load_case(
     let surface = TriSurface::new(nodes.to_vec(), boundary.triangles.clone())?;
     let normals = surface.vertex_normals();
     let area = node_areas(nodes, &boundary.triangles, n);
+    if !(params.load_scale >= 0.0 && params.load_scale.is_finite()) {
+        return Err(format!(
+            "load_scale must be finite and ≥ 0, got {}",
+            params.load_scale
+        ));
+    }
     let mut rng = SplitMix64::new(seed ^ (pattern as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
+    let ls = params.load_scale;
     let (lo, hi) = mesh.bounding_box();
     let x_f = {
         let f = AnatomyLabels::nodes_where(&labels.falciform);
@@ -141,6 +186,7 @@ pub fn load_case(
     let centroid_z = 0.5 * (lo[2] + hi[2]);
     // Supports.
     let mut springs = Vec::new();
+    let mut contacts = Vec::new();
     for i in 0..n {
         if labels.bare_area[i] {
             springs.push(NodeSpring::isotropic(
@@ -148,22 +194,30 @@ pub fn load_case(
                 params.bare_area_stiffness * area[i],
             ));
         } else if labels.region[i] == Region::Posterior {
-            // The bed resists sliding a little too (attachments, friction): 10 % tangentially.
             let k = params.bed_stiffness * area[i];
-            springs.push(NodeSpring::normal_tangent(i as u32, normals[i], k, 0.1 * k));
+            springs.push(NodeSpring::isotropic(
+                i as u32,
+                params.attachment_fraction * k,
+            ));
+            contacts.push(ContactSpring {
+                node: i as u32,
+                normal: normals[i],
+                stiffness: k,
+            });
         }
     }
     if !labels.bare_area.iter().any(|&b| b) {
         return Err("the mesh has no bare-area nodes to support it".into());
     }
     let mut load = vec![0.0; 3 * n];
+    let mut gravity = vec![0.0; 3 * n];
     let mut dirichlet = Dirichlet::new(n);
     let pick =
         |cands: &[u32], r: f64| cands[((r * cands.len() as f64) as usize).min(cands.len() - 1)];
     let description = match pattern {
         Pattern::L => {
-            let g = uniform(0.8, 1.2);
-            loads::add_body_force(&mut load, mesh, [0.0, g * params.gravity, 0.0]);
+            let (rt, lat) = (uniform(10.0, 30.0), uniform(-15.0, 15.0));
+            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
             let ridge: Vec<u32> = AnatomyLabels::nodes_where(&labels.inferior_ridge)
                 .into_iter()
                 .filter(|&i| nodes[i as usize][0] > x_f)
@@ -181,23 +235,40 @@ pub fn load_case(
                 return Err("no left-lobe surface to retract".into());
             }
             let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
-            let radius = uniform(10.0, 18.0);
-            let lift = uniform(10.0, 25.0);
-            let dir = unit([uniform(-0.3, 0.3), -uniform(0.5, 1.0), uniform(0.3, 1.0)]);
+            let radius = uniform(30.0, 50.0);
+            // The blade turns the lobe up about a hinge along its superior attachment: an axis
+            // roughly along x through the top of the left lobe above the grip point.
+            let top = (0..n)
+                .filter(|&i| nodes[i][0] > x_f)
+                .map(|i| nodes[i][2])
+                .fold(f64::NEG_INFINITY, f64::max);
+            let hinge = [c[0], c[1] + uniform(0.0, 20.0), top];
+            let axis = unit([1.0, uniform(-0.3, 0.3), uniform(-0.3, 0.3)]);
+            let angle = -(ls * uniform(30.0, 55.0)).to_radians();
+            let turn = rotation(axis, angle);
             let mut count = 0;
+            let mut lift = 0.0f64;
             for &v in &boundary.nodes {
-                if dist(nodes[v as usize], c) <= radius {
-                    dirichlet.prescribe_node(v, dir.map(|d| d * lift));
+                let p = nodes[v as usize];
+                if dist(p, c) <= radius {
+                    let r = [p[0] - hinge[0], p[1] - hinge[1], p[2] - hinge[2]];
+                    let q = [0, 1, 2].map(|a| {
+                        hinge[a] + turn[a][0] * r[0] + turn[a][1] * r[1] + turn[a][2] * r[2]
+                    });
+                    let u = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+                    lift = lift.max(dist(q, p));
+                    dirichlet.prescribe_node(v, u);
                     count += 1;
                 }
             }
             format!(
-                "gravity x{g:.2}; retractor at {c:.1?} radius {radius:.1} mm ({count} nodes) lifts {lift:.1} mm along {dir:.2?}"
+                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; retractor grips {count} nodes within {radius:.1} mm of {c:.1?} and turns them {:.0}° about a hinge through {hinge:.1?} along {axis:.2?} (lift up to {lift:.1} mm)",
+                -angle.to_degrees()
             )
         }
         Pattern::R => {
-            let g = uniform(0.8, 1.2);
-            loads::add_body_force(&mut load, mesh, [0.0, g * params.gravity, 0.0]);
+            let (rt, lat) = (uniform(10.0, 30.0), uniform(-15.0, 15.0));
+            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
             let cands: Vec<u32> = labels
                 .nodes_in(Region::Posterior)
                 .into_iter()
@@ -207,24 +278,48 @@ pub fn load_case(
                 return Err("no right-lobe posterior-inferior surface to pack".into());
             }
             let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
-            let radius = uniform(25.0, 40.0);
-            let p = uniform(0.3, 0.8);
+            // A pack of total force F (mN) pressing over a soft-edged patch: the traction falls
+            // off as a Gaussian of width σ from the centre, cut at 2σ, scaled so the forces add
+            // up to F whatever the local mesh and surface area.
+            let sigma = uniform(15.0, 25.0);
+            let force = ls * uniform(4500.0, 9000.0);
             let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(0.2, 0.8)]);
-            let count = push_patch(
-                &mut load,
-                nodes,
-                &boundary.triangles,
-                dir.map(|d| d * p),
-                |v| dist(nodes[v], c) <= radius,
-            );
+            let patch: Vec<[u32; 3]> = boundary
+                .triangles
+                .iter()
+                .copied()
+                .filter(|t| t.iter().all(|&v| dist(nodes[v as usize], c) <= 2.0 * sigma))
+                .collect();
+            let weight = |t: &[u32; 3]| {
+                let m =
+                    [0, 1, 2].map(|a| t.iter().map(|&v| nodes[v as usize][a]).sum::<f64>() / 3.0);
+                (-0.5 * (dist(m, c) / sigma).powi(2)).exp()
+            };
+            let mut unit_load = vec![0.0; 3 * n];
+            let tractions: Vec<[f64; 3]> =
+                patch.iter().map(|t| dir.map(|d| d * weight(t))).collect();
+            loads::add_traction(&mut unit_load, nodes, &patch, &tractions);
+            let total = unit_load
+                .chunks_exact(3)
+                .map(|f| f[0] * dir[0] + f[1] * dir[1] + f[2] * dir[2])
+                .sum::<f64>();
+            if total <= 0.0 {
+                return Err("the packing patch has no area".into());
+            }
+            for (l, u) in load.iter_mut().zip(&unit_load) {
+                *l += u * force / total;
+            }
             format!(
-                "gravity x{g:.2}; pack at {c:.1?} radius {radius:.1} mm ({count} triangles), traction {p:.2} kPa along {dir:.2?}"
+                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; pack at {c:.1?} (σ {sigma:.1} mm, {} triangles) pushes {:.1} N along {dir:.2?} (peak traction {:.2} kPa)",
+                patch.len(),
+                force / 1000.0,
+                force / total
             )
         }
         Pattern::W => {
-            let g = uniform(1.0, 1.4);
-            loads::add_body_force(&mut load, mesh, [0.0, g * params.gravity, 0.0]);
-            let p = uniform(0.03, 0.1);
+            let (rt, lat) = (uniform(20.0, 35.0), uniform(-20.0, 20.0));
+            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
+            let p = ls * uniform(0.1, 0.3);
             let anterior: Vec<[u32; 3]> = boundary
                 .triangles
                 .iter()
@@ -236,15 +331,15 @@ pub fn load_case(
                 .collect();
             loads::add_pressure(&mut load, nodes, &anterior, p);
             format!(
-                "gravity x{g:.2}; insufflation pressure {p:.2} kPa on {} anterior triangles",
+                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; insufflation pressure {p:.2} kPa on {} anterior triangles",
                 anterior.len()
             )
         }
         Pattern::V => {
-            let g = uniform(0.8, 1.2);
-            loads::add_body_force(&mut load, mesh, [0.0, g * params.gravity, 0.0]);
+            let (rt, lat) = (uniform(0.0, 5.0), uniform(-5.0, 5.0));
+            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
             let cy = 0.5 * (lo[1] + hi[1]);
-            let p = uniform(0.4, 1.0);
+            let p = ls * uniform(0.8, 1.4);
             let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(-0.2, 0.4)]);
             let count = push_patch(
                 &mut load,
@@ -258,15 +353,23 @@ pub fn load_case(
                 },
             );
             format!(
-                "gravity x{g:.2}; posterior packing {p:.2} kPa along {dir:.2?} on {count} triangles"
+                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; posterior packing {p:.2} kPa along {dir:.2?} on {count} triangles"
             )
         }
     };
+    // `load` holds the surface part so far.
+    let surface_load = load.clone();
+    for (l, g) in load.iter_mut().zip(&gravity) {
+        *l += g;
+    }
     Ok(LoadCase {
+        gravity,
+        surface: surface_load,
         pattern,
         seed,
         dirichlet,
         springs,
+        contacts,
         load,
         description,
     })
