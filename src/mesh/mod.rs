@@ -9,6 +9,7 @@
 pub mod io;
 pub mod procedural;
 pub mod quality;
+pub mod rigid;
 pub mod spatial;
 mod surface;
 mod tet_mesh;
