@@ -7,6 +7,7 @@
 //! live in [`io`]; nothing else in this module touches the disk.
 
 pub mod io;
+pub mod locate;
 pub mod procedural;
 pub mod quality;
 pub mod rigid;
