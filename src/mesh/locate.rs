@@ -2,7 +2,7 @@
 //! coordinates, and linear (P1) interpolation of node fields at arbitrary points.
 //!
 //! [`TetLocator`] bins every tet's bounding box into a uniform grid (cells about the size of an
-//! average tet, at most four cells per tet on average) and keeps, per tet, its first corner and the
+//! average tet, at most about four times as many cells as tets) and keeps, per tet, the
 //! inverse of its edge matrix, so that a query tests only the tets listed in one cell. Points
 //! outside the mesh are served by the boundary face closest to them (through a [`TriangleBvh`]),
 //! which gives the field's value at the nearest surface point — a continuous extension.
@@ -51,8 +51,8 @@ impl TetLocator {
             .collect();
         let (lo, hi) = mesh.bounding_box();
         let ext = [0, 1, 2].map(|k| (hi[k] - lo[k]).max(0.0));
-        // Cell edge: the edge of a cube holding the bounding box volume shared by ~0.5 tets per cell
-        // scaled up to a typical tet size, but never more than ~4 cells per tet overall.
+        // Cell edge: twice the edge of a cube holding the bounding-box volume per tet (so a cell is
+        // about the size of a tet's bounding box), enlarged until there are at most ~4 cells per tet.
         let nt = tets.len().max(1) as f64;
         let vol = (ext[0].max(1e-12)) * (ext[1].max(1e-12)) * (ext[2].max(1e-12));
         let mut cell = (vol / nt).cbrt() * 2.0;
