@@ -7,8 +7,10 @@
 //! live in [`io`]; nothing else in this module touches the disk.
 
 pub mod io;
+pub mod locate;
 pub mod procedural;
 pub mod quality;
+pub mod rigid;
 pub mod spatial;
 mod surface;
 mod tet_mesh;

@@ -5,6 +5,7 @@
 //! surgery cannot see how the ground truth was made.
 
 pub mod labels;
+pub mod measure;
 pub mod patterns;
 pub mod shape;
 pub mod tissue;

@@ -1,0 +1,978 @@
+//! Sparse intraoperative measurements of a deformed liver, as the registration would receive them:
+//! this module owns the scenario categories, the simulation of anterior-surface points, ultrasound
+//! planes (posterior-contour and vessel-feature points in a fan), the rigid misalignment between the
+//! image and the physical frame, and the coarse landmark alignment a navigation system starts from.
+//!
+//! Everything happens on the deformed geometry `X + u` in the image (preoperative) frame and is then
+//! mapped to the physical frame by the true misalignment `T`:
+//!
+//! - **Surface**: a connected visible patch of anterior boundary triangles (all three nodes labelled
+//!   [`Region::Anterior`]) grows from an area-weighted random seed triangle in order of geodesic
+//!   distance (Dijkstra over edge-adjacent triangles, centroid to centroid; when its component is
+//!   exhausted it jumps to the nearest unvisited anterior triangle) until its area reaches the
+//!   drawn coverage × the anterior area. Points are dart-thrown on it: area-weighted random
+//!   candidates (10 per `spacing²` of patch area) are kept when no kept point is nearer than
+//!   `surface_spacing_mm`. Isotropic Gaussian noise follows.
+//! - **Ultrasound planes**: probe contacts are anterior nodes spread by farthest-point sampling from a
+//!   random start (nodes inside the anterior region are preferred over nodes on its border). The
+//!   beam points along the inward vertex normal (`depth_dir`), the lateral direction is random in the
+//!   tangent plane. The plane cuts the posterior triangles (all nodes [`Region::Posterior`]) in
+//!   polylines, which are sampled every `us_spacing_mm` of arc length from a random phase; vessel
+//!   centerline segments, deformed by interpolating `u`, give one point where they cross the plane.
+//!   Only points inside the fan (in-plane angle from `depth_dir` ≤ `fan_half_angle_deg`, distance
+//!   from the contact ≤ `fan_depth_mm`) are kept. Their noise is Gaussian **within the plane**
+//!   (along `depth_dir` and `lateral_dir`), as an ultrasound image has no out-of-plane coordinate.
+//! - **Misalignment**: rotation about a uniformly random axis by an angle uniform in
+//!   `[0, max_rotation_deg]`, **about the centroid `c` of the mesh nodes**, and a translation of that
+//!   centroid uniform in the ball of radius `max_translation_mm`: `T(p) = R (p − c) + c + t`. Noise is
+//!   added in the image frame before `T`; since `T` is rigid and the noise isotropic (surface) or
+//!   in-plane (ultrasound), this is the same distribution as adding it after.
+//! - **Landmarks**: the highest falciform node, the two lateral ends of the inferior ridge, and the
+//!   ridge node nearest the falciform plane (the umbilical notch), then farthest anterior nodes when
+//!   more are asked for or labels are missing. Measured as `T(X + u)` plus per-axis Gaussian noise;
+//!   the coarse start is the rigid fit from their preoperative positions.
+//!
+//! Each random stage draws from its own stream derived from the seed, so for one seed the surface
+//! patch, the misalignment and the landmarks are the same in every category, the first planes of a
+//! larger category are those of a smaller one, and noise levels do not change the noise-free
+//! geometry.
+
+use std::cmp::Ordering;
+use std::collections::{BinaryHeap, HashMap};
+
+use crate::mesh::TetMesh;
+use crate::mesh::locate::TetLocator;
+use crate::mesh::rigid::Rigid;
+use crate::mesh::vec3::{add, cross, dot, norm, scale, sub};
+use crate::phantom::labels::{AnatomyLabels, Region};
+use crate::phantom::vessels::VesselTree;
+use crate::util::SplitMix64;
+
+/// What a scenario measures: the anterior surface, plus 0, 1, 2, 3 or 16 ultrasound planes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub enum Category {
+    /// Anterior surface points only.
+    Surface,
+    /// Surface and one ultrasound plane.
+    Planes1,
+    /// Surface and two ultrasound planes.
+    Planes2,
+    /// Surface and three ultrasound planes.
+    Planes3,
+    /// Surface and sixteen ultrasound planes.
+    Planes16,
+}
+
+impl Category {
+    /// All categories, from sparsest to richest.
+    pub const ALL: [Category; 5] = [
+        Category::Surface,
+        Category::Planes1,
+        Category::Planes2,
+        Category::Planes3,
+        Category::Planes16,
+    ];
+
+    /// Number of ultrasound planes.
+    pub fn planes(self) -> usize {
+        match self {
+            Category::Surface => 0,
+            Category::Planes1 => 1,
+            Category::Planes2 => 2,
+            Category::Planes3 => 3,
+            Category::Planes16 => 16,
+        }
+    }
+
+    /// Short name for files and tables ("surface", "surface+1us", …).
+    pub fn name(self) -> &'static str {
+        match self {
+            Category::Surface => "surface",
+            Category::Planes1 => "surface+1us",
+            Category::Planes2 => "surface+2us",
+            Category::Planes3 => "surface+3us",
+            Category::Planes16 => "surface+16us",
+        }
+    }
+}
+
+/// What a measured point is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[repr(u8)]
+pub enum PointKind {
+    /// Anterior-surface point (laparoscope or stylus).
+    Surface = 0,
+    /// Posterior-surface contour point in an ultrasound plane.
+    PosteriorContour = 1,
+    /// Vessel centerline crossing an ultrasound plane.
+    Vessel = 2,
+}
+
+/// Parameters of the measurement simulation. Lengths in mm, angles in degrees.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MeasureParams {
+    /// Range of the anterior-area fraction covered, drawn uniformly per scenario. Default [0.15, 0.60].
+    pub coverage: [f64; 2],
+    /// Minimum (≈ typical) spacing of surface points. Default 5.
+    pub surface_spacing_mm: f64,
+    /// Standard deviation of the isotropic Gaussian noise on surface points. Default 1.
+    pub surface_noise_mm: f64,
+    /// Arc-length spacing of contour points along a plane's cut of the posterior surface. Default 3.
+    pub us_spacing_mm: f64,
+    /// Standard deviation of the in-plane Gaussian noise on ultrasound points (per axis). Default 0.5.
+    pub us_noise_mm: f64,
+    /// Depth of the ultrasound fan. Default 120.
+    pub fan_depth_mm: f64,
+    /// Half opening angle of the fan, in (0, 90]. Default 35.
+    pub fan_half_angle_deg: f64,
+    /// Largest misalignment rotation. Default 15.
+    pub max_rotation_deg: f64,
+    /// Largest misalignment translation (of the mesh centroid). Default 20.
+    pub max_translation_mm: f64,
+    /// Number of landmarks for the coarse alignment (≥ 3). Default 4.
+    pub landmarks: usize,
+    /// Standard deviation of the landmark noise per axis. Default 4.
+    pub landmark_noise_mm: f64,
+}
+
+impl Default for MeasureParams {
+    fn default() -> Self {
+        Self {
+            coverage: [0.15, 0.60],
+            surface_spacing_mm: 5.0,
+            surface_noise_mm: 1.0,
+            us_spacing_mm: 3.0,
+            us_noise_mm: 0.5,
+            fan_depth_mm: 120.0,
+            fan_half_angle_deg: 35.0,
+            max_rotation_deg: 15.0,
+            max_translation_mm: 20.0,
+            landmarks: 4,
+            landmark_noise_mm: 4.0,
+        }
+    }
+}
+
+impl MeasureParams {
+    /// Checks every parameter, naming the first one out of range.
+    pub fn validate(&self) -> Result<(), String> {
+        let [c0, c1] = self.coverage;
+        if !(c0 > 0.0 && c0 <= c1 && c1 <= 1.0) {
+            return Err(format!(
+                "coverage must satisfy 0 < min ≤ max ≤ 1, got [{c0}, {c1}]"
+            ));
+        }
+        let positive = [
+            ("surface_spacing_mm", self.surface_spacing_mm),
+            ("us_spacing_mm", self.us_spacing_mm),
+            ("fan_depth_mm", self.fan_depth_mm),
+        ];
+        for (name, v) in positive {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(format!("{name} must be positive and finite, got {v}"));
+            }
+        }
+        let non_negative = [
+            ("surface_noise_mm", self.surface_noise_mm),
+            ("us_noise_mm", self.us_noise_mm),
+            ("max_translation_mm", self.max_translation_mm),
+            ("landmark_noise_mm", self.landmark_noise_mm),
+        ];
+        for (name, v) in non_negative {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(format!("{name} must be ≥ 0 and finite, got {v}"));
+            }
+        }
+        if !(self.fan_half_angle_deg > 0.0 && self.fan_half_angle_deg <= 90.0) {
+            return Err(format!(
+                "fan_half_angle_deg must be in (0, 90], got {}",
+                self.fan_half_angle_deg
+            ));
+        }
+        if !(self.max_rotation_deg >= 0.0 && self.max_rotation_deg <= 180.0) {
+            return Err(format!(
+                "max_rotation_deg must be in [0, 180], got {}",
+                self.max_rotation_deg
+            ));
+        }
+        if self.landmarks < 3 {
+            return Err(format!(
+                "landmarks must be at least 3 for a rigid fit, got {}",
+                self.landmarks
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// An ultrasound plane in the physical frame: the probe contact and an orthonormal frame.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct UsPlane {
+    /// Probe contact on the anterior surface (apex of the fan).
+    pub origin: [f64; 3],
+    /// Beam direction into the liver (unit).
+    pub depth_dir: [f64; 3],
+    /// In-plane direction across the beam (unit).
+    pub lateral_dir: [f64; 3],
+    /// Plane normal, `depth_dir × lateral_dir`.
+    pub normal: [f64; 3],
+}
+
+impl UsPlane {
+    /// Whether `q` (in the plane's frame) lies in the fan of depth `depth` and half angle
+    /// `half_angle_deg`, judged from its in-plane components.
+    pub fn in_fan(&self, q: [f64; 3], depth: f64, half_angle_deg: f64) -> bool {
+        let d = sub(q, self.origin);
+        let a = dot(d, self.depth_dir);
+        let b = dot(d, self.lateral_dir);
+        a * a + b * b <= depth * depth && b.abs().atan2(a) <= half_angle_deg.to_radians()
+    }
+
+    /// The plane mapped by a rigid transform.
+    pub fn transformed(&self, t: &Rigid) -> UsPlane {
+        UsPlane {
+            origin: t.apply(self.origin),
+            depth_dir: t.apply_vector(self.depth_dir),
+            lateral_dir: t.apply_vector(self.lateral_dir),
+            normal: t.apply_vector(self.normal),
+        }
+    }
+}
+
+/// One simulated measurement configuration of one deformed liver.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Scenario {
+    /// What was measured.
+    pub category: Category,
+    /// The seed it was simulated with.
+    pub seed: u64,
+    /// Achieved fraction of the (deformed) anterior area covered by the visible patch.
+    pub coverage: f64,
+    /// Measured points, physical frame, noisy: all the registration may see.
+    pub points: Vec<[f64; 3]>,
+    /// Kind of each point.
+    pub kind: Vec<PointKind>,
+    /// Ultrasound plane of each point, −1 for surface points.
+    pub plane: Vec<i32>,
+    /// The ultrasound planes (physical frame).
+    pub planes: Vec<UsPlane>,
+    /// Noise-free position of each point in the deformed image frame (evaluation only).
+    pub truth_image: Vec<[f64; 3]>,
+    /// The true misalignment, image → physical (evaluation only).
+    pub image_to_physical: Rigid,
+    /// Mesh nodes used as landmarks.
+    pub landmark_nodes: Vec<u32>,
+    /// Preoperative landmark positions (image frame, undeformed).
+    pub landmarks_image: Vec<[f64; 3]>,
+    /// Measured landmark positions: `T(X + u)` plus noise (physical frame).
+    pub landmarks_physical: Vec<[f64; 3]>,
+    /// Rigid fit of `landmarks_image` to `landmarks_physical`: the navigation system's coarse start.
+    pub initial_alignment: Rigid,
+}
+
+impl Scenario {
+    /// Number of points of a kind.
+    pub fn count(&self, kind: PointKind) -> usize {
+        self.kind.iter().filter(|&&k| k == kind).count()
+    }
+
+    /// Number of posterior-contour points in each plane (zero is possible: the fan missed it).
+    pub fn contour_counts(&self) -> Vec<usize> {
+        self.per_plane(PointKind::PosteriorContour)
+    }
+
+    /// Number of vessel-feature points in each plane.
+    pub fn vessel_counts(&self) -> Vec<usize> {
+        self.per_plane(PointKind::Vessel)
+    }
+
+    fn per_plane(&self, kind: PointKind) -> Vec<usize> {
+        let mut c = vec![0; self.planes.len()];
+        for (k, &p) in self.kind.iter().zip(&self.plane) {
+            if *k == kind && p >= 0 {
+                c[p as usize] += 1;
+            }
+        }
+        c
+    }
+}
+
+/// Stream ids of the random stages.
+const STREAM_SURFACE: u64 = 1;
+const STREAM_PLANES: u64 = 2;
+const STREAM_TRANSFORM: u64 = 3;
+const STREAM_LANDMARKS: u64 = 4;
+const STREAM_NOISE: u64 = 5;
+const STREAM_LANDMARK_NOISE: u64 = 6;
+
+/// An independent generator for one stage of the simulation.
+fn stream(seed: u64, id: u64) -> SplitMix64 {
+    let mut g = SplitMix64::new(seed ^ id.wrapping_mul(0xD1B5_4A32_D192_ED03));
+    SplitMix64::new(g.next_u64())
+}
+
+/// Simulates the sparse measurements of the liver deformed by `displacement` (node-major, `3n`).
+///
+/// Fails only when simulation is impossible: wrong lengths, non-finite values, invalid parameters,
+/// a mesh without boundary or without anterior triangles, or collinear landmarks. A plane whose fan
+/// misses the posterior surface is returned with no contour points (see
+/// [`Scenario::contour_counts`]).
+pub fn simulate(
+    mesh: &TetMesh,
+    labels: &AnatomyLabels,
+    vessels: &VesselTree,
+    displacement: &[f64],
+    category: Category,
+    params: &MeasureParams,
+    seed: u64,
+) -> Result<Scenario, String> {
+    params.validate()?;
+    let n = mesh.num_nodes();
+    if displacement.len() != 3 * n {
+        return Err(format!(
+            "displacement has {} values, the mesh has {n} nodes and needs {}",
+            displacement.len(),
+            3 * n
+        ));
+    }
+    if let Some(i) = displacement.iter().position(|v| !v.is_finite()) {
+        return Err(format!(
+            "displacement of node {} is not finite ({})",
+            i / 3,
+            displacement[i]
+        ));
+    }
+    for (name, len) in [
+        ("region", labels.region.len()),
+        ("falciform", labels.falciform.len()),
+        ("inferior_ridge", labels.inferior_ridge.len()),
+    ] {
+        if len != n {
+            return Err(format!(
+                "labels.{name} has {len} entries, the mesh has {n} nodes"
+            ));
+        }
+    }
+    if let Some(i) = vessels
+        .points
+        .iter()
+        .position(|p| p.iter().any(|c| !c.is_finite()))
+    {
+        return Err(format!("vessel point {i} is not finite"));
+    }
+    if let Some(s) = vessels
+        .segments
+        .iter()
+        .find(|s| s.iter().any(|&i| i as usize >= vessels.points.len()))
+    {
+        return Err(format!(
+            "vessel segment {s:?} refers past the {} vessel points",
+            vessels.points.len()
+        ));
+    }
+
+    let rest = mesh.nodes();
+    let deformed: Vec<[f64; 3]> = (0..n)
+        .map(|i| add(rest[i], [0, 1, 2].map(|k| displacement[3 * i + k])))
+        .collect();
+    let boundary = mesh
+        .boundary()
+        .map_err(|e| format!("cannot take the mesh boundary: {e}"))?;
+    let tris = &boundary.triangles;
+    let is = |t: &[u32; 3], r: Region| t.iter().all(|&v| labels.region[v as usize] == r);
+    let anterior: Vec<usize> = (0..tris.len())
+        .filter(|&t| is(&tris[t], Region::Anterior))
+        .collect();
+    let posterior: Vec<usize> = (0..tris.len())
+        .filter(|&t| is(&tris[t], Region::Posterior))
+        .collect();
+    let area = |t: usize| {
+        let p = tris[t].map(|v| deformed[v as usize]);
+        0.5 * norm(cross(sub(p[1], p[0]), sub(p[2], p[0])))
+    };
+    let ant_areas: Vec<f64> = anterior.iter().map(|&t| area(t)).collect();
+    let ant_total: f64 = ant_areas.iter().sum();
+    if anterior.is_empty() || ant_total.is_nan() || ant_total <= 0.0 {
+        return Err(
+            "no anterior boundary triangle (all three nodes labelled Anterior) with positive area: \
+             nothing for a laparoscope to see"
+                .into(),
+        );
+    }
+
+    // Surface points on a grown visible patch.
+    let mut rng = stream(seed, STREAM_SURFACE);
+    let [c0, c1] = params.coverage;
+    let target = c0 + (c1 - c0) * rng.next_f64();
+    let patch = grow_patch(
+        tris,
+        &anterior,
+        &ant_areas,
+        &deformed,
+        [target, c0, c1].map(|c| c * ant_total),
+        &mut rng,
+    );
+    let patch_area: f64 = patch.iter().map(|&i| ant_areas[i]).sum();
+    let coverage = patch_area / ant_total;
+    let patch_tris: Vec<[[f64; 3]; 3]> = patch
+        .iter()
+        .map(|&i| tris[anterior[i]].map(|v| deformed[v as usize]))
+        .collect();
+    let patch_areas: Vec<f64> = patch.iter().map(|&i| ant_areas[i]).collect();
+    let surface = dart_throw(
+        &patch_tris,
+        &patch_areas,
+        params.surface_spacing_mm,
+        &mut rng,
+    );
+
+    let mut truth = surface.clone();
+    let mut kind = vec![PointKind::Surface; surface.len()];
+    let mut plane_of = vec![-1i32; surface.len()];
+    let mut noise_rng = stream(seed, STREAM_NOISE);
+    let mut noisy: Vec<[f64; 3]> = surface
+        .iter()
+        .map(|&p| {
+            let e = [0; 3].map(|_| params.surface_noise_mm * noise_rng.normal());
+            add(p, e)
+        })
+        .collect();
+
+    // Ultrasound planes.
+    let nplanes = category.planes();
+    let mut planes_image = Vec::with_capacity(nplanes);
+    if nplanes > 0 {
+        let mut rng = stream(seed, STREAM_PLANES);
+        let normals =
+            crate::mesh::TriSurface::new(deformed.clone(), tris.clone())?.vertex_normals();
+        let contacts = spread_contacts(tris, &anterior, &deformed, nplanes, &mut rng);
+        let locator = TetLocator::new(mesh);
+        let vessel_deformed: Vec<[f64; 3]> = vessels
+            .points
+            .iter()
+            .map(|&p| add(p, locator.interpolate(displacement, p)))
+            .collect();
+        for (j, &node) in contacts.iter().enumerate() {
+            let origin = deformed[node as usize];
+            let nrm = normals[node as usize];
+            let depth_dir = if norm(nrm) > 0.5 {
+                scale(nrm, -1.0)
+            } else {
+                [0.0, 1.0, 0.0]
+            };
+            let (t1, t2) = tangent_basis(depth_dir);
+            let phi = 2.0 * std::f64::consts::PI * rng.next_f64();
+            let lateral_dir = add(scale(t1, phi.cos()), scale(t2, phi.sin()));
+            let pl = UsPlane {
+                origin,
+                depth_dir,
+                lateral_dir,
+                normal: cross(depth_dir, lateral_dir),
+            };
+            let mut found = contour_points(tris, &posterior, &deformed, &pl, params, &mut rng);
+            let contour_len = found.len();
+            found.extend(vessel_points(vessels, &vessel_deformed, &pl, params));
+            for (m, q) in found.into_iter().enumerate() {
+                truth.push(q);
+                kind.push(if m < contour_len {
+                    PointKind::PosteriorContour
+                } else {
+                    PointKind::Vessel
+                });
+                plane_of.push(j as i32);
+                let e = add(
+                    scale(pl.depth_dir, params.us_noise_mm * noise_rng.normal()),
+                    scale(pl.lateral_dir, params.us_noise_mm * noise_rng.normal()),
+                );
+                noisy.push(add(q, e));
+            }
+            planes_image.push(pl);
+        }
+    }
+
+    // The misalignment, about the node centroid.
+    let mut rng = stream(seed, STREAM_TRANSFORM);
+    let centroid = scale(
+        rest.iter().fold([0.0; 3], |a, &p| add(a, p)),
+        1.0 / n as f64,
+    );
+    let axis = unit_sphere(&mut rng);
+    let angle = params.max_rotation_deg.to_radians() * rng.next_f64();
+    let shift = scale(
+        unit_sphere(&mut rng),
+        params.max_translation_mm * rng.next_f64().cbrt(),
+    );
+    let rot = Rigid::from_axis_angle(axis, angle, [0.0; 3]);
+    let tf = Rigid {
+        translation: sub(add(centroid, shift), rot.apply_vector(centroid)),
+        ..rot
+    };
+
+    // Landmarks.
+    let mut rng = stream(seed, STREAM_LANDMARKS);
+    let landmark_nodes = choose_landmarks(rest, labels, params.landmarks, &mut rng);
+    if landmark_nodes.len() < 3 {
+        return Err(format!(
+            "only {} distinct landmark nodes could be chosen; a rigid fit needs 3",
+            landmark_nodes.len()
+        ));
+    }
+    let mut lm_rng = stream(seed, STREAM_LANDMARK_NOISE);
+    let landmarks_image: Vec<[f64; 3]> = landmark_nodes.iter().map(|&v| rest[v as usize]).collect();
+    let landmarks_physical: Vec<[f64; 3]> = landmark_nodes
+        .iter()
+        .map(|&v| {
+            let e = [0; 3].map(|_| params.landmark_noise_mm * lm_rng.normal());
+            add(tf.apply(deformed[v as usize]), e)
+        })
+        .collect();
+    let initial_alignment = Rigid::fit(&landmarks_image, &landmarks_physical, None)
+        .ok_or_else(|| format!("landmark nodes {landmark_nodes:?} are collinear: no rigid fit"))?;
+
+    Ok(Scenario {
+        category,
+        seed,
+        coverage,
+        points: noisy.iter().map(|&p| tf.apply(p)).collect(),
+        kind,
+        plane: plane_of,
+        planes: planes_image.iter().map(|p| p.transformed(&tf)).collect(),
+        truth_image: truth,
+        image_to_physical: tf,
+        landmark_nodes,
+        landmarks_image,
+        landmarks_physical,
+        initial_alignment,
+    })
+}
+
+/// A heap entry ordered by smallest distance first, then smallest index.
+#[derive(PartialEq)]
+struct Near(f64, usize);
+
+impl Eq for Near {}
+
+impl Ord for Near {
+    fn cmp(&self, other: &Self) -> Ordering {
+        other.0.total_cmp(&self.0).then(other.1.cmp(&self.1))
+    }
+}
+
+impl PartialOrd for Near {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+/// Grows the visible patch (indices into `anterior`) until its area reaches `areas_goal[0]`,
+/// keeping it within `[areas_goal[1], areas_goal[2]]` where one triangle allows.
+fn grow_patch(
+    tris: &[[u32; 3]],
+    anterior: &[usize],
+    areas: &[f64],
+    xyz: &[[f64; 3]],
+    [target, lo, hi]: [f64; 3],
+    rng: &mut SplitMix64,
+) -> Vec<usize> {
+    let m = anterior.len();
+    let centroid: Vec<[f64; 3]> = anterior
+        .iter()
+        .map(|&t| {
+            let p = tris[t].map(|v| xyz[v as usize]);
+            scale(add(add(p[0], p[1]), p[2]), 1.0 / 3.0)
+        })
+        .collect();
+    // Edge adjacency among anterior triangles.
+    let mut edges: Vec<(u32, u32, usize)> = Vec::with_capacity(3 * m);
+    for (i, &t) in anterior.iter().enumerate() {
+        let v = tris[t];
+        for k in 0..3 {
+            let (a, b) = (v[k], v[(k + 1) % 3]);
+            edges.push((a.min(b), a.max(b), i));
+        }
+    }
+    edges.sort_unstable();
+    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); m];
+    let mut s = 0;
+    while s < edges.len() {
+        let mut e = s + 1;
+        while e < edges.len() && edges[e].0 == edges[s].0 && edges[e].1 == edges[s].1 {
+            e += 1;
+        }
+        for x in s..e {
+            for y in s..e {
+                if x != y {
+                    adj[edges[x].2].push(edges[y].2);
+                }
+            }
+        }
+        s = e;
+    }
+    // Area-weighted seed triangle.
+    let total: f64 = areas.iter().sum();
+    let mut u = rng.next_f64() * total;
+    let mut seed = m - 1;
+    for (i, &a) in areas.iter().enumerate() {
+        if u < a {
+            seed = i;
+            break;
+        }
+        u -= a;
+    }
+    let mut dist = vec![f64::INFINITY; m];
+    let mut done = vec![false; m];
+    let mut heap = BinaryHeap::new();
+    dist[seed] = 0.0;
+    heap.push(Near(0.0, seed));
+    let mut patch = Vec::new();
+    let mut area = 0.0;
+    while area < target && patch.len() < m {
+        let Some(Near(d, i)) = heap.pop() else {
+            // Component exhausted: jump to the nearest unvisited anterior triangle.
+            let c = centroid[seed];
+            let j = (0..m)
+                .filter(|&j| !done[j])
+                .min_by(|&a, &b| {
+                    norm(sub(centroid[a], c))
+                        .total_cmp(&norm(sub(centroid[b], c)))
+                        .then(a.cmp(&b))
+                })
+                .expect("patch smaller than the anterior surface");
+            dist[j] = norm(sub(centroid[j], c));
+            heap.push(Near(dist[j], j));
+            continue;
+        };
+        if done[i] || d > dist[i] {
+            continue;
+        }
+        done[i] = true;
+        patch.push(i);
+        area += areas[i];
+        for &j in &adj[i] {
+            let nd = d + norm(sub(centroid[j], centroid[i]));
+            if !done[j] && nd < dist[j] {
+                dist[j] = nd;
+                heap.push(Near(nd, j));
+            }
+        }
+    }
+    if area > hi && patch.len() > 1 {
+        let last = areas[*patch.last().unwrap()];
+        if area - last >= lo {
+            patch.pop();
+        }
+    }
+    patch
+}
+
+/// Poisson-disk points on triangles: area-weighted candidates kept when no kept point is nearer
+/// than `spacing`.
+fn dart_throw(
+    tris: &[[[f64; 3]; 3]],
+    areas: &[f64],
+    spacing: f64,
+    rng: &mut SplitMix64,
+) -> Vec<[f64; 3]> {
+    let total: f64 = areas.iter().sum();
+    if tris.is_empty() || total.is_nan() || total <= 0.0 {
+        return Vec::new();
+    }
+    let mut cdf = Vec::with_capacity(areas.len());
+    let mut acc = 0.0;
+    for &a in areas {
+        acc += a;
+        cdf.push(acc);
+    }
+    let candidates = ((10.0 * total / (spacing * spacing)).ceil() as usize).clamp(1, 2_000_000);
+    let cell = |p: [f64; 3]| p.map(|c| (c / spacing).floor() as i64);
+    let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+    let mut kept: Vec<[f64; 3]> = Vec::new();
+    for _ in 0..candidates {
+        let u = rng.next_f64() * total;
+        let t = cdf.partition_point(|&c| c <= u).min(tris.len() - 1);
+        let r1 = rng.next_f64().sqrt();
+        let r2 = rng.next_f64();
+        let [a, b, c] = tris[t];
+        let p = add(
+            add(scale(a, 1.0 - r1), scale(b, r1 * (1.0 - r2))),
+            scale(c, r1 * r2),
+        );
+        let g = cell(p);
+        let mut free = true;
+        'search: for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    if let Some(list) = grid.get(&[g[0] + dx, g[1] + dy, g[2] + dz]) {
+                        if list.iter().any(|&k| norm(sub(kept[k], p)) < spacing) {
+                            free = false;
+                            break 'search;
+                        }
+                    }
+                }
+            }
+        }
+        if free {
+            grid.entry(g).or_default().push(kept.len());
+            kept.push(p);
+        }
+    }
+    kept
+}
+
+/// Probe contacts: `count` anterior nodes spread by farthest-point sampling from a random start,
+/// among nodes touching only anterior triangles (all anterior nodes when there are none).
+fn spread_contacts(
+    tris: &[[u32; 3]],
+    anterior: &[usize],
+    xyz: &[[f64; 3]],
+    count: usize,
+    rng: &mut SplitMix64,
+) -> Vec<u32> {
+    let mut in_anterior = vec![false; xyz.len()];
+    let mut elsewhere = vec![false; xyz.len()];
+    let mut is_ant_tri = vec![false; tris.len()];
+    for &t in anterior {
+        is_ant_tri[t] = true;
+        for &v in &tris[t] {
+            in_anterior[v as usize] = true;
+        }
+    }
+    for (t, tri) in tris.iter().enumerate() {
+        if !is_ant_tri[t] {
+            for &v in tri {
+                elsewhere[v as usize] = true;
+            }
+        }
+    }
+    let mut cand: Vec<u32> = (0..xyz.len() as u32)
+        .filter(|&v| in_anterior[v as usize] && !elsewhere[v as usize])
+        .collect();
+    if cand.is_empty() {
+        cand = (0..xyz.len() as u32)
+            .filter(|&v| in_anterior[v as usize])
+            .collect();
+    }
+    let mut chosen = vec![cand[rng.below(cand.len())]];
+    let mut near: Vec<f64> = cand
+        .iter()
+        .map(|&v| norm(sub(xyz[v as usize], xyz[chosen[0] as usize])))
+        .collect();
+    while chosen.len() < count {
+        let (k, _) =
+            near.iter().enumerate().fold(
+                (0, f64::NEG_INFINITY),
+                |b, (k, &d)| if d > b.1 { (k, d) } else { b },
+            );
+        let v = cand[k];
+        chosen.push(v);
+        for (i, &w) in cand.iter().enumerate() {
+            near[i] = near[i].min(norm(sub(xyz[w as usize], xyz[v as usize])));
+        }
+    }
+    chosen
+}
+
+/// Two unit vectors completing `d` (unit) to an orthonormal basis.
+fn tangent_basis(d: [f64; 3]) -> ([f64; 3], [f64; 3]) {
+    let helper = if d[0].abs() < 0.9 {
+        [1.0, 0.0, 0.0]
+    } else {
+        [0.0, 1.0, 0.0]
+    };
+    let t1 = cross(d, helper);
+    let t1 = scale(t1, 1.0 / norm(t1));
+    (t1, cross(d, t1))
+}
+
+/// A uniformly random unit vector.
+fn unit_sphere(rng: &mut SplitMix64) -> [f64; 3] {
+    let z = 2.0 * rng.next_f64() - 1.0;
+    let phi = 2.0 * std::f64::consts::PI * rng.next_f64();
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    [r * phi.cos(), r * phi.sin(), z]
+}
+
+/// `q` moved onto the plane along its normal (removes rounding only).
+fn project(pl: &UsPlane, q: [f64; 3]) -> [f64; 3] {
+    sub(q, scale(pl.normal, dot(pl.normal, sub(q, pl.origin))))
+}
+
+/// Noise-free contour points: the plane's cut through the posterior triangles, chained into
+/// polylines and sampled every `us_spacing_mm` of arc length (random phase per polyline), inside
+/// the fan.
+fn contour_points(
+    tris: &[[u32; 3]],
+    posterior: &[usize],
+    xyz: &[[f64; 3]],
+    pl: &UsPlane,
+    params: &MeasureParams,
+    rng: &mut SplitMix64,
+) -> Vec<[f64; 3]> {
+    let side = |v: u32| dot(pl.normal, sub(xyz[v as usize], pl.origin));
+    // Crossing edges (keyed by their sorted nodes) and the triangles linking them.
+    let mut key_id: HashMap<(u32, u32), usize> = HashMap::new();
+    let mut keys: Vec<(u32, u32)> = Vec::new();
+    let mut links: Vec<[usize; 2]> = Vec::new();
+    for &t in posterior {
+        let v = tris[t];
+        let s = v.map(side);
+        let mut ends = Vec::with_capacity(2);
+        for k in 0..3 {
+            let (a, b) = (k, (k + 1) % 3);
+            if (s[a] >= 0.0) != (s[b] >= 0.0) {
+                let key = (v[a].min(v[b]), v[a].max(v[b]));
+                let id = *key_id.entry(key).or_insert_with(|| {
+                    keys.push(key);
+                    keys.len() - 1
+                });
+                ends.push(id);
+            }
+        }
+        if ends.len() == 2 {
+            links.push([ends[0], ends[1]]);
+        }
+    }
+    let point = |(a, b): (u32, u32)| {
+        let (sa, sb) = (side(a), side(b));
+        let t = sa / (sa - sb);
+        let (pa, pb) = (xyz[a as usize], xyz[b as usize]);
+        project(pl, add(pa, scale(sub(pb, pa), t)))
+    };
+    let pts: Vec<[f64; 3]> = keys.iter().map(|&k| point(k)).collect();
+    let mut at: Vec<Vec<usize>> = vec![Vec::new(); keys.len()];
+    for (l, e) in links.iter().enumerate() {
+        at[e[0]].push(l);
+        at[e[1]].push(l);
+    }
+    // Walk polylines, open ones (from an end) first, in key order for determinism.
+    let mut order: Vec<usize> = (0..keys.len()).collect();
+    order.sort_by_key(|&i| (at[i].len() == 2, keys[i]));
+    let mut used = vec![false; links.len()];
+    let mut out = Vec::new();
+    let spacing = params.us_spacing_mm;
+    for &start in &order {
+        while at[start].iter().any(|&l| !used[l]) {
+            let mut path = vec![start];
+            let mut cur = start;
+            while let Some(&l) = at[cur].iter().find(|&&l| !used[l]) {
+                used[l] = true;
+                cur = if links[l][0] == cur {
+                    links[l][1]
+                } else {
+                    links[l][0]
+                };
+                path.push(cur);
+            }
+            let mut next = spacing * rng.next_f64();
+            let mut acc = 0.0;
+            for w in path.windows(2) {
+                let (a, b) = (pts[w[0]], pts[w[1]]);
+                let len = norm(sub(b, a));
+                if len.is_nan() || len <= 0.0 {
+                    continue;
+                }
+                while next <= acc + len {
+                    let q = project(pl, add(a, scale(sub(b, a), (next - acc) / len)));
+                    if pl.in_fan(q, params.fan_depth_mm, params.fan_half_angle_deg) {
+                        out.push(q);
+                    }
+                    next += spacing;
+                }
+                acc += len;
+            }
+        }
+    }
+    out
+}
+
+/// Noise-free vessel features: where deformed centerline segments cross the plane, inside the fan.
+fn vessel_points(
+    vessels: &VesselTree,
+    deformed: &[[f64; 3]],
+    pl: &UsPlane,
+    params: &MeasureParams,
+) -> Vec<[f64; 3]> {
+    let mut out = Vec::new();
+    for s in &vessels.segments {
+        let (pa, pb) = (deformed[s[0] as usize], deformed[s[1] as usize]);
+        let (sa, sb) = (
+            dot(pl.normal, sub(pa, pl.origin)),
+            dot(pl.normal, sub(pb, pl.origin)),
+        );
+        if (sa >= 0.0) == (sb >= 0.0) {
+            continue;
+        }
+        let q = project(pl, add(pa, scale(sub(pb, pa), sa / (sa - sb))));
+        if pl.in_fan(q, params.fan_depth_mm, params.fan_half_angle_deg) {
+            out.push(q);
+        }
+    }
+    out
+}
+
+/// Landmark nodes: highest falciform node, lateral ends of the inferior ridge, the ridge node
+/// nearest the falciform plane; then farthest-point anterior nodes up to `count`.
+fn choose_landmarks(
+    xyz: &[[f64; 3]],
+    labels: &AnatomyLabels,
+    count: usize,
+    rng: &mut SplitMix64,
+) -> Vec<u32> {
+    let mut chosen: Vec<u32> = Vec::new();
+    let push = |v: Option<u32>, chosen: &mut Vec<u32>| {
+        if let Some(v) = v {
+            if !chosen.contains(&v) {
+                chosen.push(v);
+            }
+        }
+    };
+    let fal = AnatomyLabels::nodes_where(&labels.falciform);
+    let ridge = AnatomyLabels::nodes_where(&labels.inferior_ridge);
+    let by = |set: &[u32], key: &dyn Fn(u32) -> f64| -> Option<u32> {
+        set.iter()
+            .copied()
+            .min_by(|&a, &b| key(a).total_cmp(&key(b)).then(a.cmp(&b)))
+    };
+    push(by(&fal, &|v| -xyz[v as usize][2]), &mut chosen);
+    push(by(&ridge, &|v| xyz[v as usize][0]), &mut chosen);
+    push(by(&ridge, &|v| -xyz[v as usize][0]), &mut chosen);
+    if !fal.is_empty() {
+        let xf = fal.iter().map(|&v| xyz[v as usize][0]).sum::<f64>() / fal.len() as f64;
+        push(
+            by(&ridge, &|v| (xyz[v as usize][0] - xf).abs()),
+            &mut chosen,
+        );
+    }
+    chosen.truncate(count);
+    let anterior = (0..xyz.len() as u32)
+        .filter(|&v| labels.region[v as usize] == Region::Anterior)
+        .collect::<Vec<_>>();
+    if anterior.is_empty() {
+        return chosen;
+    }
+    if chosen.is_empty() {
+        chosen.push(anterior[rng.below(anterior.len())]);
+    }
+    while chosen.len() < count && chosen.len() < anterior.len() {
+        let far = anterior
+            .iter()
+            .copied()
+            .filter(|v| !chosen.contains(v))
+            .map(|v| {
+                let d = chosen
+                    .iter()
+                    .map(|&c| norm(sub(xyz[v as usize], xyz[c as usize])))
+                    .fold(f64::INFINITY, f64::min);
+                (v, d)
+            })
+            .fold(None::<(u32, f64)>, |b, x| match b {
+                Some(b) if b.1 >= x.1 => Some(b),
+                _ => Some(x),
+            });
+        match far {
+            Some((v, _)) => chosen.push(v),
+            None => break,
+        }
+    }
+    chosen
+}
