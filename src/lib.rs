@@ -7,6 +7,7 @@
 // Index loops read like the formulas in numerical kernels; iterator rewrites would obscure them.
 #![allow(clippy::needless_range_loop)]
 
+pub mod dataset;
 pub mod fem;
 pub mod mesh;
 pub mod phantom;

@@ -31,6 +31,53 @@ enum Command {
     /// Whole-pipeline benchmarks with stage timings.
     #[command(subcommand)]
     Bench(BenchCmd),
+    /// Generates a dataset: liver phantoms, ground-truth deformations and sparse scenarios
+    /// (format in the README; deterministic for a seed, resumable, shardable).
+    Generate(GenerateArgs),
+}
+
+#[derive(Args)]
+struct GenerateArgs {
+    /// small (CI-sized: 2 coarse geometries, 3 deformations, 10 scenarios each) or paper (3 training
+    /// geometries × L, R, W plus a 4th with V, 700 scenarios each, ~9,000-node meshes).
+    #[arg(long, default_value = "small")]
+    preset: PresetArg,
+    /// Output directory (created; an interrupted run resumes into it).
+    #[arg(long)]
+    out: PathBuf,
+    /// Master seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Do the i-th of N shares of the deformations (`--shard 0/4`); run once more without
+    /// `--shard` (it skips finished work) to write the complete manifest.
+    #[arg(long)]
+    shard: Option<String>,
+    /// Closed liver surface(s) in LPS (repeatable); geometries cycle through them, then through
+    /// seeded shape variants. Default: ../shared/data/sofa_liver.vtk (largest component).
+    #[arg(long)]
+    surface: Vec<PathBuf>,
+    /// Override: number of geometries (the last one is the held-out V geometry).
+    #[arg(long)]
+    geometries: Option<usize>,
+    /// Override: deformations per geometry and pattern.
+    #[arg(long)]
+    deformations: Option<usize>,
+    /// Override: scenarios per deformation.
+    #[arg(long)]
+    scenarios: Option<usize>,
+    /// Override: mesher target edge length (mm).
+    #[arg(long)]
+    edge_mm: Option<f64>,
+    #[command(flatten)]
+    common: Common,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum PresetArg {
+    /// CI-sized.
+    Small,
+    /// The paper's design.
+    Paper,
 }
 
 #[derive(Args, Clone)]
@@ -194,7 +241,173 @@ fn run(cli: Cli) -> Result<()> {
             seed,
             ordering,
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
+        Command::Generate(args) => generate(&args),
     }
+}
+
+/// Reads a closed surface for meshing: its triangles (or a tet mesh's boundary), the largest
+/// connected piece, oriented outward.
+fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
+    let file = read_file(path, unit)?;
+    let triangles = if !file.triangles.is_empty() {
+        file.triangles.clone()
+    } else if !file.tets.is_empty() {
+        let mut m = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
+        m.orient_positive();
+        m.boundary()
+            .with_context(|| path.display().to_string())?
+            .triangles
+    } else {
+        bail!("{}: has no triangles or tetrahedra", path.display());
+    };
+    let mut surface = TriSurface::new(file.nodes.clone(), triangles)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+        .largest_component();
+    let stats = surface.stats();
+    if !stats.closed {
+        bail!(
+            "{}: the surface (largest piece) is not closed; a liver surface must enclose a volume",
+            path.display()
+        );
+    }
+    if surface.signed_volume() < 0.0 {
+        surface.flip();
+    }
+    Ok(surface)
+}
+
+fn generate(a: &GenerateArgs) -> Result<()> {
+    use librplus::phantom::dataset::{GenerateConfig, Preset};
+    let shard = match &a.shard {
+        None => (0, 1),
+        Some(s) => {
+            let (i, n) = s
+                .split_once('/')
+                .with_context(|| format!("--shard {s:?}: expected i/N, e.g. 0/4"))?;
+            let (i, n): (usize, usize) = (
+                i.trim()
+                    .parse()
+                    .with_context(|| format!("--shard {s:?}: i is not a number"))?,
+                n.trim()
+                    .parse()
+                    .with_context(|| format!("--shard {s:?}: N is not a number"))?,
+            );
+            if n == 0 || i >= n {
+                bail!("--shard {s:?}: need 0 ≤ i < N");
+            }
+            (i, n)
+        }
+    };
+    let paths = if a.surface.is_empty() {
+        vec![PathBuf::from("../shared/data/sofa_liver.vtk")]
+    } else {
+        a.surface.clone()
+    };
+    let mut surfaces = Vec::new();
+    for p in &paths {
+        surfaces.push(
+            load_closed_surface(p, a.common.unit)
+                .with_context(|| format!("--surface {}", p.display()))?,
+        );
+    }
+    let sources = paths
+        .iter()
+        .map(|p| {
+            p.file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_else(|| p.display().to_string())
+        })
+        .collect();
+    let preset = match a.preset {
+        PresetArg::Small => Preset::Small,
+        PresetArg::Paper => Preset::Paper,
+    };
+    let mut config = GenerateConfig::preset(preset, a.seed, sources);
+    if let Some(g) = a.geometries {
+        if g == 0 {
+            bail!("--geometries must be at least 1");
+        }
+        config.geometries = g;
+    }
+    if let Some(d) = a.deformations {
+        config.deformations_per_pattern = d;
+    }
+    if let Some(s) = a.scenarios {
+        if s == 0 {
+            bail!("--scenarios must be at least 1");
+        }
+        config.scenarios = s;
+    }
+    if let Some(h) = a.edge_mm {
+        if !(h.is_finite() && h > 0.5) {
+            bail!("--edge-mm {h}: must be a length above 0.5 mm");
+        }
+        config.edge_mm = h;
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
+    let t0 = Instant::now();
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} {msg} [{bar:30}] {pos}/{len} deformations, {elapsed} (eta {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_message("meshing and labelling geometries");
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let progress = |done: usize, total: usize, msg: &str| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+        bar.set_message(msg.to_string());
+    };
+    let result = librplus::phantom::dataset::generate(&config, &surfaces, &a.out, shard, &progress);
+    bar.finish_and_clear();
+    let report = result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))?;
+    let m = report.manifest.as_ref().expect("manifest written");
+    let per_pattern: serde_json::Map<String, Value> = ["L", "R", "W", "V"]
+        .iter()
+        .filter_map(|p| {
+            let d: Vec<_> = m.deformations.iter().filter(|d| d.pattern == *p).collect();
+            (!d.is_empty()).then(|| {
+                let n = d.len() as f64;
+                (
+                    p.to_string(),
+                    json!({
+                        "deformations": d.len(),
+                        "mean_displacement_mm": d.iter().map(|d| d.mean_displacement_mm).sum::<f64>() / n,
+                        "max_displacement_mm": d.iter().map(|d| d.max_displacement_mm).fold(0.0, f64::max),
+                        "linear_homogeneous_gap_mm": d.iter().map(|d| d.linear_homogeneous_gap_mm).sum::<f64>() / n,
+                    }),
+                )
+            })
+        })
+        .collect();
+    let out = json!({
+        "out": a.out.display().to_string(),
+        "preset": m.preset,
+        "seed": m.seed,
+        "shard": format!("{}/{}", shard.0, shard.1),
+        "geometries": m.geometries.len(),
+        "nodes": m.geometries.iter().map(|g| g.nodes).collect::<Vec<_>>(),
+        "deformations_written": report.written.len(),
+        "deformations_resumed": report.resumed.len(),
+        "deformations_missing": m.missing.len(),
+        "scenarios": m.deformations.iter().map(|d| d.scenarios.len()).sum::<usize>(),
+        "failed_draws": m.failed.len(),
+        "complete": m.complete,
+        "per_pattern": per_pattern,
+        "seconds_per_deformation_median": if report.seconds.is_empty() { 0.0 } else { median(report.seconds.clone()) },
+        "total_s": t0.elapsed().as_secs_f64(),
+    });
+    emit(a.common.json, &out);
+    if !report.errors.is_empty() {
+        bail!(
+            "{} deformation(s) failed every draw: {}",
+            report.errors.len(),
+            report.errors.join("; ")
+        );
+    }
+    Ok(())
 }
 
 /// Prints `value` as JSON, or as `key: value` lines.

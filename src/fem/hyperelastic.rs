@@ -321,14 +321,16 @@ impl HyperelasticModel {
 
     /// Stored energy (strain + springs) in mN·mm; `None` if any element is inverted.
     pub fn energy(&self, u: &[f64]) -> Option<f64> {
-        let strain: Option<f64> = (0..self.tets.len())
+        // Per-tet values in parallel, summed in a fixed order: the same bits on every run.
+        let per_tet: Vec<Option<f64>> = (0..self.tets.len())
             .into_par_iter()
             .map(|t| {
                 let (l, m) = self.lame_at(t);
                 energy_density(&self.deformation_gradient(t, u), l, m)
                     .map(|w| w * self.reference[t].v0)
             })
-            .sum();
+            .collect();
+        let strain: Option<f64> = per_tet.into_iter().sum();
         let ks = self.system.spring_force(u);
         let springs: f64 = 0.5 * ks.iter().zip(u).map(|(a, b)| a * b).sum::<f64>();
         strain.map(|s| s + springs + self.contact_energy(u))

@@ -4,6 +4,7 @@
 //! Only data generation uses this module; `register` and `gcn` never import it, since what runs in
 //! surgery cannot see how the ground truth was made.
 
+pub mod dataset;
 pub mod labels;
 pub mod measure;
 pub mod patterns;

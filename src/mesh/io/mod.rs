@@ -22,6 +22,7 @@
 
 mod common;
 mod gmsh;
+pub mod npz;
 mod obj;
 mod stl;
 mod vtk_legacy;

@@ -1,0 +1,215 @@
+//! The on-disk dataset format (version [`VERSION`]): the manifest's types and its reader.
+//!
+//! Shared by the generator (`phantom::dataset`) and everything that reads datasets back
+//! (evaluation, training, the service's replay clients), which never import `phantom`. Layout of a
+//! dataset directory (paths in the manifest are relative to it):
+//!
+//! ```text
+//! manifest.json                          this file's types, format "librplus-dataset", version 1
+//! geometries/<g>/preop.vtu               preoperative tet mesh; point data region (0 interior,
+//!                                        1 anterior, 2 posterior), falciform, inferior_ridge,
+//!                                        bare_area, target, tumour; cell data tissue (0 parenchyma,
+//!                                        1 vessel, 2 tumour), youngs_modulus_kpa
+//! geometries/<g>/vessels.vtp             vessel centerline points: radius_mm, parent (−1 root)
+//! deformations/<d>/gt.vtu                ground truth: the preop mesh with point array displacement
+//! deformations/<d>/scenarios/<k>.vtp     one scenario's measured points (physical frame) with point
+//!                                        data kind (0 surface, 1 posterior contour, 2 vessel),
+//!                                        plane (−1 for surface points), truth_image (evaluation only)
+//! deformations/<d>/scenarios.npz         every scenario of the deformation plus the mesh and the
+//!                                        ground truth, for numpy (see the README for the arrays)
+//! deformations/<d>/deformation.json      the deformation's manifest entry (written last: marks it
+//!                                        complete; used to resume)
+//! ```
+
+use std::path::Path;
+
+/// Value of the manifest's `format` field.
+pub const FORMAT: &str = "librplus-dataset";
+/// Current format version.
+pub const VERSION: u32 = 1;
+
+/// The dataset manifest (`manifest.json`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Manifest {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Format version ([`VERSION`]).
+    pub version: u32,
+    /// Preset name (`small`, `paper`).
+    pub preset: String,
+    /// Master seed.
+    pub seed: u64,
+    /// Program and version that wrote it.
+    pub generator: String,
+    /// Length unit of every coordinate (`mm`).
+    pub units: String,
+    /// Patient frame (`LPS`).
+    pub frame: String,
+    /// Hash (FNV-1a 64, hex) of `parameters`: a resumed run must match it.
+    pub parameters_hash: String,
+    /// Every parameter that shaped the data.
+    pub parameters: serde_json::Value,
+    /// The liver geometries.
+    pub geometries: Vec<GeometryEntry>,
+    /// Completed deformations, in plan order.
+    pub deformations: Vec<DeformationEntry>,
+    /// Planned deformations not on disk yet (other shards, or an interrupted run).
+    pub missing: Vec<String>,
+    /// Draws that did not converge and were replaced by the next attempt (never written as truth).
+    pub failed: Vec<FailedEntry>,
+    /// True when every planned deformation is complete.
+    pub complete: bool,
+}
+
+/// One liver geometry.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GeometryEntry {
+    /// Identifier (`g1`, …).
+    pub id: String,
+    /// Where the surface came from, and the shape-variant seed if any.
+    pub source: String,
+    /// Shape-variant seed, `None` for the surface as given.
+    pub variant_seed: Option<u64>,
+    /// `train` or `test`.
+    pub split: String,
+    /// Node count.
+    pub nodes: usize,
+    /// Tet count.
+    pub tets: usize,
+    /// Volume (mL).
+    pub volume_ml: f64,
+    /// Target edge length of the mesher (mm).
+    pub edge_mm: f64,
+    /// Path of `preop.vtu`.
+    pub preop: String,
+    /// Path of `vessels.vtp`.
+    pub vessels: String,
+    /// Interior target nodes.
+    pub targets: Vec<u32>,
+    /// Vessel stiffness multiplier.
+    pub vessel_factor: f64,
+    /// Tumours: centre (mm), radius (mm), stiffness multiplier.
+    pub tumours: Vec<TumourEntry>,
+    /// Volume fractions of parenchyma, vessel and tumour tissue.
+    pub tissue_fractions: [f64; 3],
+}
+
+/// A tumour of a geometry.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TumourEntry {
+    /// Centre (mm).
+    pub center: [f64; 3],
+    /// Radius (mm).
+    pub radius_mm: f64,
+    /// Young's modulus multiplier.
+    pub stiffness_factor: f64,
+}
+
+/// One ground-truth deformation and its scenarios.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DeformationEntry {
+    /// Identifier (`g1-L-00`, …).
+    pub id: String,
+    /// Geometry id.
+    pub geometry: String,
+    /// Pattern (`L`, `R`, `W`, `V`).
+    pub pattern: String,
+    /// Seed of the load draw that converged.
+    pub seed: u64,
+    /// The parameters hash it was generated under.
+    pub parameters_hash: String,
+    /// What was drawn (tilt, retractor, pack, pressure).
+    pub description: String,
+    /// Path of `gt.vtu`.
+    pub gt: String,
+    /// Path of `scenarios.npz`.
+    pub npz: String,
+    /// Mean node displacement (mm).
+    pub mean_displacement_mm: f64,
+    /// Largest node displacement (mm).
+    pub max_displacement_mm: f64,
+    /// Mean node distance between the ground truth and the linear homogeneous model under the
+    /// same loads and supports (mm): what LIBR's physics misses.
+    pub linear_homogeneous_gap_mm: f64,
+    /// Newton load steps.
+    pub load_steps: usize,
+    /// Newton iterations.
+    pub newton_iterations: usize,
+    /// Final relative residual.
+    pub relative_residual: f64,
+    /// Bed contacts active at equilibrium, of all.
+    pub active_contacts: [usize; 2],
+    /// The scenarios.
+    pub scenarios: Vec<ScenarioEntry>,
+}
+
+/// One sparse-measurement scenario.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ScenarioEntry {
+    /// Index within the deformation (row of the npz per-scenario arrays).
+    pub index: usize,
+    /// Category (`surface`, `surface+1us`, `surface+2us`, `surface+3us`, `surface+16us`).
+    pub category: String,
+    /// Seed.
+    pub seed: u64,
+    /// Path of the `.vtp`.
+    pub file: String,
+    /// Anterior-surface coverage achieved.
+    pub coverage: f64,
+    /// Surface points.
+    pub surface_points: usize,
+    /// Posterior-contour points.
+    pub contour_points: usize,
+    /// Vessel-feature points.
+    pub vessel_points: usize,
+    /// Misalignment rotation (degrees).
+    pub misalignment_deg: f64,
+}
+
+/// A draw that did not converge.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FailedEntry {
+    /// Deformation id.
+    pub id: String,
+    /// Seed of the failed draw.
+    pub seed: u64,
+    /// Why.
+    pub error: String,
+}
+
+/// Reads and checks a manifest (`manifest.json` in `dir`, or the file itself).
+pub fn read_manifest(path: &Path) -> Result<Manifest, String> {
+    let file = if path.is_dir() {
+        path.join("manifest.json")
+    } else {
+        path.to_path_buf()
+    };
+    let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let m: Manifest =
+        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", file.display()))?;
+    if m.format != FORMAT {
+        return Err(format!(
+            "{}: format is {:?}, expected {FORMAT:?}",
+            file.display(),
+            m.format
+        ));
+    }
+    if m.version != VERSION {
+        return Err(format!(
+            "{}: format version {} is not supported (this program reads version {VERSION})",
+            file.display(),
+            m.version
+        ));
+    }
+    Ok(m)
+}
+
+/// FNV-1a 64-bit hash of bytes, as 16 hex digits (stable across platforms and runs).
+pub fn fnv1a_hex(bytes: &[u8]) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    format!("{h:016x}")
+}

@@ -1,0 +1,718 @@
+//! The dataset writer: geometries, ground-truth deformations and sparse scenarios into a directory
+//! in the format of [`crate::dataset`] (read it there).
+//!
+//! The plan (which geometries, which deformations, which scenarios, every seed) is a pure function
+//! of the configuration, so runs are deterministic and byte-identical for a seed, shards (`i/N`
+//! takes every N-th deformation) can run on many machines into one directory, and an interrupted
+//! run resumes: a deformation whose `deformation.json` exists under the same parameters hash is
+//! skipped. Deformations are solved in parallel; every file is written to a temporary name and
+//! renamed, so a crash never leaves a half-written file under a final name. A draw that does not
+//! converge is recorded in the manifest's `failed` list and redrawn with the next seed, never
+//! written as ground truth.
+
+use super::labels::{AnatomyLabels, LabelParams, label};
+use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
+use super::patterns::{Pattern, PatternParams, load_case};
+use super::shape::{ShapeVariantParams, variant};
+use super::tissue::{Tissue, TissueParams};
+use super::truth::{LoadParts, magnitude_stats, mean_distance, solve_linear, solve_truth};
+use super::vessels::{VesselParams, VesselTree};
+use crate::dataset::{
+    DeformationEntry, FORMAT, FailedEntry, GeometryEntry, Manifest, ScenarioEntry, TumourEntry,
+    VERSION, fnv1a_hex,
+};
+use crate::fem::LameField;
+use crate::fem::hyperelastic::NewtonParams;
+use crate::mesh::io::npz::{NpyArray, NpyData, write_npz};
+use crate::mesh::io::{self, DataArray, MeshFile};
+use crate::mesh::rigid::Rigid;
+use crate::mesh::tetra::{TetraParams, tetrahedralize};
+use crate::mesh::{TetMesh, TriSurface};
+use crate::util::SplitMix64;
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// A named preset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// A few coarse deformations and scenarios: seconds to minutes, for CI and trying things.
+    Small,
+    /// The LIBR+ paper's design: 3 training geometries × {L, R, W} plus a 4th geometry with V,
+    /// 700 scenarios per deformation, ~9,000-node meshes.
+    Paper,
+}
+
+impl Preset {
+    /// Name as on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Small => "small",
+            Preset::Paper => "paper",
+        }
+    }
+}
+
+/// Everything that shapes a dataset.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct GenerateConfig {
+    /// Preset it started from.
+    pub preset: Preset,
+    /// Master seed.
+    pub seed: u64,
+    /// Source surfaces (closed liver surfaces in mm, LPS) as given; geometries cycle through them
+    /// and then through seeded shape variants of them.
+    pub sources: Vec<String>,
+    /// Number of geometries; the last is the test geometry (pattern V) when `test_geometry`.
+    pub geometries: usize,
+    /// Whether the last geometry is held out for pattern V only.
+    pub test_geometry: bool,
+    /// Patterns on the training geometries.
+    pub train_patterns: Vec<Pattern>,
+    /// Deformations per geometry and pattern.
+    pub deformations_per_pattern: usize,
+    /// Scenarios per deformation (categories cycle: surface, +1, +2, +3, +16 planes).
+    pub scenarios: usize,
+    /// Mesher target edge (mm).
+    pub edge_mm: f64,
+    /// Shape variants.
+    pub shape: ShapeVariantParams,
+    /// Labels.
+    pub labels: LabelParams,
+    /// Vessel tree.
+    pub vessels: VesselParams,
+    /// Tissue.
+    pub tissue: TissueParams,
+    /// Loads and supports.
+    pub patterns: PatternParams,
+    /// Measurements.
+    pub measure: MeasureParams,
+    /// Newton solver.
+    pub newton: NewtonParams,
+    /// Draws tried per deformation before giving up.
+    pub attempts: usize,
+}
+
+impl GenerateConfig {
+    /// The configuration of a preset with a seed and source surfaces.
+    pub fn preset(preset: Preset, seed: u64, sources: Vec<String>) -> Self {
+        let base = Self {
+            preset,
+            seed,
+            sources,
+            geometries: 4,
+            test_geometry: true,
+            train_patterns: vec![Pattern::L, Pattern::R, Pattern::W],
+            deformations_per_pattern: 1,
+            scenarios: 700,
+            edge_mm: 7.6,
+            shape: ShapeVariantParams::default(),
+            labels: LabelParams::default(),
+            vessels: VesselParams::default(),
+            tissue: TissueParams::default(),
+            patterns: PatternParams::default(),
+            measure: MeasureParams::default(),
+            newton: NewtonParams::default(),
+            attempts: 3,
+        };
+        match preset {
+            Preset::Paper => base,
+            Preset::Small => Self {
+                geometries: 2,
+                train_patterns: vec![Pattern::L, Pattern::W],
+                scenarios: 10,
+                edge_mm: 14.0,
+                ..base
+            },
+        }
+    }
+}
+
+/// A geometry of the plan.
+#[derive(Debug, Clone)]
+struct GeometryPlan {
+    id: String,
+    source: usize,
+    variant_seed: Option<u64>,
+    split: &'static str,
+    seed: u64,
+}
+
+/// A deformation of the plan.
+#[derive(Debug, Clone)]
+struct DeformationPlan {
+    id: String,
+    geometry: usize,
+    pattern: Pattern,
+    seed: u64,
+}
+
+/// A built geometry: mesh, labels, vessels, tissue.
+struct Built {
+    mesh: TetMesh,
+    labels: AnatomyLabels,
+    vessels: VesselTree,
+    tissue: Tissue,
+    lame: LameField,
+}
+
+/// A seed derived from the master seed and a path of keys (SplitMix64 finaliser chain).
+fn derive(seed: u64, keys: &[u64]) -> u64 {
+    let mut s = seed;
+    for &k in keys {
+        s = SplitMix64::new(s ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64();
+    }
+    s
+}
+
+fn plan(config: &GenerateConfig) -> (Vec<GeometryPlan>, Vec<DeformationPlan>) {
+    let ns = config.sources.len().max(1);
+    let geometries: Vec<GeometryPlan> = (0..config.geometries)
+        .map(|k| {
+            let seed = derive(config.seed, &[1, k as u64]);
+            let test = config.test_geometry && k + 1 == config.geometries && k > 0;
+            GeometryPlan {
+                id: format!("g{}", k + 1),
+                source: k % ns,
+                variant_seed: (k >= ns).then_some(seed),
+                split: if test { "test" } else { "train" },
+                seed,
+            }
+        })
+        .collect();
+    let mut deformations = Vec::new();
+    for (g, geo) in geometries.iter().enumerate() {
+        let patterns = if geo.split == "test" {
+            vec![Pattern::V]
+        } else {
+            config.train_patterns.clone()
+        };
+        for p in patterns {
+            for i in 0..config.deformations_per_pattern {
+                deformations.push(DeformationPlan {
+                    id: format!("{}-{p:?}-{i:02}", geo.id),
+                    geometry: g,
+                    pattern: p,
+                    seed: derive(config.seed, &[2, g as u64, p as u64, i as u64]),
+                });
+            }
+        }
+    }
+    (geometries, deformations)
+}
+
+/// Writes bytes to `path` atomically (temporary file + rename), creating parent directories.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent).map_err(|e| format!("{}: {e}", parent.display()))?;
+    }
+    let tmp = path.with_extension(format!(
+        "{}.tmp",
+        path.extension().and_then(|e| e.to_str()).unwrap_or("")
+    ));
+    std::fs::write(&tmp, bytes).map_err(|e| format!("{}: {e}", tmp.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+fn write_mesh_file(path: &Path, file: &MeshFile) -> Result<(), String> {
+    let format = io::Format::from_path(path).map_err(|e| e.to_string())?;
+    let bytes =
+        io::write_bytes(file, format, Default::default(), path).map_err(|e| e.to_string())?;
+    write_atomic(path, &bytes)
+}
+
+fn json_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, String> {
+    let mut s = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
+    s.push('\n');
+    Ok(s.into_bytes())
+}
+
+fn build_geometry(
+    config: &GenerateConfig,
+    surfaces: &[TriSurface],
+    g: &GeometryPlan,
+) -> Result<Built, String> {
+    let base = &surfaces[g.source];
+    let surface = match g.variant_seed {
+        Some(s) => variant(base, &config.shape, s)?.0,
+        None => base.clone(),
+    };
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(config.edge_mm))
+        .map_err(|e| format!("{}: meshing failed: {e}", g.id))?;
+    let labels = label(
+        &mesh,
+        &LabelParams {
+            seed: derive(g.seed, &[3]),
+            ..config.labels
+        },
+    )
+    .map_err(|e| format!("{}: labelling failed: {e}", g.id))?;
+    let vessels = VesselTree::grow(
+        &mesh,
+        &VesselParams {
+            seed: derive(g.seed, &[4]),
+            ..config.vessels
+        },
+    )
+    .map_err(|e| format!("{}: vessel tree: {e}", g.id))?;
+    let tissue = Tissue::build(&mesh, &vessels, &config.tissue, derive(g.seed, &[5]))
+        .map_err(|e| format!("{}: tissue: {e}", g.id))?;
+    let lame = tissue.lame_field();
+    Ok(Built {
+        mesh,
+        labels,
+        vessels,
+        tissue,
+        lame,
+    })
+}
+
+fn geometry_entry(config: &GenerateConfig, g: &GeometryPlan, b: &Built) -> GeometryEntry {
+    GeometryEntry {
+        id: g.id.clone(),
+        source: match g.variant_seed {
+            Some(s) => format!("shape variant {s} of {}", config.sources[g.source]),
+            None => config.sources[g.source].clone(),
+        },
+        variant_seed: g.variant_seed,
+        split: g.split.to_string(),
+        nodes: b.mesh.num_nodes(),
+        tets: b.mesh.num_tets(),
+        volume_ml: b.mesh.volume() / 1000.0,
+        edge_mm: config.edge_mm,
+        preop: format!("geometries/{}/preop.vtu", g.id),
+        vessels: format!("geometries/{}/vessels.vtp", g.id),
+        targets: b.labels.targets.clone(),
+        vessel_factor: b.tissue.vessel_factor,
+        tumours: b
+            .tissue
+            .tumours
+            .iter()
+            .map(|t| TumourEntry {
+                center: t.center,
+                radius_mm: t.radius,
+                stiffness_factor: t.factor,
+            })
+            .collect(),
+        tissue_fractions: b.tissue.volume_fractions(&b.mesh),
+    }
+}
+
+fn write_geometry(dir: &Path, entry: &GeometryEntry, b: &Built) -> Result<(), String> {
+    let mut file = b.mesh.to_file();
+    file.point_data = b.labels.to_point_data();
+    file.point_data.push(DataArray::new(
+        "tumour",
+        1,
+        b.tissue
+            .nodes_in_tumours(&b.mesh)
+            .iter()
+            .map(|&t| if t { 1.0 } else { 0.0 })
+            .collect(),
+    ));
+    file.cell_data = b.tissue.to_cell_data();
+    write_mesh_file(&dir.join(&entry.preop), &file)?;
+    let mut parent = vec![-1.0; b.vessels.points.len()];
+    for s in &b.vessels.segments {
+        parent[s[1] as usize] = s[0] as f64;
+    }
+    let vessels = MeshFile {
+        nodes: b.vessels.points.clone(),
+        point_data: vec![
+            DataArray::new("radius_mm", 1, b.vessels.radii.clone()),
+            DataArray::new("parent", 1, parent),
+        ],
+        ..Default::default()
+    };
+    write_mesh_file(&dir.join(&entry.vessels), &vessels)
+}
+
+fn rigid_matrix(r: &Rigid) -> [f64; 16] {
+    let m = r.rotation;
+    let t = r.translation;
+    [
+        m[0][0], m[0][1], m[0][2], t[0], m[1][0], m[1][1], m[1][2], t[1], m[2][0], m[2][1],
+        m[2][2], t[2], 0.0, 0.0, 0.0, 1.0,
+    ]
+}
+
+/// The npz arrays of a deformation's scenarios (documented in the README).
+fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Vec<u8>, String> {
+    let s = scenarios.len();
+    let total: usize = scenarios.iter().map(|c| c.points.len()).sum();
+    let planes: usize = scenarios.iter().map(|c| c.planes.len()).sum();
+    let landmarks = scenarios.first().map_or(0, |c| c.landmark_nodes.len());
+    if scenarios
+        .iter()
+        .any(|c| c.landmark_nodes.len() != landmarks)
+    {
+        return Err("scenarios have different numbers of landmarks".into());
+    }
+    let mut offsets = vec![0i64];
+    let mut plane_offsets = vec![0i64];
+    let (mut points, mut truth) = (Vec::with_capacity(total), Vec::with_capacity(total));
+    let (mut kind, mut plane) = (Vec::with_capacity(total), Vec::with_capacity(total));
+    let mut plane_data: [Vec<[f64; 3]>; 4] = Default::default();
+    let (mut t_true, mut t_init) = (Vec::new(), Vec::new());
+    let (mut lm_nodes, mut lm_img, mut lm_phys) = (Vec::new(), Vec::new(), Vec::new());
+    for c in scenarios {
+        points.extend_from_slice(&c.points);
+        truth.extend_from_slice(&c.truth_image);
+        kind.extend(c.kind.iter().map(|&k| k as u8));
+        plane.extend_from_slice(&c.plane);
+        offsets.push(points.len() as i64);
+        for p in &c.planes {
+            plane_data[0].push(p.origin);
+            plane_data[1].push(p.depth_dir);
+            plane_data[2].push(p.lateral_dir);
+            plane_data[3].push(p.normal);
+        }
+        plane_offsets.push(plane_data[0].len() as i64);
+        t_true.extend(rigid_matrix(&c.image_to_physical));
+        t_init.extend(rigid_matrix(&c.initial_alignment));
+        lm_nodes.extend(c.landmark_nodes.iter().map(|&n| n as i32));
+        lm_img.extend(c.landmarks_image.iter().flatten());
+        lm_phys.extend(c.landmarks_physical.iter().flatten());
+    }
+    let nodes = mesh.num_nodes();
+    let arrays = vec![
+        NpyArray::new("format_version", &[1], NpyData::I32(vec![VERSION as i32]))?,
+        NpyArray::points("nodes", mesh.nodes()),
+        NpyArray::new(
+            "tets",
+            &[mesh.num_tets(), 4],
+            NpyData::I32(mesh.tets().iter().flatten().map(|&v| v as i32).collect()),
+        )?,
+        NpyArray::new("displacement", &[nodes, 3], NpyData::F64(u.to_vec()))?,
+        NpyArray::points("points", &points),
+        NpyArray::new("kind", &[total], NpyData::U8(kind))?,
+        NpyArray::new("plane", &[total], NpyData::I32(plane))?,
+        NpyArray::points("truth_image", &truth),
+        NpyArray::new("offsets", &[s + 1], NpyData::I64(offsets))?,
+        NpyArray::new(
+            "category",
+            &[s],
+            NpyData::U8(
+                scenarios
+                    .iter()
+                    .map(|c| {
+                        Category::ALL
+                            .iter()
+                            .position(|&k| k == c.category)
+                            .unwrap_or(0) as u8
+                    })
+                    .collect(),
+            ),
+        )?,
+        NpyArray::new(
+            "seed",
+            &[s],
+            NpyData::U64(scenarios.iter().map(|c| c.seed).collect()),
+        )?,
+        NpyArray::new(
+            "coverage",
+            &[s],
+            NpyData::F64(scenarios.iter().map(|c| c.coverage).collect()),
+        )?,
+        NpyArray::new("image_to_physical", &[s, 4, 4], NpyData::F64(t_true))?,
+        NpyArray::new("initial_alignment", &[s, 4, 4], NpyData::F64(t_init))?,
+        NpyArray::new("landmark_nodes", &[s, landmarks], NpyData::I32(lm_nodes))?,
+        NpyArray::new("landmarks_image", &[s, landmarks, 3], NpyData::F64(lm_img))?,
+        NpyArray::new(
+            "landmarks_physical",
+            &[s, landmarks, 3],
+            NpyData::F64(lm_phys),
+        )?,
+        NpyArray::new("plane_offsets", &[s + 1], NpyData::I64(plane_offsets))?,
+        NpyArray::points("plane_origin", &plane_data[0]),
+        NpyArray::points("plane_depth_dir", &plane_data[1]),
+        NpyArray::points("plane_lateral_dir", &plane_data[2]),
+        NpyArray::points("plane_normal", &plane_data[3]),
+    ];
+    debug_assert_eq!(planes, plane_data[0].len());
+    write_npz(&arrays)
+}
+
+/// What a run did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct RunReport {
+    /// Deformations this run solved and wrote.
+    pub written: Vec<String>,
+    /// Deformations skipped because they were already complete.
+    pub resumed: Vec<String>,
+    /// Deformations that failed every attempt (with why).
+    pub errors: Vec<String>,
+    /// Seconds per written deformation (ground truth + scenarios), in plan order.
+    pub seconds: Vec<f64>,
+    /// The manifest, as written.
+    #[serde(skip)]
+    pub manifest: Option<Manifest>,
+}
+
+/// Progress callback: `(done, total, message)`.
+pub type Progress<'a> = &'a (dyn Fn(usize, usize, &str) + Sync);
+
+/// Generates (or resumes) the dataset in `dir`; `shard = (i, n)` does every n-th deformation from
+/// the i-th. Surfaces are the closed source surfaces (mm, LPS) matching `config.sources`.
+pub fn generate(
+    config: &GenerateConfig,
+    surfaces: &[TriSurface],
+    dir: &Path,
+    shard: (usize, usize),
+    progress: Progress<'_>,
+) -> Result<RunReport, String> {
+    if surfaces.is_empty() || surfaces.len() != config.sources.len() {
+        return Err("need at least one source surface (and one name per surface)".into());
+    }
+    if shard.1 == 0 || shard.0 >= shard.1 {
+        return Err(format!(
+            "shard {}/{} is invalid: need 0 ≤ i < N",
+            shard.0, shard.1
+        ));
+    }
+    if config.geometries == 0 || config.scenarios == 0 {
+        return Err("need at least one geometry and one scenario per deformation".into());
+    }
+    config.measure.validate()?;
+    let parameters = serde_json::to_value(config).map_err(|e| e.to_string())?;
+    let hash = fnv1a_hex(parameters.to_string().as_bytes());
+    // A directory holding another dataset is refused rather than mixed.
+    if let Ok(old) = crate::dataset::read_manifest(dir)
+        && old.parameters_hash != hash
+    {
+        return Err(format!(
+            "{} already holds a dataset generated with other parameters (hash {} ≠ {hash}); use another --out",
+            dir.display(),
+            old.parameters_hash
+        ));
+    }
+    let (geo_plan, def_plan) = plan(config);
+    let built: Vec<Built> = geo_plan
+        .par_iter()
+        .map(|g| build_geometry(config, surfaces, g))
+        .collect::<Result<_, _>>()?;
+    let geometries: Vec<GeometryEntry> = geo_plan
+        .iter()
+        .zip(&built)
+        .map(|(g, b)| geometry_entry(config, g, b))
+        .collect();
+    for (e, b) in geometries.iter().zip(&built) {
+        write_geometry(dir, e, b)?;
+    }
+    let entry_path =
+        |d: &DeformationPlan| dir.join(format!("deformations/{}/deformation.json", d.id));
+    let read_entry = |d: &DeformationPlan| -> Option<DeformationEntry> {
+        let text = std::fs::read_to_string(entry_path(d)).ok()?;
+        let e: DeformationEntry = serde_json::from_str(&text).ok()?;
+        (e.parameters_hash == hash).then_some(e)
+    };
+    let mine: Vec<&DeformationPlan> = def_plan
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| k % shard.1 == shard.0)
+        .map(|(_, d)| d)
+        .collect();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = mine.len();
+    progress(0, total, "solving ground truth");
+    type Outcome = (String, Result<(bool, f64), String>, Vec<FailedEntry>);
+    let outcomes: Vec<Outcome> = mine
+        .par_iter()
+        .map(|d| {
+            let out = if read_entry(d).is_some() {
+                (d.id.clone(), Ok((false, 0.0)), Vec::new())
+            } else {
+                let t0 = std::time::Instant::now();
+                let mut failed = Vec::new();
+                let r = make_deformation(config, dir, &hash, d, &built[d.geometry], &mut failed)
+                    .map(|()| (true, t0.elapsed().as_secs_f64()));
+                (d.id.clone(), r, failed)
+            };
+            let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+            progress(k, total, &d.id);
+            out
+        })
+        .collect();
+    let mut report = RunReport::default();
+    let mut failed_log: Vec<FailedEntry> = Vec::new();
+    for (id, r, failed) in outcomes {
+        failed_log.extend(failed);
+        match r {
+            Ok((true, secs)) => {
+                report.written.push(id);
+                report.seconds.push(secs);
+            }
+            Ok((false, _)) => report.resumed.push(id),
+            Err(e) => report.errors.push(format!("{id}: {e}")),
+        }
+    }
+    // Failed draws of this run are kept beside the deformations so shards and resumed runs
+    // assemble the same manifest.
+    for f in &failed_log {
+        let path = dir.join(format!("deformations/{}/failed-{}.json", f.id, f.seed));
+        write_atomic(&path, &json_bytes(f)?)?;
+    }
+    let mut deformations = Vec::new();
+    let mut missing = Vec::new();
+    let mut failed = Vec::new();
+    for d in &def_plan {
+        match read_entry(d) {
+            Some(e) => deformations.push(e),
+            None => missing.push(d.id.clone()),
+        }
+        if let Ok(rd) = std::fs::read_dir(dir.join(format!("deformations/{}", d.id))) {
+            let mut names: Vec<PathBuf> = rd
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| {
+                    p.file_name()
+                        .and_then(|n| n.to_str())
+                        .is_some_and(|n| n.starts_with("failed-") && n.ends_with(".json"))
+                })
+                .collect();
+            names.sort();
+            for p in names {
+                if let Ok(t) = std::fs::read_to_string(&p)
+                    && let Ok(f) = serde_json::from_str::<FailedEntry>(&t)
+                {
+                    failed.push(f);
+                }
+            }
+        }
+    }
+    let manifest = Manifest {
+        format: FORMAT.into(),
+        version: VERSION,
+        preset: config.preset.name().into(),
+        seed: config.seed,
+        generator: format!("librplus {}", env!("CARGO_PKG_VERSION")),
+        units: "mm".into(),
+        frame: "LPS".into(),
+        parameters_hash: hash,
+        parameters,
+        geometries,
+        complete: missing.is_empty(),
+        deformations,
+        missing,
+        failed,
+    };
+    write_atomic(&dir.join("manifest.json"), &json_bytes(&manifest)?)?;
+    report.manifest = Some(manifest);
+    Ok(report)
+}
+
+/// Solves one deformation (redrawing on non-convergence) and writes its files.
+fn make_deformation(
+    config: &GenerateConfig,
+    dir: &Path,
+    hash: &str,
+    d: &DeformationPlan,
+    b: &Built,
+    failed: &mut Vec<FailedEntry>,
+) -> Result<(), String> {
+    let mut last_error = String::new();
+    for attempt in 0..config.attempts.max(1) {
+        let seed = if attempt == 0 {
+            d.seed
+        } else {
+            derive(d.seed, &[6, attempt as u64])
+        };
+        let case = load_case(&b.mesh, &b.labels, d.pattern, &config.patterns, seed)?;
+        let truth = match solve_truth(&b.mesh, &b.lame, &case, &config.newton) {
+            Ok(t) => t,
+            Err(e) => {
+                last_error = e.to_string();
+                failed.push(FailedEntry {
+                    id: d.id.clone(),
+                    seed,
+                    error: format!("{e} ({})", case.description),
+                });
+                continue;
+            }
+        };
+        let u = &truth.displacement;
+        let (lam, mu) = config.tissue.parenchyma.lame();
+        let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
+            .map_err(|e| format!("linear comparison: {e}"))?;
+        let (mean, max) = magnitude_stats(u);
+        let scenarios: Vec<Scenario> = (0..config.scenarios)
+            .into_par_iter()
+            .map(|k| {
+                let category = Category::ALL[k % Category::ALL.len()];
+                simulate(
+                    &b.mesh,
+                    &b.labels,
+                    &b.vessels,
+                    u,
+                    category,
+                    &config.measure,
+                    derive(seed, &[7, k as u64]),
+                )
+                .map_err(|e| format!("scenario {k}: {e}"))
+            })
+            .collect::<Result<_, _>>()?;
+        let base = format!("deformations/{}", d.id);
+        let mut gt = b.mesh.to_file();
+        gt.point_data = vec![DataArray::new("displacement", 3, u.clone())];
+        write_mesh_file(&dir.join(format!("{base}/gt.vtu")), &gt)?;
+        let mut entries = Vec::with_capacity(scenarios.len());
+        for (k, c) in scenarios.iter().enumerate() {
+            let file = format!("{base}/scenarios/{k:04}.vtp");
+            let pts = MeshFile {
+                nodes: c.points.clone(),
+                point_data: vec![
+                    DataArray::new("kind", 1, c.kind.iter().map(|&k| k as u8 as f64).collect()),
+                    DataArray::new("plane", 1, c.plane.iter().map(|&p| p as f64).collect()),
+                    DataArray::new(
+                        "truth_image",
+                        3,
+                        c.truth_image.iter().flatten().copied().collect(),
+                    ),
+                ],
+                ..Default::default()
+            };
+            write_mesh_file(&dir.join(&file), &pts)?;
+            entries.push(ScenarioEntry {
+                index: k,
+                category: c.category.name().into(),
+                seed: c.seed,
+                file,
+                coverage: c.coverage,
+                surface_points: c.count(PointKind::Surface),
+                contour_points: c.count(PointKind::PosteriorContour),
+                vessel_points: c.count(PointKind::Vessel),
+                misalignment_deg: c.image_to_physical.rotation_angle_deg(),
+            });
+        }
+        write_atomic(
+            &dir.join(format!("{base}/scenarios.npz")),
+            &scenarios_npz(&b.mesh, u, &scenarios)?,
+        )?;
+        let entry = DeformationEntry {
+            id: d.id.clone(),
+            geometry: format!("g{}", d.geometry + 1),
+            pattern: format!("{:?}", d.pattern),
+            seed,
+            parameters_hash: hash.to_string(),
+            description: case.description.clone(),
+            gt: format!("{base}/gt.vtu"),
+            npz: format!("{base}/scenarios.npz"),
+            mean_displacement_mm: mean,
+            max_displacement_mm: max,
+            linear_homogeneous_gap_mm: mean_distance(u, &linear),
+            load_steps: truth.info.load_steps,
+            newton_iterations: truth.info.iterations,
+            relative_residual: truth.info.relative_residual,
+            active_contacts: [truth.active_contacts, case.contacts.len()],
+            scenarios: entries,
+        };
+        // Written last: its presence marks the deformation complete.
+        return write_atomic(
+            &dir.join(format!("{base}/deformation.json")),
+            &json_bytes(&entry)?,
+        );
+    }
+    Err(format!(
+        "no convergence in {} draws (last: {last_error})",
+        config.attempts.max(1)
+    ))
+}

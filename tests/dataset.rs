@@ -1,0 +1,183 @@
+//! `librplus generate --preset small`: deterministic, resumable, shardable, and readable back by the
+//! project's readers, by numpy-format decoding and (when `LIBRPLUS_CHECK_PYTHON` names a Python
+//! with meshio, vtk and numpy, as CI sets up) by `tests/reference/check_dataset.py`.
+
+use librplus::dataset::read_manifest;
+use librplus::mesh::io::npz::read_npz;
+use librplus::mesh::io::{self, Unit};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn generate(out: &Path, extra: &[&str]) -> serde_json::Value {
+    let manifest_dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+        .current_dir(&manifest_dir)
+        .args([
+            "generate", "--preset", "small", "--seed", "11", "--json", "--out",
+        ])
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "generate failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+/// Every file under `dir` with its bytes, by relative path.
+fn tree(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    out
+}
+
+fn array<'a>(
+    arrays: &'a [librplus::mesh::io::npz::NpyArray],
+    name: &str,
+) -> &'a librplus::mesh::io::npz::NpyArray {
+    arrays
+        .iter()
+        .find(|a| a.name == name)
+        .unwrap_or_else(|| panic!("npz has no {name}"))
+}
+
+#[test]
+fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b, c) = (
+        tmp.path().join("a"),
+        tmp.path().join("b"),
+        tmp.path().join("c"),
+    );
+    let first = generate(&a, &[]);
+    assert_eq!(first["complete"], true, "{first}");
+    assert_eq!(first["deformations_written"], 3);
+    generate(&b, &[]);
+    let (ta, tb) = (tree(&a), tree(&b));
+    assert_eq!(ta.keys().collect::<Vec<_>>(), tb.keys().collect::<Vec<_>>());
+    for (k, v) in &ta {
+        assert!(v == &tb[k], "{} differs between two runs", k.display());
+    }
+    // Resume: nothing is redone, nothing changes.
+    let again = generate(&a, &[]);
+    assert_eq!(again["deformations_resumed"], 3);
+    assert_eq!(again["deformations_written"], 0);
+    assert!(tree(&a) == ta, "a resumed run changed files");
+    // Shards into one directory, then a final pass, give the same dataset.
+    let s0 = generate(&c, &["--shard", "0/2"]);
+    assert_eq!(s0["complete"], false);
+    generate(&c, &["--shard", "1/2"]);
+    let fin = generate(&c, &[]);
+    assert_eq!(fin["deformations_written"], 0);
+    assert!(tree(&c) == ta, "sharded run differs from a single run");
+    // Another seed gives other data.
+    let manifest_dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+        .current_dir(&manifest_dir)
+        .args([
+            "generate", "--preset", "small", "--seed", "12", "--json", "--out",
+        ])
+        .arg(&a)
+        .output()
+        .unwrap();
+    assert!(
+        !o.status.success(),
+        "mixing seeds in one directory must be refused"
+    );
+    assert!(String::from_utf8_lossy(&o.stderr).contains("other parameters"));
+
+    // Read back with the project's own readers.
+    let m = read_manifest(&a).unwrap();
+    assert_eq!(m.geometries.len(), 2);
+    assert_eq!(m.geometries[1].split, "test");
+    let patterns: Vec<&str> = m.deformations.iter().map(|d| d.pattern.as_str()).collect();
+    assert_eq!(patterns, ["L", "W", "V"]);
+    for g in &m.geometries {
+        let f = io::read(a.join(&g.preop), Unit::Mm).unwrap();
+        assert_eq!((f.nodes.len(), f.tets.len()), (g.nodes, g.tets));
+        let mesh = librplus::mesh::TetMesh::from_file(&f).unwrap();
+        mesh.validate().unwrap();
+        assert!((mesh.volume() / 1000.0 - g.volume_ml).abs() < 1e-6 * g.volume_ml);
+        for name in [
+            "region",
+            "falciform",
+            "inferior_ridge",
+            "bare_area",
+            "target",
+            "tumour",
+        ] {
+            assert!(f.point_array(name).is_some(), "{}: no {name}", g.preop);
+        }
+        assert!(f.cell_data.iter().any(|c| c.name == "youngs_modulus_kpa"));
+        assert!(g.tumours.len() >= 1);
+    }
+    for d in &m.deformations {
+        let gt = io::read(a.join(&d.gt), Unit::Mm).unwrap();
+        let u = &gt.point_array("displacement").unwrap().values;
+        let mean = u
+            .chunks_exact(3)
+            .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+            .sum::<f64>()
+            / (u.len() / 3) as f64;
+        assert!((mean - d.mean_displacement_mm).abs() < 1e-9 * mean);
+        assert!(d.mean_displacement_mm > 3.0, "{}: {mean}", d.id);
+        assert!(d.relative_residual <= 1e-9);
+        let arrays = read_npz(&std::fs::read(a.join(&d.npz)).unwrap()).unwrap();
+        assert_eq!(&array(&arrays, "displacement").data.to_f64(), u);
+        let offsets = array(&arrays, "offsets").data.to_f64();
+        assert_eq!(offsets.len(), d.scenarios.len() + 1);
+        let points = array(&arrays, "points").data.to_f64();
+        for s in &d.scenarios {
+            let f = io::read(a.join(&s.file), Unit::Mm).unwrap();
+            let (lo, hi) = (offsets[s.index] as usize, offsets[s.index + 1] as usize);
+            assert_eq!(f.nodes.len(), hi - lo);
+            assert_eq!(
+                f.nodes.iter().flatten().copied().collect::<Vec<_>>(),
+                points[3 * lo..3 * hi].to_vec()
+            );
+            assert_eq!(
+                f.nodes.len(),
+                s.surface_points + s.contour_points + s.vessel_points
+            );
+            assert!(s.surface_points > 0);
+        }
+        // Categories cycle through all five.
+        let cats: std::collections::BTreeSet<&str> =
+            d.scenarios.iter().map(|s| s.category.as_str()).collect();
+        assert_eq!(cats.len(), 5);
+    }
+
+    // Independent readers (meshio, VTK, numpy) when CI provides them.
+    match std::env::var("LIBRPLUS_CHECK_PYTHON") {
+        Ok(py) => {
+            let script = manifest_dir.join("tests/reference/check_dataset.py");
+            let o = Command::new(py).arg(script).arg(&a).output().unwrap();
+            eprintln!("{}", String::from_utf8_lossy(&o.stdout));
+            assert!(
+                o.status.success(),
+                "check_dataset.py failed: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        Err(_) => eprintln!(
+            "note: LIBRPLUS_CHECK_PYTHON not set; the meshio/VTK/numpy check runs in .ci/run"
+        ),
+    }
+}
