@@ -243,3 +243,123 @@ fn impossible_compression_is_reported_not_returned() {
     assert!(matches!(err, FemError::NotConverged { .. }), "{err}");
     assert!(err.to_string().contains("did not converge"));
 }
+
+/// Unilateral contacts: forces are the energy's gradient and the tangent the forces' derivative
+/// (away from the kink at zero closure), they push only when pressed, and a block pressed onto a
+/// contact bed by a load settles where the analytic penalty gives, while pulled it lifts off freely.
+#[test]
+fn unilateral_contacts_push_but_never_pull() {
+    use librplus::fem::{ContactSpring, NodeSpring};
+    let mesh = box_mesh([2.0, 1.5, 1.0], [3, 2, 2], 0.3);
+    let (l, m) = lame();
+    let mut model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
+    // The z = 0 face rests on a bed below it: outward normal −z.
+    let select = |f: &dyn Fn([f64; 3]) -> bool| -> Vec<u32> {
+        (0..mesh.num_nodes() as u32)
+            .filter(|&n| f(mesh.nodes()[n as usize]))
+            .collect()
+    };
+    let bottom = select(&|p| on(p[2], 0.0));
+    let k = 40.0;
+    let contacts: Vec<ContactSpring> = bottom
+        .iter()
+        .map(|&node| ContactSpring {
+            node,
+            normal: [0.0, 0.0, -2.0],
+            stiffness: k,
+        })
+        .collect();
+    model.add_contacts(&contacts).unwrap();
+    assert!(
+        model
+            .contacts()
+            .iter()
+            .all(|c| c.normal == [0.0, 0.0, -1.0])
+    );
+    // Derivative checks on a field that presses some bottom nodes and lifts others.
+    let mut u = smooth_field(&mesh);
+    for n in 0..mesh.num_nodes() {
+        u[3 * n + 2] -= 0.1;
+    }
+    let active = model.active_contacts(&u);
+    assert!(
+        active > 0 && active < bottom.len(),
+        "{active} of {}",
+        bottom.len()
+    );
+    let mut rng = SplitMix64::new(5);
+    let v: Vec<f64> = (0..u.len()).map(|_| rng.next_f64() - 0.5).collect();
+    let eps = 1e-7;
+    let shifted = |s: f64| -> Vec<f64> { u.iter().zip(&v).map(|(a, b)| a + s * b).collect() };
+    let f = model.internal_force(&u).unwrap();
+    let de = (model.energy(&shifted(eps)).unwrap() - model.energy(&shifted(-eps)).unwrap())
+        / (2.0 * eps);
+    let fv: f64 = f.iter().zip(&v).map(|(a, b)| a * b).sum();
+    assert!((de - fv).abs() <= 1e-6 * fv.abs(), "{de} vs {fv}");
+    let kmat = model
+        .linearized()
+        .pattern()
+        .to_matrix(model.tangent_values(&u).unwrap())
+        .to_dense();
+    let (fp, fm) = (
+        model.internal_force(&shifted(eps)).unwrap(),
+        model.internal_force(&shifted(-eps)).unwrap(),
+    );
+    let err: Vec<f64> = (0..u.len())
+        .map(|i| {
+            let kv: f64 = (0..u.len()).map(|j| kmat[(i, j)] * v[j]).sum();
+            (fp[i] - fm[i]) / (2.0 * eps) - kv
+        })
+        .collect();
+    let scale = norm(
+        &fp.iter()
+            .zip(&fm)
+            .map(|(a, b)| (a - b) / (2.0 * eps))
+            .collect::<Vec<_>>(),
+    );
+    assert!(norm(&err) <= 1e-6 * scale, "{}", norm(&err) / scale);
+    // Pressed down by a uniform load on the top face, the block sinks by F/(k·N) into the bed
+    // (a rigid translation: the bed is the only support but for soft side springs).
+    let top = select(&|p| on(p[2], 1.0));
+    let soft: Vec<NodeSpring> = (0..mesh.num_nodes() as u32)
+        .map(|n| NodeSpring::isotropic(n, 1e-3))
+        .collect();
+    model.add_springs(&soft).unwrap();
+    let mut load = vec![0.0; 3 * mesh.num_nodes()];
+    let per_node = -0.5;
+    for &n in &top {
+        load[3 * n as usize + 2] = per_node;
+    }
+    let total = per_node * top.len() as f64;
+    let bc = Dirichlet::new(mesh.num_nodes());
+    let (u, _) = model.solve(&bc, &load, &NewtonParams::default()).unwrap();
+    assert!(2 * model.active_contacts(&u) >= bottom.len());
+    // The bed's push (k·closure on pressed nodes) and the soft springs balance the load.
+    let bed_force: f64 = model
+        .contacts()
+        .iter()
+        .map(|c| -k * c.closure(&u).max(0.0))
+        .sum();
+    let soft_force: f64 = (0..mesh.num_nodes()).map(|n| 1e-3 * u[3 * n + 2]).sum();
+    assert!(
+        (bed_force + soft_force - total).abs() < 1e-6 * total.abs(),
+        "bed {bed_force} + soft {soft_force} vs load {total}"
+    );
+    let sink = total / (k * bottom.len() as f64);
+    // Pulled up instead, nothing holds it but the soft springs: it lifts F/(1e-3·n) freely.
+    let up: Vec<f64> = load.iter().map(|x| -x).collect();
+    let (u, _) = model.solve(&bc, &up, &NewtonParams::default()).unwrap();
+    assert_eq!(model.active_contacts(&u), 0);
+    let rise: f64 = (0..mesh.num_nodes()).map(|n| u[3 * n + 2]).sum::<f64>();
+    assert!((1e-3 * rise + total).abs() < 1e-6 * total.abs(), "{rise}");
+    // A bilateral stand-in would have held it at −sink instead.
+    assert!(rise / mesh.num_nodes() as f64 > 10.0 * sink.abs());
+    // Bad contacts are refused by name.
+    let bad = ContactSpring {
+        node: 0,
+        normal: [0.0; 3],
+        stiffness: 1.0,
+    };
+    let e = model.add_contacts(&[bad]).unwrap_err().to_string();
+    assert!(e.contains("contacts") && e.contains("normal"), "{e}");
+}

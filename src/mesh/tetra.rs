@@ -858,7 +858,7 @@ fn repair_pinches(mesh: &mut TetMesh) -> Result<PinchRepair, TetraError> {
             changed = true;
         }
         if !changed {
-            let fills = pinch_fills(mesh, &b, &incident, &offsets);
+            let fills = accept_fills(mesh, pinch_fills(mesh, &b, &incident, &offsets));
             done.left = count_pinched_edges(&b) - fills.len();
             done.left_vertices = count_pinched_vertices(&b);
             if fills.is_empty() {
@@ -873,6 +873,48 @@ fn repair_pinches(mesh: &mut TetMesh) -> Result<PinchRepair, TetraError> {
     done.left = count_pinched_edges(&b);
     done.left_vertices = count_pinched_vertices(&b);
     Ok(done)
+}
+
+/// Keeps the closing tetrahedra that fit together: in plan order, a fill is dropped when it repeats
+/// one already kept (two pinched edges of one gap can propose the same tetrahedron) or when one of
+/// its faces would then be shared by more than two tetrahedra.
+fn accept_fills(mesh: &TetMesh, fills: Vec<[u32; 4]>) -> Vec<[u32; 4]> {
+    use std::collections::HashMap;
+    let key = |mut f: [u32; 3]| {
+        f.sort_unstable();
+        f
+    };
+    let faces_of = |t: &[u32; 4]| TET_FACES.map(|f| key([t[f[0]], t[f[1]], t[f[2]]]));
+    let touched: std::collections::HashSet<u32> = fills.iter().flatten().copied().collect();
+    let mut count: HashMap<[u32; 3], usize> = HashMap::new();
+    for t in mesh.tets() {
+        if t.iter().filter(|v| touched.contains(v)).count() >= 3 {
+            for f in faces_of(t) {
+                *count.entry(f).or_default() += 1;
+            }
+        }
+    }
+    let mut kept: Vec<[u32; 4]> = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for t in fills {
+        let mut sorted = t;
+        sorted.sort_unstable();
+        if !seen.insert(sorted) {
+            continue;
+        }
+        let faces = faces_of(&t);
+        if faces
+            .iter()
+            .any(|f| count.get(f).copied().unwrap_or(0) >= 2)
+        {
+            continue;
+        }
+        for f in faces {
+            *count.entry(f).or_default() += 1;
+        }
+        kept.push(t);
+    }
+    kept
 }
 
 /// Boundary vertices whose boundary triangles form more than one fan (their far edges form more
