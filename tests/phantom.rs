@@ -103,16 +103,33 @@ fn vessel_tree_stays_inside_and_stiffens_its_tets() {
         VesselTree::grow(&mesh, &params).unwrap(),
         "deterministic"
     );
-    // A tree: one parent per point but the root, parents before children, radii never grow.
-    assert_eq!(tree.segments.len() + 1, tree.points.len());
-    assert!(tree.segments.len() >= 7, "{} segments", tree.segments.len());
+    // A forest of two trees (portal, hepatic): one parent per point but the two roots, parents
+    // before children, radii never grow below a root's first segment.
+    assert_eq!(tree.segments.len() + 2, tree.points.len());
+    let mut has_parent = vec![false; tree.points.len()];
+    for s in &tree.segments {
+        assert!(!has_parent[s[1] as usize], "point {} has two parents", s[1]);
+        has_parent[s[1] as usize] = true;
+    }
+    let roots: Vec<usize> = (0..tree.points.len()).filter(|&i| !has_parent[i]).collect();
+    assert_eq!(roots.len(), 2);
+    assert_eq!(roots[0], 0);
+    // Portal root inferior, hepatic root superior.
+    assert!(tree.points[roots[0]][2] < tree.points[roots[1]][2]);
+    assert!(tree.segments.len() >= 14, "{} segments", tree.segments.len());
     for s in &tree.segments {
         assert!(s[0] < s[1]);
-        assert!(tree.radii[s[1] as usize] <= tree.radii[s[0] as usize] + 1e-12 || s[0] == 0);
+        assert!(
+            tree.radii[s[1] as usize] <= tree.radii[s[0] as usize] + 1e-12
+                || roots.contains(&(s[0] as usize))
+        );
     }
-    // Every branch end is inside the liver with its radius and margin to spare.
-    let sd = SignedDistance::new(&surface).unwrap();
-    for (p, r) in tree.points.iter().zip(&tree.radii).skip(1) {
+    // Every branch end is inside the liver mesh with its radius and margin to spare.
+    let sd = SignedDistance::new(&mesh.boundary_surface().unwrap()).unwrap();
+    for (i, (p, r)) in tree.points.iter().zip(&tree.radii).enumerate() {
+        if roots.contains(&i) {
+            continue;
+        }
         assert!(
             -sd.eval(*p) >= r + params.margin_mm - 1e-9,
             "point {p:?} too close to the surface"

@@ -34,6 +34,32 @@ enum Command {
     /// Generates a dataset: liver phantoms, ground-truth deformations and sparse scenarios
     /// (format in the README; deterministic for a seed, resumable, shardable).
     Generate(GenerateArgs),
+    /// Liver phantoms: what the ground truth contains that the linear model lacks.
+    #[command(subcommand)]
+    Phantom(PhantomCmd),
+}
+
+#[derive(Subcommand)]
+enum PhantomCmd {
+    /// For each pattern and seed: the gap between the ground truth and the linear homogeneous
+    /// model under the same loads and supports, and what contributes (heterogeneity, nonlinear
+    /// material and geometry, unilateral bed contact; gravity vs the pattern's own load).
+    Effect {
+        /// Closed liver surface (LPS). Default: ../shared/data/sofa_liver.vtk (largest piece).
+        #[arg(long)]
+        surface: Option<PathBuf>,
+        /// Mesher target edge (mm).
+        #[arg(long, default_value_t = 12.0)]
+        edge_mm: f64,
+        /// Seeds: first..=last draws of loads and tissue.
+        #[arg(long, default_value_t = 1)]
+        first_seed: u64,
+        /// Number of seeds.
+        #[arg(long, default_value_t = 10)]
+        seeds: u64,
+        #[command(flatten)]
+        common: Common,
+    },
 }
 
 #[derive(Args)]
@@ -242,6 +268,13 @@ fn run(cli: Cli) -> Result<()> {
             ordering,
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
         Command::Generate(args) => generate(&args),
+        Command::Phantom(PhantomCmd::Effect {
+            surface,
+            edge_mm,
+            first_seed,
+            seeds,
+            common,
+        }) => phantom_effect(surface.as_deref(), edge_mm, first_seed, seeds, &common),
     }
 }
 
@@ -274,6 +307,127 @@ fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
         surface.flip();
     }
     Ok(surface)
+}
+
+fn phantom_effect(
+    surface: Option<&Path>,
+    edge_mm: f64,
+    first_seed: u64,
+    seeds: u64,
+    c: &Common,
+) -> Result<()> {
+    use librplus::fem::hyperelastic::NewtonParams;
+    use librplus::phantom::labels::{LabelParams, label};
+    use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
+    use librplus::phantom::tissue::{Tissue, TissueParams};
+    use librplus::phantom::truth::breakdown;
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    if !(edge_mm.is_finite() && edge_mm > 0.5) || seeds == 0 {
+        bail!("need --edge-mm > 0.5 and --seeds ≥ 1");
+    }
+    let path = surface.map_or_else(
+        || PathBuf::from("../shared/data/sofa_liver.vtk"),
+        Path::to_path_buf,
+    );
+    let s = load_closed_surface(&path, c.unit)?;
+    let mesh = librplus::mesh::tetra::tetrahedralize(
+        &s,
+        &librplus::mesh::tetra::TetraParams::with_edge(edge_mm),
+    )
+    .with_context(|| path.display().to_string())?;
+    let labels = label(&mesh, &LabelParams::default()).map_err(anyhow::Error::msg)?;
+    let tree = VesselTree::grow(&mesh, &VesselParams::default()).map_err(anyhow::Error::msg)?;
+    let tp = TissueParams::default();
+    let pp = PatternParams::default();
+    let bar = indicatif::ProgressBar::new(4 * seeds).with_message("ground truth and breakdowns");
+    let mut rows = Vec::new();
+    for seed in first_seed..first_seed + seeds {
+        let tissue = Tissue::build(&mesh, &tree, &tp, seed).map_err(anyhow::Error::msg)?;
+        let lame = tissue.lame_field();
+        for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+            let case = load_case(&mesh, &labels, pattern, &pp, seed).map_err(anyhow::Error::msg)?;
+            let b = breakdown(
+                &mesh,
+                &lame,
+                &tp.parenchyma,
+                &case,
+                &NewtonParams::default(),
+            );
+            bar.inc(1);
+            match b {
+                Ok(b) => rows.push((pattern, seed, b)),
+                Err(e) => eprintln!("{pattern:?} seed {seed}: did not converge ({e}); skipped"),
+            }
+        }
+    }
+    bar.finish_and_clear();
+    let mut per = serde_json::Map::new();
+    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+        let r: Vec<_> = rows
+            .iter()
+            .filter(|r| r.0 == pattern)
+            .map(|r| &r.2)
+            .collect();
+        if r.is_empty() {
+            continue;
+        }
+        let n = r.len() as f64;
+        let avg = |f: &dyn Fn(&librplus::phantom::truth::Breakdown) -> f64| {
+            r.iter().map(|b| f(b)).sum::<f64>() / n
+        };
+        let gaps: Vec<f64> = r.iter().map(|b| b.gap_mm).collect();
+        per.insert(
+            format!("{pattern:?}"),
+            json!({
+                "draws": r.len(),
+                "mean_displacement_mm": avg(&|b| b.truth_mean_mm),
+                "max_displacement_mm": r.iter().map(|b| b.truth_max_mm).fold(0.0, f64::max),
+                "gap_mm_mean": avg(&|b| b.gap_mm),
+                "gap_mm_min": gaps.iter().copied().fold(f64::INFINITY, f64::min),
+                "gap_mm_max": gaps.iter().copied().fold(0.0, f64::max),
+                "step_heterogeneity_mm": avg(&|b| b.steps[0].mean_mm),
+                "step_nonlinearity_mm": avg(&|b| b.steps[1].mean_mm),
+                "step_unilateral_bed_mm": avg(&|b| b.steps[2].mean_mm),
+                "gap_gravity_only_mm": avg(&|b| b.by_load[0].mean_mm),
+                "gap_pattern_load_only_mm": avg(&|b| b.by_load[1].mean_mm),
+            }),
+        );
+    }
+    let out = json!({
+        "surface": path.display().to_string(),
+        "nodes": mesh.num_nodes(),
+        "seeds": format!("{first_seed}..={}", first_seed + seeds - 1),
+        "per_pattern": Value::Object(per),
+        "draws": rows.iter().map(|(p, s, b)| json!({"pattern": format!("{p:?}"), "seed": s, "breakdown": b})).collect::<Vec<_>>(),
+    });
+    if c.json {
+        println!("{out}");
+    } else {
+        println!(
+            "{} nodes, seeds {}",
+            mesh.num_nodes(),
+            out["seeds"].as_str().unwrap_or("")
+        );
+        println!(
+            "pattern  mean(mm)  gap mean [min, max]   heterog.  nonlin.  unilat.  | gravity-only  pattern-only"
+        );
+        for (p, v) in out["per_pattern"].as_object().into_iter().flatten() {
+            let f = |k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+            println!(
+                "{p:7}  {:8.1}  {:5.2} [{:5.2}, {:5.2}]  {:8.2}  {:7.2}  {:7.2}  | {:12.2}  {:12.2}",
+                f("mean_displacement_mm"),
+                f("gap_mm_mean"),
+                f("gap_mm_min"),
+                f("gap_mm_max"),
+                f("step_heterogeneity_mm"),
+                f("step_nonlinearity_mm"),
+                f("step_unilateral_bed_mm"),
+                f("gap_gravity_only_mm"),
+                f("gap_pattern_load_only_mm"),
+            );
+        }
+    }
+    Ok(())
 }
 
 fn generate(a: &GenerateArgs) -> Result<()> {

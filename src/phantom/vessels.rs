@@ -25,7 +25,7 @@ pub struct VesselParams {
     pub radius_ratio: f64,
     /// Child/parent length ratio. Default 0.8.
     pub length_ratio: f64,
-    /// Branches thinner than this are not grown. Default 1.5.
+    /// Branches thinner than this are not grown. Default 1.
     pub min_radius_mm: f64,
     /// Half-angle between the two children (degrees). Default 35.
     pub branch_angle_deg: f64,
@@ -35,6 +35,9 @@ pub struct VesselParams {
     pub margin_mm: f64,
     /// Young's modulus multiplier inside vessels (3–10 for vessels/tumours). Default 5.
     pub stiffness_factor: f64,
+    /// Also grow a hepatic-vein tree from the posterior-superior liver (near the vena cava).
+    /// Default true.
+    pub hepatic_tree: bool,
     /// Seed.
     pub seed: u64,
 }
@@ -46,18 +49,20 @@ impl Default for VesselParams {
             root_length_mm: 35.0,
             radius_ratio: 0.8,
             length_ratio: 0.8,
-            min_radius_mm: 1.5,
+            min_radius_mm: 1.0,
             branch_angle_deg: 35.0,
             jitter_deg: 15.0,
             margin_mm: 2.0,
             stiffness_factor: 5.0,
+            hepatic_tree: true,
             seed: 0,
         }
     }
 }
 
-/// Vessel centerlines: points with radii, joined by segments `[parent, child]` forming a tree
-/// rooted at point 0.
+/// Vessel centerlines: points with radii, joined by segments `[parent, child]`; a forest whose roots
+/// (points no segment ends at) are the portal hilum (point 0) and, with `hepatic_tree`, the
+/// hepatic-vein root.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct VesselTree {
     /// Centerline points (mm).
@@ -134,70 +139,90 @@ impl VesselTree {
         let sd = SignedDistance::new(&surface)?;
         let (lo, hi) = mesh.bounding_box();
         let centre = [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k]));
-        // Hilum: the deepest node in the posterior (y > centre) and inferior (z < centre) quarter.
         let depth = |p: [f64; 3]| -sd.eval(p);
-        let root = mesh
-            .nodes()
-            .iter()
-            .filter(|p| p[1] > centre[1] && p[2] < centre[2])
-            .map(|&p| (depth(p), p))
-            .max_by(|a, b| a.0.total_cmp(&b.0))
-            .or_else(|| {
-                mesh.nodes()
-                    .iter()
-                    .map(|&p| (depth(p), p))
-                    .max_by(|a, b| a.0.total_cmp(&b.0))
-            })
-            .ok_or("mesh has no nodes")?;
+        // The deepest node in a quarter of the liver (the whole liver if the quarter is empty).
+        let deepest = |keep: &dyn Fn(&[f64; 3]) -> bool| {
+            mesh.nodes()
+                .iter()
+                .filter(|p| keep(p))
+                .map(|&p| (depth(p), p))
+                .max_by(|a, b| a.0.total_cmp(&b.0))
+                .or_else(|| {
+                    mesh.nodes()
+                        .iter()
+                        .map(|&p| (depth(p), p))
+                        .max_by(|a, b| a.0.total_cmp(&b.0))
+                })
+        };
+        // Portal tree from the hilum (posterior-inferior quarter); hepatic-vein tree from near the
+        // vena cava (posterior-superior quarter), both heading for the liver's centre.
+        let mut roots =
+            vec![deepest(&|p| p[1] > centre[1] && p[2] < centre[2]).ok_or("mesh has no nodes")?];
+        if params.hepatic_tree {
+            roots.push(
+                deepest(&|p| p[1] > centre[1] && p[2] > centre[2]).ok_or("mesh has no nodes")?,
+            );
+        }
         let mut rng = SplitMix64::new(params.seed ^ 0x0E55_E150_0000_0001);
         let mut tree = VesselTree {
-            points: vec![root.1],
-            radii: vec![params.root_radius_mm.min(0.5 * root.0.max(0.0))],
+            points: Vec::new(),
+            radii: Vec::new(),
             segments: Vec::new(),
         };
-        // Main direction: from the hilum toward the liver's centre, anteriorly and superiorly.
-        let first = normalize(sub(centre, root.1));
-        let mut stack = vec![(0u32, first, params.root_length_mm, params.root_radius_mm)];
         let jitter = params.jitter_deg.to_radians();
         let branch = params.branch_angle_deg.to_radians();
-        while let Some((parent, dir, length, radius)) = stack.pop() {
-            if radius < params.min_radius_mm || tree.points.len() > 4096 {
-                continue;
-            }
-            // Of a few random deviations, take the one that ends deepest inside the liver (the
-            // root may turn further, to find its way from the hilum into the parenchyma).
-            let start = tree.points[parent as usize];
-            let spread = if parent == 0 && tree.segments.is_empty() {
-                4.0 * jitter
+        for (k, root) in roots.into_iter().enumerate() {
+            let root_index = tree.points.len() as u32;
+            tree.points.push(root.1);
+            tree.radii
+                .push(params.root_radius_mm.min(0.5 * root.0.max(0.0)));
+            let first = normalize(sub(centre, root.1));
+            let radius0 = if k == 0 {
+                params.root_radius_mm
             } else {
-                jitter
+                params.root_radius_mm * params.radius_ratio
             };
-            // A branch that does not fit at full length is tried shorter.
-            let (end_depth, d, end, length) = [1.0, 0.7, 0.5]
-                .iter()
-                .flat_map(|f| {
-                    let len = length * f;
-                    (0..8)
-                        .map(|_| {
-                            let d = deviate(dir, spread * rng.next_f64(), &mut rng);
-                            let end = [0, 1, 2].map(|k| start[k] + len * d[k]);
-                            (depth(end), d, end, len)
-                        })
-                        .collect::<Vec<_>>()
-                })
-                .find(|c| c.0 >= radius + params.margin_mm)
-                .unwrap_or((f64::NEG_INFINITY, dir, start, length));
-            if end_depth < radius + params.margin_mm {
-                continue;
-            }
-            tree.points.push(end);
-            tree.radii.push(radius);
-            let child = (tree.points.len() - 1) as u32;
-            tree.segments.push([parent, child]);
-            let (r2, l2) = (radius * params.radius_ratio, length * params.length_ratio);
-            for sign in [1.0, -1.0] {
-                let a = sign * branch * (0.7 + 0.6 * rng.next_f64());
-                stack.push((child, deviate(d, a.abs(), &mut rng), l2, r2));
+            let mut stack = vec![(root_index, first, params.root_length_mm, radius0)];
+            let root_segments = tree.segments.len();
+            while let Some((parent, dir, length, radius)) = stack.pop() {
+                if radius < params.min_radius_mm || tree.points.len() > 4096 {
+                    continue;
+                }
+                // Of a few random deviations, take the one that ends deepest inside the liver (the
+                // root may turn further, to find its way from the hilum into the parenchyma).
+                let start = tree.points[parent as usize];
+                let spread = if parent == root_index && tree.segments.len() == root_segments {
+                    4.0 * jitter
+                } else {
+                    jitter
+                };
+                // A branch that does not fit at full length is tried shorter.
+                let (end_depth, d, end, length) = [1.0, 0.7, 0.5]
+                    .iter()
+                    .flat_map(|f| {
+                        let len = length * f;
+                        (0..8)
+                            .map(|_| {
+                                let d = deviate(dir, spread * rng.next_f64(), &mut rng);
+                                let end = [0, 1, 2].map(|k| start[k] + len * d[k]);
+                                (depth(end), d, end, len)
+                            })
+                            .collect::<Vec<_>>()
+                    })
+                    .find(|c| c.0 >= radius + params.margin_mm)
+                    .unwrap_or((f64::NEG_INFINITY, dir, start, length));
+                if end_depth < radius + params.margin_mm {
+                    continue;
+                }
+                tree.points.push(end);
+                tree.radii.push(radius);
+                let child = (tree.points.len() - 1) as u32;
+                tree.segments.push([parent, child]);
+                let (r2, l2) = (radius * params.radius_ratio, length * params.length_ratio);
+                for sign in [1.0, -1.0] {
+                    let a = sign * branch * (0.7 + 0.6 * rng.next_f64());
+                    stack.push((child, deviate(d, a.abs(), &mut rng), l2, r2));
+                }
             }
         }
         Ok(tree)
