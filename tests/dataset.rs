@@ -126,7 +126,7 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
             assert!(f.point_array(name).is_some(), "{}: no {name}", g.preop);
         }
         assert!(f.cell_data.iter().any(|c| c.name == "youngs_modulus_kpa"));
-        assert!(g.tumours.len() >= 1);
+        assert!(!g.tumours.is_empty());
     }
     for d in &m.deformations {
         let gt = io::read(a.join(&d.gt), Unit::Mm).unwrap();

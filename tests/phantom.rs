@@ -116,7 +116,11 @@ fn vessel_tree_stays_inside_and_stiffens_its_tets() {
     assert_eq!(roots[0], 0);
     // Portal root inferior, hepatic root superior.
     assert!(tree.points[roots[0]][2] < tree.points[roots[1]][2]);
-    assert!(tree.segments.len() >= 14, "{} segments", tree.segments.len());
+    assert!(
+        tree.segments.len() >= 14,
+        "{} segments",
+        tree.segments.len()
+    );
     for s in &tree.segments {
         assert!(s[0] < s[1]);
         assert!(
@@ -286,4 +290,72 @@ fn ground_truth_timing_on_a_9k_node_liver() {
             );
         }
     }
+}
+
+/// The tissue field: tumours inside with their margin and stiffer by their factor, vessels by theirs,
+/// the parenchyma's ln E with the requested spread around ln E₀, deterministic for a seed; and the
+/// tilted gravity keeps its magnitude and points where the tilt says.
+#[test]
+fn tissue_field_and_tilted_gravity() {
+    use librplus::mesh::spatial::SignedDistance;
+    use librplus::phantom::patterns::tilted_gravity;
+    use librplus::phantom::tissue::{Tissue, TissueKind, TissueParams};
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    let surface = liver_surface();
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(8.0)).unwrap();
+    let tree = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
+    let tp = TissueParams::default();
+    let sd = SignedDistance::new(&mesh.boundary_surface().unwrap()).unwrap();
+    let mut log_dev = Vec::new();
+    for seed in [1, 2, 3] {
+        let t = Tissue::build(&mesh, &tree, &tp, seed).unwrap();
+        assert_eq!(t, Tissue::build(&mesh, &tree, &tp, seed).unwrap());
+        assert!((tp.tumours[0]..=tp.tumours[1]).contains(&t.tumours.len()));
+        assert!((tp.vessel_factor[0]..=tp.vessel_factor[1]).contains(&t.vessel_factor));
+        for tm in &t.tumours {
+            assert!(-sd.eval(tm.center) >= tm.radius + tp.margin_mm - 1e-9);
+            assert!((tp.tumour_factor[0]..=tp.tumour_factor[1]).contains(&tm.factor));
+        }
+        let f = t.volume_fractions(&mesh);
+        assert!((f.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        assert!(f[1] > 0.001 && f[2] > 0.0005, "{f:?}");
+        // Tumour tets are stiffer than the parenchyma around them by about their factor.
+        let e0 = tp.parenchyma.youngs_modulus_kpa;
+        for (k, e) in t.kind.iter().zip(&t.youngs_kpa) {
+            if *k == TissueKind::Parenchyma {
+                log_dev.push((e / e0).ln());
+            }
+        }
+        let hard: f64 = t
+            .kind
+            .iter()
+            .zip(&t.youngs_kpa)
+            .filter(|(k, _)| **k == TissueKind::Tumour)
+            .map(|(_, e)| (e / e0).ln())
+            .sum::<f64>()
+            / t.kind.iter().filter(|k| **k == TissueKind::Tumour).count() as f64;
+        let lo = tp.tumour_factor[0].ln() - 3.0 * tp.parenchyma_log_std;
+        assert!(hard > lo, "mean ln(E/E0) in tumours {hard}");
+    }
+    // Over three seeds, ln(E/E₀) in the parenchyma has mean ≈ 0 and std ≈ σ (a smooth field over
+    // a few correlation lengths: loose bounds).
+    let n = log_dev.len() as f64;
+    let mean = log_dev.iter().sum::<f64>() / n;
+    let std = (log_dev.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n).sqrt();
+    eprintln!(
+        "parenchyma ln(E/E0): mean {mean:.3}, std {std:.3} (σ = {})",
+        tp.parenchyma_log_std
+    );
+    assert!(mean.abs() < 0.15, "{mean}");
+    assert!(
+        (0.5 * tp.parenchyma_log_std..1.5 * tp.parenchyma_log_std).contains(&std),
+        "{std}"
+    );
+    // Tilted gravity: magnitude kept; level and supine it is +y; head-up adds −z; lateral adds x.
+    let g = 0.0104;
+    assert_eq!(tilted_gravity(g, 0.0, 0.0), [0.0, g, 0.0]);
+    let t = tilted_gravity(g, 30.0, 10.0);
+    assert!(((t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt() - g).abs() < 1e-15);
+    assert!((t[2] + g * 0.5).abs() < 1e-15 && t[0] > 0.0);
+    assert!(tilted_gravity(g, 0.0, -10.0)[0] < 0.0);
 }
