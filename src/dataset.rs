@@ -14,7 +14,8 @@
 //! deformations/<d>/gt.vtu                ground truth: the preop mesh with point array displacement
 //! deformations/<d>/scenarios/<k>.vtp     one scenario's measured points (physical frame) with point
 //!                                        data kind (0 surface, 1 posterior contour, 2 vessel),
-//!                                        plane (−1 for surface points), truth_image (evaluation only)
+//!                                        plane (−1 for surface points), feature (0 none,
+//!                                        1 falciform, 2 inferior ridge), truth_image (evaluation only)
 //! deformations/<d>/scenarios.npz         every scenario of the deformation plus the mesh and the
 //!                                        ground truth, for numpy (see the README for the arrays)
 //! deformations/<d>/deformation.json      the deformation's manifest entry (written last: marks it
@@ -162,6 +163,8 @@ pub struct ScenarioEntry {
     pub contour_points: usize,
     /// Vessel-feature points.
     pub vessel_points: usize,
+    /// Surface points designated on a salient feature (falciform ligament, inferior ridge).
+    pub feature_points: usize,
     /// Misalignment rotation (degrees).
     pub misalignment_deg: f64,
 }

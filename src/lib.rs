@@ -11,4 +11,5 @@ pub mod dataset;
 pub mod fem;
 pub mod mesh;
 pub mod phantom;
+pub mod register;
 pub mod util;

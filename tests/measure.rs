@@ -854,3 +854,62 @@ fn categories_determinism_and_errors() {
             .all(|&v| bare.region[v as usize] == Region::Anterior)
     );
 }
+
+/// Salient-feature designations: a surface point is tagged falciform (1) or ridge (2) exactly when
+/// its noise-free position is within the radius of a labelled deformed node of that feature (the
+/// nearer feature winning), ultrasound points never are, and broad coverage tags some of each.
+#[test]
+fn salient_feature_designations_follow_the_labels() {
+    let l = liver();
+    let def = deformed(l, &l.u);
+    let set = |flags: &[bool]| -> Vec<[f64; 3]> {
+        (0..flags.len())
+            .filter(|&i| flags[i])
+            .map(|i| def[i])
+            .collect()
+    };
+    let (falc, ridge) = (set(&l.labels.falciform), set(&l.labels.inferior_ridge));
+    let near = |s: &[[f64; 3]], p: [f64; 3]| {
+        s.iter()
+            .map(|&q| norm(sub(p, q)))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let params = MeasureParams {
+        coverage: [0.6, 0.6],
+        ..noise_free()
+    };
+    let (mut tagged, mut kinds) = (0, [0usize; 3]);
+    for seed in 1..=6u64 {
+        let sc = simulate(
+            &l.mesh,
+            &l.labels,
+            &l.vessels,
+            &l.u,
+            Category::Planes3,
+            &params,
+            seed,
+        )
+        .unwrap();
+        assert_eq!(sc.feature.len(), sc.points.len());
+        for (i, &f) in sc.feature.iter().enumerate() {
+            if sc.kind[i] != PointKind::Surface {
+                assert_eq!(f, 0);
+                continue;
+            }
+            let p = sc.truth_image[i];
+            let (df, dr) = (near(&falc, p), near(&ridge, p));
+            let expect = if df.min(dr) > params.feature_radius_mm {
+                0
+            } else if df <= dr {
+                1
+            } else {
+                2
+            };
+            assert_eq!(f, expect, "point {i} of seed {seed}: {df} / {dr}");
+            kinds[f as usize] += 1;
+            tagged += (f > 0) as usize;
+        }
+    }
+    eprintln!("feature designations over 6 scenarios: {kinds:?}");
+    assert!(kinds[1] > 0 && kinds[2] > 0 && tagged < kinds[0]);
+}

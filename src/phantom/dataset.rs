@@ -352,6 +352,7 @@ fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Ve
     let mut plane_offsets = vec![0i64];
     let (mut points, mut truth) = (Vec::with_capacity(total), Vec::with_capacity(total));
     let (mut kind, mut plane) = (Vec::with_capacity(total), Vec::with_capacity(total));
+    let mut feature = Vec::with_capacity(total);
     let mut plane_data: [Vec<[f64; 3]>; 4] = Default::default();
     let (mut t_true, mut t_init) = (Vec::new(), Vec::new());
     let (mut lm_nodes, mut lm_img, mut lm_phys) = (Vec::new(), Vec::new(), Vec::new());
@@ -360,6 +361,7 @@ fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Ve
         truth.extend_from_slice(&c.truth_image);
         kind.extend(c.kind.iter().map(|&k| k as u8));
         plane.extend_from_slice(&c.plane);
+        feature.extend_from_slice(&c.feature);
         offsets.push(points.len() as i64);
         for p in &c.planes {
             plane_data[0].push(p.origin);
@@ -387,6 +389,7 @@ fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Ve
         NpyArray::points("points", &points),
         NpyArray::new("kind", &[total], NpyData::U8(kind))?,
         NpyArray::new("plane", &[total], NpyData::I32(plane))?,
+        NpyArray::new("feature", &[total], NpyData::U8(feature))?,
         NpyArray::points("truth_image", &truth),
         NpyArray::new("offsets", &[s + 1], NpyData::I64(offsets))?,
         NpyArray::new(
@@ -662,6 +665,7 @@ fn make_deformation(
                 point_data: vec![
                     DataArray::new("kind", 1, c.kind.iter().map(|&k| k as u8 as f64).collect()),
                     DataArray::new("plane", 1, c.plane.iter().map(|&p| p as f64).collect()),
+                    DataArray::new("feature", 1, c.feature.iter().map(|&f| f as f64).collect()),
                     DataArray::new(
                         "truth_image",
                         3,
@@ -680,6 +684,7 @@ fn make_deformation(
                 surface_points: c.count(PointKind::Surface),
                 contour_points: c.count(PointKind::PosteriorContour),
                 vessel_points: c.count(PointKind::Vessel),
+                feature_points: c.feature.iter().filter(|&&f| f > 0).count(),
                 misalignment_deg: c.image_to_physical.rotation_angle_deg(),
             });
         }

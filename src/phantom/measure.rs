@@ -12,7 +12,10 @@
 //!   exhausted it jumps to the nearest unvisited anterior triangle) until its area reaches the
 //!   drawn coverage × the anterior area. Points are dart-thrown on it: area-weighted random
 //!   candidates (10 per `spacing²` of patch area) are kept when no kept point is nearer than
-//!   `surface_spacing_mm`. Isotropic Gaussian noise follows.
+//!   `surface_spacing_mm`. Isotropic Gaussian noise follows. A surface point whose noise-free
+//!   position is within `feature_radius_mm` of a (deformed) falciform or inferior-ridge node is
+//!   designated on that salient feature, the nearer one winning (surgeons trace them separately for
+//!   weighted ICP).
 //! - **Ultrasound planes**: probe contacts are anterior nodes spread by farthest-point sampling from a
 //!   random start (nodes inside the anterior region are preferred over nodes on its border). The
 //!   beam points along the inward vertex normal (`depth_dir`), the lateral direction is random in the
@@ -133,6 +136,9 @@ pub struct MeasureParams {
     pub landmarks: usize,
     /// Standard deviation of the landmark noise per axis. Default 4.
     pub landmark_noise_mm: f64,
+    /// A surface point within this distance of a falciform or inferior-ridge node is designated
+    /// as on that salient feature (as a surgeon traces them separately). Default 5.
+    pub feature_radius_mm: f64,
 }
 
 impl Default for MeasureParams {
@@ -149,6 +155,7 @@ impl Default for MeasureParams {
             max_translation_mm: 20.0,
             landmarks: 4,
             landmark_noise_mm: 4.0,
+            feature_radius_mm: 5.0,
         }
     }
 }
@@ -177,6 +184,7 @@ impl MeasureParams {
             ("us_noise_mm", self.us_noise_mm),
             ("max_translation_mm", self.max_translation_mm),
             ("landmark_noise_mm", self.landmark_noise_mm),
+            ("feature_radius_mm", self.feature_radius_mm),
         ];
         for (name, v) in non_negative {
             if !(v >= 0.0 && v.is_finite()) {
@@ -254,6 +262,9 @@ pub struct Scenario {
     pub kind: Vec<PointKind>,
     /// Ultrasound plane of each point, −1 for surface points.
     pub plane: Vec<i32>,
+    /// Salient feature a surface point was designated on: 0 none, 1 falciform ligament,
+    /// 2 inferior ridge (ultrasound points: 0).
+    pub feature: Vec<u8>,
     /// The ultrasound planes (physical frame).
     pub planes: Vec<UsPlane>,
     /// Noise-free position of each point in the deformed image frame (evaluation only).
@@ -426,6 +437,33 @@ pub fn simulate(
         &mut rng,
     );
 
+    // Salient features: the nearest labelled falciform / ridge node within the radius.
+    let falciform: Vec<[f64; 3]> = (0..n)
+        .filter(|&i| labels.falciform[i])
+        .map(|i| deformed[i])
+        .collect();
+    let ridge: Vec<[f64; 3]> = (0..n)
+        .filter(|&i| labels.inferior_ridge[i])
+        .map(|i| deformed[i])
+        .collect();
+    let nearest = |set: &[[f64; 3]], p: [f64; 3]| {
+        set.iter()
+            .map(|&q| norm(sub(p, q)))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut feature: Vec<u8> = surface
+        .iter()
+        .map(|&p| {
+            let (df, dr) = (nearest(&falciform, p), nearest(&ridge, p));
+            if df.min(dr) > params.feature_radius_mm {
+                0
+            } else if df <= dr {
+                1
+            } else {
+                2
+            }
+        })
+        .collect();
     let mut truth = surface.clone();
     let mut kind = vec![PointKind::Surface; surface.len()];
     let mut plane_of = vec![-1i32; surface.len()];
@@ -480,6 +518,7 @@ pub fn simulate(
                     PointKind::Vessel
                 });
                 plane_of.push(j as i32);
+                feature.push(0);
                 let e = add(
                     scale(pl.depth_dir, params.us_noise_mm * noise_rng.normal()),
                     scale(pl.lateral_dir, params.us_noise_mm * noise_rng.normal()),
@@ -536,6 +575,7 @@ pub fn simulate(
         points: noisy.iter().map(|&p| tf.apply(p)).collect(),
         kind,
         plane: plane_of,
+        feature,
         planes: planes_image.iter().map(|p| p.transformed(&tf)).collect(),
         truth_image: truth,
         image_to_physical: tf,

@@ -105,6 +105,11 @@ def main(root):
                 fail(f"{s['file']}: point kinds {counts} differ from the manifest")
             if not np.array_equal(varrays["kind"], kind):
                 fail(f"{s['file']}: kind differs from the npz")
+            feat = z["feature"][sl]
+            if not np.array_equal(varrays["feature"], feat) or int((feat > 0).sum()) != s["feature_points"]:
+                fail(f"{s['file']}: feature differs from the npz or the manifest")
+            if (feat[kind != 0] != 0).any():
+                fail(f"{s['file']}: an ultrasound point is designated on a surface feature")
             t = z["image_to_physical"][k]
             r = t[:3, :3]
             if np.abs(r @ r.T - np.eye(3)).max() > 1e-9 or abs(np.linalg.det(r) - 1) > 1e-9:
