@@ -71,3 +71,35 @@ pub struct Measurements {
     /// The navigation system's coarse initial alignment, image → physical.
     pub initial_alignment: Option<Rigid>,
 }
+
+/// A measured point matched to the model: the model point it corresponds to is
+/// `anchor + Σ_k bary[k] · u[nodes[k]]` for node displacements `u` (image frame) — linear in `u`,
+/// which is what LIBR's least squares needs. Surface and contour matches interpolate a boundary
+/// triangle (`bary[3] = 0`, `nodes[3] = nodes[0]`); vessel matches interpolate the tet containing
+/// the centreline point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Match {
+    /// Index of the measured point.
+    pub point: usize,
+    /// Position of the matched model point on the undeformed model (image frame, mm).
+    pub anchor: [f64; 3],
+    /// Nodes whose displacements move the matched point.
+    pub nodes: [u32; 4],
+    /// Interpolation weights of those nodes (sum 1).
+    pub bary: [f64; 4],
+    /// Weight of the pair in the misfit (kind weight × feature weight × robust weight).
+    pub weight: f64,
+}
+
+impl Match {
+    /// The matched model point under node displacements `u` (node-major, 3n).
+    pub fn model_point(&self, u: &[f64]) -> [f64; 3] {
+        let mut p = self.anchor;
+        for (k, &n) in self.nodes.iter().enumerate() {
+            for a in 0..3 {
+                p[a] += self.bary[k] * u[3 * n as usize + a];
+            }
+        }
+        p
+    }
+}
