@@ -51,8 +51,9 @@ use crate::fem::{Dirichlet, LinearMaterial, StiffnessSystem, loads};
 use crate::mesh::TetMesh;
 use crate::mesh::io::npz::{NpyArray, NpyData, read_npz, write_npz};
 use crate::mesh::rigid::Rigid;
+use faer::linalg::matmul::triangular::{BlockStructure, matmul as tri_matmul};
 use faer::linalg::solvers::Solve;
-use faer::{Mat, Side};
+use faer::{Accum, Mat, Side};
 use nalgebra::{Matrix6, Vector6};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -888,7 +889,8 @@ pub fn fit_step(
         .max(1.0);
     // Weighted rows: J (3N × p) and r = y − a (3N), scaled by √(w/W).
     let rows = 3 * used.len();
-    let mut jac = Mat::<f64>::zeros(rows, p);
+    // Stored transposed (p × 3N, column-major) so each row of J is contiguous.
+    let mut jt = Mat::<f64>::zeros(p, rows);
     let mut rhs = Mat::<f64>::zeros(rows, 1);
     let mut before = 0.0;
     for (i, mt) in used.iter().enumerate() {
@@ -896,7 +898,11 @@ pub fn fit_step(
         let y = targets_image[mt.point];
         for a in 0..3 {
             let row = 3 * i + a;
-            let mut dst = jac.as_mut().row_mut(row);
+            let dst = jt
+                .col_mut(row)
+                .try_as_col_major_mut()
+                .expect("a column of a column-major matrix is contiguous")
+                .as_slice_mut();
             for (k, &v) in mt.nodes.iter().enumerate() {
                 let b = mt.bary[k];
                 if b == 0.0 {
@@ -920,14 +926,26 @@ pub fn fit_step(
     }
     let rows_s = crate::util::secs(t0);
     let t1 = Instant::now();
-    let mut a = jac.transpose() * &jac;
-    let mut b = jac.transpose() * &rhs;
+    // Lower triangle of JᵀJ only (what the Cholesky factorization reads).
+    let mut a = Mat::<f64>::zeros(p, p);
+    tri_matmul(
+        a.as_mut(),
+        BlockStructure::TriangularLower,
+        Accum::Replace,
+        jt.as_ref(),
+        BlockStructure::Rectangular,
+        jt.transpose(),
+        BlockStructure::Rectangular,
+        1.0,
+        faer::get_global_parallelism(),
+    );
+    let mut b = &jt * &rhs;
     let rhs0 = rhs;
     let escale = basis.energy_scale();
     if lambda > 0.0 {
         let f = lambda / escale;
         for i in 0..m {
-            for j in 0..m {
+            for j in 0..=i {
                 a[(i, j)] += f * basis.energy[i * m + j];
             }
         }
@@ -944,7 +962,7 @@ pub fn fit_step(
     if !(0..p).all(|i| b[(i, 0)].is_finite()) {
         return Err("the step produced non-finite values (ill-conditioned data)".into());
     }
-    let lin = &jac * &b - &rhs0;
+    let lin = jt.transpose() * &b - &rhs0;
     let linear_rms_mm = (0..rows).map(|i| lin[(i, 0)].powi(2)).sum::<f64>().sqrt();
     let alpha: Vec<f64> = (0..m).map(|i| b[(i, 0)]).collect();
     let omega = [0, 1, 2].map(|k| b[(m + k, 0)] / radius);
