@@ -12,6 +12,8 @@
 //! A registration returns `image_to_physical` (rigid) and node displacements `u` in the image frame,
 //! so the intraoperative position of node i is `image_to_physical.apply(X_i + u_i)`.
 
+pub mod libr;
+
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 
