@@ -233,6 +233,23 @@ fn noisy_scenarios_have_small_target_registration_error() {
         assert!(mean < 0.5 * mean0, "TRE {mean} mm vs start {mean0} mm");
         // Noise of 1 mm (surface) and 0.5 mm in-plane (ultrasound): the residual is noise-sized.
         assert!(r.rms_mm < 1.5, "rms {}", r.rms_mm);
+        // The reported rms and counts belong to the returned transform.
+        let image: Vec<[f64; 3]> = s
+            .points
+            .iter()
+            .map(|&p| r.image_to_physical.inverse().apply(p))
+            .collect();
+        let (_, again) = liver()
+            .corr
+            .match_points(
+                &image,
+                &measurements(&s),
+                None,
+                &CorrespondenceParams::default(),
+            )
+            .unwrap();
+        assert!((again.rms_mm - r.rms_mm).abs() < 1e-9);
+        assert_eq!((again.kept, again.trimmed), (r.matched, r.trimmed));
         worst = worst.max(mean);
     }
     eprintln!("worst TRE {worst:.2} mm");

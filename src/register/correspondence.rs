@@ -619,7 +619,7 @@ fn triangle_barycentric(q: [f64; 3], p: [[f64; 3]; 3]) -> [f64; 3] {
     let n = cross(e1, e2);
     let nn = dot(n, n);
     let scale2 = dot(e1, e1).max(dot(e2, e2));
-    if !(nn > 1e-24 * scale2 * scale2) {
+    if nn.is_nan() || nn <= 1e-24 * scale2 * scale2 {
         let k = (0..3)
             .min_by(|&a, &b| norm(sub(q, p[a])).total_cmp(&norm(sub(q, p[b]))))
             .unwrap_or(0);

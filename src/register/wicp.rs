@@ -256,7 +256,7 @@ pub fn degenerate_points(points: &[[f64; 3]]) -> Option<String> {
     let e = cov.symmetric_eigenvalues();
     let mut ev = [e[0], e[1], e[2]];
     ev.sort_by(|a, b| b.total_cmp(a));
-    if !(ev[0].is_finite()) || ev[0].max(0.0).sqrt() < SPOT_MM {
+    if !ev[0].is_finite() || ev[0].max(0.0).sqrt() < SPOT_MM {
         return Some(format!(
             "all {} points on one spot (spread {:.1e} mm): the rotation is undetermined",
             points.len(),
