@@ -434,13 +434,11 @@ fn designated_feature_points_get_the_feature_weight_and_region() {
     let meas = measurements(&s);
     let designated = s.feature.iter().filter(|&&f| f > 0).count();
     assert!(designated > 0, "the scenario has no designated point");
-    let params = CorrespondenceParams::default();
     let image: Vec<[f64; 3]> = s
         .points
         .iter()
         .map(|&p| s.image_to_physical.inverse().apply(p))
         .collect();
-    let (m, _) = l.corr.match_points(&image, &meas, None, &params).unwrap();
     let feature_nodes = [&l.labels.falciform, &l.labels.inferior_ridge].map(|f| {
         (0..f.len())
             .filter(|&i| f[i])
@@ -448,22 +446,31 @@ fn designated_feature_points_get_the_feature_weight_and_region() {
             .collect::<Vec<_>>()
     });
     let mut checked = 0;
-    for mm in &m {
-        let f = s.feature[mm.point];
-        if f == 0 {
-            assert_eq!(mm.weight, params.surface_weight);
-            continue;
+    // The prebuilt neighbourhood (15 mm) and one rebuilt on demand (0: triangles touching the
+    // feature itself).
+    for radius in [15.0, 0.0] {
+        let params = CorrespondenceParams {
+            feature_neighbourhood_mm: radius,
+            ..Default::default()
+        };
+        let (m, _) = l.corr.match_points(&image, &meas, None, &params).unwrap();
+        for mm in &m {
+            let f = s.feature[mm.point];
+            if f == 0 {
+                assert_eq!(mm.weight, params.surface_weight);
+                continue;
+            }
+            assert_eq!(mm.weight, params.surface_weight * params.feature_weight);
+            // The matched triangle has a node near the designated feature.
+            let near = (0..3).any(|k| {
+                let x = l.mesh.nodes()[mm.nodes[k] as usize];
+                feature_nodes[f as usize - 1]
+                    .iter()
+                    .any(|&q| norm(sub(x, q)) <= params.feature_neighbourhood_mm + 1e-9)
+            });
+            assert!(near, "point {} matched away from feature {f}", mm.point);
+            checked += 1;
         }
-        assert_eq!(mm.weight, params.surface_weight * params.feature_weight);
-        // The matched triangle has a node near the designated feature.
-        let near = (0..3).any(|k| {
-            let x = l.mesh.nodes()[mm.nodes[k] as usize];
-            feature_nodes[f as usize - 1]
-                .iter()
-                .any(|&q| norm(sub(x, q)) <= params.feature_neighbourhood_mm + 1e-9)
-        });
-        assert!(near, "point {} matched away from feature {f}", mm.point);
-        checked += 1;
     }
     eprintln!("{designated} designated points, {checked} matched on their feature");
     assert!(checked > 0);

@@ -398,8 +398,10 @@ impl Correspondence {
                 _ => None,
             }
         };
+        let need_feature = |f: usize| (0..meas.points.len()).any(|i| designated(i) == Some(f));
+        // A neighbourhood radius other than the prebuilt one: rebuilt for this call.
         let feature_sets: [Option<TargetSet>; 2] = [0, 1].map(|f| {
-            if (params.feature_neighbourhood_mm - self.feature_radius).abs() > 0.0 {
+            if need_feature(f) && params.feature_neighbourhood_mm != self.feature_radius {
                 let tris = feature_set(
                     &self.tris,
                     &self.anterior.tris,
@@ -413,7 +415,6 @@ impl Correspondence {
         });
         let feature_target = |f: usize| feature_sets[f].as_ref().unwrap_or(&self.features[f]);
         let need = |k: MeasuredKind| meas.kind.contains(&k);
-        let need_feature = |f: usize| (0..meas.points.len()).any(|i| designated(i) == Some(f));
         // Hierarchies on the deformed geometry (the undeformed ones are prebuilt).
         let rebuild = |set: &TargetSet, needed: bool| -> Option<TriangleBvh> {
             if !needed || deformed.is_none() {
