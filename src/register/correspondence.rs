@@ -1,0 +1,732 @@
+//! Correspondence: which model point each measured point corresponds to.
+//!
+//! [`Correspondence`] is built once per [`PreopModel`]. It holds the model's boundary triangles
+//! (outward) split into target sets, each with a closest-point hierarchy ([`TriangleBvh`]):
+//!
+//! - **anterior** triangles (all three nodes anterior; the whole boundary when there are none):
+//!   targets of anterior-surface points;
+//! - **posterior** triangles (all three nodes posterior; the whole boundary when there are none):
+//!   targets of ultrasound posterior-contour points;
+//! - **falciform** and **inferior-ridge** neighbourhoods: the anterior triangles with a node within
+//!   [`CorrespondenceParams::feature_neighbourhood_mm`] of a node labelled on that feature. A surface
+//!   point the surgeon designated on a salient feature (`Measurements::feature` 1 or 2) is matched to
+//!   the closest point of that neighbourhood — not of the whole anterior surface — and its pair
+//!   weight is multiplied by [`CorrespondenceParams::feature_weight`]. This is what makes the salient
+//!   features constrain sliding along the surface (Clements et al. 2008). When the model has no node
+//!   on that feature, the point is matched like any surface point and gets no extra weight.
+//!   Designations on points that are not surface points are ignored.
+//! - **vessel centerlines**: segments between centerline points; a vessel point is matched to the
+//!   closest point of the (deformed) segments. The deformed centerline point is the centerline point
+//!   moved by `u` interpolated with [`TetLocator`].
+//!
+//! Every [`Match`] is linear in the node displacements `u`: a surface or contour match carries the
+//! barycentric coordinates of its closest point in the (deformed) triangle, so that
+//! `Match::model_point(u)` is that closest point; a vessel match carries the tet containing the
+//! undeformed centerline point `q` and its barycentric coordinates, so that `model_point(u) =
+//! q + u(q)` (exactly on the deformed centerline where `u` is affine, to second order otherwise).
+//!
+//! **Trimming**: a pair is dropped when its distance exceeds `trim_factor × median + trim_floor_mm`
+//! (the median over all matched pairs) or the absolute cap `max_distance_mm`. Kept pairs have weight
+//! `kind weight × feature weight`.
+//!
+//! Surgery code: this module never sees how the ground truth was made (no `phantom`).
+
+use super::{Match, MeasuredKind, Measurements, PreopModel};
+use crate::mesh::io::MeshFile;
+use crate::mesh::locate::TetLocator;
+use crate::mesh::spatial::TriangleBvh;
+use crate::mesh::vec3::{add, cross, dot, norm, sub};
+use crate::mesh::{TetMesh, TriSurface};
+
+/// Weights and trimming of correspondences.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CorrespondenceParams {
+    /// Weight of anterior-surface pairs. Default 1.
+    pub surface_weight: f64,
+    /// Weight of ultrasound posterior-contour pairs. Default 1.
+    pub contour_weight: f64,
+    /// Weight of vessel pairs. Default 1.
+    pub vessel_weight: f64,
+    /// Extra factor for surface points designated on a salient feature. Default 3.
+    pub feature_weight: f64,
+    /// A salient feature's target is the anterior triangles with a node within this distance (mm)
+    /// of a node on the feature. Default 15 (1.5 edges of a 10 mm mesh).
+    pub feature_neighbourhood_mm: f64,
+    /// Pairs farther than `trim_factor × median distance + trim_floor_mm` are dropped. Default 3.
+    pub trim_factor: f64,
+    /// See `trim_factor` (mm). Default 5.
+    pub trim_floor_mm: f64,
+    /// Pairs farther than this (mm) are always dropped and counted as far. Default 500.
+    pub max_distance_mm: f64,
+}
+
+impl Default for CorrespondenceParams {
+    fn default() -> Self {
+        Self {
+            surface_weight: 1.0,
+            contour_weight: 1.0,
+            vessel_weight: 1.0,
+            feature_weight: 3.0,
+            feature_neighbourhood_mm: 15.0,
+            trim_factor: 3.0,
+            trim_floor_mm: 5.0,
+            max_distance_mm: 500.0,
+        }
+    }
+}
+
+impl CorrespondenceParams {
+    /// Checks that every weight and distance is finite and non-negative (and the cap positive).
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, v) in [
+            ("surface_weight", self.surface_weight),
+            ("contour_weight", self.contour_weight),
+            ("vessel_weight", self.vessel_weight),
+            ("feature_weight", self.feature_weight),
+            ("feature_neighbourhood_mm", self.feature_neighbourhood_mm),
+            ("trim_factor", self.trim_factor),
+            ("trim_floor_mm", self.trim_floor_mm),
+            ("max_distance_mm", self.max_distance_mm),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!(
+                    "correspondence parameter {name} must be finite and ≥ 0, got {v}"
+                ));
+            }
+        }
+        if self.max_distance_mm <= 0.0 {
+            return Err("correspondence parameter max_distance_mm must be > 0".into());
+        }
+        Ok(())
+    }
+}
+
+/// Summary of one matching.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct MatchStats {
+    /// Pairs kept.
+    pub kept: usize,
+    /// Pairs dropped by the median rule or the absolute cap (includes `far`).
+    pub trimmed: usize,
+    /// Pairs dropped because they were farther than `max_distance_mm`.
+    pub far: usize,
+    /// Points with nothing to match (e.g. vessel points and a model without vessels).
+    pub unmatched: usize,
+    /// Root mean square distance of the kept pairs (mm; 0 when none).
+    pub rms_mm: f64,
+    /// Largest distance of a kept pair (mm; 0 when none).
+    pub max_mm: f64,
+    /// Median distance over all matched pairs before trimming (mm; 0 when none).
+    pub median_mm: f64,
+    /// The trimming threshold used (mm).
+    pub threshold_mm: f64,
+}
+
+/// A set of boundary triangles with its closest-point hierarchy.
+#[derive(Debug, Clone)]
+struct TargetSet {
+    /// Indices into the boundary triangles.
+    tris: Vec<u32>,
+    /// Hierarchy over those triangles on the undeformed nodes.
+    bvh: TriangleBvh,
+}
+
+/// Closest-point targets of a [`PreopModel`]; build once, match many times.
+#[derive(Debug, Clone)]
+pub struct Correspondence {
+    nodes: Vec<[f64; 3]>,
+    /// Boundary triangles (outward).
+    tris: Vec<[u32; 3]>,
+    anterior: TargetSet,
+    posterior: TargetSet,
+    whole: TargetSet,
+    /// Falciform and inferior-ridge neighbourhoods (empty when the feature has no node); built
+    /// with the default neighbourhood radius and rebuilt on demand for another.
+    features: [TargetSet; 2],
+    feature_radius: f64,
+    /// Per boundary node distance to the nearest falciform / ridge node (∞ when none).
+    feature_distance: [Vec<f64>; 2],
+    vessel_points: Vec<[f64; 3]>,
+    vessel_segments: Vec<[u32; 2]>,
+    locator: TetLocator,
+    tets: Vec<[u32; 4]>,
+    /// Boundary triangle → its tet (fallback location of centerline points outside the mesh).
+    tet_of_triangle: Vec<u32>,
+}
+
+impl TargetSet {
+    fn new(nodes: &[[f64; 3]], all: &[[u32; 3]], tris: Vec<u32>) -> Self {
+        let sub_tris = tris.iter().map(|&t| all[t as usize]).collect();
+        let bvh = TriangleBvh::new(&TriSurface::new_unchecked(nodes.to_vec(), sub_tris));
+        Self { tris, bvh }
+    }
+}
+
+/// Checks the measurements: at least one point, `kind` (and `feature` when given) as long as
+/// `points`, finite coordinates, feature codes 0–2, a finite initial alignment. The error names the
+/// field and the index.
+pub fn validate_measurements(meas: &Measurements) -> Result<(), String> {
+    if meas.points.is_empty() {
+        return Err("measurements.points is empty: nothing to register".into());
+    }
+    let n = meas.points.len();
+    if meas.kind.len() != n {
+        return Err(format!(
+            "measurements.kind has {} entries, measurements.points has {n}",
+            meas.kind.len()
+        ));
+    }
+    if !meas.feature.is_empty() && meas.feature.len() != n {
+        return Err(format!(
+            "measurements.feature has {} entries, measurements.points has {n} (leave it empty when \
+             there are no designations)",
+            meas.feature.len()
+        ));
+    }
+    if let Some(i) = meas
+        .points
+        .iter()
+        .position(|p| p.iter().any(|c| !c.is_finite()))
+    {
+        return Err(format!(
+            "measurements.points[{i}] is not finite: {:?}",
+            meas.points[i]
+        ));
+    }
+    if let Some(i) = meas.feature.iter().position(|&f| f > 2) {
+        return Err(format!(
+            "measurements.feature[{i}] is {}, expected 0 (none), 1 (falciform) or 2 (inferior ridge)",
+            meas.feature[i]
+        ));
+    }
+    if let Some(t) = &meas.initial_alignment {
+        if t.rotation
+            .iter()
+            .flatten()
+            .chain(&t.translation)
+            .any(|c| !c.is_finite())
+        {
+            return Err("measurements.initial_alignment is not finite".into());
+        }
+        // A rotation: RᵀR = I to a loose tolerance.
+        let r = &t.rotation;
+        for i in 0..3 {
+            for j in 0..3 {
+                let rtr: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
+                let want = if i == j { 1.0 } else { 0.0 };
+                if (rtr - want).abs() > 1e-6 {
+                    return Err(format!(
+                        "measurements.initial_alignment.rotation is not a rotation (RᵀR[{i}][{j}] \
+                         = {rtr})"
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+impl Correspondence {
+    /// Builds the target sets of `model`. Fails when the flags do not have one entry per node, the
+    /// mesh has no boundary, or a vessel point or segment is invalid.
+    pub fn new(model: &PreopModel) -> Result<Self, String> {
+        let mesh = &model.mesh;
+        let n = mesh.num_nodes();
+        if n == 0 || mesh.num_tets() == 0 {
+            return Err("preoperative model: the mesh is empty".into());
+        }
+        for (name, len) in [
+            ("anterior", model.anterior.len()),
+            ("posterior", model.posterior.len()),
+            ("falciform", model.falciform.len()),
+            ("inferior_ridge", model.inferior_ridge.len()),
+        ] {
+            if len != n {
+                return Err(format!(
+                    "preoperative model: {name} has {len} entries, the mesh has {n} nodes"
+                ));
+            }
+        }
+        if let Some(i) = model
+            .vessel_points
+            .iter()
+            .position(|p| p.iter().any(|c| !c.is_finite()))
+        {
+            return Err(format!(
+                "preoperative model: vessel point {i} is not finite"
+            ));
+        }
+        if let Some((k, s)) = model
+            .vessel_segments
+            .iter()
+            .enumerate()
+            .find(|(_, s)| s.iter().any(|&i| i as usize >= model.vessel_points.len()))
+        {
+            return Err(format!(
+                "preoperative model: vessel segment {k} {s:?} refers past the {} vessel points",
+                model.vessel_points.len()
+            ));
+        }
+        let boundary = mesh
+            .boundary()
+            .map_err(|e| format!("preoperative model: cannot take the mesh boundary: {e}"))?;
+        let nodes = mesh.nodes().to_vec();
+        let tris = boundary.triangles;
+        let all_of = |flags: &[bool]| -> Vec<u32> {
+            (0..tris.len() as u32)
+                .filter(|&t| tris[t as usize].iter().all(|&v| flags[v as usize]))
+                .collect()
+        };
+        let everything: Vec<u32> = (0..tris.len() as u32).collect();
+        let mut anterior = all_of(&model.anterior);
+        if anterior.is_empty() {
+            anterior = everything.clone();
+        }
+        let mut posterior = all_of(&model.posterior);
+        if posterior.is_empty() {
+            posterior = everything.clone();
+        }
+        // Distance of each boundary node to the nearest node of each feature.
+        let feature_distance = [&model.falciform, &model.inferior_ridge].map(|flags| {
+            let on: Vec<[f64; 3]> = (0..n).filter(|&i| flags[i]).map(|i| nodes[i]).collect();
+            let mut d = vec![f64::INFINITY; n];
+            for &v in &boundary.nodes {
+                let p = nodes[v as usize];
+                d[v as usize] = on
+                    .iter()
+                    .map(|&q| norm(sub(p, q)))
+                    .fold(f64::INFINITY, f64::min);
+            }
+            d
+        });
+        let radius = CorrespondenceParams::default().feature_neighbourhood_mm;
+        let features = [0, 1].map(|f| {
+            let set = feature_set(&tris, &anterior, &feature_distance[f], radius);
+            TargetSet::new(&nodes, &tris, set)
+        });
+        let locator = TetLocator::new(mesh);
+        Ok(Self {
+            anterior: TargetSet::new(&nodes, &tris, anterior),
+            posterior: TargetSet::new(&nodes, &tris, posterior),
+            whole: TargetSet::new(&nodes, &tris, everything),
+            features,
+            feature_radius: radius,
+            feature_distance,
+            vessel_points: model.vessel_points.clone(),
+            vessel_segments: model.vessel_segments.clone(),
+            locator,
+            tets: mesh.tets().to_vec(),
+            tet_of_triangle: boundary.tet_of_triangle,
+            nodes,
+            tris,
+        })
+    }
+
+    /// Number of mesh nodes.
+    pub fn num_nodes(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Number of (anterior, posterior, falciform, inferior-ridge) target triangles.
+    pub fn target_counts(&self) -> [usize; 4] {
+        [
+            self.anterior.tris.len(),
+            self.posterior.tris.len(),
+            self.features[0].tris.len(),
+            self.features[1].tris.len(),
+        ]
+    }
+
+    /// Distance from `p` (image frame) to the undeformed boundary surface (mm).
+    pub fn distance_to_boundary(&self, p: [f64; 3]) -> f64 {
+        self.whole.bvh.distance(p)
+    }
+
+    /// Matches measured points already mapped into the image frame against the model deformed by
+    /// `u` (node-major, `3n`; `None` = undeformed). See the module doc for targets, weights and
+    /// trimming. Returns the kept matches in point order and the statistics.
+    ///
+    /// Fails when the measurements are invalid (see [`validate_measurements`]; the initial
+    /// alignment is not used here), `points_image` is not as long as `meas.points` or not finite,
+    /// `u` has the wrong length or is not finite, or the parameters are invalid.
+    pub fn match_points(
+        &self,
+        points_image: &[[f64; 3]],
+        meas: &Measurements,
+        u: Option<&[f64]>,
+        params: &CorrespondenceParams,
+    ) -> Result<(Vec<Match>, MatchStats), String> {
+        validate_measurements(meas)?;
+        params.validate()?;
+        if points_image.len() != meas.points.len() {
+            return Err(format!(
+                "points_image has {} points, measurements.points has {}",
+                points_image.len(),
+                meas.points.len()
+            ));
+        }
+        if let Some(i) = points_image
+            .iter()
+            .position(|p| p.iter().any(|c| !c.is_finite()))
+        {
+            return Err(format!("points_image[{i}] is not finite"));
+        }
+        let n = self.nodes.len();
+        if let Some(u) = u {
+            if u.len() != 3 * n {
+                return Err(format!(
+                    "displacement has {} values, the model has {n} nodes and needs {}",
+                    u.len(),
+                    3 * n
+                ));
+            }
+            if let Some(i) = u.iter().position(|v| !v.is_finite()) {
+                return Err(format!("displacement of node {} is not finite", i / 3));
+            }
+        }
+        let deformed: Option<Vec<[f64; 3]>> = u.map(|u| {
+            (0..n)
+                .map(|i| add(self.nodes[i], [u[3 * i], u[3 * i + 1], u[3 * i + 2]]))
+                .collect()
+        });
+        let geometry: &[[f64; 3]] = deformed.as_deref().unwrap_or(&self.nodes);
+
+        // Which targets are needed.
+        let designated = |i: usize| -> Option<usize> {
+            match meas.feature.get(i) {
+                Some(&f) if f > 0 && meas.kind[i] == MeasuredKind::Surface => Some(f as usize - 1),
+                _ => None,
+            }
+        };
+        let need_feature = |f: usize| (0..meas.points.len()).any(|i| designated(i) == Some(f));
+        // A neighbourhood radius other than the prebuilt one: rebuilt for this call.
+        let feature_sets: [Option<TargetSet>; 2] = [0, 1].map(|f| {
+            if need_feature(f) && params.feature_neighbourhood_mm != self.feature_radius {
+                let tris = feature_set(
+                    &self.tris,
+                    &self.anterior.tris,
+                    &self.feature_distance[f],
+                    params.feature_neighbourhood_mm,
+                );
+                Some(TargetSet::new(&self.nodes, &self.tris, tris))
+            } else {
+                None
+            }
+        });
+        let feature_target = |f: usize| feature_sets[f].as_ref().unwrap_or(&self.features[f]);
+        let need = |k: MeasuredKind| meas.kind.contains(&k);
+        // Hierarchies on the deformed geometry (the undeformed ones are prebuilt).
+        let rebuild = |set: &TargetSet, needed: bool| -> Option<TriangleBvh> {
+            if !needed || deformed.is_none() {
+                return None;
+            }
+            let t = set.tris.iter().map(|&t| self.tris[t as usize]).collect();
+            Some(TriangleBvh::new(&TriSurface::new_unchecked(
+                geometry.to_vec(),
+                t,
+            )))
+        };
+        let ant_bvh = rebuild(&self.anterior, need(MeasuredKind::Surface));
+        let post_bvh = rebuild(&self.posterior, need(MeasuredKind::PosteriorContour));
+        let feat_bvh = [0, 1].map(|f| rebuild(feature_target(f), need_feature(f)));
+        let vessel_deformed: Option<Vec<[f64; 3]>> = if need(MeasuredKind::Vessel) {
+            Some(match u {
+                Some(u) => self
+                    .vessel_points
+                    .iter()
+                    .map(|&p| add(p, self.locator.interpolate(u, p)))
+                    .collect(),
+                None => self.vessel_points.clone(),
+            })
+        } else {
+            None
+        };
+
+        let mut candidates: Vec<(Match, f64)> = Vec::with_capacity(points_image.len());
+        let mut unmatched = 0usize;
+        for (i, &p) in points_image.iter().enumerate() {
+            let kind = meas.kind[i];
+            let (set, bvh, w) = match kind {
+                MeasuredKind::Surface => match designated(i) {
+                    Some(f) if !feature_target(f).tris.is_empty() => (
+                        feature_target(f),
+                        feat_bvh[f].as_ref(),
+                        params.surface_weight * params.feature_weight,
+                    ),
+                    _ => (&self.anterior, ant_bvh.as_ref(), params.surface_weight),
+                },
+                MeasuredKind::PosteriorContour => {
+                    (&self.posterior, post_bvh.as_ref(), params.contour_weight)
+                }
+                MeasuredKind::Vessel => {
+                    let vd = vessel_deformed.as_deref().unwrap_or(&[]);
+                    match self.match_vessel(p, vd) {
+                        Some(mut m) => {
+                            m.point = i;
+                            m.weight = params.vessel_weight;
+                            let d = norm(sub(p, m.model_point_or_anchor(u)));
+                            candidates.push((m, d));
+                        }
+                        None => unmatched += 1,
+                    }
+                    continue;
+                }
+            };
+            let bvh = bvh.unwrap_or(&set.bvh);
+            let Some(c) = bvh.closest(p, None) else {
+                unmatched += 1;
+                continue;
+            };
+            let tri = self.tris[set.tris[c.triangle as usize] as usize];
+            let corners = tri.map(|v| geometry[v as usize]);
+            let b = triangle_barycentric(c.point, corners);
+            let rest = tri.map(|v| self.nodes[v as usize]);
+            let anchor =
+                [0, 1, 2].map(|a| b[0] * rest[0][a] + b[1] * rest[1][a] + b[2] * rest[2][a]);
+            let m = Match {
+                point: i,
+                anchor,
+                nodes: [tri[0], tri[1], tri[2], tri[0]],
+                bary: [b[0], b[1], b[2], 0.0],
+                weight: w,
+            };
+            let d = norm(sub(p, m.model_point_or_anchor(u)));
+            candidates.push((m, d));
+        }
+
+        // Trimming.
+        let mut ds: Vec<f64> = candidates.iter().map(|c| c.1).collect();
+        ds.sort_by(f64::total_cmp);
+        let median = if ds.is_empty() {
+            0.0
+        } else if ds.len() % 2 == 1 {
+            ds[ds.len() / 2]
+        } else {
+            0.5 * (ds[ds.len() / 2 - 1] + ds[ds.len() / 2])
+        };
+        let threshold =
+            (params.trim_factor * median + params.trim_floor_mm).min(params.max_distance_mm);
+        let mut stats = MatchStats {
+            unmatched,
+            median_mm: median,
+            threshold_mm: threshold,
+            ..Default::default()
+        };
+        let mut kept = Vec::with_capacity(candidates.len());
+        let mut sum2 = 0.0;
+        for (m, d) in candidates {
+            if d > params.max_distance_mm {
+                stats.far += 1;
+                stats.trimmed += 1;
+            } else if d > threshold {
+                stats.trimmed += 1;
+            } else {
+                sum2 += d * d;
+                stats.max_mm = stats.max_mm.max(d);
+                kept.push(m);
+            }
+        }
+        stats.kept = kept.len();
+        if !kept.is_empty() {
+            stats.rms_mm = (sum2 / kept.len() as f64).sqrt();
+        }
+        Ok((kept, stats))
+    }
+
+    /// The closest point of the (deformed) centerline to `p`: the undeformed point `q` at the same
+    /// segment parameter, located in its tet. `None` without vessel segments.
+    fn match_vessel(&self, p: [f64; 3], deformed: &[[f64; 3]]) -> Option<Match> {
+        let mut best: Option<(f64, usize, f64)> = None;
+        for (k, s) in self.vessel_segments.iter().enumerate() {
+            let (a, b) = (deformed[s[0] as usize], deformed[s[1] as usize]);
+            let (d2, t) = point_segment(p, a, b);
+            if best.is_none_or(|x| d2 < x.0) {
+                best = Some((d2, k, t));
+            }
+        }
+        let (_, k, t) = best?;
+        let s = self.vessel_segments[k];
+        let (a, b) = (
+            self.vessel_points[s[0] as usize],
+            self.vessel_points[s[1] as usize],
+        );
+        let q = [0, 1, 2].map(|c| a[c] + t * (b[c] - a[c]));
+        let (tet, bary) = match self.locator.locate(q) {
+            Some(x) => x,
+            None => {
+                // Outside the mesh (a centerline grazing the surface): the tet of the closest
+                // boundary face, with unclamped (extrapolating) coordinates so that the anchor is q.
+                let c = self.whole.bvh.closest(q, None)?;
+                let tri = self.whole.tris[c.triangle as usize] as usize;
+                let tet = self.tet_of_triangle[tri] as usize;
+                (tet, self.locator.barycentric(tet, q))
+            }
+        };
+        if bary.iter().any(|x| !x.is_finite()) {
+            return None;
+        }
+        Some(Match {
+            point: 0,
+            anchor: q,
+            nodes: self.tets[tet],
+            bary,
+            weight: 1.0,
+        })
+    }
+}
+
+impl Match {
+    fn model_point_or_anchor(&self, u: Option<&[f64]>) -> [f64; 3] {
+        match u {
+            Some(u) => self.model_point(u),
+            None => self.anchor,
+        }
+    }
+}
+
+/// Anterior triangles with a node within `radius` of the feature (empty when the feature has no
+/// node).
+fn feature_set(tris: &[[u32; 3]], anterior: &[u32], distance: &[f64], radius: f64) -> Vec<u32> {
+    anterior
+        .iter()
+        .copied()
+        .filter(|&t| {
+            tris[t as usize]
+                .iter()
+                .any(|&v| distance[v as usize] <= radius)
+        })
+        .collect()
+}
+
+/// Squared distance from `p` to the segment `a`–`b` and the parameter of the closest point.
+fn point_segment(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> (f64, f64) {
+    let ab = sub(b, a);
+    let l2 = dot(ab, ab);
+    let t = if l2 > 0.0 {
+        (dot(sub(p, a), ab) / l2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let c = [0, 1, 2].map(|k| a[k] + t * ab[k]);
+    let d = sub(p, c);
+    (dot(d, d), t)
+}
+
+/// Barycentric coordinates of `q` (a point of the triangle) in triangle `p`, clamped to the
+/// triangle; for a degenerate triangle, weight 1 on the nearest corner.
+fn triangle_barycentric(q: [f64; 3], p: [[f64; 3]; 3]) -> [f64; 3] {
+    let e1 = sub(p[1], p[0]);
+    let e2 = sub(p[2], p[0]);
+    let n = cross(e1, e2);
+    let nn = dot(n, n);
+    let scale2 = dot(e1, e1).max(dot(e2, e2));
+    if nn.is_nan() || nn <= 1e-24 * scale2 * scale2 {
+        let k = (0..3)
+            .min_by(|&a, &b| norm(sub(q, p[a])).total_cmp(&norm(sub(q, p[b]))))
+            .unwrap_or(0);
+        let mut b = [0.0; 3];
+        b[k] = 1.0;
+        return b;
+    }
+    let d = sub(q, p[0]);
+    let b1 = dot(cross(d, e2), n) / nn;
+    let b2 = dot(cross(e1, d), n) / nn;
+    let mut b = [1.0 - b1 - b2, b1, b2].map(|x| x.max(0.0));
+    let s: f64 = b.iter().sum();
+    b = b.map(|x| x / s);
+    b
+}
+
+/// Builds a [`PreopModel`] from a dataset's `preop.vtu` (tet mesh with point arrays `region`
+/// — 0 interior, 1 anterior, 2 posterior — and, when present, `falciform` and `inferior_ridge`
+/// 0/1 flags) and its `vessels.vtp` (centerline points with a `parent` array, −1 for roots; an
+/// empty file means no vessels). Errors name the file role, array and index.
+pub fn preop_model_from_file(file: &MeshFile, vessels: &MeshFile) -> Result<PreopModel, String> {
+    let mesh = TetMesh::from_file(file).map_err(|e| format!("preop mesh: {e}"))?;
+    let n = mesh.num_nodes();
+    let array = |name: &str, required: bool| -> Result<Option<Vec<f64>>, String> {
+        match file.point_array(name) {
+            None if required => Err(format!("preop mesh: point array '{name}' is missing")),
+            None => Ok(None),
+            Some(a) => {
+                if a.components != 1 || a.values.len() != n {
+                    return Err(format!(
+                        "preop mesh: point array '{name}' has {} values in {} components, \
+                         expected one per node ({n})",
+                        a.values.len(),
+                        a.components
+                    ));
+                }
+                Ok(Some(a.values.clone()))
+            }
+        }
+    };
+    let region = array("region", true)?.unwrap_or_default();
+    if let Some(i) = region
+        .iter()
+        .position(|&r| !(r == 0.0 || r == 1.0 || r == 2.0))
+    {
+        return Err(format!(
+            "preop mesh: region[{i}] is {}, expected 0 (interior), 1 (anterior) or 2 (posterior)",
+            region[i]
+        ));
+    }
+    let flags = |name: &str| -> Result<Vec<bool>, String> {
+        let Some(v) = array(name, false)? else {
+            return Ok(vec![false; n]);
+        };
+        if let Some(i) = v.iter().position(|&x| !(x == 0.0 || x == 1.0)) {
+            return Err(format!(
+                "preop mesh: {name}[{i}] is {}, expected 0 or 1",
+                v[i]
+            ));
+        }
+        Ok(v.iter().map(|&x| x == 1.0).collect())
+    };
+    let falciform = flags("falciform")?;
+    let inferior_ridge = flags("inferior_ridge")?;
+    let vessel_points = vessels.nodes.clone();
+    if let Some(i) = vessel_points
+        .iter()
+        .position(|p| p.iter().any(|c| !c.is_finite()))
+    {
+        return Err(format!("vessels: point {i} is not finite"));
+    }
+    let mut vessel_segments = Vec::new();
+    if !vessel_points.is_empty() {
+        let parent = vessels
+            .point_array("parent")
+            .ok_or("vessels: point array 'parent' is missing")?;
+        if parent.components != 1 || parent.values.len() != vessel_points.len() {
+            return Err(format!(
+                "vessels: point array 'parent' has {} values, expected one per point ({})",
+                parent.values.len(),
+                vessel_points.len()
+            ));
+        }
+        for (i, &p) in parent.values.iter().enumerate() {
+            if p == -1.0 {
+                continue;
+            }
+            if !(p >= 0.0 && p.fract() == 0.0 && (p as usize) < vessel_points.len())
+                || p as usize == i
+            {
+                return Err(format!(
+                    "vessels: parent[{i}] is {p}, expected −1 or the index of another of the {} \
+                     points",
+                    vessel_points.len()
+                ));
+            }
+            vessel_segments.push([p as u32, i as u32]);
+        }
+    }
+    Ok(PreopModel {
+        mesh,
+        anterior: region.iter().map(|&r| r == 1.0).collect(),
+        posterior: region.iter().map(|&r| r == 2.0).collect(),
+        falciform,
+        inferior_ridge,
+        vessel_points,
+        vessel_segments,
+    })
+}
