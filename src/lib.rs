@@ -8,6 +8,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod dataset;
+pub mod eval;
 pub mod fem;
 pub mod mesh;
 pub mod phantom;

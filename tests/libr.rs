@@ -106,6 +106,7 @@ fn triangle_matches(mesh: &TetMesh, per: usize, rng: &mut SplitMix64) -> Vec<Mat
                 nodes: [t[0], t[1], t[2], t[0]],
                 bary,
                 weight: 1.0,
+                normal: [0.0; 3],
             });
         }
     }

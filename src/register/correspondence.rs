@@ -483,12 +483,25 @@ impl Correspondence {
             let rest = tri.map(|v| self.nodes[v as usize]);
             let anchor =
                 [0, 1, 2].map(|a| b[0] * rest[0][a] + b[1] * rest[1][a] + b[2] * rest[2][a]);
+            let e1 = sub(corners[1], corners[0]);
+            let e2 = sub(corners[2], corners[0]);
+            let nrm = [
+                e1[1] * e2[2] - e1[2] * e2[1],
+                e1[2] * e2[0] - e1[0] * e2[2],
+                e1[0] * e2[1] - e1[1] * e2[0],
+            ];
+            let len = norm(nrm);
             let m = Match {
                 point: i,
                 anchor,
                 nodes: [tri[0], tri[1], tri[2], tri[0]],
                 bary: [b[0], b[1], b[2], 0.0],
                 weight: w,
+                normal: if len > 0.0 {
+                    nrm.map(|x| x / len)
+                } else {
+                    [0.0; 3]
+                },
             };
             let d = norm(sub(p, m.model_point_or_anchor(u)));
             candidates.push((m, d));
@@ -571,6 +584,7 @@ impl Correspondence {
             nodes: self.tets[tet],
             bary,
             weight: 1.0,
+            normal: [0.0; 3],
         })
     }
 }

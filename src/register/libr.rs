@@ -82,6 +82,10 @@ pub struct LibrParams {
     pub material: LinearMaterial,
     /// Strain-energy regularization λ (dimensionless, see the module doc). Default 1e-2.
     pub regularization: f64,
+    /// Weight of the misfit across a matched surface's normal relative to along it (point-to-plane
+    /// with a little point-to-point; 1 = plain point-to-point). Matches without a normal (vessels)
+    /// count fully in every direction. Default 0.05.
+    pub tangential_weight: f64,
     /// Most iterations of [`register`]. Default 20.
     pub max_iterations: usize,
     /// [`register`] stops when no node moved more than this in an iteration (mm). Default 0.01.
@@ -97,6 +101,7 @@ impl Default for LibrParams {
             load_width: LoadWidth::Spacing(1.25),
             material: LinearMaterial::default(),
             regularization: 1e-2,
+            tangential_weight: 0.05,
             max_iterations: 20,
             tolerance_mm: 0.01,
             seed: 0,
@@ -119,6 +124,15 @@ impl LibrParams {
         self.material
             .validate()
             .map_err(|e| format!("material: {e}"))?;
+        if !(self.tangential_weight.is_finite()
+            && self.tangential_weight > 0.0
+            && self.tangential_weight <= 1.0)
+        {
+            return Err(format!(
+                "tangential_weight must be in (0, 1], got {}",
+                self.tangential_weight
+            ));
+        }
         if !(self.regularization.is_finite() && self.regularization >= 0.0) {
             return Err(format!(
                 "regularization must be finite and >= 0, got {}",
@@ -806,6 +820,19 @@ pub struct StepResult {
     pub timings: StepTimings,
 }
 
+fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn normalize3(a: [f64; 3]) -> [f64; 3] {
+    let l = dot(a, a).sqrt();
+    if l > 0.0 { a.map(|x| x / l) } else { a }
+}
+
 /// One regularized weighted least-squares step (see the module doc). `targets_image[i]` is the
 /// measured point `i` (the index in [`Match::point`]) mapped into the image frame by the current
 /// rigid estimate. Unknowns: α (3K) and a linearized rigid correction about the anchors'
@@ -893,16 +920,15 @@ pub fn fit_step(
     let mut jt = Mat::<f64>::zeros(p, rows);
     let mut rhs = Mat::<f64>::zeros(rows, 1);
     let mut before = 0.0;
+    let tw = params.tangential_weight.sqrt();
+    let mut axis_rows = vec![0.0; 3 * p];
     for (i, mt) in used.iter().enumerate() {
         let s = (mt.weight / wsum).sqrt();
         let y = targets_image[mt.point];
+        axis_rows.iter_mut().for_each(|x| *x = 0.0);
+        let mut r = [0.0; 3];
         for a in 0..3 {
-            let row = 3 * i + a;
-            let dst = jt
-                .col_mut(row)
-                .try_as_col_major_mut()
-                .expect("a column of a column-major matrix is contiguous")
-                .as_slice_mut();
+            let dst = &mut axis_rows[a * p..(a + 1) * p];
             for (k, &v) in mt.nodes.iter().enumerate() {
                 let b = mt.bary[k];
                 if b == 0.0 {
@@ -919,9 +945,38 @@ pub fn fit_step(
                 dst[m + k] = s * rot[3 + k] / radius;
                 dst[m + 3 + k] = if k == a { s } else { 0.0 };
             }
-            let r = y[a] - mt.anchor[a];
-            rhs[(row, 0)] = s * r;
-            before += s * s * r * r;
+            r[a] = s * (y[a] - mt.anchor[a]);
+        }
+        // Point-to-plane: rotate the three axis rows into (n, t1, t2), the tangential ones
+        // down-weighted; without a normal, the axis rows as they are (point-to-point).
+        let len = dot(mt.normal, mt.normal).sqrt();
+        let frame: [[f64; 3]; 3] = if len > 0.0 {
+            let nn = mt.normal.map(|x| x / len);
+            let helper = if nn[0].abs() < 0.9 {
+                [1.0, 0.0, 0.0]
+            } else {
+                [0.0, 1.0, 0.0]
+            };
+            let t1 = normalize3(cross3(nn, helper));
+            let t2 = cross3(nn, t1);
+            [nn, t1.map(|x| tw * x), t2.map(|x| tw * x)]
+        } else {
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+        };
+        for (q, f) in frame.iter().enumerate() {
+            let row = 3 * i + q;
+            let dst = jt
+                .col_mut(row)
+                .try_as_col_major_mut()
+                .expect("a column of a column-major matrix is contiguous")
+                .as_slice_mut();
+            for j in 0..p {
+                dst[j] =
+                    f[0] * axis_rows[j] + f[1] * axis_rows[p + j] + f[2] * axis_rows[2 * p + j];
+            }
+            let rr = f[0] * r[0] + f[1] * r[1] + f[2] * r[2];
+            rhs[(row, 0)] = rr;
+            before += rr * rr;
         }
     }
     let rows_s = crate::util::secs(t0);

@@ -14,6 +14,7 @@
 
 pub mod correspondence;
 pub mod libr;
+pub mod pipeline;
 pub mod wicp;
 
 use crate::mesh::TetMesh;
@@ -93,6 +94,11 @@ pub struct Match {
     pub bary: [f64; 4],
     /// Weight of the pair in the misfit (kind weight × feature weight × robust weight).
     pub weight: f64,
+    /// Unit normal of the matched surface at the current estimate (image frame), or zero. With a
+    /// normal, LIBR weighs the misfit along it fully and across it by `tangential_weight`
+    /// (point-to-plane: a point may slide along the surface it lies on, which is what closest-point
+    /// correspondences cannot pin down); without, the full distance counts (point-to-point).
+    pub normal: [f64; 3],
 }
 
 impl Match {
