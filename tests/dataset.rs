@@ -164,6 +164,55 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
         assert_eq!(cats.len(), 5);
     }
 
+    // `register` on a scenario of the dataset: TRE against the truth, better than the start.
+    let reg = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .current_dir(&manifest_dir)
+            .arg("register")
+            .arg("--data")
+            .arg(&a)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let out_vtu = tmp.path().join("reg.vtu");
+    for method in ["rigid", "libr"] {
+        let o = reg(&[
+            "--scenario",
+            "g1-W-00/4",
+            "--method",
+            method,
+            "--json",
+            "--out",
+            out_vtu.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let (t, t0) = (
+            v["tre_mm"].as_f64().unwrap(),
+            v["tre_initial_alignment_mm"].as_f64().unwrap(),
+        );
+        eprintln!(
+            "register {method}: TRE {t:.2} mm from {t0:.2} mm ({})",
+            v["category"]
+        );
+        assert_eq!(v["category"], "surface+16us");
+        assert!(t.is_finite() && t < t0, "{method}: {t} vs start {t0}");
+        let f = io::read(&out_vtu, Unit::Mm).unwrap();
+        let e = &f.point_array("error_mm").unwrap().values;
+        assert!((e.iter().sum::<f64>() / e.len() as f64 - t).abs() < 1e-9 * t.max(1.0));
+    }
+    for (bad, needle) in [
+        ("nope/1", "no deformation"),
+        ("g1-W-00/99", "has 10 scenarios"),
+        ("g1-W-00", "DEFORMATION/INDEX"),
+    ] {
+        let o = reg(&["--scenario", bad]);
+        assert!(!o.status.success());
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains(needle), "{bad}: {e}");
+    }
+
     // Independent readers (meshio, VTK, numpy) when CI provides them.
     match std::env::var("LIBRPLUS_CHECK_PYTHON") {
         Ok(py) => {

@@ -37,6 +37,39 @@ enum Command {
     /// Liver phantoms: what the ground truth contains that the linear model lacks.
     #[command(subcommand)]
     Phantom(PhantomCmd),
+    /// Registers one dataset scenario (rigid wICP, or wICP then LIBR) and reports its TRE.
+    Register(RegisterArgs),
+}
+
+#[derive(Args)]
+struct RegisterArgs {
+    /// Dataset directory (from `librplus generate`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Scenario: `DEFORMATION/INDEX`, e.g. `g1-L-00/3`.
+    #[arg(long)]
+    scenario: String,
+    /// rigid (wICP) or libr (wICP then LIBR).
+    #[arg(long, default_value = "libr")]
+    method: MethodArg,
+    /// Write the preoperative mesh with the registered `displacement` (image frame) and the
+    /// per-node `error_mm` against the ground truth (.vtu).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Where the LIBR basis is cached (default DATA/cache).
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum MethodArg {
+    /// Salient-feature weighted rigid ICP.
+    Rigid,
+    /// wICP, then LIBR.
+    Libr,
 }
 
 #[derive(Subcommand)]
@@ -268,6 +301,7 @@ fn run(cli: Cli) -> Result<()> {
             ordering,
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
         Command::Generate(args) => generate(&args),
+        Command::Register(args) => register_scenario(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,
@@ -307,6 +341,140 @@ fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
         surface.flip();
     }
     Ok(surface)
+}
+
+fn register_scenario(a: &RegisterArgs) -> Result<()> {
+    use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let (def_id, index) = a.scenario.rsplit_once('/').with_context(|| {
+        format!(
+            "--scenario {:?}: expected DEFORMATION/INDEX, e.g. g1-L-00/3",
+            a.scenario
+        )
+    })?;
+    let index: usize = index
+        .parse()
+        .with_context(|| format!("--scenario {:?}: index is not a number", a.scenario))?;
+    let d = m
+        .deformations
+        .iter()
+        .find(|d| d.id == def_id)
+        .with_context(|| {
+            format!(
+                "--scenario {:?}: no deformation {def_id:?} in {} (have: {})",
+                a.scenario,
+                a.data.display(),
+                m.deformations
+                    .iter()
+                    .map(|d| d.id.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })?;
+    if index >= d.scenarios.len() {
+        bail!(
+            "--scenario {:?}: deformation {def_id} has {} scenarios (0..{})",
+            a.scenario,
+            d.scenarios.len(),
+            d.scenarios.len()
+        );
+    }
+    let geo =
+        librplus::eval::load_geometry(&a.data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
+    let scenarios = librplus::eval::load_scenarios(&a.data, d).map_err(anyhow::Error::msg)?;
+    let sc = &scenarios[index];
+    let method = match a.method {
+        MethodArg::Rigid => Method::Rigid,
+        MethodArg::Libr => Method::Libr,
+    };
+    let params = PipelineParams::default();
+    let cache = a.cache.clone().unwrap_or_else(|| a.data.join("cache"));
+    let t0 = Instant::now();
+    let bar = indicatif::ProgressBar::new_spinner().with_message("preparing the case (LIBR basis)");
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let case = Prepared::new(
+        geo.model.clone(),
+        (method == Method::Libr).then_some(&params.libr),
+        Some(&cache),
+    );
+    bar.finish_and_clear();
+    let case = case.map_err(anyhow::Error::msg)?;
+    let prepare_s = t0.elapsed().as_secs_f64();
+    let r = register(&case, &sc.measurements, method, &params).map_err(anyhow::Error::msg)?;
+    let nodes = geo.model.mesh.nodes();
+    let t = librplus::eval::tre(
+        nodes,
+        (&r.image_to_physical, &r.u),
+        (&sc.truth.image_to_physical, &sc.truth.displacement),
+        &geo.surface,
+        &geo.targets,
+    );
+    let start = librplus::eval::tre(
+        nodes,
+        (
+            sc.measurements
+                .initial_alignment
+                .as_ref()
+                .expect("datasets carry a start"),
+            &vec![0.0; r.u.len()],
+        ),
+        (&sc.truth.image_to_physical, &sc.truth.displacement),
+        &geo.surface,
+        &geo.targets,
+    );
+    if let Some(out) = &a.out {
+        let mut f = geo.model.mesh.to_file();
+        let err: Vec<f64> = nodes
+            .iter()
+            .enumerate()
+            .map(|(i, x)| {
+                let at = |u: &[f64]| [0, 1, 2].map(|k| x[k] + u[3 * i + k]);
+                let p = r.image_to_physical.apply(at(&r.u));
+                let q = sc.truth.image_to_physical.apply(at(&sc.truth.displacement));
+                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
+            })
+            .collect();
+        f.point_data = vec![
+            DataArray::new("displacement", 3, r.u.clone()),
+            DataArray::new("error_mm", 1, err),
+        ];
+        io::write(out, &f, WriteOptions::default())?;
+    }
+    let libr = r.libr.as_ref();
+    let out = json!({
+        "scenario": sc.id,
+        "category": sc.category,
+        "method": method.name(),
+        "points": sc.measurements.points.len(),
+        "tre_mm": t.tre_mm,
+        "tre_surface_mm": t.tre_surface_mm,
+        "tre_interior_mm": t.tre_interior_mm,
+        "tre_targets_mm": t.tre_targets_mm,
+        "tre_max_mm": t.max_mm,
+        "tre_initial_alignment_mm": start.tre_mm,
+        "rigid": {
+            "rms_mm": r.rigid.rms_mm,
+            "iterations": r.rigid.iterations,
+            "matched": r.rigid.matched,
+            "trimmed": r.rigid.trimmed,
+            "degenerate": r.rigid.degenerate,
+            "seconds": r.rigid.seconds,
+        },
+        "libr": libr.map(|i| json!({
+            "iterations": i.iterations,
+            "converged": i.converged,
+            "rms_mm": i.rms_mm,
+            "matching_s": i.matching_s,
+            "assemble_s": i.assemble_s,
+            "solve_s": i.solve_s,
+            "total_s": i.total_s,
+        })),
+        "basis_from_cache": case.basis_from_cache,
+        "prepare_s": prepare_s,
+        "register_s": r.seconds,
+    });
+    emit(a.json, &out);
+    Ok(())
 }
 
 fn phantom_effect(
