@@ -213,6 +213,69 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
         assert!(e.contains(needle), "{bad}: {e}");
     }
 
+    // `evaluate`: the summary.json contract, every category, LIBR no worse than rigid overall.
+    let report = tmp.path().join("report");
+    let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+        .current_dir(&manifest_dir)
+        .args([
+            "evaluate",
+            "--methods",
+            "rigid,libr",
+            "--split",
+            "all,test",
+            "--data",
+        ])
+        .arg(&a)
+        .arg("--out")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["format"], 1);
+    for split in ["all", "test"] {
+        for method in ["rigid", "libr"] {
+            let s = &summary["splits"][split]["methods"][method];
+            for key in [
+                "tre_mm",
+                "tre_surface_mm",
+                "tre_interior_mm",
+                "tre_targets_mm",
+            ] {
+                assert!(
+                    s[key].as_f64().unwrap().is_finite(),
+                    "{split}/{method}/{key}"
+                );
+            }
+            let cats = s["by_category"].as_object().unwrap();
+            assert_eq!(cats.len(), 5, "{split}/{method}: {cats:?}");
+        }
+    }
+    assert_eq!(
+        summary["splits"]["all"]["methods"]["rigid"]["scenarios"],
+        30
+    );
+    assert_eq!(
+        summary["splits"]["test"]["methods"]["libr"]["scenarios"],
+        10
+    );
+    let (r, l) = (
+        summary["splits"]["all"]["methods"]["rigid"]["tre_mm"]
+            .as_f64()
+            .unwrap(),
+        summary["splits"]["all"]["methods"]["libr"]["tre_mm"]
+            .as_f64()
+            .unwrap(),
+    );
+    eprintln!("evaluate small: rigid {r:.2} mm, LIBR {l:.2} mm");
+    assert!(l < r, "LIBR {l} vs rigid {r}");
+    assert!(
+        std::fs::read_to_string(report.join("report.md"))
+            .unwrap()
+            .contains("surface+16us")
+    );
+
     // Independent readers (meshio, VTK, numpy) when CI provides them.
     match std::env::var("LIBRPLUS_CHECK_PYTHON") {
         Ok(py) => {

@@ -39,6 +39,30 @@ enum Command {
     Phantom(PhantomCmd),
     /// Registers one dataset scenario (rigid wICP, or wICP then LIBR) and reports its TRE.
     Register(RegisterArgs),
+    /// Evaluates methods over a dataset split: summary.json, report.md, per-scenario results.
+    Evaluate(EvaluateArgs),
+}
+
+#[derive(Args)]
+struct EvaluateArgs {
+    /// Dataset directory.
+    #[arg(long)]
+    data: PathBuf,
+    /// Comma-separated methods: rigid, libr.
+    #[arg(long, default_value = "rigid,libr")]
+    methods: String,
+    /// Comma-separated splits: all, train, test (the held-out geometry with pattern V).
+    #[arg(long, default_value = "all")]
+    split: String,
+    /// Evaluate every k-th scenario of each deformation.
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Report directory (summary.json, report.md, results.json).
+    #[arg(long)]
+    out: PathBuf,
+    /// Print summary.json on stdout.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -302,6 +326,7 @@ fn run(cli: Cli) -> Result<()> {
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
         Command::Generate(args) => generate(&args),
         Command::Register(args) => register_scenario(&args),
+        Command::Evaluate(args) => evaluate(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,
@@ -341,6 +366,76 @@ fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
         surface.flip();
     }
     Ok(surface)
+}
+
+fn evaluate(a: &EvaluateArgs) -> Result<()> {
+    use librplus::eval::report::{self, Split};
+    use librplus::register::pipeline::{Method, PipelineParams};
+    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let methods = a
+        .methods
+        .split(',')
+        .map(|x| match x.trim() {
+            "rigid" => Ok(Method::Rigid),
+            "libr" => Ok(Method::Libr),
+            other => Err(anyhow::anyhow!(
+                "--methods: unknown method {other:?} (rigid, libr)"
+            )),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let splits = a
+        .split
+        .split(',')
+        .map(|s| Split::parse(s.trim()).map_err(|e| anyhow::anyhow!("--split: {e}")))
+        .collect::<Result<Vec<_>>>()?;
+    std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
+    let params = PipelineParams::default();
+    let mut summaries = std::collections::BTreeMap::new();
+    let mut all_results = serde_json::Map::new();
+    for split in splits {
+        let bar = indicatif::ProgressBar::new(0).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{spinner} split {msg} [{bar:30}] {pos}/{len} registrations, {elapsed} (eta {eta})",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        bar.set_message(split.name());
+        let progress = |done: usize, total: usize| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        };
+        let results = report::evaluate(&a.data, &m, split, &methods, a.every, &params, &progress);
+        bar.finish_and_clear();
+        let results = results.map_err(anyhow::Error::msg)?;
+        summaries.insert(split.name().to_string(), report::summarize(&results));
+        all_results.insert(split.name().to_string(), serde_json::to_value(&results)?);
+    }
+    let summary = json!({
+        "format": 1,
+        "data": a.data.display().to_string(),
+        "every": a.every,
+        "splits": summaries.iter().map(|(k, v)| (k.clone(), json!({"methods": v}))).collect::<serde_json::Map<_, _>>(),
+    });
+    std::fs::write(
+        a.out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)? + "\n",
+    )?;
+    std::fs::write(
+        a.out.join("results.json"),
+        serde_json::to_string_pretty(&Value::Object(all_results))? + "\n",
+    )?;
+    std::fs::write(a.out.join("report.md"), report::markdown(&summaries))?;
+    if a.json {
+        println!("{summary}");
+    } else {
+        print!("{}", report::markdown(&summaries));
+        println!(
+            "\nwritten: {}/summary.json, report.md, results.json",
+            a.out.display()
+        );
+    }
+    Ok(())
 }
 
 fn register_scenario(a: &RegisterArgs) -> Result<()> {

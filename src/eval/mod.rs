@@ -14,6 +14,8 @@ use crate::register::correspondence::preop_model_from_file;
 use crate::register::{MeasuredKind, Measurements, PreopModel};
 use std::path::Path;
 
+pub mod report;
+
 /// Target registration errors (mm).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Tre {

@@ -1,0 +1,282 @@
+//! Evaluation over a dataset: runs registration methods on the scenarios of a split and aggregates
+//! TRE per method and per measurement category into the stable `summary.json` contract and a
+//! Markdown report.
+//!
+//! `summary.json` (format 1):
+//! `{"format": 1, "splits": {SPLIT: {"methods": {METHOD: {"tre_mm", "tre_surface_mm",
+//! "tre_interior_mm", "tre_targets_mm", "scenarios", "failed", "seconds_median",
+//! "by_category": {CATEGORY: {"tre_mm", "scenarios"}}}}}}}` — means in mm over scenarios.
+
+use super::{Tre, load_geometry, load_scenarios, tre};
+use crate::dataset::Manifest;
+use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Which scenarios a split evaluates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Split {
+    /// Every deformation.
+    All,
+    /// Deformations of geometries marked `test` (the held-out geometry, pattern V).
+    Test,
+    /// Deformations of training geometries.
+    Train,
+}
+
+impl Split {
+    /// Parses `all`, `test`, `train`.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "all" => Ok(Split::All),
+            "test" => Ok(Split::Test),
+            "train" => Ok(Split::Train),
+            other => Err(format!(
+                "unknown split {other:?}: expected all, test or train"
+            )),
+        }
+    }
+
+    /// Name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::All => "all",
+            Split::Test => "test",
+            Split::Train => "train",
+        }
+    }
+}
+
+/// One scenario's result for one method.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ScenarioResult {
+    /// `deformation/index`.
+    pub scenario: String,
+    /// Category.
+    pub category: String,
+    /// Method.
+    pub method: String,
+    /// TRE (None when the registration failed).
+    pub tre: Option<Tre>,
+    /// Why it failed.
+    pub error: Option<String>,
+    /// Registration time (s).
+    pub seconds: f64,
+}
+
+/// Aggregate of one method.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct MethodSummary {
+    /// Mean TRE over scenarios (mm).
+    pub tre_mm: f64,
+    /// Mean surface-node TRE.
+    pub tre_surface_mm: f64,
+    /// Mean interior-node TRE.
+    pub tre_interior_mm: f64,
+    /// Mean target TRE.
+    pub tre_targets_mm: f64,
+    /// Scenarios that registered.
+    pub scenarios: usize,
+    /// Scenarios that failed (error).
+    pub failed: usize,
+    /// Median registration time (s).
+    pub seconds_median: f64,
+    /// Per category: mean TRE and count.
+    pub by_category: BTreeMap<String, CategorySummary>,
+}
+
+/// Aggregate of one method in one category.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct CategorySummary {
+    /// Mean TRE (mm).
+    pub tre_mm: f64,
+    /// Scenarios.
+    pub scenarios: usize,
+}
+
+/// Runs `methods` on the scenarios of the split's deformations: every `every`-th block of five
+/// consecutive scenarios (one per category).
+pub fn evaluate(
+    dir: &Path,
+    m: &Manifest,
+    split: Split,
+    methods: &[Method],
+    every: usize,
+    params: &PipelineParams,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Vec<ScenarioResult>, String> {
+    let every = every.max(1);
+    let test_geos: Vec<&str> = m
+        .geometries
+        .iter()
+        .filter(|g| g.split == "test")
+        .map(|g| g.id.as_str())
+        .collect();
+    let defs: Vec<_> = m
+        .deformations
+        .iter()
+        .filter(|d| match split {
+            Split::All => true,
+            Split::Test => test_geos.contains(&d.geometry.as_str()),
+            Split::Train => !test_geos.contains(&d.geometry.as_str()),
+        })
+        .collect();
+    let total: usize = defs
+        .iter()
+        .map(|d| {
+            (0..d.scenarios.len())
+                .filter(|i| (i / CATEGORY_ORDER.len()) % every == 0)
+                .count()
+                * methods.len()
+        })
+        .sum();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let mut out = Vec::new();
+    let cache = dir.join("cache");
+    let mut prepared: BTreeMap<String, (Prepared, super::GeometryData)> = BTreeMap::new();
+    for d in defs {
+        if !prepared.contains_key(&d.geometry) {
+            let geo = load_geometry(dir, m, &d.geometry)?;
+            let libr = methods.contains(&Method::Libr).then_some(&params.libr);
+            let case = Prepared::new(geo.model.clone(), libr, Some(&cache))?;
+            prepared.insert(d.geometry.clone(), (case, geo));
+        }
+        let (case, geo) = &prepared[&d.geometry];
+        let scenarios = load_scenarios(dir, d)?;
+        // Every `every`-th block of consecutive scenarios (categories cycle through the five in
+        // order), so a subsample keeps every category.
+        let block = CATEGORY_ORDER.len();
+        let picked: Vec<_> = scenarios
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| (i / block) % every == 0)
+            .map(|(_, s)| s)
+            .collect();
+        for &method in methods {
+            let results: Vec<ScenarioResult> = picked
+                .par_iter()
+                .map(|sc| {
+                    let r = register(case, &sc.measurements, method, params);
+                    let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+                    progress(k, total);
+                    match r {
+                        Ok(r) => ScenarioResult {
+                            scenario: sc.id.clone(),
+                            category: sc.category.clone(),
+                            method: method.name().into(),
+                            tre: Some(tre(
+                                geo.model.mesh.nodes(),
+                                (&r.image_to_physical, &r.u),
+                                (&sc.truth.image_to_physical, &sc.truth.displacement),
+                                &geo.surface,
+                                &geo.targets,
+                            )),
+                            error: None,
+                            seconds: r.seconds,
+                        },
+                        Err(e) => ScenarioResult {
+                            scenario: sc.id.clone(),
+                            category: sc.category.clone(),
+                            method: method.name().into(),
+                            tre: None,
+                            error: Some(e),
+                            seconds: 0.0,
+                        },
+                    }
+                })
+                .collect();
+            out.extend(results);
+        }
+    }
+    Ok(out)
+}
+
+/// Aggregates results per method.
+pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> {
+    let mut out: BTreeMap<String, MethodSummary> = BTreeMap::new();
+    let mut times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    for r in results {
+        let s = out.entry(r.method.clone()).or_default();
+        match &r.tre {
+            Some(t) => {
+                s.scenarios += 1;
+                s.tre_mm += t.tre_mm;
+                s.tre_surface_mm += t.tre_surface_mm;
+                s.tre_interior_mm += t.tre_interior_mm;
+                s.tre_targets_mm += t.tre_targets_mm;
+                let c = s.by_category.entry(r.category.clone()).or_default();
+                c.scenarios += 1;
+                c.tre_mm += t.tre_mm;
+                times.entry(r.method.clone()).or_default().push(r.seconds);
+            }
+            None => s.failed += 1,
+        }
+    }
+    for (m, s) in out.iter_mut() {
+        let n = s.scenarios.max(1) as f64;
+        s.tre_mm /= n;
+        s.tre_surface_mm /= n;
+        s.tre_interior_mm /= n;
+        s.tre_targets_mm /= n;
+        for c in s.by_category.values_mut() {
+            c.tre_mm /= c.scenarios.max(1) as f64;
+        }
+        if let Some(t) = times.get_mut(m) {
+            t.sort_by(f64::total_cmp);
+            s.seconds_median = t[t.len() / 2];
+        }
+    }
+    out
+}
+
+/// The categories in the paper's order.
+pub const CATEGORY_ORDER: [&str; 5] = [
+    "surface",
+    "surface+1us",
+    "surface+2us",
+    "surface+3us",
+    "surface+16us",
+];
+
+/// A Markdown report of per-split summaries.
+pub fn markdown(splits: &BTreeMap<String, BTreeMap<String, MethodSummary>>) -> String {
+    let mut s = String::from(
+        "# Registration report\n\nTRE in mm, mean over scenarios (mean over mesh nodes per scenario).\n",
+    );
+    for (split, methods) in splits {
+        s.push_str(&format!("\n## Split `{split}`\n\n| method | TRE | surface | interior | targets | scenarios | failed | median time (s) |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n"));
+        for (m, v) in methods {
+            s.push_str(&format!(
+                "| {m} | {:.2} | {:.2} | {:.2} | {:.2} | {} | {} | {:.3} |\n",
+                v.tre_mm,
+                v.tre_surface_mm,
+                v.tre_interior_mm,
+                v.tre_targets_mm,
+                v.scenarios,
+                v.failed,
+                v.seconds_median
+            ));
+        }
+        s.push_str("\nBy measurement category (as the paper's Table S1):\n\n| method |");
+        for c in CATEGORY_ORDER {
+            s.push_str(&format!(" {c} |"));
+        }
+        s.push_str("\n| --- |");
+        for _ in CATEGORY_ORDER {
+            s.push_str(" --- |");
+        }
+        s.push('\n');
+        for (m, v) in methods {
+            s.push_str(&format!("| {m} |"));
+            for c in CATEGORY_ORDER {
+                match v.by_category.get(c) {
+                    Some(x) => s.push_str(&format!(" {:.2} ({}) |", x.tre_mm, x.scenarios)),
+                    None => s.push_str(" – |"),
+                }
+            }
+            s.push('\n');
+        }
+    }
+    s
+}
