@@ -337,9 +337,8 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-/// Reads a closed surface for meshing: its triangles (or a tet mesh's boundary), the largest
-/// connected piece, oriented outward.
-fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
+/// Reads a surface file's triangles, or a tet mesh file's outward boundary, as a surface.
+fn read_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
     let file = read_file(path, unit)?;
     let triangles = if !file.triangles.is_empty() {
         file.triangles.clone()
@@ -350,11 +349,15 @@ fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
             .with_context(|| path.display().to_string())?
             .triangles
     } else {
-        bail!("{}: has no triangles or tetrahedra", path.display());
+        bail!("{}: has no triangles or tetrahedra to mesh", path.display());
     };
-    let mut surface = TriSurface::new(file.nodes.clone(), triangles)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
-        .largest_component();
+    TriSurface::new(file.nodes, triangles).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+}
+
+/// Reads a closed surface for meshing: its triangles (or a tet mesh's boundary), the largest
+/// connected piece, oriented outward.
+fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
+    let mut surface = read_surface(path, unit)?.largest_component();
     let stats = surface.stats();
     if !stats.closed {
         bail!(
@@ -1062,20 +1065,7 @@ fn mesh_tetra(path: &Path, edge_mm: f64, out: &Path, c: &Common, all_pieces: boo
             out.display()
         );
     }
-    let file = read_file(path, c.unit)?;
-    let triangles = if !file.triangles.is_empty() {
-        file.triangles.clone()
-    } else if !file.tets.is_empty() {
-        let mut m = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
-        m.orient_positive();
-        m.boundary()
-            .with_context(|| path.display().to_string())?
-            .triangles
-    } else {
-        bail!("{}: has no triangles or tetrahedra to mesh", path.display());
-    };
-    let surface = TriSurface::new(file.nodes.clone(), triangles)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let surface = read_surface(path, c.unit)?;
     let enclosed = surface.signed_volume().abs();
     let params = librplus::mesh::tetra::TetraParams {
         keep_largest_component: !all_pieces,

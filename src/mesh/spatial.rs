@@ -547,6 +547,21 @@ fn solid_angle(p: [f64; 3], t: [[f64; 3]; 3]) -> f64 {
     2.0 * num.atan2(den)
 }
 
+/// Distance from `p` to the segment `a`–`b`, and the parameter `t ∈ [0, 1]` of the closest point
+/// `a + t (b − a)`.
+pub fn point_segment_distance(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> (f64, f64) {
+    let ab = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let ap = [p[0] - a[0], p[1] - a[1], p[2] - a[2]];
+    let l2 = ab[0] * ab[0] + ab[1] * ab[1] + ab[2] * ab[2];
+    let t = if l2 > 0.0 {
+        ((ap[0] * ab[0] + ap[1] * ab[1] + ap[2] * ab[2]) / l2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let d = [0, 1, 2].map(|k| ap[k] - t * ab[k]);
+    ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(), t)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

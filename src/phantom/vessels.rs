@@ -109,18 +109,7 @@ fn deviate(d: [f64; 3], angle: f64, rng: &mut SplitMix64) -> [f64; 3] {
     normalize([0, 1, 2].map(|k| d[k] * angle.cos() + axis[k] * angle.sin()))
 }
 
-/// Distance from `p` to the segment `a`–`b`, and the interpolation parameter of the closest point.
-pub fn point_segment_distance(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> (f64, f64) {
-    let ab = sub(b, a);
-    let l2 = dot(ab, ab);
-    let t = if l2 > 0.0 {
-        (dot(sub(p, a), ab) / l2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let c = [0, 1, 2].map(|k| a[k] + t * ab[k]);
-    (dot(sub(p, c), sub(p, c)).sqrt(), t)
-}
+pub use crate::mesh::spatial::point_segment_distance;
 
 impl VesselTree {
     /// Grows a tree inside the liver mesh (LPS frame).

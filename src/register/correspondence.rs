@@ -614,16 +614,8 @@ fn feature_set(tris: &[[u32; 3]], anterior: &[u32], distance: &[f64], radius: f6
 
 /// Squared distance from `p` to the segment `a`–`b` and the parameter of the closest point.
 fn point_segment(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> (f64, f64) {
-    let ab = sub(b, a);
-    let l2 = dot(ab, ab);
-    let t = if l2 > 0.0 {
-        (dot(sub(p, a), ab) / l2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let c = [0, 1, 2].map(|k| a[k] + t * ab[k]);
-    let d = sub(p, c);
-    (dot(d, d), t)
+    let (d, t) = crate::mesh::spatial::point_segment_distance(p, a, b);
+    (d * d, t)
 }
 
 /// Barycentric coordinates of `q` (a point of the triangle) in triangle `p`, clamped to the
