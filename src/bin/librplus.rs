@@ -43,8 +43,47 @@ enum Command {
     Evaluate(EvaluateArgs),
 }
 
+/// LIBR options shared by `register` and `evaluate`.
+#[derive(Args, Clone)]
+struct LibrOpts {
+    /// LIBR strain-energy regularization λ (dimensionless; default 1e-3).
+    #[arg(long)]
+    lambda: Option<f64>,
+    /// Most LIBR iterations (default 20).
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// LIBR control points (default 25; changes the cached basis).
+    #[arg(long)]
+    control_points: Option<usize>,
+    /// Width σ of each control point's load, as a multiple of the control-point spacing
+    /// (default 1.25; changes the cached basis).
+    #[arg(long)]
+    load_width: Option<f64>,
+}
+
+impl LibrOpts {
+    fn params(&self) -> librplus::register::pipeline::PipelineParams {
+        let mut p = librplus::register::pipeline::PipelineParams::default();
+        if let Some(l) = self.lambda {
+            p.libr.regularization = l;
+        }
+        if let Some(i) = self.iterations {
+            p.libr.max_iterations = i;
+        }
+        if let Some(k) = self.control_points {
+            p.libr.control_points = k;
+        }
+        if let Some(w) = self.load_width {
+            p.libr.load_width = librplus::register::libr::LoadWidth::Spacing(w);
+        }
+        p
+    }
+}
+
 #[derive(Args)]
 struct EvaluateArgs {
+    #[command(flatten)]
+    libr: LibrOpts,
     /// Dataset directory.
     #[arg(long)]
     data: PathBuf,
@@ -67,6 +106,8 @@ struct EvaluateArgs {
 
 #[derive(Args)]
 struct RegisterArgs {
+    #[command(flatten)]
+    libr: LibrOpts,
     /// Dataset directory (from `librplus generate`).
     #[arg(long)]
     data: PathBuf,
@@ -373,7 +414,7 @@ fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
 
 fn evaluate(a: &EvaluateArgs) -> Result<()> {
     use librplus::eval::report::{self, Split};
-    use librplus::register::pipeline::{Method, PipelineParams};
+    use librplus::register::pipeline::Method;
     let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
     let methods = a
         .methods
@@ -392,7 +433,11 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
         .map(|s| Split::parse(s.trim()).map_err(|e| anyhow::anyhow!("--split: {e}")))
         .collect::<Result<Vec<_>>>()?;
     std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
-    let params = PipelineParams::default();
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
     let mut summaries = std::collections::BTreeMap::new();
     let mut all_results = serde_json::Map::new();
     for split in splits {
@@ -442,7 +487,7 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
 }
 
 fn register_scenario(a: &RegisterArgs) -> Result<()> {
-    use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+    use librplus::register::pipeline::{Method, Prepared, register};
     let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
     let (def_id, index) = a.scenario.rsplit_once('/').with_context(|| {
         format!(
@@ -485,7 +530,11 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
         MethodArg::Rigid => Method::Rigid,
         MethodArg::Libr => Method::Libr,
     };
-    let params = PipelineParams::default();
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
     let cache = a.cache.clone().unwrap_or_else(|| a.data.join("cache"));
     let t0 = Instant::now();
     let bar = indicatif::ProgressBar::new_spinner().with_message("preparing the case (LIBR basis)");
