@@ -475,3 +475,37 @@ fn liver_shape_variants_mesh_cleanly() {
         );
     }
 }
+
+/// A refitted hierarchy answers closest-point queries on the moved surface exactly as one built
+/// on it from scratch.
+#[test]
+fn refitted_bvh_matches_a_rebuilt_one() {
+    let s = vtk_liver();
+    let mut bvh = TriangleBvh::new(&s);
+    let moved: Vec<[f64; 3]> = s
+        .nodes()
+        .iter()
+        .map(|p| {
+            [
+                p[0] + 0.1 * p[1] + 5.0 * (p[2] / 40.0).sin(),
+                p[1] - 0.05 * p[0],
+                p[2] + 8.0 * (p[0] / 30.0).cos(),
+            ]
+        })
+        .collect();
+    bvh.refit(&moved);
+    let fresh = TriangleBvh::new(&TriSurface::new(moved.clone(), s.triangles().to_vec()).unwrap());
+    let (lo, hi) = s.bounding_box();
+    let mut rng = SplitMix64::new(9);
+    for _ in 0..2000 {
+        let q = [0, 1, 2].map(|k| lo[k] - 30.0 + (hi[k] - lo[k] + 60.0) * rng.next_f64());
+        let (a, b) = (
+            bvh.closest(q, None).unwrap(),
+            fresh.closest(q, None).unwrap(),
+        );
+        assert!(
+            (a.distance - b.distance).abs() <= 1e-9 * b.distance.max(1.0),
+            "{q:?}"
+        );
+    }
+}

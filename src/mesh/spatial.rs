@@ -69,6 +69,8 @@ pub struct TriangleBvh {
     /// Whether each slot's triangle is a sliver (sine of its angle at the first corner below 1e-6),
     /// whose closest point is then sought on its edges only.
     degenerate: Vec<bool>,
+    /// Sorted vertex indices of each slot (for [`TriangleBvh::refit`]).
+    verts: Vec<[u32; 3]>,
 }
 
 impl TriangleBvh {
@@ -77,14 +79,14 @@ impl TriangleBvh {
         let xyz = surface.nodes();
         let tris = surface.triangles();
         // Corners sorted by vertex index, and the orientation parity of that sort.
-        let sorted = |t: u32| -> ([[f64; 3]; 3], f64) {
+        let sorted = |t: u32| -> ([[f64; 3]; 3], f64, [u32; 3]) {
             let tri = tris[t as usize];
             let mut s = tri;
             s.sort_unstable();
             let inversions =
                 (tri[0] > tri[1]) as u8 + (tri[0] > tri[2]) as u8 + (tri[1] > tri[2]) as u8;
             let parity = if inversions % 2 == 0 { 1.0 } else { -1.0 };
-            (s.map(|v| xyz[v as usize]), parity)
+            (s.map(|v| xyz[v as usize]), parity, s)
         };
         let mut items: Vec<(u32, [f64; 3])> = (0..tris.len() as u32)
             .map(|t| {
@@ -99,6 +101,7 @@ impl TriangleBvh {
             ids: Vec::with_capacity(tris.len()),
             slot_of: vec![0; tris.len()],
             degenerate: Vec::with_capacity(tris.len()),
+            verts: Vec::with_capacity(tris.len()),
         };
         if !items.is_empty() {
             bvh.build(&mut items, &sorted);
@@ -112,7 +115,7 @@ impl TriangleBvh {
     fn build(
         &mut self,
         items: &mut [(u32, [f64; 3])],
-        sorted: &dyn Fn(u32) -> ([[f64; 3]; 3], f64),
+        sorted: &dyn Fn(u32) -> ([[f64; 3]; 3], f64, [u32; 3]),
     ) {
         let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
         let (mut clo, mut chi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
@@ -140,15 +143,12 @@ impl TriangleBvh {
             self.nodes[me].start_or_right = self.corners.len() as u32;
             self.nodes[me].count = items.len() as u32;
             for &(t, _) in items.iter() {
-                let (c, parity) = sorted(t);
-                let ab = sub(c[1], c[0]);
-                let ac = sub(c[2], c[0]);
-                let n = cross(ab, ac);
-                self.degenerate
-                    .push(dot(n, n) <= 1e-12 * dot(ab, ab) * dot(ac, ac));
+                let (c, parity, v) = sorted(t);
+                self.degenerate.push(is_sliver(&c));
                 self.corners.push(c);
                 self.parity.push(parity);
                 self.ids.push(t);
+                self.verts.push(v);
             }
             return;
         }
@@ -167,6 +167,46 @@ impl TriangleBvh {
         self.build(left, sorted);
         self.nodes[me].start_or_right = self.nodes.len() as u32;
         self.build(right, sorted);
+    }
+
+    /// Moves the triangles to new vertex positions (`xyz`, indexed as the surface the tree was
+    /// built from) and refits every box bottom-up, keeping the tree's structure: O(n), much cheaper
+    /// than a rebuild, and exact (only the tree's balance degrades under large motion). Queries
+    /// then answer for the moved surface.
+    pub fn refit(&mut self, xyz: &[[f64; 3]]) {
+        for (slot, v) in self.verts.iter().enumerate() {
+            let c = v.map(|i| xyz[i as usize]);
+            self.degenerate[slot] = is_sliver(&c);
+            self.corners[slot] = c;
+        }
+        // Nodes are in depth-first pre-order: children come after their parent.
+        for k in (0..self.nodes.len()).rev() {
+            let node = &self.nodes[k];
+            let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+            let mut grow = |a: [f64; 3], b: [f64; 3]| {
+                for i in 0..3 {
+                    lo[i] = lo[i].min(a[i]);
+                    hi[i] = hi[i].max(b[i]);
+                }
+            };
+            if node.count > 0 {
+                let start = node.start_or_right as usize;
+                for c in &self.corners[start..start + node.count as usize] {
+                    for p in c {
+                        grow(*p, *p);
+                    }
+                }
+            } else {
+                let (l, r) = (
+                    &self.nodes[k + 1],
+                    &self.nodes[node.start_or_right as usize],
+                );
+                grow(l.lo, l.hi);
+                grow(r.lo, r.hi);
+            }
+            self.nodes[k].lo = lo;
+            self.nodes[k].hi = hi;
+        }
     }
 
     /// Number of triangles in the tree.
@@ -545,6 +585,14 @@ fn solid_angle(p: [f64; 3], t: [[f64; 3]; 3]) -> f64 {
     let num = dot(a, cross(b, c));
     let den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb;
     2.0 * num.atan2(den)
+}
+
+/// A sliver: the sine of the angle at the first corner below 1e-6.
+fn is_sliver(c: &[[f64; 3]; 3]) -> bool {
+    let ab = sub(c[1], c[0]);
+    let ac = sub(c[2], c[0]);
+    let n = cross(ab, ac);
+    dot(n, n) <= 1e-12 * dot(ab, ab) * dot(ac, ac)
 }
 
 /// Distance from `p` to the segment `a`–`b`, and the parameter `t ∈ [0, 1]` of the closest point

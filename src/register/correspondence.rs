@@ -420,11 +420,10 @@ impl Correspondence {
             if !needed || deformed.is_none() {
                 return None;
             }
-            let t = set.tris.iter().map(|&t| self.tris[t as usize]).collect();
-            Some(TriangleBvh::new(&TriSurface::new_unchecked(
-                geometry.to_vec(),
-                t,
-            )))
+            // The prebuilt tree over the same triangles, refitted to the deformed nodes.
+            let mut bvh = set.bvh.clone();
+            bvh.refit(geometry);
+            Some(bvh)
         };
         let ant_bvh = rebuild(&self.anterior, need(MeasuredKind::Surface));
         let post_bvh = rebuild(&self.posterior, need(MeasuredKind::PosteriorContour));
