@@ -8,10 +8,10 @@
 //! Meshes: a jittered 60 × 40 × 30 mm box (fast), and `../shared/data/sofa_liver.vtk` meshed with
 //! 10 mm tets (timings are printed; run with `--nocapture` to see them).
 
+mod common;
+
 use librplus::fem::{LinearMaterial, StiffnessSystem, loads};
 use librplus::mesh::TetMesh;
-use librplus::mesh::TriSurface;
-use librplus::mesh::io::{self, Unit};
 use librplus::mesh::procedural::box_mesh;
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
@@ -19,7 +19,6 @@ use librplus::register::Match;
 use librplus::register::libr::{LibrBasis, LibrParams, LoadWidth, fit_step, mesh_hash, register};
 use librplus::util::SplitMix64;
 use nalgebra::{DMatrix, DVector};
-use std::path::PathBuf;
 use std::sync::OnceLock;
 use std::time::Instant;
 
@@ -43,13 +42,7 @@ fn boxed() -> &'static (TetMesh, LibrBasis) {
 fn liver() -> &'static TetMesh {
     static L: OnceLock<TetMesh> = OnceLock::new();
     L.get_or_init(|| {
-        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-        let mut s = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-            .unwrap()
-            .largest_component();
-        if s.signed_volume() < 0.0 {
-            s.flip();
-        }
+        let s = common::sofa_liver_surface();
         tetrahedralize(&s, &TetraParams::with_edge(10.0)).unwrap()
     })
 }

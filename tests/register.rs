@@ -2,27 +2,21 @@
 //! truth in the span of the LIBR basis, dense noiseless data), and the residual it leaves on
 //! nonlinear ground truth.
 
+mod common;
+
 use librplus::eval::tre;
-use librplus::mesh::io::{self, Unit};
+use librplus::mesh::TetMesh;
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
-use librplus::mesh::{TetMesh, TriSurface};
 use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
 use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
 use librplus::register::{MeasuredKind, Measurements, PreopModel};
 use librplus::util::SplitMix64;
-use std::path::PathBuf;
 
 fn liver(h: f64) -> (TetMesh, AnatomyLabels, VesselTree) {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let mut s = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-        .unwrap()
-        .largest_component();
-    if s.signed_volume() < 0.0 {
-        s.flip();
-    }
+    let s = common::sofa_liver_surface();
     let mesh = tetrahedralize(&s, &TetraParams::with_edge(h)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
     let vessels = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();

@@ -7,10 +7,12 @@
 //! Data: `../shared/data/sofa_liver.vtk` meshed with 10 mm tets, labelled and given a vessel tree
 //! by the phantom module; scenarios from `phantom::measure::simulate` on the undeformed liver.
 
-use librplus::mesh::io::{self, DataArray, MeshFile, Unit};
+mod common;
+
+use librplus::mesh::TetMesh;
+use librplus::mesh::io::{DataArray, MeshFile};
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
-use librplus::mesh::{TetMesh, TriSurface};
 use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
 use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
@@ -20,7 +22,6 @@ use librplus::register::correspondence::{
 use librplus::register::wicp::{WicpParams, WicpResult, wicp};
 use librplus::register::{MeasuredKind, Measurements, PreopModel};
 use librplus::util::SplitMix64;
-use std::path::PathBuf;
 use std::sync::OnceLock;
 
 struct Liver {
@@ -35,13 +36,7 @@ struct Liver {
 fn liver() -> &'static Liver {
     static LIVER: OnceLock<Liver> = OnceLock::new();
     LIVER.get_or_init(|| {
-        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-        let mut surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
-            .unwrap()
-            .largest_component();
-        if surface.signed_volume() < 0.0 {
-            surface.flip();
-        }
+        let surface = common::sofa_liver_surface();
         let mesh = tetrahedralize(&surface, &TetraParams::with_edge(10.0)).unwrap();
         let labels = label(&mesh, &LabelParams::default()).unwrap();
         let vessels = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
