@@ -192,8 +192,20 @@ struct GenerateArgs {
     /// Override: mesher target edge length (mm).
     #[arg(long)]
     edge_mm: Option<f64>,
+    /// Ground-truth physics: nonlinear (heterogeneous Neo-Hookean with unilateral bed contact) or
+    /// linear (the linear homogeneous model LIBR assumes, same loads: a control dataset).
+    #[arg(long, value_enum, default_value = "nonlinear")]
+    truth: TruthArg,
     #[command(flatten)]
     common: Common,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum TruthArg {
+    /// Heterogeneous compressible Neo-Hookean, unilateral bed contact.
+    Nonlinear,
+    /// Linear homogeneous elasticity, bilateral bed springs.
+    Linear,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -801,6 +813,10 @@ fn generate(a: &GenerateArgs) -> Result<()> {
     if let Some(d) = a.deformations {
         config.deformations_per_pattern = d;
     }
+    config.truth = match a.truth {
+        TruthArg::Nonlinear => librplus::phantom::dataset::TruthModel::Nonlinear,
+        TruthArg::Linear => librplus::phantom::dataset::TruthModel::LinearHomogeneous,
+    };
     if let Some(s) = a.scenarios {
         if s == 0 {
             bail!("--scenarios must be at least 1");

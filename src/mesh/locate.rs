@@ -177,28 +177,43 @@ impl TetLocator {
     /// # Panics
     /// When `field` is shorter than 3 × the number of nodes.
     pub fn interpolate(&self, field: &[f64], p: [f64; 3]) -> [f64; 3] {
+        self.interpolate_impl(field, p)
+    }
+
+    /// The tet and barycentric weights [`TetLocator::interpolate`] uses at `p`: the containing
+    /// tet, or outside the mesh the tet of the closest boundary face with the closest point's
+    /// weights (clamped to the tet); `None` when there is neither.
+    pub fn weights(&self, p: [f64; 3]) -> Option<(usize, [f64; 4])> {
+        match self.locate(p) {
+            Some(x) => Some(x),
+            None => self.boundary.closest(p, None).map(|c| {
+                let t = self.tet_of_face[c.triangle as usize] as usize;
+                let mut b = self.barycentric(t, c.point).map(|x| x.clamp(0.0, 1.0));
+                let s: f64 = b.iter().sum();
+                if s > 0.0 {
+                    b = b.map(|x| x / s);
+                } else {
+                    b = [0.25; 4];
+                }
+                (t, b)
+            }),
+        }
+    }
+
+    /// The nodes of tet `t`.
+    pub fn tet(&self, t: usize) -> [u32; 4] {
+        self.tets[t]
+    }
+
+    fn interpolate_impl(&self, field: &[f64], p: [f64; 3]) -> [f64; 3] {
         assert!(
             field.len() >= 3 * self.nodes.len(),
             "field has {} values, the mesh needs {}",
             field.len(),
             3 * self.nodes.len()
         );
-        let (t, b) = match self.locate(p) {
-            Some(x) => x,
-            None => match self.boundary.closest(p, None) {
-                Some(c) => {
-                    let t = self.tet_of_face[c.triangle as usize] as usize;
-                    let mut b = self.barycentric(t, c.point).map(|x| x.clamp(0.0, 1.0));
-                    let s: f64 = b.iter().sum();
-                    if s > 0.0 {
-                        b = b.map(|x| x / s);
-                    } else {
-                        b = [0.25; 4];
-                    }
-                    (t, b)
-                }
-                None => return [0.0; 3],
-            },
+        let Some((t, b)) = self.weights(p) else {
+            return [0.0; 3];
         };
         let tet = self.tets[t];
         let mut out = [0.0; 3];

@@ -15,7 +15,9 @@ use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
 use super::patterns::{Pattern, PatternParams, load_case};
 use super::shape::{ShapeVariantParams, variant};
 use super::tissue::{Tissue, TissueParams};
-use super::truth::{LoadParts, magnitude_stats, mean_distance, solve_linear, solve_truth};
+use super::truth::{
+    GroundTruth, LoadParts, magnitude_stats, mean_distance, solve_linear, solve_truth,
+};
 use super::vessels::{VesselParams, VesselTree};
 use crate::dataset::{
     DeformationEntry, FORMAT, FailedEntry, GeometryEntry, Manifest, ScenarioEntry, TumourEntry,
@@ -53,9 +55,33 @@ impl Preset {
     }
 }
 
+/// Which physics makes the ground truth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TruthModel {
+    /// Heterogeneous compressible Neo-Hookean with unilateral bed contact (the default: physics
+    /// the LIBR model lacks).
+    #[default]
+    Nonlinear,
+    /// The linear, homogeneous model LIBR itself assumes (the parenchyma's mean material, the bed
+    /// as bilateral springs), under the same loads: a control dataset on which the remaining
+    /// error of LIBR is its sparse-data error alone, not model error.
+    LinearHomogeneous,
+}
+
+impl TruthModel {
+    fn is_nonlinear(&self) -> bool {
+        *self == TruthModel::Nonlinear
+    }
+}
+
 /// Everything that shapes a dataset.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct GenerateConfig {
+    /// Ground-truth physics. Left out of the parameters (and their hash) when nonlinear, so
+    /// datasets made before the option existed keep their hash.
+    #[serde(skip_serializing_if = "TruthModel::is_nonlinear")]
+    pub truth: TruthModel,
     /// Preset it started from.
     pub preset: Preset,
     /// Master seed.
@@ -97,6 +123,7 @@ impl GenerateConfig {
     /// The configuration of a preset with a seed and source surfaces.
     pub fn preset(preset: Preset, seed: u64, sources: Vec<String>) -> Self {
         let base = Self {
+            truth: TruthModel::Nonlinear,
             preset,
             seed,
             sources,
@@ -620,7 +647,19 @@ fn make_deformation(
             derive(d.seed, &[6, attempt as u64])
         };
         let case = load_case(&b.mesh, &b.labels, d.pattern, &config.patterns, seed)?;
-        let truth = match solve_truth(&b.mesh, &b.lame, &case, &config.newton) {
+        let (lam, mu) = config.tissue.parenchyma.lame();
+        let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
+            .map_err(|e| format!("linear comparison: {e}"))?;
+        let solved = match config.truth {
+            TruthModel::Nonlinear => solve_truth(&b.mesh, &b.lame, &case, &config.newton),
+            // The control: the linear solution is the truth (no Newton; every bed spring acts).
+            TruthModel::LinearHomogeneous => Ok(GroundTruth {
+                displacement: linear.clone(),
+                info: Default::default(),
+                active_contacts: case.contacts.len(),
+            }),
+        };
+        let truth = match solved {
             Ok(t) => t,
             Err(e) => {
                 last_error = e.to_string();
@@ -633,9 +672,6 @@ fn make_deformation(
             }
         };
         let u = &truth.displacement;
-        let (lam, mu) = config.tissue.parenchyma.lame();
-        let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
-            .map_err(|e| format!("linear comparison: {e}"))?;
         let (mean, max) = magnitude_stats(u);
         let scenarios: Vec<Scenario> = (0..config.scenarios)
             .into_par_iter()

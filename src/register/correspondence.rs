@@ -152,6 +152,8 @@ pub struct Correspondence {
     tets: Vec<[u32; 4]>,
     /// Boundary triangle → its tet (fallback location of centerline points outside the mesh).
     tet_of_triangle: Vec<u32>,
+    /// Nodes whose displacement [`Correspondence::match_points`] reads (sorted).
+    active: Vec<u32>,
 }
 
 impl TargetSet {
@@ -305,7 +307,38 @@ impl Correspondence {
             TargetSet::new(&nodes, &tris, set)
         });
         let locator = TetLocator::new(mesh);
+        // Nodes whose displacement matching reads: the boundary (target surfaces) and the tets
+        // along the vessel centerlines (vertices, and samples every 0.5 mm along each segment).
+        let mut is_active = vec![false; n];
+        for t in &tris {
+            for &v in t {
+                is_active[v as usize] = true;
+            }
+        }
+        let mut mark = |p: [f64; 3]| {
+            if let Some((t, _)) = locator.weights(p) {
+                for v in locator.tet(t) {
+                    is_active[v as usize] = true;
+                }
+            }
+        };
+        for &p in &model.vessel_points {
+            mark(p);
+        }
+        for s in &model.vessel_segments {
+            let (a, b) = (
+                model.vessel_points[s[0] as usize],
+                model.vessel_points[s[1] as usize],
+            );
+            let steps = (norm(sub(b, a)) / 0.5).ceil().clamp(1.0, 1e5) as usize;
+            for k in 1..steps {
+                let f = k as f64 / steps as f64;
+                mark([0, 1, 2].map(|c| a[c] + f * (b[c] - a[c])));
+            }
+        }
+        let active = (0..n as u32).filter(|&i| is_active[i as usize]).collect();
         Ok(Self {
+            active,
             anterior: TargetSet::new(&nodes, &tris, anterior),
             posterior: TargetSet::new(&nodes, &tris, posterior),
             whole: TargetSet::new(&nodes, &tris, everything),
@@ -320,6 +353,13 @@ impl Correspondence {
             nodes,
             tris,
         })
+    }
+
+    /// The nodes whose displacement [`Correspondence::match_points`] reads (sorted): the boundary
+    /// and the tets along the vessel centerlines. An iterative fit need only update these between
+    /// matchings.
+    pub fn active_nodes(&self) -> &[u32] {
+        &self.active
     }
 
     /// Number of mesh nodes.

@@ -129,14 +129,19 @@ pub fn register(
         .basis
         .as_ref()
         .ok_or("the case was prepared without a LIBR basis")?;
-    let cparams: &CorrespondenceParams = &params.wicp.correspondence;
+    let cparams = CorrespondenceParams {
+        trim_floor_mm: params.libr.trim_floor_mm,
+        ..params.wicp.correspondence
+    };
+    let cparams = &cparams;
     let corr = &case.correspondence;
-    let sol = libr::register(
+    let sol = libr::register_active(
         &case.model.mesh,
         basis,
         &params.libr,
         &meas.points,
         &rigid.image_to_physical,
+        Some(corr.active_nodes()),
         |u, t| {
             let inv = t.inverse();
             let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
