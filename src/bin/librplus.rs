@@ -96,7 +96,7 @@ struct EvaluateArgs {
     /// Evaluate every k-th scenario of each deformation.
     #[arg(long, default_value_t = 1)]
     every: usize,
-    /// Report directory (summary.json, report.md, results.json).
+    /// Report directory (summary.json, report.md, results.json, PNG plots, error_maps/).
     #[arg(long)]
     out: PathBuf,
     /// Print summary.json on stdout.
@@ -440,6 +440,8 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
     let mut summaries = std::collections::BTreeMap::new();
     let mut all_results = serde_json::Map::new();
+    let mut plots = serde_json::Map::new();
+    let mut error_maps = serde_json::Map::new();
     for split in splits {
         let bar = indicatif::ProgressBar::new(0).with_style(
             indicatif::ProgressStyle::with_template(
@@ -455,15 +457,57 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
         };
         let results = report::evaluate(&a.data, &m, split, &methods, a.every, &params, &progress);
         bar.finish_and_clear();
-        let results = results.map_err(anyhow::Error::msg)?;
-        summaries.insert(split.name().to_string(), report::summarize(&results));
-        all_results.insert(split.name().to_string(), serde_json::to_value(&results)?);
+        let ev = results.map_err(anyhow::Error::msg)?;
+        let name = split.name();
+        let mut split_plots = Vec::new();
+        for (file, png) in [
+            (
+                format!("tre_by_category_{name}.png"),
+                librplus::eval::plot::tre_by_category_png(name, &ev.results),
+            ),
+            (
+                format!("tre_cdf_{name}.png"),
+                librplus::eval::plot::tre_cdf_png(name, &ev.results),
+            ),
+        ] {
+            let png = png.map_err(|e| anyhow::anyhow!("plot {file}: {e}"))?;
+            let path = a.out.join(&file);
+            std::fs::write(&path, png).with_context(|| path.display().to_string())?;
+            split_plots.push(file);
+        }
+        let dir = a.out.join("error_maps").join(name);
+        std::fs::create_dir_all(&dir).with_context(|| dir.display().to_string())?;
+        let mut split_maps = Vec::new();
+        for map in &ev.error_maps {
+            if map.scenarios == 0 {
+                continue;
+            }
+            let mesh = &ev.meshes[&map.geometry];
+            let file = format!("error_maps/{name}/{}_{}.vtu", map.geometry, map.method);
+            let f = map.to_file(mesh).map_err(anyhow::Error::msg)?;
+            io::write(a.out.join(&file), &f, WriteOptions::default())?;
+            let mean = map.mean_mm();
+            split_maps.push(json!({
+                "file": file,
+                "geometry": map.geometry,
+                "method": map.method,
+                "scenarios": map.scenarios,
+                "nodes": mean.len(),
+                "tre_mm": mean.iter().sum::<f64>() / mean.len().max(1) as f64,
+            }));
+        }
+        plots.insert(name.to_string(), json!(split_plots));
+        error_maps.insert(name.to_string(), Value::Array(split_maps));
+        summaries.insert(name.to_string(), report::summarize(&ev.results));
+        all_results.insert(name.to_string(), serde_json::to_value(&ev.results)?);
     }
     let summary = json!({
         "format": 1,
         "data": a.data.display().to_string(),
         "every": a.every,
         "splits": summaries.iter().map(|(k, v)| (k.clone(), json!({"methods": v}))).collect::<serde_json::Map<_, _>>(),
+        "plots": plots,
+        "error_maps": error_maps,
     });
     std::fs::write(
         a.out.join("summary.json"),
@@ -479,7 +523,7 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
     } else {
         print!("{}", report::markdown(&summaries));
         println!(
-            "\nwritten: {}/summary.json, report.md, results.json",
+            "\nwritten: {}/summary.json, report.md, results.json, tre_by_category_SPLIT.png, tre_cdf_SPLIT.png, error_maps/SPLIT/GEOMETRY_METHOD.vtu",
             a.out.display()
         );
     }
@@ -570,21 +614,18 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
         &geo.targets,
     );
     if let Some(out) = &a.out {
-        let mut f = geo.model.mesh.to_file();
-        let err: Vec<f64> = nodes
-            .iter()
-            .enumerate()
-            .map(|(i, x)| {
-                let at = |u: &[f64]| [0, 1, 2].map(|k| x[k] + u[3 * i + k]);
-                let p = r.image_to_physical.apply(at(&r.u));
-                let q = sc.truth.image_to_physical.apply(at(&sc.truth.displacement));
-                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
-            })
-            .collect();
-        f.point_data = vec![
-            DataArray::new("displacement", 3, r.u.clone()),
-            DataArray::new("error_mm", 1, err),
-        ];
+        let err = librplus::eval::node_errors_mm(
+            nodes,
+            (&r.image_to_physical, &r.u),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+        );
+        let f = librplus::eval::error_map_file(
+            &geo.model.mesh,
+            vec![
+                DataArray::new("displacement", 3, r.u.clone()),
+                DataArray::new("error_mm", 1, err),
+            ],
+        );
         io::write(out, &f, WriteOptions::default())?;
     }
     let libr = r.libr.as_ref();
