@@ -15,6 +15,7 @@ use crate::register::correspondence::preop_model_from_file;
 use crate::register::{MeasuredKind, Measurements, PreopModel};
 use std::path::Path;
 
+pub mod bench;
 pub mod plot;
 pub mod report;
 
