@@ -225,3 +225,62 @@ fn mesh_tetra_meshes_a_real_liver_surface() {
     ]);
     assert!(!ok && err.contains("open.obj"), "{err}");
 }
+
+/// `bench register` on the default dataset (the small preset generated into a temporary
+/// directory): a cold basis build then a cache hit, five registrations (one per category), and
+/// consistent statistics; `--mesh` measures the preload alone.
+#[test]
+fn bench_register_times_preload_and_registrations() {
+    let v = json(&[
+        "bench",
+        "register",
+        "--scenarios",
+        "5",
+        "--surface",
+        &data("sofa_liver.vtk"),
+        "--json",
+    ]);
+    assert_eq!(v["data_generated"], true);
+    assert_eq!(v["geometry"], "g1");
+    let p = &v["preload"];
+    assert_eq!(p["cold"]["from_cache"], false);
+    assert_eq!(p["warm"]["from_cache"], true);
+    for key in ["assemble_s", "factor_s", "solve_s", "basis_total_s"] {
+        assert!(p["cold"][key].as_f64().unwrap() > 0.0, "cold {key}: {p}");
+    }
+    assert!(p["warm"]["cache_read_s"].as_f64().unwrap() > 0.0);
+    assert_eq!(p["columns"], 75);
+    let r = &v["registrations"];
+    assert_eq!(r["count"], 5);
+    assert_eq!(r["failed"], 0);
+    let cats = r["per_category"].as_object().unwrap();
+    assert_eq!(cats.len(), 5, "{cats:?}");
+    let t = &r["total_s"];
+    let (p10, med, p90) = (
+        t["p10"].as_f64().unwrap(),
+        t["median"].as_f64().unwrap(),
+        t["p90"].as_f64().unwrap(),
+    );
+    assert!(0.0 < p10 && p10 <= med && med <= p90, "{t}");
+    let stages = &r["median_s"];
+    assert!(stages["wicp"].as_f64().unwrap() > 0.0);
+    assert!(stages["libr_matching"].as_f64().unwrap() > 0.0);
+    assert!(stages["libr"].as_f64().unwrap() <= stages["total"].as_f64().unwrap() * 1.5);
+    assert!(r["libr_iterations_mean"].as_f64().unwrap() >= 1.0);
+    assert!(r["tre_mm_mean"].as_f64().unwrap().is_finite());
+
+    let m = json(&[
+        "bench",
+        "register",
+        "--mesh",
+        &data("sofa_liver.msh"),
+        "--unit",
+        "cm",
+        "--json",
+    ]);
+    assert_eq!(m["preload"]["nodes"], 181);
+    assert_eq!(m["preload"]["warm"]["from_cache"], true);
+    assert!(m["registrations"].is_null());
+    let (ok, _, err) = librplus(&["bench", "register", "--scenarios", "0"]);
+    assert!(!ok && err.contains("--scenarios"), "{err}");
+}

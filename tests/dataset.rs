@@ -275,6 +275,8 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
             .unwrap()
             .contains("surface+16us")
     );
+    check_plots(&report, &summary);
+    check_error_maps(&report, &summary, &m);
 
     // Independent readers (meshio, VTK, numpy) when CI provides them.
     match std::env::var("LIBRPLUS_CHECK_PYTHON") {
@@ -291,5 +293,108 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
         Err(_) => eprintln!(
             "note: LIBRPLUS_CHECK_PYTHON not set; the meshio/VTK/numpy check runs in .ci/run"
         ),
+    }
+}
+
+/// Width and height from a PNG's IHDR chunk, read by hand (signature, then the first chunk).
+fn png_header_size(bytes: &[u8]) -> (u32, u32) {
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n", "not a PNG signature");
+    assert_eq!(&bytes[12..16], b"IHDR", "the first chunk is not IHDR");
+    let be = |o: usize| u32::from_be_bytes(bytes[o..o + 4].try_into().unwrap());
+    (be(16), be(20))
+}
+
+/// The PNG plots of every split: present, listed in summary.json, the documented size, and
+/// drawn (many distinct colours: fills, anti-aliased text and lines — a blank or single-colour
+/// image has one or two).
+fn check_plots(report: &Path, summary: &serde_json::Value) {
+    for split in ["all", "test"] {
+        let listed: Vec<&str> = summary["plots"][split]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        for name in [
+            format!("tre_by_category_{split}.png"),
+            format!("tre_cdf_{split}.png"),
+        ] {
+            assert!(listed.contains(&name.as_str()), "{name} not in {listed:?}");
+            let bytes = std::fs::read(report.join(&name)).unwrap();
+            let (w, h) = librplus::eval::plot::PLOT_SIZE;
+            assert_eq!(png_header_size(&bytes), (w, h), "{name}");
+            let mut reader = png::Decoder::new(std::io::Cursor::new(&bytes))
+                .read_info()
+                .unwrap();
+            let mut buf = vec![0; reader.output_buffer_size()];
+            let info = reader.next_frame(&mut buf).unwrap();
+            assert_eq!((info.width, info.height), (w, h));
+            assert_eq!(info.color_type, png::ColorType::Rgb, "{name}");
+            let pixels = &buf[..info.buffer_size()];
+            let colours: std::collections::BTreeSet<&[u8]> = pixels.chunks_exact(3).collect();
+            let white = pixels
+                .chunks_exact(3)
+                .filter(|p| *p == [255, 255, 255])
+                .count();
+            let total = (w * h) as usize;
+            eprintln!(
+                "{name}: {} bytes, {} colours, {:.1}% white",
+                bytes.len(),
+                colours.len(),
+                100.0 * white as f64 / total as f64
+            );
+            assert!(colours.len() > 50, "{name}: only {} colours", colours.len());
+            assert!(white < total * 98 / 100, "{name}: almost blank");
+        }
+    }
+}
+
+/// The `.vtu` error maps: one per split, geometry and method, on the preoperative mesh (node
+/// count from the manifest), with `tre_mean_mm` whose mean over nodes is the mean TRE of that
+/// geometry's scenarios recomputed here from results.json (and equal to summary.json's
+/// `by_geometry`), `tre_max_mm` ≥ `tre_mean_mm` and `tre_std_mm` ≥ 0.
+fn check_error_maps(report: &Path, summary: &serde_json::Value, m: &librplus::dataset::Manifest) {
+    let results: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report.join("results.json")).unwrap()).unwrap();
+    for (split, geometries) in [("all", vec!["g1", "g2"]), ("test", vec!["g2"])] {
+        let listed = summary["error_maps"][split].as_array().unwrap();
+        assert_eq!(listed.len(), 2 * geometries.len(), "{split}: {listed:?}");
+        for g in &geometries {
+            let nodes = m.geometries.iter().find(|x| x.id == *g).unwrap().nodes;
+            for method in ["rigid", "libr"] {
+                let path = report.join(format!("error_maps/{split}/{g}_{method}.vtu"));
+                let f = io::read(&path, Unit::Mm).unwrap();
+                assert_eq!(f.nodes.len(), nodes, "{}", path.display());
+                let mean = &f.point_array("tre_mean_mm").unwrap().values;
+                let max = &f.point_array("tre_max_mm").unwrap().values;
+                let std = &f.point_array("tre_std_mm").unwrap().values;
+                assert_eq!(mean.len(), nodes);
+                for i in 0..nodes {
+                    assert!(mean[i].is_finite() && max[i] >= mean[i] - 1e-12 && std[i] >= 0.0);
+                }
+                let map_mean = mean.iter().sum::<f64>() / nodes as f64;
+                // Independent: the mean of the per-scenario TREs of this geometry and method.
+                let tres: Vec<f64> = results[split]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .filter(|r| r["geometry"] == *g && r["method"] == method)
+                    .filter_map(|r| r["tre"]["tre_mm"].as_f64())
+                    .collect();
+                let expect = tres.iter().sum::<f64>() / tres.len() as f64;
+                assert!(
+                    (map_mean - expect).abs() <= 1e-9,
+                    "{split}/{g}/{method}: map {map_mean} vs scenarios {expect}"
+                );
+                let by_geo = &summary["splits"][split]["methods"][method]["by_geometry"][*g];
+                assert_eq!(by_geo["scenarios"].as_u64().unwrap() as usize, tres.len());
+                assert!((by_geo["tre_mm"].as_f64().unwrap() - map_mean).abs() <= 1e-9);
+                let entry = listed
+                    .iter()
+                    .find(|e| e["geometry"] == *g && e["method"] == method)
+                    .unwrap();
+                assert_eq!(entry["scenarios"].as_u64().unwrap() as usize, tres.len());
+            }
+        }
     }
 }

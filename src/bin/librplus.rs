@@ -96,7 +96,7 @@ struct EvaluateArgs {
     /// Evaluate every k-th scenario of each deformation.
     #[arg(long, default_value_t = 1)]
     every: usize,
-    /// Report directory (summary.json, report.md, results.json).
+    /// Report directory (summary.json, report.md, results.json, PNG plots, error_maps/).
     #[arg(long)]
     out: PathBuf,
     /// Print summary.json on stdout.
@@ -127,6 +127,38 @@ struct RegisterArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Args)]
+struct BenchRegisterArgs {
+    #[command(flatten)]
+    libr: LibrOpts,
+    /// Dataset directory (from `librplus generate`). Default: the `small` preset (seed 1)
+    /// generated from --surface into a temporary directory, so the benchmark runs anywhere.
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// A tet mesh instead of a dataset: only the LIBR basis preload is measured (a bare mesh has
+    /// no anatomical labels, so no correspondence and no registrations).
+    #[arg(long, conflicts_with_all = ["data", "geometry"])]
+    mesh: Option<PathBuf>,
+    /// Closed liver surface for the default dataset.
+    #[arg(long, default_value = "../shared/data/sofa_liver.vtk")]
+    surface: PathBuf,
+    /// Geometry id of the dataset (default: the first).
+    #[arg(long)]
+    geometry: Option<String>,
+    /// Registrations to time, taken evenly across the five measurement categories.
+    #[arg(long, default_value_t = 50)]
+    scenarios: usize,
+    /// Threads of the pool the registrations run in, one after another (1: single-registration
+    /// latency on one core, the surgical metric). The preload uses every core.
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
+    /// rigid (wICP) or libr (wICP then LIBR).
+    #[arg(long, default_value = "libr")]
+    method: MethodArg,
+    #[command(flatten)]
+    common: Common,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -316,6 +348,10 @@ impl From<OrderingArg> for fem::Ordering {
 
 #[derive(Subcommand)]
 enum BenchCmd {
+    /// Whole registration pipeline: the case preload (LIBR basis built cold, then read from its
+    /// cache) and single-registration latency with stage timings over scenarios spread across
+    /// the measurement categories.
+    Register(BenchRegisterArgs),
     /// LIBR preload workload: assemble, factorize once, solve `rhs` unit-load right-hand sides.
     Basis {
         /// Tetrahedral mesh file.
@@ -377,6 +413,7 @@ fn run(cli: Cli) -> Result<()> {
             seed,
             ordering,
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
+        Command::Bench(BenchCmd::Register(args)) => bench_register(&args),
         Command::Generate(args) => generate(&args),
         Command::Register(args) => register_scenario(&args),
         Command::Evaluate(args) => evaluate(&args),
@@ -452,6 +489,8 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
     let mut summaries = std::collections::BTreeMap::new();
     let mut all_results = serde_json::Map::new();
+    let mut plots = serde_json::Map::new();
+    let mut error_maps = serde_json::Map::new();
     for split in splits {
         let bar = indicatif::ProgressBar::new(0).with_style(
             indicatif::ProgressStyle::with_template(
@@ -467,15 +506,57 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
         };
         let results = report::evaluate(&a.data, &m, split, &methods, a.every, &params, &progress);
         bar.finish_and_clear();
-        let results = results.map_err(anyhow::Error::msg)?;
-        summaries.insert(split.name().to_string(), report::summarize(&results));
-        all_results.insert(split.name().to_string(), serde_json::to_value(&results)?);
+        let ev = results.map_err(anyhow::Error::msg)?;
+        let name = split.name();
+        let mut split_plots = Vec::new();
+        for (file, png) in [
+            (
+                format!("tre_by_category_{name}.png"),
+                librplus::eval::plot::tre_by_category_png(name, &ev.results),
+            ),
+            (
+                format!("tre_cdf_{name}.png"),
+                librplus::eval::plot::tre_cdf_png(name, &ev.results),
+            ),
+        ] {
+            let png = png.map_err(|e| anyhow::anyhow!("plot {file}: {e}"))?;
+            let path = a.out.join(&file);
+            std::fs::write(&path, png).with_context(|| path.display().to_string())?;
+            split_plots.push(file);
+        }
+        let dir = a.out.join("error_maps").join(name);
+        std::fs::create_dir_all(&dir).with_context(|| dir.display().to_string())?;
+        let mut split_maps = Vec::new();
+        for map in &ev.error_maps {
+            if map.scenarios == 0 {
+                continue;
+            }
+            let mesh = &ev.meshes[&map.geometry];
+            let file = format!("error_maps/{name}/{}_{}.vtu", map.geometry, map.method);
+            let f = map.to_file(mesh).map_err(anyhow::Error::msg)?;
+            io::write(a.out.join(&file), &f, WriteOptions::default())?;
+            let mean = map.mean_mm();
+            split_maps.push(json!({
+                "file": file,
+                "geometry": map.geometry,
+                "method": map.method,
+                "scenarios": map.scenarios,
+                "nodes": mean.len(),
+                "tre_mm": mean.iter().sum::<f64>() / mean.len().max(1) as f64,
+            }));
+        }
+        plots.insert(name.to_string(), json!(split_plots));
+        error_maps.insert(name.to_string(), Value::Array(split_maps));
+        summaries.insert(name.to_string(), report::summarize(&ev.results));
+        all_results.insert(name.to_string(), serde_json::to_value(&ev.results)?);
     }
     let summary = json!({
         "format": 1,
         "data": a.data.display().to_string(),
         "every": a.every,
         "splits": summaries.iter().map(|(k, v)| (k.clone(), json!({"methods": v}))).collect::<serde_json::Map<_, _>>(),
+        "plots": plots,
+        "error_maps": error_maps,
     });
     std::fs::write(
         a.out.join("summary.json"),
@@ -491,7 +572,7 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
     } else {
         print!("{}", report::markdown(&summaries));
         println!(
-            "\nwritten: {}/summary.json, report.md, results.json",
+            "\nwritten: {}/summary.json, report.md, results.json, tre_by_category_SPLIT.png, tre_cdf_SPLIT.png, error_maps/SPLIT/GEOMETRY_METHOD.vtu",
             a.out.display()
         );
     }
@@ -582,21 +663,18 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
         &geo.targets,
     );
     if let Some(out) = &a.out {
-        let mut f = geo.model.mesh.to_file();
-        let err: Vec<f64> = nodes
-            .iter()
-            .enumerate()
-            .map(|(i, x)| {
-                let at = |u: &[f64]| [0, 1, 2].map(|k| x[k] + u[3 * i + k]);
-                let p = r.image_to_physical.apply(at(&r.u));
-                let q = sc.truth.image_to_physical.apply(at(&sc.truth.displacement));
-                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
-            })
-            .collect();
-        f.point_data = vec![
-            DataArray::new("displacement", 3, r.u.clone()),
-            DataArray::new("error_mm", 1, err),
-        ];
+        let err = librplus::eval::node_errors_mm(
+            nodes,
+            (&r.image_to_physical, &r.u),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+        );
+        let f = librplus::eval::error_map_file(
+            &geo.model.mesh,
+            vec![
+                DataArray::new("displacement", 3, r.u.clone()),
+                DataArray::new("error_mm", 1, err),
+            ],
+        );
         io::write(out, &f, WriteOptions::default())?;
     }
     let libr = r.libr.as_ref();
@@ -1359,5 +1437,281 @@ fn bench_basis(
         "max_rel_residual": runs.iter().map(|r| r.max_rel_residual).fold(0.0, f64::max),
     });
     emit(c.json, &out);
+    Ok(())
+}
+
+/// A directory under the system temporary directory, removed (with its contents) when dropped.
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(tag: &str) -> Result<Self> {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.subsec_nanos())
+            .unwrap_or(0);
+        let p = std::env::temp_dir().join(format!("librplus-{tag}-{}-{nanos}", std::process::id()));
+        std::fs::create_dir_all(&p).with_context(|| p.display().to_string())?;
+        Ok(Self(p))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn preload_json(p: &librplus::eval::bench::PreloadBench) -> Value {
+    let one = |x: &librplus::eval::bench::Preload| {
+        json!({
+            "from_cache": x.from_cache,
+            "loads_s": x.basis.loads_s,
+            "assemble_s": x.basis.assemble_s,
+            "factor_s": x.basis.factor_s,
+            "solve_s": x.basis.solve_s,
+            "energy_s": x.basis.energy_s,
+            "cache_read_s": x.basis.cache_read_s,
+            "basis_total_s": x.basis.total_s,
+            "correspondence_s": x.correspondence_s,
+            "total_s": x.total_s,
+        })
+    };
+    json!({
+        "nodes": p.nodes,
+        "tets": p.tets,
+        "columns": p.columns,
+        "cache_bytes": p.cache_bytes,
+        "threads": rayon::current_num_threads(),
+        "cold": one(&p.cold),
+        "warm": one(&p.warm),
+    })
+}
+
+fn print_preload(p: &librplus::eval::bench::PreloadBench) {
+    println!(
+        "preload: {} nodes, {} tets, {} basis columns, cache file {:.1} MB, {} threads",
+        p.nodes,
+        p.tets,
+        p.columns,
+        p.cache_bytes as f64 / 1e6,
+        rayon::current_num_threads()
+    );
+    println!(
+        "  {:<5} {:>8} {:>9} {:>8} {:>8} {:>8} {:>11} {:>9} {:>15} {:>8}",
+        "(s)",
+        "loads",
+        "assemble",
+        "factor",
+        "solve",
+        "energy",
+        "cache read",
+        "basis",
+        "correspondence",
+        "total"
+    );
+    for (name, x) in [("cold", &p.cold), ("warm", &p.warm)] {
+        println!(
+            "  {:<5} {:>8.3} {:>9.3} {:>8.3} {:>8.3} {:>8.3} {:>11.3} {:>9.3} {:>15} {:>8.3}",
+            name,
+            x.basis.loads_s,
+            x.basis.assemble_s,
+            x.basis.factor_s,
+            x.basis.solve_s,
+            x.basis.energy_s,
+            x.basis.cache_read_s,
+            x.basis.total_s,
+            x.correspondence_s
+                .map_or_else(|| "–".to_string(), |c| format!("{c:.3}")),
+            x.total_s
+        );
+    }
+}
+
+fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
+    use librplus::eval::bench::{
+        pick_across_categories, preload_mesh, preload_model, time_registrations,
+    };
+    use librplus::register::pipeline::Method;
+    if a.threads == 0 {
+        bail!("--threads must be at least 1");
+    }
+    if a.scenarios == 0 {
+        bail!("--scenarios must be at least 1");
+    }
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    let tmp = TempDir::new("bench-register")?;
+    let cache = tmp.0.join("cache");
+    let spinner = |msg: &str| {
+        let bar = indicatif::ProgressBar::new_spinner().with_message(msg.to_string());
+        bar.enable_steady_tick(std::time::Duration::from_millis(200));
+        bar
+    };
+    if let Some(path) = &a.mesh {
+        let mesh = load_volume(path, a.common.unit)?.mesh;
+        let bar = spinner("LIBR basis: cold build, then warm load");
+        let p = preload_mesh(&mesh, &params.libr, &cache);
+        bar.finish_and_clear();
+        let p = p.map_err(anyhow::Error::msg)?;
+        if a.common.json {
+            println!(
+                "{}",
+                json!({"mesh": path.display().to_string(), "preload": preload_json(&p), "registrations": Value::Null})
+            );
+        } else {
+            println!(
+                "bench register: {} (mesh only: preload, no registrations)",
+                path.display()
+            );
+            print_preload(&p);
+        }
+        return Ok(());
+    }
+    let data = match &a.data {
+        Some(d) => d.clone(),
+        None => {
+            let dir = tmp.0.join("data");
+            let bar = spinner("generating the small preset (no --data given)");
+            let r = small_dataset(&dir, &a.surface);
+            bar.finish_and_clear();
+            r?;
+            dir
+        }
+    };
+    let m = librplus::eval::open(&data).map_err(anyhow::Error::msg)?;
+    let geometry = match &a.geometry {
+        Some(g) => g.clone(),
+        None => m
+            .geometries
+            .first()
+            .map(|g| g.id.clone())
+            .with_context(|| format!("{}: the manifest has no geometry", data.display()))?,
+    };
+    let geo = librplus::eval::load_geometry(&data, &m, &geometry)
+        .map_err(|e| anyhow::anyhow!("--geometry {geometry:?}: {e}"))?;
+    let mut scenarios = Vec::new();
+    for d in m.deformations.iter().filter(|d| d.geometry == geometry) {
+        scenarios.extend(librplus::eval::load_scenarios(&data, d).map_err(anyhow::Error::msg)?);
+    }
+    let cats: Vec<&str> = scenarios.iter().map(|s| s.category.as_str()).collect();
+    let picked: Vec<&librplus::eval::ScenarioData> = pick_across_categories(&cats, a.scenarios)
+        .into_iter()
+        .map(|i| &scenarios[i])
+        .collect();
+    if picked.is_empty() {
+        bail!(
+            "{}: geometry {geometry} has no scenarios in the categories {:?}",
+            data.display(),
+            librplus::eval::report::CATEGORY_ORDER
+        );
+    }
+    let bar = spinner("preload: LIBR basis cold build, then warm load");
+    let pre = preload_model(&geo.model, &params.libr, &cache);
+    bar.finish_and_clear();
+    let (pre, case) = pre.map_err(anyhow::Error::msg)?;
+    let method = match a.method {
+        MethodArg::Rigid => Method::Rigid,
+        MethodArg::Libr => Method::Libr,
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.threads)
+        .build()
+        .context("building the thread pool")?;
+    let bar = indicatif::ProgressBar::new(picked.len() as u64).with_message("registrations");
+    let progress = |done: usize, _: usize| bar.set_position(done as u64);
+    let r = pool.install(|| {
+        time_registrations(
+            &case,
+            &picked,
+            &geo.surface,
+            &geo.targets,
+            method,
+            &params,
+            &progress,
+        )
+    });
+    bar.finish_and_clear();
+    let r = r.map_err(anyhow::Error::msg)?;
+    let out = json!({
+        "data": data.display().to_string(),
+        "data_generated": a.data.is_none(),
+        "geometry": geometry,
+        "method": method.name(),
+        "threads": a.threads,
+        "preload": preload_json(&pre),
+        "registrations": {
+            "count": r.count,
+            "failed": r.failed,
+            "per_category": r.per_category,
+            "total_s": r.total_s,
+            "median_s": {
+                "total": r.median.total_s,
+                "wicp": r.median.wicp_s,
+                "libr": r.median.libr_s,
+                "libr_matching": r.median.libr_matching_s,
+                "libr_assemble": r.median.libr_assemble_s,
+                "libr_solve": r.median.libr_solve_s,
+                "libr_other": r.median.libr_other_s,
+            },
+            "wicp_iterations_mean": r.wicp_iterations_mean,
+            "libr_iterations_mean": r.libr_iterations_mean,
+            "libr_converged": r.libr_converged,
+            "tre_mm_mean": r.tre_mm_mean,
+        },
+    });
+    if a.common.json {
+        println!("{out}");
+        return Ok(());
+    }
+    println!(
+        "bench register: geometry {geometry} of {}{}, method {}, {} registrations one at a time in a {}-thread pool",
+        data.display(),
+        if a.data.is_none() { " (generated)" } else { "" },
+        method.name(),
+        r.count,
+        a.threads
+    );
+    print_preload(&pre);
+    println!(
+        "registration (s): median {:.4}, p10 {:.4}, p90 {:.4}, mean {:.4}, max {:.4}; failed {}",
+        r.total_s.median, r.total_s.p10, r.total_s.p90, r.total_s.mean, r.total_s.max, r.failed
+    );
+    println!(
+        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4})",
+        r.median.wicp_s,
+        r.median.libr_s,
+        r.median.libr_matching_s,
+        r.median.libr_assemble_s,
+        r.median.libr_solve_s,
+        r.median.libr_other_s
+    );
+    println!(
+        "  iterations (mean): wicp {:.1}, libr {:.1} (converged {}/{}); mean TRE {:.2} mm; per category {:?}",
+        r.wicp_iterations_mean,
+        r.libr_iterations_mean,
+        r.libr_converged,
+        r.count,
+        r.tre_mm_mean,
+        r.per_category
+    );
+    Ok(())
+}
+
+/// Generates the `small` preset (seed 1) from `surface` into `dir`, quietly.
+fn small_dataset(dir: &Path, surface: &Path) -> Result<()> {
+    use librplus::phantom::dataset::{GenerateConfig, Preset};
+    let s = load_closed_surface(surface, Unit::Mm)
+        .with_context(|| format!("--surface {} (for the default dataset)", surface.display()))?;
+    let name = surface
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| surface.display().to_string());
+    let config = GenerateConfig::preset(Preset::Small, 1, vec![name]);
+    std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    librplus::phantom::dataset::generate(&config, &[s], dir, (0, 1), &|_, _, _| {})
+        .map_err(|e| anyhow::anyhow!("generating the small preset into {}: {e}", dir.display()))?;
     Ok(())
 }

@@ -7,13 +7,16 @@
 //! two apart (`measurements` vs `truth`).
 
 use crate::dataset::{DeformationEntry, Manifest, read_manifest};
+use crate::mesh::TetMesh;
 use crate::mesh::io::npz::{NpyArray, read_npz};
-use crate::mesh::io::{self, Unit};
+use crate::mesh::io::{self, DataArray, MeshFile, Unit};
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::preop_model_from_file;
 use crate::register::{MeasuredKind, Measurements, PreopModel};
 use std::path::Path;
 
+pub mod bench;
+pub mod plot;
 pub mod report;
 
 /// Target registration errors (mm).
@@ -31,15 +34,15 @@ pub struct Tre {
     pub max_mm: f64,
 }
 
-/// TRE of a prediction. `surface` flags boundary nodes; `targets` are node ids.
-pub fn tre(
+/// Per-node distance (mm) between predicted and true node positions, both in the physical frame:
+/// `|T_est(X_i + u_est,i) − T_true(X_i + u_true,i)|` for node i. The one definition of the node
+/// error that [`tre`], `evaluate`'s error maps and `register --out` share.
+pub fn node_errors_mm(
     nodes: &[[f64; 3]],
     predicted: (&Rigid, &[f64]),
     truth: (&Rigid, &[f64]),
-    surface: &[bool],
-    targets: &[u32],
-) -> Tre {
-    let err: Vec<f64> = nodes
+) -> Vec<f64> {
+    nodes
         .iter()
         .enumerate()
         .map(|(i, x)| {
@@ -48,7 +51,23 @@ pub fn tre(
             let q = truth.0.apply(at(truth.1));
             ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
         })
-        .collect();
+        .collect()
+}
+
+/// TRE of a prediction. `surface` flags boundary nodes; `targets` are node ids.
+pub fn tre(
+    nodes: &[[f64; 3]],
+    predicted: (&Rigid, &[f64]),
+    truth: (&Rigid, &[f64]),
+    surface: &[bool],
+    targets: &[u32],
+) -> Tre {
+    tre_from_errors(&node_errors_mm(nodes, predicted, truth), surface, targets)
+}
+
+/// TRE from per-node errors ([`node_errors_mm`]). `surface` flags boundary nodes; `targets` are
+/// node ids.
+pub fn tre_from_errors(err: &[f64], surface: &[bool], targets: &[u32]) -> Tre {
     let mean = |it: &mut dyn Iterator<Item = f64>| {
         let (s, c) = it.fold((0.0, 0usize), |(s, c), e| (s + e, c + 1));
         if c == 0 { f64::NAN } else { s / c as f64 }
@@ -60,6 +79,14 @@ pub fn tre(
         tre_targets_mm: mean(&mut targets.iter().map(|&t| err[t as usize])),
         max_mm: err.iter().copied().fold(0.0, f64::max),
     }
+}
+
+/// The preoperative mesh as a mesh file carrying per-node arrays (an error map: open it in
+/// ParaView or 3D Slicer and colour by an array). Pure: write it with [`crate::mesh::io::write`].
+pub fn error_map_file(mesh: &TetMesh, point_data: Vec<DataArray>) -> MeshFile {
+    let mut f = mesh.to_file();
+    f.point_data = point_data;
+    f
 }
 
 /// The ground truth of one scenario (evaluation only).

@@ -1,14 +1,18 @@
 //! Evaluation over a dataset: runs registration methods on the scenarios of a split and aggregates
 //! TRE per method and per measurement category into the stable `summary.json` contract and a
-//! Markdown report.
+//! Markdown report, and per-node error statistics per geometry and method ([`ErrorMap`], written
+//! as `.vtu` error maps).
 //!
 //! `summary.json` (format 1):
 //! `{"format": 1, "splits": {SPLIT: {"methods": {METHOD: {"tre_mm", "tre_surface_mm",
 //! "tre_interior_mm", "tre_targets_mm", "scenarios", "failed", "seconds_median",
-//! "by_category": {CATEGORY: {"tre_mm", "scenarios"}}}}}}}` — means in mm over scenarios.
+//! "by_category": {CATEGORY: {"tre_mm", "scenarios"}}, "by_geometry": {GEOMETRY: {"tre_mm",
+//! "scenarios"}}}}}}}` — means in mm over scenarios. Keys are only ever added to format 1.
 
-use super::{Tre, load_geometry, load_scenarios, tre};
+use super::{Tre, error_map_file, load_geometry, load_scenarios, node_errors_mm, tre_from_errors};
 use crate::dataset::Manifest;
+use crate::mesh::TetMesh;
+use crate::mesh::io::{DataArray, MeshFile};
 use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -53,6 +57,8 @@ impl Split {
 pub struct ScenarioResult {
     /// `deformation/index`.
     pub scenario: String,
+    /// Geometry id of the deformation.
+    pub geometry: String,
     /// Category.
     pub category: String,
     /// Method.
@@ -84,9 +90,11 @@ pub struct MethodSummary {
     pub seconds_median: f64,
     /// Per category: mean TRE and count.
     pub by_category: BTreeMap<String, CategorySummary>,
+    /// Per geometry: mean TRE and count (the mean over nodes of that geometry's error map).
+    pub by_geometry: BTreeMap<String, CategorySummary>,
 }
 
-/// Aggregate of one method in one category.
+/// Aggregate of one method in one group of scenarios (a category or a geometry).
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct CategorySummary {
     /// Mean TRE (mm).
@@ -95,8 +103,116 @@ pub struct CategorySummary {
     pub scenarios: usize,
 }
 
+/// Per-node error statistics of one method on one geometry over the scenarios of a split that
+/// registered: running sums, so memory stays at three arrays per mesh whatever the number of
+/// scenarios. Node errors as [`node_errors_mm`] (the definition of [`super::tre`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ErrorMap {
+    /// Geometry id.
+    pub geometry: String,
+    /// Method name.
+    pub method: String,
+    /// Scenarios added.
+    pub scenarios: usize,
+    /// Per node: sum of errors over scenarios (mm).
+    pub sum_mm: Vec<f64>,
+    /// Per node: sum of squared errors (mm²).
+    pub sum_sq_mm2: Vec<f64>,
+    /// Per node: largest error (mm).
+    pub max_mm: Vec<f64>,
+}
+
+impl ErrorMap {
+    /// An empty map of `nodes` nodes.
+    pub fn new(geometry: &str, method: &str, nodes: usize) -> Self {
+        Self {
+            geometry: geometry.to_string(),
+            method: method.to_string(),
+            scenarios: 0,
+            sum_mm: vec![0.0; nodes],
+            sum_sq_mm2: vec![0.0; nodes],
+            max_mm: vec![0.0; nodes],
+        }
+    }
+
+    /// Adds one scenario's node errors (one per node).
+    pub fn add(&mut self, err: &[f64]) -> Result<(), String> {
+        if err.len() != self.sum_mm.len() {
+            return Err(format!(
+                "error map {}/{}: {} node errors for {} nodes",
+                self.geometry,
+                self.method,
+                err.len(),
+                self.sum_mm.len()
+            ));
+        }
+        for (i, &e) in err.iter().enumerate() {
+            self.sum_mm[i] += e;
+            self.sum_sq_mm2[i] += e * e;
+            self.max_mm[i] = self.max_mm[i].max(e);
+        }
+        self.scenarios += 1;
+        Ok(())
+    }
+
+    /// Per node: mean error over the scenarios (mm; NaN when none was added).
+    pub fn mean_mm(&self) -> Vec<f64> {
+        let n = self.scenarios as f64;
+        self.sum_mm.iter().map(|s| s / n).collect()
+    }
+
+    /// Per node: standard deviation of the error over the scenarios (population, mm).
+    pub fn std_mm(&self) -> Vec<f64> {
+        let n = self.scenarios as f64;
+        self.sum_mm
+            .iter()
+            .zip(&self.sum_sq_mm2)
+            .map(|(s, q)| (q / n - (s / n).powi(2)).max(0.0).sqrt())
+            .collect()
+    }
+
+    /// Point arrays `tre_mean_mm`, `tre_max_mm` and `tre_std_mm` (one value per node).
+    pub fn point_data(&self) -> Vec<DataArray> {
+        vec![
+            DataArray::new("tre_mean_mm", 1, self.mean_mm()),
+            DataArray::new("tre_max_mm", 1, self.max_mm.clone()),
+            DataArray::new("tre_std_mm", 1, self.std_mm()),
+        ]
+    }
+
+    /// The error map as a mesh file on `mesh` (the geometry's preoperative mesh).
+    pub fn to_file(&self, mesh: &TetMesh) -> Result<MeshFile, String> {
+        if mesh.num_nodes() != self.sum_mm.len() {
+            return Err(format!(
+                "error map {}/{} has {} nodes, the mesh {}",
+                self.geometry,
+                self.method,
+                self.sum_mm.len(),
+                mesh.num_nodes()
+            ));
+        }
+        Ok(error_map_file(mesh, self.point_data()))
+    }
+}
+
+/// What [`evaluate`] returns.
+#[derive(Debug, Clone)]
+pub struct Evaluation {
+    /// Every scenario and method, in deformation, method, scenario order.
+    pub results: Vec<ScenarioResult>,
+    /// One per geometry and method (geometry order of the deformations, then method order).
+    pub error_maps: Vec<ErrorMap>,
+    /// The preoperative mesh of each evaluated geometry (for writing the error maps).
+    pub meshes: BTreeMap<String, TetMesh>,
+}
+
+/// Scenarios registered in parallel at a time; their node errors are then added to the error
+/// maps in scenario order, so the sums do not depend on thread scheduling.
+const CHUNK: usize = 32;
+
 /// Runs `methods` on the scenarios of the split's deformations: every `every`-th block of five
-/// consecutive scenarios (one per category).
+/// consecutive scenarios (one per category). Besides per-scenario results it accumulates each
+/// geometry's and method's per-node errors ([`ErrorMap`]).
 pub fn evaluate(
     dir: &Path,
     m: &Manifest,
@@ -105,7 +221,7 @@ pub fn evaluate(
     every: usize,
     params: &PipelineParams,
     progress: &(dyn Fn(usize, usize) + Sync),
-) -> Result<Vec<ScenarioResult>, String> {
+) -> Result<Evaluation, String> {
     let every = every.max(1);
     let test_geos: Vec<&str> = m
         .geometries
@@ -133,6 +249,7 @@ pub fn evaluate(
         .sum();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let mut out = Vec::new();
+    let mut maps: Vec<ErrorMap> = Vec::new();
     let cache = dir.join("cache");
     let mut prepared: BTreeMap<String, (Prepared, super::GeometryData)> = BTreeMap::new();
     for d in defs {
@@ -140,6 +257,13 @@ pub fn evaluate(
             let geo = load_geometry(dir, m, &d.geometry)?;
             let libr = methods.contains(&Method::Libr).then_some(&params.libr);
             let case = Prepared::new(geo.model.clone(), libr, Some(&cache))?;
+            for &method in methods {
+                maps.push(ErrorMap::new(
+                    &d.geometry,
+                    method.name(),
+                    geo.model.mesh.num_nodes(),
+                ));
+            }
             prepared.insert(d.geometry.clone(), (case, geo));
         }
         let (case, geo) = &prepared[&d.geometry];
@@ -154,42 +278,68 @@ pub fn evaluate(
             .map(|(_, s)| s)
             .collect();
         for &method in methods {
-            let results: Vec<ScenarioResult> = picked
-                .par_iter()
-                .map(|sc| {
-                    let r = register(case, &sc.measurements, method, params);
-                    let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
-                    progress(k, total);
-                    match r {
-                        Ok(r) => ScenarioResult {
-                            scenario: sc.id.clone(),
-                            category: sc.category.clone(),
-                            method: method.name().into(),
-                            tre: Some(tre(
-                                geo.model.mesh.nodes(),
-                                (&r.image_to_physical, &r.u),
-                                (&sc.truth.image_to_physical, &sc.truth.displacement),
-                                &geo.surface,
-                                &geo.targets,
-                            )),
-                            error: None,
-                            seconds: r.seconds,
-                        },
-                        Err(e) => ScenarioResult {
-                            scenario: sc.id.clone(),
-                            category: sc.category.clone(),
-                            method: method.name().into(),
-                            tre: None,
-                            error: Some(e),
-                            seconds: 0.0,
-                        },
+            let map = maps
+                .iter_mut()
+                .find(|e| e.geometry == d.geometry && e.method == method.name())
+                .ok_or("internal: no error map for the geometry")?;
+            for chunk in picked.chunks(CHUNK) {
+                let results: Vec<(ScenarioResult, Option<Vec<f64>>)> = chunk
+                    .par_iter()
+                    .map(|sc| {
+                        let r = register(case, &sc.measurements, method, params);
+                        let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+                        progress(k, total);
+                        match r {
+                            Ok(r) => {
+                                let err = node_errors_mm(
+                                    geo.model.mesh.nodes(),
+                                    (&r.image_to_physical, &r.u),
+                                    (&sc.truth.image_to_physical, &sc.truth.displacement),
+                                );
+                                let t = tre_from_errors(&err, &geo.surface, &geo.targets);
+                                let res = ScenarioResult {
+                                    scenario: sc.id.clone(),
+                                    geometry: d.geometry.clone(),
+                                    category: sc.category.clone(),
+                                    method: method.name().into(),
+                                    tre: Some(t),
+                                    error: None,
+                                    seconds: r.seconds,
+                                };
+                                (res, Some(err))
+                            }
+                            Err(e) => (
+                                ScenarioResult {
+                                    scenario: sc.id.clone(),
+                                    geometry: d.geometry.clone(),
+                                    category: sc.category.clone(),
+                                    method: method.name().into(),
+                                    tre: None,
+                                    error: Some(e),
+                                    seconds: 0.0,
+                                },
+                                None,
+                            ),
+                        }
+                    })
+                    .collect();
+                for (res, err) in results {
+                    if let Some(err) = err {
+                        map.add(&err)?;
                     }
-                })
-                .collect();
-            out.extend(results);
+                    out.push(res);
+                }
+            }
         }
     }
-    Ok(out)
+    Ok(Evaluation {
+        results: out,
+        error_maps: maps,
+        meshes: prepared
+            .into_iter()
+            .map(|(id, (_, geo))| (id, geo.model.mesh))
+            .collect(),
+    })
 }
 
 /// Aggregates results per method.
@@ -208,6 +358,9 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
                 let c = s.by_category.entry(r.category.clone()).or_default();
                 c.scenarios += 1;
                 c.tre_mm += t.tre_mm;
+                let g = s.by_geometry.entry(r.geometry.clone()).or_default();
+                g.scenarios += 1;
+                g.tre_mm += t.tre_mm;
                 times.entry(r.method.clone()).or_default().push(r.seconds);
             }
             None => s.failed += 1,
@@ -219,7 +372,7 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
         s.tre_surface_mm /= n;
         s.tre_interior_mm /= n;
         s.tre_targets_mm /= n;
-        for c in s.by_category.values_mut() {
+        for c in s.by_category.values_mut().chain(s.by_geometry.values_mut()) {
             c.tre_mm /= c.scenarios.max(1) as f64;
         }
         if let Some(t) = times.get_mut(m) {

@@ -1,0 +1,337 @@
+//! Whole-pipeline registration benchmark (`librplus bench register`): the preload of a case (LIBR
+//! basis built cold, then read back from its cache) and per-registration latency with the stage
+//! timings a [`Registration`] reports. Plain data in and out: the caller picks threads, temporary
+//! directories and prints.
+
+use super::report::CATEGORY_ORDER;
+use super::{ScenarioData, tre};
+use crate::mesh::TetMesh;
+use crate::register::PreopModel;
+use crate::register::libr::{BasisTimings, LibrBasis, LibrParams};
+use crate::register::pipeline::{Method, PipelineParams, Prepared, Registration, register};
+use std::path::Path;
+use std::time::Instant;
+
+/// One preload of a case (seconds).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Preload {
+    /// Whether the basis came from the cache.
+    pub from_cache: bool,
+    /// The basis build or load stages.
+    pub basis: BasisTimings,
+    /// Correspondence structures (BVHs of the model's surfaces and vessels); None when only a
+    /// mesh was given.
+    pub correspondence_s: Option<f64>,
+    /// Wall time of the whole preload.
+    pub total_s: f64,
+}
+
+/// The cold and warm preloads of one mesh.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PreloadBench {
+    /// Mesh nodes.
+    pub nodes: usize,
+    /// Mesh tetrahedra.
+    pub tets: usize,
+    /// Basis columns (3 × control points).
+    pub columns: usize,
+    /// Size of the cache file (bytes).
+    pub cache_bytes: u64,
+    /// Built from scratch (into an empty cache directory).
+    pub cold: Preload,
+    /// Read back from the cache the cold build wrote.
+    pub warm: Preload,
+}
+
+/// Measures the preload of `model` (correspondence + LIBR basis) twice with `cache_dir`, which
+/// must not yet hold this basis: a cold build that writes the cache, then a warm load from it.
+/// Returns the measurements and the warm case (ready for registrations).
+pub fn preload_model(
+    model: &PreopModel,
+    params: &LibrParams,
+    cache_dir: &Path,
+) -> Result<(PreloadBench, Prepared), String> {
+    let path = LibrBasis::cache_path(&model.mesh, params, cache_dir);
+    if path.exists() {
+        return Err(format!(
+            "{} already exists: a cold preload needs an empty cache directory",
+            path.display()
+        ));
+    }
+    let mut runs = Vec::new();
+    let mut last = None;
+    for _ in 0..2 {
+        let t0 = Instant::now();
+        let case = Prepared::new(model.clone(), Some(params), Some(cache_dir))?;
+        let total_s = crate::util::secs(t0);
+        let basis = case.basis.as_ref().ok_or("no basis was prepared")?;
+        runs.push(Preload {
+            from_cache: case.basis_from_cache,
+            basis: basis.timings,
+            correspondence_s: Some((case.seconds - basis.timings.total_s).max(0.0)),
+            total_s,
+        });
+        last = Some(case);
+    }
+    let case = last.ok_or("no preload ran")?;
+    let basis = case.basis.as_ref().ok_or("no basis was prepared")?;
+    let bench = PreloadBench {
+        nodes: model.mesh.num_nodes(),
+        tets: model.mesh.num_tets(),
+        columns: basis.columns(),
+        cache_bytes: std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0),
+        cold: runs[0],
+        warm: runs[1],
+    };
+    if bench.cold.from_cache || !bench.warm.from_cache {
+        return Err(format!(
+            "expected a cold build then a cache hit, got from_cache = {} then {}",
+            bench.cold.from_cache, bench.warm.from_cache
+        ));
+    }
+    Ok((bench, case))
+}
+
+/// Like [`preload_model`] for a bare tet mesh (no labels, so no correspondence): the LIBR basis
+/// only.
+pub fn preload_mesh(
+    mesh: &TetMesh,
+    params: &LibrParams,
+    cache_dir: &Path,
+) -> Result<PreloadBench, String> {
+    let path = LibrBasis::cache_path(mesh, params, cache_dir);
+    if path.exists() {
+        return Err(format!(
+            "{} already exists: a cold preload needs an empty cache directory",
+            path.display()
+        ));
+    }
+    let mut runs = Vec::new();
+    let mut columns = 0;
+    for _ in 0..2 {
+        let t0 = Instant::now();
+        let (b, from_cache) = LibrBasis::load_or_build(mesh, params, cache_dir)?;
+        runs.push(Preload {
+            from_cache,
+            basis: b.timings,
+            correspondence_s: None,
+            total_s: crate::util::secs(t0),
+        });
+        columns = b.columns();
+    }
+    Ok(PreloadBench {
+        nodes: mesh.num_nodes(),
+        tets: mesh.num_tets(),
+        columns,
+        cache_bytes: std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0),
+        cold: runs[0],
+        warm: runs[1],
+    })
+}
+
+/// Indices of up to `n` scenarios spread evenly across the measurement categories: about `n / 5`
+/// per category (the first `n % 5` categories of [`CATEGORY_ORDER`] one more), evenly spaced
+/// within each category's scenarios (in the order given), then interleaved category by category.
+/// A category with too few scenarios gives all it has.
+pub fn pick_across_categories(categories: &[&str], n: usize) -> Vec<usize> {
+    let k = CATEGORY_ORDER.len();
+    let per: Vec<Vec<usize>> = CATEGORY_ORDER
+        .iter()
+        .enumerate()
+        .map(|(ci, c)| {
+            let all: Vec<usize> = (0..categories.len())
+                .filter(|&i| categories[i] == *c)
+                .collect();
+            let want = (n / k + usize::from(ci < n % k)).min(all.len());
+            (0..want)
+                .map(|j| all[((2 * j + 1) * all.len()) / (2 * want)])
+                .collect()
+        })
+        .collect();
+    let mut out = Vec::new();
+    for j in 0..per.iter().map(Vec::len).max().unwrap_or(0) {
+        for p in &per {
+            if let Some(&i) = p.get(j) {
+                out.push(i);
+            }
+        }
+    }
+    out
+}
+
+/// Stage timings of one registration (seconds), from what [`Registration`] reports.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct RegistrationTimings {
+    /// Whole registration (validation, wICP, LIBR).
+    pub total_s: f64,
+    /// Rigid wICP.
+    pub wicp_s: f64,
+    /// LIBR: re-matching the points to the deformed model (all iterations).
+    pub libr_matching_s: f64,
+    /// LIBR: the fit's rows and normal equations.
+    pub libr_assemble_s: f64,
+    /// LIBR: the fit's solves.
+    pub libr_solve_s: f64,
+    /// LIBR: the rest (u = Φα, node movement, bookkeeping).
+    pub libr_other_s: f64,
+    /// LIBR total.
+    pub libr_s: f64,
+    /// wICP iterations.
+    pub wicp_iterations: usize,
+    /// LIBR iterations (0 for rigid).
+    pub libr_iterations: usize,
+}
+
+impl From<&Registration> for RegistrationTimings {
+    fn from(r: &Registration) -> Self {
+        let l = r.libr.clone().unwrap_or_default();
+        Self {
+            total_s: r.seconds,
+            wicp_s: r.rigid.seconds,
+            libr_matching_s: l.matching_s,
+            libr_assemble_s: l.assemble_s,
+            libr_solve_s: l.solve_s,
+            libr_other_s: (l.total_s - l.matching_s - l.assemble_s - l.solve_s).max(0.0),
+            libr_s: l.total_s,
+            wicp_iterations: r.rigid.iterations,
+            libr_iterations: l.iterations,
+        }
+    }
+}
+
+/// Spread of a sample: p10, median, p90, mean, max (linear-interpolated quantiles).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Spread {
+    /// 10th percentile.
+    pub p10: f64,
+    /// Median.
+    pub median: f64,
+    /// 90th percentile.
+    pub p90: f64,
+    /// Mean.
+    pub mean: f64,
+    /// Largest.
+    pub max: f64,
+}
+
+impl Spread {
+    /// Of `v` (NaN everywhere when empty).
+    pub fn of(v: &[f64]) -> Self {
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        let q = |p: f64| {
+            if s.is_empty() {
+                return f64::NAN;
+            }
+            let h = p * (s.len() - 1) as f64;
+            let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
+            s[lo] + (h - lo as f64) * (s[hi] - s[lo])
+        };
+        Self {
+            p10: q(0.1),
+            median: q(0.5),
+            p90: q(0.9),
+            mean: if s.is_empty() {
+                f64::NAN
+            } else {
+                s.iter().sum::<f64>() / s.len() as f64
+            },
+            max: s.last().copied().unwrap_or(f64::NAN),
+        }
+    }
+}
+
+/// Summary of the timed registrations.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RegistrationBench {
+    /// Registrations timed (the warm-up excluded).
+    pub count: usize,
+    /// Registrations that returned an error (not timed).
+    pub failed: usize,
+    /// Timed registrations per category.
+    pub per_category: std::collections::BTreeMap<String, usize>,
+    /// Total seconds per registration.
+    pub total_s: Spread,
+    /// Medians of the stage timings.
+    pub median: RegistrationTimings,
+    /// Mean wICP iterations.
+    pub wicp_iterations_mean: f64,
+    /// Mean LIBR iterations.
+    pub libr_iterations_mean: f64,
+    /// LIBR runs that met the movement tolerance.
+    pub libr_converged: usize,
+    /// Mean TRE of the timed registrations (mm): a check that they did real work.
+    pub tre_mm_mean: f64,
+    /// Every timed registration's stage timings, in run order.
+    pub runs: Vec<RegistrationTimings>,
+}
+
+/// Registers `scenarios` one after another (the first once more beforehand, untimed, as a
+/// warm-up) in the calling thread pool and summarises the timings.
+pub fn time_registrations(
+    case: &Prepared,
+    scenarios: &[&ScenarioData],
+    surface: &[bool],
+    targets: &[u32],
+    method: Method,
+    params: &PipelineParams,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RegistrationBench, String> {
+    if let Some(first) = scenarios.first() {
+        let _ = register(case, &first.measurements, method, params);
+    }
+    let mut runs = Vec::new();
+    let mut failed = 0;
+    let mut converged = 0;
+    let mut tres = Vec::new();
+    let mut per_category = std::collections::BTreeMap::new();
+    for (k, sc) in scenarios.iter().enumerate() {
+        match register(case, &sc.measurements, method, params) {
+            Ok(r) => {
+                runs.push(RegistrationTimings::from(&r));
+                converged += usize::from(r.libr.as_ref().is_some_and(|l| l.converged));
+                *per_category.entry(sc.category.clone()).or_insert(0) += 1;
+                tres.push(
+                    tre(
+                        case.model.mesh.nodes(),
+                        (&r.image_to_physical, &r.u),
+                        (&sc.truth.image_to_physical, &sc.truth.displacement),
+                        surface,
+                        targets,
+                    )
+                    .tre_mm,
+                );
+            }
+            Err(_) => failed += 1,
+        }
+        progress(k + 1, scenarios.len());
+    }
+    let med = |f: fn(&RegistrationTimings) -> f64| {
+        Spread::of(&runs.iter().map(f).collect::<Vec<_>>()).median
+    };
+    let mean_of = |f: fn(&RegistrationTimings) -> usize| {
+        runs.iter().map(|r| f(r) as f64).sum::<f64>() / runs.len().max(1) as f64
+    };
+    Ok(RegistrationBench {
+        count: runs.len(),
+        failed,
+        per_category,
+        total_s: Spread::of(&runs.iter().map(|r| r.total_s).collect::<Vec<_>>()),
+        median: RegistrationTimings {
+            total_s: med(|r| r.total_s),
+            wicp_s: med(|r| r.wicp_s),
+            libr_matching_s: med(|r| r.libr_matching_s),
+            libr_assemble_s: med(|r| r.libr_assemble_s),
+            libr_solve_s: med(|r| r.libr_solve_s),
+            libr_other_s: med(|r| r.libr_other_s),
+            libr_s: med(|r| r.libr_s),
+            wicp_iterations: med(|r| r.wicp_iterations as f64).round() as usize,
+            libr_iterations: med(|r| r.libr_iterations as f64).round() as usize,
+        },
+        wicp_iterations_mean: mean_of(|r| r.wicp_iterations),
+        libr_iterations_mean: mean_of(|r| r.libr_iterations),
+        libr_converged: converged,
+        tre_mm_mean: Spread::of(&tres).mean,
+        runs,
+    })
+}
