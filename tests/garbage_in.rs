@@ -310,8 +310,8 @@ fn garbage_measurements_give_errors_or_degenerate_flags_never_panics_or_nan() {
     }
 
     // (e2) a line with 0.2 mm of jitter across it (a stylus swiped along one stroke): the
-    // rotation about the line rests on the jitter alone. Not required to be flagged, but it must
-    // not panic or give NaN; what happened is printed.
+    // rotation about the line rests on the jitter alone. The rigid stage must flag it and LIBR
+    // refuse it (before the 2 mm collinearity bound it came out 80° off, unflagged).
     let mut rng = librplus::util::SplitMix64::new(5);
     let jittered = Measurements {
         points: line
@@ -328,8 +328,19 @@ fn garbage_measurements_give_errors_or_degenerate_flags_never_panics_or_nan() {
             register(&case, &jittered, method, &params)
         })) {
             Err(_) => all_problems.push(format!("{tag}: PANIC")),
-            Ok(Err(e)) => eprintln!("{tag}: Err({e})"),
+            Ok(Err(e)) => {
+                eprintln!("{tag}: Err({e})");
+                if method == Method::Rigid {
+                    all_problems.push(format!("{tag}: the rigid stage should flag, not fail"));
+                }
+            }
             Ok(Ok(r)) => {
+                if method == Method::Libr {
+                    all_problems.push(format!("{tag}: LIBR deformed a degenerate point set"));
+                }
+                if r.rigid.degenerate.is_none() {
+                    all_problems.push(format!("{tag}: not flagged degenerate"));
+                }
                 let moved =
                     r.u.chunks_exact(3)
                         .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
