@@ -398,3 +398,59 @@ fn check_error_maps(report: &Path, summary: &serde_json::Value, m: &librplus::da
         }
     }
 }
+
+/// `--truth linear`: the control dataset's ground truth is the linear homogeneous solution of the
+/// same draws. Cross-check: the mean node distance between the nonlinear dataset's truth and the
+/// linear dataset's truth equals the gap the nonlinear run reported (computed there from its own
+/// linear solve), and the linear run reports no gap.
+#[test]
+fn linear_truth_control_dataset_is_the_linear_solution_of_the_same_draws() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (nl, lin) = (tmp.path().join("nl"), tmp.path().join("lin"));
+    generate(&nl, &["--scenarios", "5"]);
+    generate(&lin, &["--scenarios", "5", "--truth", "linear"]);
+    let (mn, ml) = (read_manifest(&nl).unwrap(), read_manifest(&lin).unwrap());
+    assert!(
+        mn.parameters.get("truth").is_none(),
+        "nonlinear is the unmarked default"
+    );
+    assert_eq!(ml.parameters["truth"], "linear_homogeneous");
+    assert_ne!(mn.parameters_hash, ml.parameters_hash);
+    assert_eq!(mn.deformations.len(), ml.deformations.len());
+    let gt = |dir: &Path, file: &str| -> Vec<f64> {
+        let f = io::read(dir.join(file), Unit::Mm).unwrap();
+        f.point_data
+            .iter()
+            .find(|a| a.name == "displacement")
+            .unwrap()
+            .values
+            .clone()
+    };
+    for (dn, dl) in mn.deformations.iter().zip(&ml.deformations) {
+        assert_eq!(dn.id, dl.id);
+        assert_eq!(dn.seed, dl.seed, "{}: the same draw", dn.id);
+        assert_eq!(dl.linear_homogeneous_gap_mm, 0.0);
+        let (un, ul) = (gt(&nl, &dn.gt), gt(&lin, &dl.gt));
+        let n = un.len() / 3;
+        let gap = (0..n)
+            .map(|i| {
+                (0..3)
+                    .map(|a| (un[3 * i + a] - ul[3 * i + a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum::<f64>()
+            / n as f64;
+        eprintln!(
+            "{}: gap reported {:.6} mm, measured between the datasets {gap:.6} mm",
+            dn.id, dn.linear_homogeneous_gap_mm
+        );
+        assert!(gap > 0.1, "{}: the nonlinear truth differs", dn.id);
+        assert!(
+            (gap - dn.linear_homogeneous_gap_mm).abs() <= 1e-9 * gap.max(1.0),
+            "{}: {gap} vs {}",
+            dn.id,
+            dn.linear_homogeneous_gap_mm
+        );
+    }
+}
