@@ -51,9 +51,10 @@ use crate::fem::{Dirichlet, LinearMaterial, StiffnessSystem, loads};
 use crate::mesh::TetMesh;
 use crate::mesh::io::npz::{NpyArray, NpyData, read_npz, write_npz};
 use crate::mesh::rigid::Rigid;
+use faer::linalg::matmul::matmul;
 use faer::linalg::matmul::triangular::{BlockStructure, matmul as tri_matmul};
 use faer::linalg::solvers::Solve;
-use faer::{Accum, Mat, Side};
+use faer::{Accum, Mat, Par, Side};
 use nalgebra::{Matrix6, Vector6};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -1062,9 +1063,19 @@ pub fn fit_step(
         jt.transpose(),
         BlockStructure::Rectangular,
         1.0,
-        faer::get_global_parallelism(),
+        // Sequential: the matrices are small (p ≈ 80 columns), and a parallel reduction would
+        // make the bits depend on the thread count.
+        Par::Seq,
     );
-    let mut b = &jt * &rhs;
+    let mut b = Mat::<f64>::zeros(p, 1);
+    matmul(
+        b.as_mut(),
+        Accum::Replace,
+        jt.as_ref(),
+        rhs.as_ref(),
+        1.0,
+        Par::Seq,
+    );
     let rhs0 = rhs;
     // A vanishing damping of the rigid unknowns keeps the system definite when the data leave
     // a rigid direction free (a flat patch under pure point-to-plane): there Jᵀr = 0, so the
@@ -1094,7 +1105,16 @@ pub fn fit_step(
     if !(0..p).all(|i| b[(i, 0)].is_finite()) {
         return Err("the step produced non-finite values (ill-conditioned data)".into());
     }
-    let lin = jt.transpose() * &b - &rhs0;
+    let mut lin = Mat::<f64>::zeros(rows, 1);
+    matmul(
+        lin.as_mut(),
+        Accum::Replace,
+        jt.transpose(),
+        b.as_ref(),
+        1.0,
+        Par::Seq,
+    );
+    let lin = lin - &rhs0;
     let linear_rms_mm = (0..rows).map(|i| lin[(i, 0)].powi(2)).sum::<f64>().sqrt();
     let alpha: Vec<f64> = (0..m).map(|i| b[(i, 0)]).collect();
     let omega = [0, 1, 2].map(|k| b[(m + k, 0)] / radius);
