@@ -44,17 +44,7 @@ fn case() -> (Prepared, Measurements) {
         7,
     )
     .unwrap();
-    let meas = Measurements {
-        points: sc.points.clone(),
-        kind: sc
-            .kind
-            .iter()
-            .map(|&k| MeasuredKind::from_code(k as u8).unwrap())
-            .collect(),
-        feature: sc.feature.clone(),
-        initial_alignment: Some(sc.initial_alignment),
-    };
-    (case, meas)
+    (case, common::scenario_measurements(&sc))
 }
 
 /// Every number of a registration is finite.

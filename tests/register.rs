@@ -13,7 +13,7 @@ use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
 use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
-use librplus::register::{MeasuredKind, Measurements, PreopModel};
+use librplus::register::{Measurements, PreopModel};
 use librplus::util::SplitMix64;
 
 fn liver(h: f64) -> (TetMesh, AnatomyLabels, VesselTree) {
@@ -45,16 +45,29 @@ fn model(mesh: &TetMesh, labels: &AnatomyLabels, vessels: &VesselTree) -> PreopM
 }
 
 fn measurements(sc: &Scenario) -> Measurements {
-    Measurements {
-        points: sc.points.clone(),
-        kind: sc
-            .kind
-            .iter()
-            .map(|&k| MeasuredKind::from_code(k as u8).unwrap())
-            .collect(),
-        feature: sc.feature.clone(),
-        initial_alignment: Some(sc.initial_alignment),
+    common::scenario_measurements(sc)
+}
+
+/// Dense noiseless surface and ultrasound sampling (full anterior coverage, 3 mm surface and 2 mm
+/// contour spacing).
+fn dense() -> MeasureParams {
+    MeasureParams {
+        coverage: [1.0, 1.0],
+        surface_spacing_mm: 3.0,
+        surface_noise_mm: 0.0,
+        us_noise_mm: 0.0,
+        us_spacing_mm: 2.0,
+        ..MeasureParams::default()
     }
+}
+
+/// Boundary flag per node.
+fn boundary_flags(labels: &AnatomyLabels) -> Vec<bool> {
+    labels
+        .region
+        .iter()
+        .map(|r| *r != Region::Interior)
+        .collect()
 }
 
 /// Ground truth made by the linear model itself (u* = Φα*: eight loads at anterior control points)
@@ -110,14 +123,7 @@ fn recover_in_span(random_dir: bool) -> (f64, f64) {
         .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
         .sum::<f64>()
         / mesh.num_nodes() as f64;
-    let dense = MeasureParams {
-        coverage: [1.0, 1.0],
-        surface_spacing_mm: 3.0,
-        surface_noise_mm: 0.0,
-        us_noise_mm: 0.0,
-        us_spacing_mm: 2.0,
-        ..MeasureParams::default()
-    };
+    let dense = dense();
     let sc = simulate(
         &mesh,
         &labels,
@@ -129,11 +135,7 @@ fn recover_in_span(random_dir: bool) -> (f64, f64) {
     )
     .unwrap();
     let meas = measurements(&sc);
-    let surface: Vec<bool> = labels
-        .region
-        .iter()
-        .map(|r| *r != Region::Interior)
-        .collect();
+    let surface = boundary_flags(&labels);
     let truth = (&sc.image_to_physical, u_true.as_slice());
     let rigid = register(&case, &meas, Method::Rigid, &params).unwrap();
     let t_rigid = tre(
@@ -212,19 +214,8 @@ fn libr_residual_on_nonlinear_truth_is_well_above_its_linear_error() {
     params.libr.max_iterations = 60;
     params.libr.regularization = 1e-4;
     let case = Prepared::new(model(&mesh, &labels, &vessels), Some(&params.libr), None).unwrap();
-    let dense = MeasureParams {
-        coverage: [1.0, 1.0],
-        surface_spacing_mm: 3.0,
-        surface_noise_mm: 0.0,
-        us_noise_mm: 0.0,
-        us_spacing_mm: 2.0,
-        ..MeasureParams::default()
-    };
-    let surface: Vec<bool> = labels
-        .region
-        .iter()
-        .map(|r| *r != Region::Interior)
-        .collect();
+    let dense = dense();
+    let surface = boundary_flags(&labels);
     let run = |u_true: &[f64], seed: u64| -> (f64, f64) {
         let sc = simulate(
             &mesh,

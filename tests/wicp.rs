@@ -94,16 +94,7 @@ fn scenario(category: Category, params: &MeasureParams, seed: u64) -> Scenario {
 }
 
 fn measurements(s: &Scenario) -> Measurements {
-    Measurements {
-        points: s.points.clone(),
-        kind: s
-            .kind
-            .iter()
-            .map(|&k| MeasuredKind::from_code(k as u8).unwrap())
-            .collect(),
-        feature: s.feature.clone(),
-        initial_alignment: Some(s.initial_alignment),
-    }
+    common::scenario_measurements(s)
 }
 
 /// Mean and largest distance over the mesh nodes between the two transforms' images.

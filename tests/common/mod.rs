@@ -53,3 +53,19 @@ pub fn sofa_liver_surface() -> librplus::mesh::TriSurface {
     }
     s
 }
+
+/// The registration input of a simulated scenario (what a navigation system would send).
+pub fn scenario_measurements(
+    sc: &librplus::phantom::measure::Scenario,
+) -> librplus::register::Measurements {
+    librplus::register::Measurements {
+        points: sc.points.clone(),
+        kind: sc
+            .kind
+            .iter()
+            .map(|&k| librplus::register::MeasuredKind::from_code(k as u8).unwrap())
+            .collect(),
+        feature: sc.feature.clone(),
+        initial_alignment: Some(sc.initial_alignment),
+    }
+}
