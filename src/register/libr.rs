@@ -1169,6 +1169,9 @@ pub struct LibrInfo {
     pub iterations: usize,
     /// True when the largest node movement of the last iteration was below the tolerance.
     pub converged: bool,
+    /// True when the iterations stopped early because the next one would have passed the
+    /// caller's deadline ([`register_active`]).
+    pub stopped_at_deadline: bool,
     /// Weighted residual RMS after each iteration (mm).
     pub rms_history_mm: Vec<f64>,
     /// Largest node movement of each iteration (mm).
@@ -1219,6 +1222,7 @@ pub fn register(
         measured_physical,
         initial,
         None,
+        None,
         rematch,
     )
 }
@@ -1227,7 +1231,9 @@ pub fn register(
 /// `rematch` reads, e.g. [`super::correspondence::Correspondence::active_nodes`]; `None`: all)
 /// and measuring the movement there; the returned `u` is complete. On a 9,000-node liver the
 /// boundary and vessel tets are about half the nodes, and `Φα` is the largest cost of an
-/// iteration after matching.
+/// iteration after matching. With a `deadline`, the iterations stop before one that the last
+/// one's duration says would end past it ([`LibrInfo::stopped_at_deadline`]); at least one
+/// iteration always runs.
 pub fn register_active(
     mesh: &TetMesh,
     basis: &LibrBasis,
@@ -1235,6 +1241,7 @@ pub fn register_active(
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
     active: Option<&[u32]>,
+    deadline: Option<Instant>,
     mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
 ) -> Result<LibrSolution, String> {
     params.validate()?;
@@ -1298,6 +1305,15 @@ pub fn register_active(
         if moved <= params.tolerance_mm {
             info.converged = true;
             break;
+        }
+        // Stop before an iteration that would end past the deadline (the last one's duration
+        // predicts the next).
+        if let Some(d) = deadline {
+            let now = Instant::now();
+            if info.iterations < params.max_iterations && now + (now - tm) > d {
+                info.stopped_at_deadline = true;
+                break;
+            }
         }
     }
     let u = basis.displacement(&alpha);

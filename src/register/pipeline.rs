@@ -38,6 +38,9 @@ pub struct PipelineParams {
     pub wicp: WicpParams,
     /// LIBR stage.
     pub libr: LibrParams,
+    /// LIBR stops iterating before an iteration that would end past this instant (the service's
+    /// time budget); None: no deadline.
+    pub deadline: Option<Instant>,
 }
 
 /// A case prepared before surgery.
@@ -142,6 +145,7 @@ pub fn register(
         &meas.points,
         &rigid.image_to_physical,
         Some(corr.active_nodes()),
+        params.deadline,
         |u, t| {
             let inv = t.inverse();
             let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();

@@ -1,0 +1,226 @@
+//! Cases: preoperative models preloaded before surgery (correspondence structures and the LIBR
+//! basis, from the on-disk cache when valid), found in dataset directories or mesh folders.
+
+use crate::config::ServerConfig;
+use librplus::mesh::TetMesh;
+use librplus::mesh::io::{self, MeshFile};
+use librplus::phantom::labels::{LabelParams, Region, label};
+use librplus::register::PreopModel;
+use librplus::register::correspondence::preop_model_from_file;
+use librplus::register::libr::LibrParams;
+use librplus::register::pipeline::{Method, Prepared};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// Running estimates of a case's stage durations (ms), for planning within a time budget.
+#[derive(Debug, Clone, Copy)]
+pub struct Estimates {
+    /// Rigid stage.
+    pub rigid_ms: f64,
+    /// One LIBR iteration.
+    pub libr_iteration_ms: f64,
+    /// LIBR's fixed cost (the final displacement of every node).
+    pub libr_fixed_ms: f64,
+}
+
+/// A preloaded case.
+pub struct Case {
+    /// Identifier in requests.
+    pub id: String,
+    /// Mesh file it came from.
+    pub source: PathBuf,
+    /// The prepared model (with its LIBR basis).
+    pub prepared: Prepared,
+    /// Method when a request leaves it unspecified.
+    pub default_method: Method,
+    /// Stage-duration estimates (exponential moving averages of what was measured).
+    pub estimates: Mutex<Estimates>,
+}
+
+impl Case {
+    /// Current stage-duration estimates.
+    pub fn estimates(&self) -> Estimates {
+        *self.estimates.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Folds measured durations into the estimates.
+    pub fn observe(&self, rigid_ms: f64, libr: Option<(f64, usize)>) {
+        let mut e = self.estimates.lock().unwrap_or_else(|p| p.into_inner());
+        let a = 0.2;
+        if rigid_ms.is_finite() {
+            e.rigid_ms = (1.0 - a) * e.rigid_ms + a * rigid_ms;
+        }
+        if let Some((ms, it)) = libr
+            && it > 0
+            && ms.is_finite()
+        {
+            let per = (ms - e.libr_fixed_ms).max(0.0) / it as f64;
+            e.libr_iteration_ms = (1.0 - a) * e.libr_iteration_ms + a * per;
+        }
+    }
+}
+
+/// A case found on disk, before loading.
+#[derive(Debug, Clone)]
+pub enum CaseSource {
+    /// A geometry of a dataset directory.
+    Dataset {
+        /// Dataset directory.
+        dir: PathBuf,
+        /// Geometry id.
+        geometry: String,
+    },
+    /// A mesh file in a folder.
+    Mesh {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+/// Lists the cases under the configured paths (ids must be unique).
+pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, String> {
+    let mut out: BTreeMap<String, CaseSource> = BTreeMap::new();
+    for dir in &config.cases {
+        let mut add = |id: String, src: CaseSource| -> Result<(), String> {
+            if out.insert(id.clone(), src).is_some() {
+                return Err(format!(
+                    "case id {id:?} appears twice (in {} and before): rename one",
+                    dir.display()
+                ));
+            }
+            Ok(())
+        };
+        if dir.join("manifest.json").is_file() {
+            let m = librplus::eval::open(dir)?;
+            for g in &m.geometries {
+                add(
+                    g.id.clone(),
+                    CaseSource::Dataset {
+                        dir: dir.clone(),
+                        geometry: g.id.clone(),
+                    },
+                )?;
+            }
+        } else if dir.is_dir() {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+                .map_err(|e| format!("{}: {e}", dir.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| {
+                    let name = p.to_string_lossy();
+                    !name.ends_with(".vessels.vtp")
+                        && matches!(
+                            p.extension().and_then(|e| e.to_str()),
+                            Some("vtu" | "vtk" | "msh")
+                        )
+                })
+                .collect();
+            files.sort();
+            if files.is_empty() {
+                return Err(format!(
+                    "{}: no manifest.json and no .vtu/.vtk/.msh meshes",
+                    dir.display()
+                ));
+            }
+            for f in files {
+                let id = f
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().to_string())
+                    .unwrap_or_default();
+                add(id, CaseSource::Mesh { path: f })?;
+            }
+        } else {
+            return Err(format!("{}: not a directory", dir.display()));
+        }
+    }
+    Ok(out.into_iter().collect())
+}
+
+/// Loads and prepares one case (correspondence structures and the LIBR basis).
+pub fn load(
+    id: &str,
+    source: &CaseSource,
+    config: &ServerConfig,
+    libr: &LibrParams,
+) -> Result<Case, String> {
+    let (model, path, cache) = match source {
+        CaseSource::Dataset { dir, geometry } => {
+            let m = librplus::eval::open(dir)?;
+            let g = librplus::eval::load_geometry(dir, &m, geometry)?;
+            let entry = m
+                .geometries
+                .iter()
+                .find(|e| &e.id == geometry)
+                .ok_or_else(|| format!("{}: no geometry {geometry}", dir.display()))?;
+            (g.model, dir.join(&entry.preop), dir.join("cache"))
+        }
+        CaseSource::Mesh { path } => {
+            let unit = config.unit()?;
+            let file = io::read(path, unit).map_err(|e| format!("{}: {e}", path.display()))?;
+            let model = model_from_mesh_file(path, &file, unit)?;
+            let cache = path.parent().unwrap_or(Path::new(".")).join("cache");
+            (model, path.clone(), cache)
+        }
+    };
+    let cache = config.cache_dir.clone().unwrap_or(cache);
+    let prepared = Prepared::new(model, Some(libr), Some(&cache))
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let n = prepared.model.mesh.num_nodes() as f64;
+    Ok(Case {
+        id: id.to_string(),
+        source: path,
+        prepared,
+        default_method: config.method()?,
+        // First guesses, per 10,000 nodes on one core of this machine kind (BENCHMARKS.md);
+        // replaced by measurements after the first registrations.
+        estimates: Mutex::new(Estimates {
+            rigid_ms: 25.0 * n / 1e4,
+            libr_iteration_ms: 3.0 * n / 1e4,
+            libr_fixed_ms: 4.0 * n / 1e4,
+        }),
+    })
+}
+
+/// A preoperative model from a mesh file: its labels (`region`, `falciform`, `inferior_ridge`
+/// point arrays, as in a dataset's `preop.vtu`) and vessels (`STEM.vessels.vtp` beside it) when
+/// present, else labelled automatically from the geometry (LPS frame assumed) without vessels.
+fn model_from_mesh_file(
+    path: &Path,
+    file: &MeshFile,
+    unit: io::Unit,
+) -> Result<PreopModel, String> {
+    let ctx = |e: String| format!("{}: {e}", path.display());
+    if file.point_array("region").is_some() {
+        let vessels_path = path.with_extension("vessels.vtp");
+        let vessels = if vessels_path.is_file() {
+            io::read(&vessels_path, unit).map_err(|e| format!("{}: {e}", vessels_path.display()))?
+        } else {
+            MeshFile::default()
+        };
+        return preop_model_from_file(file, &vessels).map_err(ctx);
+    }
+    let mut mesh = TetMesh::from_file(file).map_err(|e| ctx(e.to_string()))?;
+    mesh.orient_positive();
+    let labels = label(&mesh, &LabelParams::default()).map_err(ctx)?;
+    let n = mesh.num_nodes();
+    Ok(PreopModel {
+        anterior: labels
+            .region
+            .iter()
+            .map(|r| *r == Region::Anterior)
+            .collect(),
+        posterior: labels
+            .region
+            .iter()
+            .map(|r| *r == Region::Posterior)
+            .collect(),
+        falciform: labels.falciform.clone(),
+        inferior_ridge: labels.inferior_ridge.clone(),
+        vessel_points: Vec::new(),
+        vessel_segments: Vec::new(),
+        mesh: {
+            debug_assert_eq!(mesh.num_nodes(), n);
+            mesh
+        },
+    })
+}

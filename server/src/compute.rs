@@ -1,0 +1,220 @@
+//! The compute engine: registrations run on blocking threads, at most `compute_slots` at once,
+//! each planned to fit its time budget (queue wait included): fewer LIBR iterations, or the rigid
+//! result when LIBR cannot fit, flagged DEGRADED, rather than a late answer.
+
+use crate::cases::Case;
+use crate::convert::{BadInput, method_to_pb, rigid_to_pb};
+use librplus::register::Measurements;
+use librplus::register::pipeline::{Method, PipelineParams, register};
+use librplus_proto::v1 as pb;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+use tokio::sync::Semaphore;
+use tonic::Code;
+
+/// One registration to compute.
+pub struct Job {
+    /// The case.
+    pub case: Arc<Case>,
+    /// All measurements.
+    pub measurements: Measurements,
+    /// Method asked for.
+    pub method: Method,
+    /// Time budget from `arrival`.
+    pub budget: Duration,
+    /// When the request arrived.
+    pub arrival: Instant,
+    /// Leave the displacements out of the reply.
+    pub omit_displacements: bool,
+}
+
+/// Bounded pool of compute slots.
+pub struct Engine {
+    slots: Arc<Semaphore>,
+    queued: AtomicUsize,
+    max_queued: usize,
+}
+
+impl Engine {
+    /// `slots` registrations at once; at most `max_queued` unary requests waiting.
+    pub fn new(slots: usize, max_queued: usize) -> Self {
+        Self {
+            slots: Arc::new(Semaphore::new(slots.max(1))),
+            queued: AtomicUsize::new(0),
+            max_queued,
+        }
+    }
+
+    /// Runs a job. With `bounded`, refuses (RESOURCE_EXHAUSTED) when `max_queued` jobs already
+    /// wait; sessions are admitted at their start and always queue.
+    pub async fn run(&self, job: Job, bounded: bool) -> Result<pb::Registration, BadInput> {
+        let waiting = self.queued.fetch_add(1, Ordering::SeqCst);
+        struct Dec<'a>(&'a AtomicUsize);
+        impl Drop for Dec<'_> {
+            fn drop(&mut self) {
+                self.0.fetch_sub(1, Ordering::SeqCst);
+            }
+        }
+        let dec = Dec(&self.queued);
+        if bounded && waiting >= self.max_queued {
+            metrics::counter!("librplus_refused_total", "reason" => "queue").increment(1);
+            return Err(BadInput::new(
+                Code::ResourceExhausted,
+                format!(
+                    "{waiting} registrations are already waiting for a compute slot (limit {}); retry later",
+                    self.max_queued
+                ),
+            ));
+        }
+        let permit = self
+            .slots
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| BadInput::new(Code::Unavailable, "the server is shutting down"))?;
+        drop(dec);
+        let handle = tokio::task::spawn_blocking(move || {
+            let r = compute(job);
+            drop(permit);
+            r
+        });
+        match handle.await {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::error!(error = %e, "registration task failed");
+                metrics::counter!("librplus_errors_total", "code" => "INTERNAL").increment(1);
+                Err(BadInput::new(
+                    Code::Internal,
+                    "the registration failed inside the server (logged); the session goes on",
+                ))
+            }
+        }
+    }
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// Plans and runs one registration within its budget.
+fn compute(job: Job) -> Result<pb::Registration, BadInput> {
+    let start = Instant::now();
+    let case = &job.case;
+    let queue_ms = ms(start - job.arrival);
+    let deadline = job.arrival + job.budget;
+    let est = case.estimates();
+    let mut method = job.method;
+    let mut degraded: Option<String> = None;
+    let mut params = PipelineParams::default();
+    if method == Method::Libr {
+        let left = ms(deadline.saturating_duration_since(start));
+        let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
+        if left < need {
+            method = Method::Rigid;
+            degraded = Some(format!(
+                "time budget {:.0} ms: {queue_ms:.0} ms waiting for a compute slot left {left:.0} ms, LIBR needs about {need:.0} ms; rigid result",
+                ms(job.budget)
+            ));
+        } else {
+            params.deadline =
+                Some(deadline - Duration::from_secs_f64(est.libr_fixed_ms.max(0.0) / 1e3));
+        }
+    }
+    let mut result = register(&case.prepared, &job.measurements, method, &params);
+    let mut fallback: Option<String> = None;
+    if let (Err(e), Method::Libr) = (&result, method) {
+        // LIBR cannot run on these data (too few or degenerate points): the rigid result,
+        // flagged, is still the best available answer.
+        fallback = Some(format!("LIBR could not run: {e}; rigid result"));
+        method = Method::Rigid;
+        result = register(&case.prepared, &job.measurements, method, &params);
+    }
+    let reg = result.map_err(|e| {
+        BadInput::new(
+            Code::FailedPrecondition,
+            format!("these measurements do not permit a registration: {e}"),
+        )
+    })?;
+    let rigid_ms = reg.rigid.seconds * 1e3;
+    let libr_ms = reg.libr.as_ref().map(|i| i.total_s * 1e3);
+    case.observe(
+        rigid_ms,
+        reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
+    );
+    let (quality, reason) = if let Some(r) = &reg.rigid.degenerate {
+        (pb::Quality::Degenerate, format!("degenerate data: {r}"))
+    } else if let Some(r) = fallback {
+        (pb::Quality::Degenerate, r)
+    } else if let Some(r) = degraded {
+        (pb::Quality::Degraded, r)
+    } else if let Some(i) = reg.libr.as_ref().filter(|i| i.stopped_at_deadline) {
+        (
+            pb::Quality::Degraded,
+            format!(
+                "time budget {:.0} ms: LIBR stopped after {} of {} iterations",
+                ms(job.budget),
+                i.iterations,
+                params.libr.max_iterations
+            ),
+        )
+    } else if let Some(i) = reg.libr.as_ref().filter(|i| !i.converged) {
+        (
+            pb::Quality::NotConverged,
+            format!(
+                "LIBR ran its {} iterations; the last moved the model by up to {:.2} mm (tolerance {} mm)",
+                i.iterations,
+                i.movement_history_mm.last().copied().unwrap_or(f64::NAN),
+                params.libr.tolerance_mm
+            ),
+        )
+    } else if !reg.rigid.converged && reg.libr.is_none() {
+        (
+            pb::Quality::NotConverged,
+            format!(
+                "the rigid stage ran its {} iterations without converging",
+                reg.rigid.iterations
+            ),
+        )
+    } else {
+        (pb::Quality::Ok, String::new())
+    };
+    let total_ms = ms(job.arrival.elapsed());
+    let stage = |name: &'static str, v: f64| {
+        metrics::histogram!("librplus_stage_seconds", "stage" => name).record(v / 1e3);
+    };
+    stage("queue", queue_ms);
+    stage("rigid", rigid_ms);
+    if let Some(l) = libr_ms {
+        stage("libr", l);
+    }
+    stage("total", total_ms);
+    metrics::counter!("librplus_registrations_total", "method" => method.name(), "quality" => quality.as_str_name()).increment(1);
+    let info = reg.libr.as_ref();
+    Ok(pb::Registration {
+        image_to_physical: Some(rigid_to_pb(&reg.image_to_physical)),
+        displacement_mm: if job.omit_displacements {
+            Vec::new()
+        } else {
+            reg.u.iter().map(|&x| x as f32).collect()
+        },
+        node_count: case.prepared.model.mesh.num_nodes() as u32,
+        method_used: method_to_pb(method) as i32,
+        residual_rms_mm: info.map_or(reg.rigid.rms_mm, |i| i.rms_mm),
+        points_used: job.measurements.points.len() as u32,
+        points_matched: reg.rigid.matched as u32,
+        timings: Some(pb::StageTimings {
+            queue_ms,
+            rigid_ms,
+            libr_ms: libr_ms.unwrap_or(0.0),
+            libr_matching_ms: info.map_or(0.0, |i| i.matching_s * 1e3),
+            libr_assemble_ms: info.map_or(0.0, |i| i.assemble_s * 1e3),
+            libr_solve_ms: info.map_or(0.0, |i| i.solve_s * 1e3),
+            gcn_ms: 0.0,
+            total_ms,
+            libr_iterations: info.map_or(0, |i| i.iterations as u32),
+        }),
+        quality: quality as i32,
+        quality_reason: reason,
+    })
+}

@@ -1,0 +1,155 @@
+//! Server configuration: a JSON file (`--config`), overridden by command-line flags. Every field
+//! has a default; unknown keys are an error that names them.
+
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// Configuration of `librplus-server` (JSON file format version 1, see the README).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Format version of the config file (1).
+    pub format: u32,
+    /// gRPC listen address. Default `127.0.0.1:50051`; port 0 picks a free port.
+    pub listen: String,
+    /// Where the cases come from: dataset directories written by `librplus generate` (each
+    /// geometry is a case) or folders of preoperative meshes (`.vtu`, `.vtk`, `.msh`: each file
+    /// is a case named by its stem).
+    pub cases: Vec<PathBuf>,
+    /// Unit of lengths in plain mesh files (`mm`, `cm`, `m`). Default `mm`.
+    pub mesh_unit: String,
+    /// Where the LIBR bases are cached. Default: the dataset's `cache/`, or `cache/` in a mesh
+    /// folder.
+    pub cache_dir: Option<PathBuf>,
+    /// Prometheus text endpoint (`GET /metrics`) address; none: no endpoint.
+    pub metrics_listen: Option<String>,
+    /// Most concurrent streamed sessions; beyond, RESOURCE_EXHAUSTED. Default 8.
+    pub max_sessions: usize,
+    /// Registrations computed at once (0: the number of cores). Default 0.
+    pub compute_slots: usize,
+    /// Most unary registrations waiting for a compute slot; beyond, RESOURCE_EXHAUSTED.
+    /// Default 16.
+    pub max_queued: usize,
+    /// Default time budget of one registration, ms (a request may ask for another). Default 250.
+    pub time_budget_ms: u32,
+    /// Largest time budget a request may ask for, ms. Default 10,000.
+    pub max_time_budget_ms: u32,
+    /// Most points in one message. Default 20,000.
+    pub max_points_per_message: usize,
+    /// Most points a session accumulates. Default 100,000.
+    pub max_points_per_session: usize,
+    /// Largest gRPC message, bytes (in and out). Default 64 MiB.
+    pub max_message_bytes: usize,
+    /// A session with no message for this long ends with DEADLINE_EXCEEDED, s. Default 600.
+    pub session_idle_timeout_s: f64,
+    /// How long shutdown waits for sessions to finish their update and close, s. Default 10.
+    pub drain_grace_s: f64,
+    /// Method used when a request leaves it unspecified (`rigid`, `libr`). Default `libr`.
+    pub default_method: String,
+    /// Log as JSON lines instead of text.
+    pub log_json: bool,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            format: 1,
+            listen: "127.0.0.1:50051".into(),
+            cases: Vec::new(),
+            mesh_unit: "mm".into(),
+            cache_dir: None,
+            metrics_listen: None,
+            max_sessions: 8,
+            compute_slots: 0,
+            max_queued: 16,
+            time_budget_ms: 250,
+            max_time_budget_ms: 10_000,
+            max_points_per_message: 20_000,
+            max_points_per_session: 100_000,
+            max_message_bytes: 64 << 20,
+            session_idle_timeout_s: 600.0,
+            drain_grace_s: 10.0,
+            default_method: "libr".into(),
+            log_json: false,
+        }
+    }
+}
+
+impl ServerConfig {
+    /// Reads a config file (JSON).
+    pub fn from_file(path: &std::path::Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let c: Self =
+            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        c.validate()
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(c)
+    }
+
+    /// Checks the values; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.format != 1 {
+            return Err(format!("format {} is not supported (1)", self.format));
+        }
+        if self.cases.is_empty() {
+            return Err("cases: no case directory given".into());
+        }
+        self.unit()?;
+        self.method()?;
+        for (name, v) in [
+            ("max_sessions", self.max_sessions),
+            ("max_points_per_message", self.max_points_per_message),
+            ("max_points_per_session", self.max_points_per_session),
+            ("max_message_bytes", self.max_message_bytes),
+        ] {
+            if v == 0 {
+                return Err(format!("{name} must be at least 1"));
+            }
+        }
+        if self.time_budget_ms == 0 || self.time_budget_ms > self.max_time_budget_ms {
+            return Err(format!(
+                "time_budget_ms {} must be in 1..=max_time_budget_ms ({})",
+                self.time_budget_ms, self.max_time_budget_ms
+            ));
+        }
+        for (name, v) in [
+            ("session_idle_timeout_s", self.session_idle_timeout_s),
+            ("drain_grace_s", self.drain_grace_s),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{name} must be finite and > 0, got {v}"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The mesh unit.
+    pub fn unit(&self) -> Result<librplus::mesh::io::Unit, String> {
+        use librplus::mesh::io::Unit;
+        match self.mesh_unit.as_str() {
+            "mm" => Ok(Unit::Mm),
+            "cm" => Ok(Unit::Cm),
+            "m" => Ok(Unit::M),
+            u => Err(format!("mesh_unit {u:?}: expected mm, cm or m")),
+        }
+    }
+
+    /// The default method.
+    pub fn method(&self) -> Result<librplus::register::pipeline::Method, String> {
+        use librplus::register::pipeline::Method;
+        match self.default_method.as_str() {
+            "rigid" => Ok(Method::Rigid),
+            "libr" => Ok(Method::Libr),
+            m => Err(format!("default_method {m:?}: expected rigid or libr")),
+        }
+    }
+
+    /// Compute slots (the number of cores when 0).
+    pub fn slots(&self) -> usize {
+        if self.compute_slots > 0 {
+            self.compute_slots
+        } else {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        }
+    }
+}

@@ -1,0 +1,402 @@
+//! Between the wire (`librplus.v1`) and the library: checks every field of what a client sends
+//! and names the field of each problem; builds the replies.
+
+use librplus::mesh::rigid::Rigid;
+use librplus::register::{MeasuredKind, Measurements};
+use librplus_proto::v1 as pb;
+use tonic::{Code, Status};
+use tonic_types::{ErrorDetails, StatusExt};
+
+/// Coordinates beyond this (mm) are rejected as nonsense (10 m).
+pub const MAX_ABS_MM: f64 = 1e4;
+
+/// A request the server does not take: status code, message and field violations.
+#[derive(Debug, Clone)]
+pub struct BadInput {
+    /// gRPC status code.
+    pub code: Code,
+    /// Summary.
+    pub message: String,
+    /// (field path, problem) pairs.
+    pub violations: Vec<(String, String)>,
+}
+
+impl BadInput {
+    /// INVALID_ARGUMENT with violations.
+    pub fn invalid(message: impl Into<String>, violations: Vec<(String, String)>) -> Self {
+        Self {
+            code: Code::InvalidArgument,
+            message: message.into(),
+            violations,
+        }
+    }
+
+    /// One invalid field.
+    pub fn field(field: impl Into<String>, problem: impl Into<String>) -> Self {
+        let (f, p) = (field.into(), problem.into());
+        Self::invalid(format!("{f}: {p}"), vec![(f, p)])
+    }
+
+    /// Another code without violations.
+    pub fn new(code: Code, message: impl Into<String>) -> Self {
+        Self {
+            code,
+            message: message.into(),
+            violations: Vec::new(),
+        }
+    }
+
+    /// As a gRPC status with google.rpc details (BadRequest for field violations).
+    pub fn to_status(&self) -> Status {
+        if self.violations.is_empty() {
+            return Status::new(self.code, self.message.clone());
+        }
+        let mut d = ErrorDetails::new();
+        for (f, p) in &self.violations {
+            d.add_bad_request_violation(f.clone(), p.clone());
+        }
+        Status::with_error_details(self.code, self.message.clone(), d)
+    }
+
+    /// As an in-stream rejection of message `client_seq`.
+    pub fn to_rejection(&self, client_seq: u64) -> pb::Rejection {
+        pb::Rejection {
+            client_seq,
+            code: code_name(self.code).to_string(),
+            message: self.message.clone(),
+            violations: self
+                .violations
+                .iter()
+                .map(|(f, p)| pb::FieldViolation {
+                    field: f.clone(),
+                    description: p.clone(),
+                })
+                .collect(),
+        }
+    }
+}
+
+/// The canonical name of a status code (as in grpc's status codes).
+pub fn code_name(code: Code) -> &'static str {
+    match code {
+        Code::Ok => "OK",
+        Code::Cancelled => "CANCELLED",
+        Code::Unknown => "UNKNOWN",
+        Code::InvalidArgument => "INVALID_ARGUMENT",
+        Code::DeadlineExceeded => "DEADLINE_EXCEEDED",
+        Code::NotFound => "NOT_FOUND",
+        Code::AlreadyExists => "ALREADY_EXISTS",
+        Code::PermissionDenied => "PERMISSION_DENIED",
+        Code::ResourceExhausted => "RESOURCE_EXHAUSTED",
+        Code::FailedPrecondition => "FAILED_PRECONDITION",
+        Code::Aborted => "ABORTED",
+        Code::OutOfRange => "OUT_OF_RANGE",
+        Code::Unimplemented => "UNIMPLEMENTED",
+        Code::Internal => "INTERNAL",
+        Code::Unavailable => "UNAVAILABLE",
+        Code::DataLoss => "DATA_LOSS",
+        Code::Unauthenticated => "UNAUTHENTICATED",
+    }
+}
+
+/// A rigid transform from the wire.
+pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, BadInput> {
+    if r.rotation.len() != 9 {
+        return Err(BadInput::field(
+            format!("{field}.rotation"),
+            format!(
+                "has {} values, expected 9 (row-major 3×3)",
+                r.rotation.len()
+            ),
+        ));
+    }
+    if r.translation_mm.len() != 3 {
+        return Err(BadInput::field(
+            format!("{field}.translation_mm"),
+            format!("has {} values, expected 3", r.translation_mm.len()),
+        ));
+    }
+    if let Some(i) = r.rotation.iter().position(|x| !x.is_finite()) {
+        return Err(BadInput::field(
+            format!("{field}.rotation[{i}]"),
+            "is not finite",
+        ));
+    }
+    if let Some(i) = r
+        .translation_mm
+        .iter()
+        .position(|x| !(x.is_finite() && x.abs() <= MAX_ABS_MM))
+    {
+        return Err(BadInput::field(
+            format!("{field}.translation_mm[{i}]"),
+            format!(
+                "{} is not finite or beyond ±{MAX_ABS_MM} mm",
+                r.translation_mm[i]
+            ),
+        ));
+    }
+    let m = |i: usize, j: usize| r.rotation[3 * i + j];
+    let mut err = 0.0f64;
+    for i in 0..3 {
+        for j in 0..3 {
+            let d: f64 = (0..3).map(|k| m(k, i) * m(k, j)).sum();
+            err = err.max((d - if i == j { 1.0 } else { 0.0 }).abs());
+        }
+    }
+    let det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
+        - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
+        + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+    if err > 1e-6 || det <= 0.0 {
+        return Err(BadInput::field(
+            format!("{field}.rotation"),
+            format!("is not a rotation (|RᵀR − I| = {err:.2e}, det = {det:.6})"),
+        ));
+    }
+    Ok(Rigid {
+        rotation: [
+            [m(0, 0), m(0, 1), m(0, 2)],
+            [m(1, 0), m(1, 1), m(1, 2)],
+            [m(2, 0), m(2, 1), m(2, 2)],
+        ],
+        translation: [
+            r.translation_mm[0],
+            r.translation_mm[1],
+            r.translation_mm[2],
+        ],
+    })
+}
+
+/// A rigid transform to the wire.
+pub fn rigid_to_pb(r: &Rigid) -> pb::Rigid {
+    pb::Rigid {
+        rotation: r.rotation.iter().flatten().copied().collect(),
+        translation_mm: r.translation.to_vec(),
+    }
+}
+
+/// Points packed 3 per point (`field`), checked: length, finite, within ±10 m.
+pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]>, BadInput> {
+    if v.len() % 3 != 0 {
+        return Err(BadInput::field(
+            field,
+            format!(
+                "has {} values, not a multiple of 3 (x, y, z per point)",
+                v.len()
+            ),
+        ));
+    }
+    if v.len() / 3 > max_points {
+        return Err(BadInput {
+            code: Code::InvalidArgument,
+            message: format!(
+                "{field}: {} points, more than the {max_points} allowed in one message",
+                v.len() / 3
+            ),
+            violations: vec![(
+                field.to_string(),
+                format!("{} points; at most {max_points} per message", v.len() / 3),
+            )],
+        });
+    }
+    let mut bad = Vec::new();
+    for (i, x) in v.iter().enumerate() {
+        if !(x.is_finite() && x.abs() <= MAX_ABS_MM) {
+            bad.push((
+                format!("{field}[{i}]"),
+                format!(
+                    "{x} is not finite or beyond ±{MAX_ABS_MM} mm (point {}, axis {})",
+                    i / 3,
+                    ["x", "y", "z"][i % 3]
+                ),
+            ));
+            if bad.len() == 10 {
+                break;
+            }
+        }
+    }
+    if !bad.is_empty() {
+        return Err(BadInput::invalid(
+            format!(
+                "{field}: {} bad coordinate(s), first {}",
+                bad.len(),
+                bad[0].0
+            ),
+            bad,
+        ));
+    }
+    Ok(v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+}
+
+/// Salient-feature designations (`field`): empty, or one valid value per point.
+pub fn features(v: &[i32], n: usize, field: &str) -> Result<Vec<u8>, BadInput> {
+    if v.is_empty() {
+        return Ok(vec![0; n]);
+    }
+    if v.len() != n {
+        return Err(BadInput::field(
+            field,
+            format!(
+                "has {} values for {n} points (give none or one per point)",
+                v.len()
+            ),
+        ));
+    }
+    v.iter()
+        .enumerate()
+        .map(|(i, &f)| match pb::SalientFeature::try_from(f) {
+            Ok(x) => Ok(x as u8),
+            Err(_) => Err(BadInput::field(
+                format!("{field}[{i}]"),
+                format!("{f} is not a SalientFeature (0 none, 1 falciform, 2 inferior ridge)"),
+            )),
+        })
+        .collect()
+}
+
+/// A complete measurement set from the wire.
+pub fn measurements_from_pb(
+    m: &pb::Measurements,
+    field: &str,
+    max_points: usize,
+) -> Result<Measurements, BadInput> {
+    let points = points3(&m.xyz_mm, &format!("{field}.xyz_mm"), max_points)?;
+    let n = points.len();
+    if n == 0 {
+        return Err(BadInput::field(
+            format!("{field}.xyz_mm"),
+            "is empty: no points",
+        ));
+    }
+    if m.kind.len() != n {
+        return Err(BadInput::field(
+            format!("{field}.kind"),
+            format!("has {} values for {n} points (one per point)", m.kind.len()),
+        ));
+    }
+    let kind = m
+        .kind
+        .iter()
+        .enumerate()
+        .map(|(i, &k)| {
+            kind_from_pb(k).ok_or_else(|| {
+                BadInput::field(
+                    format!("{field}.kind[{i}]"),
+                    format!("{k} is not a point kind (1 surface, 2 posterior contour, 3 vessel)"),
+                )
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let feature = features(&m.feature, n, &format!("{field}.feature"))?;
+    if let Some(i) = (0..n).find(|&i| feature[i] != 0 && kind[i] != MeasuredKind::Surface) {
+        return Err(BadInput::field(
+            format!("{field}.feature[{i}]"),
+            "only surface points can be designated on a salient feature",
+        ));
+    }
+    let initial_alignment = m
+        .initial_alignment
+        .as_ref()
+        .map(|r| rigid_from_pb(r, &format!("{field}.initial_alignment")))
+        .transpose()?;
+    Ok(Measurements {
+        points,
+        kind,
+        feature,
+        initial_alignment,
+    })
+}
+
+/// A point kind from the wire (`UNSPECIFIED` and unknown values: None).
+pub fn kind_from_pb(k: i32) -> Option<MeasuredKind> {
+    match pb::PointKind::try_from(k).ok()? {
+        pb::PointKind::Unspecified => None,
+        pb::PointKind::Surface => Some(MeasuredKind::Surface),
+        pb::PointKind::PosteriorContour => Some(MeasuredKind::PosteriorContour),
+        pb::PointKind::Vessel => Some(MeasuredKind::Vessel),
+    }
+}
+
+/// Points of one ultrasound plane in the physical frame: (contour points, vessel points).
+pub fn plane_points(
+    p: &pb::UltrasoundPlane,
+    max_points: usize,
+) -> Result<(Vec<[f64; 3]>, Vec<[f64; 3]>), BadInput> {
+    let pose = p
+        .plane_to_physical
+        .as_ref()
+        .ok_or_else(|| BadInput::field("ultrasound.plane_to_physical", "is missing"))?;
+    let pose = rigid_from_pb(pose, "ultrasound.plane_to_physical")?;
+    let uv = |v: &[f64], field: &str| -> Result<Vec<[f64; 3]>, BadInput> {
+        if v.len() % 2 != 0 {
+            return Err(BadInput::field(
+                field,
+                format!(
+                    "has {} values, not a multiple of 2 (u, v per point)",
+                    v.len()
+                ),
+            ));
+        }
+        if let Some(i) = v
+            .iter()
+            .position(|x| !(x.is_finite() && x.abs() <= MAX_ABS_MM))
+        {
+            return Err(BadInput::field(
+                format!("{field}[{i}]"),
+                format!("{} is not finite or beyond ±{MAX_ABS_MM} mm", v[i]),
+            ));
+        }
+        Ok(v.chunks_exact(2)
+            .map(|c| pose.apply([c[0], c[1], 0.0]))
+            .collect())
+    };
+    let contour = uv(&p.contour_uv_mm, "ultrasound.contour_uv_mm")?;
+    let vessels = uv(&p.vessel_uv_mm, "ultrasound.vessel_uv_mm")?;
+    let n = contour.len() + vessels.len();
+    if n > max_points {
+        return Err(BadInput::field(
+            "ultrasound",
+            format!("{n} points; at most {max_points} per message"),
+        ));
+    }
+    if n == 0 {
+        return Err(BadInput::field(
+            "ultrasound",
+            "has no contour and no vessel points",
+        ));
+    }
+    Ok((contour, vessels))
+}
+
+/// A method from the wire, given the case's default; LIBR_PLUS is refused until a case has
+/// SR-GCN weights.
+pub fn method_from_pb(
+    m: i32,
+    default: librplus::register::pipeline::Method,
+    field: &str,
+) -> Result<librplus::register::pipeline::Method, BadInput> {
+    use librplus::register::pipeline::Method;
+    match pb::Method::try_from(m) {
+        Ok(pb::Method::Unspecified) => Ok(default),
+        Ok(pb::Method::Rigid) => Ok(Method::Rigid),
+        Ok(pb::Method::Libr) => Ok(Method::Libr),
+        Ok(pb::Method::LibrPlus) => Err(BadInput {
+            code: Code::FailedPrecondition,
+            message: format!(
+                "{field}: METHOD_LIBR_PLUS needs SR-GCN weights, and this case has none (use METHOD_LIBR)"
+            ),
+            violations: Vec::new(),
+        }),
+        Err(_) => Err(BadInput::field(
+            field,
+            format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+)"),
+        )),
+    }
+}
+
+/// A library method to the wire.
+pub fn method_to_pb(m: librplus::register::pipeline::Method) -> pb::Method {
+    match m {
+        librplus::register::pipeline::Method::Rigid => pb::Method::Rigid,
+        librplus::register::pipeline::Method::Libr => pb::Method::Libr,
+    }
+}

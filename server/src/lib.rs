@@ -1,0 +1,284 @@
+//! `librplus-server`: the LIBR+ gRPC registration service.
+//!
+//! [`start`] binds the listen address at once and serves health (NOT_SERVING), reflection (v1 and
+//! v1alpha) and the `librplus.v1.LibRPlus` service; it preloads every case in the background
+//! (correspondence structures and LIBR bases, from the on-disk cache when valid) and then turns
+//! health to SERVING. [`Running::shutdown`] drains: health NOT_SERVING, new calls refused, each open
+//! session finishes the update it is computing and ends with UNAVAILABLE, then the transport closes
+//! (after `drain_grace_s` at most).
+
+pub mod cases;
+pub mod compute;
+pub mod config;
+pub mod convert;
+pub mod metrics_http;
+pub mod service;
+
+use anyhow::Context;
+use cases::Case;
+use config::ServerConfig;
+use librplus::register::libr::LibrParams;
+use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
+use service::{Shared, Svc};
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+use tokio::sync::{Semaphore, oneshot, watch};
+use tonic::transport::Server;
+use tonic::transport::server::TcpIncoming;
+use tonic_health::ServingStatus;
+
+/// What preload did.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct PreloadReport {
+    /// Cases loaded: (id, nodes, seconds, basis from cache).
+    pub cases: Vec<(String, usize, f64, bool)>,
+    /// Cases that failed: (id, error).
+    pub failed: Vec<(String, String)>,
+    /// Total seconds.
+    pub seconds: f64,
+}
+
+/// A running server.
+pub struct Running {
+    /// The gRPC address it listens on.
+    pub addr: SocketAddr,
+    /// The metrics endpoint's address, if any.
+    pub metrics_addr: Option<SocketAddr>,
+    shared: Arc<Shared>,
+    drain: watch::Sender<bool>,
+    stop: Option<oneshot::Sender<()>>,
+    serve: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+    ready: watch::Receiver<Option<Result<PreloadReport, String>>>,
+    health: tonic_health::server::HealthReporter,
+}
+
+static PROMETHEUS: OnceLock<Option<metrics_exporter_prometheus::PrometheusHandle>> =
+    OnceLock::new();
+
+/// The process's Prometheus recorder (installed on first use; None if another recorder was).
+pub fn prometheus() -> Option<&'static metrics_exporter_prometheus::PrometheusHandle> {
+    PROMETHEUS
+        .get_or_init(|| {
+            let buckets = [
+                0.005, 0.01, 0.02, 0.05, 0.075, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.75, 1.0,
+                2.0, 5.0,
+            ];
+            metrics_exporter_prometheus::PrometheusBuilder::new()
+                .set_buckets(&buckets)
+                .ok()?
+                .install_recorder()
+                .ok()
+        })
+        .as_ref()
+}
+
+const SERVICE_NAME: &str = "librplus.v1.LibRPlus";
+
+/// Binds, serves, and starts preloading. Returns once the port is bound.
+pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
+    config.validate().map_err(anyhow::Error::msg)?;
+    let prom = prometheus();
+    let listener = tokio::net::TcpListener::bind(&config.listen)
+        .await
+        .with_context(|| format!("listen {}", config.listen))?;
+    let addr = listener.local_addr()?;
+    let metrics_addr = match (&config.metrics_listen, prom) {
+        (Some(a), Some(h)) => Some(metrics_http::serve(a, h).await?),
+        (Some(_), None) => {
+            tracing::warn!("another metrics recorder is installed; no /metrics endpoint");
+            None
+        }
+        _ => None,
+    };
+    let (health, health_svc) = tonic_health::server::health_reporter();
+    health
+        .set_service_status("", ServingStatus::NotServing)
+        .await;
+    health
+        .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
+        .await;
+    let (drain_tx, drain_rx) = watch::channel(false);
+    let shared = Arc::new(Shared {
+        engine: compute::Engine::new(config.slots(), config.max_queued),
+        sessions: Arc::new(Semaphore::new(config.max_sessions)),
+        drain: drain_rx,
+        next_session: AtomicU64::new(0),
+        cases: OnceLock::new(),
+        config: config.clone(),
+    });
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(librplus_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let refl_v1 = reflection().build_v1()?;
+    let refl_v1alpha = reflection().build_v1alpha()?;
+    let svc = LibRPlusServer::new(Svc(shared.clone()))
+        .max_decoding_message_size(config.max_message_bytes)
+        .max_encoding_message_size(config.max_message_bytes);
+    let request_ids = Arc::new(AtomicU64::new(0));
+    let router = Server::builder()
+        .trace_fn(move |req: &tonic::codegen::http::Request<()>| {
+            let id = req
+                .headers()
+                .get("x-request-id")
+                .and_then(|v| v.to_str().ok())
+                .map(|s| s.chars().take(64).collect::<String>())
+                .unwrap_or_else(|| format!("r{}", request_ids.fetch_add(1, Ordering::Relaxed) + 1));
+            tracing::info_span!("rpc", path = %req.uri().path(), request_id = %id)
+        })
+        .add_service(health_svc)
+        .add_service(refl_v1)
+        .add_service(refl_v1alpha)
+        .add_service(svc);
+    let (stop_tx, stop_rx) = oneshot::channel::<()>();
+    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let serve = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async {
+        let _ = stop_rx.await;
+    }));
+    tracing::info!(%addr, "listening (health NOT_SERVING until preload finishes)");
+    let (ready_tx, ready_rx) = watch::channel(None);
+    {
+        let shared = shared.clone();
+        let health = health.clone();
+        tokio::spawn(async move {
+            let cfg = shared.config.clone();
+            let report = tokio::task::spawn_blocking(move || preload(&cfg)).await;
+            let report = match report {
+                Ok(Ok((cases, report))) => {
+                    let _ = shared.cases.set(cases);
+                    health.set_service_status("", ServingStatus::Serving).await;
+                    health
+                        .set_service_status(SERVICE_NAME, ServingStatus::Serving)
+                        .await;
+                    tracing::info!(
+                        cases = report.cases.len(),
+                        failed = report.failed.len(),
+                        seconds = report.seconds,
+                        "preload done; SERVING"
+                    );
+                    Ok(report)
+                }
+                Ok(Err(e)) => {
+                    tracing::error!(error = %e, "preload failed; staying NOT_SERVING");
+                    Err(e)
+                }
+                Err(e) => Err(format!("preload task failed: {e}")),
+            };
+            let _ = ready_tx.send(Some(report));
+        });
+    }
+    Ok(Running {
+        addr,
+        metrics_addr,
+        shared,
+        drain: drain_tx,
+        stop: Some(stop_tx),
+        serve,
+        ready: ready_rx,
+        health,
+    })
+}
+
+fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, PreloadReport), String> {
+    let t0 = Instant::now();
+    let found = cases::discover(config)?;
+    let libr = LibrParams::default();
+    let mut out = BTreeMap::new();
+    let mut report = PreloadReport {
+        cases: Vec::new(),
+        failed: Vec::new(),
+        seconds: 0.0,
+    };
+    for (id, src) in &found {
+        match cases::load(id, src, config, &libr) {
+            Ok(c) => {
+                tracing::info!(
+                    case = %id,
+                    nodes = c.prepared.model.mesh.num_nodes(),
+                    seconds = c.prepared.seconds,
+                    basis_from_cache = c.prepared.basis_from_cache,
+                    "case preloaded"
+                );
+                report.cases.push((
+                    id.clone(),
+                    c.prepared.model.mesh.num_nodes(),
+                    c.prepared.seconds,
+                    c.prepared.basis_from_cache,
+                ));
+                out.insert(id.clone(), Arc::new(c));
+            }
+            Err(e) => {
+                tracing::error!(case = %id, error = %e, "case failed to load; skipped");
+                report.failed.push((id.clone(), e));
+            }
+        }
+    }
+    if out.is_empty() {
+        return Err(format!(
+            "no case could be loaded ({} found): {:?}",
+            found.len(),
+            report.failed
+        ));
+    }
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok((out, report))
+}
+
+impl Running {
+    /// Waits for preload to finish; its report, or why it failed.
+    pub async fn ready(&mut self) -> Result<PreloadReport, String> {
+        let r = self
+            .ready
+            .wait_for(|r| r.is_some())
+            .await
+            .map_err(|_| "preload task ended".to_string())?;
+        r.clone().expect("checked is_some")
+    }
+
+    /// Sessions open now.
+    pub fn open_sessions(&self) -> usize {
+        self.shared.config.max_sessions - self.shared.sessions.available_permits()
+    }
+
+    /// Drains and stops: health NOT_SERVING, sessions end after their current update, the
+    /// transport closes (waiting `drain_grace_s` at most). Returns the sessions still open when
+    /// the grace ran out (0 on a clean drain).
+    pub async fn shutdown(mut self) -> usize {
+        tracing::info!("shutting down: draining sessions");
+        self.health
+            .set_service_status("", ServingStatus::NotServing)
+            .await;
+        self.health
+            .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
+            .await;
+        let _ = self.drain.send(true);
+        let grace = Duration::from_secs_f64(self.shared.config.drain_grace_s);
+        let t0 = Instant::now();
+        // Sessions end after their update in flight.
+        while self.open_sessions() > 0 && t0.elapsed() < grace {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        let left = self.open_sessions();
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        let rest = grace
+            .saturating_sub(t0.elapsed())
+            .max(Duration::from_millis(100));
+        match tokio::time::timeout(rest, &mut self.serve).await {
+            Ok(Ok(Ok(()))) => {}
+            Ok(Ok(Err(e))) => tracing::warn!(error = %e, "transport ended with an error"),
+            Ok(Err(e)) => tracing::warn!(error = %e, "serve task failed"),
+            Err(_) => {
+                tracing::warn!("connections still open after the drain grace; closing");
+                self.serve.abort();
+            }
+        }
+        tracing::info!(left, "stopped");
+        left
+    }
+}

@@ -1,0 +1,565 @@
+//! The `librplus.v1.LibRPlus` service: case listing, unary and streamed registration, with
+//! admission control, limits, deadlines and drain on shutdown.
+
+use crate::cases::Case;
+use crate::compute::{Engine, Job};
+use crate::config::ServerConfig;
+use crate::convert::{
+    BadInput, code_name, features, measurements_from_pb, method_from_pb, plane_points, points3,
+    rigid_from_pb,
+};
+use librplus::register::pipeline::Method;
+use librplus::register::{MeasuredKind, Measurements};
+use librplus_proto::v1 as pb;
+use pb::lib_r_plus_server::LibRPlus;
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+use tokio::sync::{Semaphore, mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Code, Request, Response, Status, Streaming};
+use tonic_types::StatusExt;
+use tracing::Instrument;
+
+/// State shared by every request.
+pub struct Shared {
+    /// Configuration.
+    pub config: ServerConfig,
+    /// The preloaded cases (set once preload is done).
+    pub cases: OnceLock<BTreeMap<String, Arc<Case>>>,
+    /// Compute slots.
+    pub engine: Engine,
+    /// Session admission.
+    pub sessions: Arc<Semaphore>,
+    /// Becomes true when the server starts draining.
+    pub drain: watch::Receiver<bool>,
+    /// Session counter (ids).
+    pub next_session: AtomicU64,
+}
+
+/// The service.
+#[derive(Clone)]
+pub struct Svc(pub Arc<Shared>);
+
+fn count_error(code: Code) {
+    metrics::counter!("librplus_errors_total", "code" => code_name(code)).increment(1);
+}
+
+fn fail(b: BadInput) -> Status {
+    count_error(b.code);
+    b.to_status()
+}
+
+/// The client's deadline from the `grpc-timeout` header, if any.
+pub fn grpc_timeout(md: &tonic::metadata::MetadataMap) -> Option<Duration> {
+    let v = md.get("grpc-timeout")?.to_str().ok()?;
+    if v.len() < 2 {
+        return None;
+    }
+    let (num, unit) = v.split_at(v.len() - 1);
+    let n: u64 = num.parse().ok()?;
+    Some(match unit {
+        "H" => Duration::from_secs(n.saturating_mul(3600)),
+        "M" => Duration::from_secs(n.saturating_mul(60)),
+        "S" => Duration::from_secs(n),
+        "m" => Duration::from_millis(n),
+        "u" => Duration::from_micros(n),
+        "n" => Duration::from_nanos(n),
+        _ => return None,
+    })
+}
+
+impl Svc {
+    fn cases(&self) -> Result<&BTreeMap<String, Arc<Case>>, BadInput> {
+        self.0.cases.get().ok_or_else(|| {
+            BadInput::new(
+                Code::Unavailable,
+                "the server is still preloading its cases; retry when health reports SERVING",
+            )
+        })
+    }
+
+    fn case(&self, id: &str, field: &str) -> Result<Arc<Case>, BadInput> {
+        let cases = self.cases()?;
+        cases.get(id).cloned().ok_or_else(|| BadInput {
+            code: Code::NotFound,
+            message: format!(
+                "{field}: no case {id:?} (cases: {})",
+                cases.keys().cloned().collect::<Vec<_>>().join(", ")
+            ),
+            violations: vec![(field.to_string(), format!("no case {id:?}"))],
+        })
+    }
+
+    fn budget(
+        &self,
+        options: Option<&pb::RegisterOptions>,
+        field: &str,
+    ) -> Result<Duration, BadInput> {
+        let c = &self.0.config;
+        let ms = options.map_or(0, |o| o.time_budget_ms);
+        if ms > c.max_time_budget_ms {
+            return Err(BadInput::field(
+                format!("{field}.time_budget_ms"),
+                format!(
+                    "{ms} ms is above the server's limit of {} ms",
+                    c.max_time_budget_ms
+                ),
+            ));
+        }
+        let ms = if ms == 0 { c.time_budget_ms } else { ms };
+        Ok(Duration::from_millis(ms as u64))
+    }
+
+    fn check_method(&self, case: &Case, m: i32, field: &str) -> Result<Method, BadInput> {
+        let method = method_from_pb(m, case.default_method, field)?;
+        if method == Method::Libr && case.prepared.basis.is_none() {
+            return Err(BadInput::new(
+                Code::FailedPrecondition,
+                format!("{field}: case {} has no LIBR basis", case.id),
+            ));
+        }
+        Ok(method)
+    }
+}
+
+fn summary(c: &Case) -> pb::CaseSummary {
+    let m = &c.prepared.model.mesh;
+    pb::CaseSummary {
+        case_id: c.id.clone(),
+        source: c.source.display().to_string(),
+        node_count: m.num_nodes() as u32,
+        tet_count: m.num_tets() as u32,
+        libr_ready: c.prepared.basis.is_some(),
+        libr_plus_ready: false,
+        default_method: crate::convert::method_to_pb(c.default_method) as i32,
+        preload_seconds: c.prepared.seconds,
+        basis_from_cache: c.prepared.basis_from_cache,
+    }
+}
+
+type UpdateStream = ReceiverStream<Result<pb::StreamUpdate, Status>>;
+
+#[tonic::async_trait]
+impl LibRPlus for Svc {
+    async fn list_cases(
+        &self,
+        _req: Request<pb::ListCasesRequest>,
+    ) -> Result<Response<pb::ListCasesResponse>, Status> {
+        let cases = self.cases().map_err(fail)?;
+        Ok(Response::new(pb::ListCasesResponse {
+            cases: cases.values().map(|c| summary(c)).collect(),
+        }))
+    }
+
+    async fn describe_case(
+        &self,
+        req: Request<pb::DescribeCaseRequest>,
+    ) -> Result<Response<pb::DescribeCaseResponse>, Status> {
+        let r = req.into_inner();
+        let c = self.case(&r.case_id, "case_id").map_err(fail)?;
+        let mut out = pb::DescribeCaseResponse {
+            summary: Some(summary(&c)),
+            length_unit: "mm".into(),
+            frame: "image (preoperative), LPS".into(),
+            ..Default::default()
+        };
+        if r.include_mesh {
+            let model = &c.prepared.model;
+            out.nodes_mm = model.mesh.nodes().iter().flatten().copied().collect();
+            out.tets = model.mesh.tets().iter().flatten().copied().collect();
+            out.node_labels = (0..model.mesh.num_nodes())
+                .map(|i| {
+                    (model.anterior[i] as u32) * pb::NodeLabel::Anterior as u32
+                        | (model.posterior[i] as u32) * pb::NodeLabel::Posterior as u32
+                        | (model.falciform[i] as u32) * pb::NodeLabel::Falciform as u32
+                        | (model.inferior_ridge[i] as u32) * pb::NodeLabel::InferiorRidge as u32
+                })
+                .collect();
+            out.vessel_points_mm = model.vessel_points.iter().flatten().copied().collect();
+            out.vessel_segments = model.vessel_segments.iter().flatten().copied().collect();
+        }
+        Ok(Response::new(out))
+    }
+
+    async fn register(
+        &self,
+        req: Request<pb::RegisterRequest>,
+    ) -> Result<Response<pb::Registration>, Status> {
+        let arrival = Instant::now();
+        if *self.0.drain.borrow() {
+            return Err(fail(BadInput::new(
+                Code::Unavailable,
+                "the server is shutting down",
+            )));
+        }
+        let client_deadline = grpc_timeout(req.metadata());
+        let r = req.into_inner();
+        let run = async {
+            let case = self.case(&r.case_id, "case_id")?;
+            let method = self.check_method(&case, r.method, "method")?;
+            let m = r
+                .measurements
+                .as_ref()
+                .ok_or_else(|| BadInput::field("measurements", "is missing"))?;
+            let meas =
+                measurements_from_pb(m, "measurements", self.0.config.max_points_per_message)?;
+            librplus::register::correspondence::validate_measurements(&meas)
+                .map_err(|e| BadInput::field("measurements", e))?;
+            let mut budget = self.budget(r.options.as_ref(), "options")?;
+            if let Some(d) = client_deadline {
+                // Answer before the client gives up: keep 10% (at least 5 ms) for the reply.
+                budget = budget.min(d.mul_f64(0.9).saturating_sub(Duration::from_millis(5)));
+            }
+            let job = Job {
+                case,
+                measurements: meas,
+                method,
+                budget,
+                arrival,
+                omit_displacements: r.options.as_ref().is_some_and(|o| o.omit_displacements),
+            };
+            self.0.engine.run(job, true).await
+        };
+        let span = tracing::info_span!("register", case = %r.case_id);
+        match run.instrument(span).await {
+            Ok(reg) => Ok(Response::new(reg)),
+            Err(b) => {
+                tracing::info!(case = %r.case_id, code = code_name(b.code), message = %b.message, "register refused");
+                Err(fail(b))
+            }
+        }
+    }
+
+    type StreamRegisterStream = UpdateStream;
+
+    async fn stream_register(
+        &self,
+        req: Request<Streaming<pb::StreamRegisterRequest>>,
+    ) -> Result<Response<Self::StreamRegisterStream>, Status> {
+        if *self.0.drain.borrow() {
+            return Err(fail(BadInput::new(
+                Code::Unavailable,
+                "the server is shutting down",
+            )));
+        }
+        self.cases().map_err(fail)?;
+        let permit = self.0.sessions.clone().try_acquire_owned().map_err(|_| {
+            metrics::counter!("librplus_refused_total", "reason" => "sessions").increment(1);
+            count_error(Code::ResourceExhausted);
+            let mut d = tonic_types::ErrorDetails::new();
+            d.add_quota_failure_violation(
+                "sessions",
+                format!(
+                    "{} streamed sessions are open, the server's limit; retry after one ends",
+                    self.0.config.max_sessions
+                ),
+            );
+            Status::with_error_details(
+                Code::ResourceExhausted,
+                format!(
+                    "session limit reached ({} open); retry later",
+                    self.0.config.max_sessions
+                ),
+                d,
+            )
+        })?;
+        let deadline = grpc_timeout(req.metadata()).map(|d| Instant::now() + d);
+        let sid = format!(
+            "s{:06}",
+            self.0.next_session.fetch_add(1, Ordering::Relaxed) + 1
+        );
+        let inbound = req.into_inner();
+        let (tx, rx) = mpsc::channel(8);
+        let svc = self.clone();
+        let span = tracing::info_span!("session", session_id = %sid);
+        tokio::spawn(
+            async move {
+                metrics::gauge!("librplus_sessions_active").increment(1.0);
+                let outcome = session(svc, inbound, &tx, deadline, &sid).await;
+                metrics::gauge!("librplus_sessions_active").decrement(1.0);
+                let label = match &outcome {
+                    Ok(()) => "OK",
+                    Err(s) => code_name(s.code()),
+                };
+                metrics::counter!("librplus_sessions_total", "outcome" => label).increment(1);
+                match outcome {
+                    Ok(()) => tracing::info!("session ended"),
+                    Err(s) => {
+                        tracing::info!(code = label, message = s.message(), "session ended");
+                        count_error(s.code());
+                        let _ = tx.send(Err(s)).await;
+                    }
+                }
+                drop(permit);
+            }
+            .instrument(span),
+        );
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
+
+enum Next {
+    Msg(pb::StreamRegisterRequest),
+    End,
+}
+
+/// The next client message, or why there is none.
+async fn next(
+    inbound: &mut Streaming<pb::StreamRegisterRequest>,
+    idle: Duration,
+    deadline: Option<Instant>,
+    drain: &mut watch::Receiver<bool>,
+) -> Result<Next, Status> {
+    let idle_at = tokio::time::Instant::now() + idle;
+    let until = match deadline {
+        Some(d) => idle_at.min(tokio::time::Instant::from_std(d)),
+        None => idle_at,
+    };
+    if *drain.borrow() {
+        return Err(Status::unavailable(
+            "the server is shutting down; session ended",
+        ));
+    }
+    tokio::select! {
+        biased;
+        _ = drain.wait_for(|d| *d) => Err(Status::unavailable("the server is shutting down; session ended")),
+        _ = tokio::time::sleep_until(until) => {
+            if deadline.is_some_and(|d| Instant::now() >= d) {
+                Err(Status::deadline_exceeded("the call's deadline passed"))
+            } else {
+                Err(Status::deadline_exceeded(format!(
+                    "no message for {:.0} s; session closed",
+                    idle.as_secs_f64()
+                )))
+            }
+        }
+        m = inbound.message() => match m {
+            Ok(Some(m)) => Ok(Next::Msg(m)),
+            Ok(None) => Ok(Next::End),
+            Err(s) => Err(Status::new(s.code(), format!("receiving: {}", s.message()))),
+        },
+    }
+}
+
+/// Session state after a valid start.
+struct Session {
+    case: Arc<Case>,
+    method: Method,
+    budget: Duration,
+    omit: bool,
+    meas: Measurements,
+    last_seq: u64,
+    last_time: Option<(i64, i32)>,
+    sequence: u64,
+}
+
+async fn session(
+    svc: Svc,
+    mut inbound: Streaming<pb::StreamRegisterRequest>,
+    tx: &mpsc::Sender<Result<pb::StreamUpdate, Status>>,
+    deadline: Option<Instant>,
+    sid: &str,
+) -> Result<(), Status> {
+    let cfg = &svc.0.config;
+    let idle = Duration::from_secs_f64(cfg.session_idle_timeout_s);
+    let mut drain = svc.0.drain.clone();
+    // The first message must start the session; a bad start ends it with its status.
+    let first = match next(&mut inbound, idle, deadline, &mut drain).await? {
+        Next::Msg(m) => m,
+        Next::End => return Ok(()),
+    };
+    let Some(pb::stream_register_request::Msg::Start(start)) = first.msg else {
+        return Err(BadInput {
+            code: Code::FailedPrecondition,
+            message: "msg: the first message of a session must be a SessionStart".into(),
+            violations: vec![("msg".into(), "expected start".into())],
+        }
+        .to_status());
+    };
+    let mut s = start_session(&svc, &start, first.client_seq).map_err(|b| b.to_status())?;
+    tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
+    loop {
+        let m = match next(&mut inbound, idle, deadline, &mut drain).await? {
+            Next::Msg(m) => m,
+            Next::End => return Ok(()),
+        };
+        let arrival = Instant::now();
+        let seq = m.client_seq;
+        let update = match accept(&mut s, m, cfg) {
+            Err(b) => {
+                count_error(b.code);
+                pb::stream_update::Update::Rejection(b.to_rejection(seq))
+            }
+            Ok(()) => {
+                let job = Job {
+                    case: s.case.clone(),
+                    measurements: s.meas.clone(),
+                    method: s.method,
+                    budget: match deadline {
+                        Some(d) => s.budget.min(d.saturating_duration_since(arrival)),
+                        None => s.budget,
+                    },
+                    arrival,
+                    omit_displacements: s.omit,
+                };
+                match svc.0.engine.run(job, false).await {
+                    Ok(r) => pb::stream_update::Update::Registration(r),
+                    Err(b) => {
+                        count_error(b.code);
+                        pb::stream_update::Update::Rejection(b.to_rejection(seq))
+                    }
+                }
+            }
+        };
+        s.sequence += 1;
+        let out = pb::StreamUpdate {
+            sequence: s.sequence,
+            session_id: sid.to_string(),
+            last_client_seq: s.last_seq,
+            update: Some(update),
+            points_total: s.meas.points.len() as u32,
+        };
+        metrics::histogram!("librplus_update_seconds").record(arrival.elapsed().as_secs_f64());
+        if tx.send(Ok(out)).await.is_err() {
+            // The client went away.
+            return Ok(());
+        }
+    }
+}
+
+fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Session, BadInput> {
+    let case = svc.case(&start.case_id, "start.case_id")?;
+    let method = svc.check_method(&case, start.method, "start.method")?;
+    let budget = svc.budget(start.options.as_ref(), "start.options")?;
+    let initial = start
+        .initial_alignment
+        .as_ref()
+        .map(|r| rigid_from_pb(r, "start.initial_alignment"))
+        .transpose()?;
+    Ok(Session {
+        case,
+        method,
+        budget,
+        omit: start.options.as_ref().is_some_and(|o| o.omit_displacements),
+        meas: Measurements {
+            initial_alignment: initial,
+            ..Default::default()
+        },
+        last_seq: seq,
+        last_time: None,
+        sequence: 0,
+    })
+}
+
+fn check_time(
+    s: &Session,
+    t: Option<&prost_types::Timestamp>,
+    field: &str,
+) -> Result<Option<(i64, i32)>, BadInput> {
+    let Some(t) = t else {
+        return Ok(None);
+    };
+    if !(0..1_000_000_000).contains(&t.nanos) {
+        return Err(BadInput::field(
+            format!("{field}.nanos"),
+            format!("{} is outside 0..1e9", t.nanos),
+        ));
+    }
+    let now = (t.seconds, t.nanos);
+    if let Some(last) = s.last_time
+        && now < last
+    {
+        return Err(BadInput {
+            code: Code::FailedPrecondition,
+            message: format!(
+                "{field}: {}.{:09} s is before the previous message's {}.{:09} s (out-of-order frame)",
+                now.0, now.1, last.0, last.1
+            ),
+            violations: vec![(field.to_string(), "goes back in time".into())],
+        });
+    }
+    Ok(Some(now))
+}
+
+/// Checks one message and adds its points to the session.
+fn accept(
+    s: &mut Session,
+    m: pb::StreamRegisterRequest,
+    cfg: &ServerConfig,
+) -> Result<(), BadInput> {
+    use pb::stream_register_request::Msg;
+    let seq = m.client_seq;
+    if seq <= s.last_seq {
+        return Err(BadInput {
+            code: Code::FailedPrecondition,
+            message: if seq == s.last_seq {
+                format!("client_seq {seq}: duplicate of the previous message")
+            } else {
+                format!(
+                    "client_seq {seq}: out of order (the session is at {})",
+                    s.last_seq
+                )
+            },
+            violations: vec![(
+                "client_seq".into(),
+                format!("must be greater than {}", s.last_seq),
+            )],
+        });
+    }
+    s.last_seq = seq;
+    let (points, kinds, feature, time) = match m.msg {
+        None => {
+            return Err(BadInput::field(
+                "msg",
+                "is empty: set start, surface or ultrasound",
+            ));
+        }
+        Some(Msg::Start(_)) => {
+            return Err(BadInput {
+                code: Code::FailedPrecondition,
+                message: "start: the session has already started".into(),
+                violations: vec![("start".into(), "only the first message may start".into())],
+            });
+        }
+        Some(Msg::Surface(b)) => {
+            let time = check_time(s, b.acquired_at.as_ref(), "surface.acquired_at")?;
+            let p = points3(&b.xyz_mm, "surface.xyz_mm", cfg.max_points_per_message)?;
+            if p.is_empty() {
+                return Err(BadInput::field("surface.xyz_mm", "is empty: no points"));
+            }
+            let f = features(&b.feature, p.len(), "surface.feature")?;
+            let k = vec![MeasuredKind::Surface; p.len()];
+            (p, k, f, time)
+        }
+        Some(Msg::Ultrasound(u)) => {
+            let time = check_time(s, u.acquired_at.as_ref(), "ultrasound.acquired_at")?;
+            let (c, v) = plane_points(&u, cfg.max_points_per_message)?;
+            let mut k = vec![MeasuredKind::PosteriorContour; c.len()];
+            k.extend(std::iter::repeat_n(MeasuredKind::Vessel, v.len()));
+            let n = k.len();
+            let mut p = c;
+            p.extend(v);
+            (p, k, vec![0; n], time)
+        }
+    };
+    let total = s.meas.points.len() + points.len();
+    if total > cfg.max_points_per_session {
+        return Err(BadInput {
+            code: Code::ResourceExhausted,
+            message: format!(
+                "the session would hold {total} points, above the server's limit of {}",
+                cfg.max_points_per_session
+            ),
+            violations: Vec::new(),
+        });
+    }
+    if let Some(t) = time {
+        s.last_time = Some(t);
+    }
+    s.meas.points.extend(points);
+    s.meas.kind.extend(kinds);
+    s.meas.feature.extend(feature);
+    Ok(())
+}
