@@ -316,11 +316,14 @@ pub fn kind_from_pb(k: i32) -> Option<MeasuredKind> {
     }
 }
 
+/// Points in the physical frame (mm).
+pub type Points = Vec<[f64; 3]>;
+
 /// Points of one ultrasound plane in the physical frame: (contour points, vessel points).
 pub fn plane_points(
     p: &pb::UltrasoundPlane,
     max_points: usize,
-) -> Result<(Vec<[f64; 3]>, Vec<[f64; 3]>), BadInput> {
+) -> Result<(Points, Points), BadInput> {
     let pose = p
         .plane_to_physical
         .as_ref()
@@ -356,12 +359,6 @@ pub fn plane_points(
         return Err(BadInput::field(
             "ultrasound",
             format!("{n} points; at most {max_points} per message"),
-        ));
-    }
-    if n == 0 {
-        return Err(BadInput::field(
-            "ultrasound",
-            "has no contour and no vessel points",
         ));
     }
     Ok((contour, vessels))

@@ -11,6 +11,7 @@ pub mod cases;
 pub mod compute;
 pub mod config;
 pub mod convert;
+pub mod demo;
 pub mod metrics_http;
 pub mod service;
 

@@ -1,13 +1,45 @@
-//! `librplus-server`: serve preloaded cases over gRPC (`serve`, the default).
+//! `librplus-server`: serve preloaded cases over gRPC (`serve`, the default), or run the demo
+//! (`demo`: the default case, the server on loopback and the replay client).
 
 use anyhow::Result;
-use clap::Parser;
+use clap::{Parser, Subcommand};
 use librplus_server::config::ServerConfig;
 use std::path::PathBuf;
 
 /// LIBR+ registration server.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version, about, args_conflicts_with_subcommands = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    serve: Args,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Serve preloaded cases over gRPC (the default).
+    Serve(Args),
+    /// The main job on the embedded default case: generate it at first run (cached), start the
+    /// server on loopback, replay scenarios through the client over gRPC, print TRE and latency.
+    Demo {
+        /// Where the default case lives (generated at first run).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Source liver surface of the phantom.
+        #[arg(long, default_value = "../shared/data/sofa_liver.vtk")]
+        surface: PathBuf,
+        /// Scenarios to replay (spread over deformations and measurement categories).
+        #[arg(long, default_value_t = 10)]
+        scenarios: usize,
+        /// One JSON object on stdout.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// Serving options.
+#[derive(clap::Args, Debug)]
 struct Args {
     /// JSON config file (format 1; see the README). Flags override it.
     #[arg(long)]
@@ -74,8 +106,12 @@ fn config(a: &Args) -> Result<ServerConfig> {
 }
 
 fn init_tracing(json: bool) {
+    init_tracing_level(json, "info");
+}
+
+fn init_tracing_level(json: bool, level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
     let b = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr);
@@ -88,7 +124,26 @@ fn init_tracing(json: bool) {
 
 #[tokio::main]
 async fn main() -> Result<()> {
-    let args = Args::parse();
+    let cli = Cli::parse();
+    let args = match cli.command {
+        Some(Command::Demo {
+            data,
+            surface,
+            scenarios,
+            json,
+        }) => {
+            init_tracing_level(false, "warn");
+            return librplus_server::demo::run(librplus_server::demo::DemoOptions {
+                data: data.unwrap_or_else(librplus_server::demo::default_data_dir),
+                surface,
+                scenarios,
+                json,
+            })
+            .await;
+        }
+        Some(Command::Serve(a)) => a,
+        None => cli.serve,
+    };
     let cfg = config(&args)?;
     init_tracing(cfg.log_json);
     let mut running = librplus_server::start(cfg).await?;

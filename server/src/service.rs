@@ -171,10 +171,15 @@ impl LibRPlus for Svc {
             out.tets = model.mesh.tets().iter().flatten().copied().collect();
             out.node_labels = (0..model.mesh.num_nodes())
                 .map(|i| {
-                    (model.anterior[i] as u32) * pb::NodeLabel::Anterior as u32
-                        | (model.posterior[i] as u32) * pb::NodeLabel::Posterior as u32
-                        | (model.falciform[i] as u32) * pb::NodeLabel::Falciform as u32
-                        | (model.inferior_ridge[i] as u32) * pb::NodeLabel::InferiorRidge as u32
+                    [
+                        (model.anterior[i], pb::NodeLabel::Anterior),
+                        (model.posterior[i], pb::NodeLabel::Posterior),
+                        (model.falciform[i], pb::NodeLabel::Falciform),
+                        (model.inferior_ridge[i], pb::NodeLabel::InferiorRidge),
+                    ]
+                    .iter()
+                    .filter(|(on, _)| *on)
+                    .fold(0u32, |acc, (_, bit)| acc | *bit as u32)
                 })
                 .collect();
             out.vessel_points_mm = model.vessel_points.iter().flatten().copied().collect();

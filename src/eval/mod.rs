@@ -211,6 +211,106 @@ pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioDa
         .collect()
 }
 
+/// The pose of one ultrasound plane, physical frame, as the dataset stores it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlanePose {
+    /// Probe contact (mm), the apex of the fan: the plane's origin.
+    pub origin: [f64; 3],
+    /// In-plane direction across the beam (unit).
+    pub lateral_dir: [f64; 3],
+    /// Beam direction into the liver (unit).
+    pub depth_dir: [f64; 3],
+    /// Plane normal (unit), `depth_dir × lateral_dir` as the generator writes it.
+    pub normal: [f64; 3],
+}
+
+/// The ultrasound planes of one scenario: the plane of each measured point and the plane poses.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScenarioPlanes {
+    /// Per measured point (the order of [`ScenarioData::measurements`]): its plane's index into
+    /// `planes`, −1 for surface points.
+    pub plane_of_point: Vec<i32>,
+    /// The scenario's planes, in their index order.
+    pub planes: Vec<PlanePose>,
+}
+
+/// Reads the ultrasound planes of every scenario of a deformation from its `scenarios.npz`
+/// (arrays `plane`, `plane_offsets`, `plane_origin`, `plane_lateral_dir`, `plane_depth_dir`,
+/// `plane_normal`), in the scenario order of [`load_scenarios`]. Checks that every point's plane
+/// index is in range and that exactly the surface points have none.
+pub fn load_scenario_planes(
+    dir: &Path,
+    d: &DeformationEntry,
+) -> Result<Vec<ScenarioPlanes>, String> {
+    let bytes = std::fs::read(dir.join(&d.npz)).map_err(|e| format!("{}: {e}", d.npz))?;
+    let a = read_npz(&bytes).map_err(|e| format!("{}: {e}", d.npz))?;
+    let get = |name: &str| array(&a, name, &d.npz).map(|x| x.data.to_f64());
+    let (kind, plane, offsets) = (get("kind")?, get("plane")?, get("offsets")?);
+    let plane_offsets = get("plane_offsets")?;
+    let axes = [
+        get("plane_origin")?,
+        get("plane_lateral_dir")?,
+        get("plane_depth_dir")?,
+        get("plane_normal")?,
+    ];
+    let s = d.scenarios.len();
+    if offsets.len() != s + 1 || plane_offsets.len() != s + 1 {
+        return Err(format!(
+            "{}: {} offsets and {} plane_offsets for {s} scenarios",
+            d.npz,
+            offsets.len(),
+            plane_offsets.len()
+        ));
+    }
+    let q = axes[0].len();
+    if q % 3 != 0 || axes.iter().any(|x| x.len() != q) {
+        return Err(format!(
+            "{}: plane_origin, plane_lateral_dir, plane_depth_dir and plane_normal need the same \
+             shape (Q, 3)",
+            d.npz
+        ));
+    }
+    let at = |x: &[f64], i: usize| [x[3 * i], x[3 * i + 1], x[3 * i + 2]];
+    d.scenarios
+        .iter()
+        .map(|sc| {
+            let k = sc.index;
+            if k >= s {
+                return Err(format!("{}: scenario {k} out of range", d.npz));
+            }
+            let (lo, hi) = (offsets[k] as usize, offsets[k + 1] as usize);
+            let (plo, phi) = (plane_offsets[k] as usize, plane_offsets[k + 1] as usize);
+            if hi < lo || hi > plane.len() || hi > kind.len() || phi < plo || 3 * phi > q {
+                return Err(format!("{}: scenario {k} out of range", d.npz));
+            }
+            let n = (phi - plo) as i64;
+            let plane_of_point: Vec<i32> = plane[lo..hi].iter().map(|&p| p as i32).collect();
+            for (j, (&p, &kd)) in plane_of_point.iter().zip(&kind[lo..hi]).enumerate() {
+                let surface = kd as u8 == MeasuredKind::Surface as u8;
+                if (p as i64) < -1 || p as i64 >= n || (p == -1) != surface {
+                    return Err(format!(
+                        "{}: scenario {k}, point {j}: plane {p} for a point of kind {kd} \
+                         (the scenario has {n} planes; -1 exactly for surface points)",
+                        d.npz
+                    ));
+                }
+            }
+            let planes = (plo..phi)
+                .map(|i| PlanePose {
+                    origin: at(&axes[0], i),
+                    lateral_dir: at(&axes[1], i),
+                    depth_dir: at(&axes[2], i),
+                    normal: at(&axes[3], i),
+                })
+                .collect();
+            Ok(ScenarioPlanes {
+                plane_of_point,
+                planes,
+            })
+        })
+        .collect()
+}
+
 /// Opens a dataset: its manifest.
 pub fn open(dir: &Path) -> Result<Manifest, String> {
     read_manifest(dir)

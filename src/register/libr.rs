@@ -1221,10 +1221,18 @@ pub fn register(
         params,
         measured_physical,
         initial,
-        None,
-        None,
+        RunLimits::default(),
         rematch,
     )
+}
+
+/// What [`register_active`] updates between matchings and when it must stop.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RunLimits<'a> {
+    /// Nodes whose displacement `rematch` reads (None: all).
+    pub active: Option<&'a [u32]>,
+    /// Stop before an iteration that would end past this instant (None: no deadline).
+    pub deadline: Option<Instant>,
 }
 
 /// [`register`], updating between matchings only the displacement of `active` nodes (those
@@ -1240,10 +1248,10 @@ pub fn register_active(
     params: &LibrParams,
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
-    active: Option<&[u32]>,
-    deadline: Option<Instant>,
+    run: RunLimits<'_>,
     mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
 ) -> Result<LibrSolution, String> {
+    let RunLimits { active, deadline } = run;
     params.validate()?;
     if let Some(v) = active.and_then(|a| a.iter().find(|&&v| v as usize >= basis.nodes)) {
         return Err(format!(

@@ -144,8 +144,10 @@ pub fn register(
         &params.libr,
         &meas.points,
         &rigid.image_to_physical,
-        Some(corr.active_nodes()),
-        params.deadline,
+        libr::RunLimits {
+            active: Some(corr.active_nodes()),
+            deadline: params.deadline,
+        },
         |u, t| {
             let inv = t.inverse();
             let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();

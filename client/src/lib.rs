@@ -1,0 +1,43 @@
+//! LIBR+ gRPC clients: `replay` streams recorded dataset scenarios to a server in lockstep and
+//! scores the registrations against the ground truth (TRE); `load` runs many concurrent sessions
+//! for a fixed time and reports throughput, latency percentiles and errors by code. The message
+//! builders ([`stream_messages`], [`measurements_message`], [`measurements_from_stream`]) are
+//! shared with the server's tests, which compare server results with the library called directly.
+
+pub mod data;
+pub mod load;
+pub mod messages;
+pub mod replay;
+pub mod session;
+pub mod stats;
+
+/// The generated wire types of `librplus.v1`.
+pub use librplus_proto::v1 as pb;
+
+pub use data::{Loaded, Replayable, ScenarioRef, Selection, load_selection, select};
+pub use load::{LoadOptions, LoadSummary, load, load_table};
+pub use messages::{
+    measurements_from_stream, measurements_message, rigid_from_message, rigid_message,
+    stream_messages,
+};
+pub use replay::{
+    ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,
+};
+pub use session::{Client, SessionConfig, SessionEnd, SessionOutcome, connect, run_session};
+pub use stats::{Latencies, LatencyMs, code_name};
+
+#[cfg(test)]
+mod tests {
+    /// `replay` and `load` can run on a spawned task (their futures are `Send`).
+    #[test]
+    fn futures_are_send() {
+        fn send<T: Send>(_: &T) {}
+        let (r, l) = (
+            super::ReplayOptions::default(),
+            super::LoadOptions::default(),
+        );
+        let (a, b) = (super::replay(&r), super::load(&l));
+        send(&a);
+        send(&b);
+    }
+}

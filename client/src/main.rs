@@ -1,0 +1,178 @@
+//! `librplus-client`: replay recorded dataset scenarios against a LIBR+ server, or load-test it.
+
+use anyhow::{Result, bail};
+use clap::{Args, Parser, Subcommand};
+use librplus_client::{
+    LoadOptions, ReplayOptions, Selection, load, load_table, parse_method, parse_methods, pb,
+    replay, replay_table,
+};
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// LIBR+ gRPC client: replay of recorded scenarios and load test.
+#[derive(Parser)]
+#[command(name = "librplus-client", version)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Streams dataset scenarios (one session per scenario and method, in lockstep) and prints
+    /// TRE and latency.
+    Replay(ReplayArgs),
+    /// Runs concurrent sessions for a fixed time; prints throughput, latency and errors by code.
+    Load(LoadArgs),
+}
+
+/// Options of both commands.
+#[derive(Args)]
+struct Common {
+    /// Server URL.
+    #[arg(long, default_value = "http://127.0.0.1:50051")]
+    server: String,
+    /// Dataset directory (as written by `librplus generate`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Scenario ids DEFORMATION_ID/INDEX, comma-separated, or `all` (default: --limit of them,
+    /// spread over deformations and categories).
+    #[arg(long)]
+    scenarios: Option<String>,
+    /// Number of scenarios when --scenarios is not given.
+    #[arg(long, default_value_t = 10)]
+    limit: usize,
+    /// Surface points per SurfaceBatch message (0: all in one).
+    #[arg(long, default_value_t = 100)]
+    batch: usize,
+    /// Time budget per registration sent in SessionStart, ms (default: the server's).
+    #[arg(long)]
+    time_budget_ms: Option<u32>,
+    /// Bearer token sent as `authorization` metadata.
+    #[arg(long)]
+    token: Option<String>,
+    /// Longest wait for a stream to open and for each answer, seconds.
+    #[arg(long, default_value_t = 120.0)]
+    timeout_s: f64,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct ReplayArgs {
+    #[command(flatten)]
+    common: Common,
+    /// Methods, comma-separated: rigid, libr, libr_plus, default.
+    #[arg(long, default_value = "libr")]
+    methods: String,
+    /// At most this many messages per second.
+    #[arg(long)]
+    rate: Option<f64>,
+}
+
+#[derive(Args)]
+struct LoadArgs {
+    #[command(flatten)]
+    common: Common,
+    /// Concurrent clients.
+    #[arg(long, default_value_t = 4)]
+    concurrency: usize,
+    /// Duration of the test, seconds.
+    #[arg(long, default_value_t = 10.0)]
+    duration: f64,
+    /// Method: rigid, libr, libr_plus, default.
+    #[arg(long, default_value = "libr")]
+    method: String,
+    /// HTTP/2 connections shared by the clients.
+    #[arg(long, default_value_t = 1)]
+    connections: usize,
+}
+
+fn seconds(name: &str, s: f64) -> Result<Duration> {
+    if !(s.is_finite() && s > 0.0) {
+        bail!("{name} must be a positive number of seconds, got {s}");
+    }
+    Ok(Duration::from_secs_f64(s))
+}
+
+fn options(c: &Common) -> Option<pb::RegisterOptions> {
+    c.time_budget_ms.map(|ms| pb::RegisterOptions {
+        time_budget_ms: ms,
+        omit_displacements: false,
+    })
+}
+
+fn print<T: serde::Serialize>(
+    json: bool,
+    value: &T,
+    table: impl FnOnce(&T) -> String,
+) -> Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(value)?);
+    } else {
+        print!("{}", table(value));
+    }
+    Ok(())
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Replay(a) => {
+            if let Some(r) = a.rate
+                && !(r.is_finite() && r > 0.0)
+            {
+                bail!("--rate must be a positive number of messages per second, got {r}");
+            }
+            let opts = ReplayOptions {
+                server: a.common.server.clone(),
+                data: a.common.data.clone(),
+                selection: Selection::parse(a.common.scenarios.as_deref(), a.common.limit),
+                methods: parse_methods(&a.methods)?,
+                rate_hz: a.rate,
+                batch: a.common.batch,
+                options: options(&a.common),
+                token: a.common.token.clone(),
+                timeout: seconds("--timeout-s", a.common.timeout_s)?,
+                progress: true,
+            };
+            let s = replay(&opts).await?;
+            print(a.common.json, &s, replay_table)?;
+            if s.failed > 0 {
+                bail!("{} of {} sessions failed (see above)", s.failed, s.sessions);
+            }
+        }
+        Command::Load(a) => {
+            let opts = LoadOptions {
+                server: a.common.server.clone(),
+                data: a.common.data.clone(),
+                selection: Selection::parse(a.common.scenarios.as_deref(), a.common.limit),
+                method: parse_method(&a.method)?,
+                concurrency: a.concurrency,
+                duration: seconds("--duration", a.duration)?,
+                connections: a.connections,
+                batch: a.common.batch,
+                options: options(&a.common),
+                token: a.common.token.clone(),
+                timeout: seconds("--timeout-s", a.common.timeout_s)?,
+                progress: !a.common.json,
+                ..Default::default()
+            };
+            let s = load(&opts).await?;
+            print(a.common.json, &s, load_table)?;
+            if s.requests == 0 {
+                bail!("no request was answered (errors: {:?})", s.errors);
+            }
+        }
+    }
+    Ok(())
+}
+
+#[tokio::main]
+async fn main() {
+    let cli = Cli::parse();
+    if let Err(e) = run(cli).await {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

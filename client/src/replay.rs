@@ -1,0 +1,556 @@
+//! `replay`: streams recorded dataset scenarios to a server, one session per scenario and method,
+//! in lockstep, and scores every registration against the ground truth (TRE).
+
+use crate::data::{Selection, load_selection};
+use crate::messages::{rigid_from_message, stream_messages};
+use crate::pb;
+use crate::session::{SessionConfig, SessionEnd, connect, run_session};
+use crate::stats::{Latencies, LatencyMs};
+use anyhow::{Result, bail};
+use librplus::eval::{GeometryData, ScenarioData, Tre, tre};
+use librplus::mesh::rigid::Rigid;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// The short name of a method ("default", "rigid", "libr", "libr_plus").
+pub fn method_name(m: pb::Method) -> &'static str {
+    match m {
+        pb::Method::Unspecified => "default",
+        pb::Method::Rigid => "rigid",
+        pb::Method::Libr => "libr",
+        pb::Method::LibrPlus => "libr_plus",
+    }
+}
+
+/// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `default`).
+pub fn parse_method(s: &str) -> Result<pb::Method> {
+    Ok(match s.trim() {
+        "rigid" => pb::Method::Rigid,
+        "libr" => pb::Method::Libr,
+        "libr_plus" | "libr+" | "libr-plus" => pb::Method::LibrPlus,
+        "default" => pb::Method::Unspecified,
+        other => bail!("unknown method {other:?}: expected rigid, libr, libr_plus or default"),
+    })
+}
+
+/// A comma-separated list of methods (`rigid,libr`).
+pub fn parse_methods(s: &str) -> Result<Vec<pb::Method>> {
+    let v = s
+        .split(',')
+        .filter(|x| !x.trim().is_empty())
+        .map(parse_method)
+        .collect::<Result<Vec<_>>>()?;
+    if v.is_empty() {
+        bail!("--methods is empty");
+    }
+    Ok(v)
+}
+
+/// The short name of a quality ("OK", "NOT_CONVERGED", "DEGRADED", "DEGENERATE", ...).
+pub fn quality_name(q: i32) -> String {
+    match pb::Quality::try_from(q) {
+        Ok(q) => q.as_str_name().trim_start_matches("QUALITY_").to_string(),
+        Err(_) => format!("UNKNOWN_{q}"),
+    }
+}
+
+/// What `replay` does.
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
+    /// Server URL, e.g. `http://127.0.0.1:50051`.
+    pub server: String,
+    /// Dataset directory.
+    pub data: PathBuf,
+    /// Scenarios to replay.
+    pub selection: Selection,
+    /// Methods, each replayed on every scenario.
+    pub methods: Vec<pb::Method>,
+    /// At most this many messages per second.
+    pub rate_hz: Option<f64>,
+    /// Surface points per `SurfaceBatch` (0: all in one).
+    pub batch: usize,
+    /// Options sent in each `SessionStart`.
+    pub options: Option<pb::RegisterOptions>,
+    /// Bearer token.
+    pub token: Option<String>,
+    /// Longest wait for a stream to open and for each answer.
+    pub timeout: Duration,
+    /// Progress lines on stderr.
+    pub progress: bool,
+}
+
+impl Default for ReplayOptions {
+    fn default() -> Self {
+        Self {
+            server: "http://127.0.0.1:50051".into(),
+            data: PathBuf::new(),
+            selection: Selection::Spread(10),
+            methods: vec![pb::Method::Libr],
+            rate_hz: None,
+            batch: 100,
+            options: None,
+            token: None,
+            timeout: Duration::from_secs(120),
+            progress: false,
+        }
+    }
+}
+
+/// One rejected message.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RejectionRecord {
+    /// The rejected message's `client_seq`.
+    pub client_seq: u64,
+    /// Its code name.
+    pub code: String,
+    /// The server's message.
+    pub message: String,
+}
+
+/// One registration update of a session, scored.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Step {
+    /// Newest message it reflects.
+    pub client_seq: u64,
+    /// Points accepted so far.
+    pub points_total: u32,
+    /// TRE over all nodes (None when the registration could not be read: see `error`).
+    pub tre_mm: Option<f64>,
+    /// Quality name.
+    pub quality: String,
+    /// Method the server used.
+    pub method_used: String,
+    /// Latency of the message it answered (None for an extra update).
+    pub latency_ms: Option<f64>,
+    /// Why the registration could not be scored.
+    pub error: Option<String>,
+}
+
+/// One scenario replayed with one method.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ScenarioResult {
+    /// `DEFORMATION_ID/INDEX`.
+    pub scenario: String,
+    /// Measurement category.
+    pub category: String,
+    /// Case id sent.
+    pub case_id: String,
+    /// Method asked for.
+    pub method: String,
+    /// Messages in the session (with the start).
+    pub messages: usize,
+    /// Updates received.
+    pub updates: u64,
+    /// Rejected messages.
+    pub rejections: Vec<RejectionRecord>,
+    /// Registration updates, scored, in arrival order.
+    pub steps: Vec<Step>,
+    /// TRE of the final registration (the last registration received).
+    pub tre: Option<Tre>,
+    /// TRE of the initial alignment with no deformation (the starting point).
+    pub tre_initial_mm: f64,
+    /// Quality of the final registration.
+    pub final_quality: Option<String>,
+    /// Latencies of this session's answers.
+    pub latency_ms: LatencyMs,
+    /// How the session ended ("completed", or what went wrong).
+    pub end: String,
+    /// gRPC status code name when the session ended with a status.
+    pub status: Option<String>,
+    /// Why this scenario has no TRE, or how the session failed.
+    pub error: Option<String>,
+}
+
+/// Mean TRE and count of one category.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct CategorySummary {
+    /// Mean final TRE (mm).
+    pub tre_mm: f64,
+    /// Scenarios with a TRE.
+    pub scenarios: usize,
+}
+
+/// Per-method figures over every replayed scenario.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct MethodSummary {
+    /// Mean final TRE over all nodes (mm).
+    pub tre_mm: f64,
+    /// Mean over surface nodes.
+    pub tre_surface_mm: f64,
+    /// Mean over interior nodes.
+    pub tre_interior_mm: f64,
+    /// Mean over the targets (of scenarios whose geometry has targets).
+    pub tre_targets_mm: f64,
+    /// Mean TRE of the initial alignment.
+    pub tre_initial_mm: f64,
+    /// Scenarios with a final TRE.
+    pub scenarios: usize,
+    /// Scenarios without one (failed session or no registration).
+    pub failed: usize,
+    /// Registration updates by quality name.
+    pub quality: BTreeMap<String, u64>,
+    /// Latency of this method's answers.
+    pub latency_ms: LatencyMs,
+    /// Mean final TRE per measurement category.
+    pub by_category: BTreeMap<String, CategorySummary>,
+}
+
+/// What `replay` measured (`replay --json` prints it).
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ReplaySummary {
+    /// Updates received in all.
+    pub updates: u64,
+    /// Scenarios replayed.
+    pub scenarios: usize,
+    /// Sessions (scenarios × methods).
+    pub sessions: usize,
+    /// Sessions without a final TRE.
+    pub failed: usize,
+    /// Rejected messages in all.
+    pub rejections: u64,
+    /// Rejections by code.
+    pub rejections_by_code: BTreeMap<String, u64>,
+    /// Mean final TRE (mm) per method.
+    pub tre_mm: BTreeMap<String, f64>,
+    /// Latency of every answer.
+    pub latency_ms: LatencyMs,
+    /// Per-method details.
+    pub methods: BTreeMap<String, MethodSummary>,
+    /// Every session.
+    pub results: Vec<ScenarioResult>,
+}
+
+fn mean(v: impl IntoIterator<Item = f64>) -> f64 {
+    let (s, c) = v
+        .into_iter()
+        .filter(|x| x.is_finite())
+        .fold((0.0, 0usize), |(s, c), x| (s + x, c + 1));
+    if c == 0 { f64::NAN } else { s / c as f64 }
+}
+
+/// A registration's transform and displacements, or why they could not be read.
+type RegistrationState = Result<(Rigid, Vec<f64>), String>;
+
+/// Reads a registration's transform and displacements (empty displacements count as zeros for a
+/// rigid result).
+fn registration_state(r: &pb::Registration, nodes: usize) -> RegistrationState {
+    let t = r
+        .image_to_physical
+        .as_ref()
+        .ok_or_else(|| "registration.image_to_physical is unset".to_string())
+        .and_then(|t| {
+            rigid_from_message(t).map_err(|e| format!("registration.image_to_physical.{e}"))
+        })?;
+    let u = if r.displacement_mm.len() == 3 * nodes {
+        r.displacement_mm.iter().map(|&x| f64::from(x)).collect()
+    } else if r.displacement_mm.is_empty() && r.method_used == pb::Method::Rigid as i32 {
+        vec![0.0; 3 * nodes]
+    } else {
+        return Err(format!(
+            "registration.displacement_mm has {} values, expected 3 × {nodes} nodes",
+            r.displacement_mm.len()
+        ));
+    };
+    Ok((t, u))
+}
+
+/// Replays one scenario with one method over `client` and scores it.
+#[allow(clippy::too_many_arguments)]
+async fn replay_one(
+    client: &crate::session::Client,
+    case_id: &str,
+    sc: &ScenarioData,
+    planes: &librplus::eval::ScenarioPlanes,
+    geo: &GeometryData,
+    method: pb::Method,
+    opts: &ReplayOptions,
+    cfg: &SessionConfig,
+    all_latencies: &mut Latencies,
+) -> ScenarioResult {
+    let msgs = stream_messages(case_id, method, opts.options, sc, planes, opts.batch);
+    let nodes = geo.model.mesh.nodes();
+    let score = |t: &Rigid, u: &[f64]| {
+        tre(
+            nodes,
+            (t, u),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+            &geo.surface,
+            &geo.targets,
+        )
+    };
+    let zeros = vec![0.0; 3 * nodes.len()];
+    let tre_initial_mm = sc
+        .measurements
+        .initial_alignment
+        .as_ref()
+        .map_or(f64::NAN, |t| score(t, &zeros).tre_mm);
+    let mut latencies = Latencies::new();
+    let mut steps = Vec::new();
+    let mut rejections = Vec::new();
+    let mut last: Option<(RegistrationState, String)> = None;
+    let outcome = run_session(client, &msgs, cfg, |u, lat| {
+        if let Some(l) = lat {
+            latencies.record(l);
+        }
+        match &u.update {
+            Some(pb::stream_update::Update::Registration(r)) => {
+                let state = registration_state(r, nodes.len());
+                let quality = quality_name(r.quality);
+                steps.push(Step {
+                    client_seq: u.last_client_seq,
+                    points_total: u.points_total,
+                    tre_mm: state.as_ref().ok().map(|(t, d)| score(t, d).tre_mm),
+                    quality: quality.clone(),
+                    method_used: pb::Method::try_from(r.method_used).map_or_else(
+                        |_| format!("UNKNOWN_{}", r.method_used),
+                        |m| method_name(m).to_string(),
+                    ),
+                    latency_ms: lat.map(|l| l.as_secs_f64() * 1e3),
+                    error: state.as_ref().err().cloned(),
+                });
+                last = Some((state, quality));
+            }
+            Some(pb::stream_update::Update::Rejection(r)) => rejections.push(RejectionRecord {
+                client_seq: r.client_seq,
+                code: r.code.clone(),
+                message: r.message.clone(),
+            }),
+            None => {}
+        }
+    })
+    .await;
+    all_latencies.merge(&latencies);
+    let status = match &outcome.end {
+        SessionEnd::Refused(s) | SessionEnd::Failed(s) => {
+            Some(crate::stats::code_name(s.code()).to_string())
+        }
+        _ => None,
+    };
+    let (tre, final_quality, mut error) = match last {
+        Some((Ok((t, u)), q)) => (Some(score(&t, &u)), Some(q), None),
+        Some((Err(e), q)) => (None, Some(q), Some(e)),
+        None => (None, None, Some("no registration received".to_string())),
+    };
+    if !outcome.end.is_completed() {
+        error = Some(outcome.end.describe());
+    }
+    ScenarioResult {
+        scenario: sc.id.clone(),
+        category: sc.category.clone(),
+        case_id: case_id.to_string(),
+        method: method_name(method).to_string(),
+        messages: msgs.len(),
+        updates: outcome.updates,
+        rejections,
+        steps,
+        tre: if outcome.end.is_completed() {
+            tre
+        } else {
+            None
+        },
+        tre_initial_mm,
+        final_quality,
+        latency_ms: latencies.summary(),
+        end: outcome.end.describe(),
+        status,
+        error,
+    }
+}
+
+/// Replays the selected scenarios with every method (one session each, in lockstep) and scores
+/// the final registrations against the ground truth. A session that fails is recorded in its
+/// result; only an unreadable dataset or an unreachable server is an error.
+pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
+    let loaded = load_selection(&opts.data, &opts.selection, true)?;
+    if loaded.scenarios.is_empty() {
+        bail!("no scenarios selected in {}", opts.data.display());
+    }
+    let client = connect(&opts.server).await?;
+    let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
+    cfg.rate_hz = opts.rate_hz;
+    let mut all = Latencies::new();
+    let mut per_method: BTreeMap<String, Latencies> = BTreeMap::new();
+    let mut results = Vec::new();
+    let total = loaded.scenarios.len() * opts.methods.len();
+    for s in &loaded.scenarios {
+        let geo = &loaded.geometries[&s.case_id];
+        for &method in &opts.methods {
+            let mut lat = Latencies::new();
+            let r = replay_one(
+                &client,
+                &s.case_id,
+                &s.scenario,
+                &s.planes,
+                geo,
+                method,
+                opts,
+                &cfg,
+                &mut lat,
+            )
+            .await;
+            all.merge(&lat);
+            per_method.entry(r.method.clone()).or_default().merge(&lat);
+            if opts.progress {
+                eprintln!(
+                    "[{}/{total}] {} {}: {} updates, {} rejected, TRE {}{}",
+                    results.len() + 1,
+                    r.scenario,
+                    r.method,
+                    r.updates,
+                    r.rejections.len(),
+                    r.tre
+                        .map_or("-".to_string(), |t| format!("{:.2} mm", t.tre_mm)),
+                    r.error
+                        .as_ref()
+                        .map_or(String::new(), |e| format!(" ({e})"))
+                );
+            }
+            results.push(r);
+        }
+    }
+    Ok(summarize(
+        loaded.scenarios.len(),
+        results,
+        &all,
+        &per_method,
+    ))
+}
+
+fn summarize(
+    scenarios: usize,
+    results: Vec<ScenarioResult>,
+    all: &Latencies,
+    per_method: &BTreeMap<String, Latencies>,
+) -> ReplaySummary {
+    let mut s = ReplaySummary {
+        scenarios,
+        sessions: results.len(),
+        latency_ms: all.summary(),
+        ..Default::default()
+    };
+    for r in &results {
+        s.updates += r.updates;
+        s.rejections += r.rejections.len() as u64;
+        for x in &r.rejections {
+            *s.rejections_by_code.entry(x.code.clone()).or_default() += 1;
+        }
+        if r.tre.is_none() {
+            s.failed += 1;
+        }
+    }
+    for (name, lat) in per_method {
+        let mine: Vec<&ScenarioResult> = results.iter().filter(|r| &r.method == name).collect();
+        let ok: Vec<&Tre> = mine.iter().filter_map(|r| r.tre.as_ref()).collect();
+        let mut m = MethodSummary {
+            tre_mm: mean(ok.iter().map(|t| t.tre_mm)),
+            tre_surface_mm: mean(ok.iter().map(|t| t.tre_surface_mm)),
+            tre_interior_mm: mean(ok.iter().map(|t| t.tre_interior_mm)),
+            tre_targets_mm: mean(ok.iter().map(|t| t.tre_targets_mm)),
+            tre_initial_mm: mean(mine.iter().map(|r| r.tre_initial_mm)),
+            scenarios: ok.len(),
+            failed: mine.len() - ok.len(),
+            latency_ms: lat.summary(),
+            ..Default::default()
+        };
+        for r in &mine {
+            for st in &r.steps {
+                *m.quality.entry(st.quality.clone()).or_default() += 1;
+            }
+        }
+        let mut cats: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+        for r in &mine {
+            if let Some(t) = &r.tre {
+                cats.entry(r.category.clone()).or_default().push(t.tre_mm);
+            }
+        }
+        m.by_category = cats
+            .into_iter()
+            .map(|(c, v)| {
+                (
+                    c,
+                    CategorySummary {
+                        scenarios: v.len(),
+                        tre_mm: mean(v),
+                    },
+                )
+            })
+            .collect();
+        s.tre_mm.insert(name.clone(), m.tre_mm);
+        s.methods.insert(name.clone(), m);
+    }
+    s.results = results;
+    s
+}
+
+/// The summary as a readable table.
+pub fn replay_table(s: &ReplaySummary) -> String {
+    use std::fmt::Write;
+    let mut o = String::new();
+    let f = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.2}"));
+    let _ = writeln!(
+        o,
+        "{:<16} {:<13} {:<10} {:>5} {:>7} {:>9} {:>9} {:>9} {:>9}  quality / error",
+        "scenario",
+        "category",
+        "method",
+        "msgs",
+        "updates",
+        "rejected",
+        "TRE0 mm",
+        "TRE mm",
+        "p50 ms"
+    );
+    for r in &s.results {
+        let _ = writeln!(
+            o,
+            "{:<16} {:<13} {:<10} {:>5} {:>7} {:>9} {:>9} {:>9} {:>9}  {}",
+            r.scenario,
+            r.category,
+            r.method,
+            r.messages,
+            r.updates,
+            r.rejections.len(),
+            f(Some(r.tre_initial_mm)),
+            f(r.tre.map(|t| t.tre_mm)),
+            f(Some(r.latency_ms.p50)),
+            r.error
+                .clone()
+                .or_else(|| r.final_quality.clone())
+                .unwrap_or_default()
+        );
+    }
+    let _ = writeln!(o);
+    for (name, m) in &s.methods {
+        let _ = writeln!(
+            o,
+            "{name}: TRE {} mm (surface {}, interior {}, targets {}; initial {}) over {} scenarios, {} failed; latency p50 {:.1} ms, p95 {:.1} ms",
+            f(Some(m.tre_mm)),
+            f(Some(m.tre_surface_mm)),
+            f(Some(m.tre_interior_mm)),
+            f(Some(m.tre_targets_mm)),
+            f(Some(m.tre_initial_mm)),
+            m.scenarios,
+            m.failed,
+            m.latency_ms.p50,
+            m.latency_ms.p95
+        );
+        for (c, cs) in &m.by_category {
+            let _ = writeln!(
+                o,
+                "  {c:<13} TRE {} mm ({} scenarios)",
+                f(Some(cs.tre_mm)),
+                cs.scenarios
+            );
+        }
+        let q: Vec<String> = m.quality.iter().map(|(k, v)| format!("{k} {v}")).collect();
+        let _ = writeln!(o, "  quality: {}", q.join(", "));
+    }
+    let l = &s.latency_ms;
+    let _ = writeln!(
+        o,
+        "{} updates over {} sessions ({} scenarios), {} rejected, {} failed; latency p50 {:.1} ms, p95 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+        s.updates, s.sessions, s.scenarios, s.rejections, s.failed, l.p50, l.p95, l.p99, l.max
+    );
+    o
+}

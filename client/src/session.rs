@@ -1,0 +1,274 @@
+//! One streamed session in lockstep: connect, send a message, wait for the update that answers
+//! it (the first whose `last_client_seq` reaches the message's `client_seq`), time it, repeat.
+
+use crate::pb;
+use crate::pb::lib_r_plus_client::LibRPlusClient;
+use crate::stats::code_name;
+use anyhow::{Context, Result};
+use std::future::Future;
+use std::time::Duration;
+use tokio::time::Instant;
+use tonic::metadata::{AsciiMetadataValue, MetadataValue};
+use tonic::transport::{Channel, Endpoint};
+
+/// Largest message the clients send or accept (64 MiB).
+pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
+
+/// A connected client.
+pub type Client = LibRPlusClient<Channel>;
+
+/// Connects to `server` (a URL such as `http://127.0.0.1:50051`) with 64 MiB message limits.
+pub async fn connect(server: &str) -> Result<Client> {
+    let channel = Endpoint::from_shared(server.to_string())
+        .with_context(|| format!("--server {server:?} is not a valid URL"))?
+        .connect_timeout(Duration::from_secs(10))
+        .tcp_nodelay(true)
+        .connect()
+        .await
+        .with_context(|| format!("connecting to {server}"))?;
+    Ok(LibRPlusClient::new(channel)
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES))
+}
+
+/// How a session runs.
+#[derive(Debug, Clone)]
+pub struct SessionConfig {
+    /// At most this many messages per second (None: as fast as the answers come).
+    pub rate_hz: Option<f64>,
+    /// Longest wait for the stream to open and for each answer.
+    pub timeout: Duration,
+    /// Give up (without counting an error) at this instant: the end of a load test.
+    pub deadline: Option<Instant>,
+    /// `authorization: Bearer TOKEN` metadata, when set.
+    pub token: Option<AsciiMetadataValue>,
+}
+
+impl SessionConfig {
+    /// No rate limit, the given timeout, no deadline, and a bearer token when given.
+    pub fn new(timeout: Duration, token: Option<&str>) -> Result<Self> {
+        let token = token
+            .map(|t| MetadataValue::try_from(format!("Bearer {t}")))
+            .transpose()
+            .context("--token must be printable ASCII")?;
+        Ok(Self {
+            rate_hz: None,
+            timeout,
+            deadline: None,
+            token,
+        })
+    }
+}
+
+/// How a session ended.
+#[derive(Debug, Clone)]
+pub enum SessionEnd {
+    /// Every message answered and the stream closed with OK.
+    Completed,
+    /// The stream failed to open or ended with a status before any update (e.g. a bad
+    /// SessionStart, or the server refusing the session).
+    Refused(tonic::Status),
+    /// The stream ended with a non-OK status after some updates.
+    Failed(tonic::Status),
+    /// The server closed the stream (OK) before answering this `client_seq`.
+    ClosedEarly(u64),
+    /// No answer to this `client_seq` (0: the stream did not open) within the timeout.
+    TimedOut(u64),
+    /// The deadline passed first (not an error).
+    Cut,
+}
+
+impl SessionEnd {
+    /// The error name a report counts this end under: the gRPC status code name of a refused or
+    /// failed session, `DEADLINE_EXCEEDED` for a client-side timeout, `CLOSED_EARLY` for a stream
+    /// closed before its last answer; None for a completed or cut session.
+    pub fn error_code(&self) -> Option<&'static str> {
+        match self {
+            SessionEnd::Completed | SessionEnd::Cut => None,
+            SessionEnd::Refused(s) | SessionEnd::Failed(s) => Some(code_name(s.code())),
+            SessionEnd::ClosedEarly(_) => Some("CLOSED_EARLY"),
+            SessionEnd::TimedOut(_) => Some("DEADLINE_EXCEEDED"),
+        }
+    }
+
+    /// Whether every message was answered and the stream closed with OK.
+    pub fn is_completed(&self) -> bool {
+        matches!(self, SessionEnd::Completed)
+    }
+
+    /// A one-line description.
+    pub fn describe(&self) -> String {
+        match self {
+            SessionEnd::Completed => "completed".into(),
+            SessionEnd::Refused(s) => format!("refused: {} {}", code_name(s.code()), s.message()),
+            SessionEnd::Failed(s) => format!("failed: {} {}", code_name(s.code()), s.message()),
+            SessionEnd::ClosedEarly(q) => {
+                format!("the server closed the stream before answering client_seq {q}")
+            }
+            SessionEnd::TimedOut(0) => "the stream did not open in time".into(),
+            SessionEnd::TimedOut(q) => format!("no answer to client_seq {q} in time"),
+            SessionEnd::Cut => "cut at the deadline".into(),
+        }
+    }
+}
+
+/// What a session did.
+#[derive(Debug, Clone)]
+pub struct SessionOutcome {
+    /// Updates received.
+    pub updates: u64,
+    /// Messages answered (sent and their update received).
+    pub answered: u64,
+    /// How it ended.
+    pub end: SessionEnd,
+}
+
+enum Bounded<T> {
+    Done(T),
+    TimedOut,
+    Cut,
+}
+
+async fn bounded<T>(
+    fut: impl Future<Output = T>,
+    timeout: Duration,
+    deadline: Option<Instant>,
+) -> Bounded<T> {
+    let t = tokio::time::timeout(timeout, fut);
+    let r = match deadline {
+        Some(d) => tokio::select! {
+            r = t => r,
+            _ = tokio::time::sleep_until(d) => return Bounded::Cut,
+        },
+        None => t.await,
+    };
+    match r {
+        Ok(x) => Bounded::Done(x),
+        Err(_) => Bounded::TimedOut,
+    }
+}
+
+/// Runs one session: `msgs[0]` must be the `SessionStart` (it gets no answer), then every further
+/// message is sent only after the previous one was answered. `on_update` sees every update with
+/// the latency of the message it answers (None for an update that answers none: extra ones). After
+/// the last answer the client closes its side and reads the stream to its end.
+pub async fn run_session<F>(
+    client: &Client,
+    msgs: &[pb::StreamRegisterRequest],
+    cfg: &SessionConfig,
+    mut on_update: F,
+) -> SessionOutcome
+where
+    F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
+{
+    let mut out = SessionOutcome {
+        updates: 0,
+        answered: 0,
+        end: SessionEnd::Completed,
+    };
+    let Some((start, rest)) = msgs.split_first() else {
+        return out;
+    };
+    let (tx, rx) = tokio::sync::mpsc::channel(msgs.len());
+    // Queued before the call: a server may read the start before it answers with headers.
+    tx.try_send(start.clone()).expect("the channel has room");
+    let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
+    if let Some(t) = &cfg.token {
+        req.metadata_mut().insert("authorization", t.clone());
+    }
+    let mut client = client.clone();
+    let mut inbound = match bounded(client.stream_register(req), cfg.timeout, cfg.deadline).await {
+        Bounded::Done(Ok(r)) => r.into_inner(),
+        Bounded::Done(Err(s)) => {
+            out.end = SessionEnd::Refused(s);
+            return out;
+        }
+        Bounded::TimedOut => {
+            out.end = SessionEnd::TimedOut(0);
+            return out;
+        }
+        Bounded::Cut => {
+            out.end = SessionEnd::Cut;
+            return out;
+        }
+    };
+    let interval = cfg
+        .rate_hz
+        .filter(|&r| r > 0.0 && r.is_finite())
+        .map(|r| Duration::from_secs_f64(1.0 / r));
+    let mut last_send: Option<Instant> = None;
+    let fail = |s: tonic::Status, updates: u64| {
+        if updates == 0 {
+            SessionEnd::Refused(s)
+        } else {
+            SessionEnd::Failed(s)
+        }
+    };
+    for m in rest {
+        if let (Some(iv), Some(t)) = (interval, last_send) {
+            let at = t + iv;
+            if cfg.deadline.is_some_and(|d| at >= d) {
+                out.end = SessionEnd::Cut;
+                return out;
+            }
+            tokio::time::sleep_until(at).await;
+        }
+        if cfg.deadline.is_some_and(|d| Instant::now() >= d) {
+            out.end = SessionEnd::Cut;
+            return out;
+        }
+        let sent = Instant::now();
+        last_send = Some(sent);
+        // A failed send means the server already ended the stream: its status comes next.
+        let _ = tx.send(m.clone()).await;
+        loop {
+            match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
+                Bounded::Done(Ok(Some(u))) => {
+                    out.updates += 1;
+                    if u.last_client_seq >= m.client_seq {
+                        out.answered += 1;
+                        on_update(&u, Some(sent.elapsed()));
+                        break;
+                    }
+                    on_update(&u, None);
+                }
+                Bounded::Done(Ok(None)) => {
+                    out.end = SessionEnd::ClosedEarly(m.client_seq);
+                    return out;
+                }
+                Bounded::Done(Err(s)) => {
+                    out.end = fail(s, out.updates);
+                    return out;
+                }
+                Bounded::TimedOut => {
+                    out.end = SessionEnd::TimedOut(m.client_seq);
+                    return out;
+                }
+                Bounded::Cut => {
+                    out.end = SessionEnd::Cut;
+                    return out;
+                }
+            }
+        }
+    }
+    drop(tx);
+    loop {
+        match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
+            Bounded::Done(Ok(Some(u))) => {
+                out.updates += 1;
+                on_update(&u, None);
+            }
+            Bounded::Done(Ok(None)) => return out,
+            Bounded::Done(Err(s)) => {
+                out.end = fail(s, out.updates);
+                return out;
+            }
+            Bounded::TimedOut => {
+                out.end = SessionEnd::TimedOut(msgs.last().map_or(0, |m| m.client_seq));
+                return out;
+            }
+            // Every message was answered: the session counts as completed.
+            Bounded::Cut => return out,
+        }
+    }
+}

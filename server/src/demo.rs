@@ -1,0 +1,150 @@
+//! `librplus-server demo`: the main job end to end on a fresh machine. Generates the default case at
+//! first run (the `small` phantom preset from the real SOFA liver: two geometries, ground truth,
+//! thirty scenarios; cached), starts the server on loopback, replays scenarios through the real
+//! client over gRPC for each method, and prints TRE and latency.
+
+use crate::config::ServerConfig;
+use anyhow::{Context, Result, bail};
+use librplus::mesh::TetMesh;
+use librplus::mesh::io::{self, Unit};
+use librplus_client::{ReplayOptions, Selection, pb};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Options of the demo.
+#[derive(Debug, Clone)]
+pub struct DemoOptions {
+    /// Dataset directory (generated there at first run).
+    pub data: PathBuf,
+    /// Source surface of the phantom liver.
+    pub surface: PathBuf,
+    /// Scenarios replayed (spread over deformations and categories).
+    pub scenarios: usize,
+    /// Print JSON instead of tables.
+    pub json: bool,
+}
+
+/// Where the demo keeps its case by default: `$XDG_CACHE_HOME/librplus/demo-v1`, else
+/// `$HOME/.cache/librplus/demo-v1`, else `./librplus-demo`.
+pub fn default_data_dir() -> PathBuf {
+    let base = std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")));
+    match base {
+        Some(b) => b.join("librplus").join("demo-v1"),
+        None => PathBuf::from("librplus-demo"),
+    }
+}
+
+fn complete(dir: &Path) -> bool {
+    librplus::eval::open(dir).is_ok_and(|m| m.complete)
+}
+
+/// Generates the default case into `dir` unless it is there already.
+fn ensure_dataset(o: &DemoOptions) -> Result<()> {
+    use librplus::phantom::dataset::{GenerateConfig, Preset, generate};
+    if complete(&o.data) {
+        eprintln!("default case: {} (cached)", o.data.display());
+        return Ok(());
+    }
+    let file = io::read(&o.surface, Unit::Mm).with_context(|| {
+        format!(
+            "{}: the demo builds its phantom from the SOFA liver in ../shared/data (pass --surface FILE)",
+            o.surface.display()
+        )
+    })?;
+    let mut surface = if !file.triangles.is_empty() {
+        librplus::mesh::TriSurface::from_file(&file)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", o.surface.display()))?
+    } else {
+        let mut m = TetMesh::from_file(&file).with_context(|| o.surface.display().to_string())?;
+        m.orient_positive();
+        m.boundary_surface()
+            .with_context(|| o.surface.display().to_string())?
+    }
+    .largest_component();
+    if !surface.stats().closed {
+        bail!("{}: the surface is not closed", o.surface.display());
+    }
+    if surface.signed_volume() < 0.0 {
+        surface.flip();
+    }
+    let name = o
+        .surface
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_default();
+    let config = GenerateConfig::preset(Preset::Small, 1, vec![name]);
+    std::fs::create_dir_all(&o.data).with_context(|| o.data.display().to_string())?;
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} generating the default case: {msg} [{bar:30}] {pos}/{len} ({elapsed})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.enable_steady_tick(Duration::from_millis(200));
+    let progress = |done: usize, total: usize, msg: &str| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+        bar.set_message(msg.to_string());
+    };
+    let r = generate(&config, &[surface], &o.data, (0, 1), &progress);
+    bar.finish_and_clear();
+    r.map_err(|e| anyhow::anyhow!("{}: {e}", o.data.display()))?;
+    eprintln!("default case generated into {}", o.data.display());
+    Ok(())
+}
+
+/// Runs the demo.
+pub async fn run(o: DemoOptions) -> Result<()> {
+    let t0 = Instant::now();
+    {
+        let o = o.clone();
+        tokio::task::spawn_blocking(move || ensure_dataset(&o)).await??;
+    }
+    let config = ServerConfig {
+        listen: "127.0.0.1:0".into(),
+        cases: vec![o.data.clone()],
+        ..ServerConfig::default()
+    };
+    let mut running = crate::start(config).await?;
+    eprintln!(
+        "server on {} preloading (LIBR bases are cached after the first run)",
+        running.addr
+    );
+    let pre = running.ready().await.map_err(anyhow::Error::msg)?;
+    let opts = ReplayOptions {
+        server: format!("http://{}", running.addr),
+        data: o.data.clone(),
+        selection: Selection::Spread(o.scenarios),
+        methods: vec![pb::Method::Rigid, pb::Method::Libr],
+        progress: !o.json,
+        ..ReplayOptions::default()
+    };
+    let summary = librplus_client::replay(&opts).await;
+    let left = running.shutdown().await;
+    let summary = summary?;
+    if o.json {
+        let mut v = serde_json::to_value(&summary)?;
+        v["preload"] = serde_json::to_value(&pre)?;
+        v["seconds"] = serde_json::json!(t0.elapsed().as_secs_f64());
+        println!("{v}");
+    } else {
+        println!(
+            "LIBR+ demo: {} case(s) preloaded in {:.1} s; {} scenarios replayed over gRPC per method",
+            pre.cases.len(),
+            pre.seconds,
+            summary.scenarios
+        );
+        println!("{}", librplus_client::replay_table(&summary));
+        println!("done in {:.1} s", t0.elapsed().as_secs_f64());
+    }
+    if left > 0 {
+        bail!("{left} session(s) did not drain");
+    }
+    if summary.failed > 0 {
+        bail!("{} session(s) failed", summary.failed);
+    }
+    Ok(())
+}
