@@ -43,6 +43,9 @@ pub struct LoadOptions {
     pub timeout: Duration,
     /// Pause after a failed session before the next (100 ms).
     pub backoff: Duration,
+    /// At most this many messages per second per client (None: as fast as the answers come,
+    /// a closed loop).
+    pub rate_hz: Option<f64>,
     /// A progress line on stderr every few seconds.
     pub progress: bool,
 }
@@ -62,6 +65,7 @@ impl Default for LoadOptions {
             token: None,
             timeout: Duration::from_secs(60),
             backoff: Duration::from_millis(100),
+            rate_hz: None,
             progress: false,
         }
     }
@@ -119,6 +123,11 @@ pub struct LoadSummary {
     pub rejections_by_code: BTreeMap<String, u64>,
     /// Sessions.
     pub sessions: SessionCounts,
+    /// Registrations by quality (`QUALITY_OK`, `QUALITY_DEGRADED`, ...) and by the method that
+    /// produced them (`METHOD_LIBR`, `METHOD_RIGID` when LIBR degraded to it).
+    pub quality: BTreeMap<String, u64>,
+    /// Registrations by the method that produced them.
+    pub method_used: BTreeMap<String, u64>,
 }
 
 #[derive(Default)]
@@ -130,6 +139,8 @@ struct TaskStats {
     rejections_by_code: BTreeMap<String, u64>,
     session_errors: BTreeMap<String, u64>,
     sessions: SessionCounts,
+    quality: BTreeMap<String, u64>,
+    method_used: BTreeMap<String, u64>,
 }
 
 async fn client_task(
@@ -145,10 +156,12 @@ async fn client_task(
         let msgs = &sessions[next.fetch_add(1, Ordering::Relaxed) % sessions.len()];
         st.sessions.started += 1;
         let (mut requests, mut registrations) = (0u64, 0u64);
-        let (lat, lat_reg, rej) = (
+        let (lat, lat_reg, rej, quality, used) = (
             &mut st.latency,
             &mut st.latency_registration,
             &mut st.rejections_by_code,
+            &mut st.quality,
+            &mut st.method_used,
         );
         let out = run_session(&client, msgs, &cfg, |u, l| {
             requests += 1;
@@ -158,6 +171,14 @@ async fn client_task(
             }
             if let Some(pb::stream_update::Update::Rejection(r)) = &u.update {
                 *rej.entry(r.code.clone()).or_default() += 1;
+            }
+            if let Some(pb::stream_update::Update::Registration(r)) = &u.update {
+                *quality
+                    .entry(r.quality().as_str_name().to_string())
+                    .or_default() += 1;
+                *used
+                    .entry(r.method_used().as_str_name().to_string())
+                    .or_default() += 1;
             }
             if let Some(l) = l {
                 lat.record(l);
@@ -225,6 +246,7 @@ pub async fn load(opts: &LoadOptions) -> Result<LoadSummary> {
     let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
     let t0 = Instant::now();
     cfg.deadline = Some(t0 + opts.duration);
+    cfg.rate_hz = opts.rate_hz;
     let next = Arc::new(AtomicUsize::new(0));
     let tasks: Vec<_> = (0..opts.concurrency)
         .map(|i| {
@@ -260,6 +282,12 @@ pub async fn load(opts: &LoadOptions) -> Result<LoadSummary> {
         for (k, v) in st.session_errors {
             *total.session_errors.entry(k).or_default() += v;
         }
+        for (k, v) in st.quality {
+            *total.quality.entry(k).or_default() += v;
+        }
+        for (k, v) in st.method_used {
+            *total.method_used.entry(k).or_default() += v;
+        }
         let (a, b) = (&mut total.sessions, &st.sessions);
         a.started += b.started;
         a.admitted += b.admitted;
@@ -292,7 +320,19 @@ pub async fn load(opts: &LoadOptions) -> Result<LoadSummary> {
         session_errors: total.session_errors,
         rejections_by_code: total.rejections_by_code,
         sessions: total.sessions,
+        quality: total.quality,
+        method_used: total.method_used,
     })
+}
+
+fn counts(m: &BTreeMap<String, u64>) -> String {
+    if m.is_empty() {
+        return "none".into();
+    }
+    m.iter()
+        .map(|(k, v)| format!("{k} {v}"))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// The summary as readable text.
@@ -305,6 +345,7 @@ pub fn load_table(s: &LoadSummary) -> String {
         "{} requests in {:.1} s ({:.1}/s; {} registrations, {:.1}/s) from {} clients, method {}, {} scenarios\n\
          latency p50 {:.1} ms, p95 {:.1} ms, p99 {:.1} ms, max {:.1} ms (registrations only: p50 {:.1}, p95 {:.1}, p99 {:.1}, max {:.1})\n\
          sessions: {} started, {} admitted, {} refused, {} completed, {} failed, {} cut at the end\n\
+         quality: {}; produced by: {}\n\
          errors: {}\n",
         s.requests,
         s.duration_s,
@@ -328,6 +369,8 @@ pub fn load_table(s: &LoadSummary) -> String {
         c.completed,
         c.failed,
         c.cut,
+        counts(&s.quality),
+        counts(&s.method_used),
         if errors.is_empty() {
             "none".to_string()
         } else {

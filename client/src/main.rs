@@ -84,6 +84,10 @@ struct LoadArgs {
     /// Method: rigid, libr, libr_plus, default.
     #[arg(long, default_value = "libr")]
     method: String,
+    /// At most this many messages per second per client (default: a closed loop, each client
+    /// sending its next message as soon as the previous one is answered).
+    #[arg(long)]
+    rate: Option<f64>,
     /// HTTP/2 connections shared by the clients.
     #[arg(long, default_value_t = 1)]
     connections: usize,
@@ -143,7 +147,13 @@ async fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Load(a) => {
+            if let Some(r) = a.rate
+                && !(r.is_finite() && r > 0.0)
+            {
+                bail!("--rate must be a positive number of messages per second, got {r}");
+            }
             let opts = LoadOptions {
+                rate_hz: a.rate,
                 server: a.common.server.clone(),
                 data: a.common.data.clone(),
                 selection: Selection::parse(a.common.scenarios.as_deref(), a.common.limit),

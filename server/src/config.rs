@@ -153,3 +153,50 @@ impl ServerConfig {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_files_name_bad_keys_and_values() {
+        let dir = std::env::temp_dir().join(format!("librplus-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("c.json");
+        std::fs::write(&f, r#"{"format": 1, "cases": ["x"], "max_sesions": 3}"#).unwrap();
+        let e = ServerConfig::from_file(&f).unwrap_err();
+        assert!(e.contains("max_sesions"), "{e}");
+        std::fs::write(&f, r#"{"format": 1, "cases": ["x"], "time_budget_ms": 0}"#).unwrap();
+        assert!(
+            ServerConfig::from_file(&f)
+                .unwrap_err()
+                .contains("time_budget_ms")
+        );
+        std::fs::write(&f, r#"{"format": 2, "cases": ["x"]}"#).unwrap();
+        assert!(
+            ServerConfig::from_file(&f)
+                .unwrap_err()
+                .contains("format 2")
+        );
+        std::fs::write(&f, r#"{"cases": ["x"], "mesh_unit": "in"}"#).unwrap();
+        assert!(
+            ServerConfig::from_file(&f)
+                .unwrap_err()
+                .contains("mesh_unit")
+        );
+        std::fs::write(
+            &f,
+            r#"{"cases": ["x"], "max_sessions": 3, "default_method": "rigid"}"#,
+        )
+        .unwrap();
+        let c = ServerConfig::from_file(&f).unwrap();
+        assert_eq!((c.max_sessions, c.time_budget_ms), (3, 250));
+        assert!(
+            ServerConfig::default()
+                .validate()
+                .unwrap_err()
+                .contains("cases")
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -397,3 +397,68 @@ pub fn method_to_pb(m: librplus::register::pipeline::Method) -> pb::Method {
         librplus::register::pipeline::Method::Libr => pb::Method::Libr,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rigid_transforms_round_trip_and_non_rotations_are_refused() {
+        let r = Rigid::from_axis_angle([0.3, -0.2, 0.9], 0.7, [1.0, 2.0, 3.0]);
+        let back = rigid_from_pb(&rigid_to_pb(&r), "t").unwrap();
+        assert_eq!(back.rotation, r.rotation);
+        assert_eq!(back.translation, r.translation);
+        let mut m = rigid_to_pb(&r);
+        // A reflection (det −1) is orthonormal but not a rotation.
+        for k in 0..3 {
+            m.rotation[k] = -m.rotation[k];
+        }
+        assert!(
+            rigid_from_pb(&m, "t")
+                .unwrap_err()
+                .message
+                .contains("not a rotation")
+        );
+        let mut m = rigid_to_pb(&r);
+        m.translation_mm[1] = f64::NAN;
+        assert_eq!(
+            rigid_from_pb(&m, "t").unwrap_err().violations[0].0,
+            "t.translation_mm[1]"
+        );
+        let mut m = rigid_to_pb(&r);
+        m.rotation.pop();
+        assert_eq!(
+            rigid_from_pb(&m, "t").unwrap_err().violations[0].0,
+            "t.rotation"
+        );
+    }
+
+    #[test]
+    fn plane_coordinates_map_through_the_pose() {
+        let pose = Rigid::from_axis_angle(
+            [0.0, 0.0, 1.0],
+            std::f64::consts::FRAC_PI_2,
+            [10.0, 0.0, 0.0],
+        );
+        let p = pb::UltrasoundPlane {
+            acquired_at: None,
+            plane_to_physical: Some(rigid_to_pb(&pose)),
+            contour_uv_mm: vec![1.0, 2.0],
+            vessel_uv_mm: vec![],
+        };
+        let (c, v) = plane_points(&p, 10).unwrap();
+        assert!(v.is_empty());
+        let want = pose.apply([1.0, 2.0, 0.0]);
+        assert!(
+            (0..3).all(|k| (c[0][k] - want[k]).abs() < 1e-12),
+            "{c:?} {want:?}"
+        );
+        let mut odd = p.clone();
+        odd.contour_uv_mm.push(3.0);
+        assert_eq!(
+            plane_points(&odd, 10).unwrap_err().violations[0].0,
+            "ultrasound.contour_uv_mm"
+        );
+        assert!(plane_points(&p, 0).is_err());
+    }
+}

@@ -141,6 +141,9 @@ fn summary(c: &Case) -> pb::CaseSummary {
 
 type UpdateStream = ReceiverStream<Result<pb::StreamUpdate, Status>>;
 
+/// How long a new session waits for a slot before RESOURCE_EXHAUSTED.
+const ADMISSION_GRACE: Duration = Duration::from_millis(100);
+
 #[tonic::async_trait]
 impl LibRPlus for Svc {
     async fn list_cases(
@@ -250,7 +253,17 @@ impl LibRPlus for Svc {
             )));
         }
         self.cases().map_err(fail)?;
-        let permit = self.0.sessions.clone().try_acquire_owned().map_err(|_| {
+        // A session that just ended may not have released its slot yet when its client opens
+        // the next one: wait briefly before refusing.
+        let sessions = self.0.sessions.clone();
+        let permit = match sessions.clone().try_acquire_owned() {
+            Ok(p) => Ok(p),
+            Err(_) => tokio::time::timeout(ADMISSION_GRACE, sessions.acquire_owned())
+                .await
+                .map_err(|_| ())
+                .and_then(|r| r.map_err(|_| ())),
+        };
+        let permit = permit.map_err(|_| {
             metrics::counter!("librplus_refused_total", "reason" => "sessions").increment(1);
             count_error(Code::ResourceExhausted);
             let mut d = tonic_types::ErrorDetails::new();
@@ -567,4 +580,30 @@ fn accept(
     s.meas.kind.extend(kinds);
     s.meas.feature.extend(feature);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grpc_timeout_headers_parse() {
+        let mut md = tonic::metadata::MetadataMap::new();
+        assert_eq!(grpc_timeout(&md), None);
+        for (v, d) in [
+            ("250m", Duration::from_millis(250)),
+            ("3S", Duration::from_secs(3)),
+            ("2M", Duration::from_secs(120)),
+            ("1H", Duration::from_secs(3600)),
+            ("500u", Duration::from_micros(500)),
+            ("7n", Duration::from_nanos(7)),
+        ] {
+            md.insert("grpc-timeout", v.parse().unwrap());
+            assert_eq!(grpc_timeout(&md), Some(d), "{v}");
+        }
+        for bad in ["", "m", "12x", "-5m"] {
+            md.insert("grpc-timeout", bad.parse().unwrap());
+            assert_eq!(grpc_timeout(&md), None, "{bad}");
+        }
+    }
 }
