@@ -141,6 +141,9 @@ fn summary(c: &Case) -> pb::CaseSummary {
 
 type UpdateStream = ReceiverStream<Result<pb::StreamUpdate, Status>>;
 
+/// Most waiting stream messages folded into one registration.
+const MAX_COALESCED: usize = 256;
+
 /// How long a new session waits for a slot before RESOURCE_EXHAUSTED.
 const ADMISSION_GRACE: Duration = Duration::from_millis(100);
 
@@ -398,39 +401,7 @@ async fn session(
     };
     let mut s = start_session(&svc, &start, first.client_seq).map_err(|b| b.to_status())?;
     tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
-    loop {
-        let m = match next(&mut inbound, idle, deadline, &mut drain).await? {
-            Next::Msg(m) => m,
-            Next::End => return Ok(()),
-        };
-        let arrival = Instant::now();
-        let seq = m.client_seq;
-        let update = match accept(&mut s, m, cfg) {
-            Err(b) => {
-                count_error(b.code);
-                pb::stream_update::Update::Rejection(b.to_rejection(seq))
-            }
-            Ok(()) => {
-                let job = Job {
-                    case: s.case.clone(),
-                    measurements: s.meas.clone(),
-                    method: s.method,
-                    budget: match deadline {
-                        Some(d) => s.budget.min(d.saturating_duration_since(arrival)),
-                        None => s.budget,
-                    },
-                    arrival,
-                    omit_displacements: s.omit,
-                };
-                match svc.0.engine.run(job, false).await {
-                    Ok(r) => pb::stream_update::Update::Registration(r),
-                    Err(b) => {
-                        count_error(b.code);
-                        pb::stream_update::Update::Rejection(b.to_rejection(seq))
-                    }
-                }
-            }
-        };
+    let send = |s: &mut Session, update: pb::stream_update::Update, arrival: Instant| {
         s.sequence += 1;
         let out = pb::StreamUpdate {
             sequence: s.sequence,
@@ -440,9 +411,78 @@ async fn session(
             points_total: s.meas.points.len() as u32,
         };
         metrics::histogram!("librplus_update_seconds").record(arrival.elapsed().as_secs_f64());
-        if tx.send(Ok(out)).await.is_err() {
-            // The client went away.
-            return Ok(());
+        tx.send(Ok(out))
+    };
+    loop {
+        let m = match next(&mut inbound, idle, deadline, &mut drain).await? {
+            Next::Msg(m) => m,
+            Next::End => return Ok(()),
+        };
+        let arrival = Instant::now();
+        // This message and every one already waiting (a client sending faster than its
+        // registrations complete): each rejected message is answered on its own, the accepted
+        // ones are folded into one registration of the newest state (latest wins).
+        let mut batch = vec![m];
+        let mut end: Option<Result<(), Status>> = None;
+        while batch.len() < MAX_COALESCED {
+            // `Streaming::message` keeps its state in the stream, so giving up on a pending
+            // poll loses nothing.
+            match tokio::time::timeout(Duration::ZERO, inbound.message()).await {
+                Err(_) => break,
+                Ok(Ok(Some(m))) => batch.push(m),
+                Ok(Ok(None)) => {
+                    end = Some(Ok(()));
+                    break;
+                }
+                Ok(Err(e)) => {
+                    end = Some(Err(Status::new(
+                        e.code(),
+                        format!("receiving: {}", e.message()),
+                    )));
+                    break;
+                }
+            }
+        }
+        let mut accepted = None;
+        for m in batch {
+            let seq = m.client_seq;
+            match accept(&mut s, m, cfg) {
+                Ok(()) => accepted = Some(seq),
+                Err(b) => {
+                    count_error(b.code);
+                    let r = pb::stream_update::Update::Rejection(b.to_rejection(seq));
+                    if send(&mut s, r, arrival).await.is_err() {
+                        return Ok(());
+                    }
+                }
+            }
+        }
+        if let Some(seq) = accepted {
+            let job = Job {
+                case: s.case.clone(),
+                measurements: s.meas.clone(),
+                method: s.method,
+                budget: match deadline {
+                    Some(d) => s.budget.min(d.saturating_duration_since(arrival)),
+                    None => s.budget,
+                },
+                arrival,
+                omit_displacements: s.omit,
+            };
+            let update = match svc.0.engine.run(job, false).await {
+                Ok(r) => pb::stream_update::Update::Registration(r),
+                Err(b) => {
+                    count_error(b.code);
+                    pb::stream_update::Update::Rejection(b.to_rejection(seq))
+                }
+            };
+            if send(&mut s, update, arrival).await.is_err() {
+                // The client went away.
+                return Ok(());
+            }
+        }
+        if let Some(e) = end {
+            return e;
         }
     }
 }
