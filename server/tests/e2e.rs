@@ -1048,8 +1048,16 @@ async fn messages_sent_faster_than_answers_are_folded_into_the_newest_state() {
         got.push(u);
     }
     eprintln!("{} messages, {} updates", n - 1, got.len());
-    assert!(!got.is_empty() && got.len() < n - 1, "{} updates for {} messages", got.len(), n - 1);
-    assert!(got.windows(2).all(|w| w[0].last_client_seq < w[1].last_client_seq));
+    assert!(
+        !got.is_empty() && got.len() < n - 1,
+        "{} updates for {} messages",
+        got.len(),
+        n - 1
+    );
+    assert!(
+        got.windows(2)
+            .all(|w| w[0].last_client_seq < w[1].last_client_seq)
+    );
     let last = got.pop().unwrap();
     assert_eq!(last.last_client_seq, last_seq);
     assert_eq!(last.points_total as usize, ordered.points.len());
@@ -1059,4 +1067,170 @@ async fn messages_sent_faster_than_answers_are_folded_into_the_newest_state() {
     let (dt, du) = difference(&r, &direct(&geo, &ordered, Method::Libr));
     assert!(dt < 1e-9 && du < 1e-4, "{dt} {du}");
     assert_eq!(running.shutdown().await, 0);
+}
+
+/// `--cases` also takes a folder of preoperative meshes: a labelled `.vtu` (with its vessels
+/// beside it) keeps its labels, a bare tet mesh is labelled from its geometry; each file is a case
+/// named by its stem.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_folder_of_meshes_is_a_set_of_cases() {
+    let m = open(dataset()).unwrap();
+    let g = &m.geometries[0];
+    let folder = tempfile::tempdir().unwrap();
+    std::fs::copy(dataset().join(&g.preop), folder.path().join("labelled.vtu")).unwrap();
+    std::fs::copy(
+        dataset().join(&g.vessels),
+        folder.path().join("labelled.vessels.vtp"),
+    )
+    .unwrap();
+    let geo = load_geometry(dataset(), &m, &g.id).unwrap();
+    librplus::mesh::io::write(
+        folder.path().join("bare.vtu"),
+        &geo.model.mesh.to_file(),
+        Default::default(),
+    )
+    .unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        cases: vec![folder.path().to_path_buf()],
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    let report = running.ready().await.unwrap();
+    assert_eq!(report.cases.len(), 2, "{report:?}");
+    let mut c = client(running.addr).await;
+    let list = c
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    let ids: Vec<&str> = list.cases.iter().map(|c| c.case_id.as_str()).collect();
+    assert_eq!(ids, ["bare", "labelled"]);
+    let describe = |id: &str| pb::DescribeCaseRequest {
+        case_id: id.into(),
+        include_mesh: true,
+    };
+    let labelled = c
+        .describe_case(describe("labelled"))
+        .await
+        .unwrap()
+        .into_inner();
+    let bare = c
+        .describe_case(describe("bare"))
+        .await
+        .unwrap()
+        .into_inner();
+    let count = |d: &pb::DescribeCaseResponse, bit: u32| {
+        d.node_labels.iter().filter(|&&l| l & bit != 0).count()
+    };
+    assert_eq!(
+        count(&labelled, 1),
+        geo.model.anterior.iter().filter(|&&a| a).count()
+    );
+    assert_eq!(
+        labelled.vessel_segments.len(),
+        2 * geo.model.vessel_segments.len()
+    );
+    assert!(bare.vessel_points_mm.is_empty());
+    // Automatic labels on the same geometry: the anterior and posterior sets are most of the
+    // boundary, as the dataset's own labels (made by the same labeller) are.
+    assert_eq!(count(&bare, 1), count(&labelled, 1));
+    assert_eq!(count(&bare, 2), count(&labelled, 2));
+    let (_, sc) = scenario("surface");
+    let mut meas = sc.measurements.clone();
+    let keep: Vec<usize> = (0..meas.points.len())
+        .filter(|&i| meas.kind[i] != MeasuredKind::Vessel)
+        .collect();
+    meas.points = keep.iter().map(|&i| meas.points[i]).collect();
+    meas.kind = keep.iter().map(|&i| meas.kind[i]).collect();
+    meas.feature = keep.iter().map(|&i| meas.feature[i]).collect();
+    let r = c
+        .register(request("bare", pb::Method::Libr, measurements_pb(&meas)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.method_used(), pb::Method::Libr);
+    assert_eq!(r.node_count as usize, geo.model.mesh.num_nodes());
+    assert_eq!(running.shutdown().await, 0);
+}
+
+/// The binary: `librplus-server --cases DIR --listen 127.0.0.1:0` serves, and SIGTERM drains a
+/// stream in flight (it ends with UNAVAILABLE) and exits 0.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_binary_drains_on_sigterm() {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_librplus-server"))
+        .arg("--cases")
+        .arg(dataset())
+        .args(["--listen", "127.0.0.1:0"])
+        .env("RUST_LOG", "warn")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut sent = false;
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            if !sent && let Some(a) = line.strip_prefix("librplus-server listening on ") {
+                addr_tx.send(a.trim().to_string()).unwrap();
+                sent = true;
+            }
+        }
+    });
+    let addr: std::net::SocketAddr = addr_rx
+        .recv_timeout(Duration::from_secs(60))
+        .unwrap()
+        .parse()
+        .unwrap();
+    let ch = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(ch.clone());
+    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving;
+    let mut up = false;
+    for _ in 0..600 {
+        let h = health
+            .check(tonic_health::pb::HealthCheckRequest {
+                service: String::new(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        if h.status() == serving {
+            up = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(up, "never SERVING");
+    let mut c = LibRPlusClient::new(ch);
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let (_, sc) = scenario("surface+1us");
+    let (msgs, _) = stream_of(&case, &sc, pb::Method::Rigid);
+    let mut s = open_stream(&mut c, msgs[0].clone()).await.unwrap();
+    s.send(msgs[1].clone()).await.unwrap();
+    let kill = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let e = loop {
+        match s.rx.message().await {
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("stream ended without a status"),
+            Err(e) => break e,
+        }
+    };
+    assert_eq!(e.code(), Code::Unavailable, "{e:?}");
+    let status = tokio::task::spawn_blocking(move || child.wait())
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(status.success(), "{status}");
 }
