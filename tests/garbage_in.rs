@@ -7,11 +7,11 @@ mod common;
 
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
-use librplus::phantom::labels::{LabelParams, Region, label};
+use librplus::phantom::labels::{LabelParams, label};
 use librplus::phantom::measure::{Category, MeasureParams, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::register::pipeline::{Method, PipelineParams, Prepared, Registration, register};
-use librplus::register::{MeasuredKind, Measurements, PreopModel};
+use librplus::register::{MeasuredKind, Measurements};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
 /// A prepared coarse liver (with LIBR basis) and one valid surface + 16-plane scenario of a
@@ -21,16 +21,7 @@ fn case() -> (Prepared, Measurements) {
     let mesh = tetrahedralize(&s, &TetraParams::with_edge(14.0)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
     let vessels = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
-    let region = |want: Region| labels.region.iter().map(|r| *r == want).collect();
-    let model = PreopModel {
-        mesh: mesh.clone(),
-        anterior: region(Region::Anterior),
-        posterior: region(Region::Posterior),
-        falciform: labels.falciform.clone(),
-        inferior_ridge: labels.inferior_ridge.clone(),
-        vessel_points: vessels.points.clone(),
-        vessel_segments: vessels.segments.clone(),
-    };
+    let model = labels.preop_model(&mesh, &vessels.points, &vessels.segments);
     let params = PipelineParams::default();
     let case = Prepared::new(model, Some(&params.libr), None).unwrap();
     let u = vec![0.0; 3 * mesh.num_nodes()];

@@ -25,23 +25,7 @@ fn liver(h: f64) -> (TetMesh, AnatomyLabels, VesselTree) {
 }
 
 fn model(mesh: &TetMesh, labels: &AnatomyLabels, vessels: &VesselTree) -> PreopModel {
-    PreopModel {
-        mesh: mesh.clone(),
-        anterior: labels
-            .region
-            .iter()
-            .map(|r| *r == Region::Anterior)
-            .collect(),
-        posterior: labels
-            .region
-            .iter()
-            .map(|r| *r == Region::Posterior)
-            .collect(),
-        falciform: labels.falciform.clone(),
-        inferior_ridge: labels.inferior_ridge.clone(),
-        vessel_points: vessels.points.clone(),
-        vessel_segments: vessels.segments.clone(),
-    }
+    labels.preop_model(mesh, &vessels.points, &vessels.segments)
 }
 
 fn measurements(sc: &Scenario) -> Measurements {

@@ -4,7 +4,7 @@
 use crate::config::ServerConfig;
 use librplus::mesh::TetMesh;
 use librplus::mesh::io::{self, MeshFile};
-use librplus::phantom::labels::{LabelParams, Region, label};
+use librplus::phantom::labels::{LabelParams, label};
 use librplus::register::PreopModel;
 use librplus::register::correspondence::preop_model_from_file;
 use librplus::register::libr::LibrParams;
@@ -202,25 +202,5 @@ fn model_from_mesh_file(
     let mut mesh = TetMesh::from_file(file).map_err(|e| ctx(e.to_string()))?;
     mesh.orient_positive();
     let labels = label(&mesh, &LabelParams::default()).map_err(ctx)?;
-    let n = mesh.num_nodes();
-    Ok(PreopModel {
-        anterior: labels
-            .region
-            .iter()
-            .map(|r| *r == Region::Anterior)
-            .collect(),
-        posterior: labels
-            .region
-            .iter()
-            .map(|r| *r == Region::Posterior)
-            .collect(),
-        falciform: labels.falciform.clone(),
-        inferior_ridge: labels.inferior_ridge.clone(),
-        vessel_points: Vec::new(),
-        vessel_segments: Vec::new(),
-        mesh: {
-            debug_assert_eq!(mesh.num_nodes(), n);
-            mesh
-        },
-    })
+    Ok(labels.preop_model(&mesh, &[], &[]))
 }

@@ -110,6 +110,26 @@ impl AnatomyLabels {
             .collect()
     }
 
+    /// The preoperative model registration sees: the mesh, these labels as its surfaces and
+    /// salient features, and vessel centerlines (points and segments; empty for none).
+    pub fn preop_model(
+        &self,
+        mesh: &TetMesh,
+        vessel_points: &[[f64; 3]],
+        vessel_segments: &[[u32; 2]],
+    ) -> crate::register::PreopModel {
+        let region = |want: Region| self.region.iter().map(|r| *r == want).collect();
+        crate::register::PreopModel {
+            mesh: mesh.clone(),
+            anterior: region(Region::Anterior),
+            posterior: region(Region::Posterior),
+            falciform: self.falciform.clone(),
+            inferior_ridge: self.inferior_ridge.clone(),
+            vessel_points: vessel_points.to_vec(),
+            vessel_segments: vessel_segments.to_vec(),
+        }
+    }
+
     /// The labels as point-data arrays (`region` 0/1/2, `falciform`, `inferior_ridge`,
     /// `bare_area`, `target` as 0/1), for `.vtu` files.
     pub fn to_point_data(&self) -> Vec<DataArray> {
