@@ -10,6 +10,7 @@
 pub mod dataset;
 pub mod eval;
 pub mod fem;
+pub mod gcn;
 pub mod mesh;
 pub mod phantom;
 pub mod register;
