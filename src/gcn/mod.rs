@@ -4,9 +4,11 @@
 //! owns graph-index validation: every index handed to burn's `select`/`select_assign` has been
 //! checked here first, so a bad graph is an error, never a panic or a silent out-of-bounds read.
 
+pub mod graph;
 pub mod spline;
 pub mod spline_conv;
 
+pub use graph::{Graph, bipartite_graph, mesh_graph};
 pub use spline::{SplineBasis, SplineKernel, cartesian_pseudo, spline_basis};
 pub use spline_conv::{Aggregation, SplineConv, SplineConvConfig, SplineGraph};
 
