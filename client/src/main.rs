@@ -1,5 +1,8 @@
 //! `librplus-client`: replay recorded dataset scenarios against a LIBR+ server, or load-test it.
 
+#[global_allocator]
+static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;
+
 use anyhow::{Result, bail};
 use clap::{Args, Parser, Subcommand};
 use librplus_client::{

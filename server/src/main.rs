@@ -1,6 +1,9 @@
 //! `librplus-server`: serve preloaded cases over gRPC (`serve`, the default), or run the demo
 //! (`demo`: the default case, the server on loopback and the replay client).
 
+#[global_allocator]
+static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;
+
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use librplus_server::config::ServerConfig;

@@ -1,5 +1,8 @@
 //! `librplus`: the command-line entry point. Thin: parses arguments, calls the library, prints.
 
+#[global_allocator]
+static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;
+
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use librplus::fem::{self, LameField, sag};

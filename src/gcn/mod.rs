@@ -5,6 +5,7 @@
 //! checked here first, so a bad graph is an error, never a panic or a silent out-of-bounds read.
 
 pub mod graph;
+pub mod sparse;
 pub mod spline;
 pub mod spline_conv;
 

@@ -1,0 +1,307 @@
+//! A differentiable sparse × dense product `Y = A · X` for burn (the one operation graph
+//! convolution needs that burn's generic gather/scatter makes slow): `A` is a constant sparse
+//! matrix in CSR form (no gradient), `X` a dense `[cols, C]` tensor, `Y` `[rows, C]`. The backward
+//! pass is `dX = Aᵀ · dY` with the transpose precomputed. Implemented as a burn backend extension
+//! for the Flex CPU backend and for `Autodiff<B>` over it.
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind, unary};
+use burn::backend::flex::FlexTensor;
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, Dispatch, Flex, backend_extension};
+use burn::tensor::{DType, Tensor, TensorData};
+use rayon::prelude::*;
+use std::sync::Arc;
+
+use super::GcnError;
+
+/// A sparse matrix in compressed sparse row form.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Csr {
+    /// Number of rows.
+    pub rows: usize,
+    /// Number of columns.
+    pub cols: usize,
+    /// Row `r`'s entries are `indptr[r]..indptr[r+1]`.
+    pub indptr: Vec<usize>,
+    /// Column of each entry.
+    pub indices: Vec<u32>,
+    /// Value of each entry.
+    pub values: Vec<f32>,
+}
+
+impl Csr {
+    /// Builds a CSR matrix from (row, col, value) triplets; duplicates are summed. Errors on
+    /// out-of-range indices or non-finite values.
+    pub fn from_triplets(
+        rows: usize,
+        cols: usize,
+        triplets: &[(usize, usize, f32)],
+    ) -> Result<Self, GcnError> {
+        if u32::try_from(cols).is_err() {
+            return Err(GcnError::Invalid(format!(
+                "{cols} columns overflow the index type"
+            )));
+        }
+        let mut count = vec![0usize; rows + 1];
+        for (k, &(r, c, v)) in triplets.iter().enumerate() {
+            if r >= rows || c >= cols {
+                return Err(GcnError::Invalid(format!(
+                    "entry {k}: ({r}, {c}) outside a {rows} × {cols} matrix"
+                )));
+            }
+            if !v.is_finite() {
+                return Err(GcnError::Invalid(format!(
+                    "entry {k}: value {v} is not finite"
+                )));
+            }
+            count[r + 1] += 1;
+        }
+        for r in 0..rows {
+            count[r + 1] += count[r];
+        }
+        let mut next = count.clone();
+        let mut entries = vec![(0u32, 0f32); triplets.len()];
+        for &(r, c, v) in triplets {
+            entries[next[r]] = (c as u32, v);
+            next[r] += 1;
+        }
+        // Sort each row by column and merge duplicates.
+        let mut indptr = Vec::with_capacity(rows + 1);
+        let mut indices = Vec::with_capacity(entries.len());
+        let mut values = Vec::with_capacity(entries.len());
+        indptr.push(0);
+        for r in 0..rows {
+            let row = &mut entries[count[r]..count[r + 1]];
+            row.sort_by_key(|e| e.0);
+            for &(c, v) in row.iter() {
+                if indices.len() > *indptr.last().unwrap_or(&0) && indices.last() == Some(&c) {
+                    *values.last_mut().expect("non-empty") += v;
+                } else {
+                    indices.push(c);
+                    values.push(v);
+                }
+            }
+            indptr.push(indices.len());
+        }
+        Ok(Self {
+            rows,
+            cols,
+            indptr,
+            indices,
+            values,
+        })
+    }
+
+    /// The transpose.
+    pub fn transpose(&self) -> Self {
+        let mut t = Vec::with_capacity(self.values.len());
+        for r in 0..self.rows {
+            for k in self.indptr[r]..self.indptr[r + 1] {
+                t.push((self.indices[k] as usize, r, self.values[k]));
+            }
+        }
+        Self::from_triplets(self.cols, self.rows, &t).expect("transpose of a valid matrix")
+    }
+
+    /// Number of stored entries.
+    pub fn nnz(&self) -> usize {
+        self.values.len()
+    }
+
+    /// `A · X` for row-major `x` of `cols × c`, into row-major `rows × c`.
+    pub fn matmul_dense(&self, x: &[f32], c: usize) -> Vec<f32> {
+        let mut y = vec![0f32; self.rows * c];
+        if c == 0 {
+            return y;
+        }
+        y.par_chunks_mut(c).enumerate().for_each(|(r, out)| {
+            for k in self.indptr[r]..self.indptr[r + 1] {
+                let v = self.values[k];
+                let src = &x[self.indices[k] as usize * c..][..c];
+                for (o, s) in out.iter_mut().zip(src) {
+                    *o += v * s;
+                }
+            }
+        });
+        y
+    }
+}
+
+/// A sparse matrix and its transpose, shared by the forward and backward passes.
+#[derive(Debug, Clone)]
+pub struct SparseOp(Arc<(Csr, Csr)>);
+
+impl SparseOp {
+    /// Wraps `a` (and precomputes its transpose).
+    pub fn new(a: Csr) -> Self {
+        let t = a.transpose();
+        Self(Arc::new((a, t)))
+    }
+
+    /// The matrix.
+    pub fn matrix(&self) -> &Csr {
+        &self.0.0
+    }
+
+    fn transposed(&self) -> Self {
+        Self(Arc::new((self.0.1.clone(), self.0.0.clone())))
+    }
+
+    /// `A · x` as a differentiable burn operation. `x`: `[cols, C]` → `[rows, C]`.
+    pub fn apply(&self, x: Tensor<2>) -> Result<Tensor<2>, GcnError> {
+        let [n, _] = x.dims();
+        if n != self.matrix().cols {
+            return Err(GcnError::Invalid(format!(
+                "sparse product: x has {n} rows, the matrix has {} columns",
+                self.matrix().cols
+            )));
+        }
+        let out = <Dispatch as SparseBackend>::spmm(x.into_dispatch(), self.clone());
+        Ok(Tensor::from_dispatch(out))
+    }
+}
+
+/// The sparse product as a burn backend extension.
+#[backend_extension(Flex, Autodiff)]
+pub trait SparseBackend: Backend {
+    /// `A · x`.
+    fn spmm(x: FloatTensor<Self>, a: SparseOp) -> FloatTensor<Self>;
+}
+
+impl SparseBackend for Flex {
+    fn spmm(x: FloatTensor<Self>, a: SparseOp) -> FloatTensor<Self> {
+        let x: FlexTensor = x.to_contiguous();
+        let dims = x.layout().shape().to_vec();
+        let c = dims[1];
+        let y = match x.dtype() {
+            DType::F32 => a.matrix().matmul_dense(x.storage::<f32>(), c),
+            other => panic!("sparse product: unsupported dtype {other:?}"),
+        };
+        FlexTensor::from_data(TensorData::new(y, [a.matrix().rows, c]))
+    }
+}
+
+#[derive(Debug)]
+struct SpmmBackward;
+
+impl<B: Backend + SparseBackend> Backward<B, 1> for SpmmBackward {
+    type State = SparseOp;
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _c: &mut Checkpointer) {
+        let t = ops.state.transposed();
+        unary::<B, _>(ops.parents, ops.node, grads, |grad| B::spmm(grad, t));
+    }
+}
+
+impl<B: Backend + SparseBackend, C: CheckpointStrategy> SparseBackend for Autodiff<B, C> {
+    fn spmm(x: FloatTensor<Self>, a: SparseOp) -> FloatTensor<Self> {
+        match SpmmBackward
+            .prepare::<C>([x.node()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::spmm(x.into_primitive(), a.clone());
+                prep.finish(a, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::spmm(x.into_primitive(), a)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::Device;
+
+    fn dense(a: &Csr) -> Vec<Vec<f32>> {
+        let mut d = vec![vec![0f32; a.cols]; a.rows];
+        for (r, row) in d.iter_mut().enumerate() {
+            for k in a.indptr[r]..a.indptr[r + 1] {
+                row[a.indices[k] as usize] += a.values[k];
+            }
+        }
+        d
+    }
+
+    #[test]
+    fn triplets_merge_duplicates_and_transpose_mirrors() {
+        let a = Csr::from_triplets(3, 4, &[(0, 3, 1.0), (2, 1, 2.0), (0, 3, 0.5), (1, 0, -1.0)])
+            .unwrap();
+        assert_eq!(a.nnz(), 3);
+        let d = dense(&a);
+        assert_eq!(d[0][3], 1.5);
+        assert_eq!(d[2][1], 2.0);
+        let t = dense(&a.transpose());
+        for r in 0..3 {
+            for c in 0..4 {
+                assert_eq!(d[r][c], t[c][r]);
+            }
+        }
+        assert!(Csr::from_triplets(2, 2, &[(2, 0, 1.0)]).is_err());
+        assert!(Csr::from_triplets(2, 2, &[(0, 0, f32::NAN)]).is_err());
+    }
+
+    #[test]
+    fn product_and_its_gradient_match_dense_algebra() {
+        // A random sparse matrix; y = A x and d(sum(w ⊙ y))/dx = Aᵀ w.
+        let (rows, cols, c) = (7, 5, 3);
+        let mut s = 7u64;
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) as f64 / (1u64 << 31) as f64) as f32
+        };
+        let trip: Vec<_> = (0..14)
+            .map(|_| {
+                (
+                    (rnd() * rows as f32) as usize,
+                    (rnd() * cols as f32) as usize,
+                    rnd() - 0.5,
+                )
+            })
+            .collect();
+        let a = Csr::from_triplets(rows, cols, &trip).unwrap();
+        let d = dense(&a);
+        let x: Vec<f32> = (0..cols * c).map(|_| rnd()).collect();
+        let w: Vec<f32> = (0..rows * c).map(|_| rnd()).collect();
+        let dev = Device::flex().autodiff();
+        let xt = Tensor::<2>::from_data(TensorData::new(x.clone(), [cols, c]), &dev).require_grad();
+        let wt = Tensor::<2>::from_data(TensorData::new(w.clone(), [rows, c]), &dev);
+        let op = SparseOp::new(a);
+        let y = op.apply(xt.clone()).unwrap();
+        let yv = y
+            .clone()
+            .into_data()
+            .convert::<f32>()
+            .to_vec::<f32>()
+            .unwrap();
+        for r in 0..rows {
+            for j in 0..c {
+                let want: f32 = (0..cols).map(|k| d[r][k] * x[k * c + j]).sum();
+                assert!((yv[r * c + j] - want).abs() < 1e-5);
+            }
+        }
+        let g = (y * wt).sum().backward();
+        let gx = xt
+            .grad(&g)
+            .unwrap()
+            .into_data()
+            .convert::<f32>()
+            .to_vec::<f32>()
+            .unwrap();
+        for k in 0..cols {
+            for j in 0..c {
+                let want: f32 = (0..rows).map(|r| d[r][k] * w[r * c + j]).sum();
+                assert!((gx[k * c + j] - want).abs() < 1e-5);
+            }
+        }
+        // A wrong shape is an error.
+        let bad = Tensor::<2>::zeros([cols + 1, c], &Device::flex());
+        assert!(op.apply(bad).is_err());
+    }
+}
