@@ -44,6 +44,61 @@ enum Command {
     Register(RegisterArgs),
     /// Evaluates methods over a dataset split: summary.json, report.md, per-scenario results.
     Evaluate(EvaluateArgs),
+    /// Trains SR-GCN (LIBR+) on a dataset split, then tests LIBR and LIBR+ on the held-out
+    /// scenarios: MODEL_DIR/model.json + weights.bin (+ provenance), training.json, test.json,
+    /// loss curves (PNG).
+    Train(TrainArgs),
+}
+
+#[derive(Args)]
+struct TrainArgs {
+    #[command(flatten)]
+    libr: LibrOpts,
+    /// Dataset directory (from `librplus generate`).
+    #[arg(long)]
+    data: PathBuf,
+    /// random, geo-def, logo:GEOMETRY or pattern-v.
+    #[arg(long, default_value = "pattern-v")]
+    split: String,
+    /// Model directory to write.
+    #[arg(long)]
+    out: PathBuf,
+    /// Use every k-th block of five scenarios (train and test).
+    #[arg(long, default_value_t = 2)]
+    every: usize,
+    /// Seed (split, initialisation, sample order).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Stage-2 epochs at most.
+    #[arg(long, default_value_t = 12)]
+    epochs: usize,
+    /// Stage-1 (bipartite branch) epochs.
+    #[arg(long, default_value_t = 2)]
+    epochs_bipartite: usize,
+    /// Initial Adam learning rate.
+    #[arg(long, default_value_t = 2e-3)]
+    lr: f64,
+    /// Feature width.
+    #[arg(long, default_value_t = 32)]
+    width: usize,
+    /// Convoluters per branch (N_c).
+    #[arg(long, default_value_t = 3)]
+    convs: usize,
+    /// Spline kernel size per dimension.
+    #[arg(long, default_value_t = 3)]
+    kernel_size: usize,
+    /// Nearest LIBR-deformed vertices per measured point (N_top).
+    #[arg(long, default_value_t = 4)]
+    n_top: usize,
+    /// Weight λ of the sparse-measurement loss.
+    #[arg(long)]
+    sparse_weight: Option<f64>,
+    /// The paper's Table 2 setting 1-6 (inputs and losses; 6 = the full model).
+    #[arg(long, default_value_t = 6)]
+    ablation: u32,
+    /// Stop stage 2 after this many minutes.
+    #[arg(long, default_value_t = 25.0)]
+    max_minutes: f64,
 }
 
 /// LIBR options shared by `register` and `evaluate`.
@@ -420,6 +475,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Generate(args) => generate(&args),
         Command::Register(args) => register_scenario(&args),
         Command::Evaluate(args) => evaluate(&args),
+        Command::Train(args) => train(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,
@@ -1716,5 +1772,366 @@ fn small_dataset(dir: &Path, surface: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
     librplus::phantom::dataset::generate(&config, &[s], dir, (0, 1), &|_, _, _| {})
         .map_err(|e| anyhow::anyhow!("generating the small preset into {}: {e}", dir.display()))?;
+    Ok(())
+}
+
+/// The paper's Table 2 settings as configurations: (LIBR input, bipartite, target, sparse loss).
+fn ablation_config(
+    mut cfg: librplus::gcn::model::SrGcnConfig,
+    setting: u32,
+    sparse: f64,
+) -> Result<librplus::gcn::model::SrGcnConfig> {
+    use librplus::gcn::model::Target;
+    let (libr, bip, target, sp) = match setting {
+        1 => (false, false, Target::Gt, false),
+        2 => (false, false, Target::Residual, false),
+        3 => (true, false, Target::Residual, false),
+        4 => (true, true, Target::Residual, false),
+        5 => (true, true, Target::Gt, true),
+        6 => (true, true, Target::Residual, true),
+        other => bail!("--ablation {other}: settings are 1-6 (the paper's Table 2)"),
+    };
+    cfg.libr_input = libr;
+    cfg.bipartite = bip;
+    cfg.target = target;
+    cfg.sparse_weight = if sp { sparse } else { 0.0 };
+    Ok(cfg)
+}
+
+fn git_commit() -> String {
+    std::process::Command::new("git")
+        .args(["rev-parse", "HEAD"])
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+        .unwrap_or_else(|| "unknown".into())
+}
+
+fn train(a: &TrainArgs) -> Result<()> {
+    use librplus::eval::{load_scenarios, node_errors_mm, tre_from_errors};
+    use librplus::gcn::model::SrGcnConfig;
+    use librplus::gcn::train::{self as tr, TrainOptions, TrainSplit};
+    let t_all = Instant::now();
+    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let split = TrainSplit::parse(&a.split).map_err(|e| anyhow::anyhow!("--split: {e}"))?;
+    let base = SrGcnConfig::new()
+        .with_width(a.width)
+        .with_convs(a.convs)
+        .with_kernel_size(a.kernel_size)
+        .with_n_top(a.n_top);
+    let sparse = a.sparse_weight.unwrap_or(base.sparse_weight);
+    let cfg = ablation_config(base, a.ablation, sparse)?;
+    cfg.validate()
+        .map_err(|e| anyhow::anyhow!("network options: {e}"))?;
+    let opts = TrainOptions {
+        config: cfg.clone(),
+        split: split.clone(),
+        every: a.every,
+        seed: a.seed,
+        epochs_bipartite: a.epochs_bipartite,
+        epochs: a.epochs,
+        learning_rate: a.lr,
+        max_minutes: a.max_minutes,
+        ..TrainOptions::default()
+    };
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    let sets = tr::split_scenarios(&m, &split, a.seed, a.every).map_err(anyhow::Error::msg)?;
+    eprintln!(
+        "split {}: {} training, {} validation, {} test scenarios",
+        split.name(),
+        sets.train.len(),
+        sets.valid.len(),
+        sets.test.len()
+    );
+    // Scenarios of every deformation used.
+    let mut needed: std::collections::BTreeSet<&str> = std::collections::BTreeSet::new();
+    for (d, _) in sets.train.iter().chain(&sets.valid).chain(&sets.test) {
+        needed.insert(d.as_str());
+    }
+    let mut scen = std::collections::BTreeMap::new();
+    let mut geom_of = std::collections::BTreeMap::new();
+    for d in m
+        .deformations
+        .iter()
+        .filter(|d| needed.contains(d.id.as_str()))
+    {
+        scen.insert(
+            d.id.clone(),
+            load_scenarios(&a.data, d).map_err(anyhow::Error::msg)?,
+        );
+        geom_of.insert(d.id.clone(), d.geometry.clone());
+    }
+    let geos: Vec<String> = geom_of.values().cloned().collect();
+    let spinner =
+        indicatif::ProgressBar::new_spinner().with_message("preparing cases (LIBR bases)");
+    spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+    let cases = tr::load_cases(&a.data, &m, &geos, &params).map_err(anyhow::Error::msg)?;
+    spinner.finish_and_clear();
+    let pick = |refs: &[(String, usize)]| -> Vec<(&librplus::eval::ScenarioData, &str)> {
+        refs.iter()
+            .filter_map(|(d, i)| scen[d].get(*i).map(|s| (s, geom_of[d].as_str())))
+            .collect()
+    };
+    let bar_style = |what: &str| {
+        indicatif::ProgressStyle::with_template(&format!(
+            "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}} (eta {{eta}})"
+        ))
+        .expect("valid template")
+        .progress_chars("=> ")
+    };
+    let solve = |items: &[(&librplus::eval::ScenarioData, &str)],
+                 what: &str|
+     -> Result<Vec<Option<tr::LibrSolution>>> {
+        let bar = indicatif::ProgressBar::new(items.len() as u64).with_style(bar_style(what));
+        let r = tr::libr_solutions(&a.data, &cases, items, &params, &|d, _| {
+            bar.set_position(d as u64)
+        });
+        bar.finish_and_clear();
+        r.map_err(anyhow::Error::msg)
+    };
+    let t_libr = Instant::now();
+    let train_items = pick(&sets.train);
+    let valid_items = pick(&sets.valid);
+    let train_sol = solve(&train_items, "LIBR on training scenarios")?;
+    let valid_sol = solve(&valid_items, "LIBR on validation scenarios")?;
+    let libr_seconds = t_libr.elapsed().as_secs_f64();
+    let samples = |items: &[(&librplus::eval::ScenarioData, &str)],
+                   sols: &[Option<tr::LibrSolution>]|
+     -> Result<Vec<tr::Prepared2>> {
+        let z: Vec<_> = items
+            .iter()
+            .zip(sols)
+            .map(|((s, g), o)| (*s, *g, o))
+            .collect();
+        Ok(tr::build_samples(&cfg, &cases, &z, &params, true)
+            .map_err(anyhow::Error::msg)?
+            .into_iter()
+            .flatten()
+            .collect())
+    };
+    let train_s = samples(&train_items, &train_sol)?;
+    let valid_s = samples(&valid_items, &valid_sol)?;
+    let command: Vec<String> = std::env::args().collect();
+    let provenance = json!({
+        "command": command.join(" "),
+        "data": a.data.display().to_string(),
+        "data_preset": m.preset,
+        "data_seed": m.seed,
+        "data_parameters_hash": m.parameters_hash,
+        "split": split.name(),
+        "every": a.every,
+        "seed": a.seed,
+        "ablation": a.ablation,
+        "commit": git_commit(),
+        "libr_solution_key": tr::solution_key(&params),
+        "train_scenarios": sets.train.len(),
+        "valid_scenarios": sets.valid.len(),
+        "test_scenarios": sets.test.len(),
+    });
+    let bar = indicatif::ProgressBar::new(0).with_style(bar_style("training"));
+    let t_train = Instant::now();
+    let progress = |stage: u32, epoch: usize, done: usize, total: usize, loss: f64| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+        bar.set_message(format!("stage {stage} epoch {epoch} loss {loss:.4}"));
+        if done == total {
+            bar.suspend(|| {
+                eprintln!(
+                    "stage {stage} epoch {epoch}: {total} steps, training loss {loss:.5}, {:.0} s",
+                    t_train.elapsed().as_secs_f64()
+                )
+            });
+        }
+    };
+    let report = tr::train(
+        &opts,
+        &cases,
+        &train_s,
+        &valid_s,
+        &a.out,
+        &provenance,
+        &progress,
+    )
+    .map_err(anyhow::Error::msg)?;
+    bar.finish_and_clear();
+    for l in &report.log {
+        eprintln!(
+            "stage {} epoch {:>2}: train loss {:.5}, validation {:.4}{}, lr {:.1e}, {:.0} s",
+            l.stage,
+            l.epoch,
+            l.train_loss,
+            l.valid,
+            if l.stage == 2 { " mm" } else { "" },
+            l.learning_rate,
+            l.seconds
+        );
+    }
+    // Test: LIBR and LIBR+ on the held-out scenarios.
+    let test_items = pick(&sets.test);
+    let test_sol = solve(&test_items, "LIBR on test scenarios")?;
+    let z: Vec<_> = test_items
+        .iter()
+        .zip(&test_sol)
+        .map(|((s, g), o)| (*s, *g, o))
+        .collect();
+    let t_inf = Instant::now();
+    let test_s = tr::build_samples(&cfg, &cases, &z, &params, false).map_err(anyhow::Error::msg)?;
+    let plain = burn::tensor::Device::flex();
+    let mut graphs = std::collections::BTreeMap::new();
+    for (g, gc) in &cases {
+        graphs.insert(
+            g.clone(),
+            gc.frame
+                .spline_graph(&cfg, &plain)
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
+        );
+    }
+    let mut rows = Vec::new();
+    let bar = indicatif::ProgressBar::new(test_items.len() as u64)
+        .with_style(bar_style("LIBR+ on test scenarios"));
+    for (((sc, g), sol), sample) in test_items.iter().zip(&test_sol).zip(&test_s) {
+        bar.inc(1);
+        let gc = &cases[*g];
+        let (Some(sol), Some(sample)) = (sol, sample) else {
+            rows.push(json!({"scenario": sc.id, "category": sc.category, "error": "LIBR failed"}));
+            continue;
+        };
+        let nodes = gc.geo.model.mesh.nodes();
+        let truth = (
+            &sc.truth.image_to_physical,
+            sc.truth.displacement.as_slice(),
+        );
+        let e_libr = node_errors_mm(nodes, (&sol.transform, &sol.u), truth);
+        let u_plus = tr::correct(&report.model, &gc.frame, &graphs[*g], &sample.data, &sol.u)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", sc.id))?;
+        let e_plus = node_errors_mm(nodes, (&sol.transform, &u_plus), truth);
+        let t_l = tre_from_errors(&e_libr, &gc.geo.surface, &gc.geo.targets);
+        let t_p = tre_from_errors(&e_plus, &gc.geo.surface, &gc.geo.targets);
+        rows.push(json!({"scenario": sc.id, "geometry": g, "category": sc.category, "libr": t_l, "librplus": t_p}));
+    }
+    bar.finish_and_clear();
+    let inference_seconds = t_inf.elapsed().as_secs_f64();
+    // Aggregate.
+    let mut by_cat: std::collections::BTreeMap<String, (f64, f64, usize)> = Default::default();
+    let (mut sl, mut sp, mut n) = (0.0, 0.0, 0usize);
+    for r in &rows {
+        if let (Some(l), Some(p)) = (
+            r["libr"]["tre_mm"].as_f64(),
+            r["librplus"]["tre_mm"].as_f64(),
+        ) {
+            sl += l;
+            sp += p;
+            n += 1;
+            let e = by_cat
+                .entry(r["category"].as_str().unwrap_or("?").to_string())
+                .or_default();
+            e.0 += l;
+            e.1 += p;
+            e.2 += 1;
+        }
+    }
+    let nn = n.max(1) as f64;
+    let test = json!({
+        "format": 1,
+        "split": split.name(),
+        "scenarios": n,
+        "failed": rows.len() - n,
+        "libr_tre_mm": sl / nn,
+        "librplus_tre_mm": sp / nn,
+        "ratio": if sl > 0.0 { sp / sl } else { f64::NAN },
+        "by_category": by_cat.iter().map(|(k, v)| (k.clone(), json!({"libr_tre_mm": v.0 / v.2 as f64, "librplus_tre_mm": v.1 / v.2 as f64, "scenarios": v.2}))).collect::<serde_json::Map<_, _>>(),
+        "results": rows,
+    });
+    std::fs::write(
+        a.out.join("test.json"),
+        serde_json::to_string_pretty(&test)?,
+    )?;
+    let training = json!({
+        "format": 1,
+        "log": report.log,
+        "best_valid_node_error_mm": report.best_valid_mm,
+        "libr_valid_node_error_mm": report.libr_valid_mm,
+        "train_samples": report.train_samples,
+        "valid_samples": report.valid_samples,
+        "train_seconds": report.seconds,
+        "libr_solution_seconds": libr_seconds,
+        "test_inference_seconds": inference_seconds,
+        "total_seconds": t_all.elapsed().as_secs_f64(),
+    });
+    std::fs::write(
+        a.out.join("training.json"),
+        serde_json::to_string_pretty(&training)?,
+    )?;
+    // Final model with full provenance (metrics included).
+    let mut prov = provenance.clone();
+    prov["metrics"] = json!({
+        "valid_node_error_mm": report.best_valid_mm,
+        "libr_valid_node_error_mm": report.libr_valid_mm,
+        "test_libr_tre_mm": sl / nn,
+        "test_librplus_tre_mm": sp / nn,
+        "train_seconds": report.seconds,
+    });
+    librplus::gcn::io::save_model(&a.out, &cfg, &report.model.net, prov)
+        .map_err(anyhow::Error::msg)?;
+    // Loss curves.
+    let series =
+        |stage: u32, f: &dyn Fn(&librplus::gcn::train::EpochLog) -> f64| -> Vec<(f64, f64)> {
+            report
+                .log
+                .iter()
+                .filter(|l| l.stage == stage)
+                .map(|l| (l.epoch as f64, f(l)))
+                .collect()
+        };
+    let png = librplus::eval::plot::line_chart_png(
+        "SR-GCN stage 2 (mesh branch)",
+        "epoch",
+        "validation node error (mm) / training loss",
+        &[
+            ("validation node error (mm)".into(), series(2, &|l| l.valid)),
+            ("training loss".into(), series(2, &|l| l.train_loss)),
+            (
+                "LIBR alone (mm)".into(),
+                series(2, &|_| report.libr_valid_mm),
+            ),
+        ],
+    )
+    .map_err(anyhow::Error::msg)?;
+    std::fs::write(a.out.join("loss_stage2.png"), png)?;
+    if cfg.bipartite {
+        let png = librplus::eval::plot::line_chart_png(
+            "SR-GCN stage 1 (bipartite reconstruction)",
+            "epoch",
+            "loss",
+            &[
+                ("training".into(), series(1, &|l| l.train_loss)),
+                ("validation".into(), series(1, &|l| l.valid)),
+            ],
+        )
+        .map_err(anyhow::Error::msg)?;
+        std::fs::write(a.out.join("loss_stage1.png"), png)?;
+    }
+    println!(
+        "split {}: test LIBR {:.3} mm, LIBR+ {:.3} mm (ratio {:.3}) over {n} scenarios; training {:.0} s, LIBR solutions {:.0} s",
+        split.name(),
+        sl / nn,
+        sp / nn,
+        sp / sl.max(1e-12),
+        report.seconds,
+        libr_seconds
+    );
+    for (k, v) in &by_cat {
+        println!(
+            "  {k:<12} LIBR {:.3}  LIBR+ {:.3}  ({} scenarios)",
+            v.0 / v.2 as f64,
+            v.1 / v.2 as f64,
+            v.2
+        );
+    }
     Ok(())
 }

@@ -387,3 +387,74 @@ pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, S
         Ok(())
     })
 }
+
+/// A line chart of named series `(x, y)` (e.g. training and validation loss per epoch), each
+/// series in its own colour with its name in the legend. Returns the PNG bytes.
+pub fn line_chart_png(
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<Vec<u8>, String> {
+    let pts = series
+        .iter()
+        .flat_map(|s| s.1.iter())
+        .filter(|p| p.0.is_finite() && p.1.is_finite());
+    let (mut x0, mut x1, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, 0f64);
+    for &(x, y) in pts {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y1 = y1.max(y);
+    }
+    if !x0.is_finite() {
+        (x0, x1) = (0.0, 1.0);
+    }
+    if x1 <= x0 {
+        x1 = x0 + 1.0;
+    }
+    let y1 = if y1 > 0.0 { 1.05 * y1 } else { 1.0 };
+    render(|root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, text(30))
+            .margin(24)
+            .x_label_area_size(70)
+            .y_label_area_size(90)
+            .build_cartesian_2d(x0..x1, 0f64..y1)
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .axis_desc_style(text(20))
+            .label_style(text(17))
+            .light_line_style(RGBColor(235, 235, 235))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        for (i, (name, pts)) in series.iter().enumerate() {
+            let colour = COLOURS[i % COLOURS.len()];
+            let pts: Vec<(f64, f64)> = pts
+                .iter()
+                .copied()
+                .filter(|p| p.0.is_finite() && p.1.is_finite())
+                .collect();
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    pts,
+                    colour.stroke_width(3),
+                )))
+                .map_err(|e| e.to_string())?
+                .label(name.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .label_font(text(18))
+            .background_style(WHITE.mix(0.9))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    })
+}

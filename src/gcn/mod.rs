@@ -5,9 +5,13 @@
 //! checked here first, so a bad graph is an error, never a panic or a silent out-of-bounds read.
 
 pub mod graph;
+pub mod io;
+pub mod model;
+pub mod sample;
 pub mod sparse;
 pub mod spline;
 pub mod spline_conv;
+pub mod train;
 
 pub use graph::{Graph, bipartite_graph, mesh_graph};
 pub use spline::{SplineBasis, SplineKernel, cartesian_pseudo, spline_basis};

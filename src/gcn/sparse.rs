@@ -278,7 +278,7 @@ mod tests {
             .clone()
             .into_data()
             .convert::<f32>()
-            .to_vec::<f32>()
+            .try_to_vec::<f32>()
             .unwrap();
         for r in 0..rows {
             for j in 0..c {
@@ -292,7 +292,7 @@ mod tests {
             .unwrap()
             .into_data()
             .convert::<f32>()
-            .to_vec::<f32>()
+            .try_to_vec::<f32>()
             .unwrap();
         for k in 0..cols {
             for j in 0..c {

@@ -1,0 +1,248 @@
+//! The SR-GCN model directory (format 1): `model.json` (format, configuration, normalisation
+//! rule, provenance) and `weights.bin`, the parameters as little-endian f32:
+//! magic `SRGCNW01`, u32 tensor count, then per tensor u32 name length, name (UTF-8), u32 rank,
+//! u64 dims, f32 values (row-major). Names are `mesh.encoder.weight`, `mesh.convs.0.root`,
+//! `bip.decoder.bias`, … .
+
+use super::SplineConv;
+use super::model::{Branch, SrGcn, SrGcnConfig};
+use burn::module::Param;
+use burn::tensor::{Device, Tensor, TensorData};
+use std::path::Path;
+
+const MAGIC: &[u8; 8] = b"SRGCNW01";
+
+/// A named parameter: name, shape, values.
+pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
+
+fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
+    t.clone()
+        .into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .expect("f32 data")
+}
+
+fn conv_tensors(prefix: &str, c: &SplineConv, out: &mut Vec<NamedTensor>) {
+    let w = c.weight.val();
+    out.push((format!("{prefix}.weight"), w.dims().to_vec(), values(&w)));
+    if let Some(r) = &c.root {
+        let r = r.val();
+        out.push((format!("{prefix}.root"), r.dims().to_vec(), values(&r)));
+    }
+    if let Some(b) = &c.bias {
+        let b = b.val();
+        out.push((format!("{prefix}.bias"), b.dims().to_vec(), values(&b)));
+    }
+}
+
+fn branch_tensors(prefix: &str, b: &Branch, out: &mut Vec<NamedTensor>) {
+    conv_tensors(&format!("{prefix}.encoder"), &b.encoder, out);
+    for (i, c) in b.convs.iter().enumerate() {
+        conv_tensors(&format!("{prefix}.convs.{i}"), c, out);
+    }
+    conv_tensors(&format!("{prefix}.decoder"), &b.decoder, out);
+}
+
+/// Every parameter of the network, in a fixed order.
+pub fn named_tensors(net: &SrGcn) -> Vec<NamedTensor> {
+    let mut out = Vec::new();
+    branch_tensors("mesh", &net.mesh, &mut out);
+    if let Some(b) = &net.bip {
+        branch_tensors("bip", b, &mut out);
+    }
+    out
+}
+
+/// Serialises parameters.
+pub fn encode(tensors: &[NamedTensor]) -> Vec<u8> {
+    let mut b = Vec::new();
+    b.extend_from_slice(MAGIC);
+    b.extend((tensors.len() as u32).to_le_bytes());
+    for (name, dims, vals) in tensors {
+        b.extend((name.len() as u32).to_le_bytes());
+        b.extend(name.as_bytes());
+        b.extend((dims.len() as u32).to_le_bytes());
+        for &d in dims {
+            b.extend((d as u64).to_le_bytes());
+        }
+        for v in vals {
+            b.extend(v.to_le_bytes());
+        }
+    }
+    b
+}
+
+/// Parses parameters written by [`encode`].
+pub fn decode(bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
+    let mut at = 0usize;
+    let mut take = |n: usize| -> Result<&[u8], String> {
+        let s = bytes
+            .get(at..at + n)
+            .ok_or_else(|| format!("weights file truncated at byte {at}"))?;
+        at += n;
+        Ok(s)
+    };
+    if take(8)? != MAGIC {
+        return Err("not an SR-GCN weights file (bad magic)".into());
+    }
+    let u32_ = |s: &[u8]| u32::from_le_bytes(s.try_into().expect("4 bytes")) as usize;
+    let count = u32_(take(4)?);
+    let mut out = Vec::with_capacity(count.min(1024));
+    for _ in 0..count {
+        let len = u32_(take(4)?);
+        let name = String::from_utf8(take(len)?.to_vec()).map_err(|_| "bad tensor name")?;
+        let rank = u32_(take(4)?);
+        if rank > 8 {
+            return Err(format!("{name}: rank {rank}"));
+        }
+        let mut dims = Vec::with_capacity(rank);
+        for _ in 0..rank {
+            dims.push(u64::from_le_bytes(take(8)?.try_into().expect("8 bytes")) as usize);
+        }
+        let n = dims
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .filter(|&n| n <= bytes.len() / 4)
+            .ok_or_else(|| format!("{name}: impossible shape {dims:?}"))?;
+        let raw = take(4 * n)?;
+        let vals = raw
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect::<Vec<f32>>();
+        if vals.iter().any(|v| !v.is_finite()) {
+            return Err(format!("{name}: non-finite weights"));
+        }
+        out.push((name, dims, vals));
+    }
+    Ok(out)
+}
+
+/// Looks a parameter up by name and shape.
+type Finder<'a> = dyn Fn(&str, &[usize]) -> Result<Tensor<1>, String> + 'a;
+
+/// Builds a network of `cfg` and overwrites its parameters with `tensors` (every parameter must
+/// be present with its shape).
+pub fn load_net(
+    cfg: &SrGcnConfig,
+    tensors: &[NamedTensor],
+    device: &Device,
+) -> Result<SrGcn, String> {
+    let mut net = cfg.init(device).map_err(|e| e.to_string())?;
+    let find = |name: &str, dims: &[usize]| -> Result<Tensor<1>, String> {
+        let (_, d, v) = tensors
+            .iter()
+            .find(|t| t.0 == name)
+            .ok_or_else(|| format!("weights lack {name}"))?;
+        if d.as_slice() != dims {
+            return Err(format!(
+                "{name}: shape {d:?}, the configuration needs {dims:?}"
+            ));
+        }
+        Ok(Tensor::<1>::from_data(
+            TensorData::new(v.clone(), [v.len()]),
+            device,
+        ))
+    };
+    fn set_conv(prefix: &str, c: &mut SplineConv, find: &Finder) -> Result<(), String> {
+        let [k, i, o] = c.weight.dims();
+        c.weight =
+            Param::from_tensor(find(&format!("{prefix}.weight"), &[k, i, o])?.reshape([k, i, o]));
+        if let Some(r) = &c.root {
+            let [i, o] = r.dims();
+            c.root = Some(Param::from_tensor(
+                find(&format!("{prefix}.root"), &[i, o])?.reshape([i, o]),
+            ));
+        }
+        if let Some(b) = &c.bias {
+            let [o] = b.dims();
+            c.bias = Some(Param::from_tensor(find(&format!("{prefix}.bias"), &[o])?));
+        }
+        Ok(())
+    }
+    fn set_branch(prefix: &str, b: &mut Branch, find: &Finder) -> Result<(), String> {
+        set_conv(&format!("{prefix}.encoder"), &mut b.encoder, find)?;
+        for (i, c) in b.convs.iter_mut().enumerate() {
+            set_conv(&format!("{prefix}.convs.{i}"), c, find)?;
+        }
+        set_conv(&format!("{prefix}.decoder"), &mut b.decoder, find)
+    }
+    set_branch("mesh", &mut net.mesh, &find)?;
+    if let Some(b) = &mut net.bip {
+        set_branch("bip", b, &find)?;
+    }
+    Ok(net)
+}
+
+/// `model.json` of a model directory.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct ModelFile {
+    /// Format version (1).
+    pub format: u32,
+    /// The network configuration.
+    pub config: SrGcnConfig,
+    /// Weights file, relative to the directory.
+    pub weights: String,
+    /// How the model was made: command, data, split, seed, commit, metrics (free-form JSON).
+    pub provenance: serde_json::Value,
+}
+
+/// A trained model, loaded for inference.
+#[derive(Debug)]
+pub struct TrainedModel {
+    /// Its configuration.
+    pub config: SrGcnConfig,
+    /// The network.
+    pub net: SrGcn,
+    /// Its provenance.
+    pub provenance: serde_json::Value,
+}
+
+/// Writes a model directory.
+pub fn save_model(
+    dir: &Path,
+    cfg: &SrGcnConfig,
+    net: &SrGcn,
+    provenance: serde_json::Value,
+) -> Result<(), String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let bytes = encode(&named_tensors(net));
+    let wpath = dir.join("weights.bin");
+    std::fs::write(&wpath, bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    let file = ModelFile {
+        format: 1,
+        config: cfg.clone(),
+        weights: "weights.bin".into(),
+        provenance,
+    };
+    let j = serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?;
+    std::fs::write(dir.join("model.json"), j).map_err(|e| format!("{}: {e}", dir.display()))
+}
+
+/// Reads a model directory.
+pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
+    let mpath = dir.join("model.json");
+    let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let file: ModelFile =
+        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", mpath.display()))?;
+    if file.format != 1 {
+        return Err(format!(
+            "{}: format {} (this build reads 1)",
+            mpath.display(),
+            file.format
+        ));
+    }
+    file.config
+        .validate()
+        .map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let wpath = dir.join(&file.weights);
+    let bytes = std::fs::read(&wpath).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    let tensors = decode(&bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    let net = load_net(&file.config, &tensors, device)
+        .map_err(|e| format!("{}: {e}", wpath.display()))?;
+    Ok(TrainedModel {
+        config: file.config,
+        net,
+        provenance: file.provenance,
+    })
+}

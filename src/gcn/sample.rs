@@ -1,0 +1,427 @@
+//! From a LIBR registration to SR-GCN inputs (and, for training, targets). Everything here is
+//! host-side data (plain vectors); [`SampleData::tensors`] moves one sample to a device.
+//!
+//! Frame: the **registered preoperative (image) frame**. LIBR returns node displacements `u` in
+//! the image frame and a rigid transform `T` image → physical; the measured points are mapped
+//! back by `T⁻¹`. So the network sees the preoperative mesh, the LIBR-deformed mesh `X + u` and the
+//! points in one frame that does not depend on where the patient lies, and its correction `y` is
+//! added to `u` (LIBR+ node `i` is at `T(X_i + u_i + y_i)`).
+//!
+//! Normalisation per case: coordinates `(p − c) / s` with `c` the preoperative centroid and `s`
+//! the RMS distance of the nodes from it; corrections in units of `s / 10` ([`CaseFrame::unit_mm`]).
+
+use super::graph::Graph;
+use super::model::{BipartiteInput, SrGcnConfig, Target};
+use super::sparse::{Csr, SparseOp};
+use super::{GcnError, SplineGraph, cartesian_pseudo, mesh_graph};
+use crate::mesh::TetMesh;
+use crate::mesh::rigid::Rigid;
+use crate::register::Measurements;
+use crate::register::correspondence::{Correspondence, CorrespondenceParams};
+use burn::tensor::{Device, Tensor, TensorData};
+use rayon::prelude::*;
+
+/// Per-case normalisation and the mesh graph (computed once per preoperative mesh).
+#[derive(Debug, Clone)]
+pub struct CaseFrame {
+    /// Preoperative centroid (mm).
+    pub center: [f64; 3],
+    /// RMS node distance from the centroid (mm).
+    pub scale: f64,
+    /// The mesh graph (tet edges both ways, pseudo-coordinates of the preoperative nodes).
+    pub graph: Graph,
+    /// Normalised preoperative coordinates, `[V, 3]` row-major.
+    pub preop: Vec<f32>,
+}
+
+impl CaseFrame {
+    /// Builds the frame of a preoperative mesh.
+    pub fn new(mesh: &TetMesh) -> Result<Self, GcnError> {
+        let nodes = mesh.nodes();
+        if nodes.is_empty() {
+            return Err(GcnError::Invalid("the mesh has no nodes".into()));
+        }
+        let n = nodes.len() as f64;
+        let mut center = [0.0; 3];
+        for p in nodes {
+            for a in 0..3 {
+                center[a] += p[a] / n;
+            }
+        }
+        let scale = (nodes
+            .iter()
+            .map(|p| (0..3).map(|a| (p[a] - center[a]).powi(2)).sum::<f64>())
+            .sum::<f64>()
+            / n)
+            .sqrt();
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(GcnError::Invalid("the mesh has no extent".into()));
+        }
+        let mut frame = Self {
+            center,
+            scale,
+            graph: mesh_graph(mesh)?,
+            preop: Vec::new(),
+        };
+        frame.preop = nodes.iter().flat_map(|p| frame.normalise(*p)).collect();
+        Ok(frame)
+    }
+
+    /// The unit of the network's corrections (mm).
+    pub fn unit_mm(&self) -> f64 {
+        0.1 * self.scale
+    }
+
+    /// A point in normalised coordinates.
+    pub fn normalise(&self, p: [f64; 3]) -> [f32; 3] {
+        [0, 1, 2].map(|a| ((p[a] - self.center[a]) / self.scale) as f32)
+    }
+
+    /// The mesh graph prepared for the network's kernel on a device.
+    pub fn spline_graph(
+        &self,
+        cfg: &SrGcnConfig,
+        device: &Device,
+    ) -> Result<SplineGraph, GcnError> {
+        let g = &self.graph;
+        SplineGraph::new(
+            g.num_nodes,
+            &g.targets,
+            &g.sources,
+            &g.pseudo,
+            &cfg.kernel()?,
+            device,
+        )
+    }
+}
+
+/// The compact bipartite graph of one sample (host side).
+#[derive(Debug, Clone)]
+pub struct BipartiteData {
+    /// Graph over the matched vertices (nodes `0..vertices.len()`) then the points.
+    pub graph: Graph,
+    /// Mesh vertex of each vertex node.
+    pub vertices: Vec<usize>,
+    /// Normalised positions, `[Nb, 3]`: LIBR-deformed vertices, then points.
+    pub features: Vec<f32>,
+}
+
+/// One SR-GCN input (and its targets when built for training), host side.
+#[derive(Debug, Clone)]
+pub struct SampleData {
+    /// Number of mesh nodes.
+    pub num_nodes: usize,
+    /// Mesh-branch input `[V, 3 or 6]`.
+    pub node_features: Vec<f32>,
+    /// Input channels of `node_features`.
+    pub channels: usize,
+    /// The bipartite graph, when the configuration uses it.
+    pub bipartite: Option<BipartiteData>,
+    /// Sparse-loss interpolation `[M, V]`: row m holds the barycentric weights of the model point
+    /// matched to measured point m.
+    pub sparse_rows: Csr,
+    /// Sparse-loss targets `[M, 3]` in output units: where the correction must move each matched
+    /// model point (to its measured point).
+    pub sparse_target: Vec<f32>,
+    /// Training target `[V, 3]` in output units (residual or whole displacement), when known.
+    pub target: Option<Vec<f32>>,
+}
+
+/// The `k` nearest of `nodes` to each of `points`, by a uniform grid (exact).
+fn knn(nodes: &[[f64; 3]], points: &[[f64; 3]], k: usize) -> Vec<Vec<usize>> {
+    let k = k.min(nodes.len());
+    if k == 0 {
+        return vec![Vec::new(); points.len()];
+    }
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in nodes {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    // About 2 nodes per cell.
+    let vol: f64 = (0..3).map(|a| (hi[a] - lo[a]).max(1e-9)).product();
+    let h = (2.0 * vol / nodes.len() as f64).cbrt().max(1e-9);
+    let dims = [0, 1, 2].map(|a| (((hi[a] - lo[a]) / h).floor() as usize + 1).min(1 << 10));
+    let cell = |p: &[f64; 3]| {
+        [0, 1, 2].map(|a| (((p[a] - lo[a]) / h).floor().max(0.0) as usize).min(dims[a] - 1))
+    };
+    let idx = |c: [usize; 3]| (c[2] * dims[1] + c[1]) * dims[0] + c[0];
+    let mut start = vec![0usize; dims[0] * dims[1] * dims[2] + 1];
+    for p in nodes {
+        start[idx(cell(p)) + 1] += 1;
+    }
+    for i in 1..start.len() {
+        start[i] += start[i - 1];
+    }
+    let mut fill = start.clone();
+    let mut items = vec![0usize; nodes.len()];
+    for (i, p) in nodes.iter().enumerate() {
+        let c = idx(cell(p));
+        items[fill[c]] = i;
+        fill[c] += 1;
+    }
+    points
+        .par_iter()
+        .map(|p| {
+            let c = cell(p);
+            let mut best: Vec<(f64, usize)> = Vec::new();
+            let mut r = 0usize;
+            loop {
+                // Visit the shell of cells at Chebyshev ring r.
+                for z in c[2].saturating_sub(r)..=(c[2] + r).min(dims[2] - 1) {
+                    for y in c[1].saturating_sub(r)..=(c[1] + r).min(dims[1] - 1) {
+                        for x in c[0].saturating_sub(r)..=(c[0] + r).min(dims[0] - 1) {
+                            let ring = (x.abs_diff(c[0]))
+                                .max(y.abs_diff(c[1]))
+                                .max(z.abs_diff(c[2]));
+                            if ring != r {
+                                continue;
+                            }
+                            let ci = idx([x, y, z]);
+                            for &i in &items[start[ci]..start[ci + 1]] {
+                                let q = &nodes[i];
+                                let d = (0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>();
+                                best.push((d, i));
+                            }
+                        }
+                    }
+                }
+                best.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                best.truncate(k);
+                // Everything outside ring r is at least (r + dist to cell wall) away; r·h is a
+                // safe lower bound for ring r + 1.
+                let bound = (r as f64 * h).powi(2);
+                let all_cells = r >= dims[0].max(dims[1]).max(dims[2]);
+                if (best.len() == k && best[k - 1].0 <= bound) || all_cells {
+                    return best.into_iter().map(|(_, i)| i).collect();
+                }
+                r += 1;
+            }
+        })
+        .collect()
+}
+
+impl SampleData {
+    /// Builds the input of one registration: the preoperative model, its LIBR result (`u`,
+    /// image → physical `transform`) and the measurements. `truth`, for training only, is the
+    /// true position of every node in the physical frame.
+    #[allow(clippy::too_many_arguments)]
+    pub fn build(
+        cfg: &SrGcnConfig,
+        frame: &CaseFrame,
+        mesh: &TetMesh,
+        correspondence: &Correspondence,
+        cparams: &CorrespondenceParams,
+        meas: &Measurements,
+        u: &[f64],
+        transform: &Rigid,
+        truth_physical: Option<&[[f64; 3]]>,
+    ) -> Result<Self, GcnError> {
+        let nodes = mesh.nodes();
+        let v = nodes.len();
+        if u.len() != 3 * v || u.iter().any(|x| !x.is_finite()) {
+            return Err(GcnError::Invalid(format!(
+                "u must hold 3 × {v} finite values, has {}",
+                u.len()
+            )));
+        }
+        let deformed: Vec<[f64; 3]> = (0..v)
+            .map(|i| [0, 1, 2].map(|a| nodes[i][a] + u[3 * i + a]))
+            .collect();
+        let inv = transform.inverse();
+        let points: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
+        // Mesh-branch input.
+        let channels = cfg.mesh_inputs();
+        let mut node_features = Vec::with_capacity(v * channels);
+        for i in 0..v {
+            node_features.extend_from_slice(&frame.preop[3 * i..3 * i + 3]);
+            if cfg.libr_input {
+                node_features.extend(frame.normalise(deformed[i]));
+            }
+        }
+        // Bipartite graph: each point to its n_top nearest LIBR-deformed vertices.
+        let bipartite = if cfg.bipartite {
+            let near = knn(&deformed, &points, cfg.n_top);
+            let mut local = vec![usize::MAX; v];
+            let mut vertices = Vec::new();
+            for list in &near {
+                for &i in list {
+                    if local[i] == usize::MAX {
+                        local[i] = vertices.len();
+                        vertices.push(i);
+                    }
+                }
+            }
+            let nv = vertices.len();
+            let mut targets = Vec::new();
+            let mut sources = Vec::new();
+            for (p, list) in near.iter().enumerate() {
+                for &i in list {
+                    targets.extend([local[i], nv + p]);
+                    sources.extend([nv + p, local[i]]);
+                }
+            }
+            let mut pos: Vec<f64> = vertices.iter().flat_map(|&i| deformed[i]).collect();
+            pos.extend(points.iter().flatten());
+            let pseudo = cartesian_pseudo(&pos, 3, &targets, &sources)?;
+            let mut features: Vec<f32> = vertices
+                .iter()
+                .flat_map(|&i| frame.normalise(deformed[i]))
+                .collect();
+            features.extend(points.iter().flat_map(|&p| frame.normalise(p)));
+            Some(BipartiteData {
+                graph: Graph {
+                    num_nodes: nv + points.len(),
+                    targets,
+                    sources,
+                    pseudo,
+                },
+                vertices,
+                features,
+            })
+        } else {
+            None
+        };
+        // Sparse loss: the model point matched to each measured point on the LIBR-deformed model.
+        let unit = frame.unit_mm();
+        let (matches, _) = correspondence
+            .match_points(&points, meas, Some(u), cparams)
+            .map_err(GcnError::Invalid)?;
+        let mut trip = Vec::new();
+        let mut sparse_target = Vec::with_capacity(3 * matches.len());
+        for (row, m) in matches.iter().enumerate() {
+            for k in 0..4 {
+                if m.bary[k] != 0.0 {
+                    trip.push((row, m.nodes[k] as usize, m.bary[k] as f32));
+                }
+            }
+            let base = match cfg.target {
+                Target::Residual => m.model_point(u),
+                Target::Gt => m.anchor,
+            };
+            let p = points[m.point];
+            sparse_target.extend((0..3).map(|a| ((p[a] - base[a]) / unit) as f32));
+        }
+        let sparse_rows = Csr::from_triplets(matches.len(), v, &trip)?;
+        let target = match truth_physical {
+            None => None,
+            Some(t) => {
+                if t.len() != v {
+                    return Err(GcnError::Invalid("truth has the wrong node count".into()));
+                }
+                let mut out = Vec::with_capacity(3 * v);
+                for i in 0..v {
+                    let q = inv.apply(t[i]);
+                    let base = match cfg.target {
+                        Target::Residual => deformed[i],
+                        Target::Gt => nodes[i],
+                    };
+                    out.extend((0..3).map(|a| ((q[a] - base[a]) / unit) as f32));
+                }
+                Some(out)
+            }
+        };
+        Ok(Self {
+            num_nodes: v,
+            node_features,
+            channels,
+            bipartite,
+            sparse_rows,
+            sparse_target,
+            target,
+        })
+    }
+
+    /// The network inputs on a device.
+    pub fn tensors(
+        &self,
+        cfg: &SrGcnConfig,
+        device: &Device,
+    ) -> Result<(Tensor<2>, Option<BipartiteInput>), GcnError> {
+        let x = Tensor::<2>::from_data(
+            TensorData::new(self.node_features.clone(), [self.num_nodes, self.channels]),
+            device,
+        );
+        let bip = match &self.bipartite {
+            None => None,
+            Some(b) => {
+                let g = &b.graph;
+                let graph = SplineGraph::new(
+                    g.num_nodes,
+                    &g.targets,
+                    &g.sources,
+                    &g.pseudo,
+                    &cfg.kernel()?,
+                    device,
+                )?;
+                let features = Tensor::<2>::from_data(
+                    TensorData::new(b.features.clone(), [g.num_nodes, 3]),
+                    device,
+                );
+                let trip: Vec<_> = b
+                    .vertices
+                    .iter()
+                    .enumerate()
+                    .map(|(l, &i)| (i, l, 1.0))
+                    .collect();
+                let to_mesh =
+                    SparseOp::new(Csr::from_triplets(self.num_nodes, g.num_nodes, &trip)?);
+                let mut mask = vec![0f32; self.num_nodes];
+                for &i in &b.vertices {
+                    mask[i] = 1.0;
+                }
+                let mask =
+                    Tensor::<2>::from_data(TensorData::new(mask, [self.num_nodes, 1]), device);
+                Some(BipartiteInput {
+                    graph,
+                    features,
+                    to_mesh,
+                    mask,
+                })
+            }
+        };
+        Ok((x, bip))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_knn_equals_brute_force() {
+        let mut s = 3u64;
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let nodes: Vec<[f64; 3]> = (0..500)
+            .map(|_| [rnd() * 100.0, rnd() * 50.0, rnd() * 10.0])
+            .collect();
+        // Points inside, near and far outside the cloud.
+        let points: Vec<[f64; 3]> = (0..60)
+            .map(|i| {
+                let f = if i % 3 == 0 { 3.0 } else { 1.0 };
+                [rnd() * 100.0 * f - 50.0, rnd() * 50.0 * f, rnd() * 10.0 * f]
+            })
+            .collect();
+        for k in [1, 4, 9] {
+            let got = knn(&nodes, &points, k);
+            for (p, list) in points.iter().zip(&got) {
+                let mut all: Vec<(f64, usize)> = nodes
+                    .iter()
+                    .enumerate()
+                    .map(|(i, q)| ((0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>(), i))
+                    .collect();
+                all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                let want: Vec<usize> = all[..k].iter().map(|x| x.1).collect();
+                assert_eq!(list, &want);
+            }
+        }
+    }
+}

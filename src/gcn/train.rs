@@ -1,0 +1,827 @@
+//! SR-GCN training and LIBR+ inference on a dataset.
+//!
+//! **Splits** ([`TrainSplit`]), over the dataset's training geometries (pattern V stays unseen
+//! except as the `pattern-v` test): `random` (blocks of five consecutive scenarios, one per
+//! measurement category, shuffled by the seed; 80 % train, 20 % test), `geo-def` (three whole
+//! geometry–pattern deformations held out: the first geometry's first two patterns and the last
+//! geometry's third, as the paper's 1-L, 1-R, 3-W), `logo:G` (every deformation of geometry G held
+//! out) and `pattern-v` (train on every training deformation, test on the test geometry). A
+//! seeded 10 % of the training blocks is kept for validation (early stopping).
+//!
+//! **Inputs** come from LIBR run on each scenario's measurements (never from the ground truth;
+//! the truth only makes the training targets). LIBR solutions are cached under
+//! `DATA/cache/libr-solutions/KEY/` (KEY hashes the registration parameters) so retraining or a
+//! second split does not rerun LIBR.
+//!
+//! **Two stages** (the paper's): stage 1 trains the bipartite branch on reconstructing its input
+//! (`L_b`); stage 2 freezes it and trains the mesh branch on `L_residual + λ L_sparse` (or `L_gt`
+//! in the ablations). Adam, learning rate halved when validation stalls, early stopping on the
+//! validation node error (mm), best weights kept.
+
+use super::io::{TrainedModel, save_model};
+use super::model::{Loss, SrGcn, SrGcnConfig, Target};
+use super::sample::{CaseFrame, SampleData};
+use super::{GcnError, SplineGraph};
+use crate::dataset::Manifest;
+use crate::eval::{GeometryData, ScenarioData, load_geometry};
+use crate::mesh::rigid::Rigid;
+use crate::register::correspondence::CorrespondenceParams;
+use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor, TensorData};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Scenarios per block (one per measurement category).
+const BLOCK: usize = 5;
+
+/// A train/test split of a dataset.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TrainSplit {
+    /// Random blocks of scenarios of the training deformations.
+    Random,
+    /// Whole geometry–pattern deformations held out.
+    GeoDef,
+    /// Every deformation of one geometry held out.
+    Logo(String),
+    /// Train on the training deformations, test on the test geometry (pattern V).
+    PatternV,
+}
+
+impl TrainSplit {
+    /// Parses `random`, `geo-def`, `logo:G`, `pattern-v`.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "random" => Ok(Self::Random),
+            "geo-def" => Ok(Self::GeoDef),
+            "pattern-v" => Ok(Self::PatternV),
+            _ => match s.strip_prefix("logo:") {
+                Some(g) if !g.is_empty() => Ok(Self::Logo(g.to_string())),
+                _ => Err(format!(
+                    "unknown split {s:?}: expected random, geo-def, logo:GEOMETRY or pattern-v"
+                )),
+            },
+        }
+    }
+
+    /// Name as parsed.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Random => "random".into(),
+            Self::GeoDef => "geo-def".into(),
+            Self::Logo(g) => format!("logo:{g}"),
+            Self::PatternV => "pattern-v".into(),
+        }
+    }
+}
+
+/// A scenario: deformation id and scenario index.
+pub type ScenarioRef = (String, usize);
+
+/// The scenarios of a split.
+#[derive(Debug, Clone, Default)]
+pub struct SplitSets {
+    /// Training scenarios.
+    pub train: Vec<ScenarioRef>,
+    /// Validation scenarios (from the training deformations).
+    pub valid: Vec<ScenarioRef>,
+    /// Test scenarios.
+    pub test: Vec<ScenarioRef>,
+}
+
+/// SplitMix64: a small seeded generator for shuffles.
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E3779B97F4A7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
+    z ^ (z >> 31)
+}
+
+fn shuffle<T>(v: &mut [T], seed: u64) {
+    let mut s = seed;
+    for i in (1..v.len()).rev() {
+        let j = (splitmix(&mut s) % (i as u64 + 1)) as usize;
+        v.swap(i, j);
+    }
+}
+
+/// Assigns scenarios to train, validation and test. `every`: keep every `every`-th block of
+/// each deformation (1 = all).
+pub fn split_scenarios(
+    m: &Manifest,
+    split: &TrainSplit,
+    seed: u64,
+    every: usize,
+) -> Result<SplitSets, String> {
+    let every = every.max(1);
+    let test_geos: Vec<&str> = m
+        .geometries
+        .iter()
+        .filter(|g| g.split == "test")
+        .map(|g| g.id.as_str())
+        .collect();
+    let train_defs: Vec<_> = m
+        .deformations
+        .iter()
+        .filter(|d| !test_geos.contains(&d.geometry.as_str()))
+        .collect();
+    let mut geos: Vec<&str> = train_defs.iter().map(|d| d.geometry.as_str()).collect();
+    geos.dedup();
+    let mut pats: Vec<&str> = train_defs.iter().map(|d| d.pattern.as_str()).collect();
+    pats.sort();
+    pats.dedup();
+    let blocks = |d: &crate::dataset::DeformationEntry| -> Vec<Vec<ScenarioRef>> {
+        (0..d.scenarios.len().div_ceil(BLOCK))
+            .filter(|b| b % every == 0)
+            .map(|b| {
+                (b * BLOCK..((b + 1) * BLOCK).min(d.scenarios.len()))
+                    .map(|i| (d.id.clone(), i))
+                    .collect()
+            })
+            .collect()
+    };
+    let mut train_blocks = Vec::new();
+    let mut test = Vec::new();
+    match split {
+        TrainSplit::Random => {
+            let mut all: Vec<Vec<ScenarioRef>> =
+                train_defs.iter().flat_map(|d| blocks(d)).collect();
+            shuffle(&mut all, seed ^ 0x5EED);
+            let n_test = (all.len() / 5).max(1).min(all.len().saturating_sub(2));
+            for (i, b) in all.into_iter().enumerate() {
+                if i < n_test {
+                    test.extend(b);
+                } else {
+                    train_blocks.push(b);
+                }
+            }
+        }
+        TrainSplit::GeoDef | TrainSplit::Logo(_) => {
+            if let TrainSplit::Logo(g) = split
+                && !geos.contains(&g.as_str())
+            {
+                return Err(format!(
+                    "logo:{g}: no training geometry {g} (have {})",
+                    geos.join(", ")
+                ));
+            }
+            if matches!(split, TrainSplit::GeoDef) && (geos.len() < 2 || pats.len() < 3) {
+                return Err("geo-def needs at least 2 geometries and 3 patterns".into());
+            }
+            for d in &train_defs {
+                let held = match split {
+                    TrainSplit::Logo(g) => &d.geometry == g,
+                    _ => {
+                        let gi = geos.iter().position(|g| *g == d.geometry).unwrap_or(0);
+                        let pi = pats.iter().position(|p| *p == d.pattern).unwrap_or(0);
+                        (gi == 0 && pi < 2) || (gi == geos.len() - 1 && pi == 2)
+                    }
+                };
+                for b in blocks(d) {
+                    if held {
+                        test.extend(b);
+                    } else {
+                        train_blocks.push(b);
+                    }
+                }
+            }
+        }
+        TrainSplit::PatternV => {
+            if test_geos.is_empty() {
+                return Err("pattern-v: the dataset has no test geometry".into());
+            }
+            for d in &m.deformations {
+                for b in blocks(d) {
+                    if test_geos.contains(&d.geometry.as_str()) {
+                        test.extend(b);
+                    } else {
+                        train_blocks.push(b);
+                    }
+                }
+            }
+        }
+    }
+    shuffle(&mut train_blocks, seed ^ 0xA11D);
+    let n_valid = (train_blocks.len() / 10)
+        .max(1)
+        .min(train_blocks.len().saturating_sub(1));
+    let mut sets = SplitSets {
+        test,
+        ..Default::default()
+    };
+    for (i, b) in train_blocks.into_iter().enumerate() {
+        if i < n_valid {
+            sets.valid.extend(b);
+        } else {
+            sets.train.extend(b);
+        }
+    }
+    sets.train.sort();
+    sets.valid.sort();
+    sets.test.sort();
+    if sets.train.is_empty() || sets.test.is_empty() {
+        return Err(format!(
+            "split {} leaves no training or no test scenarios",
+            split.name()
+        ));
+    }
+    Ok(sets)
+}
+
+/// A LIBR solution of one scenario (what LIBR+ starts from).
+#[derive(Debug, Clone)]
+pub struct LibrSolution {
+    /// Image → physical transform.
+    pub transform: Rigid,
+    /// Node displacements (image frame).
+    pub u: Vec<f64>,
+}
+
+/// Key of the LIBR solution cache: the registration parameters.
+pub fn solution_key(params: &PipelineParams) -> String {
+    let text = format!("{:?}|{:?}", params.wicp, params.libr);
+    crate::dataset::fnv1a_hex(text.as_bytes())
+}
+
+fn encode_solution(s: &Option<LibrSolution>) -> Vec<u8> {
+    let mut b = b"LIBRSOL1".to_vec();
+    match s {
+        None => b.push(0),
+        Some(s) => {
+            b.push(1);
+            for row in s.transform.rotation {
+                for v in row {
+                    b.extend(v.to_le_bytes());
+                }
+            }
+            for v in s.transform.translation {
+                b.extend(v.to_le_bytes());
+            }
+            b.extend((s.u.len() as u64).to_le_bytes());
+            for v in &s.u {
+                b.extend(v.to_le_bytes());
+            }
+        }
+    }
+    b
+}
+
+fn decode_solution(b: &[u8], n3: usize) -> Option<Option<LibrSolution>> {
+    let rd = |i: usize| {
+        b.get(i..i + 8)
+            .map(|s| f64::from_le_bytes(s.try_into().expect("8")))
+    };
+    if b.get(..8)? != b"LIBRSOL1" {
+        return None;
+    }
+    match *b.get(8)? {
+        0 => Some(None),
+        1 => {
+            let mut rotation = [[0.0; 3]; 3];
+            for (k, r) in rotation.iter_mut().flatten().enumerate() {
+                *r = rd(9 + 8 * k)?;
+            }
+            let translation = [rd(81)?, rd(89)?, rd(97)?];
+            let n = u64::from_le_bytes(b.get(105..113)?.try_into().ok()?) as usize;
+            if n != n3 || b.len() != 113 + 8 * n {
+                return None;
+            }
+            let u = (0..n)
+                .map(|i| rd(113 + 8 * i))
+                .collect::<Option<Vec<f64>>>()?;
+            Some(Some(LibrSolution {
+                transform: Rigid {
+                    rotation,
+                    translation,
+                },
+                u,
+            }))
+        }
+        _ => None,
+    }
+}
+
+/// One geometry's registration case and SR-GCN frame.
+pub struct GeometryCase {
+    /// The geometry (model, surface flags, targets).
+    pub geo: GeometryData,
+    /// Its prepared registration case (with the LIBR basis).
+    pub case: Prepared,
+    /// Its SR-GCN frame and mesh graph.
+    pub frame: CaseFrame,
+}
+
+/// Loads (or builds and caches) the registration case of every geometry named.
+pub fn load_cases(
+    dir: &Path,
+    m: &Manifest,
+    geometries: &[String],
+    params: &PipelineParams,
+) -> Result<BTreeMap<String, GeometryCase>, String> {
+    let mut out = BTreeMap::new();
+    for g in geometries {
+        if out.contains_key(g) {
+            continue;
+        }
+        let geo = load_geometry(dir, m, g)?;
+        let case = Prepared::new(
+            geo.model.clone(),
+            Some(&params.libr),
+            Some(&dir.join("cache")),
+        )?;
+        let frame = CaseFrame::new(&geo.model.mesh).map_err(|e| e.to_string())?;
+        out.insert(g.clone(), GeometryCase { geo, case, frame });
+    }
+    Ok(out)
+}
+
+/// LIBR solutions of scenarios (None where LIBR failed), from the cache or computed (in parallel)
+/// and cached. `progress(done, total)` is called as they come.
+pub fn libr_solutions(
+    dir: &Path,
+    cases: &BTreeMap<String, GeometryCase>,
+    scenarios: &[(&ScenarioData, &str)],
+    params: &PipelineParams,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Vec<Option<LibrSolution>>, String> {
+    let root = dir
+        .join("cache")
+        .join("libr-solutions")
+        .join(solution_key(params));
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = scenarios.len();
+    scenarios
+        .par_iter()
+        .map(|(sc, geometry)| {
+            let gc = cases
+                .get(*geometry)
+                .ok_or_else(|| format!("no case for geometry {geometry}"))?;
+            let n3 = 3 * gc.geo.model.mesh.num_nodes();
+            let path = root.join(format!("{}.bin", sc.id.replace('/', "__")));
+            let cached = std::fs::read(&path)
+                .ok()
+                .and_then(|b| decode_solution(&b, n3));
+            let sol = match cached {
+                Some(s) => s,
+                None => {
+                    let s = register(&gc.case, &sc.measurements, Method::Libr, params)
+                        .ok()
+                        .map(|r| LibrSolution {
+                            transform: r.image_to_physical,
+                            u: r.u,
+                        });
+                    std::fs::create_dir_all(&root)
+                        .map_err(|e| format!("{}: {e}", root.display()))?;
+                    let tmp = path.with_extension("tmp");
+                    std::fs::write(&tmp, encode_solution(&s))
+                        .map_err(|e| format!("{}: {e}", tmp.display()))?;
+                    std::fs::rename(&tmp, &path).map_err(|e| format!("{}: {e}", path.display()))?;
+                    s
+                }
+            };
+            progress(
+                done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1,
+                total,
+            );
+            Ok(sol)
+        })
+        .collect()
+}
+
+/// True node positions (physical frame) of a scenario.
+pub fn truth_positions(geo: &GeometryData, sc: &ScenarioData) -> Vec<[f64; 3]> {
+    let t = &sc.truth;
+    geo.model
+        .mesh
+        .nodes()
+        .iter()
+        .enumerate()
+        .map(|(i, x)| {
+            t.image_to_physical
+                .apply([0, 1, 2].map(|a| x[a] + t.displacement[3 * i + a]))
+        })
+        .collect()
+}
+
+/// The correspondence parameters LIBR ends with (what the sparse loss re-matches with).
+pub fn final_cparams(params: &PipelineParams) -> CorrespondenceParams {
+    CorrespondenceParams {
+        trim_floor_mm: params.libr.trim_floor_mm,
+        ..params.wicp.correspondence
+    }
+}
+
+/// Training settings.
+#[derive(Debug, Clone)]
+pub struct TrainOptions {
+    /// Network configuration.
+    pub config: SrGcnConfig,
+    /// Split.
+    pub split: TrainSplit,
+    /// Keep every `every`-th block of scenarios.
+    pub every: usize,
+    /// Seed (split, initialisation, sample order).
+    pub seed: u64,
+    /// Stage-1 epochs (bipartite branch).
+    pub epochs_bipartite: usize,
+    /// Stage-2 epochs at most (mesh branch).
+    pub epochs: usize,
+    /// Initial learning rate.
+    pub learning_rate: f64,
+    /// Epochs without validation improvement before stopping.
+    pub patience: usize,
+    /// Stop stage 2 after this many minutes of training (the epoch in progress ends first).
+    pub max_minutes: f64,
+}
+
+impl Default for TrainOptions {
+    fn default() -> Self {
+        Self {
+            config: SrGcnConfig::new(),
+            split: TrainSplit::PatternV,
+            every: 2,
+            seed: 1,
+            epochs_bipartite: 2,
+            epochs: 12,
+            learning_rate: 2e-3,
+            patience: 3,
+            max_minutes: 25.0,
+        }
+    }
+}
+
+/// One epoch's figures.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct EpochLog {
+    /// Stage (1 bipartite, 2 mesh).
+    pub stage: u32,
+    /// Epoch within the stage (from 1).
+    pub epoch: usize,
+    /// Mean training loss.
+    pub train_loss: f64,
+    /// Validation: mean node error after correction (mm) in stage 2, loss in stage 1.
+    pub valid: f64,
+    /// Learning rate used.
+    pub learning_rate: f64,
+    /// Wall time since the start (s).
+    pub seconds: f64,
+}
+
+/// A prepared sample: its geometry and host data.
+pub struct Prepared2 {
+    /// Geometry id.
+    pub geometry: String,
+    /// Inputs and targets.
+    pub data: SampleData,
+}
+
+/// Builds the SR-GCN samples of scenarios whose LIBR succeeded (with targets from the truth).
+pub fn build_samples(
+    cfg: &SrGcnConfig,
+    cases: &BTreeMap<String, GeometryCase>,
+    items: &[(&ScenarioData, &str, &Option<LibrSolution>)],
+    params: &PipelineParams,
+    with_truth: bool,
+) -> Result<Vec<Option<Prepared2>>, String> {
+    let cparams = final_cparams(params);
+    items
+        .par_iter()
+        .map(|(sc, g, sol)| {
+            let Some(sol) = sol else { return Ok(None) };
+            let gc = &cases[*g];
+            let truth = with_truth.then(|| truth_positions(&gc.geo, sc));
+            let data = SampleData::build(
+                cfg,
+                &gc.frame,
+                &gc.geo.model.mesh,
+                &gc.case.correspondence,
+                &cparams,
+                &sc.measurements,
+                &sol.u,
+                &sol.transform,
+                truth.as_deref(),
+            )
+            .map_err(|e| format!("{}: {e}", sc.id))?;
+            Ok(Some(Prepared2 {
+                geometry: g.to_string(),
+                data,
+            }))
+        })
+        .collect()
+}
+
+fn tensor2(v: &[f32], rows: usize, device: &Device) -> Tensor<2> {
+    Tensor::<2>::from_data(TensorData::new(v.to_vec(), [rows, 3]), device)
+}
+
+/// Mean penalty of per-row error vectors `e` `[n, 3]`.
+fn penalty(kind: Loss, e: Tensor<2>) -> Tensor<1> {
+    match kind {
+        Loss::Squared => e.powi_scalar(2).mean(),
+        Loss::Distance => {
+            let eps = 0.01f32;
+            let d = (e.powi_scalar(2).sum_dim(1) + eps * eps).sqrt() - eps;
+            d.mean()
+        }
+    }
+}
+
+/// Stage-2 loss of one sample: the mean penalty ([`Loss`]) of the correction error over nodes, plus
+/// λ times the same at the matched measured points. Also returns the prediction.
+fn mesh_loss(
+    net: &SrGcn,
+    cfg: &SrGcnConfig,
+    s: &SampleData,
+    graph: &SplineGraph,
+    device: &Device,
+) -> Result<(Tensor<1>, Tensor<2>), GcnError> {
+    let (x, bip) = s.tensors(cfg, device)?;
+    let out = match &bip {
+        Some(b) => net.forward_bipartite(b)?.map(|o| {
+            // Stage 2 keeps the bipartite branch fixed.
+            let features = o.features.into_iter().map(|f| f.detach()).collect();
+            super::model::BipartiteOutput {
+                features,
+                reconstruction: o.reconstruction.detach(),
+            }
+        }),
+        None => None,
+    };
+    let y = net.forward_mesh(x, graph, bip.as_ref().zip(out.as_ref()))?;
+    let target = s
+        .target
+        .as_ref()
+        .ok_or_else(|| GcnError::Invalid("sample has no target".into()))?;
+    let t = tensor2(target, s.num_nodes, device);
+    let mut loss = penalty(cfg.loss, y.clone() - t);
+    if cfg.sparse_weight > 0.0 && s.sparse_rows.rows > 0 {
+        let op = super::sparse::SparseOp::new(s.sparse_rows.clone());
+        let at = op.apply(y.clone())?;
+        let ts = tensor2(&s.sparse_target, s.sparse_rows.rows, device);
+        loss = loss + penalty(cfg.loss, at - ts) * cfg.sparse_weight;
+    }
+    Ok((loss, y))
+}
+
+/// Mean node error (mm) of the corrected prediction against the target (both in output units).
+fn node_error_mm(y: &Tensor<2>, target: &[f32], unit: f64) -> f64 {
+    let p = y
+        .clone()
+        .into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .unwrap_or_default();
+    let n = target.len() / 3;
+    if n == 0 || p.len() != target.len() {
+        return f64::NAN;
+    }
+    (0..n)
+        .map(|i| {
+            (0..3)
+                .map(|a| ((p[3 * i + a] - target[3 * i + a]) as f64).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .sum::<f64>()
+        / n as f64
+        * unit
+}
+
+/// What [`train`] returns.
+pub struct TrainReport {
+    /// The trained network (best validation epoch), on the plain device.
+    pub model: TrainedModel,
+    /// Per-epoch figures.
+    pub log: Vec<EpochLog>,
+    /// Best validation node error (mm).
+    pub best_valid_mm: f64,
+    /// Validation node error of LIBR alone (mm): the correction's starting point.
+    pub libr_valid_mm: f64,
+    /// Training samples used.
+    pub train_samples: usize,
+    /// Validation samples used.
+    pub valid_samples: usize,
+    /// Training time (s), LIBR solutions excluded.
+    pub seconds: f64,
+}
+
+/// Trains SR-GCN on prepared samples (`train`, `valid`), writing a checkpoint to `out` after
+/// every improving epoch. `progress(stage, epoch, done, total, loss)` reports steps.
+#[allow(clippy::too_many_arguments)]
+pub fn train(
+    opts: &TrainOptions,
+    cases: &BTreeMap<String, GeometryCase>,
+    train: &[Prepared2],
+    valid: &[Prepared2],
+    out: &Path,
+    provenance: &serde_json::Value,
+    progress: &dyn Fn(u32, usize, usize, usize, f64),
+) -> Result<TrainReport, String> {
+    let cfg = &opts.config;
+    cfg.validate().map_err(|e| e.to_string())?;
+    if train.is_empty() || valid.is_empty() {
+        return Err("no training or no validation samples".into());
+    }
+    let t0 = Instant::now();
+    let plain = Device::flex();
+    let device = plain.clone().autodiff();
+    device.seed(opts.seed);
+    let mut net = cfg.init(&device).map_err(|e| e.to_string())?;
+    let mut graphs: BTreeMap<String, (SplineGraph, SplineGraph)> = BTreeMap::new();
+    for (g, gc) in cases {
+        let ad = gc
+            .frame
+            .spline_graph(cfg, &device)
+            .map_err(|e| e.to_string())?;
+        let pl = gc
+            .frame
+            .spline_graph(cfg, &plain)
+            .map_err(|e| e.to_string())?;
+        graphs.insert(g.clone(), (ad, pl));
+    }
+    let err = |e: GcnError| e.to_string();
+    let mut log = Vec::new();
+    let mut order: Vec<usize> = (0..train.len()).collect();
+    // Stage 1: the bipartite branch reconstructs its input.
+    if cfg.bipartite {
+        let mut optim = AdamConfig::new().init();
+        for epoch in 1..=opts.epochs_bipartite {
+            shuffle(&mut order, opts.seed.wrapping_add(epoch as u64));
+            let mut sum = 0.0;
+            for (k, &i) in order.iter().enumerate() {
+                let (_, bip) = train[i].data.tensors(cfg, &device).map_err(err)?;
+                let b = bip.ok_or("internal: no bipartite input")?;
+                let o = net
+                    .forward_bipartite(&b)
+                    .map_err(err)?
+                    .ok_or("internal: no bipartite branch")?;
+                let loss = (o.reconstruction - b.features.clone())
+                    .powi_scalar(2)
+                    .mean();
+                let l: f64 = loss.clone().into_scalar::<f32>() as f64;
+                sum += l;
+                let grads = GradientsParams::from_grads(loss.backward(), &net);
+                net = optim.step(opts.learning_rate, net, grads);
+                progress(1, epoch, k + 1, order.len(), sum / (k + 1) as f64);
+            }
+            let vnet = net.valid();
+            let mut vsum = 0.0;
+            for s in valid {
+                let (_, bip) = s.data.tensors(cfg, &plain).map_err(err)?;
+                let b = bip.ok_or("internal: no bipartite input")?;
+                let o = vnet.forward_bipartite(&b).map_err(err)?.ok_or("internal")?;
+                vsum += (o.reconstruction - b.features)
+                    .powi_scalar(2)
+                    .mean()
+                    .into_scalar::<f32>() as f64;
+            }
+            log.push(EpochLog {
+                stage: 1,
+                epoch,
+                train_loss: sum / order.len() as f64,
+                valid: vsum / valid.len() as f64,
+                learning_rate: opts.learning_rate,
+                seconds: t0.elapsed().as_secs_f64(),
+            });
+        }
+    }
+    // Stage 2: the mesh branch.
+    let unit = |g: &str| cases[g].frame.unit_mm();
+    let libr_valid_mm = valid
+        .iter()
+        .map(|s| {
+            let t = s.data.target.as_deref().unwrap_or(&[]);
+            let zero = Tensor::<2>::zeros([s.data.num_nodes, 3], &plain);
+            match cfg.target {
+                Target::Residual => node_error_mm(&zero, t, unit(&s.geometry)),
+                Target::Gt => f64::NAN,
+            }
+        })
+        .sum::<f64>()
+        / valid.len() as f64;
+    let mut optim = AdamConfig::new().init();
+    let mut lr = opts.learning_rate;
+    let mut best = f64::INFINITY;
+    let mut best_net = net.valid();
+    let mut stall = 0;
+    for epoch in 1..=opts.epochs {
+        shuffle(&mut order, opts.seed.wrapping_add(1000 + epoch as u64));
+        let mut sum = 0.0;
+        for (k, &i) in order.iter().enumerate() {
+            let s = &train[i];
+            let (loss, _) =
+                mesh_loss(&net, cfg, &s.data, &graphs[&s.geometry].0, &device).map_err(err)?;
+            let l: f64 = loss.clone().into_scalar::<f32>() as f64;
+            if !l.is_finite() {
+                return Err(format!("stage 2, epoch {epoch}: the loss is not finite"));
+            }
+            sum += l;
+            let grads = GradientsParams::from_grads(loss.backward(), &net);
+            net = optim.step(lr, net, grads);
+            progress(2, epoch, k + 1, order.len(), sum / (k + 1) as f64);
+        }
+        let vnet = net.valid();
+        let mut vsum = 0.0;
+        for s in valid {
+            let (_, y) =
+                mesh_loss(&vnet, cfg, &s.data, &graphs[&s.geometry].1, &plain).map_err(err)?;
+            vsum += node_error_mm(
+                &y,
+                s.data.target.as_deref().unwrap_or(&[]),
+                unit(&s.geometry),
+            );
+        }
+        let v = vsum / valid.len() as f64;
+        log.push(EpochLog {
+            stage: 2,
+            epoch,
+            train_loss: sum / order.len() as f64,
+            valid: v,
+            learning_rate: lr,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
+        if v < best {
+            best = v;
+            best_net = vnet;
+            stall = 0;
+            let mut prov = provenance.clone();
+            prov["checkpoint"] =
+                serde_json::json!({"stage": 2, "epoch": epoch, "valid_node_error_mm": v});
+            save_model(out, cfg, &best_net, prov)?;
+        } else {
+            stall += 1;
+            lr *= 0.5;
+            if stall >= opts.patience {
+                break;
+            }
+        }
+        if t0.elapsed().as_secs_f64() > 60.0 * opts.max_minutes {
+            break;
+        }
+    }
+    Ok(TrainReport {
+        model: TrainedModel {
+            config: cfg.clone(),
+            net: best_net,
+            provenance: provenance.clone(),
+        },
+        log,
+        best_valid_mm: best,
+        libr_valid_mm,
+        train_samples: train.len(),
+        valid_samples: valid.len(),
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+/// LIBR+ correction of one sample: node displacements (image frame, mm) to use instead of LIBR's.
+/// `u` is LIBR's displacement the sample was built from.
+pub fn correct(
+    model: &TrainedModel,
+    frame: &CaseFrame,
+    graph: &SplineGraph,
+    s: &SampleData,
+    u: &[f64],
+) -> Result<Vec<f64>, GcnError> {
+    let device = graph_device(graph);
+    let (x, bip) = s.tensors(&model.config, &device)?;
+    let out = match &bip {
+        Some(b) => model.net.forward_bipartite(b)?,
+        None => None,
+    };
+    let y = model
+        .net
+        .forward_mesh(x, graph, bip.as_ref().zip(out.as_ref()))?;
+    let y = y
+        .into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .map_err(|e| GcnError::Invalid(format!("{e:?}")))?;
+    let unit = frame.unit_mm();
+    if y.len() != u.len() {
+        return Err(GcnError::Invalid(
+            "prediction size differs from the mesh".into(),
+        ));
+    }
+    Ok(match model.config.target {
+        Target::Residual => u
+            .iter()
+            .zip(&y)
+            .map(|(a, b)| a + unit * *b as f64)
+            .collect(),
+        Target::Gt => y.iter().map(|b| unit * *b as f64).collect(),
+    })
+}
+
+fn graph_device(_g: &SplineGraph) -> Device {
+    Device::flex()
+}
+
+/// Where training writes: the model directory and its extras.
+pub fn model_paths(out: &Path) -> (PathBuf, PathBuf) {
+    (out.join("model.json"), out.join("training.json"))
+}
