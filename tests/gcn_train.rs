@@ -220,3 +220,88 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     std::fs::write(&w, &bytes[..bytes.len() / 2]).unwrap();
     assert!(load_model(&dir, &dev).is_err());
 }
+
+#[test]
+fn train_then_evaluate_agree_on_the_held_out_scenarios() {
+    let tmp = tempfile::tempdir().unwrap();
+    let model = tmp.path().join("model");
+    let report = tmp.path().join("report");
+    let run = |args: &[&str]| {
+        let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let data = dataset().to_str().unwrap();
+    run(&[
+        "train",
+        "--data",
+        data,
+        "--split",
+        "random",
+        "--every",
+        "1",
+        "--epochs",
+        "2",
+        "--epochs-bipartite",
+        "1",
+        "--width",
+        "8",
+        "--convs",
+        "1",
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    for f in [
+        "model.json",
+        "weights.bin",
+        "training.json",
+        "test.json",
+        "loss_stage2.png",
+    ] {
+        assert!(model.join(f).exists(), "{f} missing");
+    }
+    let test: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model.join("test.json")).unwrap()).unwrap();
+    let prov: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model.join("model.json")).unwrap()).unwrap();
+    assert_eq!(prov["provenance"]["split"], "random");
+    assert!(prov["provenance"]["metrics"]["test_librplus_tre_mm"].is_number());
+    run(&[
+        "evaluate",
+        "--data",
+        data,
+        "--methods",
+        "libr,librplus",
+        "--model",
+        model.to_str().unwrap(),
+        "--out",
+        report.to_str().unwrap(),
+    ]);
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report.join("summary.json")).unwrap()).unwrap();
+    let methods = &summary["splits"]["random"]["methods"];
+    let n = test["scenarios"].as_u64().unwrap();
+    assert_eq!(methods["librplus"]["scenarios"].as_u64().unwrap(), n);
+    for (key, method) in [("libr_tre_mm", "libr"), ("librplus_tre_mm", "librplus")] {
+        let a = test[key].as_f64().unwrap();
+        let b = methods[method]["tre_mm"].as_f64().unwrap();
+        assert!(
+            (a - b).abs() < 1e-6 * (1.0 + a),
+            "{method}: train {a} vs evaluate {b}"
+        );
+    }
+    assert!(
+        report
+            .join("error_maps/random")
+            .read_dir()
+            .unwrap()
+            .any(|e| {
+                e.unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .ends_with("librplus.vtu")
+            })
+    );
+}

@@ -145,9 +145,13 @@ struct EvaluateArgs {
     /// Dataset directory.
     #[arg(long)]
     data: PathBuf,
-    /// Comma-separated methods: rigid, libr.
+    /// Comma-separated methods: rigid, libr, librplus (needs --model).
     #[arg(long, default_value = "rigid,libr")]
     methods: String,
+    /// A trained SR-GCN model directory (from `librplus train`): evaluates LIBR+ and restricts
+    /// every method to the model's held-out test scenarios (its split replaces --split).
+    #[arg(long)]
+    model: Option<PathBuf>,
     /// Comma-separated splits: all, train, test (the held-out geometry with pattern V).
     #[arg(long, default_value = "all")]
     split: String,
@@ -524,22 +528,56 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
     use librplus::eval::report::{self, Split};
     use librplus::register::pipeline::Method;
     let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
-    let methods = a
-        .methods
-        .split(',')
-        .map(|x| match x.trim() {
-            "rigid" => Ok(Method::Rigid),
-            "libr" => Ok(Method::Libr),
-            other => Err(anyhow::anyhow!(
-                "--methods: unknown method {other:?} (rigid, libr)"
-            )),
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let splits = a
-        .split
-        .split(',')
-        .map(|s| Split::parse(s.trim()).map_err(|e| anyhow::anyhow!("--split: {e}")))
-        .collect::<Result<Vec<_>>>()?;
+    let mut want_plus = false;
+    let mut methods = Vec::new();
+    for x in a.methods.split(',') {
+        match x.trim() {
+            "rigid" => methods.push(Method::Rigid),
+            "libr" => methods.push(Method::Libr),
+            "librplus" => want_plus = true,
+            other => bail!("--methods: unknown method {other:?} (rigid, libr, librplus)"),
+        }
+    }
+    let model = match (&a.model, want_plus) {
+        (Some(dir), _) => Some(
+            librplus::gcn::io::load_model(dir, &burn::tensor::Device::flex())
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+        ),
+        (None, true) => bail!("--methods librplus needs --model MODEL_DIR (from `librplus train`)"),
+        (None, false) => None,
+    };
+    if model.is_some() && !methods.contains(&Method::Libr) {
+        // LIBR+ corrects LIBR's result: LIBR runs (and is reported) with it.
+        methods.push(Method::Libr);
+    }
+    // With a model: its held-out scenarios, under its split's name.
+    let model_test = match &model {
+        Some(mm) => {
+            let p = &mm.provenance;
+            let split = p["split"].as_str().unwrap_or("");
+            let sp = librplus::gcn::train::TrainSplit::parse(split)
+                .map_err(|e| anyhow::anyhow!("--model provenance: {e}"))?;
+            let seed = p["seed"].as_u64().unwrap_or(1);
+            let every = p["every"].as_u64().unwrap_or(1) as usize;
+            let sets = librplus::gcn::train::split_scenarios(&m, &sp, seed, every)
+                .map_err(|e| anyhow::anyhow!("--model split on this dataset: {e}"))?;
+            Some((
+                sp.name(),
+                sets.test
+                    .into_iter()
+                    .collect::<std::collections::BTreeSet<_>>(),
+            ))
+        }
+        None => None,
+    };
+    let splits = match &model_test {
+        Some(_) => vec![Split::All],
+        None => a
+            .split
+            .split(',')
+            .map(|s| Split::parse(s.trim()).map_err(|e| anyhow::anyhow!("--split: {e}")))
+            .collect::<Result<Vec<_>>>()?,
+    };
     std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
     let params = a.libr.params();
     params
@@ -558,15 +596,25 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
             .expect("valid template")
             .progress_chars("=> "),
         );
-        bar.set_message(split.name());
+        let name: String = match &model_test {
+            Some((n, _)) => n.clone(),
+            None => split.name().to_string(),
+        };
+        let name = name.as_str();
+        bar.set_message(name.to_string());
         let progress = |done: usize, total: usize| {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         };
-        let results = report::evaluate(&a.data, &m, split, &methods, a.every, &params, &progress);
+        let plus = model.as_ref().map(|mm| report::LibrPlusEval {
+            model: mm,
+            only: model_test.as_ref().map(|t| &t.1),
+        });
+        let results = report::evaluate(
+            &a.data, &m, split, &methods, a.every, &params, plus, &progress,
+        );
         bar.finish_and_clear();
         let ev = results.map_err(anyhow::Error::msg)?;
-        let name = split.name();
         let mut split_plots = Vec::new();
         for (file, png) in [
             (

@@ -11,6 +11,8 @@
 
 use super::{Tre, error_map_file, load_geometry, load_scenarios, node_errors_mm, tre_from_errors};
 use crate::dataset::Manifest;
+use crate::gcn::io::TrainedModel;
+use crate::gcn::sample::{CaseFrame, SampleData};
 use crate::mesh::TetMesh;
 use crate::mesh::io::{DataArray, MeshFile};
 use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
@@ -210,9 +212,21 @@ pub struct Evaluation {
 /// maps in scenario order, so the sums do not depend on thread scheduling.
 const CHUNK: usize = 32;
 
+/// LIBR+ in an evaluation: a trained SR-GCN applied to every LIBR result, reported as method
+/// `librplus`; optionally only the scenarios a model was not trained on.
+#[derive(Clone, Copy)]
+pub struct LibrPlusEval<'a> {
+    /// The trained model.
+    pub model: &'a TrainedModel,
+    /// Only these scenarios (deformation id, index), e.g. the model's test split.
+    pub only: Option<&'a std::collections::BTreeSet<(String, usize)>>,
+}
+
 /// Runs `methods` on the scenarios of the split's deformations: every `every`-th block of five
 /// consecutive scenarios (one per category). Besides per-scenario results it accumulates each
-/// geometry's and method's per-node errors ([`ErrorMap`]).
+/// geometry's and method's per-node errors ([`ErrorMap`]). With `librplus`, every LIBR result is
+/// also corrected by the SR-GCN model and reported as method `librplus` (its time includes LIBR's).
+#[allow(clippy::too_many_arguments)]
 pub fn evaluate(
     dir: &Path,
     m: &Manifest,
@@ -220,6 +234,7 @@ pub fn evaluate(
     methods: &[Method],
     every: usize,
     params: &PipelineParams,
+    librplus: Option<LibrPlusEval<'_>>,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Evaluation, String> {
     let every = every.max(1);
@@ -238,20 +253,23 @@ pub fn evaluate(
             Split::Train => !test_geos.contains(&d.geometry.as_str()),
         })
         .collect();
+    let keep = |d: &str, i: usize| {
+        (i / CATEGORY_ORDER.len()) % every == 0
+            && librplus
+                .and_then(|l| l.only)
+                .is_none_or(|only| only.contains(&(d.to_string(), i)))
+    };
     let total: usize = defs
         .iter()
-        .map(|d| {
-            (0..d.scenarios.len())
-                .filter(|i| (i / CATEGORY_ORDER.len()) % every == 0)
-                .count()
-                * methods.len()
-        })
+        .map(|d| (0..d.scenarios.len()).filter(|&i| keep(&d.id, i)).count() * methods.len())
         .sum();
+    let device = burn::tensor::Device::flex();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let mut out = Vec::new();
     let mut maps: Vec<ErrorMap> = Vec::new();
     let cache = dir.join("cache");
     let mut prepared: BTreeMap<String, (Prepared, super::GeometryData)> = BTreeMap::new();
+    let mut frames: BTreeMap<String, (CaseFrame, crate::gcn::SplineGraph)> = BTreeMap::new();
     for d in defs {
         if !prepared.contains_key(&d.geometry) {
             let geo = load_geometry(dir, m, &d.geometry)?;
@@ -264,6 +282,18 @@ pub fn evaluate(
                     geo.model.mesh.num_nodes(),
                 ));
             }
+            if let Some(l) = librplus {
+                maps.push(ErrorMap::new(
+                    &d.geometry,
+                    "librplus",
+                    geo.model.mesh.num_nodes(),
+                ));
+                let frame = CaseFrame::new(&geo.model.mesh).map_err(|e| e.to_string())?;
+                let graph = frame
+                    .spline_graph(&l.model.config, &device)
+                    .map_err(|e| e.to_string())?;
+                frames.insert(d.geometry.clone(), (frame, graph));
+            }
             prepared.insert(d.geometry.clone(), (case, geo));
         }
         let (case, geo) = &prepared[&d.geometry];
@@ -271,25 +301,75 @@ pub fn evaluate(
         // Every `every`-th block of consecutive scenarios (categories cycle through the five in
         // order), so a subsample keeps every category.
         let block = CATEGORY_ORDER.len();
+        let _ = block;
         let picked: Vec<_> = scenarios
             .iter()
             .enumerate()
-            .filter(|(i, _)| (i / block) % every == 0)
+            .filter(|(i, _)| keep(&d.id, *i))
             .map(|(_, s)| s)
             .collect();
+        let mut plus: Vec<(ScenarioResult, Option<Vec<f64>>)> = Vec::new();
         for &method in methods {
             let map = maps
                 .iter_mut()
                 .find(|e| e.geometry == d.geometry && e.method == method.name())
                 .ok_or("internal: no error map for the geometry")?;
             for chunk in picked.chunks(CHUNK) {
-                let results: Vec<(ScenarioResult, Option<Vec<f64>>)> = chunk
+                let results: Vec<(
+                    ScenarioResult,
+                    Option<Vec<f64>>,
+                    Option<ScenarioResult>,
+                    Option<Vec<f64>>,
+                )> = chunk
                     .par_iter()
                     .map(|sc| {
                         let r = register(case, &sc.measurements, method, params);
                         let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
                         progress(k, total);
-                        match r {
+                        // LIBR+: the model's correction of this LIBR result.
+                        let (pr, pe) = match (&r, librplus, method) {
+                            (Ok(r), Some(l), Method::Libr) => {
+                                let (frame, graph) = &frames[&d.geometry];
+                                let t = std::time::Instant::now();
+                                let corrected =
+                                    correct_one(l.model, frame, graph, case, params, sc, r);
+                                let base = ScenarioResult {
+                                    scenario: sc.id.clone(),
+                                    geometry: d.geometry.clone(),
+                                    category: sc.category.clone(),
+                                    method: "librplus".into(),
+                                    tre: None,
+                                    error: None,
+                                    seconds: r.seconds + t.elapsed().as_secs_f64(),
+                                };
+                                match corrected {
+                                    Ok(u) => {
+                                        let err = node_errors_mm(
+                                            geo.model.mesh.nodes(),
+                                            (&r.image_to_physical, &u),
+                                            (&sc.truth.image_to_physical, &sc.truth.displacement),
+                                        );
+                                        let t = tre_from_errors(&err, &geo.surface, &geo.targets);
+                                        (
+                                            Some(ScenarioResult {
+                                                tre: Some(t),
+                                                ..base
+                                            }),
+                                            Some(err),
+                                        )
+                                    }
+                                    Err(e) => (
+                                        Some(ScenarioResult {
+                                            error: Some(e),
+                                            ..base
+                                        }),
+                                        None,
+                                    ),
+                                }
+                            }
+                            _ => (None, None),
+                        };
+                        let (a, b) = match r {
                             Ok(r) => {
                                 let err = node_errors_mm(
                                     geo.model.mesh.nodes(),
@@ -320,15 +400,31 @@ pub fn evaluate(
                                 },
                                 None,
                             ),
-                        }
+                        };
+                        (a, b, pr, pe)
                     })
                     .collect();
-                for (res, err) in results {
+                for (res, err, pr, pe) in results {
                     if let Some(err) = err {
                         map.add(&err)?;
                     }
                     out.push(res);
+                    if let Some(pr) = pr {
+                        plus.push((pr, pe));
+                    }
                 }
+            }
+        }
+        if !plus.is_empty() {
+            let map = maps
+                .iter_mut()
+                .find(|e| e.geometry == d.geometry && e.method == "librplus")
+                .ok_or("internal: no LIBR+ error map for the geometry")?;
+            for (res, err) in plus {
+                if let Some(err) = err {
+                    map.add(&err)?;
+                }
+                out.push(res);
             }
         }
     }
@@ -340,6 +436,31 @@ pub fn evaluate(
             .map(|(id, (_, geo))| (id, geo.model.mesh))
             .collect(),
     })
+}
+
+/// LIBR+ node displacements for one scenario from its LIBR registration.
+fn correct_one(
+    model: &TrainedModel,
+    frame: &CaseFrame,
+    graph: &crate::gcn::SplineGraph,
+    case: &Prepared,
+    params: &PipelineParams,
+    sc: &super::ScenarioData,
+    r: &crate::register::pipeline::Registration,
+) -> Result<Vec<f64>, String> {
+    let sample = SampleData::build(
+        &model.config,
+        frame,
+        &case.model.mesh,
+        &case.correspondence,
+        &crate::gcn::train::final_cparams(params),
+        &sc.measurements,
+        &r.u,
+        &r.image_to_physical,
+        None,
+    )
+    .map_err(|e| e.to_string())?;
+    crate::gcn::train::correct(model, frame, graph, &sample, &r.u).map_err(|e| e.to_string())
 }
 
 /// Aggregates results per method.

@@ -23,7 +23,7 @@ use super::model::{Loss, SrGcn, SrGcnConfig, Target};
 use super::sample::{CaseFrame, SampleData};
 use super::{GcnError, SplineGraph};
 use crate::dataset::Manifest;
-use crate::eval::{GeometryData, ScenarioData, load_geometry};
+use crate::dataset::read::{GeometryData, ScenarioData, load_geometry};
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::CorrespondenceParams;
 use crate::register::pipeline::{Method, PipelineParams, Prepared, register};

@@ -22,6 +22,8 @@
 //!                                        complete; used to resume)
 //! ```
 
+pub mod read;
+
 use std::path::Path;
 
 /// Value of the manifest's `format` field.
