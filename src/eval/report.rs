@@ -208,6 +208,14 @@ pub struct Evaluation {
     pub meshes: BTreeMap<String, TetMesh>,
 }
 
+/// One scenario's result and node errors for a method, and LIBR+'s when it ran on this result.
+type Outcome = (
+    ScenarioResult,
+    Option<Vec<f64>>,
+    Option<ScenarioResult>,
+    Option<Vec<f64>>,
+);
+
 /// Scenarios registered in parallel at a time; their node errors are then added to the error
 /// maps in scenario order, so the sums do not depend on thread scheduling.
 const CHUNK: usize = 32;
@@ -315,12 +323,7 @@ pub fn evaluate(
                 .find(|e| e.geometry == d.geometry && e.method == method.name())
                 .ok_or("internal: no error map for the geometry")?;
             for chunk in picked.chunks(CHUNK) {
-                let results: Vec<(
-                    ScenarioResult,
-                    Option<Vec<f64>>,
-                    Option<ScenarioResult>,
-                    Option<Vec<f64>>,
-                )> = chunk
+                let results: Vec<Outcome> = chunk
                     .par_iter()
                     .map(|sc| {
                         let r = register(case, &sc.measurements, method, params);

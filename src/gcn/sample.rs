@@ -335,6 +335,15 @@ impl SampleData {
         })
     }
 
+    /// The mesh-branch input `[V, channels]` on a device (and its channel count).
+    pub fn tensors_mesh(&self, _cfg: &SrGcnConfig, device: &Device) -> (Tensor<2>, usize) {
+        let x = Tensor::<2>::from_data(
+            TensorData::new(self.node_features.clone(), [self.num_nodes, self.channels]),
+            device,
+        );
+        (x, self.channels)
+    }
+
     /// The network inputs on a device.
     pub fn tensors(
         &self,

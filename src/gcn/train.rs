@@ -532,24 +532,38 @@ fn penalty(kind: Loss, e: Tensor<2>) -> Tensor<1> {
 
 /// Stage-2 loss of one sample: the mean penalty ([`Loss`]) of the correction error over nodes, plus
 /// λ times the same at the matched measured points. Also returns the prediction.
+///
+/// Stage 2 keeps the bipartite branch fixed: it runs as `frozen` (a copy of the network without
+/// autodiff, on `plain`) and its features are copied onto `device`. Running it on the autodiff
+/// device and detaching its output would leave its recorded graph, unreachable from the loss,
+/// behind at every step (memory grew to 24 GB in one epoch).
+#[allow(clippy::too_many_arguments)]
 fn mesh_loss(
     net: &SrGcn,
+    frozen: &SrGcn,
     cfg: &SrGcnConfig,
     s: &SampleData,
     graph: &SplineGraph,
+    plain: &Device,
     device: &Device,
 ) -> Result<(Tensor<1>, Tensor<2>), GcnError> {
-    let (x, bip) = s.tensors(cfg, device)?;
-    let out = match &bip {
-        Some(b) => net.forward_bipartite(b)?.map(|o| {
-            // Stage 2 keeps the bipartite branch fixed.
-            let features = o.features.into_iter().map(|f| f.detach()).collect();
-            super::model::BipartiteOutput {
-                features,
-                reconstruction: o.reconstruction.detach(),
-            }
-        }),
-        None => None,
+    let (x, _) = s.tensors_mesh(cfg, device);
+    let (bip, out) = match s.tensors(cfg, plain)?.1 {
+        Some(b) => {
+            let o = frozen.forward_bipartite(&b)?;
+            let to = |t: Tensor<2>| Tensor::<2>::from_data(t.into_data(), device);
+            let o = o.map(|o| super::model::BipartiteOutput {
+                features: o.features.into_iter().map(to).collect(),
+                reconstruction: to(o.reconstruction),
+            });
+            let b = super::model::BipartiteInput {
+                mask: to(b.mask),
+                features: to(b.features),
+                ..b
+            };
+            (Some(b), o)
+        }
+        None => (None, None),
     };
     let y = net.forward_mesh(x, graph, bip.as_ref().zip(out.as_ref()))?;
     let target = s
@@ -703,6 +717,7 @@ pub fn train(
         })
         .sum::<f64>()
         / valid.len() as f64;
+    let frozen = net.valid();
     let mut optim = AdamConfig::new().init();
     let mut lr = opts.learning_rate;
     let mut best = f64::INFINITY;
@@ -713,8 +728,16 @@ pub fn train(
         let mut sum = 0.0;
         for (k, &i) in order.iter().enumerate() {
             let s = &train[i];
-            let (loss, _) =
-                mesh_loss(&net, cfg, &s.data, &graphs[&s.geometry].0, &device).map_err(err)?;
+            let (loss, _) = mesh_loss(
+                &net,
+                &frozen,
+                cfg,
+                &s.data,
+                &graphs[&s.geometry].0,
+                &plain,
+                &device,
+            )
+            .map_err(err)?;
             let l: f64 = loss.clone().into_scalar::<f32>() as f64;
             if !l.is_finite() {
                 return Err(format!("stage 2, epoch {epoch}: the loss is not finite"));
@@ -727,8 +750,16 @@ pub fn train(
         let vnet = net.valid();
         let mut vsum = 0.0;
         for s in valid {
-            let (_, y) =
-                mesh_loss(&vnet, cfg, &s.data, &graphs[&s.geometry].1, &plain).map_err(err)?;
+            let (_, y) = mesh_loss(
+                &vnet,
+                &vnet,
+                cfg,
+                &s.data,
+                &graphs[&s.geometry].1,
+                &plain,
+                &plain,
+            )
+            .map_err(err)?;
             vsum += node_error_mm(
                 &y,
                 s.data.target.as_deref().unwrap_or(&[]),
