@@ -64,6 +64,17 @@ pub struct Manifest {
     pub complete: bool,
 }
 
+impl Manifest {
+    /// Ids of the geometries marked `test` (held out of training: the pattern-V geometry).
+    pub fn test_geometries(&self) -> Vec<&str> {
+        self.geometries
+            .iter()
+            .filter(|g| g.split == "test")
+            .map(|g| g.id.as_str())
+            .collect()
+    }
+}
+
 /// One liver geometry.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GeometryEntry {

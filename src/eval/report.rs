@@ -246,12 +246,7 @@ pub fn evaluate(
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Evaluation, String> {
     let every = every.max(1);
-    let test_geos: Vec<&str> = m
-        .geometries
-        .iter()
-        .filter(|g| g.split == "test")
-        .map(|g| g.id.as_str())
-        .collect();
+    let test_geos = m.test_geometries();
     let defs: Vec<_> = m
         .deformations
         .iter()

@@ -83,15 +83,7 @@ impl CaseFrame {
         cfg: &SrGcnConfig,
         device: &Device,
     ) -> Result<SplineGraph, GcnError> {
-        let g = &self.graph;
-        SplineGraph::new(
-            g.num_nodes,
-            &g.targets,
-            &g.sources,
-            &g.pseudo,
-            &cfg.kernel()?,
-            device,
-        )
+        SplineGraph::from_graph(&self.graph, &cfg.kernel()?, device)
     }
 }
 
@@ -335,13 +327,12 @@ impl SampleData {
         })
     }
 
-    /// The mesh-branch input `[V, channels]` on a device (and its channel count).
-    pub fn tensors_mesh(&self, _cfg: &SrGcnConfig, device: &Device) -> (Tensor<2>, usize) {
-        let x = Tensor::<2>::from_data(
+    /// The mesh-branch input `[V, channels]` on a device.
+    pub fn tensors_mesh(&self, device: &Device) -> Tensor<2> {
+        Tensor::<2>::from_data(
             TensorData::new(self.node_features.clone(), [self.num_nodes, self.channels]),
             device,
-        );
-        (x, self.channels)
+        )
     }
 
     /// The network inputs on a device.
@@ -350,22 +341,12 @@ impl SampleData {
         cfg: &SrGcnConfig,
         device: &Device,
     ) -> Result<(Tensor<2>, Option<BipartiteInput>), GcnError> {
-        let x = Tensor::<2>::from_data(
-            TensorData::new(self.node_features.clone(), [self.num_nodes, self.channels]),
-            device,
-        );
+        let x = self.tensors_mesh(device);
         let bip = match &self.bipartite {
             None => None,
             Some(b) => {
                 let g = &b.graph;
-                let graph = SplineGraph::new(
-                    g.num_nodes,
-                    &g.targets,
-                    &g.sources,
-                    &g.pseudo,
-                    &cfg.kernel()?,
-                    device,
-                )?;
+                let graph = SplineGraph::from_graph(g, &cfg.kernel()?, device)?;
                 let features = Tensor::<2>::from_data(
                     TensorData::new(b.features.clone(), [g.num_nodes, 3]),
                     device,

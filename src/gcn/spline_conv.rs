@@ -197,6 +197,24 @@ impl SplineGraph {
     }
 }
 
+impl SplineGraph {
+    /// Prepares a [`super::Graph`] (its edges and pseudo-coordinates) for a kernel.
+    pub fn from_graph(
+        g: &super::Graph,
+        kernel: &SplineKernel,
+        device: &Device,
+    ) -> Result<Self, GcnError> {
+        Self::new(
+            g.num_nodes,
+            &g.targets,
+            &g.sources,
+            &g.pseudo,
+            kernel,
+            device,
+        )
+    }
+}
+
 impl SplineConv {
     /// A layer with given parameters (e.g. from a reference implementation): `weight`
     /// `[K, in, out]`, `root` `[in, out]`, `bias` `[out]`; their presence overrides the config's

@@ -118,12 +118,7 @@ pub fn split_scenarios(
     every: usize,
 ) -> Result<SplitSets, String> {
     let every = every.max(1);
-    let test_geos: Vec<&str> = m
-        .geometries
-        .iter()
-        .filter(|g| g.split == "test")
-        .map(|g| g.id.as_str())
-        .collect();
+    let test_geos = m.test_geometries();
     let train_defs: Vec<_> = m
         .deformations
         .iter()
@@ -547,7 +542,7 @@ fn mesh_loss(
     plain: &Device,
     device: &Device,
 ) -> Result<(Tensor<1>, Tensor<2>), GcnError> {
-    let (x, _) = s.tensors_mesh(cfg, device);
+    let x = s.tensors_mesh(device);
     let (bip, out) = match s.tensors(cfg, plain)?.1 {
         Some(b) => {
             let o = frozen.forward_bipartite(&b)?;
