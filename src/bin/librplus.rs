@@ -96,6 +96,9 @@ struct TrainArgs {
     /// The paper's Table 2 setting 1-6 (inputs and losses; 6 = the full model).
     #[arg(long, default_value_t = 6)]
     ablation: u32,
+    /// Add the measured-misfit input channels to the mesh branch (not in the paper).
+    #[arg(long)]
+    misfit_input: bool,
     /// Stop stage 2 after this many minutes.
     #[arg(long, default_value_t = 25.0)]
     max_minutes: f64,
@@ -1841,6 +1844,8 @@ fn ablation_config(
     };
     cfg.libr_input = libr;
     cfg.bipartite = bip;
+    // The measured misfit is measurement information, like the bipartite branch.
+    cfg.misfit_input = cfg.misfit_input && bip;
     cfg.target = target;
     cfg.sparse_weight = if sp { sparse } else { 0.0 };
     Ok(cfg)
@@ -1864,6 +1869,7 @@ fn train(a: &TrainArgs) -> Result<()> {
     let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
     let split = TrainSplit::parse(&a.split).map_err(|e| anyhow::anyhow!("--split: {e}"))?;
     let base = SrGcnConfig::new()
+        .with_misfit_input(a.misfit_input)
         .with_width(a.width)
         .with_convs(a.convs)
         .with_kernel_size(a.kernel_size)

@@ -225,15 +225,6 @@ impl SampleData {
             .collect();
         let inv = transform.inverse();
         let points: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
-        // Mesh-branch input.
-        let channels = cfg.mesh_inputs();
-        let mut node_features = Vec::with_capacity(v * channels);
-        for i in 0..v {
-            node_features.extend_from_slice(&frame.preop[3 * i..3 * i + 3]);
-            if cfg.libr_input {
-                node_features.extend(frame.normalise(deformed[i]));
-            }
-        }
         // Bipartite graph: each point to its n_top nearest LIBR-deformed vertices.
         let bipartite = if cfg.bipartite {
             let near = knn(&deformed, &points, cfg.n_top);
@@ -298,6 +289,39 @@ impl SampleData {
             sparse_target.extend((0..3).map(|a| ((p[a] - base[a]) / unit) as f32));
         }
         let sparse_rows = Csr::from_triplets(matches.len(), v, &trip)?;
+        // Measured misfit per vertex (barycentric-weighted mean over the matches it carries).
+        let mut misfit = vec![[0f64; 4]; if cfg.misfit_input { v } else { 0 }];
+        if cfg.misfit_input {
+            for m in &matches {
+                let q = m.model_point(u);
+                let p = points[m.point];
+                for k in 0..4 {
+                    let w = m.bary[k];
+                    if w != 0.0 {
+                        let acc = &mut misfit[m.nodes[k] as usize];
+                        for a in 0..3 {
+                            acc[a] += w * (p[a] - q[a]) / unit;
+                        }
+                        acc[3] += w;
+                    }
+                }
+            }
+        }
+        // Mesh-branch input.
+        let channels = cfg.mesh_inputs();
+        let mut node_features = Vec::with_capacity(v * channels);
+        for i in 0..v {
+            node_features.extend_from_slice(&frame.preop[3 * i..3 * i + 3]);
+            if cfg.libr_input {
+                node_features.extend(frame.normalise(deformed[i]));
+            }
+            if cfg.misfit_input {
+                let m = misfit[i];
+                let w = m[3];
+                let mean = |a: usize| if w > 0.0 { (m[a] / w) as f32 } else { 0.0 };
+                node_features.extend([mean(0), mean(1), mean(2), w.min(1.0) as f32]);
+            }
+        }
         let target = match truth_physical {
             None => None,
             Some(t) => {
