@@ -130,24 +130,31 @@ impl Csr {
     }
 }
 
-/// A sparse matrix and its transpose, shared by the forward and backward passes.
+/// A sparse matrix and its transpose, shared by the forward and backward passes (cheap to clone:
+/// both are reference-counted, and the transposed operator swaps the two without copying).
 #[derive(Debug, Clone)]
-pub struct SparseOp(Arc<(Csr, Csr)>);
+pub struct SparseOp {
+    a: Arc<Csr>,
+    t: Arc<Csr>,
+}
 
 impl SparseOp {
     /// Wraps `a` (and precomputes its transpose).
     pub fn new(a: Csr) -> Self {
-        let t = a.transpose();
-        Self(Arc::new((a, t)))
+        let t = Arc::new(a.transpose());
+        Self { a: Arc::new(a), t }
     }
 
     /// The matrix.
     pub fn matrix(&self) -> &Csr {
-        &self.0.0
+        &self.a
     }
 
     fn transposed(&self) -> Self {
-        Self(Arc::new((self.0.1.clone(), self.0.0.clone())))
+        Self {
+            a: self.t.clone(),
+            t: self.a.clone(),
+        }
     }
 
     /// `A · x` as a differentiable burn operation. `x`: `[cols, C]` → `[rows, C]`.
