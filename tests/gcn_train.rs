@@ -208,7 +208,7 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     let dev = burn::tensor::Device::flex();
     let loaded = load_model(&dir, &dev).unwrap();
     let gc = &f.cases[&f.scenarios[0].1];
-    let graph = gc.frame.spline_graph(&cfg, &dev).unwrap();
+    let graph = gc.frame.mesh_graphs(&cfg, &dev).unwrap();
     let u = &sols[0].as_ref().unwrap().u;
     let p1 = tr::correct(&a.model, &gc.frame, &graph, &s[0].data, u).unwrap();
     let p2 = tr::correct(&loaded, &gc.frame, &graph, &s[0].data, u).unwrap();
@@ -304,4 +304,71 @@ fn train_then_evaluate_agree_on_the_held_out_scenarios() {
                     .ends_with("librplus.vtu")
             })
     );
+}
+
+#[test]
+fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_when_late() {
+    use librplus::gcn::io::TrainedModel;
+    use librplus::gcn::sample::SampleData;
+    use librplus::register::pipeline::{Method, Prepared, register};
+    use std::sync::Arc;
+    let f = fixture();
+    let cfg = SrGcnConfig::new()
+        .with_width(8)
+        .with_convs(1)
+        .with_levels(2);
+    let dev = burn::tensor::Device::flex();
+    dev.seed(3);
+    let model = Arc::new(TrainedModel {
+        net: cfg.init(&dev).unwrap(),
+        config: cfg.clone(),
+        provenance: serde_json::json!({}),
+    });
+    let (sc, g) = &f.scenarios[0];
+    let gc = &f.cases[g];
+    let prepare = || {
+        Prepared::new(
+            gc.geo.model.clone(),
+            Some(&f.params.libr),
+            Some(&dataset().join("cache")),
+        )
+        .unwrap()
+    };
+    let meas = &sc.measurements;
+    // Without a model LIBR+ is an error that says so.
+    let e = register(&prepare(), meas, Method::LibrPlus, &f.params).unwrap_err();
+    assert!(e.contains("no SR-GCN model"), "{e}");
+    let case = prepare().with_model(model.clone()).unwrap();
+    let libr = register(&case, meas, Method::Libr, &f.params).unwrap();
+    let plus = register(&case, meas, Method::LibrPlus, &f.params).unwrap();
+    let c = plus.correction.as_ref().unwrap();
+    assert!(c.applied && c.skipped.is_none() && c.seconds > 0.0, "{c:?}");
+    // The same LIBR fit, then exactly the correction the training code computes.
+    assert_eq!(plus.image_to_physical, libr.image_to_physical);
+    let sample = SampleData::build(
+        &cfg,
+        &gc.frame,
+        &gc.geo.model.mesh,
+        &case.correspondence,
+        &f.params.libr_correspondence(),
+        meas,
+        &libr.u,
+        &libr.image_to_physical,
+        None,
+    )
+    .unwrap();
+    let graphs = gc.frame.mesh_graphs(&cfg, &dev).unwrap();
+    let want = tr::correct(&model, &gc.frame, &graphs, &sample, &libr.u).unwrap();
+    assert_eq!(plus.u, want);
+    assert_ne!(plus.u, libr.u, "the correction is zero");
+    // A deadline already passed: LIBR's answer, flagged, never a late correction.
+    let late = PipelineParams {
+        deadline: Some(std::time::Instant::now()),
+        ..f.params.clone()
+    };
+    let r = register(&case, meas, Method::LibrPlus, &late).unwrap();
+    let c = r.correction.as_ref().unwrap();
+    assert!(!c.applied, "{c:?}");
+    assert!(c.skipped.as_deref().unwrap().contains("no time"), "{c:?}");
+    assert!(r.u.iter().all(|x| x.is_finite()));
 }

@@ -2,6 +2,7 @@
 //! basis, from the on-disk cache when valid), found in dataset directories or mesh folders.
 
 use crate::config::ServerConfig;
+use librplus::gcn::io::TrainedModel;
 use librplus::mesh::TetMesh;
 use librplus::mesh::io::{self, MeshFile};
 use librplus::phantom::labels::{LabelParams, label};
@@ -11,7 +12,7 @@ use librplus::register::libr::LibrParams;
 use librplus::register::pipeline::{Method, Prepared};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 /// Running estimates of a case's stage durations (ms), for planning within a time budget.
 #[derive(Debug, Clone, Copy)]
@@ -142,6 +143,7 @@ pub fn load(
     source: &CaseSource,
     config: &ServerConfig,
     libr: &LibrParams,
+    gcn: Option<&Arc<TrainedModel>>,
 ) -> Result<Case, String> {
     let (model, path, cache) = match source {
         CaseSource::Dataset { dir, geometry } => {
@@ -163,14 +165,23 @@ pub fn load(
         }
     };
     let cache = config.cache_dir.clone().unwrap_or(cache);
-    let prepared = Prepared::new(model, Some(libr), Some(&cache))
+    let mut prepared = Prepared::new(model, Some(libr), Some(&cache))
         .map_err(|e| format!("{}: {e}", path.display()))?;
+    if let Some(m) = gcn {
+        prepared = prepared
+            .with_model(m.clone())
+            .map_err(|e| format!("{}: SR-GCN: {e}", path.display()))?;
+    }
+    let default_method = config.method()?;
+    if default_method == Method::LibrPlus && prepared.librplus.is_none() {
+        return Err("default_method librplus needs an SR-GCN model (none is loaded)".into());
+    }
     let n = prepared.model.mesh.num_nodes() as f64;
     Ok(Case {
         id: id.to_string(),
         source: path,
         prepared,
-        default_method: config.method()?,
+        default_method,
         // First guesses, per 10,000 nodes on one core of this machine kind (BENCHMARKS.md);
         // replaced by measurements after the first registrations.
         estimates: Mutex::new(Estimates {

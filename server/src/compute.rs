@@ -107,7 +107,23 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
     let mut method = job.method;
     let mut degraded: Option<String> = None;
     let mut params = PipelineParams::default();
-    if method == Method::Libr {
+    let gcn_ms = case
+        .prepared
+        .librplus
+        .as_ref()
+        .map_or(0.0, |g| 1e3 * g.expected_seconds());
+    if method == Method::LibrPlus {
+        let left = ms(deadline.saturating_duration_since(start));
+        let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + gcn_ms;
+        if left < need {
+            method = Method::Libr;
+            degraded = Some(format!(
+                "time budget {:.0} ms: {left:.0} ms left, LIBR+ needs about {need:.0} ms (SR-GCN {gcn_ms:.0} ms); LIBR result",
+                ms(job.budget)
+            ));
+        }
+    }
+    if method != Method::Rigid {
         let left = ms(deadline.saturating_duration_since(start));
         let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
         if left < need {
@@ -123,7 +139,7 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
     }
     let mut result = register(&case.prepared, &job.measurements, method, &params);
     let mut fallback: Option<String> = None;
-    if let (Err(e), Method::Libr) = (&result, method) {
+    if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, method) {
         // LIBR cannot run on these data (too few or degenerate points): the rigid result,
         // flagged, is still the best available answer.
         fallback = Some(format!("LIBR could not run: {e}; rigid result"));
@@ -142,6 +158,15 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
         rigid_ms,
         reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
     );
+    let gcn = reg.correction.as_ref();
+    if let Some(c) = gcn.filter(|c| !c.applied) {
+        method = Method::Libr;
+        degraded.get_or_insert_with(|| {
+            c.skipped
+                .clone()
+                .unwrap_or_else(|| "SR-GCN correction skipped".into())
+        });
+    }
     let (quality, reason) = if let Some(r) = &reg.rigid.degenerate {
         (pb::Quality::Degenerate, format!("degenerate data: {r}"))
     } else if let Some(r) = fallback {
@@ -188,6 +213,9 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
     if let Some(l) = libr_ms {
         stage("libr", l);
     }
+    if let Some(c) = gcn {
+        stage("gcn", c.seconds * 1e3);
+    }
     stage("total", total_ms);
     metrics::counter!("librplus_registrations_total", "method" => method.name(), "quality" => quality.as_str_name()).increment(1);
     let info = reg.libr.as_ref();
@@ -210,7 +238,7 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
             libr_matching_ms: info.map_or(0.0, |i| i.matching_s * 1e3),
             libr_assemble_ms: info.map_or(0.0, |i| i.assemble_s * 1e3),
             libr_solve_ms: info.map_or(0.0, |i| i.solve_s * 1e3),
-            gcn_ms: 0.0,
+            gcn_ms: gcn.map_or(0.0, |c| c.seconds * 1e3),
             total_ms,
             libr_iterations: info.map_or(0, |i| i.iterations as u32),
         }),

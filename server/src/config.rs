@@ -44,8 +44,14 @@ pub struct ServerConfig {
     pub session_idle_timeout_s: f64,
     /// How long shutdown waits for sessions to finish their update and close, s. Default 10.
     pub drain_grace_s: f64,
-    /// Method used when a request leaves it unspecified (`rigid`, `libr`). Default `libr`.
+    /// Method used when a request leaves it unspecified (`rigid`, `libr`, `librplus`). Default
+    /// `libr`.
     pub default_method: String,
+    /// SR-GCN model directory (`librplus train`'s output) for LIBR+; every case gets it. None:
+    /// the model built into the server, when this build has one.
+    pub model: Option<PathBuf>,
+    /// Whether cases answer LIBR+ at all (false: no model is loaded). Default true.
+    pub librplus: bool,
     /// Log as JSON lines instead of text.
     pub log_json: bool,
 }
@@ -70,6 +76,8 @@ impl Default for ServerConfig {
             session_idle_timeout_s: 600.0,
             drain_grace_s: 10.0,
             default_method: "libr".into(),
+            model: None,
+            librplus: true,
             log_json: false,
         }
     }
@@ -140,7 +148,15 @@ impl ServerConfig {
         match self.default_method.as_str() {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
-            m => Err(format!("default_method {m:?}: expected rigid or libr")),
+            "librplus" if self.librplus => Ok(Method::LibrPlus),
+            m => Err(format!(
+                "default_method {m:?}: expected rigid, libr{}",
+                if self.librplus {
+                    " or librplus"
+                } else {
+                    " (librplus is off)"
+                }
+            )),
         }
     }
 

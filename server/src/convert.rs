@@ -344,11 +344,12 @@ pub fn plane_points(
     Ok((contour, vessels))
 }
 
-/// A method from the wire, given the case's default; LIBR_PLUS is refused until a case has
-/// SR-GCN weights.
+/// A method from the wire, given the case's default; LIBR_PLUS is refused when the case has no
+/// SR-GCN model.
 pub fn method_from_pb(
     m: i32,
     default: librplus::register::pipeline::Method,
+    has_model: bool,
     field: &str,
 ) -> Result<librplus::register::pipeline::Method, BadInput> {
     use librplus::register::pipeline::Method;
@@ -356,10 +357,11 @@ pub fn method_from_pb(
         Ok(pb::Method::Unspecified) => Ok(default),
         Ok(pb::Method::Rigid) => Ok(Method::Rigid),
         Ok(pb::Method::Libr) => Ok(Method::Libr),
+        Ok(pb::Method::LibrPlus) if has_model => Ok(Method::LibrPlus),
         Ok(pb::Method::LibrPlus) => Err(BadInput {
             code: Code::FailedPrecondition,
             message: format!(
-                "{field}: METHOD_LIBR_PLUS needs SR-GCN weights, and this case has none (use METHOD_LIBR)"
+                "{field}: METHOD_LIBR_PLUS needs an SR-GCN model, and this case has none (use METHOD_LIBR)"
             ),
             violations: Vec::new(),
         }),
@@ -375,6 +377,7 @@ pub fn method_to_pb(m: librplus::register::pipeline::Method) -> pb::Method {
     match m {
         librplus::register::pipeline::Method::Rigid => pb::Method::Rigid,
         librplus::register::pipeline::Method::Libr => pb::Method::Libr,
+        librplus::register::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
     }
 }
 

@@ -18,6 +18,7 @@ pub mod service;
 use anyhow::Context;
 use cases::Case;
 use config::ServerConfig;
+use librplus::gcn::io::{TrainedModel, load_model_cpu};
 use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
 use service::{Shared, Svc};
@@ -184,10 +185,33 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
     })
 }
 
+/// The SR-GCN model every case gets for LIBR+: the configured directory, else the built-in one.
+fn load_gcn(config: &ServerConfig) -> Result<Option<Arc<TrainedModel>>, String> {
+    if !config.librplus {
+        return Ok(None);
+    }
+    let model = match &config.model {
+        Some(dir) => Some(load_model_cpu(dir).map_err(|e| format!("model: {e}"))?),
+        None => None,
+    };
+    if let Some(m) = &model {
+        tracing::info!(
+            model = %config.model.as_ref().map_or("built-in".into(), |p| p.display().to_string()),
+            width = m.config.width,
+            levels = m.config.levels,
+            "SR-GCN model loaded: LIBR+ available"
+        );
+    } else {
+        tracing::warn!("no SR-GCN model: LIBR+ requests get FAILED_PRECONDITION");
+    }
+    Ok(model.map(Arc::new))
+}
+
 fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, PreloadReport), String> {
     let t0 = Instant::now();
     let found = cases::discover(config)?;
     let libr = LibrParams::default();
+    let gcn = load_gcn(config)?;
     let mut out = BTreeMap::new();
     let mut report = PreloadReport {
         cases: Vec::new(),
@@ -195,7 +219,7 @@ fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, Preloa
         seconds: 0.0,
     };
     for (id, src) in &found {
-        match cases::load(id, src, config, &libr) {
+        match cases::load(id, src, config, &libr, gcn.as_ref()) {
             Ok(c) => {
                 tracing::info!(
                     case = %id,

@@ -71,6 +71,15 @@ struct Args {
     /// Length unit of plain mesh files (mm, cm, m).
     #[arg(long)]
     mesh_unit: Option<String>,
+    /// SR-GCN model directory for LIBR+ (default: the built-in model, when there is one).
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// Method when a request leaves it unspecified (rigid, libr, librplus).
+    #[arg(long)]
+    default_method: Option<String>,
+    /// Load no SR-GCN model (LIBR+ requests get FAILED_PRECONDITION).
+    #[arg(long)]
+    no_librplus: bool,
     /// Log JSON lines.
     #[arg(long)]
     log_json: bool,
@@ -96,6 +105,13 @@ fn config(a: &Args) -> Result<ServerConfig> {
     set!(time_budget_ms);
     set!(compute_slots);
     set!(mesh_unit);
+    set!(default_method);
+    if a.model.is_some() {
+        c.model = a.model.clone();
+    }
+    if a.no_librplus {
+        c.librplus = false;
+    }
     if a.metrics_listen.is_some() {
         c.metrics_listen = a.metrics_listen.clone();
     }

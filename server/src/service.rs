@@ -113,8 +113,13 @@ impl Svc {
     }
 
     fn check_method(&self, case: &Case, m: i32, field: &str) -> Result<Method, BadInput> {
-        let method = method_from_pb(m, case.default_method, field)?;
-        if method == Method::Libr && case.prepared.basis.is_none() {
+        let method = method_from_pb(
+            m,
+            case.default_method,
+            case.prepared.librplus.is_some(),
+            field,
+        )?;
+        if method != Method::Rigid && case.prepared.basis.is_none() {
             return Err(BadInput::new(
                 Code::FailedPrecondition,
                 format!("{field}: case {} has no LIBR basis", case.id),
@@ -132,7 +137,7 @@ fn summary(c: &Case) -> pb::CaseSummary {
         node_count: m.num_nodes() as u32,
         tet_count: m.num_tets() as u32,
         libr_ready: c.prepared.basis.is_some(),
-        libr_plus_ready: false,
+        libr_plus_ready: c.prepared.librplus.is_some(),
         default_method: crate::convert::method_to_pb(c.default_method) as i32,
         preload_seconds: c.prepared.seconds,
         basis_from_cache: c.prepared.basis_from_cache,

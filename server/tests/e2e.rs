@@ -59,6 +59,8 @@ fn config(max_sessions: usize) -> ServerConfig {
         max_time_budget_ms: 120_000,
         max_points_per_message: 5_000,
         drain_grace_s: 20.0,
+        // No SR-GCN unless a test asks (LIBR+ requests are then FAILED_PRECONDITION).
+        librplus: false,
         ..ServerConfig::default()
     }
 }
@@ -1233,4 +1235,72 @@ async fn the_binary_drains_on_sigterm() {
         .unwrap()
         .unwrap();
     assert!(status.success(), "{status}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn librplus_answers_through_the_same_api_as_the_library() {
+    use librplus::gcn::io::{TrainedModel, save_model};
+    use librplus::gcn::model::SrGcnConfig;
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = SrGcnConfig::new()
+        .with_width(8)
+        .with_convs(1)
+        .with_levels(2);
+    let model = TrainedModel::untrained(cfg, 7).unwrap();
+    save_model(
+        tmp.path(),
+        &model.config,
+        &model.net,
+        model.provenance.clone(),
+    )
+    .unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        model: Some(tmp.path().to_path_buf()),
+        librplus: true,
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut c = client(running.addr).await;
+    let cases = c
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(cases.cases.iter().all(|s| s.libr_plus_ready), "{cases:?}");
+    let (geo, sc) = scenario("surface+1us");
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let r = c
+        .register(request(
+            &case,
+            pb::Method::LibrPlus,
+            measurements_pb(&sc.measurements),
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.method_used, pb::Method::LibrPlus as i32, "{r:?}");
+    assert_ne!(r.quality(), pb::Quality::Degraded, "{}", r.quality_reason);
+    assert!(r.timings.as_ref().unwrap().gcn_ms > 0.0);
+    let prepared = Prepared::new(
+        geo.model.clone(),
+        Some(&LibrParams::default()),
+        Some(&dataset().join("cache")),
+    )
+    .unwrap()
+    .with_model(std::sync::Arc::new(
+        librplus::gcn::io::load_model_cpu(tmp.path()).unwrap(),
+    ))
+    .unwrap();
+    let p = PipelineParams::default();
+    let lib = register(&prepared, &sc.measurements, Method::LibrPlus, &p).unwrap();
+    let (dt, du) = difference(&r, &lib);
+    assert!(
+        dt < 1e-9 && du < 1e-4,
+        "transform {dt}, displacements {du} mm"
+    );
+    let libr = register(&prepared, &sc.measurements, Method::Libr, &p).unwrap();
+    assert_ne!(lib.u, libr.u);
+    assert_eq!(running.shutdown().await, 0);
 }

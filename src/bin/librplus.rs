@@ -87,6 +87,15 @@ struct TrainArgs {
     /// Spline kernel size per dimension.
     #[arg(long, default_value_t = 3)]
     kernel_size: usize,
+    /// Coarse levels of the mesh branch's U-Net (0: single resolution, as the paper).
+    #[arg(long, default_value_t = 3)]
+    levels: usize,
+    /// Nodes per cluster from one U-Net level to the next.
+    #[arg(long, default_value_t = 8)]
+    pool_ratio: usize,
+    /// Spline convolutions per coarse level on the way down.
+    #[arg(long, default_value_t = 1)]
+    coarse_convs: usize,
     /// Nearest LIBR-deformed vertices per measured point (N_top).
     #[arg(long, default_value_t = 4)]
     n_top: usize,
@@ -1873,6 +1882,9 @@ fn train(a: &TrainArgs) -> Result<()> {
         .with_width(a.width)
         .with_convs(a.convs)
         .with_kernel_size(a.kernel_size)
+        .with_levels(a.levels)
+        .with_pool_ratio(a.pool_ratio)
+        .with_coarse_convs(a.coarse_convs)
         .with_n_top(a.n_top);
     let sparse = a.sparse_weight.unwrap_or(base.sparse_weight);
     let cfg = ablation_config(base, a.ablation, sparse)?;
@@ -2041,7 +2053,7 @@ fn train(a: &TrainArgs) -> Result<()> {
         graphs.insert(
             g.clone(),
             gc.frame
-                .spline_graph(&cfg, &plain)
+                .mesh_graphs(&cfg, &plain)
                 .map_err(|e| anyhow::anyhow!("{e}"))?,
         );
     }

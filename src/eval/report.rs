@@ -272,7 +272,7 @@ pub fn evaluate(
     let mut maps: Vec<ErrorMap> = Vec::new();
     let cache = dir.join("cache");
     let mut prepared: BTreeMap<String, (Prepared, super::GeometryData)> = BTreeMap::new();
-    let mut frames: BTreeMap<String, (CaseFrame, crate::gcn::SplineGraph)> = BTreeMap::new();
+    let mut frames: BTreeMap<String, (CaseFrame, crate::gcn::model::MeshGraphs)> = BTreeMap::new();
     for d in defs {
         if !prepared.contains_key(&d.geometry) {
             let geo = load_geometry(dir, m, &d.geometry)?;
@@ -293,7 +293,7 @@ pub fn evaluate(
                 ));
                 let frame = CaseFrame::new(&geo.model.mesh).map_err(|e| e.to_string())?;
                 let graph = frame
-                    .spline_graph(&l.model.config, &device)
+                    .mesh_graphs(&l.model.config, &device)
                     .map_err(|e| e.to_string())?;
                 frames.insert(d.geometry.clone(), (frame, graph));
             }
@@ -440,7 +440,7 @@ pub fn evaluate(
 fn correct_one(
     model: &TrainedModel,
     frame: &CaseFrame,
-    graph: &crate::gcn::SplineGraph,
+    graph: &crate::gcn::model::MeshGraphs,
     case: &Prepared,
     params: &PipelineParams,
     sc: &super::ScenarioData,

@@ -1,8 +1,11 @@
-//! The SR-GCN model directory (format 1): `model.json` (format, configuration, normalisation
+//! The SR-GCN model directory (format 2): `model.json` (format, configuration, normalisation
 //! rule, provenance) and `weights.bin`, the parameters as little-endian f32:
 //! magic `SRGCNW01`, u32 tensor count, then per tensor u32 name length, name (UTF-8), u32 rank,
 //! u64 dims, f32 values (row-major). Names are `mesh.encoder.weight`, `mesh.convs.0.root`,
-//! `bip.decoder.bias`, … .
+//! `mesh.down.1.weight`, `mesh.up.0.bias`, `bip.decoder.bias`, … .
+//!
+//! Format 2 (the multi-scale mesh branch, and LIBR's displacement as input) replaced format 1;
+//! a format-1 model is refused with a request to retrain.
 
 use super::SplineConv;
 use super::model::{Branch, SrGcn, SrGcnConfig};
@@ -11,6 +14,9 @@ use burn::tensor::{Device, Tensor, TensorData};
 use std::path::Path;
 
 const MAGIC: &[u8; 8] = b"SRGCNW01";
+
+/// The model directory format this build writes and reads.
+pub const MODEL_FORMAT: u32 = 2;
 
 /// A named parameter: name, shape, values.
 pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
@@ -40,6 +46,12 @@ fn branch_tensors(prefix: &str, b: &Branch, out: &mut Vec<NamedTensor>) {
     conv_tensors(&format!("{prefix}.encoder"), &b.encoder, out);
     for (i, c) in b.convs.iter().enumerate() {
         conv_tensors(&format!("{prefix}.convs.{i}"), c, out);
+    }
+    for (i, c) in b.down.iter().enumerate() {
+        conv_tensors(&format!("{prefix}.down.{i}"), c, out);
+    }
+    for (i, c) in b.up.iter().enumerate() {
+        conv_tensors(&format!("{prefix}.up.{i}"), c, out);
     }
     conv_tensors(&format!("{prefix}.decoder"), &b.decoder, out);
 }
@@ -165,6 +177,12 @@ pub fn load_net(
         for (i, c) in b.convs.iter_mut().enumerate() {
             set_conv(&format!("{prefix}.convs.{i}"), c, find)?;
         }
+        for (i, c) in b.down.iter_mut().enumerate() {
+            set_conv(&format!("{prefix}.down.{i}"), c, find)?;
+        }
+        for (i, c) in b.up.iter_mut().enumerate() {
+            set_conv(&format!("{prefix}.up.{i}"), c, find)?;
+        }
         set_conv(&format!("{prefix}.decoder"), &mut b.decoder, find)
     }
     set_branch("mesh", &mut net.mesh, &find)?;
@@ -177,7 +195,7 @@ pub fn load_net(
 /// `model.json` of a model directory.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct ModelFile {
-    /// Format version (1).
+    /// Format version ([`MODEL_FORMAT`]).
     pub format: u32,
     /// The network configuration.
     pub config: SrGcnConfig,
@@ -198,6 +216,21 @@ pub struct TrainedModel {
     pub provenance: serde_json::Value,
 }
 
+impl TrainedModel {
+    /// A network of `config` with freshly initialised weights (seeded) on the CPU device: what
+    /// training starts from; for tests of the plumbing around a model.
+    pub fn untrained(config: SrGcnConfig, seed: u64) -> Result<Self, String> {
+        let device = Device::flex();
+        device.seed(seed);
+        let net = config.init(&device).map_err(|e| e.to_string())?;
+        Ok(Self {
+            config,
+            net,
+            provenance: serde_json::json!({"untrained": true, "seed": seed}),
+        })
+    }
+}
+
 /// Writes a model directory.
 pub fn save_model(
     dir: &Path,
@@ -210,7 +243,7 @@ pub fn save_model(
     let wpath = dir.join("weights.bin");
     std::fs::write(&wpath, bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
     let file = ModelFile {
-        format: 1,
+        format: MODEL_FORMAT,
         config: cfg.clone(),
         weights: "weights.bin".into(),
         provenance,
@@ -219,19 +252,27 @@ pub fn save_model(
     std::fs::write(dir.join("model.json"), j).map_err(|e| format!("{}: {e}", dir.display()))
 }
 
+/// Reads a model directory onto the CPU device.
+pub fn load_model_cpu(dir: &Path) -> Result<TrainedModel, String> {
+    load_model(dir, &Device::flex())
+}
+
 /// Reads a model directory.
 pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
     let mpath = dir.join("model.json");
     let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
-    let file: ModelFile =
+    let head: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", mpath.display()))?;
-    if file.format != 1 {
+    let format = head.get("format").and_then(|f| f.as_u64());
+    if format != Some(MODEL_FORMAT as u64) {
         return Err(format!(
-            "{}: format {} (this build reads 1)",
+            "{}: model format {} (this build reads {MODEL_FORMAT}; retrain with `librplus train`)",
             mpath.display(),
-            file.format
+            format.map_or("missing".to_string(), |f| f.to_string()),
         ));
     }
+    let file: ModelFile =
+        serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;
     file.config
         .validate()
         .map_err(|e| format!("{}: {e}", mpath.display()))?;

@@ -4,7 +4,9 @@
 //! owns graph-index validation: every index handed to burn's `select`/`select_assign` has been
 //! checked here first, so a bad graph is an error, never a panic or a silent out-of-bounds read.
 
+pub mod coarsen;
 pub mod graph;
+pub mod infer;
 pub mod io;
 pub mod model;
 pub mod sample;

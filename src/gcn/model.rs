@@ -49,6 +49,19 @@ pub struct SrGcnConfig {
     /// Convoluters per branch (N_c).
     #[config(default = 3)]
     pub convs: usize,
+    /// Coarser levels of the mesh branch's U-Net (0: the paper's single-resolution branch).
+    /// After the convoluters the features are mean-pooled level by level (clusters of about
+    /// `pool_ratio` nodes, [`super::coarsen`]), convolved on each cluster graph, and brought back
+    /// up with skip connections, so the correction sees the whole organ.
+    #[config(default = 3)]
+    pub levels: usize,
+    /// Nodes per cluster from one level to the next.
+    #[config(default = 8)]
+    pub pool_ratio: usize,
+    /// Spline convolutions on each coarse level on the way down (cheap: a level has
+    /// `1/pool_ratio` of the nodes of the one above).
+    #[config(default = 1)]
+    pub coarse_convs: usize,
     /// Spline kernel size per pseudo-coordinate dimension.
     #[config(default = 3)]
     pub kernel_size: usize,
@@ -58,7 +71,9 @@ pub struct SrGcnConfig {
     /// Nearest LIBR-deformed vertices linked to each measured point (N_top).
     #[config(default = 4)]
     pub n_top: usize,
-    /// Whether the LIBR-deformed coordinates are a mesh-branch input (Table 2: "LIBR").
+    /// Whether LIBR's result is a mesh-branch input (Table 2: "LIBR"): the LIBR-deformed
+    /// coordinates, normalised, and LIBR's displacement in output units (the same information,
+    /// the displacement at a scale the first layer can use without cancelling large numbers).
     #[config(default = true)]
     pub libr_input: bool,
     /// Whether the bipartite branch is used (Table 2: "Bipartite").
@@ -88,16 +103,27 @@ impl SrGcnConfig {
         SplineKernel::new(vec![self.kernel_size; 3], vec![true; 3], self.degree)
     }
 
-    /// Input channels of the mesh branch: preoperative coordinates, plus the LIBR-deformed ones,
-    /// plus the misfit channels.
+    /// Input channels of the mesh branch: preoperative coordinates, plus the LIBR-deformed ones
+    /// and LIBR's displacement, plus the misfit channels.
     pub fn mesh_inputs(&self) -> usize {
-        3 + if self.libr_input { 3 } else { 0 } + if self.misfit_input { 4 } else { 0 }
+        3 + if self.libr_input { 6 } else { 0 } + if self.misfit_input { 4 } else { 0 }
     }
 
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), GcnError> {
         if self.width == 0 || self.convs == 0 {
             return Err(GcnError::Invalid("width and convs must be positive".into()));
+        }
+        if self.levels > 0 && self.coarse_convs == 0 {
+            return Err(GcnError::Invalid(
+                "coarse_convs must be positive when levels > 0".into(),
+            ));
+        }
+        if self.pool_ratio < 2 || self.levels > 6 {
+            return Err(GcnError::Invalid(format!(
+                "need pool_ratio ≥ 2 and levels ≤ 6 (pool_ratio {}, levels {})",
+                self.pool_ratio, self.levels
+            )));
         }
         if self.n_top == 0 {
             return Err(GcnError::Invalid("n_top must be positive".into()));
@@ -113,16 +139,16 @@ impl SrGcnConfig {
     /// Initialises the network (weights from the device's random generator: seed it first).
     pub fn init(&self, device: &Device) -> Result<SrGcn, GcnError> {
         self.validate()?;
-        let mesh = self.branch(self.mesh_inputs(), device)?;
+        let mesh = self.branch(self.mesh_inputs(), self.levels, device)?;
         let bip = if self.bipartite {
-            Some(self.branch(3, device)?)
+            Some(self.branch(3, 0, device)?)
         } else {
             None
         };
         Ok(SrGcn { mesh, bip })
     }
 
-    fn branch(&self, inputs: usize, device: &Device) -> Result<Branch, GcnError> {
+    fn branch(&self, inputs: usize, levels: usize, device: &Device) -> Result<Branch, GcnError> {
         let layer = |cin: usize, cout: usize| {
             SplineConvConfig::new(cin, cout, vec![self.kernel_size; 3], vec![true; 3])
                 .with_degree(self.degree)
@@ -132,6 +158,12 @@ impl SrGcnConfig {
             encoder: layer(inputs, self.width)?,
             convs: (0..self.convs)
                 .map(|_| layer(self.width, self.width))
+                .collect::<Result<_, _>>()?,
+            down: (0..levels * self.coarse_convs)
+                .map(|_| layer(self.width, self.width))
+                .collect::<Result<_, _>>()?,
+            up: (0..levels)
+                .map(|_| layer(2 * self.width, self.width))
                 .collect::<Result<_, _>>()?,
             decoder: layer(self.width, 3)?,
         })
@@ -145,6 +177,12 @@ pub struct Branch {
     pub encoder: SplineConv,
     /// Width → width, `N_c` of them.
     pub convs: Vec<SplineConv>,
+    /// U-Net descent: `down[l·c .. (l+1)·c]` convolve (width → width) on level `l + 1` after
+    /// pooling (`c` = `coarse_convs`).
+    pub down: Vec<SplineConv>,
+    /// U-Net ascent: `up[l]` convolves (2·width → width) on level `l` the unpooled features of
+    /// level `l + 1` concatenated with level `l`'s features from the descent.
+    pub up: Vec<SplineConv>,
     /// Width → 3.
     pub decoder: SplineConv,
 }
@@ -156,6 +194,26 @@ pub struct SrGcn {
     pub mesh: Branch,
     /// The bipartite branch (None in the ablations without it).
     pub bip: Option<Branch>,
+}
+
+/// One coarser level of the mesh graph on a device.
+#[derive(Debug, Clone)]
+pub struct CoarseLevel {
+    /// The cluster graph.
+    pub graph: SplineGraph,
+    /// Mean pooling from the finer level, `[M, N]`.
+    pub pool: SparseOp,
+    /// Unpooling to the finer level, `[N, M]`.
+    pub unpool: SparseOp,
+}
+
+/// The mesh graph and its coarser levels (finest first), prepared for one kernel on a device.
+#[derive(Debug, Clone)]
+pub struct MeshGraphs {
+    /// The full-resolution mesh graph.
+    pub fine: SplineGraph,
+    /// Coarser levels, at least as many as the network's `levels`.
+    pub levels: Vec<CoarseLevel>,
 }
 
 /// The bipartite part of one input: its graph, node features and where its vertex nodes sit in
@@ -215,18 +273,31 @@ impl SrGcn {
     /// The mesh branch.
     ///
     /// # Shapes
-    /// - `features`: `[V, 3 or 6]` (preoperative, then LIBR-deformed normalised coordinates)
-    /// - `graph`: the mesh graph, `V` nodes
+    /// - `features`: `[V, mesh_inputs]` (preoperative, then LIBR-deformed normalised coordinates
+    ///   and LIBR's displacement, then the misfit channels)
+    /// - `graphs.fine`: the mesh graph, `V` nodes; `graphs.levels[l]`: `V_{l+1}` clusters, pooled
+    ///   `[V_{l+1}, width]` from `[V_l, width]` and unpooled back
+    /// - U-Net: level `l + 1` features `[V_{l+1}, width]`; on the way up `[V_l, 2·width]` → `[V_l, width]`
     /// - `bipartite`: the bipartite input and the bipartite branch's output (features `[Nb, width]`
     ///   scattered to `[V, width]` by `to_mesh`)
     /// - returns the correction `[V, 3]` in output units.
     pub fn forward_mesh(
         &self,
         features: Tensor<2>,
-        graph: &SplineGraph,
+        graphs: &MeshGraphs,
         bipartite: Option<(&BipartiteInput, &BipartiteOutput)>,
     ) -> Result<Tensor<2>, GcnError> {
         let m = &self.mesh;
+        let graph = &graphs.fine;
+        let levels = m.up.len();
+        if graphs.levels.len() < levels || (levels > 0 && m.down.len() % levels != 0) {
+            return Err(GcnError::Invalid(format!(
+                "the network has {levels} coarse levels ({} convolutions), the graphs {}",
+                m.down.len(),
+                graphs.levels.len()
+            )));
+        }
+        let per_level = m.down.len().checked_div(levels).unwrap_or(0);
         let mut x = elu(m.encoder.forward(features, graph)?, 1.0);
         for (l, conv) in m.convs.iter().enumerate() {
             if let Some((input, out)) = bipartite {
@@ -234,6 +305,27 @@ impl SrGcn {
                 x = x.clone() + input.mask.clone() * (xb - x) * 0.5;
             }
             x = elu(conv.forward(x, graph)?, 1.0);
+        }
+        let mut skips = Vec::with_capacity(m.down.len());
+        for (l, level) in graphs.levels.iter().take(levels).enumerate() {
+            let pooled = level.pool.apply(x.clone())?;
+            skips.push(x);
+            x = pooled;
+            for down in &m.down[l * per_level..(l + 1) * per_level] {
+                x = elu(down.forward(x, &level.graph)?, 1.0);
+            }
+        }
+        for (l, up) in m.up.iter().enumerate().rev() {
+            let skip = skips
+                .pop()
+                .ok_or_else(|| GcnError::Invalid("U-Net skip".into()))?;
+            let finer = if l == 0 {
+                graph
+            } else {
+                &graphs.levels[l - 1].graph
+            };
+            let up_x = graphs.levels[l].unpool.apply(x)?;
+            x = elu(up.forward(Tensor::cat(vec![skip, up_x], 1), finer)?, 1.0);
         }
         m.decode(x, graph)
     }

@@ -10,8 +10,9 @@
 //! Normalisation per case: coordinates `(p − c) / s` with `c` the preoperative centroid and `s`
 //! the RMS distance of the nodes from it; corrections in units of `s / 10` ([`CaseFrame::unit_mm`]).
 
+use super::coarsen::hierarchy;
 use super::graph::Graph;
-use super::model::{BipartiteInput, SrGcnConfig, Target};
+use super::model::{BipartiteInput, CoarseLevel, MeshGraphs, SrGcnConfig, Target};
 use super::sparse::{Csr, SparseOp};
 use super::{GcnError, SplineGraph, cartesian_pseudo, mesh_graph};
 use crate::mesh::TetMesh;
@@ -77,13 +78,29 @@ impl CaseFrame {
         [0, 1, 2].map(|a| ((p[a] - self.center[a]) / self.scale) as f32)
     }
 
-    /// The mesh graph prepared for the network's kernel on a device.
-    pub fn spline_graph(
-        &self,
-        cfg: &SrGcnConfig,
-        device: &Device,
-    ) -> Result<SplineGraph, GcnError> {
-        SplineGraph::from_graph(&self.graph, &cfg.kernel()?, device)
+    /// The mesh graph and the `cfg.levels` coarser levels of the network's U-Net, prepared for
+    /// its kernel on a device.
+    pub fn mesh_graphs(&self, cfg: &SrGcnConfig, device: &Device) -> Result<MeshGraphs, GcnError> {
+        let kernel = cfg.kernel()?;
+        let positions: Vec<[f64; 3]> = self
+            .preop
+            .chunks_exact(3)
+            .map(|p| [p[0] as f64, p[1] as f64, p[2] as f64])
+            .collect();
+        let levels = hierarchy(&self.graph, &positions, cfg.levels, cfg.pool_ratio)?
+            .iter()
+            .map(|c| {
+                Ok(CoarseLevel {
+                    graph: SplineGraph::from_graph(&c.graph, &kernel, device)?,
+                    pool: SparseOp::new(c.pool()?),
+                    unpool: SparseOp::new(c.unpool()?),
+                })
+            })
+            .collect::<Result<_, GcnError>>()?;
+        Ok(MeshGraphs {
+            fine: SplineGraph::from_graph(&self.graph, &kernel, device)?,
+            levels,
+        })
     }
 }
 
@@ -103,7 +120,7 @@ pub struct BipartiteData {
 pub struct SampleData {
     /// Number of mesh nodes.
     pub num_nodes: usize,
-    /// Mesh-branch input `[V, 3 or 6]`.
+    /// Mesh-branch input `[V, channels]` ([`SrGcnConfig::mesh_inputs`]).
     pub node_features: Vec<f32>,
     /// Input channels of `node_features`.
     pub channels: usize,
@@ -314,6 +331,7 @@ impl SampleData {
             node_features.extend_from_slice(&frame.preop[3 * i..3 * i + 3]);
             if cfg.libr_input {
                 node_features.extend(frame.normalise(deformed[i]));
+                node_features.extend((0..3).map(|a| (u[3 * i + a] / unit) as f32));
             }
             if cfg.misfit_input {
                 let m = misfit[i];

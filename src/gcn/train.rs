@@ -18,10 +18,10 @@
 //! in the ablations). Adam, learning rate halved when validation stalls, early stopping on the
 //! validation node error (mm), best weights kept.
 
+use super::GcnError;
 use super::io::{TrainedModel, save_model};
-use super::model::{Loss, SrGcn, SrGcnConfig, Target};
+use super::model::{Loss, MeshGraphs, SrGcn, SrGcnConfig, Target};
 use super::sample::{CaseFrame, SampleData};
-use super::{GcnError, SplineGraph};
 use crate::dataset::Manifest;
 use crate::dataset::read::{GeometryData, ScenarioData, load_geometry};
 use crate::mesh::rigid::Rigid;
@@ -404,10 +404,7 @@ pub fn truth_positions(geo: &GeometryData, sc: &ScenarioData) -> Vec<[f64; 3]> {
 
 /// The correspondence parameters LIBR ends with (what the sparse loss re-matches with).
 pub fn final_cparams(params: &PipelineParams) -> CorrespondenceParams {
-    CorrespondenceParams {
-        trim_floor_mm: params.libr.trim_floor_mm,
-        ..params.wicp.correspondence
-    }
+    params.libr_correspondence()
 }
 
 /// Training settings.
@@ -538,7 +535,7 @@ fn mesh_loss(
     frozen: &SrGcn,
     cfg: &SrGcnConfig,
     s: &SampleData,
-    graph: &SplineGraph,
+    graph: &MeshGraphs,
     plain: &Device,
     device: &Device,
 ) -> Result<(Tensor<1>, Tensor<2>), GcnError> {
@@ -640,15 +637,15 @@ pub fn train(
     let device = plain.clone().autodiff();
     device.seed(opts.seed);
     let mut net = cfg.init(&device).map_err(|e| e.to_string())?;
-    let mut graphs: BTreeMap<String, (SplineGraph, SplineGraph)> = BTreeMap::new();
+    let mut graphs: BTreeMap<String, (MeshGraphs, MeshGraphs)> = BTreeMap::new();
     for (g, gc) in cases {
         let ad = gc
             .frame
-            .spline_graph(cfg, &device)
+            .mesh_graphs(cfg, &device)
             .map_err(|e| e.to_string())?;
         let pl = gc
             .frame
-            .spline_graph(cfg, &plain)
+            .mesh_graphs(cfg, &plain)
             .map_err(|e| e.to_string())?;
         graphs.insert(g.clone(), (ad, pl));
     }
@@ -809,11 +806,11 @@ pub fn train(
 pub fn correct(
     model: &TrainedModel,
     frame: &CaseFrame,
-    graph: &SplineGraph,
+    graph: &MeshGraphs,
     s: &SampleData,
     u: &[f64],
 ) -> Result<Vec<f64>, GcnError> {
-    let device = graph_device(graph);
+    let device = Device::flex();
     let (x, bip) = s.tensors(&model.config, &device)?;
     let out = match &bip {
         Some(b) => model.net.forward_bipartite(b)?,
@@ -841,10 +838,6 @@ pub fn correct(
             .collect(),
         Target::Gt => y.iter().map(|b| unit * *b as f64).collect(),
     })
-}
-
-fn graph_device(_g: &SplineGraph) -> Device {
-    Device::flex()
 }
 
 /// Where training writes: the model directory and its extras.

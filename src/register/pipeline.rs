@@ -7,9 +7,12 @@ use super::correspondence::{Correspondence, CorrespondenceParams, validate_measu
 use super::libr::{self, LibrBasis, LibrInfo, LibrParams};
 use super::wicp::{WicpParams, WicpResult, wicp};
 use super::{Measurements, PreopModel};
+use crate::gcn::infer::LibrPlusCase;
+use crate::gcn::io::TrainedModel;
 use crate::mesh::rigid::Rigid;
 use std::path::Path;
-use std::time::Instant;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 /// Registration method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -19,6 +22,9 @@ pub enum Method {
     Rigid,
     /// wICP followed by LIBR.
     Libr,
+    /// wICP, LIBR, then the SR-GCN correction (needs a case prepared with a model).
+    #[serde(rename = "librplus")]
+    LibrPlus,
 }
 
 impl Method {
@@ -27,6 +33,7 @@ impl Method {
         match self {
             Method::Rigid => "rigid",
             Method::Libr => "libr",
+            Method::LibrPlus => "librplus",
         }
     }
 }
@@ -43,6 +50,16 @@ pub struct PipelineParams {
     pub deadline: Option<Instant>,
 }
 
+impl PipelineParams {
+    /// The correspondence settings of LIBR's iterations (wICP's, with LIBR's trimming floor).
+    pub fn libr_correspondence(&self) -> CorrespondenceParams {
+        CorrespondenceParams {
+            trim_floor_mm: self.libr.trim_floor_mm,
+            ..self.wicp.correspondence
+        }
+    }
+}
+
 /// A case prepared before surgery.
 pub struct Prepared {
     /// The preoperative model.
@@ -53,6 +70,8 @@ pub struct Prepared {
     pub basis: Option<LibrBasis>,
     /// Whether the basis came from the disk cache.
     pub basis_from_cache: bool,
+    /// The SR-GCN of LIBR+, when the case has one ([`Prepared::with_model`]).
+    pub librplus: Option<LibrPlusCase>,
     /// Preparation time (s).
     pub seconds: f64,
 }
@@ -80,9 +99,29 @@ impl Prepared {
             correspondence,
             basis,
             basis_from_cache,
+            librplus: None,
             seconds: crate::util::secs(t0),
         })
     }
+
+    /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
+    pub fn with_model(mut self, model: Arc<TrainedModel>) -> Result<Self, String> {
+        let t0 = Instant::now();
+        self.librplus = Some(LibrPlusCase::new(model, &self.model.mesh)?);
+        self.seconds += crate::util::secs(t0);
+        Ok(self)
+    }
+}
+
+/// How the SR-GCN stage of a LIBR+ registration went.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CorrectionInfo {
+    /// Whether the correction was applied (false: the answer is LIBR's, see `skipped`).
+    pub applied: bool,
+    /// Why it was not applied.
+    pub skipped: Option<String>,
+    /// Time of the stage (s).
+    pub seconds: f64,
 }
 
 /// What a registration returns.
@@ -98,6 +137,8 @@ pub struct Registration {
     pub rigid: WicpResult,
     /// The LIBR stage, when run.
     pub libr: Option<LibrInfo>,
+    /// The SR-GCN stage, for LIBR+.
+    pub correction: Option<CorrectionInfo>,
     /// Total time (s).
     pub seconds: f64,
 }
@@ -120,6 +161,7 @@ pub fn register(
             u: vec![0.0; 3 * n],
             rigid,
             libr: None,
+            correction: None,
             seconds: crate::util::secs(t0),
         });
     }
@@ -132,11 +174,23 @@ pub fn register(
         .basis
         .as_ref()
         .ok_or("the case was prepared without a LIBR basis")?;
-    let cparams = CorrespondenceParams {
-        trim_floor_mm: params.libr.trim_floor_mm,
-        ..params.wicp.correspondence
+    let gcn = match method {
+        Method::LibrPlus => Some(
+            case.librplus
+                .as_ref()
+                .ok_or("the case has no SR-GCN model: LIBR+ needs one (use LIBR)")?,
+        ),
+        _ => None,
     };
-    let cparams = &cparams;
+    // LIBR+ leaves the correction its expected time before the deadline.
+    let libr_deadline = match (params.deadline, gcn) {
+        (Some(d), Some(g)) => Some(
+            d.checked_sub(Duration::from_secs_f64(g.expected_seconds()))
+                .unwrap_or(d),
+        ),
+        (d, _) => d,
+    };
+    let cparams = &params.libr_correspondence();
     let corr = &case.correspondence;
     let sol = libr::register_active(
         &case.model.mesh,
@@ -146,7 +200,7 @@ pub fn register(
         &rigid.image_to_physical,
         libr::RunLimits {
             active: Some(corr.active_nodes()),
-            deadline: params.deadline,
+            deadline: libr_deadline,
         },
         |u, t| {
             let inv = t.inverse();
@@ -155,12 +209,46 @@ pub fn register(
                 .map(|(m, _)| m)
         },
     )?;
+    let mut u = sol.u;
+    let correction = gcn.map(|g| {
+        let t1 = Instant::now();
+        let late = params
+            .deadline
+            .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
+        let skipped = if late {
+            Some(format!(
+                "no time left for the SR-GCN correction (about {:.0} ms): LIBR's answer",
+                1e3 * g.expected_seconds()
+            ))
+        } else {
+            match g.correct(
+                &case.model.mesh,
+                corr,
+                cparams,
+                meas,
+                &u,
+                &sol.image_to_physical,
+            ) {
+                Ok(v) => {
+                    u = v;
+                    None
+                }
+                Err(e) => Some(format!("SR-GCN correction failed ({e}): LIBR's answer")),
+            }
+        };
+        CorrectionInfo {
+            applied: skipped.is_none(),
+            skipped,
+            seconds: crate::util::secs(t1),
+        }
+    });
     Ok(Registration {
         method,
         image_to_physical: sol.image_to_physical,
-        u: sol.u,
+        u,
         rigid,
         libr: Some(sol.info),
+        correction,
         seconds: crate::util::secs(t0),
     })
 }

@@ -1,0 +1,91 @@
+//! LIBR+ at registration time: a trained SR-GCN prepared for one preoperative mesh (its frame and
+//! graphs, built once before surgery), and the correction of one LIBR result.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use super::io::TrainedModel;
+use super::model::MeshGraphs;
+use super::sample::{CaseFrame, SampleData};
+use super::train::correct;
+use crate::mesh::TetMesh;
+use crate::mesh::rigid::Rigid;
+use crate::register::Measurements;
+use crate::register::correspondence::{Correspondence, CorrespondenceParams};
+use burn::tensor::Device;
+
+/// What a correction is assumed to cost before one has been timed (s).
+const FIRST_ESTIMATE_S: f64 = 0.15;
+
+/// A trained SR-GCN ready for one case.
+#[derive(Debug)]
+pub struct LibrPlusCase {
+    /// The network (shared between cases).
+    pub model: Arc<TrainedModel>,
+    /// The case's normalisation and mesh graph.
+    pub frame: CaseFrame,
+    /// The mesh graph and its coarse levels on the CPU device.
+    pub graphs: MeshGraphs,
+    /// Running estimate of one correction's time (f64 bits, seconds).
+    estimate: AtomicU64,
+}
+
+impl LibrPlusCase {
+    /// Prepares `model` for the preoperative `mesh`.
+    pub fn new(model: Arc<TrainedModel>, mesh: &TetMesh) -> Result<Self, String> {
+        let frame = CaseFrame::new(mesh).map_err(|e| e.to_string())?;
+        let graphs = frame
+            .mesh_graphs(&model.config, &Device::flex())
+            .map_err(|e| e.to_string())?;
+        Ok(Self {
+            model,
+            frame,
+            graphs,
+            estimate: AtomicU64::new(FIRST_ESTIMATE_S.to_bits()),
+        })
+    }
+
+    /// Expected time of one correction (s): a running mean of the last ones.
+    pub fn expected_seconds(&self) -> f64 {
+        f64::from_bits(self.estimate.load(Ordering::Relaxed))
+    }
+
+    /// Corrects LIBR's displacement `u` (image frame, `transform` image → physical) for the
+    /// measurements it was fitted to; returns the LIBR+ displacement. `cparams` are the
+    /// correspondence settings of LIBR's last iteration.
+    #[allow(clippy::too_many_arguments)]
+    pub fn correct(
+        &self,
+        mesh: &TetMesh,
+        correspondence: &Correspondence,
+        cparams: &CorrespondenceParams,
+        meas: &Measurements,
+        u: &[f64],
+        transform: &Rigid,
+    ) -> Result<Vec<f64>, String> {
+        let t0 = Instant::now();
+        let sample = SampleData::build(
+            &self.model.config,
+            &self.frame,
+            mesh,
+            correspondence,
+            cparams,
+            meas,
+            u,
+            transform,
+            None,
+        )
+        .map_err(|e| e.to_string())?;
+        let out = correct(&self.model, &self.frame, &self.graphs, &sample, u)
+            .map_err(|e| e.to_string())?;
+        if out.iter().any(|x| !x.is_finite()) {
+            return Err("the network's correction is not finite".into());
+        }
+        let s = t0.elapsed().as_secs_f64();
+        let old = self.expected_seconds();
+        self.estimate
+            .store((0.8 * old + 0.2 * s).to_bits(), Ordering::Relaxed);
+        Ok(out)
+    }
+}
