@@ -11,6 +11,7 @@ pub mod dataset;
 pub mod eval;
 pub mod fem;
 pub mod gcn;
+pub mod input;
 pub mod mesh;
 pub mod phantom;
 pub mod register;

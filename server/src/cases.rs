@@ -3,11 +3,8 @@
 
 use crate::config::ServerConfig;
 use librplus::gcn::io::TrainedModel;
-use librplus::mesh::TetMesh;
 use librplus::mesh::io::{self, MeshFile};
-use librplus::phantom::labels::{LabelParams, label};
 use librplus::register::PreopModel;
-use librplus::register::correspondence::preop_model_from_file;
 use librplus::register::libr::LibrParams;
 use librplus::register::pipeline::{Method, Prepared};
 use std::collections::BTreeMap;
@@ -192,26 +189,12 @@ pub fn load(
     })
 }
 
-/// A preoperative model from a mesh file: its labels (`region`, `falciform`, `inferior_ridge`
-/// point arrays, as in a dataset's `preop.vtu`) and vessels (`STEM.vessels.vtp` beside it) when
-/// present, else labelled automatically from the geometry (LPS frame assumed) without vessels.
+/// A preoperative model from a mesh file (see [`librplus::input::preop_model_from_mesh`];
+/// a surface is meshed at 7.6 mm, the paper preset's edge length).
 fn model_from_mesh_file(
     path: &Path,
     file: &MeshFile,
     unit: io::Unit,
 ) -> Result<PreopModel, String> {
-    let ctx = |e: String| format!("{}: {e}", path.display());
-    if file.point_array("region").is_some() {
-        let vessels_path = path.with_extension("vessels.vtp");
-        let vessels = if vessels_path.is_file() {
-            io::read(&vessels_path, unit).map_err(|e| format!("{}: {e}", vessels_path.display()))?
-        } else {
-            MeshFile::default()
-        };
-        return preop_model_from_file(file, &vessels).map_err(ctx);
-    }
-    let mut mesh = TetMesh::from_file(file).map_err(|e| ctx(e.to_string()))?;
-    mesh.orient_positive();
-    let labels = label(&mesh, &LabelParams::default()).map_err(ctx)?;
-    Ok(labels.preop_model(&mesh, &[], &[]))
+    librplus::input::preop_model_from_mesh(path, file, unit, 7.6)
 }

@@ -182,15 +182,43 @@ struct EvaluateArgs {
 struct RegisterArgs {
     #[command(flatten)]
     libr: LibrOpts,
-    /// Dataset directory (from `librplus generate`).
-    #[arg(long)]
-    data: PathBuf,
+    /// Dataset directory (from `librplus generate`), with --scenario.
+    #[arg(long, requires = "scenario", required_unless_present = "preop")]
+    data: Option<PathBuf>,
     /// Scenario: `DEFORMATION/INDEX`, e.g. `g1-L-00/3`.
+    #[arg(long, requires = "data")]
+    scenario: Option<String>,
+    /// Your own preoperative liver instead of a dataset: a tet mesh (.vtu .vtk .msh; labelled
+    /// from its `region`/`falciform`/`inferior_ridge` point arrays when present, else from its
+    /// geometry, LPS frame) or a closed surface (.obj .stl .vtp .vtk), meshed at --edge-mm.
+    #[arg(long, conflicts_with_all = ["data", "scenario"], requires = "surface")]
+    preop: Option<PathBuf>,
+    /// With --preop: anterior-surface points (physical frame; .vtp .vtk .csv .txt .xyz).
     #[arg(long)]
-    scenario: String,
-    /// rigid (wICP) or libr (wICP then LIBR).
+    surface: Option<PathBuf>,
+    /// With --preop: ultrasound posterior-contour points (repeatable, one file per plane or all).
+    #[arg(long)]
+    ultrasound: Vec<PathBuf>,
+    /// With --preop: ultrasound vessel-feature points (repeatable).
+    #[arg(long)]
+    vessel_points: Vec<PathBuf>,
+    /// With --preop: the navigation system's coarse alignment image → physical, a JSON file
+    /// `{"rotation": [[r00, r01, r02], [r10, ...], [...]], "translation": [tx, ty, tz]}` (in --unit);
+    /// default identity (points already near the preoperative model).
+    #[arg(long)]
+    initial_alignment: Option<PathBuf>,
+    /// With --preop: length unit of the mesh and point files (mm, cm or m).
+    #[arg(long, default_value = "mm")]
+    unit: Unit,
+    /// With --preop and a surface file: tet edge length (mm).
+    #[arg(long, default_value_t = 7.6)]
+    edge_mm: f64,
+    /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     method: MethodArg,
+    /// SR-GCN model directory (from `librplus train`), for --method librplus.
+    #[arg(long)]
+    model: Option<PathBuf>,
     /// Write the preoperative mesh with the registered `displacement` (image frame) and the
     /// per-node `error_mm` against the ground truth (.vtu).
     #[arg(long)]
@@ -228,9 +256,12 @@ struct BenchRegisterArgs {
     /// latency on one core, the surgical metric). The preload uses every core.
     #[arg(long, default_value_t = 1)]
     threads: usize,
-    /// rigid (wICP) or libr (wICP then LIBR).
+    /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     method: MethodArg,
+    /// SR-GCN model directory, for --method librplus.
+    #[arg(long)]
+    model: Option<PathBuf>,
     #[command(flatten)]
     common: Common,
 }
@@ -241,6 +272,8 @@ enum MethodArg {
     Rigid,
     /// wICP, then LIBR.
     Libr,
+    /// wICP, LIBR, then the SR-GCN correction (needs --model).
+    Librplus,
 }
 
 #[derive(Subcommand)]
@@ -489,6 +522,7 @@ fn run(cli: Cli) -> Result<()> {
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
         Command::Bench(BenchCmd::Register(args)) => bench_register(&args),
         Command::Generate(args) => generate(&args),
+        Command::Register(args) if args.preop.is_some() => register_files(&args),
         Command::Register(args) => register_scenario(&args),
         Command::Evaluate(args) => evaluate(&args),
         Command::Train(args) => train(&args),
@@ -698,18 +732,174 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
     Ok(())
 }
 
+/// The method of `register` and the model it needs, loaded.
+fn register_method(
+    a: &RegisterArgs,
+) -> Result<(
+    librplus::register::pipeline::Method,
+    Option<std::sync::Arc<librplus::gcn::io::TrainedModel>>,
+)> {
+    use librplus::register::pipeline::Method;
+    let method = match a.method {
+        MethodArg::Rigid => Method::Rigid,
+        MethodArg::Libr => Method::Libr,
+        MethodArg::Librplus => Method::LibrPlus,
+    };
+    let model = match (&a.model, method) {
+        (Some(dir), Method::LibrPlus) => Some(std::sync::Arc::new(
+            librplus::gcn::io::load_model_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+        )),
+        (None, Method::LibrPlus) => bail!("--method librplus needs --model MODEL_DIR"),
+        (Some(_), _) => bail!("--model is only used with --method librplus"),
+        (None, _) => None,
+    };
+    Ok((method, model))
+}
+
+fn registration_json(r: &librplus::register::pipeline::Registration) -> Value {
+    let libr = r.libr.as_ref();
+    json!({
+        "rigid": {
+            "rms_mm": r.rigid.rms_mm,
+            "iterations": r.rigid.iterations,
+            "matched": r.rigid.matched,
+            "trimmed": r.rigid.trimmed,
+            "degenerate": r.rigid.degenerate,
+            "seconds": r.rigid.seconds,
+        },
+        "libr": libr.map(|i| json!({
+            "iterations": i.iterations,
+            "converged": i.converged,
+            "rms_mm": i.rms_mm,
+            "matching_s": i.matching_s,
+            "assemble_s": i.assemble_s,
+            "solve_s": i.solve_s,
+            "total_s": i.total_s,
+        })),
+        "correction": r.correction.as_ref().map(|c| json!({
+            "applied": c.applied,
+            "skipped": c.skipped,
+            "seconds": c.seconds,
+        })),
+    })
+}
+
+/// `register --preop`: a user's own mesh and point files.
+fn register_files(a: &RegisterArgs) -> Result<()> {
+    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::register::{MeasuredKind, Measurements};
+    let preop = a.preop.as_ref().context("--preop")?;
+    let (method, model) = register_method(a)?;
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    let t0 = Instant::now();
+    let bar = indicatif::ProgressBar::new_spinner()
+        .with_message("reading and preparing the preoperative model");
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let file = io::read(preop, a.unit).with_context(|| format!("--preop {}", preop.display()));
+    let model_r = file.and_then(|f| {
+        librplus::input::preop_model_from_mesh(preop, &f, a.unit, a.edge_mm)
+            .map_err(anyhow::Error::msg)
+    });
+    let mut meas = Measurements {
+        points: Vec::new(),
+        kind: Vec::new(),
+        feature: Vec::new(),
+        initial_alignment: None,
+    };
+    let mut add = |path: &Path, kind: MeasuredKind, flag: &str| -> Result<()> {
+        let p = librplus::input::read_points(path, a.unit)
+            .map_err(|e| anyhow::anyhow!("--{flag}: {e}"))?;
+        meas.kind.extend(std::iter::repeat_n(kind, p.len()));
+        meas.points.extend(p);
+        Ok(())
+    };
+    let surface = a.surface.as_ref().context("--preop needs --surface")?;
+    add(surface, MeasuredKind::Surface, "surface")?;
+    for p in &a.ultrasound {
+        add(p, MeasuredKind::PosteriorContour, "ultrasound")?;
+    }
+    for p in &a.vessel_points {
+        add(p, MeasuredKind::Vessel, "vessel-points")?;
+    }
+    if let Some(p) = &a.initial_alignment {
+        let text = std::fs::read_to_string(p)
+            .with_context(|| format!("--initial-alignment {}", p.display()))?;
+        let mut t: librplus::mesh::rigid::Rigid = serde_json::from_str(&text)
+            .with_context(|| format!("--initial-alignment {}: expected {{\"rotation\": [[3×3]], \"translation\": [3]}}", p.display()))?;
+        t.translation = t.translation.map(|x| x * a.unit.to_mm());
+        meas.initial_alignment = Some(t);
+    }
+    let model_pre = model_r?;
+    let cache = preop.parent().unwrap_or(Path::new(".")).join("cache");
+    let case = Prepared::new(
+        model_pre,
+        (method != Method::Rigid).then_some(&params.libr),
+        Some(&cache),
+    )
+    .and_then(|c| match model {
+        Some(m) => c.with_model(m),
+        None => Ok(c),
+    });
+    bar.finish_and_clear();
+    let case = case.map_err(anyhow::Error::msg)?;
+    let prepare_s = t0.elapsed().as_secs_f64();
+    let r = register(&case, &meas, method, &params).map_err(anyhow::Error::msg)?;
+    if let Some(out) = &a.out {
+        let nodes = case.model.mesh.nodes();
+        let deformed: Vec<f64> = nodes
+            .iter()
+            .enumerate()
+            .flat_map(|(i, x)| {
+                r.image_to_physical
+                    .apply([0, 1, 2].map(|k| x[k] + r.u[3 * i + k]))
+            })
+            .collect();
+        let f = librplus::eval::error_map_file(
+            &case.model.mesh,
+            vec![
+                DataArray::new("displacement", 3, r.u.clone()),
+                DataArray::new("position_physical_mm", 3, deformed),
+            ],
+        );
+        io::write(out, &f, WriteOptions::default())?;
+    }
+    let mut out = json!({
+        "preop": preop.display().to_string(),
+        "nodes": case.model.mesh.num_nodes(),
+        "method": method.name(),
+        "points": meas.points.len(),
+        "image_to_physical": r.image_to_physical,
+        "max_displacement_mm": r.u.chunks_exact(3).map(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()).fold(0.0, f64::max),
+        "basis_from_cache": case.basis_from_cache,
+        "prepare_s": prepare_s,
+        "register_s": r.seconds,
+        "out": a.out.as_ref().map(|p| p.display().to_string()),
+    });
+    if let (Value::Object(o), Value::Object(extra)) = (&mut out, registration_json(&r)) {
+        o.extend(extra);
+    }
+    emit(a.json, &out);
+    Ok(())
+}
+
 fn register_scenario(a: &RegisterArgs) -> Result<()> {
     use librplus::register::pipeline::{Method, Prepared, register};
-    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
-    let (def_id, index) = a.scenario.rsplit_once('/').with_context(|| {
+    let data = a.data.as_ref().context("--data")?;
+    let scenario = a.scenario.as_deref().context("--scenario")?;
+    let m = librplus::eval::open(data).map_err(anyhow::Error::msg)?;
+    let (def_id, index) = scenario.rsplit_once('/').with_context(|| {
         format!(
             "--scenario {:?}: expected DEFORMATION/INDEX, e.g. g1-L-00/3",
-            a.scenario
+            scenario
         )
     })?;
     let index: usize = index
         .parse()
-        .with_context(|| format!("--scenario {:?}: index is not a number", a.scenario))?;
+        .with_context(|| format!("--scenario {:?}: index is not a number", scenario))?;
     let d = m
         .deformations
         .iter()
@@ -717,8 +907,8 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
         .with_context(|| {
             format!(
                 "--scenario {:?}: no deformation {def_id:?} in {} (have: {})",
-                a.scenario,
-                a.data.display(),
+                scenario,
+                data.display(),
                 m.deformations
                     .iter()
                     .map(|d| d.id.as_str())
@@ -729,33 +919,33 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
     if index >= d.scenarios.len() {
         bail!(
             "--scenario {:?}: deformation {def_id} has {} scenarios (0..{})",
-            a.scenario,
+            scenario,
             d.scenarios.len(),
             d.scenarios.len()
         );
     }
-    let geo =
-        librplus::eval::load_geometry(&a.data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
-    let scenarios = librplus::eval::load_scenarios(&a.data, d).map_err(anyhow::Error::msg)?;
+    let geo = librplus::eval::load_geometry(data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
+    let scenarios = librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?;
     let sc = &scenarios[index];
-    let method = match a.method {
-        MethodArg::Rigid => Method::Rigid,
-        MethodArg::Libr => Method::Libr,
-    };
+    let (method, model) = register_method(a)?;
     let params = a.libr.params();
     params
         .libr
         .validate()
         .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
-    let cache = a.cache.clone().unwrap_or_else(|| a.data.join("cache"));
+    let cache = a.cache.clone().unwrap_or_else(|| data.join("cache"));
     let t0 = Instant::now();
     let bar = indicatif::ProgressBar::new_spinner().with_message("preparing the case (LIBR basis)");
     bar.enable_steady_tick(std::time::Duration::from_millis(200));
     let case = Prepared::new(
         geo.model.clone(),
-        (method == Method::Libr).then_some(&params.libr),
+        (method != Method::Rigid).then_some(&params.libr),
         Some(&cache),
-    );
+    )
+    .and_then(|c| match model {
+        Some(m) => c.with_model(m),
+        None => Ok(c),
+    });
     bar.finish_and_clear();
     let case = case.map_err(anyhow::Error::msg)?;
     let prepare_s = t0.elapsed().as_secs_f64();
@@ -796,8 +986,7 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
         );
         io::write(out, &f, WriteOptions::default())?;
     }
-    let libr = r.libr.as_ref();
-    let out = json!({
+    let mut out = json!({
         "scenario": sc.id,
         "category": sc.category,
         "method": method.name(),
@@ -808,27 +997,13 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
         "tre_targets_mm": t.tre_targets_mm,
         "tre_max_mm": t.max_mm,
         "tre_initial_alignment_mm": start.tre_mm,
-        "rigid": {
-            "rms_mm": r.rigid.rms_mm,
-            "iterations": r.rigid.iterations,
-            "matched": r.rigid.matched,
-            "trimmed": r.rigid.trimmed,
-            "degenerate": r.rigid.degenerate,
-            "seconds": r.rigid.seconds,
-        },
-        "libr": libr.map(|i| json!({
-            "iterations": i.iterations,
-            "converged": i.converged,
-            "rms_mm": i.rms_mm,
-            "matching_s": i.matching_s,
-            "assemble_s": i.assemble_s,
-            "solve_s": i.solve_s,
-            "total_s": i.total_s,
-        })),
         "basis_from_cache": case.basis_from_cache,
         "prepare_s": prepare_s,
         "register_s": r.seconds,
     });
+    if let (Value::Object(o), Value::Object(extra)) = (&mut out, registration_json(&r)) {
+        o.extend(extra);
+    }
     emit(a.json, &out);
     Ok(())
 }
@@ -1730,11 +1905,24 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     let bar = spinner("preload: LIBR basis cold build, then warm load");
     let pre = preload_model(&geo.model, &params.libr, &cache);
     bar.finish_and_clear();
-    let (pre, case) = pre.map_err(anyhow::Error::msg)?;
+    let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
     let method = match a.method {
         MethodArg::Rigid => Method::Rigid,
         MethodArg::Libr => Method::Libr,
+        MethodArg::Librplus => Method::LibrPlus,
     };
+    match (&a.model, method) {
+        (Some(dir), Method::LibrPlus) => {
+            let m = librplus::gcn::io::load_model_cpu(dir)
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?;
+            case = case
+                .with_model(std::sync::Arc::new(m))
+                .map_err(anyhow::Error::msg)?;
+        }
+        (None, Method::LibrPlus) => bail!("--method librplus needs --model MODEL_DIR"),
+        (Some(_), _) => bail!("--model is only used with --method librplus"),
+        (None, _) => {}
+    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(a.threads)
         .build()
@@ -1774,6 +1962,7 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
                 "libr_assemble": r.median.libr_assemble_s,
                 "libr_solve": r.median.libr_solve_s,
                 "libr_other": r.median.libr_other_s,
+                "gcn": r.median.gcn_s,
             },
             "wicp_iterations_mean": r.wicp_iterations_mean,
             "libr_iterations_mean": r.libr_iterations_mean,
@@ -1795,17 +1984,24 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     );
     print_preload(&pre);
     println!(
-        "registration (s): median {:.4}, p10 {:.4}, p90 {:.4}, mean {:.4}, max {:.4}; failed {}",
-        r.total_s.median, r.total_s.p10, r.total_s.p90, r.total_s.mean, r.total_s.max, r.failed
+        "registration (s): median {:.4}, p10 {:.4}, p90 {:.4}, p99 {:.4}, mean {:.4}, max {:.4}; failed {}",
+        r.total_s.median,
+        r.total_s.p10,
+        r.total_s.p90,
+        r.total_s.p99,
+        r.total_s.mean,
+        r.total_s.max,
+        r.failed
     );
     println!(
-        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4})",
+        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4}",
         r.median.wicp_s,
         r.median.libr_s,
         r.median.libr_matching_s,
         r.median.libr_assemble_s,
         r.median.libr_solve_s,
-        r.median.libr_other_s
+        r.median.libr_other_s,
+        r.median.gcn_s
     );
     println!(
         "  iterations (mean): wicp {:.1}, libr {:.1} (converged {}/{}); mean TRE {:.2} mm; per category {:?}",

@@ -176,6 +176,8 @@ pub struct RegistrationTimings {
     pub libr_other_s: f64,
     /// LIBR total.
     pub libr_s: f64,
+    /// SR-GCN correction (LIBR+; 0 otherwise).
+    pub gcn_s: f64,
     /// wICP iterations.
     pub wicp_iterations: usize,
     /// LIBR iterations (0 for rigid).
@@ -193,6 +195,7 @@ impl From<&Registration> for RegistrationTimings {
             libr_solve_s: l.solve_s,
             libr_other_s: (l.total_s - l.matching_s - l.assemble_s - l.solve_s).max(0.0),
             libr_s: l.total_s,
+            gcn_s: r.correction.as_ref().map_or(0.0, |c| c.seconds),
             wicp_iterations: r.rigid.iterations,
             libr_iterations: l.iterations,
         }
@@ -208,6 +211,8 @@ pub struct Spread {
     pub median: f64,
     /// 90th percentile.
     pub p90: f64,
+    /// 99th percentile.
+    pub p99: f64,
     /// Mean.
     pub mean: f64,
     /// Largest.
@@ -231,6 +236,7 @@ impl Spread {
             p10: q(0.1),
             median: q(0.5),
             p90: q(0.9),
+            p99: q(0.99),
             mean: if s.is_empty() {
                 f64::NAN
             } else {
@@ -325,6 +331,7 @@ pub fn time_registrations(
             libr_solve_s: med(|r| r.libr_solve_s),
             libr_other_s: med(|r| r.libr_other_s),
             libr_s: med(|r| r.libr_s),
+            gcn_s: med(|r| r.gcn_s),
             wicp_iterations: med(|r| r.wicp_iterations as f64).round() as usize,
             libr_iterations: med(|r| r.libr_iterations as f64).round() as usize,
         },
