@@ -372,3 +372,42 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
     assert!(c.skipped.as_deref().unwrap().contains("no time"), "{c:?}");
     assert!(r.u.iter().all(|x| x.is_finite()));
 }
+
+#[test]
+fn the_built_in_model_loads_and_corrects_a_registration() {
+    use librplus::register::pipeline::{Method, Prepared, register};
+    let model = librplus::gcn::io::builtin_model().unwrap();
+    model.config.validate().unwrap();
+    let command = model.provenance["command"].as_str().unwrap_or_default();
+    assert!(
+        command.contains(" train "),
+        "provenance: {}",
+        model.provenance
+    );
+    assert_eq!(model.provenance["builtin"], true);
+    // It prepares for a mesh it never saw (the small preset's coarser liver) and corrects LIBR.
+    let f = fixture();
+    let (sc, g) = &f.scenarios[1];
+    let gc = &f.cases[g];
+    let case = Prepared::new(
+        gc.geo.model.clone(),
+        Some(&f.params.libr),
+        Some(&dataset().join("cache")),
+    )
+    .unwrap()
+    .with_model(std::sync::Arc::new(model))
+    .unwrap();
+    let libr = register(&case, &sc.measurements, Method::Libr, &f.params).unwrap();
+    let plus = register(&case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
+    assert!(plus.correction.as_ref().unwrap().applied);
+    assert!(plus.u.iter().all(|x| x.is_finite()));
+    let moved = plus
+        .u
+        .iter()
+        .zip(&libr.u)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    // A correction, and not a wild one (the model's outputs are in units of a tenth of the
+    // liver's RMS radius).
+    assert!(moved > 1e-3 && moved < 100.0, "largest change {moved} mm");
+}

@@ -206,7 +206,9 @@ fn own_files_register_like_the_library() {
         "--surface",
         user.join("surface.csv").to_str().unwrap(),
         "--method",
-        "librplus",
+        "libr",
+        "--model",
+        user.to_str().unwrap(),
     ]);
     assert!(!ok && err.contains("--model"), "{err}");
 }

@@ -118,7 +118,8 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         server: format!("http://{}", running.addr),
         data: o.data.clone(),
         selection: Selection::Spread(o.scenarios),
-        methods: vec![pb::Method::Rigid, pb::Method::Libr],
+        // LIBR and LIBR+ (the built-in SR-GCN) side by side, after the rigid stage alone.
+        methods: vec![pb::Method::Rigid, pb::Method::Libr, pb::Method::LibrPlus],
         progress: !o.json,
         ..ReplayOptions::default()
     };

@@ -18,7 +18,7 @@ pub mod service;
 use anyhow::Context;
 use cases::Case;
 use config::ServerConfig;
-use librplus::gcn::io::{TrainedModel, load_model_cpu};
+use librplus::gcn::io::{TrainedModel, builtin_model, load_model_cpu};
 use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
 use service::{Shared, Svc};
@@ -192,7 +192,7 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Arc<TrainedModel>>, String> 
     }
     let model = match &config.model {
         Some(dir) => Some(load_model_cpu(dir).map_err(|e| format!("model: {e}"))?),
-        None => None,
+        None => Some(builtin_model().map_err(|e| format!("built-in model: {e}"))?),
     };
     if let Some(m) = &model {
         tracing::info!(

@@ -81,8 +81,8 @@ struct TrainArgs {
     /// Feature width.
     #[arg(long, default_value_t = 32)]
     width: usize,
-    /// Convoluters per branch (N_c).
-    #[arg(long, default_value_t = 3)]
+    /// Convoluters per branch (N_c; the mesh branch's at full resolution).
+    #[arg(long, default_value_t = 1)]
     convs: usize,
     /// Spline kernel size per dimension.
     #[arg(long, default_value_t = 3)]
@@ -94,7 +94,7 @@ struct TrainArgs {
     #[arg(long, default_value_t = 8)]
     pool_ratio: usize,
     /// Spline convolutions per coarse level on the way down.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 3)]
     coarse_convs: usize,
     /// Nearest LIBR-deformed vertices per measured point (N_top).
     #[arg(long, default_value_t = 4)]
@@ -108,7 +108,7 @@ struct TrainArgs {
     /// Add the measured-misfit input channels to the mesh branch (not in the paper).
     #[arg(long)]
     misfit_input: bool,
-    /// Stop stage 2 after this many minutes.
+    /// Stage 2 stops before an epoch that would end past this many minutes.
     #[arg(long, default_value_t = 25.0)]
     max_minutes: f64,
 }
@@ -157,7 +157,7 @@ struct EvaluateArgs {
     /// Dataset directory.
     #[arg(long)]
     data: PathBuf,
-    /// Comma-separated methods: rigid, libr, librplus (needs --model).
+    /// Comma-separated methods: rigid, libr, librplus (--model, or the built-in model).
     #[arg(long, default_value = "rigid,libr")]
     methods: String,
     /// A trained SR-GCN model directory (from `librplus train`): evaluates LIBR+ and restricts
@@ -216,7 +216,8 @@ struct RegisterArgs {
     /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     method: MethodArg,
-    /// SR-GCN model directory (from `librplus train`), for --method librplus.
+    /// SR-GCN model directory (from `librplus train`) for --method librplus (default: the
+    /// built-in model).
     #[arg(long)]
     model: Option<PathBuf>,
     /// Write the preoperative mesh with the registered `displacement` (image frame) and the
@@ -259,7 +260,7 @@ struct BenchRegisterArgs {
     /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     method: MethodArg,
-    /// SR-GCN model directory, for --method librplus.
+    /// SR-GCN model directory for --method librplus (default: the built-in model).
     #[arg(long)]
     model: Option<PathBuf>,
     #[command(flatten)]
@@ -272,7 +273,7 @@ enum MethodArg {
     Rigid,
     /// wICP, then LIBR.
     Libr,
-    /// wICP, LIBR, then the SR-GCN correction (needs --model).
+    /// wICP, LIBR, then the SR-GCN correction (--model, or the built-in model).
     Librplus,
 }
 
@@ -589,7 +590,10 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
             librplus::gcn::io::load_model(dir, &burn::tensor::Device::flex())
                 .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
         ),
-        (None, true) => bail!("--methods librplus needs --model MODEL_DIR (from `librplus train`)"),
+        (None, true) => Some(
+            librplus::gcn::io::builtin_model()
+                .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
+        ),
         (None, false) => None,
     };
     if model.is_some() && !methods.contains(&Method::Libr) {
@@ -749,7 +753,10 @@ fn register_method(
         (Some(dir), Method::LibrPlus) => Some(std::sync::Arc::new(
             librplus::gcn::io::load_model_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
         )),
-        (None, Method::LibrPlus) => bail!("--method librplus needs --model MODEL_DIR"),
+        (None, Method::LibrPlus) => Some(std::sync::Arc::new(
+            librplus::gcn::io::builtin_model()
+                .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
+        )),
         (Some(_), _) => bail!("--model is only used with --method librplus"),
         (None, _) => None,
     };
@@ -780,6 +787,7 @@ fn registration_json(r: &librplus::register::pipeline::Registration) -> Value {
             "applied": c.applied,
             "skipped": c.skipped,
             "seconds": c.seconds,
+            "network_seconds": c.network_seconds,
         })),
     })
 }
@@ -1919,7 +1927,13 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
                 .with_model(std::sync::Arc::new(m))
                 .map_err(anyhow::Error::msg)?;
         }
-        (None, Method::LibrPlus) => bail!("--method librplus needs --model MODEL_DIR"),
+        (None, Method::LibrPlus) => {
+            let m = librplus::gcn::io::builtin_model()
+                .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?;
+            case = case
+                .with_model(std::sync::Arc::new(m))
+                .map_err(anyhow::Error::msg)?;
+        }
         (Some(_), _) => bail!("--model is only used with --method librplus"),
         (None, _) => {}
     }
@@ -1963,6 +1977,7 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
                 "libr_solve": r.median.libr_solve_s,
                 "libr_other": r.median.libr_other_s,
                 "gcn": r.median.gcn_s,
+                "gcn_network": r.median.gcn_network_s,
             },
             "wicp_iterations_mean": r.wicp_iterations_mean,
             "libr_iterations_mean": r.libr_iterations_mean,
@@ -1994,14 +2009,15 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         r.failed
     );
     println!(
-        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4}",
+        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4} (network {:.4})",
         r.median.wicp_s,
         r.median.libr_s,
         r.median.libr_matching_s,
         r.median.libr_assemble_s,
         r.median.libr_solve_s,
         r.median.libr_other_s,
-        r.median.gcn_s
+        r.median.gcn_s,
+        r.median.gcn_network_s
     );
     println!(
         "  iterations (mean): wicp {:.1}, libr {:.1} (converged {}/{}); mean TRE {:.2} mm; per category {:?}",

@@ -178,6 +178,8 @@ pub struct RegistrationTimings {
     pub libr_s: f64,
     /// SR-GCN correction (LIBR+; 0 otherwise).
     pub gcn_s: f64,
+    /// Of which the network's forward pass.
+    pub gcn_network_s: f64,
     /// wICP iterations.
     pub wicp_iterations: usize,
     /// LIBR iterations (0 for rigid).
@@ -196,6 +198,7 @@ impl From<&Registration> for RegistrationTimings {
             libr_other_s: (l.total_s - l.matching_s - l.assemble_s - l.solve_s).max(0.0),
             libr_s: l.total_s,
             gcn_s: r.correction.as_ref().map_or(0.0, |c| c.seconds),
+            gcn_network_s: r.correction.as_ref().map_or(0.0, |c| c.network_seconds),
             wicp_iterations: r.rigid.iterations,
             libr_iterations: l.iterations,
         }
@@ -332,6 +335,7 @@ pub fn time_registrations(
             libr_other_s: med(|r| r.libr_other_s),
             libr_s: med(|r| r.libr_s),
             gcn_s: med(|r| r.gcn_s),
+            gcn_network_s: med(|r| r.gcn_network_s),
             wicp_iterations: med(|r| r.wicp_iterations as f64).round() as usize,
             libr_iterations: med(|r| r.libr_iterations as f64).round() as usize,
         },

@@ -52,7 +52,8 @@ impl LibrPlusCase {
     }
 
     /// Corrects LIBR's displacement `u` (image frame, `transform` image → physical) for the
-    /// measurements it was fitted to; returns the LIBR+ displacement. `cparams` are the
+    /// measurements it was fitted to; returns the LIBR+ displacement and the network's share of
+    /// the time (s; the rest builds the sample: graphs, matches, features). `cparams` are the
     /// correspondence settings of LIBR's last iteration.
     #[allow(clippy::too_many_arguments)]
     pub fn correct(
@@ -63,7 +64,7 @@ impl LibrPlusCase {
         meas: &Measurements,
         u: &[f64],
         transform: &Rigid,
-    ) -> Result<Vec<f64>, String> {
+    ) -> Result<(Vec<f64>, f64), String> {
         let t0 = Instant::now();
         let sample = SampleData::build(
             &self.model.config,
@@ -77,8 +78,10 @@ impl LibrPlusCase {
             None,
         )
         .map_err(|e| e.to_string())?;
+        let t1 = Instant::now();
         let out = correct(&self.model, &self.frame, &self.graphs, &sample, u)
             .map_err(|e| e.to_string())?;
+        let network_s = t1.elapsed().as_secs_f64();
         if out.iter().any(|x| !x.is_finite()) {
             return Err("the network's correction is not finite".into());
         }
@@ -86,6 +89,6 @@ impl LibrPlusCase {
         let old = self.expected_seconds();
         self.estimate
             .store((0.8 * old + 0.2 * s).to_bits(), Ordering::Relaxed);
-        Ok(out)
+        Ok((out, network_s))
     }
 }

@@ -257,12 +257,62 @@ pub fn load_model_cpu(dir: &Path) -> Result<TrainedModel, String> {
     load_model(dir, &Device::flex())
 }
 
+/// `model.json` of the model built into this crate (`assets/models/default/`).
+const BUILTIN_JSON: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/assets/models/default/model.json"
+));
+/// Its weights.
+const BUILTIN_WEIGHTS: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/assets/models/default/weights.bin"
+));
+
+/// The default SR-GCN built into this crate (`assets/models/default/`, trained on the paper
+/// preset by the command in its provenance; see `assets/models/default/README.md`), on the CPU.
+pub fn builtin_model() -> Result<TrainedModel, String> {
+    let mut m = model_from_parts(
+        BUILTIN_JSON,
+        BUILTIN_WEIGHTS,
+        &Device::flex(),
+        Path::new("<built-in>/model.json"),
+        Path::new("<built-in>/weights.bin"),
+    )?;
+    m.provenance["builtin"] = serde_json::json!(true);
+    Ok(m)
+}
+
 /// Reads a model directory.
 pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
     let mpath = dir.join("model.json");
     let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
     let head: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let weights = head
+        .get("weights")
+        .and_then(|w| w.as_str())
+        .unwrap_or("weights.bin");
+    if weights.contains(['/', '\\']) || weights == ".." || weights.is_empty() {
+        return Err(format!(
+            "{}: weights {weights:?} must be a file name in the model directory",
+            mpath.display()
+        ));
+    }
+    let wpath = dir.join(weights);
+    let bytes = std::fs::read(&wpath).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    model_from_parts(&text, &bytes, device, &mpath, &wpath)
+}
+
+/// A model from the text of its `model.json` and the bytes of its weights (paths for messages).
+fn model_from_parts(
+    text: &str,
+    bytes: &[u8],
+    device: &Device,
+    mpath: &Path,
+    wpath: &Path,
+) -> Result<TrainedModel, String> {
+    let head: serde_json::Value =
+        serde_json::from_str(text).map_err(|e| format!("{}: {e}", mpath.display()))?;
     let format = head.get("format").and_then(|f| f.as_u64());
     if format != Some(MODEL_FORMAT as u64) {
         return Err(format!(
@@ -276,9 +326,7 @@ pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
     file.config
         .validate()
         .map_err(|e| format!("{}: {e}", mpath.display()))?;
-    let wpath = dir.join(&file.weights);
-    let bytes = std::fs::read(&wpath).map_err(|e| format!("{}: {e}", wpath.display()))?;
-    let tensors = decode(&bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    let tensors = decode(bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
     let net = load_net(&file.config, &tensors, device)
         .map_err(|e| format!("{}: {e}", wpath.display()))?;
     Ok(TrainedModel {

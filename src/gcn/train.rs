@@ -426,7 +426,8 @@ pub struct TrainOptions {
     pub learning_rate: f64,
     /// Epochs without validation improvement before stopping.
     pub patience: usize,
-    /// Stop stage 2 after this many minutes of training (the epoch in progress ends first).
+    /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
+    /// by the last epoch's duration).
     pub max_minutes: f64,
 }
 
@@ -782,7 +783,14 @@ pub fn train(
                 break;
             }
         }
-        if t0.elapsed().as_secs_f64() > 60.0 * opts.max_minutes {
+        // Stop before an epoch that would end past the time limit (judged by the last one).
+        let epoch_s = log.last().map_or(0.0, |l: &EpochLog| l.seconds)
+            - log
+                .iter()
+                .rev()
+                .nth(1)
+                .map_or(0.0, |l: &EpochLog| l.seconds);
+        if t0.elapsed().as_secs_f64() + epoch_s > 60.0 * opts.max_minutes {
             break;
         }
     }

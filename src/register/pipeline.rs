@@ -122,6 +122,8 @@ pub struct CorrectionInfo {
     pub skipped: Option<String>,
     /// Time of the stage (s).
     pub seconds: f64,
+    /// Of which the network's forward pass (s; 0 when not run).
+    pub network_seconds: f64,
 }
 
 /// What a registration returns.
@@ -212,6 +214,7 @@ pub fn register(
     let mut u = sol.u;
     let correction = gcn.map(|g| {
         let t1 = Instant::now();
+        let mut network_seconds = 0.0;
         let late = params
             .deadline
             .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
@@ -229,8 +232,9 @@ pub fn register(
                 &u,
                 &sol.image_to_physical,
             ) {
-                Ok(v) => {
+                Ok((v, s)) => {
                     u = v;
+                    network_seconds = s;
                     None
                 }
                 Err(e) => Some(format!("SR-GCN correction failed ({e}): LIBR's answer")),
@@ -240,6 +244,7 @@ pub fn register(
             applied: skipped.is_none(),
             skipped,
             seconds: crate::util::secs(t1),
+            network_seconds,
         }
     });
     Ok(Registration {
