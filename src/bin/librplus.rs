@@ -460,6 +460,38 @@ enum BenchCmd {
     /// cache) and single-registration latency with stage timings over scenarios spread across
     /// the measurement categories.
     Register(BenchRegisterArgs),
+    /// A spline-convolution stack on the graph of `../shared/bench/splineconv_peer.py` (random
+    /// points, symmetric kNN, Cartesian pseudo-coordinates; layers 6 → hidden … → 3): inference
+    /// and one training step, medians in ms, as the peer prints them.
+    Gcn {
+        /// Nodes.
+        #[arg(long, default_value_t = 9000)]
+        nodes: usize,
+        /// Target mean in-degree.
+        #[arg(long, default_value_t = 14)]
+        avg_degree: usize,
+        /// Kernel size per dimension (3-D).
+        #[arg(long, default_value_t = 5)]
+        kernel: usize,
+        /// Hidden width.
+        #[arg(long, default_value_t = 64)]
+        hidden: usize,
+        /// Layers.
+        #[arg(long, default_value_t = 4)]
+        layers: usize,
+        /// Threads (rayon pool).
+        #[arg(long, default_value_t = 2)]
+        threads: usize,
+        /// Seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Untimed repetitions.
+        #[arg(long, default_value_t = 2)]
+        warmup: usize,
+        /// Timed repetitions.
+        #[arg(long, default_value_t = 10)]
+        repeats: usize,
+    },
     /// LIBR preload workload: assemble, factorize once, solve `rhs` unit-load right-hand sides.
     Basis {
         /// Tetrahedral mesh file.
@@ -522,6 +554,45 @@ fn run(cli: Cli) -> Result<()> {
             ordering,
         }) => bench_basis(&mesh, &common, rhs, repeat, seed, ordering.into()),
         Command::Bench(BenchCmd::Register(args)) => bench_register(&args),
+        Command::Bench(BenchCmd::Gcn {
+            nodes,
+            avg_degree,
+            kernel,
+            hidden,
+            layers,
+            threads,
+            seed,
+            warmup,
+            repeats,
+        }) => (|| -> Result<()> {
+            let b = librplus::gcn::bench::StackBench {
+                nodes,
+                avg_degree,
+                kernel,
+                hidden,
+                layers,
+                seed,
+                warmup,
+                repeats,
+            };
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads.max(1))
+                .build()
+                .context("building the thread pool")?;
+            let t = pool
+                .install(|| librplus::gcn::bench::run(&b))
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            let mut v = serde_json::to_value(&t)?;
+            v["impl"] = json!("librplus (burn 0.22.1 flex, CSR sparse product)");
+            v["nodes"] = json!(nodes);
+            v["hidden"] = json!(hidden);
+            v["layers"] = json!(layers);
+            v["kernel"] = json!(kernel);
+            v["threads"] = json!(threads);
+            v["repeats"] = json!(repeats);
+            println!("{v}");
+            Ok(())
+        })(),
         Command::Generate(args) => generate(&args),
         Command::Register(args) if args.preop.is_some() => register_files(&args),
         Command::Register(args) => register_scenario(&args),

@@ -137,7 +137,7 @@ pub struct SampleData {
 }
 
 /// The `k` nearest of `nodes` to each of `points`, by a uniform grid (exact).
-fn knn(nodes: &[[f64; 3]], points: &[[f64; 3]], k: usize) -> Vec<Vec<usize>> {
+pub fn knn(nodes: &[[f64; 3]], points: &[[f64; 3]], k: usize) -> Vec<Vec<usize>> {
     let k = k.min(nodes.len());
     if k == 0 {
         return vec![Vec::new(); points.len()];
