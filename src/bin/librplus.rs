@@ -863,9 +863,30 @@ fn registration_json(r: &librplus::register::pipeline::Registration) -> Value {
     })
 }
 
+/// The case of a `register` run: the LIBR basis unless rigid (cached in `cache`), and the SR-GCN
+/// when given.
+fn prepare_case(
+    preop: librplus::register::PreopModel,
+    method: librplus::register::pipeline::Method,
+    params: &librplus::register::pipeline::PipelineParams,
+    cache: &Path,
+    gcn: Option<std::sync::Arc<librplus::gcn::io::TrainedModel>>,
+) -> std::result::Result<librplus::register::pipeline::Prepared, String> {
+    use librplus::register::pipeline::{Method, Prepared};
+    let case = Prepared::new(
+        preop,
+        (method != Method::Rigid).then_some(&params.libr),
+        Some(cache),
+    )?;
+    match gcn {
+        Some(m) => case.with_model(m),
+        None => Ok(case),
+    }
+}
+
 /// `register --preop`: a user's own mesh and point files.
 fn register_files(a: &RegisterArgs) -> Result<()> {
-    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::register::pipeline::register;
     use librplus::register::{MeasuredKind, Measurements};
     let preop = a.preop.as_ref().context("--preop")?;
     let (method, model) = register_method(a)?;
@@ -914,15 +935,7 @@ fn register_files(a: &RegisterArgs) -> Result<()> {
     }
     let model_pre = model_r?;
     let cache = preop.parent().unwrap_or(Path::new(".")).join("cache");
-    let case = Prepared::new(
-        model_pre,
-        (method != Method::Rigid).then_some(&params.libr),
-        Some(&cache),
-    )
-    .and_then(|c| match model {
-        Some(m) => c.with_model(m),
-        None => Ok(c),
-    });
+    let case = prepare_case(model_pre, method, &params, &cache, model);
     bar.finish_and_clear();
     let case = case.map_err(anyhow::Error::msg)?;
     let prepare_s = t0.elapsed().as_secs_f64();
@@ -966,7 +979,7 @@ fn register_files(a: &RegisterArgs) -> Result<()> {
 }
 
 fn register_scenario(a: &RegisterArgs) -> Result<()> {
-    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::register::pipeline::register;
     let data = a.data.as_ref().context("--data")?;
     let scenario = a.scenario.as_deref().context("--scenario")?;
     let m = librplus::eval::open(data).map_err(anyhow::Error::msg)?;
@@ -1016,15 +1029,7 @@ fn register_scenario(a: &RegisterArgs) -> Result<()> {
     let t0 = Instant::now();
     let bar = indicatif::ProgressBar::new_spinner().with_message("preparing the case (LIBR basis)");
     bar.enable_steady_tick(std::time::Duration::from_millis(200));
-    let case = Prepared::new(
-        geo.model.clone(),
-        (method != Method::Rigid).then_some(&params.libr),
-        Some(&cache),
-    )
-    .and_then(|c| match model {
-        Some(m) => c.with_model(m),
-        None => Ok(c),
-    });
+    let case = prepare_case(geo.model.clone(), method, &params, &cache, model);
     bar.finish_and_clear();
     let case = case.map_err(anyhow::Error::msg)?;
     let prepare_s = t0.elapsed().as_secs_f64();
