@@ -48,6 +48,50 @@ enum Command {
     /// scenarios: MODEL_DIR/model.json + weights.bin (+ provenance), training.json, test.json,
     /// loss curves (PNG).
     Train(TrainArgs),
+    /// Runs the paper's experiments in one go: `train` on every split (random, geometry-
+    /// deformation hold-out, each leave-one-geometry-out, pattern V) and the Table 2 ablations,
+    /// then writes OUT/RESULTS.md (tables), OUT/results.json and OUT/ratios.png.
+    Experiments(ExperimentsArgs),
+}
+
+#[derive(Args)]
+struct ExperimentsArgs {
+    /// Dataset directory (from `librplus generate`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Output directory: one model directory per run under `runs/`, and the reports.
+    #[arg(long)]
+    out: PathBuf,
+    /// Splits, comma-separated: random, geo-def, logo (every geometry), logo:G, pattern-v.
+    #[arg(long, default_value = "random,geo-def,logo,pattern-v")]
+    splits: String,
+    /// Table 2 settings to run on `--ablation-split` (comma-separated, 1-6; empty: none).
+    #[arg(long, default_value = "1,2,3,4,5,6")]
+    ablations: String,
+    /// The split the ablations run on (the paper: random).
+    #[arg(long, default_value = "random")]
+    ablation_split: String,
+    /// Use every k-th block of five scenarios, in every run.
+    #[arg(long, default_value_t = 16)]
+    every: usize,
+    /// Training time limit per run (minutes; stage 2 stops before an epoch would pass it).
+    #[arg(long, default_value_t = 6.0)]
+    minutes: f64,
+    /// Seed of every run.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// More `librplus train` options for every run, as one string (e.g. "--width 48").
+    #[arg(long, default_value = "")]
+    train_args: String,
+    /// Keep runs whose directory already has test.json (resume an interrupted campaign).
+    #[arg(long)]
+    resume: bool,
+}
+
+#[derive(Parser)]
+struct TrainOnly {
+    #[command(flatten)]
+    args: TrainArgs,
 }
 
 #[derive(Args)]
@@ -87,8 +131,12 @@ struct TrainArgs {
     /// Spline kernel size per dimension.
     #[arg(long, default_value_t = 3)]
     kernel_size: usize,
-    /// Coarse levels of the mesh branch's U-Net (0: single resolution, as the paper).
-    #[arg(long, default_value_t = 3)]
+    /// Level the mesh branch runs at: 0 the full mesh (as the paper), 1 the first cluster level
+    /// (inputs pooled, the correction interpolated back to every node).
+    #[arg(long, default_value_t = 1)]
+    resolution: usize,
+    /// Coarse levels of the mesh branch's U-Net below `--resolution` (0: single resolution).
+    #[arg(long, default_value_t = 2)]
     levels: usize,
     /// Nodes per cluster from one U-Net level to the next.
     #[arg(long, default_value_t = 8)]
@@ -108,6 +156,9 @@ struct TrainArgs {
     /// Add the measured-misfit input channels to the mesh branch (not in the paper).
     #[arg(long)]
     misfit_input: bool,
+    /// Plain convolutions in the mesh branch instead of residual blocks (as format-2 models).
+    #[arg(long)]
+    no_residual: bool,
     /// Stage 2 stops before an epoch that would end past this many minutes.
     #[arg(long, default_value_t = 25.0)]
     max_minutes: f64,
@@ -597,7 +648,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Register(args) if args.preop.is_some() => register_files(&args),
         Command::Register(args) => register_scenario(&args),
         Command::Evaluate(args) => evaluate(&args),
-        Command::Train(args) => train(&args),
+        Command::Train(args) => train(&args).map(|_| ()),
+        Command::Experiments(args) => experiments(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,
@@ -2158,7 +2210,9 @@ fn git_commit() -> String {
         .unwrap_or_else(|| "unknown".into())
 }
 
-fn train(a: &TrainArgs) -> Result<()> {
+/// Trains and tests one model; returns its test.json (without per-scenario rows) and a
+/// summary of its training.
+fn train(a: &TrainArgs) -> Result<Value> {
     use librplus::eval::{load_scenarios, node_errors_mm, tre_from_errors};
     use librplus::gcn::model::SrGcnConfig;
     use librplus::gcn::train::{self as tr, TrainOptions, TrainSplit};
@@ -2171,8 +2225,10 @@ fn train(a: &TrainArgs) -> Result<()> {
         .with_convs(a.convs)
         .with_kernel_size(a.kernel_size)
         .with_levels(a.levels)
+        .with_resolution(a.resolution)
         .with_pool_ratio(a.pool_ratio)
         .with_coarse_convs(a.coarse_convs)
+        .with_residual(!a.no_residual)
         .with_n_top(a.n_top);
     let sparse = a.sparse_weight.unwrap_or(base.sparse_weight);
     let cfg = ablation_config(base, a.ablation, sparse)?;
@@ -2487,5 +2543,188 @@ fn train(a: &TrainArgs) -> Result<()> {
             v.2
         );
     }
+    let mut summary = test;
+    if let Some(o) = summary.as_object_mut() {
+        o.remove("results");
+        o.insert("training".into(), training);
+    }
+    Ok(summary)
+}
+
+/// `librplus experiments`: every split and ablation as `librplus train` runs, then the reports.
+fn experiments(a: &ExperimentsArgs) -> Result<()> {
+    use librplus::eval::experiments::{RunOutcome, results_markdown, scenario_results};
+    let t0 = Instant::now();
+    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let test_geos = m.test_geometries();
+    let mut train_geos: Vec<String> = m
+        .deformations
+        .iter()
+        .filter(|d| !test_geos.contains(&d.geometry.as_str()))
+        .map(|d| d.geometry.clone())
+        .collect();
+    train_geos.sort();
+    train_geos.dedup();
+    // (split, setting) of every run, the full model's splits first.
+    let mut plan: Vec<(String, u32)> = Vec::new();
+    for s in a.splits.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        if s == "logo" {
+            plan.extend(train_geos.iter().map(|g| (format!("logo:{g}"), 6)));
+        } else {
+            librplus::gcn::train::TrainSplit::parse(s)
+                .map_err(|e| anyhow::anyhow!("--splits: {e}"))?;
+            plan.push((s.to_string(), 6));
+        }
+    }
+    let ablation_split = a.ablation_split.trim().to_string();
+    for t in a
+        .ablations
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+    {
+        let k: u32 = t
+            .parse()
+            .ok()
+            .filter(|k| (1..=6).contains(k))
+            .ok_or_else(|| anyhow::anyhow!("--ablations: {t:?} is not a setting 1-6"))?;
+        if !plan.contains(&(ablation_split.clone(), k)) {
+            plan.push((ablation_split.clone(), k));
+        }
+    }
+    let extra: Vec<String> = a.train_args.split_whitespace().map(String::from).collect();
+    for reserved in [
+        "--data",
+        "--split",
+        "--out",
+        "--every",
+        "--seed",
+        "--ablation",
+    ] {
+        if extra
+            .iter()
+            .any(|x| x == reserved || x.starts_with(&format!("{reserved}=")))
+        {
+            bail!("--train-args: {reserved} is set by `experiments` itself");
+        }
+    }
+    std::fs::create_dir_all(a.out.join("runs")).with_context(|| a.out.display().to_string())?;
+    eprintln!(
+        "experiments: {} runs, about {:.0} minutes of training each",
+        plan.len(),
+        a.minutes
+    );
+    let mut outcomes: Vec<RunOutcome> = Vec::new();
+    for (i, (split, setting)) in plan.iter().enumerate() {
+        let name = format!("{}-ablation{setting}", split.replace(':', "-"));
+        let dir = a.out.join("runs").join(&name);
+        let test_path = dir.join("test.json");
+        if !(a.resume && test_path.exists()) {
+            eprintln!(
+                "\n[{}/{}] {split}, setting {setting} → {}",
+                i + 1,
+                plan.len(),
+                dir.display()
+            );
+            let mut argv: Vec<String> = vec![
+                "train".into(),
+                "--data".into(),
+                a.data.display().to_string(),
+                "--split".into(),
+                split.clone(),
+                "--out".into(),
+                dir.display().to_string(),
+                "--every".into(),
+                a.every.to_string(),
+                "--seed".into(),
+                a.seed.to_string(),
+                "--ablation".into(),
+                setting.to_string(),
+                "--max-minutes".into(),
+                a.minutes.to_string(),
+            ];
+            argv.extend(extra.iter().cloned());
+            let args = TrainOnly::try_parse_from(&argv)
+                .map_err(|e| anyhow::anyhow!("--train-args: {e}"))?
+                .args;
+            train(&args).with_context(|| format!("run {name}"))?;
+        }
+        let test: Value = serde_json::from_str(
+            &std::fs::read_to_string(&test_path)
+                .with_context(|| test_path.display().to_string())?,
+        )
+        .with_context(|| test_path.display().to_string())?;
+        let png = librplus::eval::plot::tre_by_category_png(split, &scenario_results(&test))
+            .map_err(anyhow::Error::msg)?;
+        std::fs::write(a.out.join(format!("tre_by_category_{name}.png")), png)?;
+        outcomes.push(RunOutcome {
+            name,
+            split: split.clone(),
+            ablation: *setting,
+            test,
+        });
+    }
+    let main: Vec<RunOutcome> = outcomes
+        .iter()
+        .filter(|r| r.ablation == 6)
+        .cloned()
+        .collect();
+    let mut abl: Vec<RunOutcome> = outcomes
+        .iter()
+        .filter(|r| r.split == ablation_split && plan.contains(&(r.split.clone(), r.ablation)))
+        .filter(|r| {
+            a.ablations
+                .split(',')
+                .any(|t| t.trim() == r.ablation.to_string())
+        })
+        .cloned()
+        .collect();
+    abl.sort_by_key(|r| r.ablation);
+    let command: Vec<String> = std::env::args().collect();
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|c| {
+            c.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let header = format!(
+        "# LIBR+ results\n\nMade by one command (commit `{}`):\n\n```\n{}\n```\n\n\
+         - Data: `{}` (preset {}, seed {}, parameters {}); every {}th block of five scenarios.\n\
+         - Each run is `librplus train` with a training limit of {} minutes; its model, \
+         `training.json` and `test.json` are under `runs/`.\n\
+         - Machine: {cpu}, {threads} threads. Total wall time {:.0} minutes.\n\
+         - TRE: mean distance over mesh nodes between the registered and the true deformed \
+         liver (physical frame), averaged over the held-out scenarios.\n",
+        git_commit(),
+        command.join(" "),
+        a.data.display(),
+        m.preset,
+        m.seed,
+        m.parameters_hash,
+        a.every,
+        a.minutes,
+        t0.elapsed().as_secs_f64() / 60.0
+    );
+    let md = results_markdown(&header, &main, &abl);
+    std::fs::write(a.out.join("RESULTS.md"), &md)?;
+    let runs: Vec<Value> = outcomes
+        .iter()
+        .map(|r| {
+            json!({"name": r.name, "split": r.split, "ablation": r.ablation,
+                   "figures": librplus::eval::experiments::figures(&r.test)})
+        })
+        .collect();
+    std::fs::write(
+        a.out.join("results.json"),
+        serde_json::to_string_pretty(
+            &json!({"format": 1, "command": command.join(" "), "runs": runs}),
+        )?,
+    )?;
+    println!("{md}");
+    eprintln!("wrote {}", a.out.join("RESULTS.md").display());
     Ok(())
 }

@@ -17,6 +17,7 @@ pub use crate::dataset::read::{
 };
 
 pub mod bench;
+pub mod experiments;
 pub mod plot;
 pub mod report;
 

@@ -233,6 +233,87 @@ impl Coarsening {
     }
 }
 
+/// Cluster at level `r` (1-based: `h[r - 1]`) of every fine node: the composition of the
+/// assignments of levels `1..=r` (the identity for `r = 0`).
+pub fn compose_assign(h: &[Coarsening], r: usize) -> Vec<usize> {
+    let Some(first) = h.first() else {
+        return Vec::new();
+    };
+    let mut a: Vec<usize> = if r == 0 {
+        (0..first.assign.len()).collect()
+    } else {
+        first.assign.clone()
+    };
+    for c in h.iter().take(r).skip(1) {
+        for v in &mut a {
+            *v = c.assign[*v];
+        }
+    }
+    a
+}
+
+/// Mean pooling `[M, N]` of fine nodes by cluster (`assign[i] < m`).
+pub fn mean_pool(assign: &[usize], m: usize) -> Result<Csr, GcnError> {
+    let mut count = vec![0usize; m];
+    for &c in assign {
+        if c >= m {
+            return Err(GcnError::Invalid(format!("cluster {c} of {m}")));
+        }
+        count[c] += 1;
+    }
+    let trip: Vec<_> = assign
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| (c, i, 1.0 / count[c] as f32))
+        .collect();
+    Csr::from_triplets(m, assign.len(), &trip)
+}
+
+/// Smooth interpolation `[N, M]` from a coarse level back to the fine nodes: node `i` mixes its
+/// own cluster and the clusters adjacent to it in the cluster graph (never clusters across a gap
+/// the mesh does not bridge), with weights `exp(−d²/2h²)` of its distance `d` to each cluster's
+/// centroid, normalised to sum to 1; `h` is the mean centroid distance over the cluster graph's
+/// edges. A partition of unity: constants are kept exactly, and a coarse field steps less at
+/// cluster borders than a copy (the candidate set still changes there, so it is not continuous).
+pub fn interpolation(
+    assign: &[usize],
+    fine: &[[f64; 3]],
+    coarse: &Coarsening,
+) -> Result<Csr, GcnError> {
+    let m = coarse.graph.num_nodes;
+    if assign.len() != fine.len() || assign.iter().any(|&c| c >= m) {
+        return Err(GcnError::Invalid(
+            "interpolation: assignment does not match the levels".into(),
+        ));
+    }
+    let mut adj: Vec<Vec<usize>> = vec![Vec::new(); m];
+    let (mut sum, mut ne) = (0.0, 0usize);
+    for (&t, &s) in coarse.graph.targets.iter().zip(&coarse.graph.sources) {
+        adj[t].push(s);
+        sum += d2(&coarse.positions[t], &coarse.positions[s]).sqrt();
+        ne += 1;
+    }
+    let h = if ne > 0 { sum / ne as f64 } else { 1.0 }.max(1e-12);
+    let mut trip = Vec::new();
+    for (i, (&c, p)) in assign.iter().zip(fine).enumerate() {
+        let mut cand = vec![c];
+        cand.extend(adj[c].iter().copied());
+        let w: Vec<f64> = cand
+            .iter()
+            .map(|&k| (-d2(p, &coarse.positions[k]) / (2.0 * h * h)).exp())
+            .collect();
+        let total: f64 = w.iter().sum();
+        if !(total > 1e-300) {
+            trip.push((i, c, 1.0f32));
+            continue;
+        }
+        for (&k, wk) in cand.iter().zip(&w) {
+            trip.push((i, k, (wk / total) as f32));
+        }
+    }
+    Csr::from_triplets(fine.len(), m, &trip)
+}
+
 /// `levels` successive coarsenings of a graph at `ratio`, finest first.
 pub fn hierarchy(
     graph: &Graph,
@@ -323,6 +404,69 @@ mod tests {
         for (k, p) in c.positions.iter().enumerate() {
             assert!((p[0] as f32 - pooled[k]).abs() < 1e-3);
         }
+    }
+
+    #[test]
+    fn interpolation_is_a_smooth_partition_of_unity() {
+        let mesh = box_mesh([40.0, 20.0, 10.0], [16, 8, 4], 0.2);
+        let g = mesh_graph(&mesh).unwrap();
+        let pos = mesh.nodes().to_vec();
+        let h = hierarchy(&g, &pos, 2, 8).unwrap();
+        for r in 1..=2 {
+            let a = compose_assign(&h, r);
+            let c = &h[r - 1];
+            assert_eq!(a.len(), pos.len());
+            assert!(a.iter().all(|&k| k < c.graph.num_nodes));
+            // Pooling averages each (composite) cluster's nodes: at level 1 that is the
+            // cluster's centroid; deeper, a mean of its members all the same.
+            let pool = mean_pool(&a, c.graph.num_nodes).unwrap();
+            let x: Vec<f32> = pos.iter().map(|p| p[0] as f32).collect();
+            let px = pool.matmul_dense(&x, 1);
+            for k in 0..c.graph.num_nodes {
+                let members: Vec<f32> = (0..x.len()).filter(|&i| a[i] == k).map(|i| x[i]).collect();
+                let mean = members.iter().sum::<f32>() / members.len() as f32;
+                assert!((px[k] - mean).abs() < 1e-3, "level {r} cluster {k}");
+                if r == 1 {
+                    assert!((px[k] - c.positions[k][0] as f32).abs() < 1e-3);
+                }
+            }
+            let up = interpolation(&a, &pos, c).unwrap();
+            let ones = vec![1f32; c.graph.num_nodes];
+            assert!(
+                up.matmul_dense(&ones, 1)
+                    .iter()
+                    .all(|v| (v - 1.0).abs() < 1e-5)
+            );
+            // A linear field sampled at the centroids comes back closer than a copy brings it,
+            // and without the copy's steps between neighbouring nodes of different clusters.
+            let cx: Vec<f32> = c.positions.iter().map(|p| p[0] as f32).collect();
+            let smooth = up.matmul_dense(&cx, 1);
+            let copy: Vec<f32> = a.iter().map(|&k| cx[k]).collect();
+            let err = |v: &[f32]| -> f32 {
+                v.iter().zip(&x).map(|(a, b)| (a - b).abs()).sum::<f32>() / x.len() as f32
+            };
+            let step = |v: &[f32]| -> f32 {
+                (0..g.num_edges())
+                    .map(|e| {
+                        let (i, j) = (g.targets[e], g.sources[e]);
+                        ((v[i] - v[j]) - (x[i] - x[j])).abs()
+                    })
+                    .fold(0.0, f32::max)
+            };
+            assert!(
+                err(&smooth) < err(&copy),
+                "level {r}: interpolation {} vs copy {}",
+                err(&smooth),
+                err(&copy)
+            );
+            assert!(
+                step(&smooth) < 0.7 * step(&copy),
+                "level {r}: worst step {} vs copy {}",
+                step(&smooth),
+                step(&copy)
+            );
+        }
+        assert_eq!(compose_assign(&h, 0), (0..pos.len()).collect::<Vec<_>>());
     }
 
     #[test]

@@ -16,7 +16,7 @@ use std::path::Path;
 const MAGIC: &[u8; 8] = b"SRGCNW01";
 
 /// The model directory format this build writes and reads.
-pub const MODEL_FORMAT: u32 = 2;
+pub const MODEL_FORMAT: u32 = 3;
 
 /// A named parameter: name, shape, values.
 pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
@@ -314,12 +314,20 @@ fn model_from_parts(
     let head: serde_json::Value =
         serde_json::from_str(text).map_err(|e| format!("{}: {e}", mpath.display()))?;
     let format = head.get("format").and_then(|f| f.as_u64());
-    if format != Some(MODEL_FORMAT as u64) {
+    if !matches!(format, Some(f) if f == 2 || f == MODEL_FORMAT as u64) {
         return Err(format!(
-            "{}: model format {} (this build reads {MODEL_FORMAT}; retrain with `librplus train`)",
+            "{}: model format {} (this build reads 2 and {MODEL_FORMAT}; retrain with `librplus train`)",
             mpath.display(),
             format.map_or("missing".to_string(), |f| f.to_string()),
         ));
+    }
+    let mut head = head;
+    if format == Some(2)
+        && let Some(c) = head.get_mut("config").and_then(|c| c.as_object_mut())
+    {
+        // Format 2 predates residual blocks and coarse-resolution branches.
+        c.insert("residual".into(), false.into());
+        c.insert("resolution".into(), 0.into());
     }
     let file: ModelFile =
         serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;
@@ -334,4 +342,46 @@ fn model_from_parts(
         net,
         provenance: file.provenance,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn format_2_files_load_as_plain_full_resolution_networks() {
+        let cfg = SrGcnConfig::new()
+            .with_width(4)
+            .with_levels(1)
+            .with_coarse_convs(1)
+            .with_resolution(0)
+            .with_residual(false);
+        let m = TrainedModel::untrained(cfg.clone(), 3).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        save_model(tmp.path(), &cfg, &m.net, serde_json::json!({})).unwrap();
+        // A format-3 file keeps its switches.
+        let back = load_model_cpu(tmp.path()).unwrap();
+        assert!(!back.config.residual && back.config.resolution == 0);
+        // Rewrite it as format 2 did: no `residual`, no `resolution`.
+        let p = tmp.path().join("model.json");
+        let mut j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        j["format"] = 2.into();
+        let c = j["config"].as_object_mut().unwrap();
+        c.remove("residual");
+        c.remove("resolution");
+        std::fs::write(&p, j.to_string()).unwrap();
+        let old = load_model_cpu(tmp.path()).unwrap();
+        assert!(!old.config.residual, "format 2 has no residual blocks");
+        assert_eq!(old.config.resolution, 0, "format 2 runs on the full mesh");
+        assert_eq!(named_tensors(&old.net), named_tensors(&m.net));
+        // The defaults of a new configuration are the format-3 network.
+        let d = SrGcnConfig::new();
+        assert!(d.residual && d.resolution == 1);
+        // Format 1 is refused with a request to retrain.
+        j["format"] = 1.into();
+        std::fs::write(&p, j.to_string()).unwrap();
+        let e = load_model_cpu(tmp.path()).unwrap_err();
+        assert!(e.contains("retrain"), "{e}");
+    }
 }

@@ -10,7 +10,7 @@
 //! Normalisation per case: coordinates `(p − c) / s` with `c` the preoperative centroid and `s`
 //! the RMS distance of the nodes from it; corrections in units of `s / 10` ([`CaseFrame::unit_mm`]).
 
-use super::coarsen::hierarchy;
+use super::coarsen::{compose_assign, hierarchy, interpolation, mean_pool};
 use super::graph::Graph;
 use super::model::{BipartiteInput, CoarseLevel, MeshGraphs, SrGcnConfig, Target};
 use super::sparse::{Csr, SparseOp};
@@ -87,7 +87,23 @@ impl CaseFrame {
             .chunks_exact(3)
             .map(|p| [p[0] as f64, p[1] as f64, p[2] as f64])
             .collect();
-        let levels = hierarchy(&self.graph, &positions, cfg.levels, cfg.pool_ratio)?
+        let h = hierarchy(
+            &self.graph,
+            &positions,
+            cfg.resolution + cfg.levels,
+            cfg.pool_ratio,
+        )?;
+        let (to_start, from_start) = if cfg.resolution > 0 {
+            let a = compose_assign(&h, cfg.resolution);
+            let c = &h[cfg.resolution - 1];
+            (
+                Some(SparseOp::new(mean_pool(&a, c.graph.num_nodes)?)),
+                Some(SparseOp::new(interpolation(&a, &positions, c)?)),
+            )
+        } else {
+            (None, None)
+        };
+        let levels = h
             .iter()
             .map(|c| {
                 Ok(CoarseLevel {
@@ -98,8 +114,15 @@ impl CaseFrame {
             })
             .collect::<Result<_, GcnError>>()?;
         Ok(MeshGraphs {
-            fine: SplineGraph::from_graph(&self.graph, &kernel, device)?,
+            fine: if cfg.resolution == 0 {
+                Some(SplineGraph::from_graph(&self.graph, &kernel, device)?)
+            } else {
+                None
+            },
             levels,
+            start: cfg.resolution,
+            to_start,
+            from_start,
         })
     }
 }

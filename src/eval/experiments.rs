@@ -1,0 +1,443 @@
+//! The experiments report (`librplus experiments`): per-run figures from each run's `test.json`
+//! (written by `librplus train`), and `RESULTS.md` with the split table, the per-category
+//! table (the paper's Table S1 layout: LIBR → LIBR+ per measurement category, and surface vs
+//! interior nodes), the ablation table (the paper's Table 2), and the acceptance checks of
+//! LIBR+ (ratio to LIBR per split, worst split against best, every category better).
+
+use super::Tre;
+use super::report::{CATEGORY_ORDER, ScenarioResult};
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+/// One finished training run.
+#[derive(Debug, Clone)]
+pub struct RunOutcome {
+    /// Run name (directory under `runs/`).
+    pub name: String,
+    /// Split name (`random`, `logo:g1`, …).
+    pub split: String,
+    /// Table 2 setting (6 = the full model).
+    pub ablation: u32,
+    /// The run's `test.json`.
+    pub test: Value,
+}
+
+/// Means of one method over a run's test scenarios.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct MethodMeans {
+    /// Mean node TRE (mm).
+    pub tre_mm: f64,
+    /// Mean surface-node TRE (mm).
+    pub tre_surface_mm: f64,
+    /// Mean interior-node TRE (mm).
+    pub tre_interior_mm: f64,
+}
+
+/// LIBR and LIBR+ over one set of scenarios.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct Pair {
+    /// LIBR.
+    pub libr: MethodMeans,
+    /// LIBR+.
+    pub librplus: MethodMeans,
+    /// Scenarios where both registered.
+    pub scenarios: usize,
+}
+
+impl Pair {
+    /// LIBR+ TRE / LIBR TRE (NaN without scenarios).
+    pub fn ratio(&self) -> f64 {
+        if self.scenarios == 0 || self.libr.tre_mm <= 0.0 {
+            f64::NAN
+        } else {
+            self.librplus.tre_mm / self.libr.tre_mm
+        }
+    }
+}
+
+/// The figures of one run.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct RunFigures {
+    /// Over all test scenarios.
+    pub all: Pair,
+    /// Per measurement category.
+    pub by_category: BTreeMap<String, Pair>,
+    /// Scenarios where LIBR failed (no LIBR+ either).
+    pub failed: usize,
+}
+
+fn tre_of(v: &Value) -> Option<Tre> {
+    serde_json::from_value(v.clone()).ok()
+}
+
+/// Aggregates a `test.json`'s per-scenario rows (`results`: `category`, `libr`, `librplus`).
+pub fn figures(test: &Value) -> RunFigures {
+    #[derive(Default)]
+    struct Acc {
+        sums: [f64; 6],
+        n: usize,
+    }
+    impl Acc {
+        fn add(&mut self, l: &Tre, p: &Tre) {
+            let v = [
+                l.tre_mm,
+                l.tre_surface_mm,
+                l.tre_interior_mm,
+                p.tre_mm,
+                p.tre_surface_mm,
+                p.tre_interior_mm,
+            ];
+            for (s, x) in self.sums.iter_mut().zip(v) {
+                *s += x;
+            }
+            self.n += 1;
+        }
+        fn pair(&self) -> Pair {
+            let d = self.n.max(1) as f64;
+            let m = |k: usize| MethodMeans {
+                tre_mm: self.sums[k] / d,
+                tre_surface_mm: self.sums[k + 1] / d,
+                tre_interior_mm: self.sums[k + 2] / d,
+            };
+            Pair {
+                libr: m(0),
+                librplus: m(3),
+                scenarios: self.n,
+            }
+        }
+    }
+    let mut all = Acc::default();
+    let mut cats: BTreeMap<String, Acc> = BTreeMap::new();
+    let mut failed = 0;
+    for r in test["results"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
+        match (tre_of(&r["libr"]), tre_of(&r["librplus"])) {
+            (Some(l), Some(p)) if l.tre_mm.is_finite() && p.tre_mm.is_finite() => {
+                all.add(&l, &p);
+                cats.entry(r["category"].as_str().unwrap_or("?").to_string())
+                    .or_default()
+                    .add(&l, &p);
+            }
+            _ => failed += 1,
+        }
+    }
+    RunFigures {
+        all: all.pair(),
+        by_category: cats.iter().map(|(k, a)| (k.clone(), a.pair())).collect(),
+        failed,
+    }
+}
+
+/// A run's rows as evaluation results (methods `libr` and `librplus`), for the box plots.
+pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
+    let mut out = Vec::new();
+    for r in test["results"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
+        for method in ["libr", "librplus"] {
+            let tre = tre_of(&r[method]);
+            out.push(ScenarioResult {
+                scenario: r["scenario"].as_str().unwrap_or("?").to_string(),
+                geometry: r["geometry"].as_str().unwrap_or("?").to_string(),
+                category: r["category"].as_str().unwrap_or("?").to_string(),
+                method: method.to_string(),
+                error: tre.is_none().then(|| "LIBR failed".to_string()),
+                tre,
+                seconds: 0.0,
+            });
+        }
+    }
+    out
+}
+
+/// Categories in the paper's order, then any others by name.
+fn ordered_categories(runs: &[(&RunOutcome, RunFigures)]) -> Vec<String> {
+    let mut cats: Vec<String> = CATEGORY_ORDER.iter().map(|c| c.to_string()).collect();
+    let mut extra: Vec<String> = runs
+        .iter()
+        .flat_map(|(_, f)| f.by_category.keys().cloned())
+        .filter(|c| !cats.contains(c))
+        .collect();
+    extra.sort();
+    extra.dedup();
+    cats.extend(extra);
+    cats.retain(|c| runs.iter().any(|(_, f)| f.by_category.contains_key(c)));
+    cats
+}
+
+/// What each Table 2 setting feeds and optimises: (LIBR input, bipartite, loss).
+fn ablation_row(setting: u32) -> (&'static str, &'static str, &'static str) {
+    match setting {
+        1 => ("", "", "L_gt"),
+        2 => ("", "", "L_residual"),
+        3 => ("✓", "", "L_residual"),
+        4 => ("✓", "✓", "L_residual"),
+        5 => ("✓", "✓", "L_gt + L_sparse"),
+        6 => ("✓", "✓", "L_residual + L_sparse"),
+        _ => ("?", "?", "?"),
+    }
+}
+
+/// The paper's Table 2 TRE (mm) of each setting, for comparison.
+const PAPER_TABLE2: [f64; 6] = [4.215, 3.857, 3.985, 3.346, 3.325, 3.234];
+
+/// `RESULTS.md`: `header` (command, data, machine) then the tables. `main` are the full-model
+/// runs, one per split; `ablations` the Table 2 runs (setting 6 included).
+pub fn results_markdown(header: &str, main: &[RunOutcome], ablations: &[RunOutcome]) -> String {
+    let mut s = String::new();
+    s.push_str(header);
+    let main_f: Vec<(&RunOutcome, RunFigures)> =
+        main.iter().map(|r| (r, figures(&r.test))).collect();
+    let _ = writeln!(s, "\n## LIBR+ against LIBR, per split\n");
+    let _ = writeln!(
+        s,
+        "| split | test scenarios | LIBR TRE (mm) | LIBR+ TRE (mm) | LIBR+ / LIBR | LIBR+ better in categories |"
+    );
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|");
+    for (r, f) in &main_f {
+        let better = f
+            .by_category
+            .values()
+            .filter(|p| p.librplus.tre_mm < p.libr.tre_mm)
+            .count();
+        let _ = writeln!(
+            s,
+            "| {} | {}{} | {:.3} | {:.3} | {:.3} | {} of {} |",
+            r.split,
+            f.all.scenarios,
+            if f.failed > 0 {
+                format!(" ({} LIBR failed)", f.failed)
+            } else {
+                String::new()
+            },
+            f.all.libr.tre_mm,
+            f.all.librplus.tre_mm,
+            f.all.ratio(),
+            better,
+            f.by_category.len()
+        );
+    }
+    // Acceptance checks.
+    let ratios: Vec<f64> = main_f
+        .iter()
+        .map(|(_, f)| f.all.ratio())
+        .filter(|r| r.is_finite())
+        .collect();
+    let tres: Vec<f64> = main_f
+        .iter()
+        .filter(|(_, f)| f.all.scenarios > 0)
+        .map(|(_, f)| f.all.librplus.tre_mm)
+        .collect();
+    if !ratios.is_empty() {
+        let worst_ratio = ratios.iter().cloned().fold(f64::MIN, f64::max);
+        let best = tres.iter().cloned().fold(f64::MAX, f64::min);
+        let worst = tres.iter().cloned().fold(f64::MIN, f64::max);
+        let all_better = main_f.iter().all(|(_, f)| {
+            f.by_category
+                .values()
+                .all(|p| p.librplus.tre_mm < p.libr.tre_mm)
+        });
+        let _ = writeln!(s, "\nAcceptance checks (issue 6):\n");
+        let _ = writeln!(
+            s,
+            "- LIBR+ ≤ 0.6 × LIBR on every split: worst ratio {worst_ratio:.3} — {}",
+            if worst_ratio <= 0.6 {
+                "met"
+            } else {
+                "**not met**"
+            }
+        );
+        let _ = writeln!(
+            s,
+            "- LIBR+'s worst split ≤ 1.3 × its best: {worst:.3} / {best:.3} mm = {:.3} — {}",
+            worst / best,
+            if worst <= 1.3 * best {
+                "met"
+            } else {
+                "**not met**"
+            }
+        );
+        let _ = writeln!(
+            s,
+            "- LIBR+ better than LIBR in every measurement category of every split — {}",
+            if all_better { "met" } else { "**not met**" }
+        );
+    }
+    // Per category (Table S1 layout).
+    let cats = ordered_categories(&main_f);
+    if !cats.is_empty() {
+        let _ = writeln!(
+            s,
+            "\n## Per measurement category (TRE in mm, LIBR → LIBR+; the paper's Table S1 layout)\n"
+        );
+        let _ = write!(s, "| split |");
+        for c in &cats {
+            let _ = write!(s, " {c} |");
+        }
+        let _ = writeln!(s, " surface nodes | interior nodes |");
+        let _ = writeln!(s, "|---|{}---:|---:|", "---:|".repeat(cats.len()));
+        for (r, f) in &main_f {
+            let _ = write!(s, "| {} |", r.split);
+            for c in &cats {
+                match f.by_category.get(c) {
+                    Some(p) => {
+                        let _ = write!(s, " {:.2} → {:.2} |", p.libr.tre_mm, p.librplus.tre_mm);
+                    }
+                    None => s.push_str(" – |"),
+                }
+            }
+            let _ = writeln!(
+                s,
+                " {:.2} → {:.2} | {:.2} → {:.2} |",
+                f.all.libr.tre_surface_mm,
+                f.all.librplus.tre_surface_mm,
+                f.all.libr.tre_interior_mm,
+                f.all.librplus.tre_interior_mm
+            );
+        }
+    }
+    // Ablations (Table 2).
+    if !ablations.is_empty() {
+        let split = &ablations[0].split;
+        let _ = writeln!(
+            s,
+            "\n## Ablations (the paper's Table 2), split {split}\n\nEvery setting has the preoperative coordinates as input.\n"
+        );
+        let _ = writeln!(
+            s,
+            "| setting | LIBR input | bipartite | loss | LIBR TRE (mm) | LIBR+ TRE (mm) | LIBR+ / LIBR | paper's TRE (mm) |"
+        );
+        let _ = writeln!(s, "|---:|:-:|:-:|---|---:|---:|---:|---:|");
+        let mut figs: Vec<(u32, f64)> = Vec::new();
+        for r in ablations {
+            let f = figures(&r.test);
+            let (l, b, loss) = ablation_row(r.ablation);
+            let paper = PAPER_TABLE2
+                .get((r.ablation as usize).wrapping_sub(1))
+                .map_or("–".to_string(), |v| format!("{v:.3}"));
+            let _ = writeln!(
+                s,
+                "| {} | {l} | {b} | {loss} | {:.3} | {:.3} | {:.3} | {paper} |",
+                r.ablation,
+                f.all.libr.tre_mm,
+                f.all.librplus.tre_mm,
+                f.all.ratio()
+            );
+            figs.push((r.ablation, f.all.librplus.tre_mm));
+        }
+        // The paper's claims, tested on these runs.
+        let tre = |k: u32| figs.iter().find(|(a, _)| *a == k).map(|(_, t)| *t);
+        let claims: [(&str, u32, u32); 5] = [
+            ("L_residual beats L_gt without measurements (2 < 1)", 2, 1),
+            ("L_residual beats L_gt with everything (6 < 5)", 6, 5),
+            ("LIBR as input helps (3 < 2)", 3, 2),
+            ("the bipartite branch helps (4 < 3)", 4, 3),
+            ("L_sparse helps (6 < 4)", 6, 4),
+        ];
+        let _ = writeln!(s, "\nThe paper's ordering, tested (lower TRE is better):\n");
+        for (what, a, b) in claims {
+            if let (Some(ta), Some(tb)) = (tre(a), tre(b)) {
+                let _ = writeln!(
+                    s,
+                    "- {what}: {ta:.3} vs {tb:.3} mm — {}",
+                    if ta < tb {
+                        "reproduced"
+                    } else {
+                        "**not reproduced**"
+                    }
+                );
+            }
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn tre(t: f64, s: f64, i: f64) -> Value {
+        json!({"tre_mm": t, "tre_surface_mm": s, "tre_interior_mm": i, "tre_targets_mm": t, "max_mm": 2.0 * t})
+    }
+
+    fn run(split: &str, ablation: u32, rows: Vec<Value>) -> RunOutcome {
+        RunOutcome {
+            name: split.replace(':', "-"),
+            split: split.into(),
+            ablation,
+            test: json!({"results": rows}),
+        }
+    }
+
+    #[test]
+    fn figures_average_rows_and_skip_failures() {
+        let t = json!({"results": [
+            {"category": "surface", "libr": tre(6.0, 5.0, 7.0), "librplus": tre(3.0, 2.0, 4.0)},
+            {"category": "surface", "libr": tre(4.0, 3.0, 5.0), "librplus": tre(5.0, 4.0, 6.0)},
+            {"category": "surface+1us", "libr": tre(2.0, 1.0, 3.0), "librplus": tre(1.0, 0.5, 1.5)},
+            {"category": "surface", "error": "LIBR failed"},
+        ]});
+        let f = figures(&t);
+        assert_eq!(f.failed, 1);
+        assert_eq!(f.all.scenarios, 3);
+        assert!((f.all.libr.tre_mm - 4.0).abs() < 1e-12);
+        assert!((f.all.librplus.tre_mm - 3.0).abs() < 1e-12);
+        assert!((f.all.ratio() - 0.75).abs() < 1e-12);
+        assert!((f.all.librplus.tre_interior_mm - 23.0 / 6.0).abs() < 1e-12);
+        let s = f.by_category["surface"];
+        assert_eq!(s.scenarios, 2);
+        assert!((s.libr.tre_mm - 5.0).abs() < 1e-12 && (s.librplus.tre_mm - 4.0).abs() < 1e-12);
+        assert_eq!(scenario_results(&t).len(), 8);
+    }
+
+    #[test]
+    fn markdown_judges_the_acceptance_points_from_the_figures() {
+        let good = run(
+            "random",
+            6,
+            vec![
+                json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(5.0, 4.0, 6.0)}),
+            ],
+        );
+        let bad = run(
+            "pattern-v",
+            6,
+            vec![
+                json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(9.0, 8.0, 10.0)}),
+            ],
+        );
+        let md = results_markdown("# R\n", &[good.clone()], &[]);
+        assert!(
+            md.contains("| random | 1 | 10.000 | 5.000 | 0.500 | 1 of 1 |"),
+            "{md}"
+        );
+        assert!(md.contains("worst ratio 0.500 — met"), "{md}");
+        let md = results_markdown("# R\n", &[good.clone(), bad], &[]);
+        assert!(md.contains("worst ratio 0.900 — **not met**"), "{md}");
+        assert!(
+            md.contains("9.000 / 5.000 mm = 1.800 — **not met**"),
+            "{md}"
+        );
+        assert!(md.contains("| pattern-v | 10.00 → 9.00 |"), "{md}");
+        // Ablations: setting 1 worse than 2 reproduces "residual beats gt".
+        let a1 = run(
+            "random",
+            1,
+            vec![
+                json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(7.0, 6.0, 8.0)}),
+            ],
+        );
+        let a2 = run(
+            "random",
+            2,
+            vec![
+                json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(8.0, 7.0, 9.0)}),
+            ],
+        );
+        let md = results_markdown("", &[good], &[a1, a2]);
+        assert!(
+            md.contains("(2 < 1): 8.000 vs 7.000 mm — **not reproduced**"),
+            "{md}"
+        );
+        assert!(!md.contains("(6 < 5)"), "{md}");
+    }
+}
