@@ -166,6 +166,43 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
 }
 
 #[test]
+fn held_out_splits_validate_on_a_whole_unseen_deformation() {
+    let mut m = librplus::eval::open(dataset()).unwrap();
+    // Four or more training deformations: copies of the small preset's under new ids.
+    let test_geos: Vec<String> = m.test_geometries().iter().map(|s| s.to_string()).collect();
+    let base: Vec<_> = m
+        .deformations
+        .iter()
+        .filter(|d| !test_geos.contains(&d.geometry))
+        .cloned()
+        .collect();
+    for d in &base {
+        for copy in 1..=2 {
+            let mut e = d.clone();
+            e.id = format!("{}-copy{copy}", d.id);
+            m.deformations.push(e);
+        }
+    }
+    for seed in 1..4 {
+        let s = tr::split_scenarios(&m, &TrainSplit::PatternV, seed, 1).unwrap();
+        let mut v: Vec<&str> = s.valid.iter().map(|(d, _)| d.as_str()).collect();
+        v.dedup();
+        assert_eq!(v.len(), 1, "seed {seed}: validation spans {v:?}");
+        assert!(s.train.iter().all(|(d, _)| d != v[0]), "seed {seed}");
+        assert!(s.test.iter().all(|(d, _)| d != v[0]), "seed {seed}");
+        // Every scenario of that deformation (all blocks, every = 1) validates.
+        let n = m
+            .deformations
+            .iter()
+            .find(|d| d.id == v[0])
+            .unwrap()
+            .scenarios
+            .len();
+        assert_eq!(s.valid.len(), n);
+    }
+}
+
+#[test]
 fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     let f = fixture();
     let cfg = SrGcnConfig::new().with_width(16).with_convs(1);

@@ -2381,6 +2381,13 @@ fn train(a: &TrainArgs) -> Result<Value> {
             l.seconds
         );
     }
+    eprintln!(
+        "correction scale {:.2} (validation node error {:.4} mm; {:.4} mm at scale 1, LIBR {:.4} mm)",
+        report.model.config.correction_scale,
+        report.scaled_valid_mm,
+        report.best_valid_mm,
+        report.libr_valid_mm
+    );
     // Test: LIBR and LIBR+ on the held-out scenarios.
     let test_items = pick(&sets.test);
     let test_sol = solve(&test_items, "LIBR on test scenarios")?;
@@ -2465,6 +2472,8 @@ fn train(a: &TrainArgs) -> Result<Value> {
         "format": 1,
         "log": report.log,
         "best_valid_node_error_mm": report.best_valid_mm,
+        "correction_scale": report.model.config.correction_scale,
+        "scaled_valid_node_error_mm": report.scaled_valid_mm,
         "libr_valid_node_error_mm": report.libr_valid_mm,
         "train_samples": report.train_samples,
         "valid_samples": report.valid_samples,
@@ -2481,12 +2490,13 @@ fn train(a: &TrainArgs) -> Result<Value> {
     let mut prov = provenance.clone();
     prov["metrics"] = json!({
         "valid_node_error_mm": report.best_valid_mm,
+        "correction_scale": report.model.config.correction_scale,
         "libr_valid_node_error_mm": report.libr_valid_mm,
         "test_libr_tre_mm": sl / nn,
         "test_librplus_tre_mm": sp / nn,
         "train_seconds": report.seconds,
     });
-    librplus::gcn::io::save_model(&a.out, &cfg, &report.model.net, prov)
+    librplus::gcn::io::save_model(&a.out, &report.model.config, &report.model.net, prov)
         .map_err(anyhow::Error::msg)?;
     // Loss curves.
     let series =

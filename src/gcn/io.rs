@@ -322,12 +322,14 @@ fn model_from_parts(
         ));
     }
     let mut head = head;
-    if format == Some(2)
-        && let Some(c) = head.get_mut("config").and_then(|c| c.as_object_mut())
-    {
-        // Format 2 predates residual blocks and coarse-resolution branches.
-        c.insert("residual".into(), false.into());
-        c.insert("resolution".into(), 0.into());
+    if let Some(c) = head.get_mut("config").and_then(|c| c.as_object_mut()) {
+        if format == Some(2) {
+            // Format 2 predates residual blocks and coarse-resolution branches.
+            c.insert("residual".into(), false.into());
+            c.insert("resolution".into(), 0.into());
+        }
+        // Files without a fitted correction scale apply the whole correction.
+        c.entry("correction_scale").or_insert(1.0.into());
     }
     let file: ModelFile =
         serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;

@@ -201,18 +201,40 @@ pub fn split_scenarios(
         }
     }
     shuffle(&mut train_blocks, seed ^ 0xA11D);
-    let n_valid = (train_blocks.len() / 10)
-        .max(1)
-        .min(train_blocks.len().saturating_sub(1));
     let mut sets = SplitSets {
         test,
         ..Default::default()
     };
-    for (i, b) in train_blocks.into_iter().enumerate() {
-        if i < n_valid {
-            sets.valid.extend(b);
-        } else {
-            sets.train.extend(b);
+    // Validation is like the test: where the test holds out whole deformations, validation is one
+    // whole training deformation (chosen by the seed), so early stopping and the learning-rate
+    // schedule judge generalisation to an unseen deformation, not memorisation of seen ones.
+    let mut defs: Vec<&str> = train_blocks
+        .iter()
+        .filter_map(|b| b.first().map(|r| r.0.as_str()))
+        .collect();
+    defs.sort();
+    defs.dedup();
+    let held_out_valid = !matches!(split, TrainSplit::Random) && defs.len() >= 3;
+    if held_out_valid {
+        let mut st = seed ^ 0xDEF0;
+        let v = defs[(splitmix(&mut st) % defs.len() as u64) as usize].to_string();
+        for b in train_blocks {
+            if b.first().is_some_and(|r| r.0 == v) {
+                sets.valid.extend(b);
+            } else {
+                sets.train.extend(b);
+            }
+        }
+    } else {
+        let n_valid = (train_blocks.len() / 10)
+            .max(1)
+            .min(train_blocks.len().saturating_sub(1));
+        for (i, b) in train_blocks.into_iter().enumerate() {
+            if i < n_valid {
+                sets.valid.extend(b);
+            } else {
+                sets.train.extend(b);
+            }
         }
     }
     sets.train.sort();
@@ -606,6 +628,8 @@ pub struct TrainReport {
     pub log: Vec<EpochLog>,
     /// Best validation node error (mm).
     pub best_valid_mm: f64,
+    /// Validation node error with the fitted correction scale (`model.config.correction_scale`).
+    pub scaled_valid_mm: f64,
     /// Validation node error of LIBR alone (mm): the correction's starting point.
     pub libr_valid_mm: f64,
     /// Training samples used.
@@ -651,6 +675,7 @@ pub fn train(
         graphs.insert(g.clone(), (ad, pl));
     }
     let err = |e: GcnError| e.to_string();
+    let err_s = err;
     let mut log = Vec::new();
     let mut order: Vec<usize> = (0..train.len()).collect();
     // Stage 1: the bipartite branch reconstructs its input.
@@ -794,13 +819,60 @@ pub fn train(
             break;
         }
     }
+    // The correction's scale, fitted on the validation scenarios.
+    let mut config = cfg.clone();
+    let mut scaled_valid_mm = best;
+    if cfg.target == Target::Residual {
+        let grid: Vec<f64> = (0..=20).map(|k| k as f64 / 20.0).collect();
+        let mut err = vec![0.0; grid.len()];
+        for s in valid {
+            let (_, y) = mesh_loss(
+                &best_net,
+                &best_net,
+                cfg,
+                &s.data,
+                &graphs[&s.geometry].1,
+                &plain,
+                &plain,
+            )
+            .map_err(err_s)?;
+            let y: Vec<f32> = y
+                .into_data()
+                .convert::<f32>()
+                .try_to_vec::<f32>()
+                .unwrap_or_default();
+            let t = s.data.target.as_deref().unwrap_or(&[]);
+            let unit_mm = unit(&s.geometry);
+            for (e, a) in err.iter_mut().zip(&grid) {
+                let mut sum = 0.0;
+                for (yi, ti) in y.chunks_exact(3).zip(t.chunks_exact(3)) {
+                    sum += (0..3)
+                        .map(|c| (*a * yi[c] as f64 - ti[c] as f64).powi(2))
+                        .sum::<f64>()
+                        .sqrt();
+                }
+                *e += sum / (t.len() / 3).max(1) as f64 * unit_mm / valid.len() as f64;
+            }
+        }
+        // The largest factor among the best (ties keep more of the correction).
+        let (k, e) =
+            err.iter()
+                .enumerate()
+                .rev()
+                .fold((grid.len() - 1, f64::INFINITY), |acc, (k, e)| {
+                    if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
+                });
+        config.correction_scale = grid[k];
+        scaled_valid_mm = e;
+    }
     Ok(TrainReport {
         model: TrainedModel {
-            config: cfg.clone(),
+            config,
             net: best_net,
             provenance: provenance.clone(),
         },
         log,
+        scaled_valid_mm,
         best_valid_mm: best,
         libr_valid_mm,
         train_samples: train.len(),
@@ -838,12 +910,9 @@ pub fn correct(
             "prediction size differs from the mesh".into(),
         ));
     }
+    let k = unit * model.config.correction_scale;
     Ok(match model.config.target {
-        Target::Residual => u
-            .iter()
-            .zip(&y)
-            .map(|(a, b)| a + unit * *b as f64)
-            .collect(),
+        Target::Residual => u.iter().zip(&y).map(|(a, b)| a + k * *b as f64).collect(),
         Target::Gt => y.iter().map(|b| unit * *b as f64).collect(),
     })
 }
