@@ -239,9 +239,26 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     );
     let b = run(&tmp.path().join("b"));
     assert_eq!(a.best_valid_mm, b.best_valid_mm, "not deterministic");
+    // The fitted correction scale: its grid holds 1 (the trained correction) and 0 (LIBR alone),
+    // so on validation the scaled correction is no worse than either.
+    let k = a.model.config.correction_scale;
+    assert!((0.0..=1.0).contains(&k), "scale {k}");
+    assert!(
+        a.scaled_valid_mm <= a.best_valid_mm + 1e-6 && a.scaled_valid_mm <= a.libr_valid_mm + 1e-6,
+        "scaled {} vs unscaled {} vs LIBR {}",
+        a.scaled_valid_mm,
+        a.best_valid_mm,
+        a.libr_valid_mm
+    );
     // Save, load, predict.
     let dir = tmp.path().join("saved");
-    save_model(&dir, &cfg, &a.model.net, serde_json::json!({"test": true})).unwrap();
+    save_model(
+        &dir,
+        &a.model.config,
+        &a.model.net,
+        serde_json::json!({"test": true}),
+    )
+    .unwrap();
     let dev = burn::tensor::Device::flex();
     let loaded = load_model(&dir, &dev).unwrap();
     let gc = &f.cases[&f.scenarios[0].1];

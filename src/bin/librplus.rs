@@ -81,7 +81,7 @@ struct ExperimentsArgs {
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// More `librplus train` options for every run, as one string (e.g. "--width 48").
-    #[arg(long, default_value = "")]
+    #[arg(long, default_value = "", allow_hyphen_values = true)]
     train_args: String,
     /// Keep runs whose directory already has test.json (resume an interrupted campaign).
     #[arg(long)]
