@@ -405,7 +405,7 @@ mod tests {
                 json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(9.0, 8.0, 10.0)}),
             ],
         );
-        let md = results_markdown("# R\n", &[good.clone()], &[]);
+        let md = results_markdown("# R\n", std::slice::from_ref(&good), &[]);
         assert!(
             md.contains("| random | 1 | 10.000 | 5.000 | 0.500 | 1 of 1 |"),
             "{md}"

@@ -303,7 +303,7 @@ pub fn interpolation(
             .map(|&k| (-d2(p, &coarse.positions[k]) / (2.0 * h * h)).exp())
             .collect();
         let total: f64 = w.iter().sum();
-        if !(total > 1e-300) {
+        if total.is_nan() || total <= 1e-300 {
             trip.push((i, c, 1.0f32));
             continue;
         }
