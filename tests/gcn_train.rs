@@ -183,23 +183,50 @@ fn held_out_splits_validate_on_a_whole_unseen_deformation() {
             m.deformations.push(e);
         }
     }
-    for seed in 1..4 {
-        let s = tr::split_scenarios(&m, &TrainSplit::PatternV, seed, 1).unwrap();
+    let defs = |m: &librplus::dataset::Manifest| {
+        m.deformations
+            .iter()
+            .filter(|d| !test_geos.contains(&d.geometry))
+            .count()
+    };
+    check_whole_deformations_validate(&m, 1);
+    // Many training deformations: about one in ten validates.
+    for d in &base {
+        for copy in 3..=9 {
+            let mut e = d.clone();
+            e.id = format!("{}-copy{copy}", d.id);
+            m.deformations.push(e);
+        }
+    }
+    assert_eq!(defs(&m), 20);
+    check_whole_deformations_validate(&m, 2);
+}
+
+/// On the pattern-v split of `m`, validation is `n` whole training deformations, in neither the
+/// training nor the test set, and differs between seeds.
+fn check_whole_deformations_validate(m: &librplus::dataset::Manifest, n: usize) {
+    let mut seen = std::collections::BTreeSet::new();
+    for seed in 1..6 {
+        let s = tr::split_scenarios(m, &TrainSplit::PatternV, seed, 1).unwrap();
         let mut v: Vec<&str> = s.valid.iter().map(|(d, _)| d.as_str()).collect();
+        v.sort();
         v.dedup();
-        assert_eq!(v.len(), 1, "seed {seed}: validation spans {v:?}");
-        assert!(s.train.iter().all(|(d, _)| d != v[0]), "seed {seed}");
-        assert!(s.test.iter().all(|(d, _)| d != v[0]), "seed {seed}");
-        // Every scenario of that deformation (all blocks, every = 1) validates.
-        let n = m
+        assert_eq!(v.len(), n, "seed {seed}: validation spans {v:?}");
+        for d in &v {
+            assert!(s.train.iter().all(|(t, _)| t != d), "seed {seed}");
+            assert!(s.test.iter().all(|(t, _)| t != d), "seed {seed}");
+        }
+        // Every scenario of those deformations (all blocks, every = 1) validates.
+        let total: usize = m
             .deformations
             .iter()
-            .find(|d| d.id == v[0])
-            .unwrap()
-            .scenarios
-            .len();
-        assert_eq!(s.valid.len(), n);
+            .filter(|d| v.contains(&d.id.as_str()))
+            .map(|d| d.scenarios.len())
+            .sum();
+        assert_eq!(s.valid.len(), total);
+        seen.insert(v.join(","));
     }
+    assert!(seen.len() > 1, "the seed does not change validation");
 }
 
 #[test]

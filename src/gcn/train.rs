@@ -205,9 +205,10 @@ pub fn split_scenarios(
         test,
         ..Default::default()
     };
-    // Validation is like the test: where the test holds out whole deformations, validation is one
-    // whole training deformation (chosen by the seed), so early stopping and the learning-rate
-    // schedule judge generalisation to an unseen deformation, not memorisation of seen ones.
+    // Validation is like the test: where the test holds out whole deformations, validation is
+    // whole training deformations (about one in ten, at least one, chosen by the seed), so early
+    // stopping and the learning-rate schedule judge generalisation to unseen deformations, not
+    // memorisation of seen ones.
     let mut defs: Vec<&str> = train_blocks
         .iter()
         .filter_map(|b| b.first().map(|r| r.0.as_str()))
@@ -216,10 +217,16 @@ pub fn split_scenarios(
     defs.dedup();
     let held_out_valid = !matches!(split, TrainSplit::Random) && defs.len() >= 3;
     if held_out_valid {
+        // Drawn without replacement.
         let mut st = seed ^ 0xDEF0;
-        let v = defs[(splitmix(&mut st) % defs.len() as u64) as usize].to_string();
+        let mut pool = defs;
+        let mut held = Vec::new();
+        for _ in 0..validation_deformations(pool.len()) {
+            let k = (splitmix(&mut st) % pool.len() as u64) as usize;
+            held.push(pool.remove(k).to_string());
+        }
         for b in train_blocks {
-            if b.first().is_some_and(|r| r.0 == v) {
+            if b.first().is_some_and(|r| held.contains(&r.0)) {
                 sets.valid.extend(b);
             } else {
                 sets.train.extend(b);
@@ -247,6 +254,12 @@ pub fn split_scenarios(
         ));
     }
     Ok(sets)
+}
+
+/// How many of `n` training deformations validate on held-out-deformation splits: about one in
+/// ten, at least one.
+pub fn validation_deformations(n: usize) -> usize {
+    n.div_ceil(10).max(1).min(n.saturating_sub(1))
 }
 
 /// A LIBR solution of one scenario (what LIBR+ starts from).
