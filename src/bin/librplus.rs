@@ -141,6 +141,10 @@ struct TrainArgs {
     /// Nodes per cluster from one U-Net level to the next.
     #[arg(long, default_value_t = 8)]
     pool_ratio: usize,
+    /// Clusters of the first cluster level whatever the mesh's resolution, so coarse and fine
+    /// meshes give the network the same graphs (0: `1/pool_ratio` of the nodes).
+    #[arg(long, default_value_t = 1024)]
+    clusters: usize,
     /// Spline convolutions per coarse level on the way down.
     #[arg(long, default_value_t = 3)]
     coarse_convs: usize,
@@ -2227,6 +2231,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         .with_levels(a.levels)
         .with_resolution(a.resolution)
         .with_pool_ratio(a.pool_ratio)
+        .with_clusters(a.clusters)
         .with_coarse_convs(a.coarse_convs)
         .with_residual(!a.no_residual)
         .with_n_top(a.n_top);

@@ -95,6 +95,16 @@ pub fn coarsen(
     positions: &[[f64; 3]],
     ratio: usize,
 ) -> Result<Coarsening, GcnError> {
+    if ratio < 2 {
+        return Err(GcnError::Invalid(format!(
+            "coarsening needs a ratio ≥ 2 (ratio = {ratio})"
+        )));
+    }
+    coarsen_to(graph, positions, graph.num_nodes.div_ceil(ratio))
+}
+
+/// Coarsens `graph` (node positions `positions`) to `min(m, N)` clusters.
+pub fn coarsen_to(graph: &Graph, positions: &[[f64; 3]], m: usize) -> Result<Coarsening, GcnError> {
     let n = graph.num_nodes;
     if positions.len() != n {
         return Err(GcnError::Invalid(format!(
@@ -102,16 +112,16 @@ pub fn coarsen(
             positions.len()
         )));
     }
-    if n == 0 || ratio < 2 {
+    if n == 0 || m == 0 {
         return Err(GcnError::Invalid(format!(
-            "coarsening needs nodes and a ratio ≥ 2 (N = {n}, ratio = {ratio})"
+            "coarsening needs nodes and clusters (N = {n}, clusters = {m})"
         )));
     }
     if positions.iter().flatten().any(|x| !x.is_finite()) {
         return Err(GcnError::Invalid("node positions must be finite".into()));
     }
     check_edges(n, &graph.targets, &graph.sources)?;
-    let m = n.div_ceil(ratio);
+    let m = m.min(n);
     let seeds = farthest_points(positions, m);
     // Adjacency (CSR over targets; the mesh graph holds both directions).
     let mut start = vec![0usize; n + 1];
@@ -320,11 +330,15 @@ pub fn hierarchy(
     positions: &[[f64; 3]],
     levels: usize,
     ratio: usize,
+    first: Option<usize>,
 ) -> Result<Vec<Coarsening>, GcnError> {
     let mut out: Vec<Coarsening> = Vec::with_capacity(levels);
     for _ in 0..levels {
         let c = match out.last() {
-            None => coarsen(graph, positions, ratio)?,
+            None => match first {
+                Some(m) => coarsen_to(graph, positions, m)?,
+                None => coarsen(graph, positions, ratio)?,
+            },
             Some(prev) => coarsen(&prev.graph, &prev.positions, ratio)?,
         };
         out.push(c);
@@ -343,7 +357,7 @@ mod tests {
         let mesh = box_mesh([40.0, 20.0, 10.0], [16, 8, 4], 0.2);
         let g = mesh_graph(&mesh).unwrap();
         let pos = mesh.nodes().to_vec();
-        let h = hierarchy(&g, &pos, 3, 8).unwrap();
+        let h = hierarchy(&g, &pos, 3, 8, None).unwrap();
         let mut n = g.num_nodes;
         let mut prev = g.clone();
         for c in &h {
@@ -411,7 +425,7 @@ mod tests {
         let mesh = box_mesh([40.0, 20.0, 10.0], [16, 8, 4], 0.2);
         let g = mesh_graph(&mesh).unwrap();
         let pos = mesh.nodes().to_vec();
-        let h = hierarchy(&g, &pos, 2, 8).unwrap();
+        let h = hierarchy(&g, &pos, 2, 8, None).unwrap();
         for r in 1..=2 {
             let a = compose_assign(&h, r);
             let c = &h[r - 1];
@@ -475,5 +489,54 @@ mod tests {
         let s = farthest_points(&pos, 3);
         // From the centroid 49.5 the farthest is node 0 (lower index wins), then 99, then 49.
         assert_eq!(s, vec![0, 99, 49]);
+    }
+
+    /// Mean distance from each cluster seed to its nearest other seed.
+    fn seed_spacing(c: &Coarsening, pos: &[[f64; 3]]) -> f64 {
+        let seeds: Vec<[f64; 3]> = c.seeds.iter().map(|&s| pos[s]).collect();
+        let near = |p: &[f64; 3]| {
+            seeds
+                .iter()
+                .map(|q| d2(p, q))
+                .filter(|&d| d > 0.0)
+                .fold(f64::INFINITY, f64::min)
+                .sqrt()
+        };
+        seeds.iter().map(near).sum::<f64>() / seeds.len() as f64
+    }
+
+    #[test]
+    fn a_fixed_cluster_count_gives_the_same_spacing_on_coarse_and_fine_meshes() {
+        let coarse = box_mesh([40.0, 20.0, 10.0], [12, 6, 3], 0.2);
+        let fine = box_mesh([40.0, 20.0, 10.0], [24, 12, 6], 0.2);
+        let run = |mesh: &crate::mesh::TetMesh, first: Option<usize>| {
+            let g = mesh_graph(mesh).unwrap();
+            let pos = mesh.nodes().to_vec();
+            let h = hierarchy(&g, &pos, 2, 8, first).unwrap();
+            let spacing = seed_spacing(&h[0], &pos);
+            (h, spacing)
+        };
+        // By ratio, the first level follows the mesh: twice the resolution, half the spacing.
+        let (hc, sc) = run(&coarse, None);
+        let (hf, sf) = run(&fine, None);
+        assert!(hf[0].graph.num_nodes > 6 * hc[0].graph.num_nodes);
+        assert!(sf < 0.7 * sc, "spacing {sf} vs {sc}");
+        // By count, it does not; the next level still coarsens by the ratio.
+        let (hc, sc) = run(&coarse, Some(120));
+        let (hf, sf) = run(&fine, Some(120));
+        assert_eq!(hc[0].graph.num_nodes, 120);
+        assert_eq!(hf[0].graph.num_nodes, 120);
+        assert_eq!(hf[1].graph.num_nodes, 15);
+        assert!((sf / sc - 1.0).abs() < 0.15, "spacing {sf} vs {sc}");
+        // More clusters than nodes: one per node.
+        let n = coarse.nodes().len();
+        let (h, _) = run(&coarse, Some(10 * n));
+        assert_eq!(h[0].graph.num_nodes, n);
+        assert!(
+            h[0].assign
+                .iter()
+                .enumerate()
+                .all(|(i, &k)| h[0].seeds[k] == i)
+        );
     }
 }

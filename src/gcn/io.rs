@@ -330,6 +330,8 @@ fn model_from_parts(
         }
         // Files without a fitted correction scale apply the whole correction.
         c.entry("correction_scale").or_insert(1.0.into());
+        // Files without a first-level cluster count coarsen by `pool_ratio`.
+        c.entry("clusters").or_insert(0.into());
     }
     let file: ModelFile =
         serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;
@@ -372,10 +374,15 @@ mod tests {
         let c = j["config"].as_object_mut().unwrap();
         c.remove("residual");
         c.remove("resolution");
+        c.remove("clusters");
         std::fs::write(&p, j.to_string()).unwrap();
         let old = load_model_cpu(tmp.path()).unwrap();
         assert!(!old.config.residual, "format 2 has no residual blocks");
         assert_eq!(old.config.resolution, 0, "format 2 runs on the full mesh");
+        assert_eq!(
+            old.config.clusters, 0,
+            "no cluster count: coarsened by ratio"
+        );
         assert_eq!(named_tensors(&old.net), named_tensors(&m.net));
         // The defaults of a new configuration are the format-3 network.
         let d = SrGcnConfig::new();

@@ -75,6 +75,14 @@ pub struct SrGcnConfig {
     /// Nodes per cluster from one level to the next.
     #[config(default = 8)]
     pub pool_ratio: usize,
+    /// Clusters of the first cluster level, whatever the mesh's resolution (0: `1/pool_ratio`
+    /// of the nodes, as format-3 files written before this switch). With a fixed count the
+    /// cluster graphs have the same spacing relative to the liver on a coarse or a fine mesh
+    /// (inputs are normalised by the liver's RMS radius), so a model trained on ~9,000-node
+    /// livers sees on a 1,800-node or a 30,000-node liver the graphs it was trained on, and its
+    /// cost no longer grows with the mesh. A mesh with fewer nodes keeps one cluster per node.
+    #[config(default = 0)]
+    pub clusters: usize,
     /// Spline convolutions on each coarse level on the way down (cheap: a level has
     /// `1/pool_ratio` of the nodes of the one above).
     #[config(default = 3)]

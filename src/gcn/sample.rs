@@ -92,6 +92,7 @@ impl CaseFrame {
             &positions,
             cfg.resolution + cfg.levels,
             cfg.pool_ratio,
+            (cfg.clusters > 0).then_some(cfg.clusters),
         )?;
         let (to_start, from_start) = if cfg.resolution > 0 {
             let a = compose_assign(&h, cfg.resolution);
