@@ -2331,9 +2331,9 @@ fn train(a: &TrainArgs) -> Result<Value> {
     };
     let train_s = samples(&train_items, &train_sol)?;
     let valid_s = samples(&valid_items, &valid_sol)?;
-    let command: Vec<String> = std::env::args().collect();
+    let command = shell_command();
     let provenance = json!({
-        "command": command.join(" "),
+        "command": command,
         "data": a.data.display().to_string(),
         "data_preset": m.preset,
         "data_seed": m.seed,
@@ -2695,7 +2695,7 @@ fn experiments(a: &ExperimentsArgs) -> Result<()> {
         .cloned()
         .collect();
     abl.sort_by_key(|r| r.ablation);
-    let command: Vec<String> = std::env::args().collect();
+    let command = shell_command();
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
         .and_then(|c| {
@@ -2715,7 +2715,7 @@ fn experiments(a: &ExperimentsArgs) -> Result<()> {
          - TRE: mean distance over mesh nodes between the registered and the true deformed \
          liver (physical frame), averaged over the held-out scenarios.\n",
         git_commit(),
-        command.join(" "),
+        command,
         a.data.display(),
         m.preset,
         m.seed,
@@ -2735,11 +2735,27 @@ fn experiments(a: &ExperimentsArgs) -> Result<()> {
         .collect();
     std::fs::write(
         a.out.join("results.json"),
-        serde_json::to_string_pretty(
-            &json!({"format": 1, "command": command.join(" "), "runs": runs}),
-        )?,
+        serde_json::to_string_pretty(&json!({"format": 1, "command": command, "runs": runs}))?,
     )?;
     println!("{md}");
     eprintln!("wrote {}", a.out.join("RESULTS.md").display());
     Ok(())
+}
+
+/// This process's command line as a shell would need it: an empty argument or one holding a space
+/// or a shell character in single quotes, so a recorded command runs again when pasted.
+fn shell_command() -> String {
+    std::env::args()
+        .map(|a| {
+            let plain = !a.is_empty()
+                && a.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_=./,:@%+".contains(c));
+            if plain {
+                a
+            } else {
+                format!("'{}'", a.replace('\'', "'\\''"))
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
 }
