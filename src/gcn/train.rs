@@ -633,6 +633,30 @@ fn node_error_mm(y: &Tensor<2>, target: &[f32], unit: f64) -> f64 {
         * unit
 }
 
+/// Mean node error (mm) of the correction `y` scaled by each factor of `grid`.
+fn scaled_errors_mm(y: &Tensor<2>, target: &[f32], unit: f64, grid: &[f64]) -> Vec<f64> {
+    let p = y
+        .clone()
+        .into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .unwrap_or_default();
+    let n = target.len() / 3;
+    if n == 0 || p.len() != target.len() {
+        return vec![f64::NAN; grid.len()];
+    }
+    let mut out = vec![0.0; grid.len()];
+    for (yi, ti) in p.chunks_exact(3).zip(target.chunks_exact(3)) {
+        for (o, a) in out.iter_mut().zip(grid) {
+            *o += (0..3)
+                .map(|c| (a * yi[c] as f64 - ti[c] as f64).powi(2))
+                .sum::<f64>()
+                .sqrt();
+        }
+    }
+    out.iter().map(|e| e / n as f64 * unit).collect()
+}
+
 /// What [`train`] returns.
 pub struct TrainReport {
     /// The trained network (best validation epoch), on the plain device.
@@ -688,7 +712,6 @@ pub fn train(
         graphs.insert(g.clone(), (ad, pl));
     }
     let err = |e: GcnError| e.to_string();
-    let err_s = err;
     let mut log = Vec::new();
     let mut order: Vec<usize> = (0..train.len()).collect();
     // Stage 1: the bipartite branch reconstructs its input.
@@ -753,6 +776,13 @@ pub fn train(
     let mut lr = opts.learning_rate;
     let mut best = f64::INFINITY;
     let mut best_net = net.valid();
+    // Candidate factors on the correction: 0, 0.05, …, 1 for a residual target.
+    let grid: Vec<f64> = if cfg.target == Target::Residual {
+        (0..=20).map(|k| k as f64 / 20.0).collect()
+    } else {
+        vec![1.0]
+    };
+    let mut best_err = vec![f64::INFINITY; grid.len()];
     let mut stall = 0;
     for epoch in 1..=opts.epochs {
         shuffle(&mut order, opts.seed.wrapping_add(1000 + epoch as u64));
@@ -779,7 +809,8 @@ pub fn train(
             progress(2, epoch, k + 1, order.len(), sum / (k + 1) as f64);
         }
         let vnet = net.valid();
-        let mut vsum = 0.0;
+        // Validation node error at every candidate correction scale (the last is 1).
+        let mut verr = vec![0.0; grid.len()];
         for s in valid {
             let (_, y) = mesh_loss(
                 &vnet,
@@ -791,13 +822,17 @@ pub fn train(
                 &plain,
             )
             .map_err(err)?;
-            vsum += node_error_mm(
+            let errs = scaled_errors_mm(
                 &y,
                 s.data.target.as_deref().unwrap_or(&[]),
                 unit(&s.geometry),
+                &grid,
             );
+            for (a, e) in verr.iter_mut().zip(errs) {
+                *a += e / valid.len() as f64;
+            }
         }
-        let v = vsum / valid.len() as f64;
+        let v = verr[grid.len() - 1];
         log.push(EpochLog {
             stage: 2,
             epoch,
@@ -809,6 +844,7 @@ pub fn train(
         if v < best {
             best = v;
             best_net = vnet;
+            best_err = verr;
             stall = 0;
             let mut prov = provenance.clone();
             prov["checkpoint"] =
@@ -832,52 +868,17 @@ pub fn train(
             break;
         }
     }
-    // The correction's scale, fitted on the validation scenarios.
+    // The correction's scale, fitted on the best epoch's validation errors: the largest factor
+    // among the best (ties keep more of the correction).
     let mut config = cfg.clone();
-    let mut scaled_valid_mm = best;
-    if cfg.target == Target::Residual {
-        let grid: Vec<f64> = (0..=20).map(|k| k as f64 / 20.0).collect();
-        let mut err = vec![0.0; grid.len()];
-        for s in valid {
-            let (_, y) = mesh_loss(
-                &best_net,
-                &best_net,
-                cfg,
-                &s.data,
-                &graphs[&s.geometry].1,
-                &plain,
-                &plain,
-            )
-            .map_err(err_s)?;
-            let y: Vec<f32> = y
-                .into_data()
-                .convert::<f32>()
-                .try_to_vec::<f32>()
-                .unwrap_or_default();
-            let t = s.data.target.as_deref().unwrap_or(&[]);
-            let unit_mm = unit(&s.geometry);
-            for (e, a) in err.iter_mut().zip(&grid) {
-                let mut sum = 0.0;
-                for (yi, ti) in y.chunks_exact(3).zip(t.chunks_exact(3)) {
-                    sum += (0..3)
-                        .map(|c| (*a * yi[c] as f64 - ti[c] as f64).powi(2))
-                        .sum::<f64>()
-                        .sqrt();
-                }
-                *e += sum / (t.len() / 3).max(1) as f64 * unit_mm / valid.len() as f64;
-            }
-        }
-        // The largest factor among the best (ties keep more of the correction).
-        let (k, e) =
-            err.iter()
-                .enumerate()
-                .rev()
-                .fold((grid.len() - 1, f64::INFINITY), |acc, (k, e)| {
-                    if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
-                });
-        config.correction_scale = grid[k];
-        scaled_valid_mm = e;
-    }
+    let (k, scaled_valid_mm) = best_err
+        .iter()
+        .enumerate()
+        .rev()
+        .fold((grid.len() - 1, best), |acc, (k, e)| {
+            if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
+        });
+    config.correction_scale = grid[k];
     Ok(TrainReport {
         model: TrainedModel {
             config,
