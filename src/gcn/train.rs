@@ -871,13 +871,14 @@ pub fn train(
     // The correction's scale, fitted on the best epoch's validation errors: the largest factor
     // among the best (ties keep more of the correction).
     let mut config = cfg.clone();
-    let (k, scaled_valid_mm) = best_err
-        .iter()
-        .enumerate()
-        .rev()
-        .fold((grid.len() - 1, best), |acc, (k, e)| {
-            if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
-        });
+    let (k, scaled_valid_mm) =
+        best_err
+            .iter()
+            .enumerate()
+            .rev()
+            .fold((grid.len() - 1, best), |acc, (k, e)| {
+                if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
+            });
     config.correction_scale = grid[k];
     Ok(TrainReport {
         model: TrainedModel {
