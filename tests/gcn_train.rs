@@ -421,9 +421,14 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
     assert!(e.contains("no SR-GCN model"), "{e}");
     let case = prepare().with_model(model.clone()).unwrap();
     let libr = register(&case, meas, Method::Libr, &f.params).unwrap();
-    let plus = register(&case, meas, Method::LibrPlus, &f.params).unwrap();
+    let no_refit = PipelineParams {
+        refit_iterations: 0,
+        ..f.params.clone()
+    };
+    let plus = register(&case, meas, Method::LibrPlus, &no_refit).unwrap();
     let c = plus.correction.as_ref().unwrap();
     assert!(c.applied && c.skipped.is_none() && c.seconds > 0.0, "{c:?}");
+    assert!(c.refit.is_none() && c.refit_error.is_none(), "{c:?}");
     // The same LIBR fit, then exactly the correction the training code computes.
     assert_eq!(plus.image_to_physical, libr.image_to_physical);
     let sample = SampleData::build(
@@ -442,6 +447,49 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
     let want = tr::correct(&model, &gc.frame, &graphs, &sample, &libr.u).unwrap();
     assert_eq!(plus.u, want);
     assert_ne!(plus.u, libr.u, "the correction is zero");
+    // With the refit (the default): LIBR's fit from the corrected shape, which brings the
+    // shape back towards the measured points.
+    assert!(f.params.refit_iterations > 0);
+    let fitted = register(&case, meas, Method::LibrPlus, &f.params).unwrap();
+    let c = fitted.correction.as_ref().unwrap();
+    let info = c.refit.as_ref().expect("the refit ran");
+    assert!(
+        (1..=f.params.refit_iterations).contains(&info.iterations),
+        "{info:?}"
+    );
+    let again = librplus::register::pipeline::refit(
+        &case,
+        meas,
+        &f.params,
+        &want,
+        &libr.image_to_physical,
+        None,
+    )
+    .unwrap();
+    assert_eq!(fitted.u, again.u);
+    assert_eq!(fitted.image_to_physical, again.image_to_physical);
+    let misfit = |t: &librplus::mesh::rigid::Rigid, u: &[f64]| {
+        let inv = t.inverse();
+        let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
+        let (m, _) = case
+            .correspondence
+            .match_points(&pts, meas, Some(u), &f.params.libr_correspondence())
+            .unwrap();
+        m.iter()
+            .map(|m| {
+                let q = m.model_point(u);
+                let p = pts[m.point];
+                (0..3).map(|a| (p[a] - q[a]).powi(2)).sum::<f64>().sqrt()
+            })
+            .sum::<f64>()
+            / m.len() as f64
+    };
+    let (m_net, m_fit) = (
+        misfit(&plus.image_to_physical, &plus.u),
+        misfit(&fitted.image_to_physical, &fitted.u),
+    );
+    println!("mean distance of the measured points: network {m_net:.3} mm, refit {m_fit:.3} mm");
+    assert!(m_fit < m_net, "network {m_net} mm, refit {m_fit} mm");
     // A deadline already passed: LIBR's answer, flagged, never a late correction.
     let late = PipelineParams {
         deadline: Some(std::time::Instant::now()),

@@ -16,7 +16,9 @@ use librplus::mesh::procedural::box_mesh;
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::register::Match;
-use librplus::register::libr::{LibrBasis, LibrParams, LoadWidth, fit_step, mesh_hash, register};
+use librplus::register::libr::{
+    LibrBasis, LibrParams, LoadWidth, RunLimits, fit_step, mesh_hash, register, register_active,
+};
 use librplus::util::SplitMix64;
 use nalgebra::{DMatrix, DVector};
 use std::sync::OnceLock;
@@ -376,6 +378,141 @@ fn recovers_a_field_in_the_span_plus_rigid_motion() {
         "the test field is too small to mean anything: {umax}"
     );
     assert!(err <= 1e-3, "mean node error {err} mm");
+}
+
+/// Mean distance (mm) between the nodes placed by two (transform, displacement) pairs.
+fn mean_node_gap(mesh: &TetMesh, a: (&Rigid, &[f64]), b: (&Rigid, &[f64])) -> f64 {
+    let n = mesh.num_nodes();
+    mesh.nodes()
+        .iter()
+        .enumerate()
+        .map(|(i, x)| {
+            let p = a.0.apply([0, 1, 2].map(|k| x[k] + a.1[3 * i + k]));
+            let q = b.0.apply([0, 1, 2].map(|k| x[k] + b.1[3 * i + k]));
+            norm(sub(p, q))
+        })
+        .sum::<f64>()
+        / n as f64
+}
+
+#[test]
+fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
+    let (mesh, basis) = boxed();
+    let mut rng = SplitMix64::new(5);
+    // An offset the 24 smooth elastic modes cannot reproduce: ripples of a few mm.
+    let pi = std::f64::consts::PI;
+    let offset: Vec<f64> = mesh
+        .nodes()
+        .iter()
+        .flat_map(|x| {
+            let (a, b) = (
+                (3.0 * pi * x[0] / 60.0).sin(),
+                (2.0 * pi * x[1] / 40.0).sin(),
+            );
+            [0.5 * b, 0.0, 3.0 * a * b]
+        })
+        .collect();
+    let alpha_true = random_alpha(basis.columns(), 1.0, &mut rng);
+    let phi = basis.displacement(&alpha_true);
+    let u_true: Vec<f64> = offset.iter().zip(&phi).map(|(a, b)| a + b).collect();
+    let truth = Rigid::from_axis_angle([0.3, -1.0, 0.5], 3f64.to_radians(), [4.0, -2.0, 3.0]);
+    let matches = triangle_matches(mesh, 2, &mut rng);
+    let measured: Vec<[f64; 3]> = matches
+        .iter()
+        .map(|m| truth.apply(m.model_point(&u_true)))
+        .collect();
+    let params = LibrParams {
+        regularization: 1e-9,
+        tolerance_mm: 1e-7,
+        max_iterations: 30,
+        ..LibrParams::default()
+    };
+    let run = |offset: Option<&[f64]>| {
+        register_active(
+            mesh,
+            basis,
+            &params,
+            &measured,
+            &Rigid::identity(),
+            RunLimits {
+                offset,
+                ..RunLimits::default()
+            },
+            |_, _| Ok(matches.clone()),
+        )
+        .unwrap()
+    };
+    let with = run(Some(&offset));
+    let without = run(None);
+    let e_with = mean_node_gap(mesh, (&truth, &u_true), (&with.image_to_physical, &with.u));
+    let e_without = mean_node_gap(
+        mesh,
+        (&truth, &u_true),
+        (&without.image_to_physical, &without.u),
+    );
+    println!("offset refit: node error {e_with:.2e} mm; plain LIBR: {e_without:.3} mm");
+    assert!(
+        e_with <= 1e-3,
+        "with the offset: mean node error {e_with} mm"
+    );
+    assert!(
+        e_without >= 0.3,
+        "the offset should not be in the basis's span (plain LIBR error {e_without} mm)"
+    );
+    // The weights are the field's own: Φα is what the offset left.
+    let da = with
+        .alpha
+        .iter()
+        .zip(&alpha_true)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    let amax = alpha_true.iter().map(|a| a.abs()).fold(0.0, f64::max);
+    assert!(da <= 1e-3 * amax, "weights off by {da} (largest {amax})");
+    // Data the offset already explains: the refit changes nothing.
+    let explained: Vec<[f64; 3]> = matches.iter().map(|m| m.model_point(&offset)).collect();
+    let still = register_active(
+        mesh,
+        basis,
+        &params,
+        &explained,
+        &Rigid::identity(),
+        RunLimits {
+            offset: Some(&offset),
+            ..RunLimits::default()
+        },
+        |_, _| Ok(matches.clone()),
+    )
+    .unwrap();
+    let moved = mean_node_gap(
+        mesh,
+        (&Rigid::identity(), &offset),
+        (&still.image_to_physical, &still.u),
+    );
+    assert!(
+        moved <= 1e-6,
+        "the refit moved explained data by {moved} mm"
+    );
+    // A wrong-sized or non-finite offset is an error naming it.
+    for bad in [vec![0.0; 5], {
+        let mut v = offset.clone();
+        v[7] = f64::NAN;
+        v
+    }] {
+        let e = register_active(
+            mesh,
+            basis,
+            &params,
+            &measured,
+            &Rigid::identity(),
+            RunLimits {
+                offset: Some(&bad),
+                ..RunLimits::default()
+            },
+            |_, _| Ok(matches.clone()),
+        )
+        .unwrap_err();
+        assert!(e.contains("offset"), "{e}");
+    }
 }
 
 #[test]

@@ -184,6 +184,10 @@ struct LibrOpts {
     /// (default 1.25; changes the cached basis).
     #[arg(long)]
     load_width: Option<f64>,
+    /// LIBR+ only: most LIBR iterations of the data-consistency refit after the SR-GCN
+    /// correction (default 5; 0: none)
+    #[arg(long)]
+    refit_iterations: Option<usize>,
 }
 
 impl LibrOpts {
@@ -200,6 +204,9 @@ impl LibrOpts {
         }
         if let Some(w) = self.load_width {
             p.libr.load_width = librplus::register::libr::LoadWidth::Spacing(w);
+        }
+        if let Some(k) = self.refit_iterations {
+            p.refit_iterations = k;
         }
         p
     }
@@ -915,6 +922,12 @@ fn registration_json(r: &librplus::register::pipeline::Registration) -> Value {
             "skipped": c.skipped,
             "seconds": c.seconds,
             "network_seconds": c.network_seconds,
+            "refit": c.refit.as_ref().map(|i| json!({
+                "iterations": i.iterations,
+                "rms_mm": i.rms_mm,
+                "total_s": i.total_s,
+            })),
+            "refit_error": c.refit_error,
         })),
     })
 }
@@ -2431,7 +2444,21 @@ fn train(a: &TrainArgs) -> Result<Value> {
         let e_libr = node_errors_mm(nodes, (&sol.transform, &sol.u), truth);
         let u_plus = tr::correct(&report.model, &gc.frame, &graphs[*g], &sample.data, &sol.u)
             .map_err(|e| anyhow::anyhow!("{}: {e}", sc.id))?;
-        let e_plus = node_errors_mm(nodes, (&sol.transform, &u_plus), truth);
+        let (u_plus, t_plus) = if params.refit_iterations > 0 {
+            let r = librplus::register::pipeline::refit(
+                &gc.case,
+                &sc.measurements,
+                &params,
+                &u_plus,
+                &sol.transform,
+                None,
+            )
+            .map_err(|e| anyhow::anyhow!("{}: refit: {e}", sc.id))?;
+            (r.u, r.image_to_physical)
+        } else {
+            (u_plus, sol.transform)
+        };
+        let e_plus = node_errors_mm(nodes, (&t_plus, &u_plus), truth);
         let t_l = tre_from_errors(&e_libr, &gc.geo.surface, &gc.geo.targets);
         let t_p = tre_from_errors(&e_plus, &gc.geo.surface, &gc.geo.targets);
         rows.push(json!({"scenario": sc.id, "geometry": g, "category": sc.category, "libr": t_l, "librplus": t_p}));

@@ -341,10 +341,10 @@ pub fn evaluate(
                                     seconds: r.seconds + t.elapsed().as_secs_f64(),
                                 };
                                 match corrected {
-                                    Ok(u) => {
+                                    Ok((u, transform)) => {
                                         let err = node_errors_mm(
                                             geo.model.mesh.nodes(),
-                                            (&r.image_to_physical, &u),
+                                            (&transform, &u),
                                             (&sc.truth.image_to_physical, &sc.truth.displacement),
                                         );
                                         let t = tre_from_errors(&err, &geo.surface, &geo.targets);
@@ -436,7 +436,9 @@ pub fn evaluate(
     })
 }
 
-/// LIBR+ node displacements for one scenario from its LIBR registration.
+/// LIBR+ node displacements and image → physical transform for one scenario from its LIBR
+/// registration: the SR-GCN correction, then the data-consistency refit unless
+/// `params.refit_iterations` is 0.
 fn correct_one(
     model: &TrainedModel,
     frame: &CaseFrame,
@@ -445,7 +447,7 @@ fn correct_one(
     params: &PipelineParams,
     sc: &super::ScenarioData,
     r: &crate::register::pipeline::Registration,
-) -> Result<Vec<f64>, String> {
+) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), String> {
     let sample = SampleData::build(
         &model.config,
         frame,
@@ -458,7 +460,21 @@ fn correct_one(
         None,
     )
     .map_err(|e| e.to_string())?;
-    crate::gcn::train::correct(model, frame, graph, &sample, &r.u).map_err(|e| e.to_string())
+    let u = crate::gcn::train::correct(model, frame, graph, &sample, &r.u)
+        .map_err(|e| e.to_string())?;
+    if params.refit_iterations == 0 {
+        return Ok((u, r.image_to_physical));
+    }
+    let s = crate::register::pipeline::refit(
+        case,
+        &sc.measurements,
+        params,
+        &u,
+        &r.image_to_physical,
+        None,
+    )
+    .map_err(|e| format!("refit: {e}"))?;
+    Ok((s.u, s.image_to_physical))
 }
 
 /// Aggregates results per method.

@@ -53,10 +53,18 @@ impl LibrPlusCase {
         f64::from_bits(self.estimate.load(Ordering::Relaxed))
     }
 
+    /// Folds the time of one whole correction stage (s) into [`LibrPlusCase::expected_seconds`].
+    pub fn record_seconds(&self, s: f64) {
+        let old = self.expected_seconds();
+        let new = if s > old { s } else { 0.9 * old + 0.1 * s };
+        self.estimate.store(new.to_bits(), Ordering::Relaxed);
+    }
+
     /// Corrects LIBR's displacement `u` (image frame, `transform` image → physical) for the
     /// measurements it was fitted to; returns the LIBR+ displacement and the network's share of
     /// the time (s; the rest builds the sample: graphs, matches, features). `cparams` are the
-    /// correspondence settings of LIBR's last iteration.
+    /// correspondence settings of LIBR's last iteration. The caller records the stage's time
+    /// ([`LibrPlusCase::record_seconds`]).
     #[allow(clippy::too_many_arguments)]
     pub fn correct(
         &self,
@@ -67,7 +75,6 @@ impl LibrPlusCase {
         u: &[f64],
         transform: &Rigid,
     ) -> Result<(Vec<f64>, f64), String> {
-        let t0 = Instant::now();
         let sample = SampleData::build(
             &self.model.config,
             &self.frame,
@@ -87,10 +94,6 @@ impl LibrPlusCase {
         if out.iter().any(|x| !x.is_finite()) {
             return Err("the network's correction is not finite".into());
         }
-        let s = t0.elapsed().as_secs_f64();
-        let old = self.expected_seconds();
-        let new = if s > old { s } else { 0.9 * old + 0.1 * s };
-        self.estimate.store(new.to_bits(), Ordering::Relaxed);
         Ok((out, network_s))
     }
 }

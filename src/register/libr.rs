@@ -1233,6 +1233,9 @@ pub struct RunLimits<'a> {
     pub active: Option<&'a [u32]>,
     /// Stop before an iteration that would end past this instant (None: no deadline).
     pub deadline: Option<Instant>,
+    /// A displacement the fit starts from and keeps (node-major 3n, image frame; None: zero):
+    /// the result is `offset + Φα`, and the strain energy regularises `Φα` alone.
+    pub offset: Option<&'a [f64]>,
 }
 
 /// [`register`], updating between matchings only the displacement of `active` nodes (those
@@ -1251,7 +1254,23 @@ pub fn register_active(
     run: RunLimits<'_>,
     mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
 ) -> Result<LibrSolution, String> {
-    let RunLimits { active, deadline } = run;
+    let RunLimits {
+        active,
+        deadline,
+        offset,
+    } = run;
+    if let Some(o) = offset {
+        if o.len() != 3 * basis.nodes {
+            return Err(format!(
+                "offset has {} values, the basis needs {}",
+                o.len(),
+                3 * basis.nodes
+            ));
+        }
+        if o.iter().any(|x| !x.is_finite()) {
+            return Err("offset is not finite".into());
+        }
+    }
     params.validate()?;
     if let Some(v) = active.and_then(|a| a.iter().find(|&&v| v as usize >= basis.nodes)) {
         return Err(format!(
@@ -1281,18 +1300,40 @@ pub fn register_active(
     let mut info = LibrInfo::default();
     let mut t = *initial;
     let mut alpha = vec![0.0; basis.columns()];
-    let mut u = vec![0.0; 3 * basis.nodes];
+    let mut u = offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec);
     for _ in 0..params.max_iterations {
         let tm = Instant::now();
         let matches = rematch(&u, &t)?;
         info.matching_s += crate::util::secs(tm);
         let inv = t.inverse();
-        let targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+        let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+        if let Some(o) = offset {
+            // Fit Φα to what the offset leaves: each matched point's target less the offset
+            // there (a point matched twice keeps its first match's offset).
+            let mut done = vec![false; targets.len()];
+            for m in &matches {
+                if m.point < targets.len() && !done[m.point] {
+                    done[m.point] = true;
+                    let d = m.model_point(o);
+                    for a in 0..3 {
+                        targets[m.point][a] -= d[a] - m.anchor[a];
+                    }
+                }
+            }
+        }
         let step = fit_step(basis, &matches, &targets, params)?;
         info.assemble_s += step.timings.rows_s + step.timings.normal_s;
         info.solve_s += step.timings.solve_s;
         let mut u_new = u.clone();
         basis.displacement_at(&step.alpha, active, &mut u_new);
+        if let Some(o) = offset {
+            for &i in active {
+                for a in 0..3 {
+                    let k = 3 * i as usize + a;
+                    u_new[k] += o[k];
+                }
+            }
+        }
         // Movement in the image frame of the old estimate: δ(X + u_new) − (X + u_old).
         let mut moved = 0.0f64;
         for &i in active {
@@ -1324,7 +1365,12 @@ pub fn register_active(
             }
         }
     }
-    let u = basis.displacement(&alpha);
+    let mut u = basis.displacement(&alpha);
+    if let Some(o) = offset {
+        for (x, y) in u.iter_mut().zip(o) {
+            *x += y;
+        }
+    }
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {
         alpha,
