@@ -295,6 +295,45 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     let p2 = tr::correct(&loaded, &gc.frame, &graph, &s[0].data, u).unwrap();
     assert_eq!(p1, p2);
     assert_ne!(&p1, u, "the correction is zero");
+    // Starting from the saved model with nothing to train gives back its validation error
+    // and its predictions; a different network is refused.
+    let again = tr::train(
+        &TrainOptions {
+            init: Some(dir.clone()),
+            epochs_bipartite: 0,
+            epochs: 0,
+            ..opts.clone()
+        },
+        &f.cases,
+        &s,
+        &s2,
+        &tmp.path().join("c"),
+        &serde_json::json!({}),
+        &|_, _, _, _, _| {},
+    )
+    .unwrap();
+    assert_eq!(again.best_valid_mm, a.best_valid_mm);
+    assert_eq!(again.model.config.correction_scale, k);
+    let p3 = tr::correct(&again.model, &gc.frame, &graph, &s[0].data, u).unwrap();
+    assert_eq!(p1, p3);
+    let other = TrainOptions {
+        config: cfg.clone().with_width(8),
+        init: Some(dir.clone()),
+        epochs: 0,
+        ..opts.clone()
+    };
+    let e = tr::train(
+        &other,
+        &f.cases,
+        &s,
+        &s2,
+        &tmp.path().join("d"),
+        &serde_json::json!({}),
+        &|_, _, _, _, _| {},
+    )
+    .err()
+    .unwrap();
+    assert!(e.contains("differs"), "{e}");
     // A corrupted weights file is an error, not a panic.
     let w = dir.join("weights.bin");
     let bytes = std::fs::read(&w).unwrap();
@@ -539,4 +578,85 @@ fn the_built_in_model_loads_and_corrects_a_registration() {
     // A correction, and not a wild one (the model's outputs are in units of a tenth of the
     // liver's RMS radius).
     assert!(moved > 1e-3 && moved < 100.0, "largest change {moved} mm");
+}
+
+#[test]
+fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
+    use librplus::gcn::io::TrainedModel;
+    use librplus::register::pipeline::{Method, Prepared, register};
+    use std::sync::Arc;
+    let f = fixture();
+    let cfg = SrGcnConfig::new()
+        .with_width(8)
+        .with_convs(1)
+        .with_levels(2);
+    let dev = burn::tensor::Device::flex();
+    dev.seed(7);
+    let model = TrainedModel {
+        net: cfg.init(&dev).unwrap(),
+        config: cfg.clone(),
+        provenance: serde_json::json!({}),
+    };
+    let (sc, g) = &f.scenarios[2];
+    let gc = &f.cases[g];
+    let sol = register(&gc.case, &sc.measurements, Method::Libr, &f.params)
+        .ok()
+        .map(|r| tr::LibrSolution {
+            transform: r.image_to_physical,
+            u: r.u,
+        });
+    assert!(sol.is_some());
+    let items = [(sc, g.as_str(), &sol)];
+    let grid = [0.0, 0.5, 1.0, 1.5];
+    let (best, errs) = tr::fit_refit_scale(&model, &f.cases, &items, &f.params, &grid).unwrap();
+    assert_eq!(errs.len(), grid.len());
+    // Each factor's figure is the node error of the pipeline's LIBR+ answer with that scale.
+    let truth = tr::truth_positions(&gc.geo, sc);
+    let nodes = gc.geo.model.mesh.nodes();
+    for (a, e) in grid.iter().zip(&errs) {
+        let m = TrainedModel {
+            config: SrGcnConfig {
+                correction_scale: *a,
+                ..cfg.clone()
+            },
+            net: model.net.clone(),
+            provenance: serde_json::json!({}),
+        };
+        let case = Prepared::new(gc.geo.model.clone(), Some(&f.params.libr), None)
+            .unwrap()
+            .with_model(Arc::new(m))
+            .unwrap();
+        let r = register(&case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
+        assert!(r.correction.as_ref().unwrap().refit.is_some());
+        let got = nodes
+            .iter()
+            .enumerate()
+            .map(|(i, x)| {
+                let p = r
+                    .image_to_physical
+                    .apply([0, 1, 2].map(|k| x[k] + r.u[3 * i + k]));
+                (0..3)
+                    .map(|k| (p[k] - truth[i][k]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum::<f64>()
+            / nodes.len() as f64;
+        assert!(
+            (got - e).abs() <= 1e-6 * e.max(1.0),
+            "scale {a}: fit {e} mm, pipeline {got} mm"
+        );
+    }
+    // The pick is the least error (ties keep the larger factor).
+    let k = grid.iter().position(|&a| a == best).unwrap();
+    assert!(errs.iter().all(|&e| errs[k] <= e), "{errs:?} picked {best}");
+    // Bad requests are errors.
+    let off = PipelineParams {
+        refit_iterations: 0,
+        ..f.params.clone()
+    };
+    assert!(tr::fit_refit_scale(&model, &f.cases, &items, &off, &grid).is_err());
+    assert!(tr::fit_refit_scale(&model, &f.cases, &items, &f.params, &[2.5]).is_err());
+    let none = [(sc, g.as_str(), &None)];
+    assert!(tr::fit_refit_scale(&model, &f.cases, &none, &f.params, &grid).is_err());
 }

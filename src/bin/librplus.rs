@@ -166,6 +166,11 @@ struct TrainArgs {
     /// Stage 2 stops before an epoch that would end past this many minutes.
     #[arg(long, default_value_t = 25.0)]
     max_minutes: f64,
+    /// Start from this model's weights and network (its model.json replaces the network
+    /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
+    /// correction scale fitted again and tested
+    #[arg(long)]
+    init: Option<PathBuf>,
 }
 
 /// LIBR options shared by `register` and `evaluate`.
@@ -2123,6 +2128,7 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
                 "libr_other": r.median.libr_other_s,
                 "gcn": r.median.gcn_s,
                 "gcn_network": r.median.gcn_network_s,
+                "gcn_refit": r.median.gcn_refit_s,
             },
             "wicp_iterations_mean": r.wicp_iterations_mean,
             "libr_iterations_mean": r.libr_iterations_mean,
@@ -2154,7 +2160,7 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         r.failed
     );
     println!(
-        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4} (network {:.4})",
+        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4} (network {:.4}, refit {:.4})",
         r.median.wicp_s,
         r.median.libr_s,
         r.median.libr_matching_s,
@@ -2162,7 +2168,8 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         r.median.libr_solve_s,
         r.median.libr_other_s,
         r.median.gcn_s,
-        r.median.gcn_network_s
+        r.median.gcn_network_s,
+        r.median.gcn_refit_s
     );
     println!(
         "  iterations (mean): wicp {:.1}, libr {:.1} (converged {}/{}); mean TRE {:.2} mm; per category {:?}",
@@ -2249,7 +2256,21 @@ fn train(a: &TrainArgs) -> Result<Value> {
         .with_residual(!a.no_residual)
         .with_n_top(a.n_top);
     let sparse = a.sparse_weight.unwrap_or(base.sparse_weight);
-    let cfg = ablation_config(base, a.ablation, sparse)?;
+    let cfg = match &a.init {
+        None => ablation_config(base, a.ablation, sparse)?,
+        Some(dir) => {
+            let m = librplus::gcn::io::load_model(dir, &burn::tensor::Device::flex())
+                .map_err(|e| anyhow::anyhow!("--init: {e}"))?;
+            eprintln!(
+                "--init {}: its network and settings replace the network options",
+                dir.display()
+            );
+            SrGcnConfig {
+                correction_scale: 1.0,
+                ..m.config
+            }
+        }
+    };
     cfg.validate()
         .map_err(|e| anyhow::anyhow!("network options: {e}"))?;
     let opts = TrainOptions {
@@ -2261,6 +2282,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         epochs: a.epochs,
         learning_rate: a.lr,
         max_minutes: a.max_minutes,
+        init: a.init.clone(),
         ..TrainOptions::default()
     };
     let params = a.libr.params();
@@ -2355,6 +2377,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         "every": a.every,
         "seed": a.seed,
         "ablation": a.ablation,
+        "init": a.init.as_ref().map(|p| p.display().to_string()),
         "commit": git_commit(),
         "libr_solution_key": tr::solution_key(&params),
         "train_scenarios": sets.train.len(),
@@ -2376,7 +2399,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
             });
         }
     };
-    let report = tr::train(
+    let mut report = tr::train(
         &opts,
         &cases,
         &train_s,
@@ -2406,6 +2429,39 @@ fn train(a: &TrainArgs) -> Result<Value> {
         report.best_valid_mm,
         report.libr_valid_mm
     );
+    // With the data-consistency refit (as LIBR+ runs), the scale is fitted again on the
+    // validation scenarios through the refit.
+    let scale_without_refit = report.model.config.correction_scale;
+    let mut refit_fit = serde_json::Value::Null;
+    if report.model.config.target == librplus::gcn::model::Target::Residual
+        && params.refit_iterations > 0
+    {
+        let spinner = indicatif::ProgressBar::new_spinner()
+            .with_message("fitting the correction scale through the refit (validation)");
+        spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+        let z: Vec<_> = valid_items
+            .iter()
+            .zip(&valid_sol)
+            .map(|((s, g), o)| (*s, *g, o))
+            .collect();
+        let grid = tr::refit_scale_grid();
+        let (scale, errs) = tr::fit_refit_scale(&report.model, &cases, &z, &params, &grid)
+            .map_err(anyhow::Error::msg)?;
+        spinner.finish_and_clear();
+        let k = grid.iter().position(|&g| g == scale).unwrap_or(0);
+        eprintln!(
+            "with the refit ({} iterations): correction scale {scale:.3}, validation node error {:.4} mm ({:.4} mm without the correction)",
+            params.refit_iterations, errs[k], errs[0]
+        );
+        report.model.config.correction_scale = scale;
+        report.scaled_valid_mm = errs[k];
+        refit_fit = json!({
+            "refit_iterations": params.refit_iterations,
+            "grid": grid,
+            "valid_node_error_mm": errs,
+            "scale_without_refit": scale_without_refit,
+        });
+    }
     // Test: LIBR and LIBR+ on the held-out scenarios.
     let test_items = pick(&sets.test);
     let test_sol = solve(&test_items, "LIBR on test scenarios")?;
@@ -2506,6 +2562,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         "best_valid_node_error_mm": report.best_valid_mm,
         "correction_scale": report.model.config.correction_scale,
         "scaled_valid_node_error_mm": report.scaled_valid_mm,
+        "refit_scale_fit": refit_fit,
         "libr_valid_node_error_mm": report.libr_valid_mm,
         "train_samples": report.train_samples,
         "valid_samples": report.valid_samples,

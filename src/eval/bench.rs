@@ -180,6 +180,8 @@ pub struct RegistrationTimings {
     pub gcn_s: f64,
     /// Of which the network's forward pass.
     pub gcn_network_s: f64,
+    /// Of which the data-consistency refit.
+    pub gcn_refit_s: f64,
     /// wICP iterations.
     pub wicp_iterations: usize,
     /// LIBR iterations (0 for rigid).
@@ -199,6 +201,11 @@ impl From<&Registration> for RegistrationTimings {
             libr_s: l.total_s,
             gcn_s: r.correction.as_ref().map_or(0.0, |c| c.seconds),
             gcn_network_s: r.correction.as_ref().map_or(0.0, |c| c.network_seconds),
+            gcn_refit_s: r
+                .correction
+                .as_ref()
+                .and_then(|c| c.refit.as_ref())
+                .map_or(0.0, |i| i.total_s),
             wicp_iterations: r.rigid.iterations,
             libr_iterations: l.iterations,
         }
@@ -336,6 +343,7 @@ pub fn time_registrations(
             libr_s: med(|r| r.libr_s),
             gcn_s: med(|r| r.gcn_s),
             gcn_network_s: med(|r| r.gcn_network_s),
+            gcn_refit_s: med(|r| r.gcn_refit_s),
             wicp_iterations: med(|r| r.wicp_iterations as f64).round() as usize,
             libr_iterations: med(|r| r.libr_iterations as f64).round() as usize,
         },

@@ -167,9 +167,9 @@ impl SrGcnConfig {
         if self.n_top == 0 {
             return Err(GcnError::Invalid("n_top must be positive".into()));
         }
-        if !(self.correction_scale.is_finite() && (0.0..=1.0).contains(&self.correction_scale)) {
+        if !(self.correction_scale.is_finite() && (0.0..=2.0).contains(&self.correction_scale)) {
             return Err(GcnError::Invalid(format!(
-                "correction_scale must be in [0, 1] (got {})",
+                "correction_scale must be in [0, 2] (got {})",
                 self.correction_scale
             )));
         }

@@ -464,6 +464,10 @@ pub struct TrainOptions {
     /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
     /// by the last epoch's duration).
     pub max_minutes: f64,
+    /// A model directory whose weights training starts from instead of a seeded initialisation
+    /// (its configuration must be `config`'s network). With 0 stage-2 epochs the model is only
+    /// validated (and its correction scale fitted again).
+    pub init: Option<PathBuf>,
 }
 
 impl Default for TrainOptions {
@@ -477,6 +481,7 @@ impl Default for TrainOptions {
             epochs: 12,
             learning_rate: 2e-3,
             patience: 3,
+            init: None,
             max_minutes: 25.0,
         }
     }
@@ -698,7 +703,23 @@ pub fn train(
     let plain = Device::flex();
     let device = plain.clone().autodiff();
     device.seed(opts.seed);
-    let mut net = cfg.init(&device).map_err(|e| e.to_string())?;
+    let mut net = match &opts.init {
+        None => cfg.init(&device).map_err(|e| e.to_string())?,
+        Some(dir) => {
+            let m = super::io::load_model(dir, &device)
+                .map_err(|e| format!("initial model {}: {e}", dir.display()))?;
+            let (mut a, mut b) = (m.config.clone(), cfg.clone());
+            a.correction_scale = 1.0;
+            b.correction_scale = 1.0;
+            if serde_json::to_value(&a).ok() != serde_json::to_value(&b).ok() {
+                return Err(format!(
+                    "initial model {}: its network differs from the one asked for",
+                    dir.display()
+                ));
+            }
+            m.net
+        }
+    };
     let mut graphs: BTreeMap<String, (MeshGraphs, MeshGraphs)> = BTreeMap::new();
     for (g, gc) in cases {
         let ad = gc
@@ -782,7 +803,38 @@ pub fn train(
     } else {
         vec![1.0]
     };
+    // Validation node error at every candidate correction scale (the last is 1).
+    let validate = |vnet: &SrGcn| -> Result<Vec<f64>, String> {
+        let mut verr = vec![0.0; grid.len()];
+        for s in valid {
+            let (_, y) = mesh_loss(
+                vnet,
+                vnet,
+                cfg,
+                &s.data,
+                &graphs[&s.geometry].1,
+                &plain,
+                &plain,
+            )
+            .map_err(err)?;
+            let errs = scaled_errors_mm(
+                &y,
+                s.data.target.as_deref().unwrap_or(&[]),
+                unit(&s.geometry),
+                &grid,
+            );
+            for (a, e) in verr.iter_mut().zip(errs) {
+                *a += e / valid.len() as f64;
+            }
+        }
+        Ok(verr)
+    };
     let mut best_err = vec![f64::INFINITY; grid.len()];
+    if opts.epochs == 0 {
+        // Nothing to train: the starting network, validated.
+        best_err = validate(&best_net)?;
+        best = best_err[grid.len() - 1];
+    }
     let mut stall = 0;
     for epoch in 1..=opts.epochs {
         shuffle(&mut order, opts.seed.wrapping_add(1000 + epoch as u64));
@@ -809,29 +861,7 @@ pub fn train(
             progress(2, epoch, k + 1, order.len(), sum / (k + 1) as f64);
         }
         let vnet = net.valid();
-        // Validation node error at every candidate correction scale (the last is 1).
-        let mut verr = vec![0.0; grid.len()];
-        for s in valid {
-            let (_, y) = mesh_loss(
-                &vnet,
-                &vnet,
-                cfg,
-                &s.data,
-                &graphs[&s.geometry].1,
-                &plain,
-                &plain,
-            )
-            .map_err(err)?;
-            let errs = scaled_errors_mm(
-                &y,
-                s.data.target.as_deref().unwrap_or(&[]),
-                unit(&s.geometry),
-                &grid,
-            );
-            for (a, e) in verr.iter_mut().zip(errs) {
-                *a += e / valid.len() as f64;
-            }
-        }
+        let verr = validate(&vnet)?;
         let v = verr[grid.len() - 1];
         log.push(EpochLog {
             stage: 2,
@@ -896,6 +926,120 @@ pub fn train(
     })
 }
 
+/// Candidate correction scales with the data-consistency refit: 0, 0.125, …, 2.
+pub fn refit_scale_grid() -> Vec<f64> {
+    (0..=16).map(|k| k as f64 / 8.0).collect()
+}
+
+/// Fits a residual model's correction scale for LIBR+ as the pipeline runs it, with the
+/// data-consistency refit ([`crate::register::pipeline::refit`], `params.refit_iterations` ≥ 1):
+/// for each validation scenario (`items`: scenario, geometry, LIBR's solution), the network's
+/// correction at every factor of `grid`, refitted, against the truth. Returns the factor with the
+/// least mean node error (ties keep the larger) and the mean node error (mm) at every factor.
+/// Scenarios whose LIBR failed are skipped; an error if none is left.
+pub fn fit_refit_scale(
+    model: &TrainedModel,
+    cases: &BTreeMap<String, GeometryCase>,
+    items: &[(&ScenarioData, &str, &Option<LibrSolution>)],
+    params: &PipelineParams,
+    grid: &[f64],
+) -> Result<(f64, Vec<f64>), String> {
+    if model.config.target != Target::Residual {
+        return Err("only a residual model's correction has a scale".into());
+    }
+    if params.refit_iterations == 0 {
+        return Err("refit_iterations is 0: nothing to refit".into());
+    }
+    if grid.is_empty()
+        || grid
+            .iter()
+            .any(|a| !(a.is_finite() && (0.0..=2.0).contains(a)))
+    {
+        return Err("the scale grid must be non-empty, in [0, 2]".into());
+    }
+    let unit_model = TrainedModel {
+        config: SrGcnConfig {
+            correction_scale: 1.0,
+            ..model.config.clone()
+        },
+        net: model.net.clone(),
+        provenance: serde_json::Value::Null,
+    };
+    let plain = Device::flex();
+    let mut graphs = BTreeMap::new();
+    for (g, gc) in cases {
+        graphs.insert(
+            g.clone(),
+            gc.frame
+                .mesh_graphs(&unit_model.config, &plain)
+                .map_err(|e| e.to_string())?,
+        );
+    }
+    let samples = build_samples(&unit_model.config, cases, items, params, false)?;
+    let per: Vec<Vec<f64>> = items
+        .par_iter()
+        .zip(samples.par_iter())
+        .filter_map(|((sc, g, sol), sample)| {
+            let (sol, sample) = (sol.as_ref()?, sample.as_ref()?);
+            Some((sc, *g, sol, sample))
+        })
+        .map(|(sc, g, sol, sample)| -> Result<Vec<f64>, String> {
+            let gc = &cases[g];
+            let y = predict(&unit_model, &graphs[g], &sample.data)
+                .map_err(|e| format!("{}: {e}", sc.id))?;
+            let truth = truth_positions(&gc.geo, sc);
+            let nodes = gc.geo.model.mesh.nodes();
+            grid.iter()
+                .map(|&a| {
+                    let config = SrGcnConfig {
+                        correction_scale: a,
+                        ..unit_model.config.clone()
+                    };
+                    let ua = apply_prediction(&config, &gc.frame, &sol.u, &y)
+                        .map_err(|e| format!("{}: {e}", sc.id))?;
+                    let r = crate::register::pipeline::refit(
+                        &gc.case,
+                        &sc.measurements,
+                        params,
+                        &ua,
+                        &sol.transform,
+                        None,
+                    )
+                    .map_err(|e| format!("{}: refit: {e}", sc.id))?;
+                    let err = nodes
+                        .iter()
+                        .enumerate()
+                        .map(|(i, x)| {
+                            let p = r
+                                .image_to_physical
+                                .apply([0, 1, 2].map(|k| x[k] + r.u[3 * i + k]));
+                            (0..3)
+                                .map(|k| (p[k] - truth[i][k]).powi(2))
+                                .sum::<f64>()
+                                .sqrt()
+                        })
+                        .sum::<f64>()
+                        / nodes.len().max(1) as f64;
+                    Ok(err)
+                })
+                .collect()
+        })
+        .collect::<Result<_, _>>()?;
+    if per.is_empty() {
+        return Err("no validation scenario with a LIBR solution".into());
+    }
+    let mean: Vec<f64> = (0..grid.len())
+        .map(|k| per.iter().map(|e| e[k]).sum::<f64>() / per.len() as f64)
+        .collect();
+    let mut best = grid.len() - 1;
+    for k in (0..grid.len()).rev() {
+        if mean[k] < mean[best] - 1e-9 {
+            best = k;
+        }
+    }
+    Ok((grid[best], mean))
+}
+
 /// LIBR+ correction of one sample: node displacements (image frame, mm) to use instead of LIBR's.
 /// `u` is LIBR's displacement the sample was built from.
 pub fn correct(
@@ -905,6 +1049,16 @@ pub fn correct(
     s: &SampleData,
     u: &[f64],
 ) -> Result<Vec<f64>, GcnError> {
+    let y = predict(model, graph, s)?;
+    apply_prediction(&model.config, frame, u, &y)
+}
+
+/// The network's raw output for one sample (`[n, 3]` row-major, in the frame's output units).
+pub fn predict(
+    model: &TrainedModel,
+    graph: &MeshGraphs,
+    s: &SampleData,
+) -> Result<Vec<f32>, GcnError> {
     let device = Device::flex();
     let (x, bip) = s.tensors(&model.config, &device)?;
     let out = match &bip {
@@ -914,20 +1068,29 @@ pub fn correct(
     let y = model
         .net
         .forward_mesh(x, graph, bip.as_ref().zip(out.as_ref()))?;
-    let y = y
-        .into_data()
+    y.into_data()
         .convert::<f32>()
         .try_to_vec::<f32>()
-        .map_err(|e| GcnError::Invalid(format!("{e:?}")))?;
+        .map_err(|e| GcnError::Invalid(format!("{e:?}")))
+}
+
+/// Node displacements from a raw prediction `y` ([`predict`]) as `config` says: LIBR's `u` plus
+/// `correction_scale` times the residual, or the predicted displacement itself.
+pub fn apply_prediction(
+    config: &SrGcnConfig,
+    frame: &CaseFrame,
+    u: &[f64],
+    y: &[f32],
+) -> Result<Vec<f64>, GcnError> {
     let unit = frame.unit_mm();
     if y.len() != u.len() {
         return Err(GcnError::Invalid(
             "prediction size differs from the mesh".into(),
         ));
     }
-    let k = unit * model.config.correction_scale;
-    Ok(match model.config.target {
-        Target::Residual => u.iter().zip(&y).map(|(a, b)| a + k * *b as f64).collect(),
+    let k = unit * config.correction_scale;
+    Ok(match config.target {
+        Target::Residual => u.iter().zip(y).map(|(a, b)| a + k * *b as f64).collect(),
         Target::Gt => y.iter().map(|b| unit * *b as f64).collect(),
     })
 }
