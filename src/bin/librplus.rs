@@ -2256,8 +2256,8 @@ fn train(a: &TrainArgs) -> Result<Value> {
         .with_residual(!a.no_residual)
         .with_n_top(a.n_top);
     let sparse = a.sparse_weight.unwrap_or(base.sparse_weight);
-    let cfg = match &a.init {
-        None => ablation_config(base, a.ablation, sparse)?,
+    let (cfg, init_provenance) = match &a.init {
+        None => (ablation_config(base, a.ablation, sparse)?, Value::Null),
         Some(dir) => {
             let m = librplus::gcn::io::load_model(dir, &burn::tensor::Device::flex())
                 .map_err(|e| anyhow::anyhow!("--init: {e}"))?;
@@ -2265,10 +2265,13 @@ fn train(a: &TrainArgs) -> Result<Value> {
                 "--init {}: its network and settings replace the network options",
                 dir.display()
             );
-            SrGcnConfig {
-                correction_scale: 1.0,
-                ..m.config
-            }
+            (
+                SrGcnConfig {
+                    correction_scale: 1.0,
+                    ..m.config
+                },
+                json!({"dir": dir.display().to_string(), "provenance": m.provenance}),
+            )
         }
     };
     cfg.validate()
@@ -2377,7 +2380,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         "every": a.every,
         "seed": a.seed,
         "ablation": a.ablation,
-        "init": a.init.as_ref().map(|p| p.display().to_string()),
+        "init": init_provenance,
         "commit": git_commit(),
         "libr_solution_key": tr::solution_key(&params),
         "train_scenarios": sets.train.len(),

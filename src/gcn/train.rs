@@ -699,6 +699,7 @@ pub fn train(
     if train.is_empty() || valid.is_empty() {
         return Err("no training or no validation samples".into());
     }
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let t0 = Instant::now();
     let plain = Device::flex();
     let device = plain.clone().autodiff();
