@@ -426,24 +426,31 @@ fn train_then_evaluate_agree_on_the_held_out_scenarios() {
     );
 }
 
-#[test]
-fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_when_late() {
-    use librplus::gcn::io::TrainedModel;
-    use librplus::gcn::sample::SampleData;
-    use librplus::register::pipeline::{Method, Prepared, register};
-    use std::sync::Arc;
-    let f = fixture();
+/// A small SR-GCN with seeded random weights (its correction is arbitrary but fixed).
+fn untrained_model(seed: u64) -> (SrGcnConfig, librplus::gcn::io::TrainedModel) {
     let cfg = SrGcnConfig::new()
         .with_width(8)
         .with_convs(1)
         .with_levels(2);
     let dev = burn::tensor::Device::flex();
-    dev.seed(3);
-    let model = Arc::new(TrainedModel {
+    dev.seed(seed);
+    let model = librplus::gcn::io::TrainedModel {
         net: cfg.init(&dev).unwrap(),
         config: cfg.clone(),
         provenance: serde_json::json!({}),
-    });
+    };
+    (cfg, model)
+}
+
+#[test]
+fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_when_late() {
+    use librplus::gcn::sample::SampleData;
+    use librplus::register::pipeline::{Method, Prepared, register};
+    use std::sync::Arc;
+    let f = fixture();
+    let (cfg, model) = untrained_model(3);
+    let model = Arc::new(model);
+    let dev = burn::tensor::Device::flex();
     let (sc, g) = &f.scenarios[0];
     let gc = &f.cases[g];
     let prepare = || {
@@ -586,17 +593,7 @@ fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
     use librplus::register::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
-    let cfg = SrGcnConfig::new()
-        .with_width(8)
-        .with_convs(1)
-        .with_levels(2);
-    let dev = burn::tensor::Device::flex();
-    dev.seed(7);
-    let model = TrainedModel {
-        net: cfg.init(&dev).unwrap(),
-        config: cfg.clone(),
-        provenance: serde_json::json!({}),
-    };
+    let (cfg, model) = untrained_model(7);
     let (sc, g) = &f.scenarios[2];
     let gc = &f.cases[g];
     let sol = register(&gc.case, &sc.measurements, Method::Libr, &f.params)
@@ -611,7 +608,6 @@ fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
     let (best, errs) = tr::fit_refit_scale(&model, &f.cases, &items, &f.params, &grid).unwrap();
     assert_eq!(errs.len(), grid.len());
     // Each factor's figure is the node error of the pipeline's LIBR+ answer with that scale.
-    let truth = tr::truth_positions(&gc.geo, sc);
     let nodes = gc.geo.model.mesh.nodes();
     for (a, e) in grid.iter().zip(&errs) {
         let m = TrainedModel {
@@ -628,19 +624,13 @@ fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
             .unwrap();
         let r = register(&case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
         assert!(r.correction.as_ref().unwrap().refit.is_some());
-        let got = nodes
-            .iter()
-            .enumerate()
-            .map(|(i, x)| {
-                let p = r
-                    .image_to_physical
-                    .apply([0, 1, 2].map(|k| x[k] + r.u[3 * i + k]));
-                (0..3)
-                    .map(|k| (p[k] - truth[i][k]).powi(2))
-                    .sum::<f64>()
-                    .sqrt()
-            })
-            .sum::<f64>()
+        let got = node_errors_mm(
+            nodes,
+            (&r.image_to_physical, &r.u),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+        )
+        .iter()
+        .sum::<f64>()
             / nodes.len() as f64;
         assert!(
             (got - e).abs() <= 1e-6 * e.max(1.0),

@@ -988,7 +988,6 @@ pub fn fit_refit_scale(
             let gc = &cases[g];
             let y = predict(&unit_model, &graphs[g], &sample.data)
                 .map_err(|e| format!("{}: {e}", sc.id))?;
-            let truth = truth_positions(&gc.geo, sc);
             let nodes = gc.geo.model.mesh.nodes();
             grid.iter()
                 .map(|&a| {
@@ -1007,21 +1006,12 @@ pub fn fit_refit_scale(
                         None,
                     )
                     .map_err(|e| format!("{}: refit: {e}", sc.id))?;
-                    let err = nodes
-                        .iter()
-                        .enumerate()
-                        .map(|(i, x)| {
-                            let p = r
-                                .image_to_physical
-                                .apply([0, 1, 2].map(|k| x[k] + r.u[3 * i + k]));
-                            (0..3)
-                                .map(|k| (p[k] - truth[i][k]).powi(2))
-                                .sum::<f64>()
-                                .sqrt()
-                        })
-                        .sum::<f64>()
-                        / nodes.len().max(1) as f64;
-                    Ok(err)
+                    let e = crate::eval::node_errors_mm(
+                        nodes,
+                        (&r.image_to_physical, &r.u),
+                        (&sc.truth.image_to_physical, &sc.truth.displacement),
+                    );
+                    Ok(e.iter().sum::<f64>() / e.len().max(1) as f64)
                 })
                 .collect()
         })
