@@ -166,6 +166,10 @@ struct TrainArgs {
     /// Stage 2 stops before an epoch that would end past this many minutes.
     #[arg(long, default_value_t = 25.0)]
     max_minutes: f64,
+    /// Stage 2 stops after this many epochs in a row without a better validation error (the
+    /// learning rate halves at each)
+    #[arg(long, default_value_t = 3)]
+    patience: usize,
     /// Start from this model's weights and network (its model.json replaces the network
     /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
     /// correction scale fitted again and tested
@@ -2286,6 +2290,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         learning_rate: a.lr,
         max_minutes: a.max_minutes,
         init: a.init.clone(),
+        patience: a.patience,
         ..TrainOptions::default()
     };
     let params = a.libr.params();
