@@ -2291,7 +2291,6 @@ fn train(a: &TrainArgs) -> Result<Value> {
         max_minutes: a.max_minutes,
         init: a.init.clone(),
         patience: a.patience,
-        ..TrainOptions::default()
     };
     let params = a.libr.params();
     params
