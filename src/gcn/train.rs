@@ -616,26 +616,7 @@ fn mesh_loss(
 
 /// Mean node error (mm) of the corrected prediction against the target (both in output units).
 fn node_error_mm(y: &Tensor<2>, target: &[f32], unit: f64) -> f64 {
-    let p = y
-        .clone()
-        .into_data()
-        .convert::<f32>()
-        .try_to_vec::<f32>()
-        .unwrap_or_default();
-    let n = target.len() / 3;
-    if n == 0 || p.len() != target.len() {
-        return f64::NAN;
-    }
-    (0..n)
-        .map(|i| {
-            (0..3)
-                .map(|a| ((p[3 * i + a] - target[3 * i + a]) as f64).powi(2))
-                .sum::<f64>()
-                .sqrt()
-        })
-        .sum::<f64>()
-        / n as f64
-        * unit
+    scaled_errors_mm(y, target, unit, &[1.0])[0]
 }
 
 /// Mean node error (mm) of the correction `y` scaled by each factor of `grid`.
