@@ -245,9 +245,9 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     };
     let tmp = tempfile::tempdir().unwrap();
     // Validation on the training samples: training must fit them better than LIBR does.
-    let run = |out: &Path| {
+    let train_with = |o: &TrainOptions, out: &Path| {
         tr::train(
-            &opts,
+            o,
             &f.cases,
             &s,
             &s2,
@@ -255,8 +255,8 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
             &serde_json::json!({}),
             &|_, _, _, _, _| {},
         )
-        .unwrap()
     };
+    let run = |out: &Path| train_with(&opts, out).unwrap();
     let a = run(&tmp.path().join("a"));
     assert!(
         a.best_valid_mm < 0.9 * a.libr_valid_mm,
@@ -297,19 +297,14 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     assert_ne!(&p1, u, "the correction is zero");
     // Starting from the saved model with nothing to train gives back its validation error
     // and its predictions; a different network is refused.
-    let again = tr::train(
+    let again = train_with(
         &TrainOptions {
             init: Some(dir.clone()),
             epochs_bipartite: 0,
             epochs: 0,
             ..opts.clone()
         },
-        &f.cases,
-        &s,
-        &s2,
         &tmp.path().join("c"),
-        &serde_json::json!({}),
-        &|_, _, _, _, _| {},
     )
     .unwrap();
     assert_eq!(again.best_valid_mm, a.best_valid_mm);
@@ -322,17 +317,7 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
         epochs: 0,
         ..opts.clone()
     };
-    let e = tr::train(
-        &other,
-        &f.cases,
-        &s,
-        &s2,
-        &tmp.path().join("d"),
-        &serde_json::json!({}),
-        &|_, _, _, _, _| {},
-    )
-    .err()
-    .unwrap();
+    let e = train_with(&other, &tmp.path().join("d")).err().unwrap();
     assert!(e.contains("differs"), "{e}");
     // A corrupted weights file is an error, not a panic.
     let w = dir.join("weights.bin");

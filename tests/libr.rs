@@ -427,12 +427,13 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
         max_iterations: 30,
         ..LibrParams::default()
     };
-    let run = |offset: Option<&[f64]>| {
+    // LIBR on `data` (fixed matches, identity start), from `offset`.
+    let fit = |data: &[[f64; 3]], offset: Option<&[f64]>| {
         register_active(
             mesh,
             basis,
             &params,
-            &measured,
+            data,
             &Rigid::identity(),
             RunLimits {
                 offset,
@@ -440,10 +441,9 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
             },
             |_, _| Ok(matches.clone()),
         )
-        .unwrap()
     };
-    let with = run(Some(&offset));
-    let without = run(None);
+    let with = fit(&measured, Some(&offset)).unwrap();
+    let without = fit(&measured, None).unwrap();
     let e_with = mean_node_gap(mesh, (&truth, &u_true), (&with.image_to_physical, &with.u));
     let e_without = mean_node_gap(
         mesh,
@@ -470,19 +470,7 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
     assert!(da <= 1e-3 * amax, "weights off by {da} (largest {amax})");
     // Data the offset already explains: the refit changes nothing.
     let explained: Vec<[f64; 3]> = matches.iter().map(|m| m.model_point(&offset)).collect();
-    let still = register_active(
-        mesh,
-        basis,
-        &params,
-        &explained,
-        &Rigid::identity(),
-        RunLimits {
-            offset: Some(&offset),
-            ..RunLimits::default()
-        },
-        |_, _| Ok(matches.clone()),
-    )
-    .unwrap();
+    let still = fit(&explained, Some(&offset)).unwrap();
     let moved = mean_node_gap(
         mesh,
         (&Rigid::identity(), &offset),
@@ -498,19 +486,7 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
         v[7] = f64::NAN;
         v
     }] {
-        let e = register_active(
-            mesh,
-            basis,
-            &params,
-            &measured,
-            &Rigid::identity(),
-            RunLimits {
-                offset: Some(&bad),
-                ..RunLimits::default()
-            },
-            |_, _| Ok(matches.clone()),
-        )
-        .unwrap_err();
+        let e = fit(&measured, Some(&bad)).unwrap_err();
         assert!(e.contains("offset"), "{e}");
     }
 }
