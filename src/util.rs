@@ -43,3 +43,61 @@ impl SplitMix64 {
 pub fn secs(start: Instant) -> f64 {
     start.elapsed().as_secs_f64()
 }
+
+/// Writes `bytes` to `path` atomically: into a temporary file beside it, then renamed over it,
+/// creating the parent directories. The temporary name is unique to this process and call, so
+/// threads or processes writing the same file at once (two tests building the same cached
+/// basis, say) each rename a complete file and none loses its temporary to another.
+pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), String> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .map_err(|e| format!("creating directory {}: {e}", parent.display()))?;
+    }
+    let name = path
+        .file_name()
+        .ok_or_else(|| format!("{}: not a file path", path.display()))?
+        .to_string_lossy();
+    let tmp = path.with_file_name(format!(
+        ".{name}.tmp{}-{}",
+        std::process::id(),
+        NEXT.fetch_add(1, Ordering::Relaxed)
+    ));
+    std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        format!("renaming to {}: {e}", path.display())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn concurrent_atomic_writes_of_one_file_all_land_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sub").join("same.bin");
+        let contents: Vec<Vec<u8>> = (0..16u8).map(|i| vec![i; 100_000]).collect();
+        std::thread::scope(|s| {
+            for c in &contents {
+                let path = &path;
+                s.spawn(move || write_atomic(path, c).unwrap());
+            }
+        });
+        let got = std::fs::read(&path).unwrap();
+        assert!(contents.contains(&got), "the file is one whole write");
+        let left: Vec<_> = std::fs::read_dir(path.parent().unwrap())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(
+            left,
+            vec![std::ffi::OsString::from("same.bin")],
+            "no temporaries left"
+        );
+        let err = write_atomic(dir.path(), b"x").unwrap_err();
+        assert!(err.contains("renaming to"), "{err}");
+    }
+}

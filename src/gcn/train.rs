@@ -404,12 +404,7 @@ pub fn libr_solutions(
                             transform: r.image_to_physical,
                             u: r.u,
                         });
-                    std::fs::create_dir_all(&root)
-                        .map_err(|e| format!("{}: {e}", root.display()))?;
-                    let tmp = path.with_extension("tmp");
-                    std::fs::write(&tmp, encode_solution(&s))
-                        .map_err(|e| format!("{}: {e}", tmp.display()))?;
-                    std::fs::rename(&tmp, &path).map_err(|e| format!("{}: {e}", path.display()))?;
+                    crate::util::write_atomic(&path, &encode_solution(&s))?;
                     s
                 }
             };

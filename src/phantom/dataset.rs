@@ -228,24 +228,11 @@ fn plan(config: &GenerateConfig) -> (Vec<GeometryPlan>, Vec<DeformationPlan>) {
     (geometries, deformations)
 }
 
-/// Writes bytes to `path` atomically (temporary file + rename), creating parent directories.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
-    if let Some(parent) = path.parent() {
-        std::fs::create_dir_all(parent).map_err(|e| format!("{}: {e}", parent.display()))?;
-    }
-    let tmp = path.with_extension(format!(
-        "{}.tmp",
-        path.extension().and_then(|e| e.to_str()).unwrap_or("")
-    ));
-    std::fs::write(&tmp, bytes).map_err(|e| format!("{}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
-}
-
 fn write_mesh_file(path: &Path, file: &MeshFile) -> Result<(), String> {
     let format = io::Format::from_path(path).map_err(|e| e.to_string())?;
     let bytes =
         io::write_bytes(file, format, Default::default(), path).map_err(|e| e.to_string())?;
-    write_atomic(path, &bytes)
+    crate::util::write_atomic(path, &bytes)
 }
 
 fn json_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, String> {
@@ -580,7 +567,7 @@ pub fn generate(
     // assemble the same manifest.
     for f in &failed_log {
         let path = dir.join(format!("deformations/{}/failed-{}.json", f.id, f.seed));
-        write_atomic(&path, &json_bytes(f)?)?;
+        crate::util::write_atomic(&path, &json_bytes(f)?)?;
     }
     let mut deformations = Vec::new();
     let mut missing = Vec::new();
@@ -625,7 +612,7 @@ pub fn generate(
         missing,
         failed,
     };
-    write_atomic(&dir.join("manifest.json"), &json_bytes(&manifest)?)?;
+    crate::util::write_atomic(&dir.join("manifest.json"), &json_bytes(&manifest)?)?;
     report.manifest = Some(manifest);
     Ok(report)
 }
@@ -724,7 +711,7 @@ fn make_deformation(
                 misalignment_deg: c.image_to_physical.rotation_angle_deg(),
             });
         }
-        write_atomic(
+        crate::util::write_atomic(
             &dir.join(format!("{base}/scenarios.npz")),
             &scenarios_npz(&b.mesh, u, &scenarios)?,
         )?;
@@ -747,7 +734,7 @@ fn make_deformation(
             scenarios: entries,
         };
         // Written last: its presence marks the deformation complete.
-        return write_atomic(
+        return crate::util::write_atomic(
             &dir.join(format!("{base}/deformation.json")),
             &json_bytes(&entry)?,
         );

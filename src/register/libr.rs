@@ -649,11 +649,7 @@ impl LibrBasis {
             return Ok((b, true));
         }
         let b = Self::build(mesh, params)?;
-        std::fs::create_dir_all(cache_dir)
-            .map_err(|e| format!("creating cache directory {}: {e}", cache_dir.display()))?;
-        let tmp = path.with_extension(format!("npz.tmp{}", std::process::id()));
-        std::fs::write(&tmp, b.to_npz()?).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
-        std::fs::rename(&tmp, &path).map_err(|e| format!("renaming to {}: {e}", path.display()))?;
+        crate::util::write_atomic(&path, &b.to_npz()?)?;
         Ok((b, false))
     }
 
