@@ -167,9 +167,14 @@ struct TrainArgs {
     #[arg(long, default_value_t = 25.0)]
     max_minutes: f64,
     /// Stage 2 stops after this many epochs in a row without a better validation error (the
-    /// learning rate halves at each)
+    /// learning rate halves at each; plateau schedule only)
     #[arg(long, default_value_t = 3)]
     patience: usize,
+    /// Stage-2 learning-rate schedule: `plateau` halves it when validation stalls and stops
+    /// after `--patience` stalls; `cosine` anneals it from `--lr` to 0 over `--epochs` or
+    /// `--max-minutes`, whichever ends first, and keeps the best epoch
+    #[arg(long, value_enum, default_value_t = ScheduleArg::Plateau)]
+    schedule: ScheduleArg,
     /// Start from this model's weights and network (its model.json replaces the network
     /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
     /// correction scale fitted again and tested
@@ -336,6 +341,13 @@ struct BenchRegisterArgs {
     model: Option<PathBuf>,
     #[command(flatten)]
     common: Common,
+}
+
+/// `train --schedule`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ScheduleArg {
+    Plateau,
+    Cosine,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -2291,6 +2303,10 @@ fn train(a: &TrainArgs) -> Result<Value> {
         max_minutes: a.max_minutes,
         init: a.init.clone(),
         patience: a.patience,
+        schedule: match a.schedule {
+            ScheduleArg::Plateau => tr::Schedule::Plateau,
+            ScheduleArg::Cosine => tr::Schedule::Cosine,
+        },
     };
     let params = a.libr.params();
     params

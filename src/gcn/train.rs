@@ -15,8 +15,9 @@
 //!
 //! **Two stages** (the paper's): stage 1 trains the bipartite branch on reconstructing its input
 //! (`L_b`); stage 2 freezes it and trains the mesh branch on `L_residual + λ L_sparse` (or `L_gt`
-//! in the ablations). Adam, learning rate halved when validation stalls, early stopping on the
-//! validation node error (mm), best weights kept.
+//! in the ablations). Adam; the learning rate either halves when validation stalls, with early
+//! stopping ([`Schedule::Plateau`]), or anneals on a cosine over the epoch and time budget
+//! ([`Schedule::Cosine`]); the epoch with the best validation node error (mm) is kept.
 
 use super::GcnError;
 use super::io::{TrainedModel, save_model};
@@ -454,8 +455,10 @@ pub struct TrainOptions {
     pub epochs: usize,
     /// Initial learning rate.
     pub learning_rate: f64,
-    /// Epochs without validation improvement before stopping.
+    /// Epochs without validation improvement before stopping ([`Schedule::Plateau`] only).
     pub patience: usize,
+    /// How the stage-2 learning rate changes.
+    pub schedule: Schedule,
     /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
     /// by the last epoch's duration).
     pub max_minutes: f64,
@@ -476,8 +479,37 @@ impl Default for TrainOptions {
             epochs: 12,
             learning_rate: 2e-3,
             patience: 3,
+            schedule: Schedule::Plateau,
             init: None,
             max_minutes: 25.0,
+        }
+    }
+}
+
+/// The stage-2 learning-rate schedule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Schedule {
+    /// Halve the rate after every epoch whose validation error is not the best so far; stop
+    /// after `patience` such epochs in a row.
+    #[default]
+    Plateau,
+    /// Cosine annealing over the whole budget, step by step: `lr₀·½(1 + cos πp)`, where `p` is
+    /// the larger of the fraction of epochs done and the fraction of `max_minutes` spent, so the
+    /// rate reaches its low end whichever limit ends training. No early stop: the best
+    /// validation epoch is kept.
+    Cosine,
+}
+
+impl Schedule {
+    /// The rate at budget fraction `p` (clamped to [0, 1]) from the initial rate `lr0`; the
+    /// plateau schedule's rate is set by its epochs, so it returns `lr0`.
+    pub fn rate(self, lr0: f64, p: f64) -> f64 {
+        match self {
+            Schedule::Plateau => lr0,
+            Schedule::Cosine => {
+                lr0 * 0.5 * (1.0 + (std::f64::consts::PI * p.clamp(0.0, 1.0)).cos())
+            }
         }
     }
 }
@@ -816,6 +848,7 @@ pub fn train(
     for epoch in 1..=opts.epochs {
         shuffle(&mut order, opts.seed.wrapping_add(1000 + epoch as u64));
         let mut sum = 0.0;
+        let mut lr_sum = 0.0;
         for (k, &i) in order.iter().enumerate() {
             let s = &train[i];
             let (loss, _) = mesh_loss(
@@ -833,6 +866,13 @@ pub fn train(
                 return Err(format!("stage 2, epoch {epoch}: the loss is not finite"));
             }
             sum += l;
+            if opts.schedule == Schedule::Cosine {
+                let steps = (opts.epochs * order.len()).max(1) as f64;
+                let p_steps = ((epoch - 1) * order.len() + k) as f64 / steps;
+                let p_time = t0.elapsed().as_secs_f64() / (60.0 * opts.max_minutes).max(1e-9);
+                lr = opts.schedule.rate(opts.learning_rate, p_steps.max(p_time));
+                lr_sum += lr;
+            }
             let grads = GradientsParams::from_grads(loss.backward(), &net);
             net = optim.step(lr, net, grads);
             progress(2, epoch, k + 1, order.len(), sum / (k + 1) as f64);
@@ -845,7 +885,12 @@ pub fn train(
             epoch,
             train_loss: sum / order.len() as f64,
             valid: v,
-            learning_rate: lr,
+            // The epoch's mean rate under the cosine schedule.
+            learning_rate: if opts.schedule == Schedule::Cosine {
+                lr_sum / order.len().max(1) as f64
+            } else {
+                lr
+            },
             seconds: t0.elapsed().as_secs_f64(),
         });
         if v < best {
@@ -857,7 +902,7 @@ pub fn train(
             prov["checkpoint"] =
                 serde_json::json!({"stage": 2, "epoch": epoch, "valid_node_error_mm": v});
             save_model(out, cfg, &best_net, prov)?;
-        } else {
+        } else if opts.schedule == Schedule::Plateau {
             stall += 1;
             lr *= 0.5;
             if stall >= opts.patience {
