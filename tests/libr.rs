@@ -17,7 +17,8 @@ use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::register::Match;
 use librplus::register::libr::{
-    LibrBasis, LibrParams, LoadWidth, RunLimits, fit_step, mesh_hash, register, register_active,
+    LibrBasis, LibrParams, LinearRefit, LoadWidth, RunLimits, fit_step, linearised_refit,
+    mesh_hash, register, register_active,
 };
 use librplus::util::SplitMix64;
 use nalgebra::{DMatrix, DVector};
@@ -722,4 +723,135 @@ fn liver_basis_timings_and_exactness() {
     let (err, umax, _) = exactness(mesh, &basis, 1, 1.0);
     assert!(umax > 2.0);
     assert!(err <= 0.01, "mean node error {err} mm");
+}
+
+#[test]
+fn the_linearised_refit_predicts_the_refits_first_step() {
+    let (mesh, basis) = boxed();
+    let mut rng = SplitMix64::new(11);
+    let n = basis.nodes;
+    let (m, p) = (basis.columns(), basis.columns() + 6);
+    // Matches, half point-to-plane (a random unit normal each), data from a deformed and
+    // slightly moved truth; the refit starts from an offset outside the basis's span.
+    let mut matches = triangle_matches(mesh, 2, &mut rng);
+    for mt in matches.iter_mut().step_by(2) {
+        let v = [rng.normal(), rng.normal(), rng.normal()];
+        let l = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        mt.normal = v.map(|x| x / l);
+    }
+    let u_true = basis.displacement(&random_alpha(m, 1.0, &mut rng));
+    // The refit starts where LIBR converged: the rotation left to correct is small (its product
+    // with c is what the first-order model leaves out).
+    let truth = Rigid::from_axis_angle([0.3, -1.0, 0.5], 0.1f64.to_radians(), [1.0, -2.0, 0.5]);
+    let measured: Vec<[f64; 3]> = matches
+        .iter()
+        .map(|mt| truth.apply(mt.model_point(&u_true)))
+        .collect();
+    let offset: Vec<f64> = mesh
+        .nodes()
+        .iter()
+        .flat_map(|x| [0.5 * (x[1] / 15.0).sin(), 0.0, 0.8 * (x[0] / 20.0).cos()])
+        .collect();
+    let params = LibrParams {
+        max_iterations: 1,
+        ..LibrParams::default()
+    };
+    // One refit iteration from `o` with the matches held: node positions in the start frame.
+    let step = |o: &[f64]| {
+        let s = register_active(
+            mesh,
+            basis,
+            &params,
+            &measured,
+            &Rigid::identity(),
+            RunLimits {
+                offset: Some(o),
+                ..RunLimits::default()
+            },
+            |_, _| Ok(matches.clone()),
+        )
+        .unwrap();
+        let pos: Vec<f64> = mesh
+            .nodes()
+            .iter()
+            .enumerate()
+            .flat_map(|(i, x)| {
+                s.image_to_physical
+                    .apply([0, 1, 2].map(|a| x[a] + s.u[3 * i + a]))
+            })
+            .collect();
+        (s, pos)
+    };
+    let lin = linearised_refit(basis, mesh, &matches, &measured, &offset, &params).unwrap();
+    assert_eq!(lin.columns, p);
+    // The response to a change c: −G·K·Gᵀ·Dᵀ·D·c.
+    let g = LinearRefit::modes(basis, mesh);
+    let response = |c: &[f64]| -> (Vec<f64>, Vec<f64>) {
+        let mut dc = vec![0.0; lin.rows];
+        for &(r, col, v) in &lin.d {
+            dc[r] += v * c[col];
+        }
+        let mut w = vec![0.0; 3 * n];
+        for &(r, col, v) in &lin.d {
+            w[col] += v * dc[r];
+        }
+        let gw: Vec<f64> = (0..p)
+            .map(|j| (0..3 * n).map(|i| g[i * p + j] * w[i]).sum())
+            .collect();
+        let theta: Vec<f64> = (0..p)
+            .map(|i| -(0..p).map(|j| lin.gain[i * p + j] * gw[j]).sum::<f64>())
+            .collect();
+        let out = (0..3 * n)
+            .map(|i| (0..p).map(|j| g[i * p + j] * theta[j]).sum())
+            .collect();
+        (out, theta)
+    };
+    let (s0, p0) = step(&offset);
+    // The step at c = 0: step0 is where the refit moves the offset's shape, to first order in
+    // its small rotation.
+    let rest: Vec<f64> = mesh
+        .nodes()
+        .iter()
+        .enumerate()
+        .flat_map(|(i, x)| [0, 1, 2].map(|a| x[a] + offset[3 * i + a]))
+        .collect();
+    let moved: Vec<f64> = p0.iter().zip(&rest).map(|(a, b)| a - b).collect();
+    let gap = max_abs_diff(&moved, &lin.step0);
+    let size = moved.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+    assert!(size > 0.5, "the step should move the shape (by {size} mm)");
+    assert!(gap <= 0.05 * size, "step0 off by {gap} mm of {size}");
+    // A change c: the weights respond exactly linearly, the positions to first order.
+    let c: Vec<f64> = (0..3 * n).map(|_| 0.05 * rng.normal()).collect();
+    let oc: Vec<f64> = offset.iter().zip(&c).map(|(a, b)| a + b).collect();
+    let (s1, p1) = step(&oc);
+    let (pred, theta) = response(&c);
+    let da: Vec<f64> = s1.alpha.iter().zip(&s0.alpha).map(|(a, b)| a - b).collect();
+    let amax = da.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+    assert!(
+        max_abs_diff(&da, &theta[..m]) <= 1e-8 * amax.max(1e-12),
+        "weights: {:?} vs {:?}",
+        &da[..3],
+        &theta[..3]
+    );
+    let actual: Vec<f64> = (0..3 * n).map(|i| p1[i] - p0[i] - c[i]).collect();
+    let amp = actual.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+    let err = max_abs_diff(&actual, &pred);
+    println!("refit response: largest {amp:.4} mm, linear model off by {err:.2e} mm");
+    assert!(
+        amp > 0.01,
+        "the refit should respond to c (largest {amp} mm)"
+    );
+    // What the model leaves out is second order: the step's rotation change acting on the
+    // displacements (it rotates X + u, the linearisation X), here 8 % of the response.
+    assert!(err <= 0.1 * amp, "linear model off by {err} mm of {amp}");
+    // Errors name what is wrong.
+    let e = linearised_refit(basis, mesh, &matches, &measured, &offset[1..], &params).unwrap_err();
+    assert!(e.contains("offset"), "{e}");
+    let e = linearised_refit(basis, mesh, &[], &measured, &offset, &params).unwrap_err();
+    assert!(e.contains("no matches"), "{e}");
+}
+
+fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).fold(0.0, |m, (x, y)| m.max((x - y).abs()))
 }

@@ -173,6 +173,11 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
         (pb::Quality::Degenerate, r)
     } else if let Some(r) = degraded {
         (pb::Quality::Degraded, r)
+    } else if let Some(e) = gcn.and_then(|c| c.refit_error.as_ref()) {
+        (
+            pb::Quality::Degraded,
+            format!("LIBR+'s refit failed ({e}); the answer is the network's correction of LIBR"),
+        )
     } else if let Some(i) = reg.libr.as_ref().filter(|i| i.stopped_at_deadline) {
         (
             pb::Quality::Degraded,
@@ -215,10 +220,14 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
     }
     if let Some(c) = gcn {
         stage("gcn", c.seconds * 1e3);
+        if let Some(r) = &c.refit {
+            stage("refit", r.total_s * 1e3);
+        }
     }
     stage("total", total_ms);
     metrics::counter!("librplus_registrations_total", "method" => method.name(), "quality" => quality.as_str_name()).increment(1);
     let info = reg.libr.as_ref();
+    let refit = gcn.and_then(|c| c.refit.as_ref());
     Ok(pb::Registration {
         image_to_physical: Some(rigid_to_pb(&reg.image_to_physical)),
         displacement_mm: if job.omit_displacements {
@@ -228,7 +237,7 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
         },
         node_count: case.prepared.model.mesh.num_nodes() as u32,
         method_used: method_to_pb(method) as i32,
-        residual_rms_mm: info.map_or(reg.rigid.rms_mm, |i| i.rms_mm),
+        residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
         points_used: job.measurements.points.len() as u32,
         points_matched: reg.rigid.matched as u32,
         timings: Some(pb::StageTimings {
@@ -241,6 +250,8 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
             gcn_ms: gcn.map_or(0.0, |c| c.seconds * 1e3),
             total_ms,
             libr_iterations: info.map_or(0, |i| i.iterations as u32),
+            refit_ms: refit.map_or(0.0, |i| i.total_s * 1e3),
+            refit_iterations: refit.map_or(0, |i| i.iterations as u32),
         }),
         quality: quality as i32,
         quality_reason: reason,

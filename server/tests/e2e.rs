@@ -1282,7 +1282,12 @@ async fn librplus_answers_through_the_same_api_as_the_library() {
         .into_inner();
     assert_eq!(r.method_used, pb::Method::LibrPlus as i32, "{r:?}");
     assert_ne!(r.quality(), pb::Quality::Degraded, "{}", r.quality_reason);
-    assert!(r.timings.as_ref().unwrap().gcn_ms > 0.0);
+    let t = r.timings.as_ref().unwrap();
+    assert!(
+        t.gcn_ms > 0.0 && t.refit_ms > 0.0 && t.refit_ms < t.gcn_ms,
+        "{t:?}"
+    );
+    assert!(t.refit_iterations >= 1, "{t:?}");
     let prepared = Prepared::new(
         geo.model.clone(),
         Some(&LibrParams::default()),
@@ -1300,6 +1305,10 @@ async fn librplus_answers_through_the_same_api_as_the_library() {
         dt < 1e-9 && du < 1e-4,
         "transform {dt}, displacements {du} mm"
     );
+    // The fit figures are the refit's, the answer's last stage.
+    let refit = lib.correction.as_ref().unwrap().refit.as_ref().unwrap();
+    assert_eq!(t.refit_iterations as usize, refit.iterations);
+    assert!((r.residual_rms_mm - refit.rms_mm).abs() < 1e-6, "{r:?}");
     let libr = register(&prepared, &sc.measurements, Method::Libr, &p).unwrap();
     assert_ne!(lib.u, libr.u);
     assert_eq!(running.shutdown().await, 0);

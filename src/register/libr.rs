@@ -898,12 +898,37 @@ fn normalize3(a: [f64; 3]) -> [f64; 3] {
 /// Errors (naming the item): no matches, a match out of range or with non-finite or negative
 /// weight, a non-finite target or anchor, fewer than 3 weighted matches, zero total weight,
 /// an invalid λ, or data that do not determine the rigid correction.
-pub fn fit_step(
+/// The weighted least-squares system of one LIBR step ([`fit_step`]): rows, right-hand side,
+/// and the regularised normal matrix (lower triangle), with what built them.
+struct Assembled<'a> {
+    used: Vec<&'a Match>,
+    wsum: f64,
+    cen: [f64; 3],
+    radius: f64,
+    m: usize,
+    p: usize,
+    rows: usize,
+    /// Jᵀ, p × rows.
+    jt: Mat<f64>,
+    rhs: Mat<f64>,
+    /// The frame vector (times √(w/W)) of each row, and its match.
+    row_frames: Vec<([f64; 3], usize)>,
+    before: f64,
+    /// JᵀJ + damping + λ/e·E, lower triangle.
+    a: Mat<f64>,
+    /// Jᵀr.
+    b: Mat<f64>,
+    rows_s: f64,
+    normal_s: f64,
+}
+
+/// Validates the matches and builds the step's system (see [`fit_step`] for the errors).
+fn assemble<'a>(
     basis: &LibrBasis,
-    matches: &[Match],
+    matches: &'a [Match],
     targets_image: &[[f64; 3]],
     params: &LibrParams,
-) -> Result<StepResult, String> {
+) -> Result<Assembled<'a>, String> {
     let t0 = Instant::now();
     let lambda = params.regularization;
     if !(lambda.is_finite() && lambda >= 0.0) {
@@ -988,7 +1013,8 @@ pub fn fit_step(
     let mut before = 0.0;
     let mut axis_rows = vec![0.0; 3 * p];
     let mut row = 0usize;
-    for mt in &used {
+    let mut row_frames = Vec::with_capacity(rows);
+    for (ui, mt) in used.iter().enumerate() {
         let s = (mt.weight / wsum).sqrt();
         let y = targets_image[mt.point];
         axis_rows.iter_mut().for_each(|x| *x = 0.0);
@@ -1042,6 +1068,7 @@ pub fn fit_step(
             let rr = f[0] * r[0] + f[1] * r[1] + f[2] * r[2];
             rhs[(row, 0)] = rr;
             before += rr * rr;
+            row_frames.push((f.map(|x| s * x), ui));
             row += 1;
         }
     }
@@ -1090,6 +1117,48 @@ pub fn fit_step(
         }
     }
     let normal_s = crate::util::secs(t1);
+    Ok(Assembled {
+        used,
+        wsum,
+        cen,
+        radius,
+        m,
+        p,
+        rows,
+        jt,
+        rhs: rhs0,
+        row_frames,
+        before,
+        a,
+        b,
+        rows_s,
+        normal_s,
+    })
+}
+
+pub fn fit_step(
+    basis: &LibrBasis,
+    matches: &[Match],
+    targets_image: &[[f64; 3]],
+    params: &LibrParams,
+) -> Result<StepResult, String> {
+    let Assembled {
+        used,
+        wsum,
+        cen,
+        radius,
+        m,
+        p,
+        rows,
+        jt,
+        rhs: rhs0,
+        before,
+        a,
+        mut b,
+        rows_s,
+        normal_s,
+        ..
+    } = assemble(basis, matches, targets_image, params)?;
     let t2 = Instant::now();
     let llt = a.llt(Side::Lower).map_err(|e| {
         format!(
@@ -1155,6 +1224,153 @@ pub fn fit_step(
             normal_s,
             solve_s: crate::util::secs(t2),
         },
+    })
+}
+
+/// The first step of a LIBR refit ([`register_active`] with an offset), linearised in a change
+/// `c` of the offset with the matches held: the refit's node displacement (image frame, the
+/// rigid correction to first order about the undeformed nodes) is
+/// `offset + c + step0 − G·K·Gᵀ·Dᵀ·D·c`, where `G` (3n × p) holds, per node, the basis rows, the
+/// rotations `e_k × X` about the origin and the translations ([`LinearRefit::modes`]), `K` is
+/// the step's gain in those coordinates, and `D` maps a displacement to the step's weighted rows
+/// (each row: √(w/W) times its direction, on the matched point's barycentric nodes). A network
+/// trained through this map learns only what the refit will not put back ([`register_active`]
+/// re-solves its weights from zero each iteration, so the map is the whole first iteration).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinearRefit {
+    /// Columns p: the basis's, 3 rotations, 3 translations.
+    pub columns: usize,
+    /// `K = T N⁻¹ Tᵀ` (p × p, row-major, symmetric), with `N` the step's regularised normal
+    /// matrix and `T` the change from the step's centred, radius-scaled rigid unknowns to `G`'s.
+    pub gain: Vec<f64>,
+    /// The step's node displacement with `c = 0` (3n, mm; near 0 when LIBR has converged with
+    /// λ = 0).
+    pub step0: Vec<f64>,
+    /// Rows of `D`.
+    pub rows: usize,
+    /// `D`'s entries (row, 3·node + axis, value).
+    pub d: Vec<(usize, usize, f64)>,
+}
+
+impl LinearRefit {
+    /// Row `3i + a` of `G` (p values): node i's basis row on axis a, then `(e_k × X_i)_a`, then
+    /// `δ_{a,k}`.
+    pub fn modes(basis: &LibrBasis, mesh: &TetMesh) -> Vec<f64> {
+        let m = basis.columns();
+        let p = m + 6;
+        let mut g = vec![0.0; 3 * basis.nodes * p];
+        for (i, x) in mesh.nodes().iter().enumerate().take(basis.nodes) {
+            let rot = mode_rows(*x, [0.0; 3]);
+            for a in 0..3 {
+                let r = 3 * i + a;
+                let dst = &mut g[r * p..(r + 1) * p];
+                dst[..m].copy_from_slice(&basis.phi[r * m..(r + 1) * m]);
+                for k in 0..3 {
+                    dst[m + k] = rot[a][3 + k];
+                    dst[m + 3 + k] = rot[a][k];
+                }
+            }
+        }
+        g
+    }
+}
+
+/// Each matched point's image-frame target less what `offset` moves its model point by (a point
+/// matched twice keeps its first match's offset): what LIBR fits `Φα` to when it starts from
+/// `offset` ([`RunLimits::offset`]).
+pub fn offset_targets(matches: &[Match], targets: &mut [[f64; 3]], offset: &[f64]) {
+    let mut done = vec![false; targets.len()];
+    for m in matches {
+        if m.point < targets.len() && !done[m.point] {
+            done[m.point] = true;
+            let d = m.model_point(offset);
+            for a in 0..3 {
+                targets[m.point][a] -= d[a] - m.anchor[a];
+            }
+        }
+    }
+}
+
+/// The refit's first step at `offset`, linearised ([`LinearRefit`]): `matches` and
+/// `measured_image` (the measured points in the image frame) as the refit would use them there.
+/// Errors as [`fit_step`]'s, and when `offset` does not fit the basis or is not finite.
+pub fn linearised_refit(
+    basis: &LibrBasis,
+    mesh: &TetMesh,
+    matches: &[Match],
+    measured_image: &[[f64; 3]],
+    offset: &[f64],
+    params: &LibrParams,
+) -> Result<LinearRefit, String> {
+    if offset.len() != 3 * basis.nodes || offset.iter().any(|x| !x.is_finite()) {
+        return Err(format!(
+            "offset must hold 3 × {} finite values, has {}",
+            basis.nodes,
+            offset.len()
+        ));
+    }
+    if mesh.num_nodes() != basis.nodes {
+        return Err(format!(
+            "mesh has {} nodes, the basis {}",
+            mesh.num_nodes(),
+            basis.nodes
+        ));
+    }
+    params.validate()?;
+    let mut targets = measured_image.to_vec();
+    offset_targets(matches, &mut targets, offset);
+    let asm = assemble(basis, matches, &targets, params)?;
+    let (m, p) = (asm.m, asm.p);
+    let llt = asm.a.llt(Side::Lower).map_err(|e| {
+        format!(
+            "the normal equations are singular ({e:?}): the {} matches do not determine the basis weights and rigid correction",
+            asm.used.len()
+        )
+    })?;
+    // T: identity but for the rotations, ω_G = ω'/radius and τ_G = τ − ω_G × cen.
+    let mut t = Mat::<f64>::identity(p, p);
+    for k in 0..3 {
+        t[(m + k, m + k)] = 1.0 / asm.radius;
+        let mut e = [0.0; 3];
+        e[k] = 1.0;
+        let c = cross3(e, asm.cen);
+        for a in 0..3 {
+            t[(m + 3 + a, m + k)] = -c[a] / asm.radius;
+        }
+    }
+    let mut ninv_tt = t.transpose().to_owned();
+    llt.solve_in_place(ninv_tt.as_mut());
+    let k = &t * &ninv_tt;
+    let mut b = asm.b.clone();
+    llt.solve_in_place(b.as_mut());
+    let theta = &t * &b;
+    if !(0..p).all(|i| theta[(i, 0)].is_finite()) {
+        return Err("the step produced non-finite values (ill-conditioned data)".into());
+    }
+    let g = LinearRefit::modes(basis, mesh);
+    let step0 = g
+        .chunks_exact(p)
+        .map(|row| (0..p).map(|j| row[j] * theta[(j, 0)]).sum())
+        .collect();
+    let mut d = Vec::new();
+    for (r, (f, ui)) in asm.row_frames.iter().enumerate() {
+        let mt = asm.used[*ui];
+        for (kk, &v) in mt.nodes.iter().enumerate() {
+            if mt.bary[kk] != 0.0 {
+                for a in 0..3 {
+                    if f[a] != 0.0 {
+                        d.push((r, 3 * v as usize + a, f[a] * mt.bary[kk]));
+                    }
+                }
+            }
+        }
+    }
+    Ok(LinearRefit {
+        columns: p,
+        gain: (0..p * p).map(|i| k[(i / p, i % p)]).collect(),
+        step0,
+        rows: asm.rows,
+        d,
     })
 }
 
@@ -1304,18 +1520,8 @@ pub fn register_active(
         let inv = t.inverse();
         let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
         if let Some(o) = offset {
-            // Fit Φα to what the offset leaves: each matched point's target less the offset
-            // there (a point matched twice keeps its first match's offset).
-            let mut done = vec![false; targets.len()];
-            for m in &matches {
-                if m.point < targets.len() && !done[m.point] {
-                    done[m.point] = true;
-                    let d = m.model_point(o);
-                    for a in 0..3 {
-                        targets[m.point][a] -= d[a] - m.anchor[a];
-                    }
-                }
-            }
+            // Fit Φα to what the offset leaves.
+            offset_targets(&matches, &mut targets, o);
         }
         let step = fit_step(basis, &matches, &targets, params)?;
         info.assemble_s += step.timings.rows_s + step.timings.normal_s;
