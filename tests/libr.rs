@@ -782,10 +782,12 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
             .collect();
         (s, pos)
     };
-    let lin = linearised_refit(basis, mesh, &matches, &measured, &offset, &params).unwrap();
+    let centre = [20.0, -5.0, 12.0];
+    let lin =
+        linearised_refit(basis, mesh, &matches, &measured, &offset, centre, &params).unwrap();
     assert_eq!(lin.columns, p);
     // The response to a change c: −G·K·Gᵀ·Dᵀ·D·c.
-    let g = LinearRefit::modes(basis, mesh);
+    let g = LinearRefit::modes(basis, mesh, centre);
     let response = |c: &[f64]| -> (Vec<f64>, Vec<f64>) {
         let mut dc = vec![0.0; lin.rows];
         for &(r, col, v) in &lin.d {
@@ -845,9 +847,10 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
     // displacements (it rotates X + u, the linearisation X), here 8 % of the response.
     assert!(err <= 0.1 * amp, "linear model off by {err} mm of {amp}");
     // Errors name what is wrong.
-    let e = linearised_refit(basis, mesh, &matches, &measured, &offset[1..], &params).unwrap_err();
+    let e = linearised_refit(basis, mesh, &matches, &measured, &offset[1..], centre, &params)
+        .unwrap_err();
     assert!(e.contains("offset"), "{e}");
-    let e = linearised_refit(basis, mesh, &[], &measured, &offset, &params).unwrap_err();
+    let e = linearised_refit(basis, mesh, &[], &measured, &offset, centre, &params).unwrap_err();
     assert!(e.contains("no matches"), "{e}");
 }
 

@@ -170,11 +170,16 @@ struct TrainArgs {
     /// learning rate halves at each; plateau schedule only)
     #[arg(long, default_value_t = 3)]
     patience: usize,
-    /// Stage-2 learning-rate schedule: `plateau` halves it when validation stalls and stops
-    /// after `--patience` stalls; `cosine` anneals it from `--lr` to 0 over `--epochs` or
-    /// `--max-minutes`, whichever ends first, and keeps the best epoch
-    #[arg(long, value_enum, default_value_t = ScheduleArg::Plateau)]
+    /// Stage-2 learning-rate schedule: `cosine` anneals it from `--lr` to 0 over `--epochs` or
+    /// `--max-minutes`, whichever ends first, and keeps the best epoch; `plateau` (before
+    /// session 10) halves it when validation stalls and stops after `--patience` stalls
+    #[arg(long, value_enum, default_value_t = ScheduleArg::Cosine)]
     schedule: ScheduleArg,
+    /// Train on the raw correction instead of through LIBR+'s refit (by default, with the refit
+    /// on and a residual target, the node loss scores what the refit, linearised at each
+    /// scenario's LIBR solution, makes of the correction)
+    #[arg(long)]
+    no_refit_loss: bool,
     /// Start from this model's weights and network (its model.json replaces the network
     /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
     /// correction scale fitted again and tested
@@ -2292,6 +2297,14 @@ fn train(a: &TrainArgs) -> Result<Value> {
     };
     cfg.validate()
         .map_err(|e| anyhow::anyhow!("network options: {e}"))?;
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    // Training through the refit needs a refit, and a correction of LIBR's shape to refit.
+    let refit_loss =
+        !a.no_refit_loss && params.refit_iterations > 0 && cfg.target == librplus::gcn::model::Target::Residual;
     let opts = TrainOptions {
         config: cfg.clone(),
         split: split.clone(),
@@ -2303,16 +2316,12 @@ fn train(a: &TrainArgs) -> Result<Value> {
         max_minutes: a.max_minutes,
         init: a.init.clone(),
         patience: a.patience,
+        refit_loss,
         schedule: match a.schedule {
             ScheduleArg::Plateau => tr::Schedule::Plateau,
             ScheduleArg::Cosine => tr::Schedule::Cosine,
         },
     };
-    let params = a.libr.params();
-    params
-        .libr
-        .validate()
-        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
     let sets = tr::split_scenarios(&m, &split, a.seed, a.every).map_err(anyhow::Error::msg)?;
     eprintln!(
         "split {}: {} training, {} validation, {} test scenarios",
@@ -2381,7 +2390,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
             .zip(sols)
             .map(|((s, g), o)| (*s, *g, o))
             .collect();
-        Ok(tr::build_samples(&cfg, &cases, &z, &params, true)
+        Ok(tr::build_samples(&cfg, &cases, &z, &params, true, refit_loss)
             .map_err(anyhow::Error::msg)?
             .into_iter()
             .flatten()
@@ -2494,7 +2503,8 @@ fn train(a: &TrainArgs) -> Result<Value> {
         .map(|((s, g), o)| (*s, *g, o))
         .collect();
     let t_inf = Instant::now();
-    let test_s = tr::build_samples(&cfg, &cases, &z, &params, false).map_err(anyhow::Error::msg)?;
+    let test_s =
+        tr::build_samples(&cfg, &cases, &z, &params, false, false).map_err(anyhow::Error::msg)?;
     let plain = burn::tensor::Device::flex();
     let mut graphs = std::collections::BTreeMap::new();
     for (g, gc) in &cases {

@@ -27,6 +27,7 @@ use crate::dataset::Manifest;
 use crate::dataset::read::{GeometryData, ScenarioData, load_geometry};
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::CorrespondenceParams;
+use crate::register::libr;
 use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
@@ -459,6 +460,11 @@ pub struct TrainOptions {
     pub patience: usize,
     /// How the stage-2 learning rate changes.
     pub schedule: Schedule,
+    /// Train through LIBR+'s refit: the node loss (and validation) scores what the refit,
+    /// linearised at each sample's LIBR solution ([`RefitLoss`]), makes of the correction, so
+    /// the network learns what the refit will not put back instead of what it will
+    /// overwrite. The samples must carry their [`RefitLoss`] ([`build_samples`]).
+    pub refit_loss: bool,
     /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
     /// by the last epoch's duration).
     pub max_minutes: f64,
@@ -480,6 +486,7 @@ impl Default for TrainOptions {
             learning_rate: 2e-3,
             patience: 3,
             schedule: Schedule::Plateau,
+            refit_loss: false,
             init: None,
             max_minutes: 25.0,
         }
@@ -537,6 +544,117 @@ pub struct Prepared2 {
     pub geometry: String,
     /// Inputs and targets.
     pub data: SampleData,
+    /// The linearised refit at LIBR's solution, when training through it.
+    pub refit: Option<RefitLoss>,
+}
+
+/// LIBR+'s refit linearised at a sample's LIBR solution ([`libr::linearised_refit`]), for
+/// training through it ([`TrainOptions::refit_loss`]): what the pipeline answers for a correction
+/// `y` (output units) is, to first order, `y + step0 − G·K·Gᵀ·Dᵀ·D·y`, with `G` the geometry's
+/// [`libr::LinearRefit::modes`] about its frame's centre.
+pub struct RefitLoss {
+    /// `D` (rows × 3V).
+    pub d: super::sparse::Csr,
+    /// `K` (p × p, row-major).
+    pub gain: Vec<f32>,
+    /// The refit's move of LIBR's own shape, `[V, 3]` in output units.
+    pub step0: Vec<f32>,
+}
+
+/// The [`RefitLoss`] of one LIBR solution: the refit's first step from it, with the matches the
+/// refit would make there.
+pub fn refit_loss_data(
+    gc: &GeometryCase,
+    meas: &crate::register::Measurements,
+    sol: &LibrSolution,
+    params: &PipelineParams,
+) -> Result<RefitLoss, String> {
+    let basis = gc
+        .case
+        .basis
+        .as_ref()
+        .ok_or("the case was prepared without a LIBR basis")?;
+    let inv = sol.transform.inverse();
+    let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
+    let (matches, _) = gc.case.correspondence.match_points(
+        &pts,
+        meas,
+        Some(&sol.u),
+        &final_cparams(params),
+    )?;
+    let mesh = &gc.geo.model.mesh;
+    let lin = libr::linearised_refit(
+        basis,
+        mesh,
+        &matches,
+        &pts,
+        &sol.u,
+        gc.frame.center,
+        &params.libr,
+    )?;
+    let trip: Vec<(usize, usize, f32)> = lin.d.iter().map(|&(r, c, v)| (r, c, v as f32)).collect();
+    let unit = gc.frame.unit_mm();
+    Ok(RefitLoss {
+        d: super::sparse::Csr::from_triplets(lin.rows, 3 * mesh.num_nodes(), &trip)
+            .map_err(|e| e.to_string())?,
+        gain: lin.gain.iter().map(|&x| x as f32).collect(),
+        step0: lin.step0.iter().map(|&x| (x / unit) as f32).collect(),
+    })
+}
+
+/// The geometry's refit modes `G` (`[3V, p]`) on a device.
+fn refit_modes(gc: &GeometryCase, device: &Device) -> Result<Tensor<2>, String> {
+    let basis = gc
+        .case
+        .basis
+        .as_ref()
+        .ok_or("the case was prepared without a LIBR basis")?;
+    let g = libr::LinearRefit::modes(basis, &gc.geo.model.mesh, gc.frame.center);
+    let p = basis.columns() + 6;
+    let rows = g.len() / p;
+    Ok(Tensor::<2>::from_data(
+        TensorData::new(g.into_iter().map(|x| x as f32).collect::<Vec<_>>(), [rows, p]),
+        device,
+    ))
+}
+
+/// What the pipeline answers, to first order, for the correction `y` (`[V, 3]` row-major,
+/// output units) of a sample of geometry `gc` with linearised refit `r`: the displacement from
+/// LIBR's shape, in LIBR's image frame and output units.
+pub fn answer_through_refit(gc: &GeometryCase, r: &RefitLoss, y: &[f32]) -> Result<Vec<f32>, String> {
+    let device = Device::flex();
+    let g = refit_modes(gc, &device)?;
+    let v = y.len() / 3;
+    through_refit(tensor2(y, v, &device), r, &g, &device)
+        .map_err(|e| e.to_string())?
+        .into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .map_err(|e| format!("{e:?}"))
+}
+
+/// What the pipeline answers for the correction `y` (`[V, 3]`, output units) through the
+/// linearised refit `r` with the geometry's modes `g`.
+fn through_refit(
+    y: Tensor<2>,
+    r: &RefitLoss,
+    g: &Tensor<2>,
+    device: &Device,
+) -> Result<Tensor<2>, GcnError> {
+    let [v, _] = y.dims();
+    let p = g.dims()[1];
+    if r.d.cols != 3 * v || g.dims()[0] != 3 * v || r.gain.len() != p * p || r.step0.len() != 3 * v
+    {
+        return Err(GcnError::Invalid(format!(
+            "the linearised refit does not fit a {v}-node prediction"
+        )));
+    }
+    let z = super::sparse::SparseOp::new(r.d.clone()).apply(y.clone().reshape([3 * v, 1]))?;
+    let w = super::sparse::SparseOp::new(r.d.transpose()).apply(z)?;
+    let gw = g.clone().transpose().matmul(w);
+    let k = Tensor::<2>::from_data(TensorData::new(r.gain.clone(), [p, p]), device);
+    let change = g.clone().matmul(k.matmul(gw)).reshape([v, 3]);
+    Ok(y - change + tensor2(&r.step0, v, device))
 }
 
 /// Builds the SR-GCN samples of scenarios whose LIBR succeeded (with targets from the truth).
@@ -546,6 +664,7 @@ pub fn build_samples(
     items: &[(&ScenarioData, &str, &Option<LibrSolution>)],
     params: &PipelineParams,
     with_truth: bool,
+    refit_loss: bool,
 ) -> Result<Vec<Option<Prepared2>>, String> {
     let cparams = final_cparams(params);
     items
@@ -566,9 +685,18 @@ pub fn build_samples(
                 truth.as_deref(),
             )
             .map_err(|e| format!("{}: {e}", sc.id))?;
+            let refit = if refit_loss {
+                Some(
+                    refit_loss_data(gc, &sc.measurements, sol, params)
+                        .map_err(|e| format!("{}: linearised refit: {e}", sc.id))?,
+                )
+            } else {
+                None
+            };
             Ok(Some(Prepared2 {
                 geometry: g.to_string(),
                 data,
+                refit,
             }))
         })
         .collect()
@@ -591,7 +719,9 @@ fn penalty(kind: Loss, e: Tensor<2>) -> Tensor<1> {
 }
 
 /// Stage-2 loss of one sample: the mean penalty ([`Loss`]) of the correction error over nodes, plus
-/// λ times the same at the matched measured points. Also returns the prediction.
+/// λ times the same at the matched measured points. Also returns the answer: the prediction, or
+/// with `refit` (the sample's linearised refit and its geometry's modes) what the pipeline's
+/// refit makes of it, to first order, which the node loss then scores.
 ///
 /// Stage 2 keeps the bipartite branch fixed: it runs as `frozen` (a copy of the network without
 /// autodiff, on `plain`) and its features are copied onto `device`. Running it on the autodiff
@@ -604,6 +734,7 @@ fn mesh_loss(
     cfg: &SrGcnConfig,
     s: &SampleData,
     graph: &MeshGraphs,
+    refit: Option<(&RefitLoss, &Tensor<2>)>,
     plain: &Device,
     device: &Device,
 ) -> Result<(Tensor<1>, Tensor<2>), GcnError> {
@@ -631,14 +762,18 @@ fn mesh_loss(
         .as_ref()
         .ok_or_else(|| GcnError::Invalid("sample has no target".into()))?;
     let t = tensor2(target, s.num_nodes, device);
-    let mut loss = penalty(cfg.loss, y.clone() - t);
+    let answer = match refit {
+        Some((r, g)) => through_refit(y.clone(), r, g, device)?,
+        None => y.clone(),
+    };
+    let mut loss = penalty(cfg.loss, answer.clone() - t);
     if cfg.sparse_weight > 0.0 && s.sparse_rows.rows > 0 {
         let op = super::sparse::SparseOp::new(s.sparse_rows.clone());
         let at = op.apply(y.clone())?;
         let ts = tensor2(&s.sparse_target, s.sparse_rows.rows, device);
         loss = loss + penalty(cfg.loss, at - ts) * cfg.sparse_weight;
     }
-    Ok((loss, y))
+    Ok((loss, answer))
 }
 
 /// Mean node error (mm) of the corrected prediction against the target (both in output units).
@@ -741,6 +876,32 @@ pub fn train(
             .map_err(|e| e.to_string())?;
         graphs.insert(g.clone(), (ad, pl));
     }
+    // The refit modes of every geometry, when training through the refit.
+    let mut modes: BTreeMap<String, (Tensor<2>, Tensor<2>)> = BTreeMap::new();
+    if opts.refit_loss {
+        if let Some(s) = train.iter().chain(valid).find(|s| s.refit.is_none()) {
+            return Err(format!(
+                "training through the refit needs every sample's linearised refit; a sample of {} has none",
+                s.geometry
+            ));
+        }
+        for (g, gc) in cases {
+            modes.insert(
+                g.clone(),
+                (refit_modes(gc, &device)?, refit_modes(gc, &plain)?),
+            );
+        }
+    }
+    // A sample's linearised refit with its geometry's modes on the autodiff (0) or plain (1)
+    // device.
+    fn through<'a>(
+        modes: &'a BTreeMap<String, (Tensor<2>, Tensor<2>)>,
+        s: &'a Prepared2,
+        k: usize,
+    ) -> Option<(&'a RefitLoss, &'a Tensor<2>)> {
+        let m = modes.get(&s.geometry)?;
+        Some((s.refit.as_ref()?, if k == 0 { &m.0 } else { &m.1 }))
+    }
     let err = |e: GcnError| e.to_string();
     let mut log = Vec::new();
     let mut order: Vec<usize> = (0..train.len()).collect();
@@ -822,6 +983,7 @@ pub fn train(
                 cfg,
                 &s.data,
                 &graphs[&s.geometry].1,
+                through(&modes, s, 1),
                 &plain,
                 &plain,
             )
@@ -857,6 +1019,7 @@ pub fn train(
                 cfg,
                 &s.data,
                 &graphs[&s.geometry].0,
+                through(&modes, s, 0),
                 &plain,
                 &device,
             )
@@ -997,7 +1160,7 @@ pub fn fit_refit_scale(
                 .map_err(|e| e.to_string())?,
         );
     }
-    let samples = build_samples(&unit_model.config, cases, items, params, false)?;
+    let samples = build_samples(&unit_model.config, cases, items, params, false, false)?;
     let per: Vec<Vec<f64>> = items
         .par_iter()
         .zip(samples.par_iter())

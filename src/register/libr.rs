@@ -1231,7 +1231,7 @@ pub fn fit_step(
 /// `c` of the offset with the matches held: the refit's node displacement (image frame, the
 /// rigid correction to first order about the undeformed nodes) is
 /// `offset + c + step0 − G·K·Gᵀ·Dᵀ·D·c`, where `G` (3n × p) holds, per node, the basis rows, the
-/// rotations `e_k × X` about the origin and the translations ([`LinearRefit::modes`]), `K` is
+/// rotations `e_k × (X − centre)` and the translations ([`LinearRefit::modes`]), `K` is
 /// the step's gain in those coordinates, and `D` maps a displacement to the step's weighted rows
 /// (each row: √(w/W) times its direction, on the matched point's barycentric nodes). A network
 /// trained through this map learns only what the refit will not put back ([`register_active`]
@@ -1253,14 +1253,15 @@ pub struct LinearRefit {
 }
 
 impl LinearRefit {
-    /// Row `3i + a` of `G` (p values): node i's basis row on axis a, then `(e_k × X_i)_a`, then
-    /// `δ_{a,k}`.
-    pub fn modes(basis: &LibrBasis, mesh: &TetMesh) -> Vec<f64> {
+    /// Row `3i + a` of `G` (p values, row-major 3n × p): node i's basis row on axis a, then
+    /// `(e_k × (X_i − centre))_a`, then `δ_{a,k}`. A centre within the organ keeps the rotation
+    /// columns the size of the organ (no cancellation against the translations in f32).
+    pub fn modes(basis: &LibrBasis, mesh: &TetMesh, centre: [f64; 3]) -> Vec<f64> {
         let m = basis.columns();
         let p = m + 6;
         let mut g = vec![0.0; 3 * basis.nodes * p];
         for (i, x) in mesh.nodes().iter().enumerate().take(basis.nodes) {
-            let rot = mode_rows(*x, [0.0; 3]);
+            let rot = mode_rows(*x, centre);
             for a in 0..3 {
                 let r = 3 * i + a;
                 let dst = &mut g[r * p..(r + 1) * p];
@@ -1292,14 +1293,16 @@ pub fn offset_targets(matches: &[Match], targets: &mut [[f64; 3]], offset: &[f64
 }
 
 /// The refit's first step at `offset`, linearised ([`LinearRefit`]): `matches` and
-/// `measured_image` (the measured points in the image frame) as the refit would use them there.
-/// Errors as [`fit_step`]'s, and when `offset` does not fit the basis or is not finite.
+/// `measured_image` (the measured points in the image frame) as the refit would use them there;
+/// `centre` is that of `G`'s rotations. Errors as [`fit_step`]'s, and when `offset` does not fit
+/// the basis or is not finite.
 pub fn linearised_refit(
     basis: &LibrBasis,
     mesh: &TetMesh,
     matches: &[Match],
     measured_image: &[[f64; 3]],
     offset: &[f64],
+    centre: [f64; 3],
     params: &LibrParams,
 ) -> Result<LinearRefit, String> {
     if offset.len() != 3 * basis.nodes || offset.iter().any(|x| !x.is_finite()) {
@@ -1327,13 +1330,13 @@ pub fn linearised_refit(
             asm.used.len()
         )
     })?;
-    // T: identity but for the rotations, ω_G = ω'/radius and τ_G = τ − ω_G × cen.
+    // T: identity but for the rotations, ω_G = ω'/radius and τ_G = τ − ω_G × (cen − centre).
     let mut t = Mat::<f64>::identity(p, p);
     for k in 0..3 {
         t[(m + k, m + k)] = 1.0 / asm.radius;
         let mut e = [0.0; 3];
         e[k] = 1.0;
-        let c = cross3(e, asm.cen);
+        let c = cross3(e, sub(asm.cen, centre));
         for a in 0..3 {
             t[(m + 3 + a, m + k)] = -c[a] / asm.radius;
         }
@@ -1347,7 +1350,7 @@ pub fn linearised_refit(
     if !(0..p).all(|i| theta[(i, 0)].is_finite()) {
         return Err("the step produced non-finite values (ill-conditioned data)".into());
     }
-    let g = LinearRefit::modes(basis, mesh);
+    let g = LinearRefit::modes(basis, mesh, centre);
     let step0 = g
         .chunks_exact(p)
         .map(|row| (0..p).map(|j| row[j] * theta[(j, 0)]).sum())
