@@ -641,7 +641,26 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
     use librplus::register::pipeline::{Method, refit, register};
     let f = fixture();
     let (cfg, model) = untrained_model(7);
-    let (sc, g) = &f.scenarios[2];
+    // The scenario LIBR registers best (a sane linearisation point).
+    let libr_error = |k: usize| {
+        let (sc, g) = &f.scenarios[k];
+        let gc = &f.cases[g];
+        let nodes = gc.geo.model.mesh.nodes();
+        register(&gc.case, &sc.measurements, Method::Libr, &f.params).map_or(f64::INFINITY, |r| {
+            node_errors_mm(
+                nodes,
+                (&r.image_to_physical, &r.u),
+                (&sc.truth.image_to_physical, &sc.truth.displacement),
+            )
+            .iter()
+            .sum::<f64>()
+                / nodes.len() as f64
+        })
+    };
+    let k = (0..f.scenarios.len().min(10))
+        .min_by(|&a, &b| libr_error(a).total_cmp(&libr_error(b)))
+        .unwrap();
+    let (sc, g) = &f.scenarios[k];
     let gc = &f.cases[g];
     let r = register(&gc.case, &sc.measurements, Method::Libr, &f.params).unwrap();
     let sol = Some(tr::LibrSolution {
@@ -654,7 +673,10 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
         .pop()
         .unwrap()
         .unwrap();
-    let lr = s.refit.as_ref().expect("the sample carries its linearised refit");
+    let lr = s
+        .refit
+        .as_ref()
+        .expect("the sample carries its linearised refit");
     let graph = gc
         .frame
         .mesh_graphs(&cfg, &burn::tensor::Device::flex())
@@ -677,39 +699,89 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
     let y2: Vec<f32> = y.iter().map(|x| 2.0 * x).collect();
     let [l0, l1, l2] = [&zero, &y, &y2].map(|c| tr::answer_through_refit(gc, lr, c).unwrap());
     let step0: Vec<f64> = lr.step0.iter().map(|&x| x as f64).collect();
-    assert!(mean_mm(&l0.iter().zip(&step0).map(|(a, b)| *a as f64 - b).collect::<Vec<_>>()) < 1e-6);
+    assert!(
+        mean_mm(
+            &l0.iter()
+                .zip(&step0)
+                .map(|(a, b)| *a as f64 - b)
+                .collect::<Vec<_>>()
+        ) < 1e-6
+    );
     let curvature: Vec<f64> = (0..y.len())
         .map(|i| (l2[i] - 2.0 * l1[i] + l0[i]) as f64)
         .collect();
-    let response: Vec<f64> = (0..y.len()).map(|i| (l1[i] - l0[i] - y[i]) as f64).collect();
+    let response: Vec<f64> = (0..y.len())
+        .map(|i| (l1[i] - l0[i] - y[i]) as f64)
+        .collect();
     assert!(mean_mm(&curvature) <= 1e-4 * mean_mm(&response).max(1e-9));
     // The refit takes back part of the correction where the data see it, never more than all.
     let took = mean_mm(&response);
     let gave = mean_mm(&y.iter().map(|&x| x as f64).collect::<Vec<_>>());
-    assert!(took > 0.01 * gave && took < 2.0 * gave, "response {took} mm to {gave} mm");
-    // Against the pipeline's refit (one iteration) of LIBR's own shape: the linear model's
-    // move is the refit's, to first order. (Its response to a correction cannot be checked
-    // this way here: on this coarse preset LIBR stops at its iteration cap and the refit's
-    // rematching and trimming make the pipeline's answer not smooth in the correction.)
+    assert!(
+        took > 0.01 * gave && took < 2.0 * gave,
+        "response {took} mm to {gave} mm"
+    );
+    // Against the pipeline's refit (one iteration): its move of LIBR's own shape, and its
+    // response to the correction, first order.
     let one = PipelineParams {
         refit_iterations: 1,
         ..f.params.clone()
     };
-    let rf = refit(&gc.case, &sc.measurements, &one, &r.u, &r.image_to_physical, None).unwrap();
     let back = r.image_to_physical.inverse();
     let nodes = gc.geo.model.mesh.nodes();
-    let mut moved = Vec::with_capacity(3 * n);
-    for (i, x) in nodes.iter().enumerate() {
-        let q = back.apply(
-            rf.image_to_physical
-                .apply([0, 1, 2].map(|a| x[a] + rf.u[3 * i + a])),
-        );
-        moved.extend((0..3).map(|a| (q[a] - x[a] - r.u[3 * i + a]) / unit));
-    }
+    let pipeline = |c: &[f32]| {
+        let u_start: Vec<f64> =
+            r.u.iter()
+                .zip(c)
+                .map(|(u, c)| u + *c as f64 * unit)
+                .collect();
+        let rf = refit(
+            &gc.case,
+            &sc.measurements,
+            &one,
+            &u_start,
+            &r.image_to_physical,
+            None,
+        )
+        .unwrap();
+        let mut out = Vec::with_capacity(3 * n);
+        for (i, x) in nodes.iter().enumerate() {
+            let q = back.apply(
+                rf.image_to_physical
+                    .apply([0, 1, 2].map(|a| x[a] + rf.u[3 * i + a])),
+            );
+            out.extend((0..3).map(|a| (q[a] - x[a] - r.u[3 * i + a]) / unit));
+        }
+        out
+    };
+    let moved = pipeline(&zero);
     let own = mean_mm(&moved);
-    let off = mean_mm(&moved.iter().zip(&step0).map(|(a, b)| a - b).collect::<Vec<_>>());
+    let off = mean_mm(
+        &moved
+            .iter()
+            .zip(&step0)
+            .map(|(a, b)| a - b)
+            .collect::<Vec<_>>(),
+    );
     println!("the refit moves LIBR's shape by {own:.3} mm; the linear model is {off:.3} mm off");
-    assert!(own > 0.1 && off <= 0.3 * own, "{off} mm off of {own} mm");
+    assert!(own > 0.1 && off <= 0.15 * own, "{off} mm off of {own} mm");
+    let with = pipeline(&y);
+    let took_p: Vec<f64> = (0..y.len())
+        .map(|i| with[i] - moved[i] - y[i] as f64)
+        .collect();
+    let off_r = mean_mm(
+        &took_p
+            .iter()
+            .zip(&response)
+            .map(|(a, b)| a - b)
+            .collect::<Vec<_>>(),
+    );
+    println!(
+        "its response to the correction: {:.3} mm; the linear model's {took:.3} mm, {off_r:.3} mm off",
+        mean_mm(&took_p)
+    );
+    // The refit rematches from the corrected shape (here 29 % of the response is left).
+    assert!(off_r <= 0.4 * mean_mm(&took_p), "response {off_r} mm off");
     // Training through the refit: validation scores the linear model's answer, and training
     // lowers it below what the refit alone leaves; samples without it are refused.
     let t = s.data.target.as_ref().unwrap();
@@ -722,14 +794,10 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
         )
     };
     let refit_alone = err_of(&l0);
+    println!("LIBR alone {:.3} mm", err_of(&zero));
     let dir = tempfile::tempdir().unwrap();
-    librplus::gcn::io::save_model(
-        dir.path(),
-        &model.config,
-        &model.net,
-        serde_json::json!({}),
-    )
-    .unwrap();
+    librplus::gcn::io::save_model(dir.path(), &model.config, &model.net, serde_json::json!({}))
+        .unwrap();
     let opts = TrainOptions {
         config: cfg.clone(),
         refit_loss: true,

@@ -783,8 +783,7 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
         (s, pos)
     };
     let centre = [20.0, -5.0, 12.0];
-    let lin =
-        linearised_refit(basis, mesh, &matches, &measured, &offset, centre, &params).unwrap();
+    let lin = linearised_refit(basis, mesh, &matches, &measured, &offset, centre, &params).unwrap();
     assert_eq!(lin.columns, p);
     // The response to a change c: −G·K·Gᵀ·Dᵀ·D·c.
     let g = LinearRefit::modes(basis, mesh, centre);
@@ -847,8 +846,16 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
     // displacements (it rotates X + u, the linearisation X), here 8 % of the response.
     assert!(err <= 0.1 * amp, "linear model off by {err} mm of {amp}");
     // Errors name what is wrong.
-    let e = linearised_refit(basis, mesh, &matches, &measured, &offset[1..], centre, &params)
-        .unwrap_err();
+    let e = linearised_refit(
+        basis,
+        mesh,
+        &matches,
+        &measured,
+        &offset[1..],
+        centre,
+        &params,
+    )
+    .unwrap_err();
     assert!(e.contains("offset"), "{e}");
     let e = linearised_refit(basis, mesh, &[], &measured, &offset, centre, &params).unwrap_err();
     assert!(e.contains("no matches"), "{e}");

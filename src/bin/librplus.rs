@@ -2303,8 +2303,9 @@ fn train(a: &TrainArgs) -> Result<Value> {
         .validate()
         .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
     // Training through the refit needs a refit, and a correction of LIBR's shape to refit.
-    let refit_loss =
-        !a.no_refit_loss && params.refit_iterations > 0 && cfg.target == librplus::gcn::model::Target::Residual;
+    let refit_loss = !a.no_refit_loss
+        && params.refit_iterations > 0
+        && cfg.target == librplus::gcn::model::Target::Residual;
     let opts = TrainOptions {
         config: cfg.clone(),
         split: split.clone(),
@@ -2390,11 +2391,13 @@ fn train(a: &TrainArgs) -> Result<Value> {
             .zip(sols)
             .map(|((s, g), o)| (*s, *g, o))
             .collect();
-        Ok(tr::build_samples(&cfg, &cases, &z, &params, true, refit_loss)
-            .map_err(anyhow::Error::msg)?
-            .into_iter()
-            .flatten()
-            .collect())
+        Ok(
+            tr::build_samples(&cfg, &cases, &z, &params, true, refit_loss)
+                .map_err(anyhow::Error::msg)?
+                .into_iter()
+                .flatten()
+                .collect(),
+        )
     };
     let train_s = samples(&train_items, &train_sol)?;
     let valid_s = samples(&valid_items, &valid_sol)?;

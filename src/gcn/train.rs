@@ -576,12 +576,10 @@ pub fn refit_loss_data(
         .ok_or("the case was prepared without a LIBR basis")?;
     let inv = sol.transform.inverse();
     let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
-    let (matches, _) = gc.case.correspondence.match_points(
-        &pts,
-        meas,
-        Some(&sol.u),
-        &final_cparams(params),
-    )?;
+    let (matches, _) =
+        gc.case
+            .correspondence
+            .match_points(&pts, meas, Some(&sol.u), &final_cparams(params))?;
     let mesh = &gc.geo.model.mesh;
     let lin = libr::linearised_refit(
         basis,
@@ -613,7 +611,10 @@ fn refit_modes(gc: &GeometryCase, device: &Device) -> Result<Tensor<2>, String> 
     let p = basis.columns() + 6;
     let rows = g.len() / p;
     Ok(Tensor::<2>::from_data(
-        TensorData::new(g.into_iter().map(|x| x as f32).collect::<Vec<_>>(), [rows, p]),
+        TensorData::new(
+            g.into_iter().map(|x| x as f32).collect::<Vec<_>>(),
+            [rows, p],
+        ),
         device,
     ))
 }
@@ -621,7 +622,11 @@ fn refit_modes(gc: &GeometryCase, device: &Device) -> Result<Tensor<2>, String> 
 /// What the pipeline answers, to first order, for the correction `y` (`[V, 3]` row-major,
 /// output units) of a sample of geometry `gc` with linearised refit `r`: the displacement from
 /// LIBR's shape, in LIBR's image frame and output units.
-pub fn answer_through_refit(gc: &GeometryCase, r: &RefitLoss, y: &[f32]) -> Result<Vec<f32>, String> {
+pub fn answer_through_refit(
+    gc: &GeometryCase,
+    r: &RefitLoss,
+    y: &[f32],
+) -> Result<Vec<f32>, String> {
     let device = Device::flex();
     let g = refit_modes(gc, &device)?;
     let v = y.len() / 3;
