@@ -756,26 +756,17 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
     };
     let moved = pipeline(&zero);
     let own = mean_mm(&moved);
-    let off = mean_mm(
-        &moved
-            .iter()
-            .zip(&step0)
-            .map(|(a, b)| a - b)
-            .collect::<Vec<_>>(),
-    );
+    // Mean distance (mm) between two node fields in output units.
+    let gap_mm =
+        |a: &[f64], b: &[f64]| mean_mm(&a.iter().zip(b).map(|(x, y)| x - y).collect::<Vec<_>>());
+    let off = gap_mm(&moved, &step0);
     println!("the refit moves LIBR's shape by {own:.3} mm; the linear model is {off:.3} mm off");
     assert!(own > 0.1 && off <= 0.15 * own, "{off} mm off of {own} mm");
     let with = pipeline(&y);
     let took_p: Vec<f64> = (0..y.len())
         .map(|i| with[i] - moved[i] - y[i] as f64)
         .collect();
-    let off_r = mean_mm(
-        &took_p
-            .iter()
-            .zip(&response)
-            .map(|(a, b)| a - b)
-            .collect::<Vec<_>>(),
-    );
+    let off_r = gap_mm(&took_p, &response);
     println!(
         "its response to the correction: {:.3} mm; the linear model's {took:.3} mm, {off_r:.3} mm off",
         mean_mm(&took_p)

@@ -890,14 +890,6 @@ fn normalize3(a: [f64; 3]) -> [f64; 3] {
     if l > 0.0 { a.map(|x| x / l) } else { a }
 }
 
-/// One regularized weighted least-squares step (see the module doc). `targets_image[i]` is the
-/// measured point `i` (the index in [`Match::point`]) mapped into the image frame by the current
-/// rigid estimate. Unknowns: α (3K) and a linearized rigid correction about the anchors'
-/// centroid; minimises `Σ wᵢ |δ(pᵢ(α)) − yᵢ|² / Σ wᵢ + λ αᵀẼα` to first order in δ.
-///
-/// Errors (naming the item): no matches, a match out of range or with non-finite or negative
-/// weight, a non-finite target or anchor, fewer than 3 weighted matches, zero total weight,
-/// an invalid λ, or data that do not determine the rigid correction.
 /// The weighted least-squares system of one LIBR step ([`fit_step`]): rows, right-hand side,
 /// and the regularised normal matrix (lower triangle), with what built them.
 struct Assembled<'a> {
@@ -1136,6 +1128,14 @@ fn assemble<'a>(
     })
 }
 
+/// One regularized weighted least-squares step (see the module doc). `targets_image[i]` is the
+/// measured point `i` (the index in [`Match::point`]) mapped into the image frame by the current
+/// rigid estimate. Unknowns: α (3K) and a linearized rigid correction about the anchors'
+/// centroid; minimises `Σ wᵢ |δ(pᵢ(α)) − yᵢ|² / Σ wᵢ + λ αᵀẼα` to first order in δ.
+///
+/// Errors (naming the item): no matches, a match out of range or with non-finite or negative
+/// weight, a non-finite target or anchor, fewer than 3 weighted matches, zero total weight,
+/// an invalid λ, or data that do not determine the rigid correction.
 pub fn fit_step(
     basis: &LibrBasis,
     matches: &[Match],
