@@ -180,6 +180,10 @@ struct TrainArgs {
     /// scenario's LIBR solution, makes of the correction)
     #[arg(long)]
     no_refit_loss: bool,
+    /// Validate and keep an exponential moving average of the stage-2 weights over this many
+    /// epochs instead of the weights themselves (0: off)
+    #[arg(long, default_value_t = 0.0)]
+    average_epochs: f64,
     /// Start from this model's weights and network (its model.json replaces the network
     /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
     /// correction scale fitted again and tested
@@ -2318,6 +2322,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         init: a.init.clone(),
         patience: a.patience,
         refit_loss,
+        average_epochs: a.average_epochs,
         schedule: match a.schedule {
             ScheduleArg::Plateau => tr::Schedule::Plateau,
             ScheduleArg::Cosine => tr::Schedule::Cosine,

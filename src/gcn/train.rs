@@ -29,7 +29,7 @@ use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::CorrespondenceParams;
 use crate::register::libr;
 use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
-use burn::module::Module;
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
@@ -465,6 +465,12 @@ pub struct TrainOptions {
     /// the network learns what the refit will not put back instead of what it will
     /// overwrite. The samples must carry their [`RefitLoss`] ([`build_samples`]).
     pub refit_loss: bool,
+    /// Validate and keep an exponential moving average of the stage-2 weights instead of the
+    /// weights themselves, over a horizon of this many epochs (decay `1 − 1/(h·steps)` per
+    /// step, warmed up over the first steps so the start does not weigh on it; 0 turns it
+    /// off). The average smooths the last steps' noise, which a single validation set would
+    /// otherwise pick from.
+    pub average_epochs: f64,
     /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
     /// by the last epoch's duration).
     pub max_minutes: f64,
@@ -487,6 +493,7 @@ impl Default for TrainOptions {
             patience: 3,
             schedule: Schedule::Plateau,
             refit_loss: false,
+            average_epochs: 0.0,
             init: None,
             max_minutes: 25.0,
         }
@@ -830,6 +837,105 @@ pub struct TrainReport {
     pub seconds: f64,
 }
 
+/// The float parameters of a module, flattened, in the order [`Module::visit`] gives them.
+struct FlatParams(Vec<Tensor<1>>);
+
+impl ModuleVisitor for FlatParams {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let t = param.val();
+        let n = t.shape().num_elements();
+        self.0.push(t.reshape([n]));
+    }
+}
+
+/// Blends a module's float parameters towards others given in the same order:
+/// `p ← keep·p + (1 − keep)·q`.
+struct Blend {
+    towards: std::vec::IntoIter<Tensor<1>>,
+    keep: f64,
+    mismatch: bool,
+}
+
+impl ModuleMapper for Blend {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let Some(q) = self.towards.next() else {
+            self.mismatch = true;
+            return param;
+        };
+        let keep = self.keep;
+        let mut mismatch = false;
+        let out = param.map(|p| {
+            let dims = p.dims();
+            if q.dims()[0] != dims.iter().product::<usize>() {
+                mismatch = true;
+                return p;
+            }
+            p.mul_scalar(keep) + q.reshape(dims).mul_scalar(1.0 - keep)
+        });
+        self.mismatch |= mismatch;
+        out
+    }
+}
+
+/// An exponential moving average of a network's weights (Polyak averaging): after step `t` the
+/// average moves towards the weights by `1 − keep`, with `keep = min(decay, (1 + t)/(10 + t))`,
+/// so the first steps, far from where training ends, are soon forgotten.
+pub struct WeightAverage {
+    net: Option<SrGcn>,
+    decay: f64,
+    steps: u64,
+}
+
+impl WeightAverage {
+    /// An average with `decay` per step, in [0, 1).
+    pub fn new(decay: f64) -> Result<Self, String> {
+        if !(0.0..1.0).contains(&decay) {
+            return Err(format!(
+                "weight-average decay must be in [0, 1), got {decay}"
+            ));
+        }
+        Ok(Self {
+            net: None,
+            decay,
+            steps: 0,
+        })
+    }
+
+    /// Takes the weights after a step (a plain-device copy, `SrGcn::valid`).
+    pub fn update(&mut self, net: SrGcn) -> Result<(), String> {
+        self.steps += 1;
+        self.net = Some(match self.net.take() {
+            None => net,
+            Some(avg) => {
+                let mut flat = FlatParams(Vec::new());
+                net.visit(&mut flat);
+                let t = self.steps as f64;
+                let mut blend = Blend {
+                    towards: flat.0.into_iter(),
+                    keep: self.decay.min((1.0 + t) / (10.0 + t)),
+                    mismatch: false,
+                };
+                let out = avg.map(&mut blend);
+                if blend.mismatch || blend.towards.next().is_some() {
+                    return Err("internal: the averaged network's parameters differ".into());
+                }
+                out
+            }
+        });
+        Ok(())
+    }
+
+    /// The average so far (`None` before the first update).
+    pub fn get(&self) -> Option<&SrGcn> {
+        self.net.as_ref()
+    }
+
+    /// Steps taken in.
+    pub fn steps(&self) -> u64 {
+        self.steps
+    }
+}
+
 /// Trains SR-GCN on prepared samples (`train`, `valid`), writing a checkpoint to `out` after
 /// every improving epoch. `progress(stage, epoch, done, total, loss)` reports steps.
 #[allow(clippy::too_many_arguments)]
@@ -1011,6 +1117,18 @@ pub fn train(
         best_err = validate(&best_net)?;
         best = best_err[grid.len() - 1];
     }
+    if !(opts.average_epochs >= 0.0 && opts.average_epochs.is_finite()) {
+        return Err(format!(
+            "average_epochs must be finite and ≥ 0, got {}",
+            opts.average_epochs
+        ));
+    }
+    let mut average = if opts.average_epochs > 0.0 {
+        let steps = opts.average_epochs * order.len() as f64;
+        Some(WeightAverage::new(1.0 - 1.0 / steps.max(1.0))?)
+    } else {
+        None
+    };
     let mut stall = 0;
     for epoch in 1..=opts.epochs {
         shuffle(&mut order, opts.seed.wrapping_add(1000 + epoch as u64));
@@ -1043,9 +1161,15 @@ pub fn train(
             }
             let grads = GradientsParams::from_grads(loss.backward(), &net);
             net = optim.step(lr, net, grads);
+            if let Some(a) = average.as_mut() {
+                a.update(net.valid())?;
+            }
             progress(2, epoch, k + 1, order.len(), sum / (k + 1) as f64);
         }
-        let vnet = net.valid();
+        let vnet = match average.as_ref().and_then(WeightAverage::get) {
+            Some(a) => a.clone(),
+            None => net.valid(),
+        };
         let verr = validate(&vnet)?;
         let v = verr[grid.len() - 1];
         log.push(EpochLog {
@@ -1278,4 +1402,89 @@ pub fn apply_prediction(
 /// Where training writes: the model directory and its extras.
 pub fn model_paths(out: &Path) -> (PathBuf, PathBuf) {
     (out.join("model.json"), out.join("training.json"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn flat(net: &SrGcn) -> Vec<Vec<f32>> {
+        let mut f = FlatParams(Vec::new());
+        net.visit(&mut f);
+        f.0.into_iter()
+            .map(|t| t.into_data().try_to_vec::<f32>().unwrap())
+            .collect()
+    }
+
+    fn net(seed: u64) -> SrGcn {
+        let device = Device::flex();
+        device.seed(seed);
+        SrGcnConfig::new().with_width(8).init(&device).unwrap()
+    }
+
+    #[test]
+    fn the_weight_average_blends_every_parameter_by_its_warmed_up_decay() {
+        let (a, b, c) = (net(1), net(2), net(3));
+        // (Parameters initialise lazily: read them once so the clones below share them.)
+        let (fa, fb, fc) = (flat(&a), flat(&b), flat(&c));
+        let (a2, b2) = (a.clone(), b.clone());
+        assert!(
+            fa.len() > 4,
+            "the network has {} float parameters",
+            fa.len()
+        );
+        assert_ne!(fa, fb, "two seeds gave the same weights");
+        let mut avg = WeightAverage::new(0.9).unwrap();
+        assert!(avg.get().is_none());
+        avg.update(a).unwrap();
+        assert_eq!(
+            flat(avg.get().unwrap()),
+            fa,
+            "the first update is the weights"
+        );
+        avg.update(b).unwrap();
+        avg.update(c).unwrap();
+        assert_eq!(avg.steps(), 3);
+        // Step 2 keeps min(0.9, 3/12) of the average, step 3 min(0.9, 4/13).
+        let (k2, k3) = (3.0 / 12.0, 4.0 / 13.0);
+        let got = flat(avg.get().unwrap());
+        let mut worst = 0.0f64;
+        for (((g, a), b), c) in got.iter().zip(&fa).zip(&fb).zip(&fc) {
+            assert_eq!(g.len(), a.len());
+            for i in 0..g.len() {
+                let want = (k3 * (k2 * a[i] as f64 + (1.0 - k2) * b[i] as f64)
+                    + (1.0 - k3) * c[i] as f64) as f32;
+                worst = worst.max((g[i] - want).abs() as f64 / (1.0 + want.abs() as f64));
+            }
+        }
+        assert!(worst < 1e-6, "largest relative difference {worst}");
+        // Late in training the decay rules: keep = 0.9 from step 81 on.
+        let mut late = WeightAverage::new(0.9).unwrap();
+        for _ in 0..100 {
+            late.update(a2.clone()).unwrap();
+        }
+        late.update(b2).unwrap();
+        let got = flat(late.get().unwrap());
+        let (p, q, r) = (fa[0][0] as f64, fb[0][0] as f64, got[0][0] as f64);
+        // (101 f32 blends: rounding grows to a few 1e-7.)
+        let want = 0.9 * p + 0.1 * q;
+        assert!(
+            (r - want).abs() < 1e-5 * (1.0 + p.abs()),
+            "got {r}, want {want} (0.9 × {p} + 0.1 × {q})"
+        );
+    }
+
+    #[test]
+    fn the_weight_average_refuses_a_bad_decay_or_another_network() {
+        for d in [1.0, -0.1, f64::NAN] {
+            let e = WeightAverage::new(d).err().unwrap();
+            assert!(e.contains("decay"), "{e}");
+        }
+        let mut avg = WeightAverage::new(0.5).unwrap();
+        avg.update(net(1)).unwrap();
+        let device = Device::flex();
+        let other = SrGcnConfig::new().with_width(4).init(&device).unwrap();
+        let e = avg.update(other).err().unwrap();
+        assert!(e.contains("differ"), "{e}");
+    }
 }
