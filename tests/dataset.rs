@@ -454,3 +454,72 @@ fn linear_truth_control_dataset_is_the_linear_solution_of_the_same_draws() {
         );
     }
 }
+
+/// `--paired-categories`: the five scenarios of a block share one draw (surface patch, its noise,
+/// misalignment, landmarks) and differ only in their ultrasound planes, each category's planes
+/// extending the previous one's. Cross-check: the first block draws from stream 0, which is the
+/// unpaired dataset's first scenario, so the two datasets' first scenarios are the same.
+#[test]
+fn paired_categories_share_a_blocks_draw_and_add_planes() {
+    use librplus::dataset::read::{ScenarioData, load_scenario_planes, load_scenarios};
+    use librplus::register::MeasuredKind;
+    let tmp = tempfile::tempdir().unwrap();
+    let (pd, ud) = (tmp.path().join("paired"), tmp.path().join("unpaired"));
+    generate(&pd, &["--scenarios", "10", "--paired-categories"]);
+    generate(&ud, &["--scenarios", "10"]);
+    let (mp, mu) = (read_manifest(&pd).unwrap(), read_manifest(&ud).unwrap());
+    assert_eq!(mp.parameters["paired_categories"], true);
+    assert!(
+        mu.parameters.get("paired_categories").is_none(),
+        "unpaired is the unmarked default (older datasets keep their hash)"
+    );
+    assert_ne!(mp.parameters_hash, mu.parameters_hash);
+    let surface = |s: &ScenarioData| -> Vec<[f64; 3]> {
+        let m = &s.measurements;
+        (0..m.points.len())
+            .filter(|&i| m.kind[i] == MeasuredKind::Surface)
+            .map(|i| m.points[i])
+            .collect()
+    };
+    assert_eq!(mp.deformations.len(), mu.deformations.len());
+    for (dp, du) in mp.deformations.iter().zip(&mu.deformations) {
+        assert_eq!(dp.seed, du.seed, "{}: the same deformation", dp.id);
+        let (sp, su) = (
+            load_scenarios(&pd, dp).unwrap(),
+            load_scenarios(&ud, du).unwrap(),
+        );
+        let planes = load_scenario_planes(&pd, dp).unwrap();
+        assert_eq!(sp.len(), 10);
+        for b in 0..2 {
+            let first = &sp[5 * b];
+            assert_eq!(first.category, "surface");
+            assert!(planes[5 * b].planes.is_empty());
+            for k in 1..5 {
+                let s = &sp[5 * b + k];
+                assert_eq!(surface(s), surface(first), "{}: surface points", s.id);
+                let (a, f) = (&s.measurements, &first.measurements);
+                assert_eq!(a.initial_alignment, f.initial_alignment, "{}", s.id);
+                assert_eq!(
+                    s.truth.image_to_physical, first.truth.image_to_physical,
+                    "{}: misalignment",
+                    s.id
+                );
+                let (small, large) = (&planes[5 * b + k - 1].planes, &planes[5 * b + k].planes);
+                assert!(large.len() > small.len(), "{}: more planes", s.id);
+                assert_eq!(&large[..small.len()], &small[..], "{}: planes extend", s.id);
+            }
+        }
+        assert_ne!(surface(&sp[5]), surface(&sp[0]), "{}: blocks differ", dp.id);
+        assert_ne!(
+            surface(&su[1]),
+            surface(&su[0]),
+            "{}: unpaired differ",
+            du.id
+        );
+        assert_eq!(
+            sp[0].measurements.points, su[0].measurements.points,
+            "{}: stream 0 in both",
+            dp.id
+        );
+    }
+}

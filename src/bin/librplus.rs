@@ -428,6 +428,11 @@ struct GenerateArgs {
     /// linear (the linear homogeneous model LIBR assumes, same loads: a control dataset).
     #[arg(long, value_enum, default_value = "nonlinear")]
     truth: TruthArg,
+    /// The five scenarios of each block (one per category) share the surface patch, noise,
+    /// misalignment and landmarks and differ only in their ultrasound planes, so the categories
+    /// are compared on the same draws (off by default: every scenario is drawn on its own).
+    #[arg(long)]
+    paired_categories: bool,
     #[command(flatten)]
     common: Common,
 }
@@ -1368,6 +1373,7 @@ fn generate(a: &GenerateArgs) -> Result<()> {
     if let Some(d) = a.deformations {
         config.deformations_per_pattern = d;
     }
+    config.paired_categories = a.paired_categories;
     config.truth = match a.truth {
         TruthArg::Nonlinear => librplus::phantom::dataset::TruthModel::Nonlinear,
         TruthArg::Linear => librplus::phantom::dataset::TruthModel::LinearHomogeneous,

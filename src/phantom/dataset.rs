@@ -99,6 +99,14 @@ pub struct GenerateConfig {
     pub deformations_per_pattern: usize,
     /// Scenarios per deformation (categories cycle: surface, +1, +2, +3, +16 planes).
     pub scenarios: usize,
+    /// Draw the five scenarios of a block (one per category) from one seed, so they share the
+    /// surface patch, its noise, the misalignment and the landmarks, and each adds planes to the
+    /// previous one's (the first planes of a larger category are those of a smaller one): the
+    /// categories then differ only in how many planes they measure, and their comparison is
+    /// paired. Left out of the parameters (and their hash) when off, the default, so datasets
+    /// made before the option existed keep their hash.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub paired_categories: bool,
     /// Mesher target edge (mm).
     pub edge_mm: f64,
     /// Shape variants.
@@ -132,6 +140,7 @@ impl GenerateConfig {
             train_patterns: vec![Pattern::L, Pattern::R, Pattern::W],
             deformations_per_pattern: 1,
             scenarios: 700,
+            paired_categories: false,
             edge_mm: 7.6,
             shape: ShapeVariantParams::default(),
             labels: LabelParams::default(),
@@ -152,6 +161,16 @@ impl GenerateConfig {
                 ..base
             },
         }
+    }
+}
+
+/// The random stream of scenario `k` of a deformation: its own, or with `paired` its block's
+/// (the five scenarios `5b … 5b + 4`, one per category, share stream `b`).
+pub fn scenario_stream(k: usize, paired: bool) -> u64 {
+    if paired {
+        (k / Category::ALL.len()) as u64
+    } else {
+        k as u64
     }
 }
 
@@ -671,7 +690,7 @@ fn make_deformation(
                     u,
                     category,
                     &config.measure,
-                    derive(seed, &[7, k as u64]),
+                    derive(seed, &[7, scenario_stream(k, config.paired_categories)]),
                 )
                 .map_err(|e| format!("scenario {k}: {e}"))
             })
