@@ -130,7 +130,7 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
         .id
         .clone();
     for split in [TrainSplit::Random, TrainSplit::PatternV] {
-        let s = tr::split_scenarios(&m, &split, 3, 1).unwrap();
+        let s = tr::split_scenarios(&m, &split, 3, 1, tr::Validation::Deformations).unwrap();
         let mut all: Vec<_> = s.train.iter().chain(&s.valid).chain(&s.test).collect();
         let n = all.len();
         all.sort();
@@ -160,8 +160,26 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
         }
     }
     // The small preset has one training geometry: holding it out leaves nothing to train on.
-    assert!(tr::split_scenarios(&m, &TrainSplit::Logo(train_geo), 3, 1).is_err());
-    assert!(tr::split_scenarios(&m, &TrainSplit::Logo("nope".into()), 3, 1).is_err());
+    assert!(
+        tr::split_scenarios(
+            &m,
+            &TrainSplit::Logo(train_geo),
+            3,
+            1,
+            tr::Validation::Deformations
+        )
+        .is_err()
+    );
+    assert!(
+        tr::split_scenarios(
+            &m,
+            &TrainSplit::Logo("nope".into()),
+            3,
+            1,
+            tr::Validation::Deformations
+        )
+        .is_err()
+    );
     assert!(TrainSplit::parse("logo:").is_err());
 }
 
@@ -207,7 +225,14 @@ fn held_out_splits_validate_on_a_whole_unseen_deformation() {
 fn check_whole_deformations_validate(m: &librplus::dataset::Manifest, n: usize) {
     let mut seen = std::collections::BTreeSet::new();
     for seed in 1..6 {
-        let s = tr::split_scenarios(m, &TrainSplit::PatternV, seed, 1).unwrap();
+        let s = tr::split_scenarios(
+            m,
+            &TrainSplit::PatternV,
+            seed,
+            1,
+            tr::Validation::Deformations,
+        )
+        .unwrap();
         let mut v: Vec<&str> = s.valid.iter().map(|(d, _)| d.as_str()).collect();
         v.sort();
         v.dedup();
@@ -861,4 +886,73 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
     .err()
     .unwrap();
     assert!(e.contains("linearised refit"), "{e}");
+}
+
+#[test]
+fn validation_by_geometry_holds_out_one_whole_training_liver() {
+    let mut m = librplus::eval::open(dataset()).unwrap();
+    let test_geos: Vec<String> = m.test_geometries().iter().map(|s| s.to_string()).collect();
+    let base: Vec<_> = m
+        .deformations
+        .iter()
+        .filter(|d| !test_geos.contains(&d.geometry))
+        .cloned()
+        .collect();
+    let first = base[0].geometry.clone();
+    // Copies of the training deformations on three more (pretend) livers.
+    let add_liver = |m: &mut librplus::dataset::Manifest, k: usize| {
+        for d in &base {
+            let mut e = d.clone();
+            e.id = format!("{}-liver{k}", d.id);
+            e.geometry = format!("{}-liver{k}", d.geometry);
+            m.deformations.push(e);
+        }
+    };
+    let geo_of = |m: &librplus::dataset::Manifest, d: &str| {
+        m.deformations
+            .iter()
+            .find(|x| x.id == d)
+            .unwrap()
+            .geometry
+            .clone()
+    };
+    add_liver(&mut m, 1);
+    // Holding the first liver out for the test leaves two: too few to give one to validation.
+    let logo = TrainSplit::Logo(first.clone());
+    let err = tr::split_scenarios(&m, &logo, 1, 1, tr::Validation::Geometry).unwrap_err();
+    assert!(err.contains("at least 3 training livers"), "{err}");
+    add_liver(&mut m, 2);
+    add_liver(&mut m, 3);
+    let mut held = std::collections::BTreeSet::new();
+    for seed in 1..8 {
+        let by_def = tr::split_scenarios(&m, &logo, seed, 1, tr::Validation::Deformations).unwrap();
+        let s = tr::split_scenarios(&m, &logo, seed, 1, tr::Validation::Geometry).unwrap();
+        // The test set does not depend on the validation mode.
+        assert_eq!(s.test, by_def.test);
+        assert!(s.test.iter().all(|(d, _)| geo_of(&m, d) == first));
+        let mut v: Vec<String> = s.valid.iter().map(|(d, _)| geo_of(&m, d)).collect();
+        v.dedup();
+        assert_eq!(v.len(), 1, "seed {seed}: validation spans livers {v:?}");
+        assert_ne!(v[0], first);
+        // Every scenario of that liver validates; none trains.
+        assert!(s.train.iter().all(|(d, _)| geo_of(&m, d) != v[0]));
+        let total: usize = m
+            .deformations
+            .iter()
+            .filter(|d| d.geometry == v[0])
+            .map(|d| d.scenarios.len())
+            .sum();
+        assert_eq!(s.valid.len(), total);
+        // Training and validation together are what validation by deformations splits.
+        let mut a: Vec<_> = s.train.iter().chain(&s.valid).collect();
+        let mut b: Vec<_> = by_def.train.iter().chain(&by_def.valid).collect();
+        a.sort();
+        b.sort();
+        assert_eq!(a, b);
+        held.insert(v[0].clone());
+    }
+    assert!(
+        held.len() > 1,
+        "the seed does not change the validation liver"
+    );
 }

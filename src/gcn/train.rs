@@ -111,13 +111,39 @@ fn shuffle<T>(v: &mut [T], seed: u64) {
     }
 }
 
+/// What the validation set holds out of the training scenarios.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Validation {
+    /// Whole training deformations (about one in ten, by the seed) where the test holds out
+    /// whole deformations or livers; a tenth of the blocks on the random split.
+    #[default]
+    Deformations,
+    /// One whole training liver (by the seed), all its deformations: validation then judges
+    /// what the test of an unseen liver judges, generalisation to a new shape, at the price of
+    /// that liver's training data. Needs at least three training livers.
+    Geometry,
+}
+
+impl Validation {
+    /// The name used on the command line and in provenance files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Validation::Deformations => "deformations",
+            Validation::Geometry => "geometry",
+        }
+    }
+}
+
 /// Assigns scenarios to train, validation and test. `every`: keep every `every`-th block of
-/// each deformation (1 = all).
+/// each deformation (1 = all). `validation`: what validation holds out of the training
+/// scenarios (the test set does not depend on it).
 pub fn split_scenarios(
     m: &Manifest,
     split: &TrainSplit,
     seed: u64,
     every: usize,
+    validation: Validation,
 ) -> Result<SplitSets, String> {
     let every = every.max(1);
     let test_geos = m.test_geometries();
@@ -141,6 +167,11 @@ pub fn split_scenarios(
             })
             .collect()
     };
+    let geometry_of: std::collections::HashMap<&str, &str> = m
+        .deformations
+        .iter()
+        .map(|d| (d.id.as_str(), d.geometry.as_str()))
+        .collect();
     let mut train_blocks = Vec::new();
     let mut test = Vec::new();
     match split {
@@ -218,7 +249,37 @@ pub fn split_scenarios(
     defs.sort();
     defs.dedup();
     let held_out_valid = !matches!(split, TrainSplit::Random) && defs.len() >= 3;
-    if held_out_valid {
+    if validation == Validation::Geometry {
+        // The livers left for training, in manifest order, one drawn by the seed.
+        let mut livers: Vec<&str> = Vec::new();
+        for b in &train_blocks {
+            if let Some(g) = b.first().and_then(|r| geometry_of.get(r.0.as_str())) {
+                if !livers.contains(g) {
+                    livers.push(g);
+                }
+            }
+        }
+        livers.sort();
+        if livers.len() < 3 {
+            return Err(format!(
+                "validation by geometry needs at least 3 training livers, split {} leaves {}",
+                split.name(),
+                livers.len()
+            ));
+        }
+        let mut st = seed ^ 0x6E0;
+        let held = livers[(splitmix(&mut st) % livers.len() as u64) as usize];
+        for b in train_blocks {
+            if b.first()
+                .and_then(|r| geometry_of.get(r.0.as_str()))
+                .is_some_and(|g| *g == held)
+            {
+                sets.valid.extend(b);
+            } else {
+                sets.train.extend(b);
+            }
+        }
+    } else if held_out_valid {
         // Drawn without replacement.
         let mut st = seed ^ 0xDEF0;
         let mut pool = defs;
