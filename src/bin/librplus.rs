@@ -184,6 +184,10 @@ struct TrainArgs {
     /// epochs instead of the weights themselves (0: off)
     #[arg(long, default_value_t = 0.0)]
     average_epochs: f64,
+    /// L2 penalty on the mesh branch's weights (stage 2), added to the gradients before Adam
+    /// (0: none)
+    #[arg(long, default_value_t = 0.0)]
+    weight_decay: f64,
     /// What validation (early stopping, the correction scale) holds out of the training
     /// scenarios: `deformations` (about one in ten whole deformations; on the random split a
     /// tenth of the blocks) or `geometry` (one whole training liver, judging generalisation to
@@ -2359,6 +2363,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         patience: a.patience,
         refit_loss,
         average_epochs: a.average_epochs,
+        weight_decay: a.weight_decay,
         schedule: match a.schedule {
             ScheduleArg::Plateau => tr::Schedule::Plateau,
             ScheduleArg::Cosine => tr::Schedule::Cosine,

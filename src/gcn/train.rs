@@ -532,6 +532,8 @@ pub struct TrainOptions {
     /// off). The average smooths the last steps' noise, which a single validation set would
     /// otherwise pick from.
     pub average_epochs: f64,
+    /// L2 penalty on the stage-2 weights, added to their gradients before Adam (0: none).
+    pub weight_decay: f64,
     /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
     /// by the last epoch's duration).
     pub max_minutes: f64,
@@ -555,6 +557,7 @@ impl Default for TrainOptions {
             schedule: Schedule::Plateau,
             refit_loss: false,
             average_epochs: 0.0,
+            weight_decay: 0.0,
             init: None,
             max_minutes: 25.0,
         }
@@ -1011,6 +1014,12 @@ pub fn train(
 ) -> Result<TrainReport, String> {
     let cfg = &opts.config;
     cfg.validate().map_err(|e| e.to_string())?;
+    if !(opts.weight_decay >= 0.0 && opts.weight_decay.is_finite()) {
+        return Err(format!(
+            "weight_decay must be finite and ≥ 0, got {}",
+            opts.weight_decay
+        ));
+    }
     if train.is_empty() || valid.is_empty() {
         return Err("no training or no validation samples".into());
     }
@@ -1135,7 +1144,12 @@ pub fn train(
         .sum::<f64>()
         / valid.len() as f64;
     let frozen = net.valid();
-    let mut optim = AdamConfig::new().init();
+    let mut optim = AdamConfig::new()
+        .with_weight_decay(
+            (opts.weight_decay > 0.0)
+                .then(|| burn::optim::decay::WeightDecayConfig::new(opts.weight_decay as f32)),
+        )
+        .init();
     let mut lr = opts.learning_rate;
     let mut best = f64::INFINITY;
     let mut best_net = net.valid();
@@ -1547,5 +1561,29 @@ mod tests {
         let other = SrGcnConfig::new().with_width(4).init(&device).unwrap();
         let e = avg.update(other).err().unwrap();
         assert!(e.contains("differ"), "{e}");
+    }
+
+    #[test]
+    fn training_refuses_a_negative_or_non_finite_weight_decay() {
+        for wd in [-1e-3, f64::NAN, f64::INFINITY] {
+            let opts = TrainOptions {
+                weight_decay: wd,
+                ..TrainOptions::default()
+            };
+            let out = std::env::temp_dir().join("librplus-wd-refused");
+            let err = match train(
+                &opts,
+                &BTreeMap::new(),
+                &[],
+                &[],
+                &out,
+                &serde_json::json!({}),
+                &|_, _, _, _, _| {},
+            ) {
+                Ok(_) => panic!("weight decay {wd} accepted"),
+                Err(e) => e,
+            };
+            assert!(err.contains("weight_decay"), "{wd}: {err}");
+        }
     }
 }
