@@ -183,17 +183,25 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
     assert!(TrainSplit::parse("logo:").is_err());
 }
 
-#[test]
-fn held_out_splits_validate_on_a_whole_unseen_deformation() {
-    let mut m = librplus::eval::open(dataset()).unwrap();
-    // Four or more training deformations: copies of the small preset's under new ids.
+/// The test geometries of `m` and its training deformations.
+fn training_deformations(
+    m: &librplus::dataset::Manifest,
+) -> (Vec<String>, Vec<librplus::dataset::DeformationEntry>) {
     let test_geos: Vec<String> = m.test_geometries().iter().map(|s| s.to_string()).collect();
-    let base: Vec<_> = m
+    let base = m
         .deformations
         .iter()
         .filter(|d| !test_geos.contains(&d.geometry))
         .cloned()
         .collect();
+    (test_geos, base)
+}
+
+#[test]
+fn held_out_splits_validate_on_a_whole_unseen_deformation() {
+    let mut m = librplus::eval::open(dataset()).unwrap();
+    // Four or more training deformations: copies of the small preset's under new ids.
+    let (test_geos, base) = training_deformations(&m);
     for d in &base {
         for copy in 1..=2 {
             let mut e = d.clone();
@@ -891,13 +899,7 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
 #[test]
 fn validation_by_geometry_holds_out_one_whole_training_liver() {
     let mut m = librplus::eval::open(dataset()).unwrap();
-    let test_geos: Vec<String> = m.test_geometries().iter().map(|s| s.to_string()).collect();
-    let base: Vec<_> = m
-        .deformations
-        .iter()
-        .filter(|d| !test_geos.contains(&d.geometry))
-        .cloned()
-        .collect();
+    let (_, base) = training_deformations(&m);
     let first = base[0].geometry.clone();
     // Copies of the training deformations on three more (pretend) livers.
     let add_liver = |m: &mut librplus::dataset::Manifest, k: usize| {
