@@ -137,14 +137,7 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
         all.dedup();
         assert_eq!(all.len(), n, "{split:?}: a scenario in two sets");
         assert!(!s.valid.is_empty());
-        let geo_of = |d: &str| {
-            m.deformations
-                .iter()
-                .find(|x| x.id == d)
-                .unwrap()
-                .geometry
-                .clone()
-        };
+        let geo_of = |d: &str| geometry_of(&m, d);
         match &split {
             TrainSplit::PatternV => {
                 assert!(s.test.iter().all(|(d, _)| geo_of(d) == test_geo));
@@ -181,6 +174,16 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
         .is_err()
     );
     assert!(TrainSplit::parse("logo:").is_err());
+}
+
+/// The geometry of deformation `d` of `m`.
+fn geometry_of(m: &librplus::dataset::Manifest, d: &str) -> String {
+    m.deformations
+        .iter()
+        .find(|x| x.id == d)
+        .unwrap()
+        .geometry
+        .clone()
 }
 
 /// The test geometries of `m` and its training deformations.
@@ -910,14 +913,7 @@ fn validation_by_geometry_holds_out_one_whole_training_liver() {
             m.deformations.push(e);
         }
     };
-    let geo_of = |m: &librplus::dataset::Manifest, d: &str| {
-        m.deformations
-            .iter()
-            .find(|x| x.id == d)
-            .unwrap()
-            .geometry
-            .clone()
-    };
+    let geo_of = geometry_of;
     add_liver(&mut m, 1);
     // Holding the first liver out for the test leaves two: too few to give one to validation.
     let logo = TrainSplit::Logo(first.clone());
