@@ -572,15 +572,19 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
 #[test]
 fn the_built_in_model_loads_and_corrects_a_registration() {
     use librplus::register::pipeline::{Method, Prepared, register};
-    let model = librplus::gcn::io::builtin_model().unwrap();
-    model.config.validate().unwrap();
-    let command = model.provenance["command"].as_str().unwrap_or_default();
-    assert!(
-        command.contains(" train "),
-        "provenance: {}",
-        model.provenance
-    );
-    assert_eq!(model.provenance["builtin"], true);
+    let models = librplus::gcn::io::builtin_models().unwrap();
+    assert_eq!(models.len(), 2, "the built-in model is an ensemble of two");
+    for (k, model) in models.iter().enumerate() {
+        model.config.validate().unwrap();
+        let command = model.provenance["command"].as_str().unwrap_or_default();
+        assert!(
+            command.contains(" train "),
+            "member {k} provenance: {}",
+            model.provenance
+        );
+        assert_eq!(model.provenance["builtin"], true);
+        assert!(model.provenance["member"].is_string());
+    }
     // It prepares for a mesh it never saw (the small preset's coarser liver) and corrects LIBR.
     let f = fixture();
     let (sc, g) = &f.scenarios[1];
@@ -591,7 +595,7 @@ fn the_built_in_model_loads_and_corrects_a_registration() {
         Some(&dataset().join("cache")),
     )
     .unwrap()
-    .with_model(std::sync::Arc::new(model))
+    .with_models(models.into_iter().map(std::sync::Arc::new).collect())
     .unwrap();
     let libr = register(&case, &sc.measurements, Method::Libr, &f.params).unwrap();
     let plus = register(&case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
@@ -606,6 +610,77 @@ fn the_built_in_model_loads_and_corrects_a_registration() {
     // A correction, and not a wild one (the model's outputs are in units of a tenth of the
     // liver's RMS radius).
     assert!(moved > 1e-3 && moved < 100.0, "largest change {moved} mm");
+}
+
+#[test]
+fn an_ensemble_corrects_by_the_mean_of_its_members() {
+    use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+    use std::sync::Arc;
+    let f = fixture();
+    // Three members with different weights, one of them with a different correction scale.
+    let members: Vec<Arc<librplus::gcn::io::TrainedModel>> = [11, 12, 13]
+        .into_iter()
+        .map(|seed| {
+            let (cfg, mut m) = untrained_model(seed);
+            if seed == 12 {
+                m.config = SrGcnConfig {
+                    correction_scale: 0.5,
+                    ..cfg
+                };
+            }
+            Arc::new(m)
+        })
+        .collect();
+    // Without the refit the pipeline's answer is the correction itself.
+    let params = PipelineParams {
+        refit_iterations: 0,
+        ..f.params.clone()
+    };
+    let (sc, g) = &f.scenarios[0];
+    let gc = &f.cases[g];
+    let prepared = |ms: Vec<Arc<librplus::gcn::io::TrainedModel>>| {
+        Prepared::new(
+            gc.geo.model.clone(),
+            Some(&params.libr),
+            Some(&dataset().join("cache")),
+        )
+        .unwrap()
+        .with_models(ms)
+        .unwrap()
+    };
+    let answer = |case: &Prepared| {
+        let r = register(case, &sc.measurements, Method::LibrPlus, &params).unwrap();
+        assert!(r.correction.as_ref().unwrap().applied);
+        r.u
+    };
+    let alone: Vec<Vec<f64>> = members
+        .iter()
+        .map(|m| answer(&prepared(vec![m.clone()])))
+        .collect();
+    let together = answer(&prepared(members.clone()));
+    let mut largest = 0.0f64;
+    for i in 0..together.len() {
+        let mean = alone.iter().map(|u| u[i]).sum::<f64>() / 3.0;
+        assert!(
+            (together[i] - mean).abs() <= 1e-9 * (1.0 + mean.abs()),
+            "dof {i}: ensemble {} against the members' mean {mean}",
+            together[i]
+        );
+        largest = largest.max((alone[0][i] - alone[1][i]).abs());
+    }
+    // The members do differ, so the mean is not one of them.
+    assert!(largest > 1e-6, "members agree to {largest} mm");
+    // An empty ensemble is refused with a clear error.
+    let e = Prepared::new(
+        gc.geo.model.clone(),
+        Some(&params.libr),
+        Some(&dataset().join("cache")),
+    )
+    .unwrap()
+    .with_models(Vec::new())
+    .err()
+    .expect("an empty ensemble is refused");
+    assert!(e.contains("at least one member"), "{e}");
 }
 
 #[test]

@@ -140,7 +140,7 @@ pub fn load(
     source: &CaseSource,
     config: &ServerConfig,
     libr: &LibrParams,
-    gcn: Option<&Arc<TrainedModel>>,
+    gcn: Option<&Vec<Arc<TrainedModel>>>,
 ) -> Result<Case, String> {
     let (model, path, cache) = match source {
         CaseSource::Dataset { dir, geometry } => {
@@ -166,7 +166,7 @@ pub fn load(
         .map_err(|e| format!("{}: {e}", path.display()))?;
     if let Some(m) = gcn {
         prepared = prepared
-            .with_model(m.clone())
+            .with_models(m.clone())
             .map_err(|e| format!("{}: SR-GCN: {e}", path.display()))?;
     }
     let default_method = config.method()?;

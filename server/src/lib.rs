@@ -18,7 +18,7 @@ pub mod service;
 use anyhow::Context;
 use cases::Case;
 use config::ServerConfig;
-use librplus::gcn::io::{TrainedModel, builtin_model, load_model_cpu};
+use librplus::gcn::io::{TrainedModel, builtin_models, load_models_cpu};
 use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
 use service::{Shared, Svc};
@@ -185,26 +185,25 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
     })
 }
 
-/// The SR-GCN model every case gets for LIBR+: the configured directory, else the built-in one.
-fn load_gcn(config: &ServerConfig) -> Result<Option<Arc<TrainedModel>>, String> {
+/// The SR-GCN model every case gets for LIBR+: the configured directory (a model or an
+/// ensemble), else the built-in one; its networks, shared between cases.
+fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, String> {
     if !config.librplus {
         return Ok(None);
     }
-    let model = match &config.model {
-        Some(dir) => Some(load_model_cpu(dir).map_err(|e| format!("model: {e}"))?),
-        None => Some(builtin_model().map_err(|e| format!("built-in model: {e}"))?),
+    let models = match &config.model {
+        Some(dir) => load_models_cpu(dir).map_err(|e| format!("model: {e}"))?,
+        None => builtin_models().map_err(|e| format!("built-in model: {e}"))?,
     };
-    if let Some(m) = &model {
-        tracing::info!(
-            model = %config.model.as_ref().map_or("built-in".into(), |p| p.display().to_string()),
-            width = m.config.width,
-            levels = m.config.levels,
-            "SR-GCN model loaded: LIBR+ available"
-        );
-    } else {
-        tracing::warn!("no SR-GCN model: LIBR+ requests get FAILED_PRECONDITION");
-    }
-    Ok(model.map(Arc::new))
+    let first = &models[0];
+    tracing::info!(
+        model = %config.model.as_ref().map_or("built-in".into(), |p| p.display().to_string()),
+        networks = models.len(),
+        width = first.config.width,
+        levels = first.config.levels,
+        "SR-GCN model loaded: LIBR+ available"
+    );
+    Ok(Some(models.into_iter().map(Arc::new).collect()))
 }
 
 fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, PreloadReport), String> {

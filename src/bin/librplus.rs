@@ -782,44 +782,51 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
         }
     }
     let model = match (&a.model, want_plus) {
-        (Some(dir), _) => Some(
-            librplus::gcn::io::load_model(dir, &burn::tensor::Device::flex())
-                .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
-        ),
-        (None, true) => Some(
-            librplus::gcn::io::builtin_model()
+        (Some(dir), _) => Some(shared_models(
+            librplus::gcn::io::load_models_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+        )),
+        (None, true) => Some(shared_models(
+            librplus::gcn::io::builtin_models()
                 .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
-        ),
+        )),
         (None, false) => None,
     };
     if model.is_some() && !methods.contains(&Method::Libr) {
         // LIBR+ corrects LIBR's result: LIBR runs (and is reported) with it.
         methods.push(Method::Libr);
     }
-    // With a model: its held-out scenarios, under its split's name.
+    // With a model: its held-out scenarios, under its split's name; with an ensemble, the
+    // scenarios every member held out.
     let model_test = match &model {
-        Some(mm) => {
-            let p = &mm.provenance;
-            let split = p["split"].as_str().unwrap_or("");
-            let sp = librplus::gcn::train::TrainSplit::parse(split)
-                .map_err(|e| anyhow::anyhow!("--model provenance: {e}"))?;
-            let seed = p["seed"].as_u64().unwrap_or(1);
-            let every = p["every"].as_u64().unwrap_or(1) as usize;
-            // The test set does not depend on how the model was validated.
-            let sets = librplus::gcn::train::split_scenarios(
-                &m,
-                &sp,
-                seed,
-                every,
-                librplus::gcn::train::Validation::Deformations,
-            )
-            .map_err(|e| anyhow::anyhow!("--model split on this dataset: {e}"))?;
-            Some((
-                sp.name(),
-                sets.test
-                    .into_iter()
-                    .collect::<std::collections::BTreeSet<_>>(),
-            ))
+        Some(members) => {
+            let mut names = Vec::new();
+            let mut common: Option<std::collections::BTreeSet<(String, usize)>> = None;
+            for mm in members {
+                let p = &mm.provenance;
+                let split = p["split"].as_str().unwrap_or("");
+                let sp = librplus::gcn::train::TrainSplit::parse(split)
+                    .map_err(|e| anyhow::anyhow!("--model provenance: {e}"))?;
+                let seed = p["seed"].as_u64().unwrap_or(1);
+                let every = p["every"].as_u64().unwrap_or(1) as usize;
+                // The test set does not depend on how the model was validated.
+                let sets = librplus::gcn::train::split_scenarios(
+                    &m,
+                    &sp,
+                    seed,
+                    every,
+                    librplus::gcn::train::Validation::Deformations,
+                )
+                .map_err(|e| anyhow::anyhow!("--model split on this dataset: {e}"))?;
+                let test: std::collections::BTreeSet<_> = sets.test.into_iter().collect();
+                common = Some(match common {
+                    None => test,
+                    Some(c) => c.intersection(&test).cloned().collect(),
+                });
+                if !names.contains(&sp.name()) {
+                    names.push(sp.name());
+                }
+            }
+            Some((names.join("+"), common.unwrap_or_default()))
         }
         None => None,
     };
@@ -860,7 +867,7 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
             bar.set_position(done as u64);
         };
         let plus = model.as_ref().map(|mm| report::LibrPlusEval {
-            model: mm,
+            models: mm,
             only: model_test.as_ref().map(|t| &t.1),
         });
         let results = report::evaluate(
@@ -944,7 +951,7 @@ fn register_method(
     a: &RegisterArgs,
 ) -> Result<(
     librplus::register::pipeline::Method,
-    Option<std::sync::Arc<librplus::gcn::io::TrainedModel>>,
+    Option<Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>>,
 )> {
     use librplus::register::pipeline::Method;
     let method = match a.method {
@@ -953,11 +960,11 @@ fn register_method(
         MethodArg::Librplus => Method::LibrPlus,
     };
     let model = match (&a.model, method) {
-        (Some(dir), Method::LibrPlus) => Some(std::sync::Arc::new(
-            librplus::gcn::io::load_model_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+        (Some(dir), Method::LibrPlus) => Some(shared_models(
+            librplus::gcn::io::load_models_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
         )),
-        (None, Method::LibrPlus) => Some(std::sync::Arc::new(
-            librplus::gcn::io::builtin_model()
+        (None, Method::LibrPlus) => Some(shared_models(
+            librplus::gcn::io::builtin_models()
                 .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
         )),
         (Some(_), _) => bail!("--model is only used with --method librplus"),
@@ -1008,7 +1015,7 @@ fn prepare_case(
     method: librplus::register::pipeline::Method,
     params: &librplus::register::pipeline::PipelineParams,
     cache: &Path,
-    gcn: Option<std::sync::Arc<librplus::gcn::io::TrainedModel>>,
+    gcn: Option<Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>>,
 ) -> std::result::Result<librplus::register::pipeline::Prepared, String> {
     use librplus::register::pipeline::{Method, Prepared};
     let case = Prepared::new(
@@ -1017,9 +1024,16 @@ fn prepare_case(
         Some(cache),
     )?;
     match gcn {
-        Some(m) => case.with_model(m),
+        Some(m) => case.with_models(m),
         None => Ok(case),
     }
+}
+
+/// Models (one, or an ensemble's members) shared between cases.
+fn shared_models(
+    models: Vec<librplus::gcn::io::TrainedModel>,
+) -> Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>> {
+    models.into_iter().map(std::sync::Arc::new).collect()
 }
 
 /// `register --preop`: a user's own mesh and point files.
@@ -2136,17 +2150,17 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     };
     match (&a.model, method) {
         (Some(dir), Method::LibrPlus) => {
-            let m = librplus::gcn::io::load_model_cpu(dir)
+            let m = librplus::gcn::io::load_models_cpu(dir)
                 .map_err(|e| anyhow::anyhow!("--model: {e}"))?;
             case = case
-                .with_model(std::sync::Arc::new(m))
+                .with_models(shared_models(m))
                 .map_err(anyhow::Error::msg)?;
         }
         (None, Method::LibrPlus) => {
-            let m = librplus::gcn::io::builtin_model()
+            let m = librplus::gcn::io::builtin_models()
                 .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?;
             case = case
-                .with_model(std::sync::Arc::new(m))
+                .with_models(shared_models(m))
                 .map_err(anyhow::Error::msg)?;
         }
         (Some(_), _) => bail!("--model is only used with --method librplus"),

@@ -11,8 +11,8 @@
 
 use super::{Tre, error_map_file, load_geometry, load_scenarios, node_errors_mm, tre_from_errors};
 use crate::dataset::Manifest;
+use crate::gcn::infer::LibrPlusCase;
 use crate::gcn::io::TrainedModel;
-use crate::gcn::sample::{CaseFrame, SampleData};
 use crate::mesh::TetMesh;
 use crate::mesh::io::{DataArray, MeshFile};
 use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
@@ -224,8 +224,8 @@ const CHUNK: usize = 32;
 /// `librplus`; optionally only the scenarios a model was not trained on.
 #[derive(Clone, Copy)]
 pub struct LibrPlusEval<'a> {
-    /// The trained model.
-    pub model: &'a TrainedModel,
+    /// The trained model, or an ensemble's members (their corrections averaged).
+    pub models: &'a [std::sync::Arc<TrainedModel>],
     /// Only these scenarios (deformation id, index), e.g. the model's test split.
     pub only: Option<&'a std::collections::BTreeSet<(String, usize)>>,
 }
@@ -266,13 +266,12 @@ pub fn evaluate(
         .iter()
         .map(|d| (0..d.scenarios.len()).filter(|&i| keep(&d.id, i)).count() * methods.len())
         .sum();
-    let device = burn::tensor::Device::flex();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let mut out = Vec::new();
     let mut maps: Vec<ErrorMap> = Vec::new();
     let cache = dir.join("cache");
     let mut prepared: BTreeMap<String, (Prepared, super::GeometryData)> = BTreeMap::new();
-    let mut frames: BTreeMap<String, (CaseFrame, crate::gcn::model::MeshGraphs)> = BTreeMap::new();
+    let mut frames: BTreeMap<String, LibrPlusCase> = BTreeMap::new();
     for d in defs {
         if !prepared.contains_key(&d.geometry) {
             let geo = load_geometry(dir, m, &d.geometry)?;
@@ -291,11 +290,8 @@ pub fn evaluate(
                     "librplus",
                     geo.model.mesh.num_nodes(),
                 ));
-                let frame = CaseFrame::new(&geo.model.mesh).map_err(|e| e.to_string())?;
-                let graph = frame
-                    .mesh_graphs(&l.model.config, &device)
-                    .map_err(|e| e.to_string())?;
-                frames.insert(d.geometry.clone(), (frame, graph));
+                let lp = LibrPlusCase::new(l.models.to_vec(), &geo.model.mesh)?;
+                frames.insert(d.geometry.clone(), lp);
             }
             prepared.insert(d.geometry.clone(), (case, geo));
         }
@@ -326,11 +322,10 @@ pub fn evaluate(
                         progress(k, total);
                         // LIBR+: the model's correction of this LIBR result.
                         let (pr, pe) = match (&r, librplus, method) {
-                            (Ok(r), Some(l), Method::Libr) => {
-                                let (frame, graph) = &frames[&d.geometry];
+                            (Ok(r), Some(_), Method::Libr) => {
                                 let t = std::time::Instant::now();
                                 let corrected =
-                                    correct_one(l.model, frame, graph, case, params, sc, r);
+                                    correct_one(&frames[&d.geometry], case, params, sc, r);
                                 let base = ScenarioResult {
                                     scenario: sc.id.clone(),
                                     geometry: d.geometry.clone(),
@@ -440,28 +435,20 @@ pub fn evaluate(
 /// registration: the SR-GCN correction, then the data-consistency refit unless
 /// `params.refit_iterations` is 0.
 fn correct_one(
-    model: &TrainedModel,
-    frame: &CaseFrame,
-    graph: &crate::gcn::model::MeshGraphs,
+    lp: &LibrPlusCase,
     case: &Prepared,
     params: &PipelineParams,
     sc: &super::ScenarioData,
     r: &crate::register::pipeline::Registration,
 ) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), String> {
-    let sample = SampleData::build(
-        &model.config,
-        frame,
+    let (u, _) = lp.correct(
         &case.model.mesh,
         &case.correspondence,
         &crate::gcn::train::final_cparams(params),
         &sc.measurements,
         &r.u,
         &r.image_to_physical,
-        None,
-    )
-    .map_err(|e| e.to_string())?;
-    let u = crate::gcn::train::correct(model, frame, graph, &sample, &r.u)
-        .map_err(|e| e.to_string())?;
+    )?;
     if params.refit_iterations == 0 {
         return Ok((u, r.image_to_physical));
     }

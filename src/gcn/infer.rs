@@ -18,32 +18,57 @@ use burn::tensor::Device;
 /// What a correction is assumed to cost before one has been timed (s).
 const FIRST_ESTIMATE_S: f64 = 0.15;
 
-/// A trained SR-GCN ready for one case.
+/// One network of a [`LibrPlusCase`], with its graphs of the case's mesh.
 #[derive(Debug)]
-pub struct LibrPlusCase {
+pub struct Member {
     /// The network (shared between cases).
     pub model: Arc<TrainedModel>,
-    /// The case's normalisation and mesh graph.
-    pub frame: CaseFrame,
-    /// The mesh graph and its coarse levels on the CPU device.
+    /// The mesh graph and its coarse levels on the CPU device, as this network's configuration
+    /// builds them.
     pub graphs: MeshGraphs,
+}
+
+/// A trained SR-GCN, or an ensemble of them, ready for one case. An ensemble's correction is the
+/// mean of its members' (each scaled by its own `correction_scale`): networks trained apart
+/// err apart on a liver none of them saw, and the mean errs less.
+#[derive(Debug)]
+pub struct LibrPlusCase {
+    /// The networks (at least one).
+    pub members: Vec<Member>,
+    /// The case's normalisation.
+    pub frame: CaseFrame,
     /// Running estimate of one correction's time (f64 bits, seconds): a decaying maximum.
     estimate: AtomicU64,
 }
 
 impl LibrPlusCase {
-    /// Prepares `model` for the preoperative `mesh`.
-    pub fn new(model: Arc<TrainedModel>, mesh: &TetMesh) -> Result<Self, String> {
+    /// Prepares `models` (one network, or the members of an ensemble) for the preoperative
+    /// `mesh`.
+    pub fn new(models: Vec<Arc<TrainedModel>>, mesh: &TetMesh) -> Result<Self, String> {
+        if models.is_empty() {
+            return Err("no SR-GCN model given (an ensemble needs at least one member)".into());
+        }
         let frame = CaseFrame::new(mesh).map_err(|e| e.to_string())?;
-        let graphs = frame
-            .mesh_graphs(&model.config, &Device::flex())
-            .map_err(|e| e.to_string())?;
+        let members = models
+            .into_iter()
+            .map(|model| {
+                let graphs = frame
+                    .mesh_graphs(&model.config, &Device::flex())
+                    .map_err(|e| e.to_string())?;
+                Ok(Member { model, graphs })
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        let first = FIRST_ESTIMATE_S * members.len() as f64;
         Ok(Self {
-            model,
+            members,
             frame,
-            graphs,
-            estimate: AtomicU64::new(FIRST_ESTIMATE_S.to_bits()),
+            estimate: AtomicU64::new(first.to_bits()),
         })
+    }
+
+    /// The first (or only) network.
+    pub fn model(&self) -> &Arc<TrainedModel> {
+        &self.members[0].model
     }
 
     /// Expected time of one correction (s): a decaying maximum of the last ones (a slower
@@ -75,25 +100,57 @@ impl LibrPlusCase {
         u: &[f64],
         transform: &Rigid,
     ) -> Result<(Vec<f64>, f64), String> {
-        let sample = SampleData::build(
-            &self.model.config,
-            &self.frame,
-            mesh,
-            correspondence,
-            cparams,
-            meas,
-            u,
-            transform,
-            None,
-        )
-        .map_err(|e| e.to_string())?;
-        let t1 = Instant::now();
-        let out = correct(&self.model, &self.frame, &self.graphs, &sample, u)
-            .map_err(|e| e.to_string())?;
-        let network_s = t1.elapsed().as_secs_f64();
-        if out.iter().any(|x| !x.is_finite()) {
-            return Err("the network's correction is not finite".into());
+        let mut network_s = 0.0;
+        let mut sum = vec![0.0; u.len()];
+        // Members whose configurations build the same sample share it.
+        let mut built: Option<(usize, SampleData)> = None;
+        for (k, m) in self.members.iter().enumerate() {
+            let reuse = built
+                .as_ref()
+                .is_some_and(|(j, _)| same_inputs(&self.members[*j].model, &m.model));
+            if !reuse {
+                let sample = SampleData::build(
+                    &m.model.config,
+                    &self.frame,
+                    mesh,
+                    correspondence,
+                    cparams,
+                    meas,
+                    u,
+                    transform,
+                    None,
+                )
+                .map_err(|e| e.to_string())?;
+                built = Some((k, sample));
+            }
+            let sample = &built.as_ref().expect("built above").1;
+            let t1 = Instant::now();
+            let out =
+                correct(&m.model, &self.frame, &m.graphs, sample, u).map_err(|e| e.to_string())?;
+            network_s += t1.elapsed().as_secs_f64();
+            if out.iter().any(|x| !x.is_finite()) {
+                return Err(if self.members.len() == 1 {
+                    "the network's correction is not finite".into()
+                } else {
+                    format!("ensemble member {}: its correction is not finite", k + 1)
+                });
+            }
+            for (s, x) in sum.iter_mut().zip(&out) {
+                *s += x;
+            }
         }
-        Ok((out, network_s))
+        let n = self.members.len() as f64;
+        sum.iter_mut().for_each(|s| *s /= n);
+        Ok((sum, network_s))
     }
+}
+
+/// Whether two networks read the same sample ([`SampleData::build`] depends on these switches).
+fn same_inputs(a: &TrainedModel, b: &TrainedModel) -> bool {
+    let (a, b) = (&a.config, &b.config);
+    a.bipartite == b.bipartite
+        && a.n_top == b.n_top
+        && a.libr_input == b.libr_input
+        && a.misfit_input == b.misfit_input
+        && a.target == b.target
 }

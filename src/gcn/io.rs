@@ -257,29 +257,146 @@ pub fn load_model_cpu(dir: &Path) -> Result<TrainedModel, String> {
     load_model(dir, &Device::flex())
 }
 
-/// `model.json` of the model built into this crate (`assets/models/default/`).
-const BUILTIN_JSON: &str = include_str!(concat!(
+/// `ensemble.json` of the model built into this crate (`assets/models/default/`).
+const BUILTIN_ENSEMBLE: &str = include_str!(concat!(
     env!("CARGO_MANIFEST_DIR"),
-    "/assets/models/default/model.json"
-));
-/// Its weights.
-const BUILTIN_WEIGHTS: &[u8] = include_bytes!(concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/assets/models/default/weights.bin"
+    "/assets/models/default/ensemble.json"
 ));
 
-/// The default SR-GCN built into this crate (`assets/models/default/`, trained on the paper
-/// preset by the command in its provenance; see `assets/models/default/README.md`), on the CPU.
-pub fn builtin_model() -> Result<TrainedModel, String> {
-    let mut m = model_from_parts(
-        BUILTIN_JSON,
-        BUILTIN_WEIGHTS,
-        &Device::flex(),
-        Path::new("<built-in>/model.json"),
-        Path::new("<built-in>/weights.bin"),
-    )?;
-    m.provenance["builtin"] = serde_json::json!(true);
-    Ok(m)
+/// The members of the built-in ensemble: name, `model.json`, weights (in `ensemble.json`'s order;
+/// a unit test checks the two lists agree).
+const BUILTIN_MEMBERS: [(&str, &str, &[u8]); 2] = [
+    (
+        "rich7-pattern-v",
+        include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich7-pattern-v/model.json"
+        )),
+        include_bytes!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich7-pattern-v/weights.bin"
+        )),
+    ),
+    (
+        "rich13-pattern-v",
+        include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich13-pattern-v/model.json"
+        )),
+        include_bytes!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich13-pattern-v/weights.bin"
+        )),
+    ),
+];
+
+/// The default SR-GCN built into this crate (`assets/models/default/`, an ensemble directory:
+/// two networks trained on the paper preset by the commands in `ensemble.json` and their
+/// provenance; see `assets/models/default/README.md`), on the CPU: its members, whose
+/// corrections LIBR+ averages. Each member's provenance has `"builtin": true` and its name
+/// under `"member"`.
+pub fn builtin_models() -> Result<Vec<TrainedModel>, String> {
+    let file: EnsembleFile = serde_json::from_str(BUILTIN_ENSEMBLE)
+        .map_err(|e| format!("<built-in>/ensemble.json: {e}"))?;
+    let names: Vec<&str> = BUILTIN_MEMBERS.iter().map(|m| m.0).collect();
+    if file.members != names {
+        return Err(format!(
+            "<built-in>/ensemble.json lists {:?}, the crate embeds {names:?}",
+            file.members
+        ));
+    }
+    BUILTIN_MEMBERS
+        .iter()
+        .map(|(name, json, weights)| {
+            let mut m = model_from_parts(
+                json,
+                weights,
+                &Device::flex(),
+                &Path::new("<built-in>").join(name).join("model.json"),
+                &Path::new("<built-in>").join(name).join("weights.bin"),
+            )?;
+            m.provenance["builtin"] = serde_json::json!(true);
+            m.provenance["member"] = serde_json::json!(name);
+            Ok(m)
+        })
+        .collect()
+}
+
+/// The ensemble file format this build writes and reads.
+pub const ENSEMBLE_FORMAT: u32 = 1;
+
+/// `ensemble.json` of an ensemble directory: the members, each a model directory (format 3)
+/// inside it, whose corrections LIBR+ averages ([`crate::gcn::infer::LibrPlusCase`]).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct EnsembleFile {
+    /// Format version ([`ENSEMBLE_FORMAT`]).
+    pub format: u32,
+    /// The members: names of model directories inside the ensemble directory.
+    pub members: Vec<String>,
+    /// How the ensemble was made (free-form JSON).
+    #[serde(default)]
+    pub provenance: serde_json::Value,
+}
+
+/// Writes an ensemble directory's `ensemble.json` over member directories already in `dir`
+/// (each is read back, so a broken member is refused here rather than at preload).
+pub fn save_ensemble(
+    dir: &Path,
+    members: &[String],
+    provenance: serde_json::Value,
+) -> Result<(), String> {
+    let file = EnsembleFile {
+        format: ENSEMBLE_FORMAT,
+        members: members.to_vec(),
+        provenance,
+    };
+    check_members(dir, &file)?;
+    for m in members {
+        load_model_cpu(&dir.join(m))?;
+    }
+    let j = serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?;
+    let p = dir.join("ensemble.json");
+    std::fs::write(&p, j).map_err(|e| format!("{}: {e}", p.display()))
+}
+
+fn check_members(dir: &Path, file: &EnsembleFile) -> Result<(), String> {
+    let p = dir.join("ensemble.json");
+    if file.format != ENSEMBLE_FORMAT {
+        return Err(format!(
+            "{}: ensemble format {} (this build reads {ENSEMBLE_FORMAT})",
+            p.display(),
+            file.format
+        ));
+    }
+    if file.members.is_empty() {
+        return Err(format!("{}: members is empty", p.display()));
+    }
+    for (k, m) in file.members.iter().enumerate() {
+        if m.is_empty() || m == "." || m == ".." || m.contains(['/', '\\']) {
+            return Err(format!(
+                "{}: members[{k}] {m:?} must be the name of a directory inside the ensemble directory",
+                p.display()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
+/// directories), onto the CPU device: the networks LIBR+ runs, one for a model directory.
+pub fn load_models_cpu(dir: &Path) -> Result<Vec<TrainedModel>, String> {
+    let p = dir.join("ensemble.json");
+    if !p.exists() {
+        return Ok(vec![load_model_cpu(dir)?]);
+    }
+    let text = std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))?;
+    let file: EnsembleFile =
+        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?;
+    check_members(dir, &file)?;
+    file.members
+        .iter()
+        .map(|m| load_model_cpu(&dir.join(m)).map_err(|e| format!("ensemble member {m}: {e}")))
+        .collect()
 }
 
 /// Reads a model directory.
@@ -392,5 +509,54 @@ mod tests {
         std::fs::write(&p, j.to_string()).unwrap();
         let e = load_model_cpu(tmp.path()).unwrap_err();
         assert!(e.contains("retrain"), "{e}");
+    }
+
+    #[test]
+    fn ensemble_directories_load_their_members_and_refuse_bad_lists() {
+        let tmp = tempfile::tempdir().unwrap();
+        let cfg = SrGcnConfig::new().with_width(4).with_levels(1);
+        let a = TrainedModel::untrained(cfg.clone(), 1).unwrap();
+        let b = TrainedModel::untrained(cfg.clone().with_correction_scale(0.5), 2).unwrap();
+        save_model(
+            &tmp.path().join("a"),
+            &a.config,
+            &a.net,
+            serde_json::json!({}),
+        )
+        .unwrap();
+        save_model(
+            &tmp.path().join("b"),
+            &b.config,
+            &b.net,
+            serde_json::json!({}),
+        )
+        .unwrap();
+        // A plain model directory is one network.
+        assert_eq!(load_models_cpu(&tmp.path().join("a")).unwrap().len(), 1);
+        let names = vec!["a".to_string(), "b".to_string()];
+        save_ensemble(tmp.path(), &names, serde_json::json!({"what": "test"})).unwrap();
+        let both = load_models_cpu(tmp.path()).unwrap();
+        assert_eq!(both.len(), 2);
+        assert_eq!(named_tensors(&both[0].net), named_tensors(&a.net));
+        assert_eq!(named_tensors(&both[1].net), named_tensors(&b.net));
+        assert_eq!(both[1].config.correction_scale, 0.5);
+        // Bad lists are refused, naming the problem.
+        let p = tmp.path().join("ensemble.json");
+        for (members, format, want) in [
+            (serde_json::json!([]), 1, "members is empty"),
+            (serde_json::json!(["../a"]), 1, "members[0]"),
+            (serde_json::json!(["a", ".."]), 1, "members[1]"),
+            (serde_json::json!(["a", "c"]), 1, "ensemble member c"),
+            (serde_json::json!(["a"]), 2, "ensemble format 2"),
+        ] {
+            let j = serde_json::json!({"format": format, "members": members});
+            std::fs::write(&p, j.to_string()).unwrap();
+            let e = load_models_cpu(tmp.path()).unwrap_err();
+            assert!(e.contains(want), "{members}: {e}");
+        }
+        // Writing one over a missing member is refused before the file is written.
+        let e = save_ensemble(tmp.path(), &["a".into(), "c".into()], serde_json::json!({}))
+            .unwrap_err();
+        assert!(e.contains("model.json"), "{e}");
     }
 }

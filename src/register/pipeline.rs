@@ -123,9 +123,15 @@ impl Prepared {
     }
 
     /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
-    pub fn with_model(mut self, model: Arc<TrainedModel>) -> Result<Self, String> {
+    pub fn with_model(self, model: Arc<TrainedModel>) -> Result<Self, String> {
+        self.with_models(vec![model])
+    }
+
+    /// Adds an ensemble of trained SR-GCNs (their corrections averaged; one member is a single
+    /// model) so the case answers [`Method::LibrPlus`].
+    pub fn with_models(mut self, models: Vec<Arc<TrainedModel>>) -> Result<Self, String> {
         let t0 = Instant::now();
-        self.librplus = Some(LibrPlusCase::new(model, &self.model.mesh)?);
+        self.librplus = Some(LibrPlusCase::new(models, &self.model.mesh)?);
         self.seconds += crate::util::secs(t0);
         Ok(self)
     }
