@@ -121,6 +121,13 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
                 "time budget {:.0} ms: {left:.0} ms left, LIBR+ needs about {need:.0} ms (SR-GCN {gcn_ms:.0} ms); LIBR result",
                 ms(job.budget)
             ));
+            if left >= need - gcn_ms {
+                // The SR-GCN estimate alone did not fit: let it fall slowly, so that a
+                // correction once timed slow (a busy machine) is tried and timed again.
+                if let Some(g) = &case.prepared.librplus {
+                    g.relax_estimate();
+                }
+            }
         }
     }
     if method != Method::Rigid {

@@ -301,6 +301,7 @@ pub fn register(
             .deadline
             .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
         let skipped = if late {
+            g.relax_estimate();
             Some(format!(
                 "no time left for the SR-GCN correction (about {:.0} ms): LIBR's answer",
                 1e3 * g.expected_seconds()
