@@ -402,6 +402,12 @@ pub fn load_models_cpu(dir: &Path) -> Result<Vec<TrainedModel>, String> {
 /// Reads a model directory.
 pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
     let mpath = dir.join("model.json");
+    if !mpath.exists() && dir.join("ensemble.json").exists() {
+        return Err(format!(
+            "{} is an ensemble directory (ensemble.json): this needs one model, give one of its members",
+            dir.display()
+        ));
+    }
     let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
     let head: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", mpath.display()))?;
@@ -554,6 +560,10 @@ mod tests {
             let e = load_models_cpu(tmp.path()).unwrap_err();
             assert!(e.contains(want), "{members}: {e}");
         }
+        // What needs one model names an ensemble for what it is.
+        save_ensemble(tmp.path(), &names, serde_json::json!({})).unwrap();
+        let e = load_model_cpu(tmp.path()).unwrap_err();
+        assert!(e.contains("ensemble directory"), "{e}");
         // Writing one over a missing member is refused before the file is written.
         let e = save_ensemble(tmp.path(), &["a".into(), "c".into()], serde_json::json!({}))
             .unwrap_err();
