@@ -52,6 +52,19 @@ enum Command {
     /// deformation hold-out, each leave-one-geometry-out, pattern V) and the Table 2 ablations,
     /// then writes OUT/RESULTS.md (tables), OUT/results.json and OUT/ratios.png.
     Experiments(ExperimentsArgs),
+    /// Makes an ensemble directory from trained model directories: LIBR+ with it averages the
+    /// members' corrections (README, "SR-GCN ensemble directory"). Usable wherever `--model` is.
+    Ensemble(EnsembleArgs),
+}
+
+#[derive(Args)]
+struct EnsembleArgs {
+    /// The new ensemble directory (must not exist, or be empty).
+    #[arg(long)]
+    out: PathBuf,
+    /// Model directories (from `librplus train`); an ensemble directory adds its members.
+    #[arg(required = true)]
+    models: Vec<PathBuf>,
 }
 
 #[derive(Args)]
@@ -723,6 +736,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Evaluate(args) => evaluate(&args),
         Command::Train(args) => train(&args).map(|_| ()),
         Command::Experiments(args) => experiments(&args),
+        Command::Ensemble(args) => ensemble(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,
@@ -765,6 +779,33 @@ fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
         surface.flip();
     }
     Ok(surface)
+}
+
+fn ensemble(a: &EnsembleArgs) -> Result<()> {
+    let command: Vec<String> = std::env::args().collect();
+    let names = librplus::gcn::io::make_ensemble(
+        &a.out,
+        &a.models,
+        json!({ "command": command.join(" ") }),
+    )
+    .map_err(anyhow::Error::msg)?;
+    let models = librplus::gcn::io::load_models_cpu(&a.out).map_err(anyhow::Error::msg)?;
+    println!("{}: ensemble of {} networks", a.out.display(), names.len());
+    for (name, m) in names.iter().zip(&models) {
+        let p = &m.provenance;
+        println!(
+            "  {name}: split {}, correction scale {}, test LIBR {} → LIBR+ {} mm",
+            p["split"].as_str().unwrap_or("?"),
+            m.config.correction_scale,
+            p["metrics"]["test_libr_tre_mm"]
+                .as_f64()
+                .map_or("?".into(), |x| format!("{x:.3}")),
+            p["metrics"]["test_librplus_tre_mm"]
+                .as_f64()
+                .map_or("?".into(), |x| format!("{x:.3}")),
+        );
+    }
+    Ok(())
 }
 
 fn evaluate(a: &EvaluateArgs) -> Result<()> {

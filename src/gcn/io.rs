@@ -382,6 +382,84 @@ fn check_members(dir: &Path, file: &EnsembleFile) -> Result<(), String> {
     Ok(())
 }
 
+/// Makes the ensemble directory `out` from model directories (an ensemble directory among
+/// `sources` contributes its members): each member's files are copied into `out/NAME`, NAME the
+/// source directory's name (made unique with `-2`, `-3`, …), and `ensemble.json` written with
+/// `provenance` plus each member's source. `out` must not exist or be empty. Returns the member
+/// names.
+pub fn make_ensemble(
+    out: &Path,
+    sources: &[std::path::PathBuf],
+    provenance: serde_json::Value,
+) -> Result<Vec<String>, String> {
+    if sources.is_empty() {
+        return Err("no model directories given".into());
+    }
+    if out.exists() {
+        let mut entries = std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?;
+        if entries.next().is_some() {
+            return Err(format!(
+                "{}: exists and is not empty (an ensemble is written into a new directory)",
+                out.display()
+            ));
+        }
+    }
+    // Every member directory, with ensembles flattened; each is read before anything is written.
+    let mut dirs: Vec<std::path::PathBuf> = Vec::new();
+    for src in sources {
+        let ens = src.join("ensemble.json");
+        if ens.exists() {
+            let text =
+                std::fs::read_to_string(&ens).map_err(|e| format!("{}: {e}", ens.display()))?;
+            let file: EnsembleFile =
+                serde_json::from_str(&text).map_err(|e| format!("{}: {e}", ens.display()))?;
+            check_members(src, &file)?;
+            dirs.extend(file.members.iter().map(|m| src.join(m)));
+        } else {
+            dirs.push(src.clone());
+        }
+    }
+    for d in &dirs {
+        load_model_cpu(d)?;
+    }
+    let mut names: Vec<String> = Vec::new();
+    let mut sources_json = serde_json::Map::new();
+    for d in &dirs {
+        let canonical = std::fs::canonicalize(d).unwrap_or_else(|_| d.clone());
+        let base = canonical
+            .file_name()
+            .and_then(|n| n.to_str())
+            .filter(|n| !n.is_empty() && *n != "." && *n != "..")
+            .unwrap_or("member")
+            .to_string();
+        let mut name = base.clone();
+        let mut k = 2;
+        while names.contains(&name) {
+            name = format!("{base}-{k}");
+            k += 1;
+        }
+        let dst = out.join(&name);
+        std::fs::create_dir_all(&dst).map_err(|e| format!("{}: {e}", dst.display()))?;
+        for entry in std::fs::read_dir(d).map_err(|e| format!("{}: {e}", d.display()))? {
+            let entry = entry.map_err(|e| format!("{}: {e}", d.display()))?;
+            let path = entry.path();
+            if path.is_file() {
+                std::fs::copy(&path, dst.join(entry.file_name()))
+                    .map_err(|e| format!("{}: {e}", path.display()))?;
+            }
+        }
+        sources_json.insert(name.clone(), d.display().to_string().into());
+        names.push(name);
+    }
+    let mut provenance = provenance;
+    if !provenance.is_object() {
+        provenance = serde_json::json!({ "note": provenance });
+    }
+    provenance["sources"] = serde_json::Value::Object(sources_json);
+    save_ensemble(out, &names, provenance)?;
+    Ok(names)
+}
+
 /// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
 /// directories), onto the CPU device: the networks LIBR+ runs, one for a model directory.
 pub fn load_models_cpu(dir: &Path) -> Result<Vec<TrainedModel>, String> {
@@ -564,6 +642,45 @@ mod tests {
         save_ensemble(tmp.path(), &names, serde_json::json!({})).unwrap();
         let e = load_model_cpu(tmp.path()).unwrap_err();
         assert!(e.contains("ensemble directory"), "{e}");
+        // An ensemble made from model directories and another ensemble: members flattened,
+        // names made unique, sources recorded; the same networks come back.
+        let out = tmp.path().join("made");
+        let made = make_ensemble(
+            &out,
+            &[tmp.path().join("a"), tmp.path().to_path_buf()],
+            serde_json::json!({"command": "test"}),
+        )
+        .unwrap();
+        assert_eq!(made, ["a", "a-2", "b"]);
+        let back = load_models_cpu(&out).unwrap();
+        assert_eq!(named_tensors(&back[1].net), named_tensors(&a.net));
+        assert_eq!(named_tensors(&back[2].net), named_tensors(&b.net));
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("ensemble.json")).unwrap())
+                .unwrap();
+        assert_eq!(j["provenance"]["command"], "test");
+        assert!(
+            j["provenance"]["sources"]["b"]
+                .as_str()
+                .unwrap()
+                .ends_with("b")
+        );
+        // Not over a directory with files in it, not from nothing, not from a broken member.
+        let e = make_ensemble(&out, &[tmp.path().join("a")], serde_json::json!({})).unwrap_err();
+        assert!(e.contains("not empty"), "{e}");
+        let e = make_ensemble(&tmp.path().join("x"), &[], serde_json::json!({})).unwrap_err();
+        assert!(e.contains("no model"), "{e}");
+        let e = make_ensemble(
+            &tmp.path().join("y"),
+            &[tmp.path().join("missing")],
+            serde_json::json!({}),
+        )
+        .unwrap_err();
+        assert!(e.contains("missing"), "{e}");
+        assert!(
+            !tmp.path().join("y").exists(),
+            "nothing written for a broken member"
+        );
         // Writing one over a missing member is refused before the file is written.
         let e = save_ensemble(tmp.path(), &["a".into(), "c".into()], serde_json::json!({}))
             .unwrap_err();
