@@ -47,7 +47,7 @@ pub struct ServerConfig {
     /// Method used when a request leaves it unspecified (`rigid`, `libr`, `librplus`). Default
     /// `libr`.
     pub default_method: String,
-    /// SR-GCN model directory (`librplus train`'s output) for LIBR+; every case gets it. None:
+    /// SR-GCN model directory (`librplus train`'s output, or an ensemble directory) for LIBR+; every case gets it. None:
     /// the model built into the server, when this build has one.
     pub model: Option<PathBuf>,
     /// Whether cases answer LIBR+ at all (false: no model is loaded). Default true.

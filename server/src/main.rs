@@ -71,7 +71,7 @@ struct Args {
     /// Length unit of plain mesh files (mm, cm, m).
     #[arg(long)]
     mesh_unit: Option<String>,
-    /// SR-GCN model directory for LIBR+ (default: the built-in model, when there is one).
+    /// SR-GCN model or ensemble directory for LIBR+ (default: the built-in model, when there is one).
     #[arg(long)]
     model: Option<PathBuf>,
     /// Method when a request leaves it unspecified (rigid, libr, librplus).

@@ -269,8 +269,9 @@ struct EvaluateArgs {
     /// Comma-separated methods: rigid, libr, librplus (--model, or the built-in model).
     #[arg(long, default_value = "rigid,libr")]
     methods: String,
-    /// A trained SR-GCN model directory (from `librplus train`): evaluates LIBR+ and restricts
-    /// every method to the model's held-out test scenarios (its split replaces --split).
+    /// A trained SR-GCN model directory (from `librplus train`), or an ensemble directory (from
+    /// `librplus ensemble`): evaluates LIBR+ and restricts every method to the model's held-out
+    /// test scenarios (an ensemble: those every member held out; its split replaces --split).
     #[arg(long)]
     model: Option<PathBuf>,
     /// Comma-separated splits: all, train, test (the held-out geometry with pattern V).
@@ -325,8 +326,8 @@ struct RegisterArgs {
     /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     method: MethodArg,
-    /// SR-GCN model directory (from `librplus train`) for --method librplus (default: the
-    /// built-in model).
+    /// SR-GCN model directory (from `librplus train`) or ensemble directory (from `librplus
+    /// ensemble`) for --method librplus (default: the built-in model).
     #[arg(long)]
     model: Option<PathBuf>,
     /// Write the preoperative mesh with the registered `displacement` (image frame) and the
@@ -369,7 +370,7 @@ struct BenchRegisterArgs {
     /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     method: MethodArg,
-    /// SR-GCN model directory for --method librplus (default: the built-in model).
+    /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model).
     #[arg(long)]
     model: Option<PathBuf>,
     #[command(flatten)]
