@@ -601,20 +601,15 @@ mod tests {
         let cfg = SrGcnConfig::new().with_width(4).with_levels(1);
         let a = TrainedModel::untrained(cfg.clone(), 1).unwrap();
         let b = TrainedModel::untrained(cfg.clone().with_correction_scale(0.5), 2).unwrap();
-        save_model(
-            &tmp.path().join("a"),
-            &a.config,
-            &a.net,
-            serde_json::json!({}),
-        )
-        .unwrap();
-        save_model(
-            &tmp.path().join("b"),
-            &b.config,
-            &b.net,
-            serde_json::json!({}),
-        )
-        .unwrap();
+        for (name, m) in [("a", &a), ("b", &b)] {
+            save_model(
+                &tmp.path().join(name),
+                &m.config,
+                &m.net,
+                serde_json::json!({}),
+            )
+            .unwrap();
+        }
         // A plain model directory is one network.
         assert_eq!(load_models_cpu(&tmp.path().join("a")).unwrap().len(), 1);
         let names = vec!["a".to_string(), "b".to_string()];
