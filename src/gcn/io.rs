@@ -407,16 +407,9 @@ pub fn make_ensemble(
     // Every member directory, with ensembles flattened; each is read before anything is written.
     let mut dirs: Vec<std::path::PathBuf> = Vec::new();
     for src in sources {
-        let ens = src.join("ensemble.json");
-        if ens.exists() {
-            let text =
-                std::fs::read_to_string(&ens).map_err(|e| format!("{}: {e}", ens.display()))?;
-            let file: EnsembleFile =
-                serde_json::from_str(&text).map_err(|e| format!("{}: {e}", ens.display()))?;
-            check_members(src, &file)?;
-            dirs.extend(file.members.iter().map(|m| src.join(m)));
-        } else {
-            dirs.push(src.clone());
+        match read_ensemble(src)? {
+            Some(file) => dirs.extend(file.members.iter().map(|m| src.join(m))),
+            None => dirs.push(src.clone()),
         }
     }
     for d in &dirs {
@@ -460,17 +453,25 @@ pub fn make_ensemble(
     Ok(names)
 }
 
-/// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
-/// directories), onto the CPU device: the networks LIBR+ runs, one for a model directory.
-pub fn load_models_cpu(dir: &Path) -> Result<Vec<TrainedModel>, String> {
+/// `dir`'s `ensemble.json`, checked, or None when `dir` has none (a model directory).
+fn read_ensemble(dir: &Path) -> Result<Option<EnsembleFile>, String> {
     let p = dir.join("ensemble.json");
     if !p.exists() {
-        return Ok(vec![load_model_cpu(dir)?]);
+        return Ok(None);
     }
     let text = std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))?;
     let file: EnsembleFile =
         serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?;
     check_members(dir, &file)?;
+    Ok(Some(file))
+}
+
+/// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
+/// directories), onto the CPU device: the networks LIBR+ runs, one for a model directory.
+pub fn load_models_cpu(dir: &Path) -> Result<Vec<TrainedModel>, String> {
+    let Some(file) = read_ensemble(dir)? else {
+        return Ok(vec![load_model_cpu(dir)?]);
+    };
     file.members
         .iter()
         .map(|m| load_model_cpu(&dir.join(m)).map_err(|e| format!("ensemble member {m}: {e}")))
