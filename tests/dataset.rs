@@ -523,3 +523,59 @@ fn paired_categories_share_a_blocks_draw_and_add_planes() {
         );
     }
 }
+
+/// `--patterns` adds the random-pack augmentation X beside the paper's patterns without changing
+/// any other deformation (each deformation's seed depends on its geometry, pattern and index
+/// only), keeps V for the held-out geometry, and refuses unknown and repeated names by name.
+#[test]
+fn generate_patterns_adds_x_and_leaves_the_other_deformations_byte_identical() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (plain, with_x) = (tmp.path().join("plain"), tmp.path().join("x"));
+    generate(&plain, &["--scenarios", "2"]);
+    generate(&with_x, &["--scenarios", "2", "--patterns", "W,X"]);
+    let (mp, mx) = (
+        read_manifest(&plain).unwrap(),
+        read_manifest(&with_x).unwrap(),
+    );
+    let ids = |m: &librplus::dataset::Manifest| -> Vec<(String, String)> {
+        m.deformations
+            .iter()
+            .map(|d| (d.id.clone(), d.pattern.clone()))
+            .collect()
+    };
+    let xs = ids(&mx);
+    assert!(xs.contains(&("g1-X-00".into(), "X".into())), "{xs:?}");
+    assert!(xs.contains(&("g2-V-00".into(), "V".into())), "{xs:?}");
+    assert!(!xs.iter().any(|(_, p)| p == "L"), "{xs:?}");
+    assert_ne!(mp.parameters_hash, mx.parameters_hash);
+    for id in ["g1-W-00", "g2-V-00"] {
+        assert!(
+            ids(&mp).iter().any(|(d, _)| d == id),
+            "{id} in the plain set"
+        );
+        for file in ["gt.vtu", "scenarios.npz"] {
+            let a = std::fs::read(plain.join("deformations").join(id).join(file)).unwrap();
+            let b = std::fs::read(with_x.join("deformations").join(id).join(file)).unwrap();
+            assert!(a == b, "{id}/{file} changed when X was added");
+        }
+    }
+    let x = mx.deformations.iter().find(|d| d.pattern == "X").unwrap();
+    assert!(x.mean_displacement_mm > 1.0, "X deforms: {x:?}");
+    for (arg, says) in [
+        ("W,", "unknown pattern \"\""),
+        ("L,Q", "unknown pattern \"Q\""),
+        ("W,W", "named twice"),
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .args(["generate", "--preset", "small", "--patterns", arg, "--out"])
+            .arg(tmp.path().join("refused"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains("--patterns") && err.contains(says),
+            "{arg}: {err}"
+        );
+    }
+    assert!(!tmp.path().join("refused").exists());
+}

@@ -190,7 +190,7 @@ fn patterns_deform_the_liver_and_the_linear_model_misses_it() {
         100.0 * fractions[2],
         tissue.tumours.len()
     );
-    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V, Pattern::X] {
         let case = load_case(&mesh, &labels, pattern, &PatternParams::default(), 7).unwrap();
         let b = breakdown(
             &mesh,
@@ -358,4 +358,78 @@ fn tissue_field_and_tilted_gravity() {
     assert!(((t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt() - g).abs() < 1e-15);
     assert!((t[2] + g * 0.5).abs() < 1e-15 && t[0] > 0.0);
     assert!(tilted_gravity(g, 0.0, -10.0)[0] < 0.0);
+}
+
+/// A Gaussian pack puts exactly its force along its direction on the boundary within 2σ of its
+/// centre; the random-pack pattern X draws one to three packs, differs by seed, repeats for a seed,
+/// and loads only boundary nodes.
+#[test]
+fn random_packs_put_their_force_on_the_surface() {
+    use librplus::phantom::labels::{LabelParams, label};
+    use librplus::phantom::patterns::{Pattern, PatternParams, gaussian_patch, load_case};
+    let surface = liver_surface();
+    let mesh = tetrahedralize(&surface, &TetraParams::with_edge(12.0)).unwrap();
+    let labels = label(&mesh, &LabelParams::default()).unwrap();
+    let boundary = mesh.boundary().unwrap();
+    let nodes = mesh.nodes();
+    let n = mesh.num_nodes();
+    let c = nodes[boundary.nodes[boundary.nodes.len() / 3] as usize];
+    let l = (0.3f64 * 0.3 + 1.0 + 0.2 * 0.2).sqrt();
+    let dir = [0.3 / l, -1.0 / l, 0.2 / l];
+    let mut load = vec![0.0; 3 * n];
+    let (tris, peak) =
+        gaussian_patch(&mut load, nodes, &boundary.triangles, c, 20.0, dir, 5000.0).unwrap();
+    assert!(tris > 3 && peak > 0.0, "{tris} triangles, peak {peak}");
+    let net = [0, 1, 2].map(|a| load.chunks_exact(3).map(|f| f[a]).sum::<f64>());
+    for a in 0..3 {
+        assert!((net[a] - 5000.0 * dir[a]).abs() < 1e-6, "net {net:?}");
+    }
+    for (i, f) in load.chunks_exact(3).enumerate() {
+        if f.iter().any(|&x| x != 0.0) {
+            let p = nodes[i];
+            let d = ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
+            assert!(
+                d <= 40.0 + 1e-9,
+                "node {i} loaded {d:.1} mm from the centre"
+            );
+        }
+    }
+    // Far from any surface there is nothing to load.
+    let mut none = vec![0.0; 3 * n];
+    assert!(
+        gaussian_patch(
+            &mut none,
+            nodes,
+            &boundary.triangles,
+            [1e4; 3],
+            20.0,
+            dir,
+            1.0
+        )
+        .is_err()
+    );
+    let on_boundary: std::collections::HashSet<u32> = boundary.nodes.iter().copied().collect();
+    let mut packs = std::collections::BTreeSet::new();
+    let mut descriptions = std::collections::HashSet::new();
+    for seed in 0..12 {
+        let case = load_case(&mesh, &labels, Pattern::X, &PatternParams::default(), seed).unwrap();
+        let again = load_case(&mesh, &labels, Pattern::X, &PatternParams::default(), seed).unwrap();
+        assert_eq!(case.load, again.load, "seed {seed} repeats");
+        assert_eq!(case.dirichlet.count(), 0, "X prescribes no displacement");
+        for (i, f) in case.surface.chunks_exact(3).enumerate() {
+            if f.iter().any(|&x| x != 0.0) {
+                assert!(
+                    on_boundary.contains(&(i as u32)),
+                    "interior node {i} loaded"
+                );
+            }
+        }
+        let total: f64 = case.surface.iter().map(|x| x * x).sum::<f64>().sqrt();
+        assert!(total > 0.0 && total.is_finite());
+        packs.insert(case.description.matches(" N at ").count());
+        descriptions.insert(case.description.clone());
+    }
+    assert_eq!(descriptions.len(), 12, "every seed draws its own packs");
+    assert!(packs.iter().all(|k| (1..=3).contains(k)), "{packs:?}");
+    assert!(packs.len() >= 2, "the pack count varies: {packs:?}");
 }

@@ -462,6 +462,12 @@ struct GenerateArgs {
     /// Override: scenarios per deformation.
     #[arg(long)]
     scenarios: Option<usize>,
+    /// Override: the patterns of the training geometries, comma-separated from L, R, W (the
+    /// paper's, the default), X (random packs anywhere on the surface: a training augmentation,
+    /// not in the paper) and V (a diagnostic: the held-out geometry's pattern seen in training, so
+    /// that pattern-v measures an unseen liver alone). The held-out geometry keeps V only.
+    #[arg(long, value_delimiter = ',')]
+    patterns: Vec<String>,
     /// Override: mesher target edge length (mm).
     #[arg(long)]
     edge_mm: Option<f64>,
@@ -1321,7 +1327,7 @@ fn phantom_effect(
     for seed in first_seed..first_seed + seeds {
         let tissue = Tissue::build(&mesh, &tree, &tp, seed).map_err(anyhow::Error::msg)?;
         let lame = tissue.lame_field();
-        for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+        for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V, Pattern::X] {
             let case = load_case(&mesh, &labels, pattern, &pp, seed).map_err(anyhow::Error::msg)?;
             let b = breakdown(
                 &mesh,
@@ -1339,7 +1345,7 @@ fn phantom_effect(
     }
     bar.finish_and_clear();
     let mut per = serde_json::Map::new();
-    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V] {
+    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V, Pattern::X] {
         let r: Vec<_> = rows
             .iter()
             .filter(|r| r.0 == pattern)
@@ -1407,6 +1413,27 @@ fn phantom_effect(
     Ok(())
 }
 
+/// The training patterns named by `generate --patterns`, each once.
+fn train_patterns(names: &[String]) -> Result<Vec<librplus::phantom::patterns::Pattern>> {
+    use librplus::phantom::patterns::Pattern;
+    let mut out = Vec::new();
+    for name in names {
+        let p = match name.trim() {
+            "L" | "l" => Pattern::L,
+            "R" | "r" => Pattern::R,
+            "W" | "w" => Pattern::W,
+            "X" | "x" => Pattern::X,
+            "V" | "v" => Pattern::V,
+            other => bail!("--patterns: unknown pattern {other:?} (have L, R, W, X, V)"),
+        };
+        if out.contains(&p) {
+            bail!("--patterns: {name} is named twice");
+        }
+        out.push(p);
+    }
+    Ok(out)
+}
+
 fn generate(a: &GenerateArgs) -> Result<()> {
     use librplus::phantom::dataset::{GenerateConfig, Preset};
     let shard = match &a.shard {
@@ -1463,6 +1490,9 @@ fn generate(a: &GenerateArgs) -> Result<()> {
     if let Some(d) = a.deformations {
         config.deformations_per_pattern = d;
     }
+    if !a.patterns.is_empty() {
+        config.train_patterns = train_patterns(&a.patterns)?;
+    }
     config.paired_categories = a.paired_categories;
     config.truth = match a.truth {
         TruthArg::Nonlinear => librplus::phantom::dataset::TruthModel::Nonlinear,
@@ -1500,7 +1530,7 @@ fn generate(a: &GenerateArgs) -> Result<()> {
     bar.finish_and_clear();
     let report = result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))?;
     let m = report.manifest.as_ref().expect("manifest written");
-    let per_pattern: serde_json::Map<String, Value> = ["L", "R", "W", "V"]
+    let per_pattern: serde_json::Map<String, Value> = ["L", "R", "W", "V", "X"]
         .iter()
         .filter_map(|p| {
             let d: Vec<_> = m.deformations.iter().filter(|d| d.pattern == *p).collect();

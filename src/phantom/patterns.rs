@@ -15,6 +15,9 @@
 //!   anterior surface.
 //! - **V** (open surgery, test only): posterior packing over a large part of the posterior surface
 //!   pushing the organ anteriorly, plus gravity.
+//! - **X** (not in the paper; a training augmentation, opt in with `generate --patterns`): a
+//!   random table tilt and one to three soft-edged packs of random size, force and centre anywhere
+//!   off the bare area, each pushing roughly inwards.
 //!
 //! Loads are dead loads on the reference configuration (see `fem::hyperelastic`).
 
@@ -34,6 +37,10 @@ pub enum Pattern {
     W,
     /// Open surgery: posterior packing, large anterior motion (test only).
     V,
+    /// Random packs anywhere on the surface: a training augmentation for learning residuals of
+    /// loads the named patterns do not cover (not one of the paper's patterns; never a test
+    /// pattern).
+    X,
 }
 
 /// Parameters shared by all patterns (units: mm, kPa, mN).
@@ -116,6 +123,44 @@ fn push_patch(
         .collect();
     loads::add_traction(load, nodes, &patch, &vec![traction; patch.len()]);
     patch.len()
+}
+
+/// Adds a pack of total force `force` (mN) along the unit `dir`, pressing over a soft-edged patch
+/// of the boundary: the traction falls off as a Gaussian of width `sigma` from `c`, cut at
+/// 2σ, scaled so the forces add up to `force` whatever the local mesh and surface area. Returns the
+/// number of loaded triangles and the peak traction (kPa).
+pub fn gaussian_patch(
+    load: &mut [f64],
+    nodes: &[[f64; 3]],
+    triangles: &[[u32; 3]],
+    c: [f64; 3],
+    sigma: f64,
+    dir: [f64; 3],
+    force: f64,
+) -> Result<(usize, f64), String> {
+    let patch: Vec<[u32; 3]> = triangles
+        .iter()
+        .copied()
+        .filter(|t| t.iter().all(|&v| dist(nodes[v as usize], c) <= 2.0 * sigma))
+        .collect();
+    let weight = |t: &[u32; 3]| {
+        let m = [0, 1, 2].map(|a| t.iter().map(|&v| nodes[v as usize][a]).sum::<f64>() / 3.0);
+        (-0.5 * (dist(m, c) / sigma).powi(2)).exp()
+    };
+    let mut unit_load = vec![0.0; load.len()];
+    let tractions: Vec<[f64; 3]> = patch.iter().map(|t| dir.map(|d| d * weight(t))).collect();
+    loads::add_traction(&mut unit_load, nodes, &patch, &tractions);
+    let total = unit_load
+        .chunks_exact(3)
+        .map(|f| f[0] * dir[0] + f[1] * dir[1] + f[2] * dir[2])
+        .sum::<f64>();
+    if total <= 0.0 {
+        return Err("the packing patch has no area".into());
+    }
+    for (l, u) in load.iter_mut().zip(&unit_load) {
+        *l += u * force / total;
+    }
+    Ok((patch.len(), force / total))
 }
 
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -278,42 +323,15 @@ pub fn load_case(
                 return Err("no right-lobe posterior-inferior surface to pack".into());
             }
             let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
-            // A pack of total force F (mN) pressing over a soft-edged patch: the traction falls
-            // off as a Gaussian of width σ from the centre, cut at 2σ, scaled so the forces add
-            // up to F whatever the local mesh and surface area.
+            // A pack of total force F (mN) pressing over a soft-edged patch.
             let sigma = uniform(15.0, 25.0);
             let force = ls * uniform(4500.0, 9000.0);
             let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(0.2, 0.8)]);
-            let patch: Vec<[u32; 3]> = boundary
-                .triangles
-                .iter()
-                .copied()
-                .filter(|t| t.iter().all(|&v| dist(nodes[v as usize], c) <= 2.0 * sigma))
-                .collect();
-            let weight = |t: &[u32; 3]| {
-                let m =
-                    [0, 1, 2].map(|a| t.iter().map(|&v| nodes[v as usize][a]).sum::<f64>() / 3.0);
-                (-0.5 * (dist(m, c) / sigma).powi(2)).exp()
-            };
-            let mut unit_load = vec![0.0; 3 * n];
-            let tractions: Vec<[f64; 3]> =
-                patch.iter().map(|t| dir.map(|d| d * weight(t))).collect();
-            loads::add_traction(&mut unit_load, nodes, &patch, &tractions);
-            let total = unit_load
-                .chunks_exact(3)
-                .map(|f| f[0] * dir[0] + f[1] * dir[1] + f[2] * dir[2])
-                .sum::<f64>();
-            if total <= 0.0 {
-                return Err("the packing patch has no area".into());
-            }
-            for (l, u) in load.iter_mut().zip(&unit_load) {
-                *l += u * force / total;
-            }
+            let (patch, peak) =
+                gaussian_patch(&mut load, nodes, &boundary.triangles, c, sigma, dir, force)?;
             format!(
-                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; pack at {c:.1?} (σ {sigma:.1} mm, {} triangles) pushes {:.1} N along {dir:.2?} (peak traction {:.2} kPa)",
-                patch.len(),
+                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; pack at {c:.1?} (σ {sigma:.1} mm, {patch} triangles) pushes {:.1} N along {dir:.2?} (peak traction {peak:.2} kPa)",
                 force / 1000.0,
-                force / total
             )
         }
         Pattern::W => {
@@ -333,6 +351,43 @@ pub fn load_case(
             format!(
                 "table tilt {rt:.0}° head-up, {lat:.0}° lateral; insufflation pressure {p:.2} kPa on {} anterior triangles",
                 anterior.len()
+            )
+        }
+        Pattern::X => {
+            // Training augmentation, not a surgical scene: a random table tilt and one to three
+            // soft-edged packs anywhere on the surface off the bare area, each pushing roughly
+            // inwards (the inward normal at its centre turned by a random offset, typically
+            // 20–30°, at most ~65°: the push always has an inward component).
+            let (rt, lat) = (uniform(0.0, 35.0), uniform(-20.0, 20.0));
+            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
+            let cands: Vec<u32> = boundary
+                .nodes
+                .iter()
+                .copied()
+                .filter(|&v| !labels.bare_area[v as usize])
+                .collect();
+            if cands.is_empty() {
+                return Err("no surface off the bare area to load".into());
+            }
+            let packs = 1 + (uniform(0.0, 3.0) as usize).min(2);
+            let mut parts = Vec::new();
+            for _ in 0..packs {
+                let v = pick(&cands, uniform(0.0, 1.0)) as usize;
+                let c = nodes[v];
+                let sigma = uniform(12.0, 45.0);
+                let force = ls * uniform(3000.0, 9000.0) / (packs as f64).sqrt();
+                let turn = [uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)];
+                let dir = unit([0, 1, 2].map(|a| -normals[v][a] + 0.6 * turn[a]));
+                let (patch, peak) =
+                    gaussian_patch(&mut load, nodes, &boundary.triangles, c, sigma, dir, force)?;
+                parts.push(format!(
+                    "{:.1} N at {c:.1?} along {dir:.2?} (σ {sigma:.1} mm, {patch} triangles, peak {peak:.2} kPa)",
+                    force / 1000.0
+                ));
+            }
+            format!(
+                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; random packs: {}",
+                parts.join("; ")
             )
         }
         Pattern::V => {
