@@ -16,8 +16,9 @@
 //! - **V** (open surgery, test only): posterior packing over a large part of the posterior surface
 //!   pushing the organ anteriorly, plus gravity.
 //! - **X** (not in the paper; a training augmentation, opt in with `generate --patterns`): a
-//!   random table tilt and one to three soft-edged packs of random size, force and centre anywhere
-//!   off the bare area, each pushing roughly inwards.
+//!   random table tilt and either one to three soft-edged packs of random size, force and centre
+//!   anywhere off the bare area, each pushing roughly inwards, or a broad pressure on a random cap
+//!   of the surface (half the draws each).
 //!
 //! Loads are dead loads on the reference configuration (see `fem::hyperelastic`).
 
@@ -354,10 +355,12 @@ pub fn load_case(
             )
         }
         Pattern::X => {
-            // Training augmentation, not a surgical scene: a random table tilt and one to three
-            // soft-edged packs anywhere on the surface off the bare area, each pushing roughly
-            // inwards (the inward normal at its centre turned by a random offset, typically
-            // 20–30°, at most ~65°: the push always has an inward component).
+            // Training augmentation, not a surgical scene: a random table tilt and, on half the
+            // draws, one to three soft-edged packs anywhere off the bare area, each pushing
+            // roughly inwards (the inward normal at its centre turned by a random offset,
+            // typically 20–30°, at most ~65°: the push always has an inward component); on the
+            // other half a broad pressure on a random cap of the surface (the 15–50 % of the
+            // surface off the bare area farthest along a random direction).
             let (rt, lat) = (uniform(0.0, 35.0), uniform(-20.0, 20.0));
             loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
             let cands: Vec<u32> = boundary
@@ -369,26 +372,62 @@ pub fn load_case(
             if cands.is_empty() {
                 return Err("no surface off the bare area to load".into());
             }
-            let packs = 1 + (uniform(0.0, 3.0) as usize).min(2);
-            let mut parts = Vec::new();
-            for _ in 0..packs {
-                let v = pick(&cands, uniform(0.0, 1.0)) as usize;
-                let c = nodes[v];
-                let sigma = uniform(12.0, 45.0);
-                let force = ls * uniform(3000.0, 9000.0) / (packs as f64).sqrt();
-                let turn = [uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)];
-                let dir = unit([0, 1, 2].map(|a| -normals[v][a] + 0.6 * turn[a]));
-                let (patch, peak) =
-                    gaussian_patch(&mut load, nodes, &boundary.triangles, c, sigma, dir, force)?;
-                parts.push(format!(
-                    "{:.1} N at {c:.1?} along {dir:.2?} (σ {sigma:.1} mm, {patch} triangles, peak {peak:.2} kPa)",
-                    force / 1000.0
-                ));
-            }
-            format!(
-                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; random packs: {}",
-                parts.join("; ")
-            )
+            let loads_text = if uniform(0.0, 1.0) < 0.5 {
+                let packs = 1 + (uniform(0.0, 3.0) as usize).min(2);
+                let mut parts = Vec::new();
+                for _ in 0..packs {
+                    let v = pick(&cands, uniform(0.0, 1.0)) as usize;
+                    let c = nodes[v];
+                    let sigma = uniform(12.0, 45.0);
+                    let force = ls * uniform(3000.0, 9000.0) / (packs as f64).sqrt();
+                    let turn = [uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)];
+                    let dir = unit([0, 1, 2].map(|a| -normals[v][a] + 0.6 * turn[a]));
+                    let (patch, peak) = gaussian_patch(
+                        &mut load,
+                        nodes,
+                        &boundary.triangles,
+                        c,
+                        sigma,
+                        dir,
+                        force,
+                    )?;
+                    parts.push(format!(
+                        "{:.1} N at {c:.1?} along {dir:.2?} (σ {sigma:.1} mm, {patch} triangles, peak {peak:.2} kPa)",
+                        force / 1000.0
+                    ));
+                }
+                format!("random packs: {}", parts.join("; "))
+            } else {
+                let m = unit([uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)]);
+                let along = |v: u32| {
+                    let p = nodes[v as usize];
+                    p[0] * m[0] + p[1] * m[1] + p[2] * m[2]
+                };
+                let mut proj: Vec<f64> = cands.iter().map(|&v| along(v)).collect();
+                proj.sort_by(f64::total_cmp);
+                let fraction = uniform(0.15, 0.5);
+                let cut = proj[((1.0 - fraction) * proj.len() as f64) as usize % proj.len()];
+                let cap: Vec<[u32; 3]> = boundary
+                    .triangles
+                    .iter()
+                    .copied()
+                    .filter(|t| {
+                        t.iter()
+                            .all(|&v| !labels.bare_area[v as usize] && along(v) >= cut)
+                    })
+                    .collect();
+                if cap.is_empty() {
+                    return Err("the random cap has no triangles".into());
+                }
+                let p = ls * uniform(0.2, 1.2);
+                loads::add_pressure(&mut load, nodes, &cap, p);
+                format!(
+                    "pressure {p:.2} kPa on {} triangles, the {:.0} % of the surface farthest along {m:.2?}",
+                    cap.len(),
+                    100.0 * fraction
+                )
+            };
+            format!("table tilt {rt:.0}° head-up, {lat:.0}° lateral; {loads_text}")
         }
         Pattern::V => {
             let (rt, lat) = (uniform(0.0, 5.0), uniform(-5.0, 5.0));
