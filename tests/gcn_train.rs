@@ -573,7 +573,7 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
 fn the_built_in_model_loads_and_corrects_a_registration() {
     use librplus::register::pipeline::{Method, Prepared, register};
     let models = librplus::gcn::io::builtin_models().unwrap();
-    assert_eq!(models.len(), 2, "the built-in model is an ensemble of two");
+    assert!(!models.is_empty(), "the built-in model has members");
     for (k, model) in models.iter().enumerate() {
         model.config.validate().unwrap();
         let command = model.provenance["command"].as_str().unwrap_or_default();

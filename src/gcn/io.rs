@@ -265,35 +265,22 @@ const BUILTIN_ENSEMBLE: &str = include_str!(concat!(
 
 /// The members of the built-in ensemble: name, `model.json`, weights (in `ensemble.json`'s order;
 /// a unit test checks the two lists agree).
-const BUILTIN_MEMBERS: [(&str, &str, &[u8]); 2] = [
-    (
-        "rich7-pattern-v",
-        include_str!(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/assets/models/default/rich7-pattern-v/model.json"
-        )),
-        include_bytes!(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/assets/models/default/rich7-pattern-v/weights.bin"
-        )),
-    ),
-    (
-        "rich13-pattern-v",
-        include_str!(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/assets/models/default/rich13-pattern-v/model.json"
-        )),
-        include_bytes!(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/assets/models/default/rich13-pattern-v/weights.bin"
-        )),
-    ),
-];
+const BUILTIN_MEMBERS: [(&str, &str, &[u8]); 1] = [(
+    "rich7v-pattern-v",
+    include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/models/default/rich7v-pattern-v/model.json"
+    )),
+    include_bytes!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/models/default/rich7v-pattern-v/weights.bin"
+    )),
+)];
 
-/// The default SR-GCN built into this crate (`assets/models/default/`, an ensemble directory:
-/// two networks trained on the paper preset by the commands in `ensemble.json` and their
-/// provenance; see `assets/models/default/README.md`), on the CPU: its members, whose
-/// corrections LIBR+ averages. Each member's provenance has `"builtin": true` and its name
+/// The default SR-GCN built into this crate (`assets/models/default/`, an ensemble directory,
+/// since session 14 of one network trained on the paper preset's patterns by the commands in
+/// `ensemble.json` and its provenance; see `assets/models/default/README.md`), on the CPU: its
+/// members, whose corrections LIBR+ averages. Each member's provenance has `"builtin": true` and its name
 /// under `"member"`.
 pub fn builtin_models() -> Result<Vec<TrainedModel>, String> {
     let file: EnsembleFile = serde_json::from_str(BUILTIN_ENSEMBLE)
