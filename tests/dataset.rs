@@ -524,7 +524,7 @@ fn paired_categories_share_a_blocks_draw_and_add_planes() {
     }
 }
 
-/// `--patterns` adds the random-pack augmentation X beside the paper's patterns without changing
+/// `--patterns` adds the augmentation X (random packs or caps) beside the paper's patterns without changing
 /// any other deformation (each deformation's seed depends on its geometry, pattern and index
 /// only), keeps V for the held-out geometry, and refuses unknown and repeated names by name.
 #[test]

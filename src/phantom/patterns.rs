@@ -38,9 +38,9 @@ pub enum Pattern {
     W,
     /// Open surgery: posterior packing, large anterior motion (test only).
     V,
-    /// Random packs anywhere on the surface: a training augmentation for learning residuals of
-    /// loads the named patterns do not cover (not one of the paper's patterns; never a test
-    /// pattern).
+    /// Random packs anywhere off the bare area, or a broad pressure on a random cap of the
+    /// surface: a training augmentation for learning residuals of loads the named patterns do not
+    /// cover (not one of the paper's patterns; never a test pattern).
     X,
 }
 
