@@ -1029,3 +1029,69 @@ fn validation_by_geometry_holds_out_one_whole_training_liver() {
         "the seed does not change the validation liver"
     );
 }
+
+#[test]
+fn position_jitter_moves_only_the_position_inputs_by_one_affine_map() {
+    use librplus::gcn::sample::PositionJitter;
+    let f = fixture();
+    let cfg = SrGcnConfig::new();
+    assert!(cfg.libr_input && cfg.bipartite);
+    let (s, _) = samples(&f, &cfg, 0..1);
+    let orig = &s[0].data;
+    // Deterministic for a seed, different across seeds, the identity at strength 0, and of
+    // about the strength asked for.
+    let j = PositionJitter::draw(0.2, 7);
+    assert_eq!(j, PositionJitter::draw(0.2, 7));
+    assert_ne!(j, PositionJitter::draw(0.2, 8));
+    let id = PositionJitter::draw(0.0, 7);
+    assert_eq!(id.a, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+    assert_eq!(id.t, [0.0; 3]);
+    let dev = (0..3)
+        .flat_map(|i| (0..3).map(move |k| (i, k)))
+        .map(|(i, k)| (j.a[i][k] - if i == k { 1.0 } else { 0.0 }).abs())
+        .chain(j.t.iter().map(|x| x.abs()))
+        .fold(0f32, f32::max);
+    assert!(dev > 0.02 && dev <= 0.2, "largest entry change {dev}");
+    let got = orig.jittered(&cfg, &j);
+    let map = |p: &[f32]| -> [f64; 3] {
+        [0, 1, 2]
+            .map(|i| (0..3).map(|k| j.a[i][k] as f64 * p[k] as f64).sum::<f64>() + j.t[i] as f64)
+    };
+    let c = orig.channels;
+    assert_eq!(c, got.channels);
+    assert!(c > 6);
+    for (a, b) in orig
+        .node_features
+        .chunks_exact(c)
+        .zip(got.node_features.chunks_exact(c))
+    {
+        // Channels 0–2 (preoperative) and 3–5 (LIBR-deformed) are positions: mapped.
+        for start in [0, 3] {
+            let want = map(&a[start..start + 3]);
+            for k in 0..3 {
+                assert!(
+                    (b[start + k] as f64 - want[k]).abs() < 1e-5,
+                    "{a:?} → {b:?}"
+                );
+            }
+        }
+        // The rest (the LIBR displacement, in output units) is not.
+        assert_eq!(&a[6..], &b[6..]);
+    }
+    let (ba, bb) = (
+        orig.bipartite.as_ref().unwrap(),
+        got.bipartite.as_ref().unwrap(),
+    );
+    assert_eq!(ba.graph.pseudo, bb.graph.pseudo);
+    for (p, q) in ba.features.chunks_exact(3).zip(bb.features.chunks_exact(3)) {
+        let want = map(p);
+        for k in 0..3 {
+            assert!((q[k] as f64 - want[k]).abs() < 1e-5);
+        }
+    }
+    assert_eq!(orig.target, got.target);
+    assert_eq!(orig.sparse_target, got.sparse_target);
+    // Strength 0 leaves the sample as it was.
+    let same = orig.jittered(&cfg, &id);
+    assert_eq!(same.node_features, orig.node_features);
+}

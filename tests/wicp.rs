@@ -728,3 +728,66 @@ fn preop_model_reads_back_from_dataset_arrays() {
     let m = preop_model_from_file(&file, &MeshFile::default()).unwrap();
     assert!(m.vessel_segments.is_empty());
 }
+
+#[test]
+fn surface_only_registration_ignores_the_ultrasound_points() {
+    let params = MeasureParams {
+        surface_noise_mm: 0.0,
+        us_noise_mm: 0.0,
+        ..MeasureParams::default()
+    };
+    let s = scenario(Category::Planes3, &params, 61);
+    let mut meas = measurements(&s);
+    // The posterior moved 15 mm since imaging: the ultrasound points disagree with a rigid fit.
+    let mut moved = 0;
+    for (p, k) in meas.points.iter_mut().zip(&meas.kind) {
+        if *k != MeasuredKind::Surface {
+            p[1] -= 15.0;
+            moved += 1;
+        }
+    }
+    assert!(moved >= 10, "{moved} ultrasound points");
+    let only = WicpParams {
+        surface_only: true,
+        ..tight()
+    };
+    let r = run(&meas, &only);
+    assert!(r.degenerate.is_none() && r.warnings.is_empty(), "{r:?}");
+    let (mean, max) = tre(&r.image_to_physical, &s.image_to_physical);
+    assert!(max < 0.2, "surface only: largest node error {max} mm");
+    // The same as registering the surface points given alone.
+    let keep: Vec<usize> = (0..meas.points.len())
+        .filter(|&i| meas.kind[i] == MeasuredKind::Surface)
+        .collect();
+    let alone = Measurements {
+        points: keep.iter().map(|&i| meas.points[i]).collect(),
+        kind: vec![MeasuredKind::Surface; keep.len()],
+        feature: keep.iter().map(|&i| meas.feature[i]).collect(),
+        initial_alignment: meas.initial_alignment,
+    };
+    assert_eq!(run(&alone, &tight()).image_to_physical, r.image_to_physical);
+    // Every point: the moved ones pull the fit away.
+    let all = run(&meas, &tight());
+    let (mean_all, _) = tre(&all.image_to_physical, &s.image_to_physical);
+    assert!(
+        mean_all > 1.0 && mean_all > 10.0 * mean,
+        "all points {mean_all} mm, surface only {mean} mm"
+    );
+    // Fewer than 3 surface points: every point, with a warning.
+    let mut few = meas.clone();
+    let mut seen = 0;
+    for k in few.kind.iter_mut() {
+        if *k == MeasuredKind::Surface {
+            seen += 1;
+            if seen > 2 {
+                *k = MeasuredKind::PosteriorContour;
+            }
+        }
+    }
+    let r = run(&few, &only);
+    assert!(
+        r.warnings.iter().any(|w| w.contains("2 anterior-surface")),
+        "{:?}",
+        r.warnings
+    );
+}

@@ -173,6 +173,10 @@ struct TrainArgs {
     /// Add the measured-misfit input channels to the mesh branch (not in the paper).
     #[arg(long)]
     misfit_input: bool,
+    /// Add the surface input channels to the mesh branch: a boundary flag and the outward
+    /// normal of each node, from the preoperative mesh (not in the paper)
+    #[arg(long)]
+    surface_input: bool,
     /// Plain convolutions in the mesh branch instead of residual blocks (as format-2 models).
     #[arg(long)]
     no_residual: bool,
@@ -201,6 +205,12 @@ struct TrainArgs {
     /// (0: none)
     #[arg(long, default_value_t = 0.0)]
     weight_decay: f64,
+    /// Jitter the normalised position inputs (preoperative and LIBR-deformed coordinates,
+    /// bipartite features) of every training step by a random affine map of this strength
+    /// (rotation, shear, scaling and translation up to about this fraction of the liver's RMS
+    /// radius; 0: none). Validation and inference are never jittered
+    #[arg(long, default_value_t = 0.0)]
+    position_jitter: f64,
     /// What validation (early stopping, the correction scale) holds out of the training
     /// scenarios: `deformations` (about one in ten whole deformations; on the random split a
     /// tenth of the blocks) or `geometry` (one whole training liver, judging generalisation to
@@ -235,6 +245,10 @@ struct LibrOpts {
     /// correction (default 5; 0: none)
     #[arg(long)]
     refit_iterations: Option<usize>,
+    /// The rigid stage (wICP) registers the anterior-surface points alone, as Clements et al.
+    /// and the LIBR+ paper's wICP baseline do; ultrasound points are then used by LIBR only
+    #[arg(long)]
+    wicp_surface_only: bool,
 }
 
 impl LibrOpts {
@@ -255,6 +269,7 @@ impl LibrOpts {
         if let Some(k) = self.refit_iterations {
             p.refit_iterations = k;
         }
+        p.wicp.surface_only = self.wicp_surface_only;
         p
     }
 }
@@ -2396,6 +2411,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
     let split = TrainSplit::parse(&a.split).map_err(|e| anyhow::anyhow!("--split: {e}"))?;
     let base = SrGcnConfig::new()
         .with_misfit_input(a.misfit_input)
+        .with_surface_input(a.surface_input)
         .with_width(a.width)
         .with_convs(a.convs)
         .with_kernel_size(a.kernel_size)
@@ -2450,6 +2466,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
         refit_loss,
         average_epochs: a.average_epochs,
         weight_decay: a.weight_decay,
+        position_jitter: a.position_jitter,
         schedule: match a.schedule {
             ScheduleArg::Plateau => tr::Schedule::Plateau,
             ScheduleArg::Cosine => tr::Schedule::Cosine,

@@ -162,6 +162,7 @@ fn same_inputs(a: &TrainedModel, b: &TrainedModel) -> bool {
         && a.n_top == b.n_top
         && a.libr_input == b.libr_input
         && a.misfit_input == b.misfit_input
+        && a.surface_input == b.surface_input
         && a.target == b.target
 }
 

@@ -111,6 +111,13 @@ pub struct SrGcnConfig {
     /// preset it pointed the way of the true residual at 57 of 116 data vertices, chance level).
     #[config(default = false)]
     pub misfit_input: bool,
+    /// Whether the mesh branch also gets each node's place on the organ's boundary: 1 on the
+    /// boundary (0 inside) and the area-weighted outward unit normal there (zero inside), 4
+    /// channels from the preoperative mesh alone. Not in the paper: where the surface faces
+    /// (anterior to a laparoscope, posterior onto the organ bed) says where supports and loads
+    /// can act, which the coordinates tell only in one liver's frame.
+    #[config(default = false)]
+    pub surface_input: bool,
     /// Whether the width-preserving convolutions are residual blocks (`x ← x + ELU(conv(x))`, and
     /// on the way up `x ← unpool(x) + ELU(conv([skip, unpool(x)]))`). Not in the paper. Without
     /// them the U-Net is a plain stack of about 15 spline convolutions whose PyG initialisation
@@ -143,9 +150,11 @@ impl SrGcnConfig {
     }
 
     /// Input channels of the mesh branch: preoperative coordinates, plus the LIBR-deformed ones
-    /// and LIBR's displacement, plus the misfit channels.
+    /// and LIBR's displacement, plus the misfit channels, plus the surface channels.
     pub fn mesh_inputs(&self) -> usize {
-        3 + if self.libr_input { 6 } else { 0 } + if self.misfit_input { 4 } else { 0 }
+        3 + if self.libr_input { 6 } else { 0 }
+            + if self.misfit_input { 4 } else { 0 }
+            + if self.surface_input { 4 } else { 0 }
     }
 
     /// Checks the settings.

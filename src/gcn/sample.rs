@@ -33,6 +33,9 @@ pub struct CaseFrame {
     pub graph: Graph,
     /// Normalised preoperative coordinates, `[V, 3]` row-major.
     pub preop: Vec<f32>,
+    /// Per node: 1 on the boundary (else 0) and the area-weighted outward unit normal there
+    /// (zero inside), `[V, 4]` row-major ([`SrGcnConfig::surface_input`]).
+    pub surface: Vec<f32>,
 }
 
 impl CaseFrame {
@@ -63,8 +66,31 @@ impl CaseFrame {
             scale,
             graph: mesh_graph(mesh)?,
             preop: Vec::new(),
+            surface: Vec::new(),
         };
         frame.preop = nodes.iter().flat_map(|p| frame.normalise(*p)).collect();
+        let boundary = mesh
+            .boundary_surface()
+            .map_err(|e| GcnError::Invalid(format!("the mesh's boundary: {e}")))?;
+        // Outward for positively oriented tets; flipped if the mesh is wound the other way.
+        let sign = if boundary.signed_volume() < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        frame.surface = boundary
+            .vertex_normals()
+            .iter()
+            .flat_map(|n| {
+                let on = n.iter().any(|x| *x != 0.0);
+                [
+                    if on { 1.0 } else { 0.0 },
+                    (sign * n[0]) as f32,
+                    (sign * n[1]) as f32,
+                    (sign * n[2]) as f32,
+                ]
+            })
+            .collect();
         Ok(frame)
     }
 
@@ -125,6 +151,48 @@ impl CaseFrame {
             to_start,
             from_start,
         })
+    }
+}
+
+/// A random affine map `p ↦ A p + t` of normalised coordinates, `A = I + s·G` and `t = s·h`
+/// with the entries of `G` and `h` uniform in [−1, 1] (`s` the strength): rotation, shear,
+/// scaling and translation of up to about `s` (a fraction of the case's RMS radius).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionJitter {
+    /// The linear part, row-major.
+    pub a: [[f32; 3]; 3],
+    /// The translation.
+    pub t: [f32; 3],
+}
+
+impl PositionJitter {
+    /// Draws a map of strength `strength` from `seed` (deterministic).
+    pub fn draw(strength: f64, seed: u64) -> Self {
+        let mut state = seed ^ 0x9e37_79b9_7f4a_7c15;
+        let mut uniform = move || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^= z >> 31;
+            2.0 * ((z >> 11) as f64 / (1u64 << 53) as f64) - 1.0
+        };
+        let mut a = [[0f32; 3]; 3];
+        for (i, row) in a.iter_mut().enumerate() {
+            for (j, x) in row.iter_mut().enumerate() {
+                *x = (if i == j { 1.0 } else { 0.0 } + strength * uniform()) as f32;
+            }
+        }
+        let t = [0; 3].map(|_| (strength * uniform()) as f32);
+        Self { a, t }
+    }
+
+    /// Maps one point `[x, y, z]` in place.
+    pub fn apply(&self, p: &mut [f32]) {
+        let q = [p[0], p[1], p[2]];
+        for (i, x) in p.iter_mut().take(3).enumerate() {
+            *x = self.a[i][0] * q[0] + self.a[i][1] * q[1] + self.a[i][2] * q[2] + self.t[i];
+        }
     }
 }
 
@@ -363,6 +431,9 @@ impl SampleData {
                 let mean = |a: usize| if w > 0.0 { (m[a] / w) as f32 } else { 0.0 };
                 node_features.extend([mean(0), mean(1), mean(2), w.min(1.0) as f32]);
             }
+            if cfg.surface_input {
+                node_features.extend_from_slice(&frame.surface[4 * i..4 * i + 4]);
+            }
         }
         let target = match truth_physical {
             None => None,
@@ -391,6 +462,28 @@ impl SampleData {
             sparse_target,
             target,
         })
+    }
+
+    /// A copy whose normalised **position** channels (the preoperative and LIBR-deformed node
+    /// coordinates, and every bipartite feature) are mapped by `jitter`; the displacement,
+    /// misfit and target channels are left as they are. A training augmentation: the network
+    /// cannot tie a correction to where a node sits in the normalised frame to better than the
+    /// jitter, and must read it from the shape and the LIBR displacement instead.
+    pub fn jittered(&self, cfg: &SrGcnConfig, jitter: &PositionJitter) -> Self {
+        let mut out = self.clone();
+        let c = self.channels;
+        let position_channels: &[usize] = if cfg.libr_input { &[0, 3] } else { &[0] };
+        for row in out.node_features.chunks_exact_mut(c) {
+            for &k in position_channels {
+                jitter.apply(&mut row[k..k + 3]);
+            }
+        }
+        if let Some(b) = out.bipartite.as_mut() {
+            for p in b.features.chunks_exact_mut(3) {
+                jitter.apply(p);
+            }
+        }
+        out
     }
 
     /// The mesh-branch input `[V, channels]` on a device.
@@ -446,6 +539,55 @@ impl SampleData {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_surface_channels_flag_the_boundary_and_point_outwards() {
+        // A box from 0 to (40, 30, 20) mm; every node of a face centre's neighbourhood has the
+        // face's normal, the corners a diagonal one, and interior nodes nothing.
+        let mesh = crate::mesh::procedural::box_mesh([40.0, 30.0, 20.0], [4, 3, 2], 0.0);
+        let frame = CaseFrame::new(&mesh).unwrap();
+        assert_eq!(frame.surface.len(), 4 * mesh.num_nodes());
+        let mut flagged = 0;
+        for (p, s) in mesh.nodes().iter().zip(frame.surface.chunks_exact(4)) {
+            let on = [0, 1, 2].iter().any(|&a| {
+                let hi = [40.0, 30.0, 20.0][a];
+                p[a].abs() < 1e-9 || (p[a] - hi).abs() < 1e-9
+            });
+            let n = [s[1] as f64, s[2] as f64, s[3] as f64];
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            if on {
+                flagged += 1;
+                assert_eq!(s[0], 1.0);
+                assert!((len - 1.0).abs() < 1e-6, "{p:?}: |n| = {len}");
+                // Outward: the normal points away from the box centre.
+                let c = [20.0, 15.0, 10.0];
+                let out: f64 = (0..3).map(|a| n[a] * (p[a] - c[a])).sum();
+                assert!(out > 0.0, "{p:?}: {n:?} points inwards");
+            } else {
+                assert_eq!(s, &[0.0; 4], "{p:?} is inside");
+            }
+        }
+        assert_eq!(flagged, 5 * 4 * 3 - 3 * 2);
+        // The node at the middle of the x = 40 face (x = 40, y = 10 or 20, z = 10).
+        let i = mesh
+            .nodes()
+            .iter()
+            .position(|p| *p == [40.0, 10.0, 10.0])
+            .unwrap();
+        let s = &frame.surface[4 * i..4 * i + 4];
+        assert!((s[1] - 1.0).abs() < 1e-6 && s[2].abs() < 1e-6 && s[3].abs() < 1e-6);
+        // Winding the tets the other way (a mirrored mesh reads so) still points outwards.
+        let flipped = TetMesh::new(
+            mesh.nodes().to_vec(),
+            mesh.tets()
+                .iter()
+                .map(|t| [t[1], t[0], t[2], t[3]])
+                .collect(),
+        )
+        .unwrap();
+        let f2 = CaseFrame::new(&flipped).unwrap();
+        assert_eq!(&f2.surface[4 * i..4 * i + 4], s);
+    }
 
     #[test]
     fn grid_knn_equals_brute_force() {

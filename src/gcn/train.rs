@@ -22,7 +22,7 @@
 use super::GcnError;
 use super::io::{TrainedModel, save_model};
 use super::model::{Loss, MeshGraphs, SrGcn, SrGcnConfig, Target};
-use super::sample::{CaseFrame, SampleData};
+use super::sample::{CaseFrame, PositionJitter, SampleData};
 use crate::dataset::Manifest;
 use crate::dataset::read::{GeometryData, ScenarioData, load_geometry};
 use crate::mesh::rigid::Rigid;
@@ -33,6 +33,7 @@ use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -534,6 +535,10 @@ pub struct TrainOptions {
     pub average_epochs: f64,
     /// L2 penalty on the stage-2 weights, added to their gradients before Adam (0: none).
     pub weight_decay: f64,
+    /// Strength of a random affine jitter of the normalised position inputs, drawn afresh for
+    /// every training step ([`super::sample::PositionJitter`]; validation is never jittered).
+    /// 0: none.
+    pub position_jitter: f64,
     /// Stage 2 stops before an epoch that would end past this many minutes of training (judged
     /// by the last epoch's duration).
     pub max_minutes: f64,
@@ -558,6 +563,7 @@ impl Default for TrainOptions {
             refit_loss: false,
             average_epochs: 0.0,
             weight_decay: 0.0,
+            position_jitter: 0.0,
             init: None,
             max_minutes: 25.0,
         }
@@ -1020,6 +1026,12 @@ pub fn train(
             opts.weight_decay
         ));
     }
+    if !(opts.position_jitter >= 0.0 && opts.position_jitter.is_finite()) {
+        return Err(format!(
+            "position_jitter must be finite and ≥ 0, got {}",
+            opts.position_jitter
+        ));
+    }
     if train.is_empty() || valid.is_empty() {
         return Err("no training or no validation samples".into());
     }
@@ -1084,6 +1096,27 @@ pub fn train(
         Some((s.refit.as_ref()?, if k == 0 { &m.0 } else { &m.1 }))
     }
     let err = |e: GcnError| e.to_string();
+    // A training sample as the network sees it at step (stage, epoch, k): jittered when asked.
+    fn seen<'a>(
+        opts: &TrainOptions,
+        s: &'a SampleData,
+        stage: u64,
+        epoch: usize,
+        k: usize,
+    ) -> Cow<'a, SampleData> {
+        if opts.position_jitter > 0.0 {
+            let seed = opts
+                .seed
+                .wrapping_mul(0x100_0000_01b3)
+                .wrapping_add((stage << 48) ^ ((epoch as u64) << 32) ^ k as u64);
+            Cow::Owned(s.jittered(
+                &opts.config,
+                &PositionJitter::draw(opts.position_jitter, seed),
+            ))
+        } else {
+            Cow::Borrowed(s)
+        }
+    }
     let mut log = Vec::new();
     let mut order: Vec<usize> = (0..train.len()).collect();
     // Stage 1: the bipartite branch reconstructs its input.
@@ -1093,7 +1126,9 @@ pub fn train(
             shuffle(&mut order, opts.seed.wrapping_add(epoch as u64));
             let mut sum = 0.0;
             for (k, &i) in order.iter().enumerate() {
-                let (_, bip) = train[i].data.tensors(cfg, &device).map_err(err)?;
+                let (_, bip) = seen(opts, &train[i].data, 1, epoch, k)
+                    .tensors(cfg, &device)
+                    .map_err(err)?;
                 let b = bip.ok_or("internal: no bipartite input")?;
                 let o = net
                     .forward_bipartite(&b)
@@ -1215,7 +1250,7 @@ pub fn train(
                 &net,
                 &frozen,
                 cfg,
-                &s.data,
+                &seen(opts, &s.data, 2, epoch, k),
                 &graphs[&s.geometry].0,
                 through(&modes, s, 0),
                 &plain,
@@ -1584,6 +1619,30 @@ mod tests {
                 Err(e) => e,
             };
             assert!(err.contains("weight_decay"), "{wd}: {err}");
+        }
+    }
+
+    #[test]
+    fn training_refuses_a_negative_or_non_finite_position_jitter() {
+        for j in [-0.1, f64::NAN, f64::INFINITY] {
+            let opts = TrainOptions {
+                position_jitter: j,
+                ..TrainOptions::default()
+            };
+            let out = std::env::temp_dir().join("librplus-jitter-refused");
+            let err = match train(
+                &opts,
+                &BTreeMap::new(),
+                &[],
+                &[],
+                &out,
+                &serde_json::json!({}),
+                &|_, _, _, _, _| {},
+            ) {
+                Ok(_) => panic!("position jitter {j} accepted"),
+                Err(e) => e,
+            };
+            assert!(err.contains("position_jitter"), "{j}: {err}");
         }
     }
 }

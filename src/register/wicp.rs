@@ -20,11 +20,11 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::Measurements;
 use super::PreopModel;
 use super::correspondence::{
     Correspondence, CorrespondenceParams, MatchStats, validate_measurements,
 };
+use super::{MeasuredKind, Measurements};
 use crate::mesh::rigid::Rigid;
 
 /// Parameters of [`wicp`].
@@ -38,6 +38,13 @@ pub struct WicpParams {
     pub tolerance_mm: f64,
     /// Weights and trimming of the pairs.
     pub correspondence: CorrespondenceParams,
+    /// Register on the anterior-surface points alone (with their salient features), as Clements
+    /// et al. did and as the LIBR+ paper's wICP baseline does (its TRE is the same whatever
+    /// ultrasound planes a scenario has); ultrasound contour and vessel points are then left to
+    /// LIBR. With fewer than 3 surface points every point is used, with a warning. Default
+    /// false: every point.
+    #[serde(default)]
+    pub surface_only: bool,
 }
 
 impl Default for WicpParams {
@@ -46,6 +53,7 @@ impl Default for WicpParams {
             max_iterations: 200,
             tolerance_mm: 1e-3,
             correspondence: CorrespondenceParams::default(),
+            surface_only: false,
         }
     }
 }
@@ -112,6 +120,36 @@ pub fn wicp(
             model.mesh.num_nodes()
         ));
     }
+    // Clements' data: the anterior-surface points alone, when asked and there are enough.
+    let mut warnings = Vec::new();
+    let surface;
+    let meas = if params.surface_only {
+        let keep: Vec<usize> = (0..meas.points.len())
+            .filter(|&i| meas.kind[i] == MeasuredKind::Surface)
+            .collect();
+        if keep.len() >= 3 {
+            surface = Measurements {
+                points: keep.iter().map(|&i| meas.points[i]).collect(),
+                kind: vec![MeasuredKind::Surface; keep.len()],
+                feature: if meas.feature.is_empty() {
+                    Vec::new()
+                } else {
+                    keep.iter().map(|&i| meas.feature[i]).collect()
+                },
+                initial_alignment: meas.initial_alignment,
+            };
+            &surface
+        } else {
+            warnings.push(format!(
+                "{} anterior-surface point(s): the rigid stage used every point instead of the \
+                 surface alone",
+                keep.len()
+            ));
+            meas
+        }
+    } else {
+        meas
+    };
     let start = meas.initial_alignment.unwrap_or_default();
     let cap = params.correspondence.max_distance_mm;
     let to_image = |t: &Rigid| -> Vec<[f64; 3]> {
@@ -139,7 +177,6 @@ pub fn wicp(
             dist[worst]
         ));
     }
-    let mut warnings = Vec::new();
     if !far.is_empty() {
         warnings.push(format!(
             "{} measured point(s) more than {cap} mm from the model after the initial alignment \
