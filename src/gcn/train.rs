@@ -1599,50 +1599,36 @@ mod tests {
     }
 
     #[test]
-    fn training_refuses_a_negative_or_non_finite_weight_decay() {
-        for wd in [-1e-3, f64::NAN, f64::INFINITY] {
-            let opts = TrainOptions {
-                weight_decay: wd,
-                ..TrainOptions::default()
-            };
-            let out = std::env::temp_dir().join("librplus-wd-refused");
-            let err = match train(
-                &opts,
-                &BTreeMap::new(),
-                &[],
-                &[],
-                &out,
-                &serde_json::json!({}),
-                &|_, _, _, _, _| {},
-            ) {
-                Ok(_) => panic!("weight decay {wd} accepted"),
-                Err(e) => e,
-            };
-            assert!(err.contains("weight_decay"), "{wd}: {err}");
-        }
-    }
-
-    #[test]
-    fn training_refuses_a_negative_or_non_finite_position_jitter() {
-        for j in [-0.1, f64::NAN, f64::INFINITY] {
-            let opts = TrainOptions {
-                position_jitter: j,
-                ..TrainOptions::default()
-            };
-            let out = std::env::temp_dir().join("librplus-jitter-refused");
-            let err = match train(
-                &opts,
-                &BTreeMap::new(),
-                &[],
-                &[],
-                &out,
-                &serde_json::json!({}),
-                &|_, _, _, _, _| {},
-            ) {
-                Ok(_) => panic!("position jitter {j} accepted"),
-                Err(e) => e,
-            };
-            assert!(err.contains("position_jitter"), "{j}: {err}");
+    fn training_refuses_a_negative_or_non_finite_weight_decay_or_position_jitter() {
+        let with_decay = |x| TrainOptions {
+            weight_decay: x,
+            ..TrainOptions::default()
+        };
+        let with_jitter = |x| TrainOptions {
+            position_jitter: x,
+            ..TrainOptions::default()
+        };
+        let cases: [(&str, &dyn Fn(f64) -> TrainOptions); 2] = [
+            ("weight_decay", &with_decay),
+            ("position_jitter", &with_jitter),
+        ];
+        for (field, options) in cases {
+            for x in [-1e-3, f64::NAN, f64::INFINITY] {
+                let out = std::env::temp_dir().join("librplus-options-refused");
+                let err = match train(
+                    &options(x),
+                    &BTreeMap::new(),
+                    &[],
+                    &[],
+                    &out,
+                    &serde_json::json!({}),
+                    &|_, _, _, _, _| {},
+                ) {
+                    Ok(_) => panic!("{field} {x} accepted"),
+                    Err(e) => e,
+                };
+                assert!(err.contains(field), "{field} {x}: {err}");
+            }
         }
     }
 }
