@@ -265,20 +265,33 @@ const BUILTIN_ENSEMBLE: &str = include_str!(concat!(
 
 /// The members of the built-in ensemble: name, `model.json`, weights (in `ensemble.json`'s order;
 /// a unit test checks the two lists agree).
-const BUILTIN_MEMBERS: [(&str, &str, &[u8]); 1] = [(
-    "rich7v-pattern-v",
-    include_str!(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/assets/models/default/rich7v-pattern-v/model.json"
-    )),
-    include_bytes!(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/assets/models/default/rich7v-pattern-v/weights.bin"
-    )),
-)];
+const BUILTIN_MEMBERS: [(&str, &str, &[u8]); 2] = [
+    (
+        "rich7v-pattern-v",
+        include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich7v-pattern-v/model.json"
+        )),
+        include_bytes!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich7v-pattern-v/weights.bin"
+        )),
+    ),
+    (
+        "rich13v-pattern-v",
+        include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich13v-pattern-v/model.json"
+        )),
+        include_bytes!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/assets/models/default/rich13v-pattern-v/weights.bin"
+        )),
+    ),
+];
 
 /// The default SR-GCN built into this crate (`assets/models/default/`, an ensemble directory,
-/// since session 14 of one network trained on the paper preset's patterns by the commands in
+/// since session 15 of two networks trained on the paper preset's patterns by the commands in
 /// `ensemble.json` and its provenance; see `assets/models/default/README.md`), on the CPU: its
 /// members, whose corrections LIBR+ averages. Each member's provenance has `"builtin": true` and its name
 /// under `"member"`.
@@ -521,6 +534,8 @@ fn model_from_parts(
         c.entry("correction_scale").or_insert(1.0.into());
         // Files without a first-level cluster count coarsen by `pool_ratio`.
         c.entry("clusters").or_insert(0.into());
+        // Files from before the surface channels (session 15) do not read them.
+        c.entry("surface_input").or_insert(false.into());
     }
     let file: ModelFile =
         serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;
