@@ -168,15 +168,8 @@ pub struct PositionJitter {
 impl PositionJitter {
     /// Draws a map of strength `strength` from `seed` (deterministic).
     pub fn draw(strength: f64, seed: u64) -> Self {
-        let mut state = seed ^ 0x9e37_79b9_7f4a_7c15;
-        let mut uniform = move || {
-            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            let mut z = state;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            z ^= z >> 31;
-            2.0 * ((z >> 11) as f64 / (1u64 << 53) as f64) - 1.0
-        };
+        let mut rng = crate::util::SplitMix64::new(seed);
+        let mut uniform = move || 2.0 * rng.next_f64() - 1.0;
         let mut a = [[0f32; 3]; 3];
         for (i, row) in a.iter_mut().enumerate() {
             for (j, x) in row.iter_mut().enumerate() {
