@@ -120,6 +120,15 @@ fn run(meas: &Measurements, params: &WicpParams) -> WicpResult {
     wicp(&l.model, &l.corr, meas, params).unwrap()
 }
 
+/// Measurement simulation without tracking or ultrasound noise.
+fn noise_free() -> MeasureParams {
+    MeasureParams {
+        surface_noise_mm: 0.0,
+        us_noise_mm: 0.0,
+        ..MeasureParams::default()
+    }
+}
+
 fn tight() -> WicpParams {
     WicpParams {
         max_iterations: 1000,
@@ -143,11 +152,7 @@ fn assert_finite(r: &WicpResult) {
 
 #[test]
 fn noise_free_scenarios_recover_the_true_transform() {
-    let params = MeasureParams {
-        surface_noise_mm: 0.0,
-        us_noise_mm: 0.0,
-        ..MeasureParams::default()
-    };
+    let params = noise_free();
     for (category, seed) in [
         (Category::Planes3, 1),
         (Category::Planes16, 2),
@@ -731,11 +736,7 @@ fn preop_model_reads_back_from_dataset_arrays() {
 
 #[test]
 fn surface_only_registration_ignores_the_ultrasound_points() {
-    let params = MeasureParams {
-        surface_noise_mm: 0.0,
-        us_noise_mm: 0.0,
-        ..MeasureParams::default()
-    };
+    let params = noise_free();
     let s = scenario(Category::Planes3, &params, 61);
     let mut meas = measurements(&s);
     // The posterior moved 15 mm since imaging: the ultrasound points disagree with a rigid fit.
