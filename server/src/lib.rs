@@ -18,7 +18,7 @@ pub mod service;
 use anyhow::Context;
 use cases::Case;
 use config::ServerConfig;
-use librplus::gcn::io::{TrainedModel, builtin_models, load_models_cpu};
+use librplus::gcn::io::{TrainedModel, builtin_models, load_models_on_device};
 use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
 use service::{Shared, Svc};
@@ -192,7 +192,7 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, Str
         return Ok(None);
     }
     let models = match &config.model {
-        Some(dir) => load_models_cpu(dir).map_err(|e| format!("model: {e}"))?,
+        Some(dir) => load_models_on_device(dir).map_err(|e| format!("model: {e}"))?,
         None => builtin_models().map_err(|e| format!("built-in model: {e}"))?,
     };
     let first = &models[0];

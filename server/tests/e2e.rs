@@ -1295,7 +1295,7 @@ async fn librplus_answers_through_the_same_api_as_the_library() {
     )
     .unwrap()
     .with_model(std::sync::Arc::new(
-        librplus::gcn::io::load_model_cpu(tmp.path()).unwrap(),
+        librplus::gcn::io::load_model_on_device(tmp.path()).unwrap(),
     ))
     .unwrap();
     let p = PipelineParams::default();

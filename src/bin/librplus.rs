@@ -21,6 +21,10 @@ use std::time::Instant;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Where SR-GCN training and inference compute: cpu, or (in a build with the `gpu` or
+    /// `vulkan` feature) gpu or gpu:N. wICP, LIBR and the FEM always run on the CPU.
+    #[arg(long, global = true, default_value = "cpu")]
+    device: String,
 }
 
 #[derive(Subcommand)]
@@ -682,6 +686,11 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
+    let device: librplus::gcn::device::ComputeDevice = cli
+        .device
+        .parse()
+        .map_err(|e: String| anyhow::anyhow!("--device: {e}"))?;
+    librplus::gcn::device::select(device).map_err(|e| anyhow::anyhow!("--device: {e}"))?;
     match cli.command {
         Command::Mesh(MeshCmd::Info { file, common }) => mesh_info(&file, &common),
         Command::Mesh(MeshCmd::Convert {
@@ -742,7 +751,11 @@ fn run(cli: Cli) -> Result<()> {
                 .install(|| librplus::gcn::bench::run(&b))
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
             let mut v = serde_json::to_value(&t)?;
-            v["impl"] = json!("librplus (burn 0.22.1 flex, CSR sparse product)");
+            v["impl"] = json!(match librplus::gcn::device::chosen() {
+                librplus::gcn::device::ComputeDevice::Cpu =>
+                    "librplus (burn 0.22.1 flex, CSR sparse product)".to_string(),
+                d => format!("librplus (burn 0.22.1 on {d}, gather/scatter-add product)"),
+            });
             v["nodes"] = json!(nodes);
             v["hidden"] = json!(hidden);
             v["layers"] = json!(layers);
@@ -811,7 +824,7 @@ fn ensemble(a: &EnsembleArgs) -> Result<()> {
         json!({ "command": command.join(" ") }),
     )
     .map_err(anyhow::Error::msg)?;
-    let models = librplus::gcn::io::load_models_cpu(&a.out).map_err(anyhow::Error::msg)?;
+    let models = librplus::gcn::io::load_models_on_device(&a.out).map_err(anyhow::Error::msg)?;
     println!("{}: ensemble of {} networks", a.out.display(), names.len());
     for (name, m) in names.iter().zip(&models) {
         let p = &m.provenance;
@@ -846,7 +859,8 @@ fn evaluate(a: &EvaluateArgs) -> Result<()> {
     }
     let model = match (&a.model, want_plus) {
         (Some(dir), _) => Some(shared_models(
-            librplus::gcn::io::load_models_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+            librplus::gcn::io::load_models_on_device(dir)
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
         )),
         (None, true) => Some(shared_models(
             librplus::gcn::io::builtin_models()
@@ -1024,7 +1038,8 @@ fn register_method(
     };
     let model = match (&a.model, method) {
         (Some(dir), Method::LibrPlus) => Some(shared_models(
-            librplus::gcn::io::load_models_cpu(dir).map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+            librplus::gcn::io::load_models_on_device(dir)
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
         )),
         (None, Method::LibrPlus) => Some(shared_models(
             librplus::gcn::io::builtin_models()
@@ -2237,7 +2252,7 @@ fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     };
     match (&a.model, method) {
         (Some(dir), Method::LibrPlus) => {
-            let m = librplus::gcn::io::load_models_cpu(dir)
+            let m = librplus::gcn::io::load_models_on_device(dir)
                 .map_err(|e| anyhow::anyhow!("--model: {e}"))?;
             case = case
                 .with_models(shared_models(m))
@@ -2426,7 +2441,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
     let (cfg, init_provenance) = match &a.init {
         None => (ablation_config(base, a.ablation, sparse)?, Value::Null),
         Some(dir) => {
-            let m = librplus::gcn::io::load_model(dir, &burn::tensor::Device::flex())
+            let m = librplus::gcn::io::load_model(dir, &librplus::gcn::device::compute())
                 .map_err(|e| anyhow::anyhow!("--init: {e}"))?;
             eprintln!(
                 "--init {}: its network and settings replace the network options",
@@ -2659,7 +2674,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
     let t_inf = Instant::now();
     let test_s =
         tr::build_samples(&cfg, &cases, &z, &params, false, false).map_err(anyhow::Error::msg)?;
-    let plain = burn::tensor::Device::flex();
+    let plain = librplus::gcn::device::compute();
     let mut graphs = std::collections::BTreeMap::new();
     for (g, gc) in &cases {
         graphs.insert(

@@ -10,7 +10,7 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::activation::elu;
-use burn::tensor::{Device, Distribution, Tensor};
+use burn::tensor::{Distribution, Tensor};
 
 use super::graph::Graph;
 use super::sample::knn;
@@ -155,7 +155,7 @@ pub fn run(b: &StackBench) -> Result<StackTimes, GcnError> {
     }
     let (graph, knn_k) = random_knn_graph(b.nodes, b.avg_degree, b.seed)?;
     let kernel = super::SplineKernel::new(vec![b.kernel; 3], vec![true; 3], 1)?;
-    let plain = Device::flex();
+    let plain = super::device::compute();
     let ad = plain.clone().autodiff();
     ad.seed(b.seed);
     let mut dims = vec![6];
@@ -204,6 +204,9 @@ pub fn run(b: &StackBench) -> Result<StackTimes, GcnError> {
         let loss = (out - y_ad.clone()).powi_scalar(2).mean();
         let grads = GradientsParams::from_grads(loss.backward(), &net);
         net = optim.step(1e-3, net.clone(), grads);
+        // A GPU runs the step asynchronously: wait for it (a no-op on the CPU).
+        ad.sync()
+            .map_err(|e| GcnError::Invalid(format!("device sync: {e:?}")))?;
         Ok(())
     })?;
     let (im, imin) = median_min(infer);

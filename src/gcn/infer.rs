@@ -13,7 +13,6 @@ use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::Measurements;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
-use burn::tensor::Device;
 
 /// What a correction is assumed to cost before one has been timed (s).
 const FIRST_ESTIMATE_S: f64 = 0.15;
@@ -53,7 +52,7 @@ impl LibrPlusCase {
             .into_iter()
             .map(|model| {
                 let graphs = frame
-                    .mesh_graphs(&model.config, &Device::flex())
+                    .mesh_graphs(&model.config, &crate::gcn::device::compute())
                     .map_err(|e| e.to_string())?;
                 Ok(Member { model, graphs })
             })

@@ -217,10 +217,11 @@ pub struct TrainedModel {
 }
 
 impl TrainedModel {
-    /// A network of `config` with freshly initialised weights (seeded) on the CPU device: what
-    /// training starts from; for tests of the plumbing around a model.
+    /// A network of `config` with freshly initialised weights (seeded) on the compute device
+    /// ([`super::device::compute`]): what training starts from; for tests of the plumbing around
+    /// a model.
     pub fn untrained(config: SrGcnConfig, seed: u64) -> Result<Self, String> {
-        let device = Device::flex();
+        let device = super::device::compute();
         device.seed(seed);
         let net = config.init(&device).map_err(|e| e.to_string())?;
         Ok(Self {
@@ -252,9 +253,10 @@ pub fn save_model(
     std::fs::write(dir.join("model.json"), j).map_err(|e| format!("{}: {e}", dir.display()))
 }
 
-/// Reads a model directory onto the CPU device.
-pub fn load_model_cpu(dir: &Path) -> Result<TrainedModel, String> {
-    load_model(dir, &Device::flex())
+/// Reads a model directory onto the compute device ([`super::device::compute`]: the CPU unless
+/// `librplus --device` chose a GPU).
+pub fn load_model_on_device(dir: &Path) -> Result<TrainedModel, String> {
+    load_model(dir, &super::device::compute())
 }
 
 /// `ensemble.json` of the model built into this crate (`assets/models/default/`).
@@ -311,7 +313,7 @@ pub fn builtin_models() -> Result<Vec<TrainedModel>, String> {
             let mut m = model_from_parts(
                 json,
                 weights,
-                &Device::flex(),
+                &super::device::compute(),
                 &Path::new("<built-in>").join(name).join("model.json"),
                 &Path::new("<built-in>").join(name).join("weights.bin"),
             )?;
@@ -352,7 +354,7 @@ pub fn save_ensemble(
     };
     check_members(dir, &file)?;
     for m in members {
-        load_model_cpu(&dir.join(m))?;
+        load_model_on_device(&dir.join(m))?;
     }
     let j = serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?;
     let p = dir.join("ensemble.json");
@@ -413,7 +415,7 @@ pub fn make_ensemble(
         }
     }
     for d in &dirs {
-        load_model_cpu(d)?;
+        load_model_on_device(d)?;
     }
     let mut names: Vec<String> = Vec::new();
     let mut sources_json = serde_json::Map::new();
@@ -467,14 +469,16 @@ fn read_ensemble(dir: &Path) -> Result<Option<EnsembleFile>, String> {
 }
 
 /// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
-/// directories), onto the CPU device: the networks LIBR+ runs, one for a model directory.
-pub fn load_models_cpu(dir: &Path) -> Result<Vec<TrainedModel>, String> {
+/// directories), onto the compute device ([`super::device::compute`]): the networks LIBR+ runs, one for a model directory.
+pub fn load_models_on_device(dir: &Path) -> Result<Vec<TrainedModel>, String> {
     let Some(file) = read_ensemble(dir)? else {
-        return Ok(vec![load_model_cpu(dir)?]);
+        return Ok(vec![load_model_on_device(dir)?]);
     };
     file.members
         .iter()
-        .map(|m| load_model_cpu(&dir.join(m)).map_err(|e| format!("ensemble member {m}: {e}")))
+        .map(|m| {
+            load_model_on_device(&dir.join(m)).map_err(|e| format!("ensemble member {m}: {e}"))
+        })
         .collect()
 }
 
@@ -568,7 +572,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         save_model(tmp.path(), &cfg, &m.net, serde_json::json!({})).unwrap();
         // A format-3 file keeps its switches.
-        let back = load_model_cpu(tmp.path()).unwrap();
+        let back = load_model_on_device(tmp.path()).unwrap();
         assert!(!back.config.residual && back.config.resolution == 0);
         // Rewrite it as format 2 did: no `residual`, no `resolution`.
         let p = tmp.path().join("model.json");
@@ -580,7 +584,7 @@ mod tests {
         c.remove("resolution");
         c.remove("clusters");
         std::fs::write(&p, j.to_string()).unwrap();
-        let old = load_model_cpu(tmp.path()).unwrap();
+        let old = load_model_on_device(tmp.path()).unwrap();
         assert!(!old.config.residual, "format 2 has no residual blocks");
         assert_eq!(old.config.resolution, 0, "format 2 runs on the full mesh");
         assert_eq!(
@@ -594,7 +598,7 @@ mod tests {
         // Format 1 is refused with a request to retrain.
         j["format"] = 1.into();
         std::fs::write(&p, j.to_string()).unwrap();
-        let e = load_model_cpu(tmp.path()).unwrap_err();
+        let e = load_model_on_device(tmp.path()).unwrap_err();
         assert!(e.contains("retrain"), "{e}");
     }
 
@@ -614,10 +618,13 @@ mod tests {
             .unwrap();
         }
         // A plain model directory is one network.
-        assert_eq!(load_models_cpu(&tmp.path().join("a")).unwrap().len(), 1);
+        assert_eq!(
+            load_models_on_device(&tmp.path().join("a")).unwrap().len(),
+            1
+        );
         let names = vec!["a".to_string(), "b".to_string()];
         save_ensemble(tmp.path(), &names, serde_json::json!({"what": "test"})).unwrap();
-        let both = load_models_cpu(tmp.path()).unwrap();
+        let both = load_models_on_device(tmp.path()).unwrap();
         assert_eq!(both.len(), 2);
         assert_eq!(named_tensors(&both[0].net), named_tensors(&a.net));
         assert_eq!(named_tensors(&both[1].net), named_tensors(&b.net));
@@ -633,12 +640,12 @@ mod tests {
         ] {
             let j = serde_json::json!({"format": format, "members": members});
             std::fs::write(&p, j.to_string()).unwrap();
-            let e = load_models_cpu(tmp.path()).unwrap_err();
+            let e = load_models_on_device(tmp.path()).unwrap_err();
             assert!(e.contains(want), "{members}: {e}");
         }
         // What needs one model names an ensemble for what it is.
         save_ensemble(tmp.path(), &names, serde_json::json!({})).unwrap();
-        let e = load_model_cpu(tmp.path()).unwrap_err();
+        let e = load_model_on_device(tmp.path()).unwrap_err();
         assert!(e.contains("ensemble directory"), "{e}");
         // An ensemble made from model directories and another ensemble: members flattened,
         // names made unique, sources recorded; the same networks come back.
@@ -650,7 +657,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(made, ["a", "a-2", "b"]);
-        let back = load_models_cpu(&out).unwrap();
+        let back = load_models_on_device(&out).unwrap();
         assert_eq!(named_tensors(&back[1].net), named_tensors(&a.net));
         assert_eq!(named_tensors(&back[2].net), named_tensors(&b.net));
         let j: serde_json::Value =

@@ -6,6 +6,7 @@
 
 pub mod bench;
 pub mod coarsen;
+pub mod device;
 pub mod graph;
 pub mod infer;
 pub mod io;

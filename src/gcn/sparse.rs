@@ -2,7 +2,9 @@
 //! convolution needs that burn's generic gather/scatter makes slow): `A` is a constant sparse
 //! matrix in CSR form (no gradient), `X` a dense `[cols, C]` tensor, `Y` `[rows, C]`. The backward
 //! pass is `dX = Aᵀ · dY` with the transpose precomputed. Implemented as a burn backend extension
-//! for the Flex CPU backend and for `Autodiff<B>` over it.
+//! for the Flex CPU backend and for `Autodiff<B>` over it. On any other device (a GPU, with the
+//! `gpu` feature) the same product is a gather, a scale and a scatter-add of burn's own
+//! differentiable operations, with the index tensors uploaded once per matrix and device.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -11,9 +13,9 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind, unary};
 use burn::backend::flex::FlexTensor;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, backend_extension};
-use burn::tensor::{DType, Tensor, TensorData};
+use burn::tensor::{DType, Device, IndexingUpdateOp, Int, Tensor, TensorData};
 use rayon::prelude::*;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use super::GcnError;
 
@@ -130,19 +132,35 @@ impl Csr {
     }
 }
 
+/// The matrix's entries as tensors on one device, for the generic product: the row and column
+/// of every entry and its value (`[nnz, 1]`).
+#[derive(Debug, Clone)]
+struct DeviceEntries {
+    device: Device,
+    rows: Tensor<1, Int>,
+    cols: Tensor<1, Int>,
+    values: Tensor<2>,
+}
+
 /// A sparse matrix and its transpose, shared by the forward and backward passes (cheap to clone:
 /// both are reference-counted, and the transposed operator swaps the two without copying).
 #[derive(Debug, Clone)]
 pub struct SparseOp {
     a: Arc<Csr>,
     t: Arc<Csr>,
+    /// `a`'s entries on the last non-Flex device it ran on.
+    entries: Arc<Mutex<Option<DeviceEntries>>>,
 }
 
 impl SparseOp {
     /// Wraps `a` (and precomputes its transpose).
     pub fn new(a: Csr) -> Self {
         let t = Arc::new(a.transpose());
-        Self { a: Arc::new(a), t }
+        Self {
+            a: Arc::new(a),
+            t,
+            entries: Arc::default(),
+        }
     }
 
     /// The matrix.
@@ -154,7 +172,51 @@ impl SparseOp {
         Self {
             a: self.t.clone(),
             t: self.a.clone(),
+            entries: Arc::default(),
         }
+    }
+
+    /// `A · x` from burn's generic operations, for devices without the extension (a GPU):
+    /// `y = 0; y[row_e] += value_e · x[col_e]` over the entries `e`, a gather, a scale and a
+    /// scatter-add, differentiable through burn's own backward of `select` and `select_assign`.
+    /// (Spreading each column's entries instead, so that no backward pass adds many values into
+    /// one row, measured no faster on an H100: `BENCHMARKS.md`, "GPU".)
+    fn apply_generic(&self, x: Tensor<2>) -> Tensor<2> {
+        let [_, c] = x.dims();
+        let device = x.device().without_autodiff();
+        let e = {
+            let mut cache = self.entries.lock().unwrap_or_else(|p| p.into_inner());
+            match cache.as_ref() {
+                Some(e) if e.device == device => e.clone(),
+                _ => {
+                    let a = self.matrix();
+                    let mut rows = Vec::with_capacity(a.nnz());
+                    for r in 0..a.rows {
+                        rows.extend((a.indptr[r]..a.indptr[r + 1]).map(|_| r as i64));
+                    }
+                    let cols: Vec<i64> = a.indices.iter().map(|&j| i64::from(j)).collect();
+                    let n = a.nnz();
+                    let e = DeviceEntries {
+                        rows: Tensor::from_data(TensorData::new(rows, [n]), &device),
+                        cols: Tensor::from_data(TensorData::new(cols, [n]), &device),
+                        values: Tensor::from_data(
+                            TensorData::new(a.values.clone(), [n, 1]),
+                            &device,
+                        ),
+                        device,
+                    };
+                    *cache = Some(e.clone());
+                    e
+                }
+            }
+        };
+        let gathered = x.clone().select(0, e.cols) * e.values;
+        Tensor::<2>::zeros([self.matrix().rows, c], &x.device()).select_assign(
+            0,
+            e.rows,
+            gathered,
+            IndexingUpdateOp::Add,
+        )
     }
 
     /// `A · x` as a differentiable burn operation. `x`: `[cols, C]` → `[rows, C]`.
@@ -165,6 +227,9 @@ impl SparseOp {
                 "sparse product: x has {n} rows, the matrix has {} columns",
                 self.matrix().cols
             )));
+        }
+        if x.device().without_autodiff() != Device::flex() {
+            return Ok(self.apply_generic(x));
         }
         let out = <Dispatch as SparseBackend>::spmm(x.into_dispatch(), self.clone());
         Ok(Tensor::from_dispatch(out))
@@ -307,6 +372,33 @@ mod tests {
                 assert!((gx[k * c + j] - want).abs() < 1e-5);
             }
         }
+        // The generic product (what a GPU runs) gives the same values and gradients, and
+        // its entries are uploaded once per device.
+        let xg = Tensor::<2>::from_data(TensorData::new(x.clone(), [cols, c]), &dev).require_grad();
+        let yg = op.apply_generic(xg.clone());
+        let ygv = yg
+            .clone()
+            .into_data()
+            .convert::<f32>()
+            .try_to_vec::<f32>()
+            .unwrap();
+        for (a, b) in ygv.iter().zip(&yv) {
+            assert!((a - b).abs() < 1e-6, "{a} vs {b}");
+        }
+        let gg = (yg * Tensor::<2>::from_data(TensorData::new(w.clone(), [rows, c]), &dev))
+            .sum()
+            .backward();
+        let ggx = xg
+            .grad(&gg)
+            .unwrap()
+            .into_data()
+            .convert::<f32>()
+            .try_to_vec::<f32>()
+            .unwrap();
+        for (a, b) in ggx.iter().zip(&gx) {
+            assert!((a - b).abs() < 1e-6, "{a} vs {b}");
+        }
+        assert!(op.entries.lock().unwrap().is_some());
         // A wrong shape is an error.
         let bad = Tensor::<2>::zeros([cols + 1, c], &Device::flex());
         assert!(op.apply(bad).is_err());

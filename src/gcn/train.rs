@@ -704,7 +704,7 @@ pub fn answer_through_refit(
     r: &RefitLoss,
     y: &[f32],
 ) -> Result<Vec<f32>, String> {
-    let device = Device::flex();
+    let device = super::device::compute();
     let g = refit_modes(gc, &device)?;
     let v = y.len() / 3;
     through_refit(tensor2(y, v, &device), r, &g, &device)
@@ -1037,7 +1037,7 @@ pub fn train(
     }
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let t0 = Instant::now();
-    let plain = Device::flex();
+    let plain = super::device::compute();
     let device = plain.clone().autodiff();
     device.seed(opts.seed);
     let mut net = match &opts.init {
@@ -1389,7 +1389,7 @@ pub fn fit_refit_scale(
         net: model.net.clone(),
         provenance: serde_json::Value::Null,
     };
-    let plain = Device::flex();
+    let plain = super::device::compute();
     let mut graphs = BTreeMap::new();
     for (g, gc) in cases {
         graphs.insert(
@@ -1473,7 +1473,7 @@ pub fn predict(
     graph: &MeshGraphs,
     s: &SampleData,
 ) -> Result<Vec<f32>, GcnError> {
-    let device = Device::flex();
+    let device = super::device::compute();
     let (x, bip) = s.tensors(&model.config, &device)?;
     let out = match &bip {
         Some(b) => model.net.forward_bipartite(b)?,
