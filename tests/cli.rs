@@ -134,6 +134,19 @@ fn bad_files_fail_with_a_message_naming_the_place() {
     assert!(!ok && err.contains("unsupported file extension"), "{err}");
     let (ok, _, err) = librplus(&["mesh", "info", &data("sofa_liver.msh"), "--unit", "inch"]);
     assert!(!ok && err.contains("inch"), "{err}");
+    // A device name that is not one, and (in a CPU-only build) a GPU the build cannot use, are
+    // refused before any work, naming the flag.
+    let (ok, _, err) = librplus(&["--device", "tpu", "mesh", "info", &data("sofa_liver.msh")]);
+    assert!(
+        !ok && err.contains("--device") && err.contains("expected cpu, gpu or gpu:N"),
+        "{err}"
+    );
+    if !cfg!(feature = "gpu") {
+        let (ok, _, err) = librplus(&["mesh", "info", &data("sofa_liver.msh"), "--device", "gpu"]);
+        assert!(!ok && err.contains("--features gpu"), "{err}");
+    }
+    let (ok, out, err) = librplus(&["mesh", "info", &data("sofa_liver.msh"), "--device", "cpu"]);
+    assert!(ok && out.contains("nodes"), "{err}");
 }
 
 #[test]
