@@ -317,6 +317,10 @@ mod tests {
         assert!(Csr::from_triplets(2, 2, &[(0, 0, f32::NAN)]).is_err());
     }
 
+    fn host(t: Tensor<2>) -> Vec<f32> {
+        t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+    }
+
     #[test]
     fn product_and_its_gradient_match_dense_algebra() {
         // A random sparse matrix; y = A x and d(sum(w ⊙ y))/dx = Aᵀ w.
@@ -346,12 +350,7 @@ mod tests {
         let wt = Tensor::<2>::from_data(TensorData::new(w.clone(), [rows, c]), &dev);
         let op = SparseOp::new(a);
         let y = op.apply(xt.clone()).unwrap();
-        let yv = y
-            .clone()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec::<f32>()
-            .unwrap();
+        let yv = host(y.clone());
         for r in 0..rows {
             for j in 0..c {
                 let want: f32 = (0..cols).map(|k| d[r][k] * x[k * c + j]).sum();
@@ -359,13 +358,7 @@ mod tests {
             }
         }
         let g = (y * wt).sum().backward();
-        let gx = xt
-            .grad(&g)
-            .unwrap()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec::<f32>()
-            .unwrap();
+        let gx = host(xt.grad(&g).unwrap());
         for k in 0..cols {
             for j in 0..c {
                 let want: f32 = (0..rows).map(|r| d[r][k] * w[r * c + j]).sum();
@@ -376,25 +369,14 @@ mod tests {
         // its entries are uploaded once per device.
         let xg = Tensor::<2>::from_data(TensorData::new(x.clone(), [cols, c]), &dev).require_grad();
         let yg = op.apply_generic(xg.clone());
-        let ygv = yg
-            .clone()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec::<f32>()
-            .unwrap();
+        let ygv = host(yg.clone());
         for (a, b) in ygv.iter().zip(&yv) {
             assert!((a - b).abs() < 1e-6, "{a} vs {b}");
         }
         let gg = (yg * Tensor::<2>::from_data(TensorData::new(w.clone(), [rows, c]), &dev))
             .sum()
             .backward();
-        let ggx = xg
-            .grad(&gg)
-            .unwrap()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec::<f32>()
-            .unwrap();
+        let ggx = host(xg.grad(&gg).unwrap());
         for (a, b) in ggx.iter().zip(&gx) {
             assert!((a - b).abs() < 1e-6, "{a} vs {b}");
         }
