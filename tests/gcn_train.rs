@@ -1095,3 +1095,111 @@ fn position_jitter_moves_only_the_position_inputs_by_one_affine_map() {
     let same = orig.jittered(&cfg, &id);
     assert_eq!(same.node_features, orig.node_features);
 }
+
+/// The paper's ground-truth-neighbour diagnostic (`--diagnostic-truth-neighbours`): the bipartite
+/// graph links each point to its nearest vertices of the true deformed mesh (checked against a
+/// brute-force search), equals the honest graph when the truth is LIBR's own shape, and a model
+/// made with it cannot build an inference sample (no truth) nor register.
+#[test]
+fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
+    use librplus::gcn::sample::SampleData;
+    use librplus::register::pipeline::{Method, Prepared, register};
+    use std::sync::Arc;
+    let f = fixture();
+    let (cfg, mut model) = untrained_model(4);
+    let leak = cfg.clone().with_diagnostic_truth_neighbours(true);
+    model.config = leak.clone();
+    let (sc, g) = &f.scenarios[1];
+    let gc = &f.cases[g];
+    let meas = &sc.measurements;
+    let case = Prepared::new(
+        gc.geo.model.clone(),
+        Some(&f.params.libr),
+        Some(&dataset().join("cache")),
+    )
+    .unwrap();
+    let libr = register(&case, meas, Method::Libr, &f.params).unwrap();
+    let build = |c: &SrGcnConfig, truth: Option<&[[f64; 3]]>| {
+        SampleData::build(
+            c,
+            &gc.frame,
+            &gc.geo.model.mesh,
+            &case.correspondence,
+            &f.params.libr_correspondence(),
+            meas,
+            &libr.u,
+            &libr.image_to_physical,
+            truth,
+        )
+    };
+    // Without the truth (as in surgery): refused, with the reason.
+    let e = build(&leak, None).unwrap_err().to_string();
+    assert!(e.contains("cannot register"), "{e}");
+    // The truth LIBR's own shape: the honest graph, edge for edge.
+    let nodes = gc.geo.model.mesh.nodes();
+    let libr_phys: Vec<[f64; 3]> = (0..nodes.len())
+        .map(|i| {
+            libr.image_to_physical
+                .apply([0, 1, 2].map(|a| nodes[i][a] + libr.u[3 * i + a]))
+        })
+        .collect();
+    let honest = build(&cfg, None).unwrap().bipartite.unwrap();
+    let same = build(&leak, Some(&libr_phys)).unwrap().bipartite.unwrap();
+    assert_eq!(honest.vertices, same.vertices);
+    assert_eq!(honest.graph.targets, same.graph.targets);
+    assert_eq!(honest.graph.sources, same.graph.sources);
+    // The real truth: each point's first neighbour is its nearest true vertex.
+    let truth = tr::truth_positions(&gc.geo, sc);
+    let b = build(&leak, Some(&truth)).unwrap().bipartite.unwrap();
+    assert_ne!(b.vertices, honest.vertices, "the truth changed no link");
+    let nv = b.vertices.len();
+    let mut differ = 0;
+    for (p, &q) in meas.points.iter().enumerate() {
+        let nearest = (0..nodes.len())
+            .min_by(|&i, &j| {
+                let d = |k: usize| (0..3).map(|a| (truth[k][a] - q[a]).powi(2)).sum::<f64>();
+                d(i).total_cmp(&d(j)).then(i.cmp(&j))
+            })
+            .unwrap();
+        // Edges run vertex → point and point → vertex; the first vertex → point edge into
+        // point p comes from its nearest vertex.
+        let first = b
+            .graph
+            .targets
+            .iter()
+            .zip(&b.graph.sources)
+            .find(|(t, s)| **t == nv + p && **s < nv)
+            .map(|(_, s)| b.vertices[*s])
+            .unwrap();
+        assert_eq!(first, nearest, "point {p}");
+        let honest_first = honest
+            .graph
+            .targets
+            .iter()
+            .zip(&honest.graph.sources)
+            .find(|(t, s)| **t == honest.vertices.len() + p && **s < honest.vertices.len())
+            .map(|(_, s)| honest.vertices[*s]);
+        differ += usize::from(honest_first != Some(nearest));
+    }
+    assert!(
+        differ > 0,
+        "LIBR's nearest vertices were the true ones everywhere"
+    );
+    // In the pipeline: LIBR+ with such a model never answers a corrected shape.
+    let case = case.with_model(Arc::new(model)).unwrap();
+    match register(&case, meas, Method::LibrPlus, &f.params) {
+        Err(e) => assert!(e.contains("cannot register"), "{e}"),
+        Ok(r) => {
+            let c = r.correction.as_ref().unwrap();
+            assert!(!c.applied, "{c:?}");
+            assert!(
+                c.skipped
+                    .as_deref()
+                    .unwrap_or("")
+                    .contains("cannot register"),
+                "{c:?}"
+            );
+            assert_eq!(r.u, libr.u);
+        }
+    }
+}

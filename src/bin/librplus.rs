@@ -181,6 +181,11 @@ struct TrainArgs {
     /// normal of each node, from the preoperative mesh (not in the paper)
     #[arg(long)]
     surface_input: bool,
+    /// DIAGNOSTIC, not a registration setting: link each measured point to its nearest
+    /// ground-truth vertices, as the LIBR+ paper did (a leak: surgery has no ground truth). The
+    /// training and test figures then show what that leak buys; the model cannot register.
+    #[arg(long)]
+    diagnostic_truth_neighbours: bool,
     /// Plain convolutions in the mesh branch instead of residual blocks (as format-2 models).
     #[arg(long)]
     no_residual: bool,
@@ -2427,6 +2432,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
     let base = SrGcnConfig::new()
         .with_misfit_input(a.misfit_input)
         .with_surface_input(a.surface_input)
+        .with_diagnostic_truth_neighbours(a.diagnostic_truth_neighbours)
         .with_width(a.width)
         .with_convs(a.convs)
         .with_kernel_size(a.kernel_size)
@@ -2673,7 +2679,16 @@ fn train(a: &TrainArgs) -> Result<Value> {
         .collect();
     let t_inf = Instant::now();
     let test_s =
-        tr::build_samples(&cfg, &cases, &z, &params, false, false).map_err(anyhow::Error::msg)?;
+        // Test samples never carry the truth, except for the paper's leak (a diagnostic).
+        tr::build_samples(
+            &cfg,
+            &cases,
+            &z,
+            &params,
+            cfg.diagnostic_truth_neighbours,
+            false,
+        )
+        .map_err(anyhow::Error::msg)?;
     let plain = librplus::gcn::device::compute();
     let mut graphs = std::collections::BTreeMap::new();
     for (g, gc) in &cases {

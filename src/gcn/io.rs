@@ -540,6 +540,9 @@ fn model_from_parts(
         c.entry("clusters").or_insert(0.into());
         // Files from before the surface channels (session 15) do not read them.
         c.entry("surface_input").or_insert(false.into());
+        // Files from before the paper's ground-truth-neighbour diagnostic (session 17).
+        c.entry("diagnostic_truth_neighbours")
+            .or_insert(false.into());
     }
     let file: ModelFile =
         serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;

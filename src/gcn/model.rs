@@ -118,6 +118,17 @@ pub struct SrGcnConfig {
     /// can act, which the coordinates tell only in one liver's frame.
     #[config(default = false)]
     pub surface_input: bool,
+    /// **A diagnostic that reproduces a flaw of the LIBR+ paper, never a registration setting.**
+    /// The paper linked each measured point to its nearest vertices of the *ground-truth*
+    /// deformed mesh, which does not exist in surgery. With this switch the bipartite graph does
+    /// the same (the ground truth, in LIBR's image frame), so the training and test figures of
+    /// `librplus train --diagnostic-truth-neighbours` show how much of the paper's accuracy that
+    /// leak buys. A model made with it cannot register: [`SampleData::build`] refuses it without
+    /// the ground truth, which inference never has.
+    ///
+    /// [`SampleData::build`]: super::SampleData::build
+    #[config(default = false)]
+    pub diagnostic_truth_neighbours: bool,
     /// Whether the width-preserving convolutions are residual blocks (`x ← x + ELU(conv(x))`, and
     /// on the way up `x ← unpool(x) + ELU(conv([skip, unpool(x)]))`). Not in the paper. Without
     /// them the U-Net is a plain stack of about 15 spline convolutions whose PyG initialisation

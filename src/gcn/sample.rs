@@ -327,9 +327,26 @@ impl SampleData {
             .collect();
         let inv = transform.inverse();
         let points: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
-        // Bipartite graph: each point to its n_top nearest LIBR-deformed vertices.
+        // Bipartite graph: each point to its n_top nearest LIBR-deformed vertices (the paper's
+        // diagnostic: nearest ground-truth vertices, see `SrGcnConfig::diagnostic_truth_neighbours`).
         let bipartite = if cfg.bipartite {
-            let near = knn(&deformed, &points, cfg.n_top);
+            let near = if cfg.diagnostic_truth_neighbours {
+                let Some(truth) = truth_physical else {
+                    return Err(GcnError::Invalid(
+                        "this model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak): it needs the ground truth and cannot register".into(),
+                    ));
+                };
+                if truth.len() != v {
+                    return Err(GcnError::Invalid(format!(
+                        "truth has {} positions, the mesh {v} nodes",
+                        truth.len()
+                    )));
+                }
+                let truth_image: Vec<[f64; 3]> = truth.iter().map(|&p| inv.apply(p)).collect();
+                knn(&truth_image, &points, cfg.n_top)
+            } else {
+                knn(&deformed, &points, cfg.n_top)
+            };
             let mut local = vec![usize::MAX; v];
             let mut vertices = Vec::new();
             for list in &near {

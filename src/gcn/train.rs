@@ -1399,7 +1399,9 @@ pub fn fit_refit_scale(
                 .map_err(|e| e.to_string())?,
         );
     }
-    let samples = build_samples(&unit_model.config, cases, items, params, false, false)?;
+    // Validation samples carry no truth, except for the paper's leak (a diagnostic).
+    let leak = unit_model.config.diagnostic_truth_neighbours;
+    let samples = build_samples(&unit_model.config, cases, items, params, leak, false)?;
     let per: Vec<Vec<f64>> = items
         .par_iter()
         .zip(samples.par_iter())
