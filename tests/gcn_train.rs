@@ -463,9 +463,31 @@ fn untrained_model(seed: u64) -> (SrGcnConfig, librplus::gcn::io::TrainedModel) 
     (cfg, model)
 }
 
+/// The SR-GCN sample of a LIBR registration `libr` of `meas` on geometry `gc`.
+fn sample_of(
+    cfg: &SrGcnConfig,
+    gc: &tr::GeometryCase,
+    case: &librplus::register::pipeline::Prepared,
+    params: &PipelineParams,
+    meas: &librplus::register::Measurements,
+    libr: &librplus::register::pipeline::Registration,
+    truth: Option<&[[f64; 3]]>,
+) -> Result<librplus::gcn::sample::SampleData, librplus::gcn::GcnError> {
+    librplus::gcn::sample::SampleData::build(
+        cfg,
+        &gc.frame,
+        &gc.geo.model.mesh,
+        &case.correspondence,
+        &params.libr_correspondence(),
+        meas,
+        &libr.u,
+        &libr.image_to_physical,
+        truth,
+    )
+}
+
 #[test]
 fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_when_late() {
-    use librplus::gcn::sample::SampleData;
     use librplus::register::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
@@ -498,18 +520,7 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
     assert!(c.refit.is_none() && c.refit_error.is_none(), "{c:?}");
     // The same LIBR fit, then exactly the correction the training code computes.
     assert_eq!(plus.image_to_physical, libr.image_to_physical);
-    let sample = SampleData::build(
-        &cfg,
-        &gc.frame,
-        &gc.geo.model.mesh,
-        &case.correspondence,
-        &f.params.libr_correspondence(),
-        meas,
-        &libr.u,
-        &libr.image_to_physical,
-        None,
-    )
-    .unwrap();
+    let sample = sample_of(&cfg, gc, &case, &f.params, meas, &libr, None).unwrap();
     let graphs = gc.frame.mesh_graphs(&cfg, &dev).unwrap();
     let want = tr::correct(&model, &gc.frame, &graphs, &sample, &libr.u).unwrap();
     assert_eq!(plus.u, want);
@@ -1102,7 +1113,6 @@ fn position_jitter_moves_only_the_position_inputs_by_one_affine_map() {
 /// made with it cannot build an inference sample (no truth) nor register.
 #[test]
 fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
-    use librplus::gcn::sample::SampleData;
     use librplus::register::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
@@ -1120,17 +1130,7 @@ fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
     .unwrap();
     let libr = register(&case, meas, Method::Libr, &f.params).unwrap();
     let build = |c: &SrGcnConfig, truth: Option<&[[f64; 3]]>| {
-        SampleData::build(
-            c,
-            &gc.frame,
-            &gc.geo.model.mesh,
-            &case.correspondence,
-            &f.params.libr_correspondence(),
-            meas,
-            &libr.u,
-            &libr.image_to_physical,
-            truth,
-        )
+        sample_of(c, gc, &case, &f.params, meas, &libr, truth)
     };
     // Without the truth (as in surgery): refused, with the reason.
     let e = build(&leak, None).unwrap_err().to_string();
