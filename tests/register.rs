@@ -184,7 +184,10 @@ fn recover_in_span(random_dir: bool) -> (f64, f64) {
 /// made by a linear field in the basis span, by the linear homogeneous model under phantom loads,
 /// and by the nonlinear heterogeneous phantom under the same loads. Same data, different physics:
 /// the error the nonlinear truth leaves is the model residual LIBR+ is to learn, and it stays well
-/// above the in-span error.
+/// above the in-span error. One draw of each pattern L, R, W, V (2026-11-22: in-span 0.39 mm,
+/// linear homogeneous 1.62 mm, nonlinear 1.67 mm): under the phantom's loads the linear
+/// homogeneous truth leaves as much as the nonlinear one, so what LIBR misses there is the loads
+/// and supports outside its basis, not the material's nonlinearity.
 #[test]
 fn libr_residual_on_nonlinear_truth_is_well_above_its_linear_error() {
     use librplus::fem::LameField;
@@ -232,7 +235,10 @@ fn libr_residual_on_nonlinear_truth_is_well_above_its_linear_error() {
     let (lam, mu) = TissueParams::default().parenchyma.lame();
     let mut lin_hom = Vec::new();
     let mut nonlin = Vec::new();
-    for (k, pattern) in [Pattern::R, Pattern::W].into_iter().enumerate() {
+    for (k, pattern) in [Pattern::L, Pattern::R, Pattern::W, Pattern::V]
+        .into_iter()
+        .enumerate()
+    {
         let lc = load_case(
             &mesh,
             &labels,
