@@ -47,6 +47,9 @@ impl LibrPlusCase {
         if models.is_empty() {
             return Err("no SR-GCN model given (an ensemble needs at least one member)".into());
         }
+        if models.iter().any(|m| m.config.diagnostic_truth_neighbours) {
+            return Err("the SR-GCN model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak, a diagnostic): it needs the ground truth and cannot register".into());
+        }
         let frame = CaseFrame::new(mesh).map_err(|e| e.to_string())?;
         let members = models
             .into_iter()

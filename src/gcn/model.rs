@@ -123,10 +123,12 @@ pub struct SrGcnConfig {
     /// deformed mesh, which does not exist in surgery. With this switch the bipartite graph does
     /// the same (the ground truth, in LIBR's image frame), so the training and test figures of
     /// `librplus train --diagnostic-truth-neighbours` show how much of the paper's accuracy that
-    /// leak buys. A model made with it cannot register: [`SampleData::build`] refuses it without
-    /// the ground truth, which inference never has.
+    /// leak buys. A model made with it cannot register: a registration case refuses it
+    /// ([`LibrPlusCase::new`]), and [`SampleData::build`] refuses it without the ground truth,
+    /// which inference never has.
     ///
     /// [`SampleData::build`]: super::SampleData::build
+    /// [`LibrPlusCase::new`]: super::infer::LibrPlusCase::new
     #[config(default = false)]
     pub diagnostic_truth_neighbours: bool,
     /// Whether the width-preserving convolutions are residual blocks (`x ← x + ELU(conv(x))`, and
