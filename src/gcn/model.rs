@@ -127,7 +127,7 @@ pub struct SrGcnConfig {
     /// ([`LibrPlusCase::new`]), and [`SampleData::build`] refuses it without the ground truth,
     /// which inference never has.
     ///
-    /// [`SampleData::build`]: super::SampleData::build
+    /// [`SampleData::build`]: super::sample::SampleData::build
     /// [`LibrPlusCase::new`]: super::infer::LibrPlusCase::new
     #[config(default = false)]
     pub diagnostic_truth_neighbours: bool,
