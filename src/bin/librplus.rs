@@ -181,6 +181,10 @@ struct TrainArgs {
     /// normal of each node, from the preoperative mesh (not in the paper)
     #[arg(long)]
     surface_input: bool,
+    /// Add the loads LIBR's displacement implies (K·u of the preoperative mesh's linear
+    /// stiffness, 3 channels) to the mesh branch (not in the paper)
+    #[arg(long)]
+    load_input: bool,
     /// DIAGNOSTIC, not a registration setting: link each measured point to its nearest
     /// ground-truth vertices, as the LIBR+ paper did (a leak: surgery has no ground truth). The
     /// training and test figures then show what that leak buys; the model cannot register.
@@ -2432,6 +2436,7 @@ fn train(a: &TrainArgs) -> Result<Value> {
     let base = SrGcnConfig::new()
         .with_misfit_input(a.misfit_input)
         .with_surface_input(a.surface_input)
+        .with_load_input(a.load_input)
         .with_diagnostic_truth_neighbours(a.diagnostic_truth_neighbours)
         .with_width(a.width)
         .with_convs(a.convs)

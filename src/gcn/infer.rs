@@ -165,6 +165,7 @@ fn same_inputs(a: &TrainedModel, b: &TrainedModel) -> bool {
         && a.libr_input == b.libr_input
         && a.misfit_input == b.misfit_input
         && a.surface_input == b.surface_input
+        && a.load_input == b.load_input
         && a.diagnostic_truth_neighbours == b.diagnostic_truth_neighbours
         && a.target == b.target
 }

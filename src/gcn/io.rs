@@ -540,6 +540,8 @@ fn model_from_parts(
         c.entry("clusters").or_insert(0.into());
         // Files from before the surface channels (session 15) do not read them.
         c.entry("surface_input").or_insert(false.into());
+        // Files from before the load channels (session 17) do not read them.
+        c.entry("load_input").or_insert(false.into());
         // Files from before the paper's ground-truth-neighbour diagnostic (session 17).
         c.entry("diagnostic_truth_neighbours")
             .or_insert(false.into());

@@ -118,6 +118,14 @@ pub struct SrGcnConfig {
     /// can act, which the coordinates tell only in one liver's frame.
     #[config(default = false)]
     pub surface_input: bool,
+    /// Whether the mesh branch also gets the loads LIBR's displacement implies: `K·u` per node
+    /// (3 channels), `K` the linear-elastic stiffness of the preoperative mesh (μ = 1 kPa,
+    /// ν = 0.45), in units of μ × output unit × mean edge length. Zero inside the organ where
+    /// LIBR's field is in equilibrium, it shows where and how hard LIBR pushed (its control-point
+    /// loads) and where its supports held: the loads a correction of the material's response
+    /// depends on, in a form not tied to one liver's frame. Not in the paper; off by default.
+    #[config(default = false)]
+    pub load_input: bool,
     /// **A diagnostic that reproduces a flaw of the LIBR+ paper, never a registration setting.**
     /// The paper linked each measured point to its nearest vertices of the *ground-truth*
     /// deformed mesh, which does not exist in surgery. With this switch the bipartite graph does
@@ -163,11 +171,12 @@ impl SrGcnConfig {
     }
 
     /// Input channels of the mesh branch: preoperative coordinates, plus the LIBR-deformed ones
-    /// and LIBR's displacement, plus the misfit channels, plus the surface channels.
+    /// and LIBR's displacement, plus the misfit, surface and load channels.
     pub fn mesh_inputs(&self) -> usize {
         3 + if self.libr_input { 6 } else { 0 }
             + if self.misfit_input { 4 } else { 0 }
             + if self.surface_input { 4 } else { 0 }
+            + if self.load_input { 3 } else { 0 }
     }
 
     /// Checks the settings.

@@ -15,6 +15,7 @@ use super::graph::Graph;
 use super::model::{BipartiteInput, CoarseLevel, MeshGraphs, SrGcnConfig, Target};
 use super::sparse::{Csr, SparseOp};
 use super::{GcnError, SplineGraph, cartesian_pseudo, mesh_graph};
+use crate::fem::{LameField, StiffnessSystem};
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::Measurements;
@@ -36,6 +37,9 @@ pub struct CaseFrame {
     /// Per node: 1 on the boundary (else 0) and the area-weighted outward unit normal there
     /// (zero inside), `[V, 4]` row-major ([`SrGcnConfig::surface_input`]).
     pub surface: Vec<f32>,
+    /// The unit-modulus stiffness of the preoperative mesh and its mean edge length (mm), built
+    /// on first use by [`SrGcnConfig::load_input`].
+    stiffness: std::sync::Arc<std::sync::OnceLock<Result<(StiffnessSystem, f64), String>>>,
 }
 
 impl CaseFrame {
@@ -67,6 +71,7 @@ impl CaseFrame {
             graph: mesh_graph(mesh)?,
             preop: Vec::new(),
             surface: Vec::new(),
+            stiffness: Default::default(),
         };
         frame.preop = nodes.iter().flat_map(|p| frame.normalise(*p)).collect();
         let boundary = mesh
@@ -92,6 +97,45 @@ impl CaseFrame {
             })
             .collect();
         Ok(frame)
+    }
+
+    /// `K·u` per node in units of μ × output unit × mean edge length, `[V, 3]` row-major
+    /// ([`SrGcnConfig::load_input`]; `u` in mm, image frame).
+    pub fn implied_loads(&self, mesh: &TetMesh, u: &[f64]) -> Result<Vec<f32>, GcnError> {
+        let built = self.stiffness.get_or_init(|| {
+            let (mu, nu) = (1.0, 0.45);
+            let lambda = 2.0 * mu * nu / (1.0 - 2.0 * nu);
+            let k = StiffnessSystem::linear_field(mesh, &LameField::Uniform(lambda, mu))
+                .map_err(|e| format!("the load input's stiffness: {e}"))?;
+            let g = &self.graph;
+            let nodes = mesh.nodes();
+            let h = if g.targets.is_empty() {
+                1.0
+            } else {
+                g.targets
+                    .iter()
+                    .zip(&g.sources)
+                    .map(|(&i, &j)| {
+                        (0..3)
+                            .map(|a| (nodes[i][a] - nodes[j][a]).powi(2))
+                            .sum::<f64>()
+                            .sqrt()
+                    })
+                    .sum::<f64>()
+                    / g.targets.len() as f64
+            };
+            Ok((k, h))
+        });
+        let (k, h) = built.as_ref().map_err(|e| GcnError::Invalid(e.clone()))?;
+        if u.len() != k.dofs() {
+            return Err(GcnError::Invalid(format!(
+                "u has {} values, the stiffness {} unknowns",
+                u.len(),
+                k.dofs()
+            )));
+        }
+        let s = 1.0 / (self.unit_mm() * h);
+        Ok(k.apply(u).into_iter().map(|f| (f * s) as f32).collect())
     }
 
     /// The unit of the network's corrections (mm).
@@ -426,6 +470,11 @@ impl SampleData {
                 }
             }
         }
+        let loads = if cfg.load_input {
+            frame.implied_loads(mesh, u)?
+        } else {
+            Vec::new()
+        };
         // Mesh-branch input.
         let channels = cfg.mesh_inputs();
         let mut node_features = Vec::with_capacity(v * channels);
@@ -443,6 +492,9 @@ impl SampleData {
             }
             if cfg.surface_input {
                 node_features.extend_from_slice(&frame.surface[4 * i..4 * i + 4]);
+            }
+            if cfg.load_input {
+                node_features.extend_from_slice(&loads[3 * i..3 * i + 3]);
             }
         }
         let target = match truth_physical {
@@ -549,6 +601,84 @@ impl SampleData {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `K·u` against elasticity: zero for rigid motions (translation, infinitesimal rotation);
+    /// for a uniaxial stretch (σ_xx = E·ε, the lateral faces free) zero at interior nodes and on
+    /// the free faces, and on the stretched end face a total of E·ε·A along x (linear fields are
+    /// exact for linear tets, so the figures hold to round-off).
+    #[test]
+    fn implied_loads_vanish_for_rigid_motion_and_balance_a_uniform_stretch() {
+        let size = [40.0, 30.0, 20.0];
+        let mesh = crate::mesh::procedural::box_mesh(size, [8, 6, 4], 0.0);
+        let frame = CaseFrame::new(&mesh).unwrap();
+        let nodes = mesh.nodes();
+        let field = |f: &dyn Fn([f64; 3]) -> [f64; 3]| -> Vec<f64> {
+            nodes.iter().flat_map(|&p| f(p)).collect()
+        };
+        let max_abs = |v: &[f32]| v.iter().fold(0f32, |m, x| m.max(x.abs()));
+        let shift = frame
+            .implied_loads(&mesh, &field(&|_| [1.5, -2.0, 0.7]))
+            .unwrap();
+        assert!(max_abs(&shift) < 1e-9, "translation: {}", max_abs(&shift));
+        let w = [0.01, -0.02, 0.015];
+        let turn = frame
+            .implied_loads(
+                &mesh,
+                &field(&|p| {
+                    [
+                        w[1] * p[2] - w[2] * p[1],
+                        w[2] * p[0] - w[0] * p[2],
+                        w[0] * p[1] - w[1] * p[0],
+                    ]
+                }),
+            )
+            .unwrap();
+        assert!(max_abs(&turn) < 1e-9, "rotation: {}", max_abs(&turn));
+        let (eps, nu, mu) = (0.01, 0.45, 1.0);
+        let e = 2.0 * mu * (1.0 + nu);
+        let f = frame
+            .implied_loads(
+                &mesh,
+                &field(&|p| [eps * p[0], -nu * eps * p[1], -nu * eps * p[2]]),
+            )
+            .unwrap();
+        // Back to mN: the channels are in units of μ × output unit × mean edge length.
+        let g = &frame.graph;
+        let h = g
+            .targets
+            .iter()
+            .zip(&g.sources)
+            .map(|(&i, &j)| {
+                (0..3)
+                    .map(|a| (nodes[i][a] - nodes[j][a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum::<f64>()
+            / g.targets.len() as f64;
+        let to_mn = mu * frame.unit_mm() * h;
+        let (mut end, mut start) = (0.0, 0.0);
+        for (p, fi) in nodes.iter().zip(f.chunks_exact(3)) {
+            let fx = fi[0] as f64 * to_mn;
+            if (p[0] - size[0]).abs() < 1e-9 {
+                end += fx;
+            } else if p[0].abs() < 1e-9 {
+                start += fx;
+            } else {
+                // Interior and the free lateral faces carry nothing along x.
+                assert!(fx.abs() < 1e-6, "{p:?}: {fx}");
+            }
+            // Nor across: the lateral faces are traction-free.
+            assert!((fi[1] as f64 * to_mn).abs() < 1e-6, "{p:?}: {fi:?}");
+            assert!((fi[2] as f64 * to_mn).abs() < 1e-6, "{p:?}: {fi:?}");
+        }
+        let want = e * eps * size[1] * size[2];
+        assert!(
+            (end - want).abs() < 1e-4 * want,
+            "end face {end} mN, want {want}"
+        );
+        assert!((start + want).abs() < 1e-4 * want, "start face {start} mN");
+    }
 
     #[test]
     fn the_surface_channels_flag_the_boundary_and_point_outwards() {
