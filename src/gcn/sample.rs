@@ -99,6 +99,26 @@ impl CaseFrame {
         Ok(frame)
     }
 
+    /// Mean length of the mesh graph's edges (mm; 1 for a mesh without edges).
+    pub fn mean_edge_mm(&self, mesh: &TetMesh) -> f64 {
+        let (g, nodes) = (&self.graph, mesh.nodes());
+        if g.targets.is_empty() {
+            return 1.0;
+        }
+        let sum: f64 = g
+            .targets
+            .iter()
+            .zip(&g.sources)
+            .map(|(&i, &j)| {
+                (0..3)
+                    .map(|a| (nodes[i][a] - nodes[j][a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum();
+        sum / g.targets.len() as f64
+    }
+
     /// `K·u` per node in units of μ × output unit × mean edge length, `[V, 3]` row-major
     /// ([`SrGcnConfig::load_input`]; `u` in mm, image frame).
     pub fn implied_loads(&self, mesh: &TetMesh, u: &[f64]) -> Result<Vec<f32>, GcnError> {
@@ -107,24 +127,7 @@ impl CaseFrame {
             let lambda = 2.0 * mu * nu / (1.0 - 2.0 * nu);
             let k = StiffnessSystem::linear_field(mesh, &LameField::Uniform(lambda, mu))
                 .map_err(|e| format!("the load input's stiffness: {e}"))?;
-            let g = &self.graph;
-            let nodes = mesh.nodes();
-            let h = if g.targets.is_empty() {
-                1.0
-            } else {
-                g.targets
-                    .iter()
-                    .zip(&g.sources)
-                    .map(|(&i, &j)| {
-                        (0..3)
-                            .map(|a| (nodes[i][a] - nodes[j][a]).powi(2))
-                            .sum::<f64>()
-                            .sqrt()
-                    })
-                    .sum::<f64>()
-                    / g.targets.len() as f64
-            };
-            Ok((k, h))
+            Ok((k, self.mean_edge_mm(mesh)))
         });
         let (k, h) = built.as_ref().map_err(|e| GcnError::Invalid(e.clone()))?;
         if u.len() != k.dofs() {
@@ -643,20 +646,7 @@ mod tests {
             )
             .unwrap();
         // Back to mN: the channels are in units of μ × output unit × mean edge length.
-        let g = &frame.graph;
-        let h = g
-            .targets
-            .iter()
-            .zip(&g.sources)
-            .map(|(&i, &j)| {
-                (0..3)
-                    .map(|a| (nodes[i][a] - nodes[j][a]).powi(2))
-                    .sum::<f64>()
-                    .sqrt()
-            })
-            .sum::<f64>()
-            / g.targets.len() as f64;
-        let to_mn = mu * frame.unit_mm() * h;
+        let to_mn = mu * frame.unit_mm() * frame.mean_edge_mm(&mesh);
         let (mut end, mut start) = (0.0, 0.0);
         for (p, fi) in nodes.iter().zip(f.chunks_exact(3)) {
             let fx = fi[0] as f64 * to_mn;
