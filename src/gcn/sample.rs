@@ -369,6 +369,14 @@ impl SampleData {
                 u.len()
             )));
         }
+        if let Some(t) = truth_physical
+            && t.len() != v
+        {
+            return Err(GcnError::Invalid(format!(
+                "truth has {} positions, the mesh {v} nodes",
+                t.len()
+            )));
+        }
         let deformed: Vec<[f64; 3]> = (0..v)
             .map(|i| [0, 1, 2].map(|a| nodes[i][a] + u[3 * i + a]))
             .collect();
@@ -383,12 +391,6 @@ impl SampleData {
                         "this model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak): it needs the ground truth and cannot register".into(),
                     ));
                 };
-                if truth.len() != v {
-                    return Err(GcnError::Invalid(format!(
-                        "truth has {} positions, the mesh {v} nodes",
-                        truth.len()
-                    )));
-                }
                 let truth_image: Vec<[f64; 3]> = truth.iter().map(|&p| inv.apply(p)).collect();
                 knn(&truth_image, &points, cfg.n_top)
             } else {
@@ -503,9 +505,6 @@ impl SampleData {
         let target = match truth_physical {
             None => None,
             Some(t) => {
-                if t.len() != v {
-                    return Err(GcnError::Invalid("truth has the wrong node count".into()));
-                }
                 let mut out = Vec::with_capacity(3 * v);
                 for i in 0..v {
                     let q = inv.apply(t[i]);
