@@ -1,6 +1,6 @@
 //! Criterion benchmark of one registration (wICP then LIBR, and wICP alone) on a case of the
 //! `small` dataset preset, generated into a temporary directory at setup from
-//! `../shared/data/sofa_liver.vtk`. Whole-pipeline figures on the paper preset, with the preload
+//! `assets/livers/sofa_liver.vtk`. Whole-pipeline figures on the paper preset, with the preload
 //! and per-stage timings, come from `librplus bench register` and are recorded in BENCHMARKS.md.
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -8,15 +8,15 @@ use librplus::eval::{load_geometry, load_scenarios, open};
 use librplus::mesh::TriSurface;
 use librplus::mesh::io::{self, Unit};
 use librplus::phantom::dataset::{GenerateConfig, Preset, generate};
-use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+use librplus::pipeline::{Method, PipelineParams, Prepared, register};
 use std::hint::black_box;
 use std::path::PathBuf;
 use std::time::Duration;
 
 fn registration(c: &mut Criterion) {
     let surface_path =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
-    let file = io::read(&surface_path, Unit::Mm).expect("../shared/data/sofa_liver.vtk");
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/livers/sofa_liver.vtk");
+    let file = io::read(&surface_path, Unit::Mm).expect("assets/livers/sofa_liver.vtk");
     let mut surface = TriSurface::from_file(&file)
         .expect("a triangle surface")
         .largest_component();

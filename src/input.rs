@@ -5,8 +5,8 @@
 use crate::mesh::io::{self, MeshFile, Unit};
 use crate::mesh::tetra::{TetraParams, tetrahedralize};
 use crate::mesh::{TetMesh, TriSurface};
-use crate::phantom::labels::{LabelParams, label};
 use crate::register::PreopModel;
+use crate::register::anatomy::{LabelParams, label};
 use crate::register::correspondence::preop_model_from_file;
 use std::path::Path;
 

@@ -1,12 +1,26 @@
 //! LIBR+: intraoperative liver registration.
 //!
-//! Layers (dependencies point one way): [`mesh`] (tet meshes, surfaces, file formats) ←
-//! [`fem`] (linear elasticity, loads, constraints, sparse Cholesky). Later issues add `phantom`,
-//! `register`, `gcn`, `eval`, `discover`. Units: millimetres, kPa, mN; frame LPS.
+//! Layers, bottom to top (dependencies point one way; `tests/architecture.rs` keeps them):
+//!
+//! - [`util`], [`assets`], [`mesh`]: small helpers, the built-in liver, tet meshes, surfaces,
+//!   file formats, the mesher;
+//! - [`fem`]: linear and Neo-Hookean elasticity, loads, supports, sparse Cholesky;
+//! - [`register`]: what runs in surgery below the network: correspondence, anatomical labels,
+//!   wICP, LIBR; [`input`]: the preoperative model from files;
+//! - [`dataset`]: the dataset format and its reader (shared by evaluation, server and clients);
+//!   [`phantom`]: ground truth and the dataset generator (never imported by surgery-time code);
+//! - [`gcn`]: spline convolution, SR-GCN, inference;
+//! - [`pipeline`]: one registration: method, deadlines, wICP → LIBR → LIBR+ → refit;
+//! - [`eval`]: TRE, splits, reports, plots, training orchestration;
+//! - the `librplus` command line and the `librplus-server` crate on top.
+//!
+//! Units: millimetres, kPa, mN; frame LPS.
+#![warn(missing_docs)]
 #![forbid(unsafe_code)]
 // Index loops read like the formulas in numerical kernels; iterator rewrites would obscure them.
 #![allow(clippy::needless_range_loop)]
 
+pub mod assets;
 pub mod dataset;
 pub mod eval;
 pub mod fem;
@@ -14,6 +28,7 @@ pub mod gcn;
 pub mod input;
 pub mod mesh;
 pub mod phantom;
+pub mod pipeline;
 pub mod register;
 pub mod util;
 

@@ -71,6 +71,34 @@ pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), String> 
     })
 }
 
+/// numpy-style linear-interpolation quantile of `values` (q in [0, 1]).
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    let mut v: Vec<f64> = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let h = (v.len() - 1) as f64 * q.clamp(0.0, 1.0);
+    let lo = h.floor() as usize;
+    let hi = (lo + 1).min(v.len() - 1);
+    v[lo] + (h - lo as f64) * (v[hi] - v[lo])
+}
+
+/// The median of `values` ([`quantile`] at 0.5; NaN for none).
+pub fn median(values: &[f64]) -> f64 {
+    quantile(values, 0.5)
+}
+
+/// FNV-1a 64-bit hash of bytes, as 16 hex digits (stable across platforms and runs).
+pub fn fnv1a_hex(bytes: &[u8]) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    format!("{h:016x}")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -99,5 +127,12 @@ mod tests {
         );
         let err = write_atomic(dir.path(), b"x").unwrap_err();
         assert!(err.contains("renaming to"), "{err}");
+    }
+
+    #[test]
+    fn quantile_matches_numpy_linear() {
+        // numpy.quantile([1, 2, 3, 4, 10], 0.8) == 5.2
+        assert!((quantile(&[4.0, 1.0, 10.0, 3.0, 2.0], 0.8) - 5.2).abs() < 1e-12);
+        assert_eq!(quantile(&[7.0], 0.3), 7.0);
     }
 }

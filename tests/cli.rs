@@ -1,4 +1,4 @@
-//! End-to-end tests of the `librplus` command line on the real livers in `../shared/data`.
+//! End-to-end tests of the `librplus` command line on the real livers in `assets/livers`.
 
 use serde_json::Value;
 use std::path::PathBuf;
@@ -6,7 +6,7 @@ use std::process::Command;
 
 fn data(name: &str) -> String {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data")
+        .join("assets/livers")
         .join(name)
         .display()
         .to_string()

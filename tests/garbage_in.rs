@@ -1,4 +1,4 @@
-//! Garbage in, through the whole pipeline (`register::pipeline::register`, rigid and LIBR) on a
+//! Garbage in, through the whole pipeline (`pipeline::register`, rigid and LIBR) on a
 //! coarse SOFA liver: every malformed or degenerate set of measurements gives an error that names
 //! the field or the problem, or (rigid only) a result flagged `degenerate` — never a panic, never
 //! NaN in a result, and never a silent LIBR deformation of data that cannot determine one.
@@ -7,10 +7,10 @@ mod common;
 
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
-use librplus::phantom::labels::{LabelParams, label};
 use librplus::phantom::measure::{Category, MeasureParams, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
-use librplus::register::pipeline::{Method, PipelineParams, Prepared, Registration, register};
+use librplus::pipeline::{Method, PipelineParams, Prepared, Registration, register};
+use librplus::register::anatomy::{LabelParams, label};
 use librplus::register::{MeasuredKind, Measurements};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 

@@ -3,11 +3,11 @@
 //! disjoint and hold out what they say, training lowers the validation error on data it can fit,
 //! is deterministic for a seed, and a saved model predicts exactly what the trained one did.
 
+use librplus::eval::train::{self as tr, TrainOptions, TrainSplit};
 use librplus::eval::{load_scenarios, node_errors_mm};
 use librplus::gcn::io::{load_model, save_model};
 use librplus::gcn::model::SrGcnConfig;
-use librplus::gcn::train::{self as tr, TrainOptions, TrainSplit};
-use librplus::register::pipeline::PipelineParams;
+use librplus::pipeline::PipelineParams;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -327,8 +327,8 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     let gc = &f.cases[&f.scenarios[0].1];
     let graph = gc.frame.mesh_graphs(&cfg, &dev).unwrap();
     let u = &sols[0].as_ref().unwrap().u;
-    let p1 = tr::correct(&a.model, &gc.frame, &graph, &s[0].data, u).unwrap();
-    let p2 = tr::correct(&loaded, &gc.frame, &graph, &s[0].data, u).unwrap();
+    let p1 = librplus::gcn::infer::correct(&a.model, &gc.frame, &graph, &s[0].data, u).unwrap();
+    let p2 = librplus::gcn::infer::correct(&loaded, &gc.frame, &graph, &s[0].data, u).unwrap();
     assert_eq!(p1, p2);
     assert_ne!(&p1, u, "the correction is zero");
     // Starting from the saved model with nothing to train gives back its validation error
@@ -345,7 +345,7 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     .unwrap();
     assert_eq!(again.best_valid_mm, a.best_valid_mm);
     assert_eq!(again.model.config.correction_scale, k);
-    let p3 = tr::correct(&again.model, &gc.frame, &graph, &s[0].data, u).unwrap();
+    let p3 = librplus::gcn::infer::correct(&again.model, &gc.frame, &graph, &s[0].data, u).unwrap();
     assert_eq!(p1, p3);
     let other = TrainOptions {
         config: cfg.clone().with_width(8),
@@ -467,13 +467,13 @@ fn untrained_model(seed: u64) -> (SrGcnConfig, librplus::gcn::io::TrainedModel) 
 fn sample_of(
     cfg: &SrGcnConfig,
     gc: &tr::GeometryCase,
-    case: &librplus::register::pipeline::Prepared,
+    case: &librplus::pipeline::Prepared,
     params: &PipelineParams,
     meas: &librplus::register::Measurements,
-    libr: &librplus::register::pipeline::Registration,
+    libr: &librplus::pipeline::Registration,
     truth: Option<&[[f64; 3]]>,
 ) -> Result<librplus::gcn::sample::SampleData, librplus::gcn::GcnError> {
-    librplus::gcn::sample::SampleData::build(
+    librplus::gcn::sample::SampleData::build_linking(
         cfg,
         &gc.frame,
         &gc.geo.model.mesh,
@@ -488,7 +488,7 @@ fn sample_of(
 
 #[test]
 fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_when_late() {
-    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
     let (cfg, model) = untrained_model(3);
@@ -522,7 +522,7 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
     assert_eq!(plus.image_to_physical, libr.image_to_physical);
     let sample = sample_of(&cfg, gc, &case, &f.params, meas, &libr, None).unwrap();
     let graphs = gc.frame.mesh_graphs(&cfg, &dev).unwrap();
-    let want = tr::correct(&model, &gc.frame, &graphs, &sample, &libr.u).unwrap();
+    let want = librplus::gcn::infer::correct(&model, &gc.frame, &graphs, &sample, &libr.u).unwrap();
     assert_eq!(plus.u, want);
     assert_ne!(plus.u, libr.u, "the correction is zero");
     // With the refit (the default): LIBR's fit from the corrected shape, which brings the
@@ -535,15 +535,9 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
         (1..=f.params.refit_iterations).contains(&info.iterations),
         "{info:?}"
     );
-    let again = librplus::register::pipeline::refit(
-        &case,
-        meas,
-        &f.params,
-        &want,
-        &libr.image_to_physical,
-        None,
-    )
-    .unwrap();
+    let again =
+        librplus::pipeline::refit(&case, meas, &f.params, &want, &libr.image_to_physical, None)
+            .unwrap();
     assert_eq!(fitted.u, again.u);
     assert_eq!(fitted.image_to_physical, again.image_to_physical);
     let misfit = |t: &librplus::mesh::rigid::Rigid, u: &[f64]| {
@@ -582,7 +576,7 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
 
 #[test]
 fn the_built_in_model_loads_and_corrects_a_registration() {
-    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::pipeline::Prepared;
     let models = librplus::gcn::io::builtin_models().unwrap();
     assert!(!models.is_empty(), "the built-in model has members");
     for (k, model) in models.iter().enumerate() {
@@ -596,9 +590,11 @@ fn the_built_in_model_loads_and_corrects_a_registration() {
         assert_eq!(model.provenance["builtin"], true);
         assert!(model.provenance["member"].is_string());
     }
-    // It prepares for a mesh it never saw (the small preset's coarser liver) and corrects LIBR.
+    // It prepares for a mesh it never saw (the small preset's coarser liver) and lowers LIBR's
+    // TRE over the fixture's scenarios (an untrained network would not: see
+    // `an_untrained_network_does_not_lower_tre` below for the same check failing).
     let f = fixture();
-    let (sc, g) = &f.scenarios[1];
+    let g = &f.scenarios[0].1;
     let gc = &f.cases[g];
     let case = Prepared::new(
         gc.geo.model.clone(),
@@ -608,24 +604,75 @@ fn the_built_in_model_loads_and_corrects_a_registration() {
     .unwrap()
     .with_models(models.into_iter().map(std::sync::Arc::new).collect())
     .unwrap();
-    let libr = register(&case, &sc.measurements, Method::Libr, &f.params).unwrap();
-    let plus = register(&case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
-    assert!(plus.correction.as_ref().unwrap().applied);
-    assert!(plus.u.iter().all(|x| x.is_finite()));
-    let moved = plus
-        .u
-        .iter()
-        .zip(&libr.u)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    // A correction, and not a wild one (the model's outputs are in units of a tenth of the
-    // liver's RMS radius).
-    assert!(moved > 1e-3 && moved < 100.0, "largest change {moved} mm");
+    let (libr, plus) = mean_tre_libr_and_librplus(&f, &case);
+    eprintln!("built-in model on the fixture: LIBR {libr:.3} mm, LIBR+ {plus:.3} mm");
+    assert!(
+        plus < libr,
+        "LIBR+ {plus} mm does not lower LIBR's {libr} mm"
+    );
+}
+
+/// Mean TRE (mm) of LIBR and of LIBR+ over the fixture's scenarios, with `case`'s models; checks
+/// that every correction was applied and finite and no node moved by 100 mm or more.
+fn mean_tre_libr_and_librplus(f: &Fixture, case: &librplus::pipeline::Prepared) -> (f64, f64) {
+    use librplus::pipeline::{Method, register};
+    let (mut libr_sum, mut plus_sum) = (0.0, 0.0);
+    for (sc, g) in &f.scenarios {
+        let gc = &f.cases[g];
+        let libr = register(case, &sc.measurements, Method::Libr, &f.params).unwrap();
+        let plus = register(case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
+        assert!(plus.correction.as_ref().unwrap().applied);
+        assert!(plus.u.iter().all(|x| x.is_finite()));
+        let moved = plus
+            .u
+            .iter()
+            .zip(&libr.u)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(moved < 100.0, "{}: largest change {moved} mm", sc.id);
+        let tre = |r: &librplus::pipeline::Registration| {
+            librplus::eval::tre(
+                gc.geo.model.mesh.nodes(),
+                (&r.image_to_physical, &r.u),
+                (&sc.truth.image_to_physical, &sc.truth.displacement),
+                &gc.geo.surface,
+                &gc.geo.targets,
+            )
+            .tre_mm
+        };
+        libr_sum += tre(&libr);
+        plus_sum += tre(&plus);
+    }
+    let n = f.scenarios.len() as f64;
+    (libr_sum / n, plus_sum / n)
+}
+
+#[test]
+fn an_untrained_network_does_not_lower_tre() {
+    // The check above can fail: the same measure on a network with its initial weights.
+    use librplus::pipeline::Prepared;
+    let f = fixture();
+    let (_, model) = untrained_model(3);
+    let gc = &f.cases[&f.scenarios[0].1];
+    let case = Prepared::new(
+        gc.geo.model.clone(),
+        Some(&f.params.libr),
+        Some(&dataset().join("cache")),
+    )
+    .unwrap()
+    .with_models(vec![std::sync::Arc::new(model)])
+    .unwrap();
+    let (libr, plus) = mean_tre_libr_and_librplus(&f, &case);
+    eprintln!("untrained network on the fixture: LIBR {libr:.3} mm, LIBR+ {plus:.3} mm");
+    assert!(
+        plus >= libr,
+        "an untrained network lowered TRE: {plus} < {libr} mm"
+    );
 }
 
 #[test]
 fn an_ensemble_corrects_by_the_mean_of_its_members() {
-    use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+    use librplus::pipeline::{Method, PipelineParams, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
     // Three members with different weights, one of them with a different correction scale.
@@ -697,7 +744,7 @@ fn an_ensemble_corrects_by_the_mean_of_its_members() {
 #[test]
 fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
     use librplus::gcn::io::TrainedModel;
-    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
     let (cfg, model) = untrained_model(7);
@@ -760,7 +807,7 @@ fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
 
 #[test]
 fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
-    use librplus::register::pipeline::{Method, refit, register};
+    use librplus::pipeline::{Method, refit, register};
     let f = fixture();
     let (cfg, model) = untrained_model(7);
     // The scenario LIBR registers best (a sane linearisation point).
@@ -805,7 +852,7 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
         .unwrap();
     // A network's correction, scaled to move nodes by up to 2 mm.
     let unit = gc.frame.unit_mm();
-    let y = tr::predict(&model, &graph, &s.data).unwrap();
+    let y = librplus::gcn::infer::predict(&model, &graph, &s.data).unwrap();
     let ymax = y.iter().fold(0f32, |a, x| a.max(x.abs()));
     let y: Vec<f32> = y.iter().map(|x| x * (2.0 / unit) as f32 / ymax).collect();
     let n = gc.geo.model.mesh.num_nodes();
@@ -939,7 +986,7 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
         )
     };
     let start = run(&opts, "start").unwrap();
-    let y0 = tr::predict(&model, &graph, &s.data).unwrap();
+    let y0 = librplus::gcn::infer::predict(&model, &graph, &s.data).unwrap();
     let expect = err_of(&tr::answer_through_refit(gc, lr, &y0).unwrap());
     assert!(
         (start.best_valid_mm - expect).abs() <= 1e-3 * expect,
@@ -1113,7 +1160,7 @@ fn position_jitter_moves_only_the_position_inputs_by_one_affine_map() {
 /// made with it cannot build an inference sample (no truth) nor register.
 #[test]
 fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
-    use librplus::register::pipeline::{Method, Prepared, register};
+    use librplus::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
     let (cfg, mut model) = untrained_model(4);

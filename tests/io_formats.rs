@@ -1138,7 +1138,7 @@ fn huge_declared_counts_do_not_allocate_or_panic() {
 
 macro_rules! data {
     ($name:literal) => {
-        concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/", $name)
+        concat!(env!("CARGO_MANIFEST_DIR"), "/assets/livers/", $name)
     };
 }
 

@@ -5,7 +5,7 @@
 //! basis plus a known rigid motion from dense noiseless matches, shrinkage under regularization,
 //! the disk cache (bit-exact round trip, keys, rebuild of a truncated file) and garbage inputs.
 //!
-//! Meshes: a jittered 60 × 40 × 30 mm box (fast), and `../shared/data/sofa_liver.vtk` meshed with
+//! Meshes: a jittered 60 × 40 × 30 mm box (fast), and `assets/livers/sofa_liver.vtk` meshed with
 //! 10 mm tets (timings are printed; run with `--nocapture` to see them).
 
 mod common;
@@ -18,7 +18,7 @@ use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::register::Match;
 use librplus::register::libr::{
     LibrBasis, LibrParams, LinearRefit, LoadWidth, RunLimits, fit_step, linearised_refit,
-    mesh_hash, register, register_active,
+    mesh_hash, solve, solve_with_limits,
 };
 use librplus::util::SplitMix64;
 use nalgebra::{DMatrix, DVector};
@@ -339,7 +339,7 @@ fn exactness(mesh: &TetMesh, basis: &LibrBasis, per: usize, amp: f64) -> (f64, f
         max_iterations: 30,
         ..LibrParams::default()
     };
-    let sol = register(
+    let sol = solve(
         mesh,
         basis,
         &params,
@@ -430,7 +430,7 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
     };
     // LIBR on `data` (fixed matches, identity start), from `offset`.
     let fit = |data: &[[f64; 3]], offset: Option<&[f64]>| {
-        register_active(
+        solve_with_limits(
             mesh,
             basis,
             &params,
@@ -758,7 +758,7 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
     };
     // One refit iteration from `o` with the matches held: node positions in the start frame.
     let step = |o: &[f64]| {
-        let s = register_active(
+        let s = solve_with_limits(
             mesh,
             basis,
             &params,

@@ -5,7 +5,7 @@
 //! and fans, on the affinely deformed vessel centerlines, the spacing and coverage asked for, the
 //! misalignment bounds over many seeds, noise levels within 10%, and determinism.
 //!
-//! The liver is `../shared/data/sofa_liver.vtk` meshed with 10 mm tets, deformed by a smooth field
+//! The liver is `assets/livers/sofa_liver.vtk` meshed with 10 mm tets, deformed by a smooth field
 //! (a 3° rotation about its centroid plus a bending of a few mm).
 
 use librplus::mesh::io::{self, Unit};
@@ -14,9 +14,9 @@ use librplus::mesh::rigid::Rigid;
 use librplus::mesh::spatial::TriangleBvh;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::mesh::{TetMesh, TriSurface};
-use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
 use librplus::phantom::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
+use librplus::register::anatomy::{AnatomyLabels, LabelParams, Region, label};
 use librplus::util::SplitMix64;
 use std::path::PathBuf;
 use std::sync::OnceLock;
@@ -33,7 +33,7 @@ struct Liver {
 fn liver() -> &'static Liver {
     static LIVER: OnceLock<Liver> = OnceLock::new();
     LIVER.get_or_init(|| {
-        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/livers/sofa_liver.vtk");
         let surface = TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
             .unwrap()
             .largest_component();

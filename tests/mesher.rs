@@ -1,5 +1,5 @@
 //! The tetrahedral mesher (isosurface stuffing, `librplus::mesh::tetra`) on a generated icosphere
-//! and on the real livers in `../shared/data`: every tet positive, smallest dihedral angle ≥ 8°,
+//! and on the real livers in `assets/livers`: every tet positive, smallest dihedral angle ≥ 8°,
 //! volume against the surface's enclosed volume (and its fall under refinement), boundary nodes
 //! within H/4 of the input surface, a closed genus-0 boundary in one piece; the signed distance
 //! against brute force; determinism and orientation independence; the errors for unusable input.
@@ -19,7 +19,7 @@ use std::time::Instant;
 
 fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data")
+        .join("assets/livers")
         .join(name)
 }
 

@@ -6,9 +6,9 @@ use librplus::mesh::{TriSurface, quality};
 use librplus::phantom::shape::{ShapeVariantParams, variant};
 use std::path::PathBuf;
 
-/// The largest component of `../shared/data/sofa_liver.vtk` (mm).
+/// The largest component of `assets/livers/sofa_liver.vtk` (mm).
 fn liver_surface() -> TriSurface {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/livers/sofa_liver.vtk");
     TriSurface::from_file(&io::read(path, Unit::Mm).unwrap())
         .unwrap()
         .largest_component()
@@ -49,7 +49,7 @@ fn variants_of_the_real_liver_mesh_into_distinct_valid_livers() {
 
 #[test]
 fn real_liver_gets_every_label_and_they_round_trip_through_vtu() {
-    use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
+    use librplus::register::anatomy::{AnatomyLabels, LabelParams, Region, label};
     let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(10.0)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
@@ -169,11 +169,11 @@ fn vessel_tree_stays_inside_and_stiffens_its_tets() {
 fn patterns_deform_the_liver_and_the_linear_model_misses_it() {
     use librplus::fem::LinearMaterial;
     use librplus::fem::hyperelastic::NewtonParams;
-    use librplus::phantom::labels::{LabelParams, label};
     use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
     use librplus::phantom::tissue::{Tissue, TissueParams};
     use librplus::phantom::truth::breakdown;
     use librplus::phantom::vessels::{VesselParams, VesselTree};
+    use librplus::register::anatomy::{LabelParams, label};
     let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(12.0)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
@@ -245,9 +245,9 @@ fn patterns_deform_the_liver_and_the_linear_model_misses_it() {
 fn ground_truth_timing_on_a_9k_node_liver() {
     use librplus::fem::LinearMaterial;
     use librplus::fem::hyperelastic::NewtonParams;
-    use librplus::phantom::labels::{LabelParams, label};
     use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
     use librplus::phantom::vessels::{VesselParams, VesselTree};
+    use librplus::register::anatomy::{LabelParams, label};
     let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(7.6)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
@@ -365,8 +365,8 @@ fn tissue_field_and_tilted_gravity() {
 /// differs by seed, repeats for a seed, and loads only boundary nodes.
 #[test]
 fn random_packs_put_their_force_on_the_surface() {
-    use librplus::phantom::labels::{LabelParams, label};
     use librplus::phantom::patterns::{Pattern, PatternParams, gaussian_patch, load_case};
+    use librplus::register::anatomy::{LabelParams, label};
     let surface = liver_surface();
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(12.0)).unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();

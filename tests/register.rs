@@ -9,10 +9,10 @@ use librplus::eval::tre;
 use librplus::mesh::TetMesh;
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
-use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
 use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
-use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+use librplus::pipeline::{Method, PipelineParams, Prepared, register};
+use librplus::register::anatomy::{AnatomyLabels, LabelParams, Region, label};
 use librplus::register::{Measurements, PreopModel};
 use librplus::util::SplitMix64;
 

@@ -3,7 +3,7 @@
 //! result must equal the library's registration of the same measurements on the same model.
 
 use librplus::eval::{load_geometry, load_scenarios, open};
-use librplus::register::pipeline::{Method, PipelineParams, Prepared, register};
+use librplus::pipeline::{Method, PipelineParams, Prepared, register};
 use librplus::register::{MeasuredKind, Measurements};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -174,7 +174,7 @@ fn own_files_register_like_the_library() {
     let (ok, stdout, err) = run(&[
         "register",
         "--preop",
-        "../shared/data/sofa_liver.vtk",
+        "assets/livers/sofa_liver.vtk",
         "--edge-mm",
         "12",
         "--surface",

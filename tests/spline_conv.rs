@@ -1,5 +1,5 @@
 //! SplineConv against `pytorch_spline_conv`'s reference vectors
-//! (`../shared/reference/spline_conv_vectors.json`), autodiff gradients against central finite
+//! (`tests/reference/spline_conv_vectors.json`), autodiff gradients against central finite
 //! differences, and a 9,000-node forward smoke test.
 
 use burn::tensor::{Device, Tensor, TensorData};
@@ -12,7 +12,7 @@ use serde_json::Value;
 fn vectors() -> Value {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../shared/reference/spline_conv_vectors.json"
+        "/tests/reference/spline_conv_vectors.json"
     );
     let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{path}: {e}"));
     serde_json::from_str(&text).unwrap()

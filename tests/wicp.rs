@@ -4,7 +4,7 @@
 //! error with noise), points placed exactly on triangles and on affinely deformed vessel
 //! centerlines, injected outliers, garbage inputs and determinism.
 //!
-//! Data: `../shared/data/sofa_liver.vtk` meshed with 10 mm tets, labelled and given a vessel tree
+//! Data: `assets/livers/sofa_liver.vtk` meshed with 10 mm tets, labelled and given a vessel tree
 //! by the phantom module; scenarios from `phantom::measure::simulate` on the undeformed liver.
 
 mod common;
@@ -13,9 +13,9 @@ use librplus::mesh::TetMesh;
 use librplus::mesh::io::{DataArray, MeshFile};
 use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
-use librplus::phantom::labels::{AnatomyLabels, LabelParams, Region, label};
 use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
+use librplus::register::anatomy::{AnatomyLabels, LabelParams, Region, label};
 use librplus::register::correspondence::{
     Correspondence, CorrespondenceParams, preop_model_from_file,
 };

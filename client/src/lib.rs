@@ -3,6 +3,8 @@
 //! for a fixed time and reports throughput, latency percentiles and errors by code. The message
 //! builders ([`stream_messages`], [`measurements_message`], [`measurements_from_stream`]) are
 //! shared with the server's tests, which compare server results with the library called directly.
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
 
 pub mod data;
 pub mod load;

@@ -1,4 +1,5 @@
 //! `librplus-client`: replay recorded dataset scenarios against a LIBR+ server, or load-test it.
+#![forbid(unsafe_code)]
 
 #[global_allocator]
 static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;

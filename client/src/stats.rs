@@ -3,29 +3,7 @@
 
 use hdrhistogram::Histogram;
 
-/// The canonical gRPC name of a status code ("OK", "INVALID_ARGUMENT", "RESOURCE_EXHAUSTED", ...).
-pub fn code_name(code: tonic::Code) -> &'static str {
-    use tonic::Code::*;
-    match code {
-        Ok => "OK",
-        Cancelled => "CANCELLED",
-        Unknown => "UNKNOWN",
-        InvalidArgument => "INVALID_ARGUMENT",
-        DeadlineExceeded => "DEADLINE_EXCEEDED",
-        NotFound => "NOT_FOUND",
-        AlreadyExists => "ALREADY_EXISTS",
-        PermissionDenied => "PERMISSION_DENIED",
-        ResourceExhausted => "RESOURCE_EXHAUSTED",
-        FailedPrecondition => "FAILED_PRECONDITION",
-        Aborted => "ABORTED",
-        OutOfRange => "OUT_OF_RANGE",
-        Unimplemented => "UNIMPLEMENTED",
-        Internal => "INTERNAL",
-        Unavailable => "UNAVAILABLE",
-        DataLoss => "DATA_LOSS",
-        Unauthenticated => "UNAUTHENTICATED",
-    }
-}
+pub use librplus_proto::code_name;
 
 /// A latency histogram in microseconds (1 µs to 1 h, three significant digits).
 #[derive(Debug, Clone)]
@@ -100,22 +78,6 @@ pub struct LatencyMs {
 mod tests {
     use super::*;
     use std::time::Duration;
-
-    #[test]
-    fn code_names_match_grpc() {
-        assert_eq!(code_name(tonic::Code::Ok), "OK");
-        assert_eq!(code_name(tonic::Code::InvalidArgument), "INVALID_ARGUMENT");
-        assert_eq!(
-            code_name(tonic::Code::ResourceExhausted),
-            "RESOURCE_EXHAUSTED"
-        );
-        assert_eq!(code_name(tonic::Code::Unauthenticated), "UNAUTHENTICATED");
-        // Every code round-trips through its number: the names are distinct and all 17 exist.
-        let names: std::collections::BTreeSet<_> = (0..17)
-            .map(|i| code_name(tonic::Code::from_i32(i)))
-            .collect();
-        assert_eq!(names.len(), 17);
-    }
 
     #[test]
     fn percentiles_of_a_uniform_sample() {

@@ -30,8 +30,7 @@ fn dataset() -> &'static Path {
         let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("client-test-dataset");
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        let src =
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/sofa_liver.vtk");
+        let src = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../assets/livers/sofa_liver.vtk");
         let f = io::read(&src, Unit::Mm).unwrap();
         let mut s = TriSurface::new(f.nodes, f.triangles)
             .unwrap()

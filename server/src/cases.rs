@@ -4,9 +4,9 @@
 use crate::config::ServerConfig;
 use librplus::gcn::io::TrainedModel;
 use librplus::mesh::io::{self, MeshFile};
+use librplus::pipeline::{Method, Prepared};
 use librplus::register::PreopModel;
 use librplus::register::libr::LibrParams;
-use librplus::register::pipeline::{Method, Prepared};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};

@@ -4,8 +4,8 @@
 
 use crate::cases::Case;
 use crate::convert::{BadInput, method_to_pb, rigid_to_pb};
+use librplus::pipeline::{Method, PipelineParams, register};
 use librplus::register::Measurements;
-use librplus::register::pipeline::{Method, PipelineParams, register};
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};

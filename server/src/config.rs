@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-/// Configuration of `librplus-server` (JSON file format version 1, see the README).
+/// Configuration of `librplus-server` (JSON file format version 1, see docs/service.md, "Config file").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
@@ -143,8 +143,8 @@ impl ServerConfig {
     }
 
     /// The default method.
-    pub fn method(&self) -> Result<librplus::register::pipeline::Method, String> {
-        use librplus::register::pipeline::Method;
+    pub fn method(&self) -> Result<librplus::pipeline::Method, String> {
+        use librplus::pipeline::Method;
         match self.default_method.as_str() {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
@@ -176,9 +176,8 @@ mod tests {
 
     #[test]
     fn config_files_name_bad_keys_and_values() {
-        let dir = std::env::temp_dir().join(format!("librplus-config-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let f = dir.join("c.json");
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("c.json");
         std::fs::write(&f, r#"{"format": 1, "cases": ["x"], "max_sesions": 3}"#).unwrap();
         let e = ServerConfig::from_file(&f).unwrap_err();
         assert!(e.contains("max_sesions"), "{e}");
@@ -213,6 +212,5 @@ mod tests {
                 .unwrap_err()
                 .contains("cases")
         );
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

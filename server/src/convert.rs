@@ -77,7 +77,7 @@ impl BadInput {
 }
 
 /// The canonical name of a status code (as in grpc's status codes), shared with the clients.
-pub use librplus_client::code_name;
+pub use librplus_proto::code_name;
 
 /// A rigid transform from the wire.
 pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, BadInput> {
@@ -348,11 +348,11 @@ pub fn plane_points(
 /// SR-GCN model.
 pub fn method_from_pb(
     m: i32,
-    default: librplus::register::pipeline::Method,
+    default: librplus::pipeline::Method,
     has_model: bool,
     field: &str,
-) -> Result<librplus::register::pipeline::Method, BadInput> {
-    use librplus::register::pipeline::Method;
+) -> Result<librplus::pipeline::Method, BadInput> {
+    use librplus::pipeline::Method;
     match pb::Method::try_from(m) {
         Ok(pb::Method::Unspecified) => Ok(default),
         Ok(pb::Method::Rigid) => Ok(Method::Rigid),
@@ -373,11 +373,11 @@ pub fn method_from_pb(
 }
 
 /// A library method to the wire.
-pub fn method_to_pb(m: librplus::register::pipeline::Method) -> pb::Method {
+pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
     match m {
-        librplus::register::pipeline::Method::Rigid => pb::Method::Rigid,
-        librplus::register::pipeline::Method::Libr => pb::Method::Libr,
-        librplus::register::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
+        librplus::pipeline::Method::Rigid => pb::Method::Rigid,
+        librplus::pipeline::Method::Libr => pb::Method::Libr,
+        librplus::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
     }
 }
 

@@ -3,11 +3,11 @@
 //! thirty scenarios; cached), starts the server on loopback, replays scenarios through the real
 //! client over gRPC for each method, and prints TRE and latency.
 
-use crate::config::ServerConfig;
 use anyhow::{Context, Result, bail};
 use librplus::mesh::TetMesh;
 use librplus::mesh::io::{self, Unit};
 use librplus_client::{ReplayOptions, Selection, pb};
+use librplus_server::config::ServerConfig;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -16,8 +16,8 @@ use std::time::{Duration, Instant};
 pub struct DemoOptions {
     /// Dataset directory (generated there at first run).
     pub data: PathBuf,
-    /// Source surface of the phantom liver.
-    pub surface: PathBuf,
+    /// Source surface of the phantom liver (`None`: the built-in SOFA liver).
+    pub surface: Option<PathBuf>,
     /// Scenarios replayed (spread over deformations and categories).
     pub scenarios: usize,
     /// Print JSON instead of tables.
@@ -40,6 +40,34 @@ fn complete(dir: &Path) -> bool {
     librplus::eval::open(dir).is_ok_and(|m| m.complete)
 }
 
+/// A closed liver surface from a file: its triangles (or a tet mesh's boundary), the largest
+/// piece, oriented outward.
+fn closed_surface(path: &Path) -> Result<librplus::mesh::TriSurface> {
+    let file = io::read(path, Unit::Mm).with_context(|| {
+        format!(
+            "--surface {}: the demo builds its phantom from this liver surface",
+            path.display()
+        )
+    })?;
+    let mut surface = if !file.triangles.is_empty() {
+        librplus::mesh::TriSurface::from_file(&file)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+    } else {
+        let mut m = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
+        m.orient_positive();
+        m.boundary_surface()
+            .with_context(|| path.display().to_string())?
+    }
+    .largest_component();
+    if !surface.stats().closed {
+        bail!("{}: the surface is not closed", path.display());
+    }
+    if surface.signed_volume() < 0.0 {
+        surface.flip();
+    }
+    Ok(surface)
+}
+
 /// Generates the default case into `dir` unless it is there already.
 fn ensure_dataset(o: &DemoOptions) -> Result<()> {
     use librplus::phantom::dataset::{GenerateConfig, Preset, generate};
@@ -47,33 +75,18 @@ fn ensure_dataset(o: &DemoOptions) -> Result<()> {
         eprintln!("default case: {} (cached)", o.data.display());
         return Ok(());
     }
-    let file = io::read(&o.surface, Unit::Mm).with_context(|| {
-        format!(
-            "{}: the demo builds its phantom from the SOFA liver in ../shared/data (pass --surface FILE)",
-            o.surface.display()
-        )
-    })?;
-    let mut surface = if !file.triangles.is_empty() {
-        librplus::mesh::TriSurface::from_file(&file)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", o.surface.display()))?
-    } else {
-        let mut m = TetMesh::from_file(&file).with_context(|| o.surface.display().to_string())?;
-        m.orient_positive();
-        m.boundary_surface()
-            .with_context(|| o.surface.display().to_string())?
-    }
-    .largest_component();
-    if !surface.stats().closed {
-        bail!("{}: the surface is not closed", o.surface.display());
-    }
-    if surface.signed_volume() < 0.0 {
-        surface.flip();
-    }
-    let name = o
-        .surface
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_default();
+    let (surface, name) = match &o.surface {
+        None => (
+            librplus::assets::default_liver()?,
+            librplus::assets::DEFAULT_LIVER_NAME.to_string(),
+        ),
+        Some(path) => (
+            closed_surface(path)?,
+            path.file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_default(),
+        ),
+    };
     let config = GenerateConfig::preset(Preset::Small, 1, vec![name]);
     std::fs::create_dir_all(&o.data).with_context(|| o.data.display().to_string())?;
     let bar = indicatif::ProgressBar::new(0).with_style(
@@ -108,7 +121,7 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         cases: vec![o.data.clone()],
         ..ServerConfig::default()
     };
-    let mut running = crate::start(config).await?;
+    let mut running = librplus_server::start(config).await?;
     eprintln!(
         "server on {} preloading (LIBR bases are cached after the first run)",
         running.addr

@@ -6,12 +6,13 @@
 //! health to SERVING. [`Running::shutdown`] drains: health NOT_SERVING, new calls refused, each open
 //! session finishes the update it is computing and ends with UNAVAILABLE, then the transport closes
 //! (after `drain_grace_s` at most).
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
 
 pub mod cases;
 pub mod compute;
 pub mod config;
 pub mod convert;
-pub mod demo;
 pub mod metrics_http;
 pub mod service;
 

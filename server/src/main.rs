@@ -1,8 +1,12 @@
 //! `librplus-server`: serve preloaded cases over gRPC (`serve`, the default), or run the demo
 //! (`demo`: the default case, the server on loopback and the replay client).
+#![forbid(unsafe_code)]
 
 #[global_allocator]
 static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;
+
+#[cfg(feature = "demo")]
+mod demo;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -23,15 +27,16 @@ struct Cli {
 enum Command {
     /// Serve preloaded cases over gRPC (the default).
     Serve(Args),
+    #[cfg(feature = "demo")]
     /// The main job on the embedded default case: generate it at first run (cached), start the
     /// server on loopback, replay scenarios through the client over gRPC, print TRE and latency.
     Demo {
         /// Where the default case lives (generated at first run).
         #[arg(long)]
         data: Option<PathBuf>,
-        /// Source liver surface of the phantom.
-        #[arg(long, default_value = "../shared/data/sofa_liver.vtk")]
-        surface: PathBuf,
+        /// Source liver surface of the phantom (default: the built-in SOFA liver).
+        #[arg(long)]
+        surface: Option<PathBuf>,
         /// Scenarios to replay (spread over deformations and measurement categories).
         #[arg(long, default_value_t = 10)]
         scenarios: usize,
@@ -44,7 +49,7 @@ enum Command {
 /// Serving options.
 #[derive(clap::Args, Debug)]
 struct Args {
-    /// JSON config file (format 1; see the README). Flags override it.
+    /// JSON config file (format 1; see docs/service.md). Flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Dataset directory or folder of meshes (repeatable).
@@ -146,6 +151,7 @@ fn init_tracing_level(json: bool, level: &str) {
 async fn main() -> Result<()> {
     let cli = Cli::parse();
     let args = match cli.command {
+        #[cfg(feature = "demo")]
         Some(Command::Demo {
             data,
             surface,
@@ -153,8 +159,8 @@ async fn main() -> Result<()> {
             json,
         }) => {
             init_tracing_level(false, "warn");
-            return librplus_server::demo::run(librplus_server::demo::DemoOptions {
-                data: data.unwrap_or_else(librplus_server::demo::default_data_dir),
+            return demo::run(demo::DemoOptions {
+                data: data.unwrap_or_else(demo::default_data_dir),
                 surface,
                 scenarios,
                 json,

@@ -8,7 +8,7 @@ use crate::convert::{
     BadInput, code_name, features, measurements_from_pb, method_from_pb, plane_points, points3,
     rigid_from_pb,
 };
-use librplus::register::pipeline::Method;
+use librplus::pipeline::Method;
 use librplus::register::{MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
 use pb::lib_r_plus_server::LibRPlus;

@@ -17,7 +17,7 @@
 //!                                        plane (−1 for surface points), feature (0 none,
 //!                                        1 falciform, 2 inferior ridge), truth_image (evaluation only)
 //! deformations/<d>/scenarios.npz         every scenario of the deformation plus the mesh and the
-//!                                        ground truth, for numpy (see the README for the arrays)
+//!                                        ground truth, for numpy (docs/dataset-and-models.md lists the arrays)
 //! deformations/<d>/deformation.json      the deformation's manifest entry (written last: marks it
 //!                                        complete; used to resume)
 //! ```
@@ -218,14 +218,4 @@ pub fn read_manifest(path: &Path) -> Result<Manifest, String> {
         ));
     }
     Ok(m)
-}
-
-/// FNV-1a 64-bit hash of bytes, as 16 hex digits (stable across platforms and runs).
-pub fn fnv1a_hex(bytes: &[u8]) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in bytes {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    format!("{h:016x}")
 }

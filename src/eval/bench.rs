@@ -6,9 +6,9 @@
 use super::report::CATEGORY_ORDER;
 use super::{ScenarioData, tre};
 use crate::mesh::TetMesh;
+use crate::pipeline::{Method, PipelineParams, Prepared, Registration, register};
 use crate::register::PreopModel;
 use crate::register::libr::{BasisTimings, LibrBasis, LibrParams};
-use crate::register::pipeline::{Method, PipelineParams, Prepared, Registration, register};
 use std::path::Path;
 use std::time::Instant;
 

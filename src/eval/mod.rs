@@ -20,6 +20,8 @@ pub mod bench;
 pub mod experiments;
 pub mod plot;
 pub mod report;
+pub mod splits;
+pub mod train;
 
 /// Target registration errors (mm).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -5,6 +5,7 @@
 //! license), never with a system font, so plots render the same on a machine without fonts.
 
 use super::report::{CATEGORY_ORDER, ScenarioResult};
+use crate::util::quantile;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
@@ -77,13 +78,6 @@ impl BoxStats {
             max: v[v.len() - 1],
         })
     }
-}
-
-/// Quantile `q` of sorted, non-empty `v`, interpolating linearly between order statistics.
-fn quantile(v: &[f64], q: f64) -> f64 {
-    let h = q * (v.len() - 1) as f64;
-    let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
-    v[lo] + (h - lo as f64) * (v[hi] - v[lo])
 }
 
 /// Methods in order of first appearance, with their registered TREs (mm).

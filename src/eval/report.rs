@@ -15,7 +15,7 @@ use crate::gcn::infer::LibrPlusCase;
 use crate::gcn::io::TrainedModel;
 use crate::mesh::TetMesh;
 use crate::mesh::io::{DataArray, MeshFile};
-use crate::register::pipeline::{Method, PipelineParams, Prepared, register};
+use crate::pipeline::{Method, PipelineParams, Prepared, register};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -439,12 +439,12 @@ fn correct_one(
     case: &Prepared,
     params: &PipelineParams,
     sc: &super::ScenarioData,
-    r: &crate::register::pipeline::Registration,
+    r: &crate::pipeline::Registration,
 ) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), String> {
     let (u, _) = lp.correct(
         &case.model.mesh,
         &case.correspondence,
-        &crate::gcn::train::final_cparams(params),
+        &crate::eval::train::final_cparams(params),
         &sc.measurements,
         &r.u,
         &r.image_to_physical,
@@ -452,7 +452,7 @@ fn correct_one(
     if params.refit_iterations == 0 {
         return Ok((u, r.image_to_physical));
     }
-    let s = crate::register::pipeline::refit(
+    let s = crate::pipeline::refit(
         case,
         &sc.measurements,
         params,

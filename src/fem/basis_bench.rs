@@ -45,19 +45,6 @@ pub fn nan_max(a: f64, b: f64) -> f64 {
     }
 }
 
-/// numpy-style linear-interpolation quantile of `values` (q in [0, 1]).
-pub fn quantile(values: &[f64], q: f64) -> f64 {
-    let mut v: Vec<f64> = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let h = (v.len() - 1) as f64 * q.clamp(0.0, 1.0);
-    let lo = h.floor() as usize;
-    let hi = (lo + 1).min(v.len() - 1);
-    v[lo] + (h - lo as f64) * (v[hi] - v[lo])
-}
-
 /// Runs the benchmark on a mesh.
 pub fn run(
     mesh: &TetMesh,
@@ -70,7 +57,7 @@ pub fn run(
     system.set_ordering(ordering);
     let assemble_s = t0.elapsed().as_secs_f64();
     let ys: Vec<f64> = mesh.nodes().iter().map(|p| p[1]).collect();
-    let cut = quantile(&ys, 0.8);
+    let cut = crate::util::quantile(&ys, 0.8);
     let fixed: Vec<u32> = (0..mesh.num_nodes() as u32)
         .filter(|&i| ys[i as usize] > cut)
         .collect();
@@ -125,13 +112,6 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn quantile_matches_numpy_linear() {
-        // numpy.quantile([1, 2, 3, 4, 10], 0.8) == 5.2
-        assert!((quantile(&[4.0, 1.0, 10.0, 3.0, 2.0], 0.8) - 5.2).abs() < 1e-12);
-        assert_eq!(quantile(&[7.0], 0.3), 7.0);
-    }
 
     #[test]
     fn small_run_solves_accurately() {

@@ -59,14 +59,6 @@ pub struct StackTimes {
     pub train_step_ms_min: f64,
 }
 
-fn splitmix(s: &mut u64) -> f64 {
-    *s = s.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    let mut z = *s;
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-}
-
 /// The peer's graph: symmetric kNN over random points, k picked for the mean in-degree.
 pub fn random_knn_graph(
     nodes: usize,
@@ -78,9 +70,9 @@ pub fn random_knn_graph(
             "need nodes ≥ 2 and 1 ≤ avg_degree < nodes (nodes {nodes}, avg_degree {avg_degree})"
         )));
     }
-    let mut s = seed;
+    let mut rng = crate::util::SplitMix64::new(seed);
     let pos: Vec<[f64; 3]> = (0..nodes)
-        .map(|_| [splitmix(&mut s), splitmix(&mut s), splitmix(&mut s)])
+        .map(|_| [rng.next_f64(), rng.next_f64(), rng.next_f64()])
         .collect();
     // Nearest first, self included (distance 0): drop it.
     let near: Vec<Vec<usize>> = knn(&pos, &pos, avg_degree + 1)
@@ -135,15 +127,9 @@ struct Stack {
     layers: Vec<SplineConv>,
 }
 
-fn median_min(mut v: Vec<f64>) -> (f64, f64) {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    let med = if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    };
-    (med, v[0])
+fn median_min(v: Vec<f64>) -> (f64, f64) {
+    let min = v.iter().copied().fold(f64::INFINITY, f64::min);
+    (crate::util::quantile(&v, 0.5), min)
 }
 
 /// Runs the benchmark on the CPU device in the current rayon pool.

@@ -5,10 +5,11 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
+use super::GcnError;
 use super::io::TrainedModel;
 use super::model::MeshGraphs;
+use super::model::{SrGcnConfig, Target};
 use super::sample::{CaseFrame, SampleData};
-use super::train::correct;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::Measurements;
@@ -130,7 +131,6 @@ impl LibrPlusCase {
                     meas,
                     u,
                     transform,
-                    None,
                 )
                 .map_err(|e| e.to_string())?;
                 built = Some((k, sample));
@@ -168,6 +168,61 @@ fn same_inputs(a: &TrainedModel, b: &TrainedModel) -> bool {
         && a.load_input == b.load_input
         && a.diagnostic_truth_neighbours == b.diagnostic_truth_neighbours
         && a.target == b.target
+}
+
+/// LIBR+ correction of one sample: node displacements (image frame, mm) to use instead of LIBR's.
+/// `u` is LIBR's displacement the sample was built from.
+pub fn correct(
+    model: &TrainedModel,
+    frame: &CaseFrame,
+    graph: &MeshGraphs,
+    s: &SampleData,
+    u: &[f64],
+) -> Result<Vec<f64>, GcnError> {
+    let y = predict(model, graph, s)?;
+    apply_prediction(&model.config, frame, u, &y)
+}
+
+/// The network's raw output for one sample (`[n, 3]` row-major, in the frame's output units).
+pub fn predict(
+    model: &TrainedModel,
+    graph: &MeshGraphs,
+    s: &SampleData,
+) -> Result<Vec<f32>, GcnError> {
+    let device = super::device::compute();
+    let (x, bip) = s.tensors(&model.config, &device)?;
+    let out = match &bip {
+        Some(b) => model.net.forward_bipartite(b)?,
+        None => None,
+    };
+    let y = model
+        .net
+        .forward_mesh(x, graph, bip.as_ref().zip(out.as_ref()))?;
+    y.into_data()
+        .convert::<f32>()
+        .try_to_vec::<f32>()
+        .map_err(|e| GcnError::Invalid(format!("{e:?}")))
+}
+
+/// Node displacements from a raw prediction `y` ([`predict`]) as `config` says: LIBR's `u` plus
+/// `correction_scale` times the residual, or the predicted displacement itself.
+pub fn apply_prediction(
+    config: &SrGcnConfig,
+    frame: &CaseFrame,
+    u: &[f64],
+    y: &[f32],
+) -> Result<Vec<f64>, GcnError> {
+    let unit = frame.unit_mm();
+    if y.len() != u.len() {
+        return Err(GcnError::Invalid(
+            "prediction size differs from the mesh".into(),
+        ));
+    }
+    let k = unit * config.correction_scale;
+    Ok(match config.target {
+        Target::Residual => u.iter().zip(y).map(|(a, b)| a + k * *b as f64).collect(),
+        Target::Gt => y.iter().map(|b| unit * *b as f64).collect(),
+    })
 }
 
 #[cfg(test)]

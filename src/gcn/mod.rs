@@ -15,9 +15,8 @@ pub mod sample;
 pub mod sparse;
 pub mod spline;
 pub mod spline_conv;
-pub mod train;
 
-pub use graph::{Graph, bipartite_graph, mesh_graph};
+pub use graph::{Graph, mesh_graph};
 pub use spline::{SplineBasis, SplineKernel, cartesian_pseudo, spline_basis};
 pub use spline_conv::{Aggregation, SplineConv, SplineConvConfig, SplineGraph};
 

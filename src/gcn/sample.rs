@@ -347,8 +347,8 @@ pub fn knn(nodes: &[[f64; 3]], points: &[[f64; 3]], k: usize) -> Vec<Vec<usize>>
 
 impl SampleData {
     /// Builds the input of one registration: the preoperative model, its LIBR result (`u`,
-    /// image → physical `transform`) and the measurements. `truth`, for training only, is the
-    /// true position of every node in the physical frame.
+    /// image → physical `transform`) and the measurements. The bipartite graph links each measured
+    /// point to its nearest LIBR-deformed vertices. The sample carries no training target.
     #[allow(clippy::too_many_arguments)]
     pub fn build(
         cfg: &SrGcnConfig,
@@ -359,7 +359,35 @@ impl SampleData {
         meas: &Measurements,
         u: &[f64],
         transform: &Rigid,
-        truth_physical: Option<&[[f64; 3]]>,
+    ) -> Result<Self, GcnError> {
+        Self::build_linking(
+            cfg,
+            frame,
+            mesh,
+            correspondence,
+            cparams,
+            meas,
+            u,
+            transform,
+            None,
+        )
+    }
+
+    /// As [`SampleData::build`], but where `cfg.diagnostic_truth_neighbours` is set the bipartite
+    /// graph links each measured point to its nearest `neighbour_positions` (physical frame, one
+    /// per node) instead of LIBR's deformed vertices. A diagnostic of training only (the LIBR+
+    /// paper's ground-truth neighbours); such a model needs them and cannot register.
+    #[allow(clippy::too_many_arguments)]
+    pub fn build_linking(
+        cfg: &SrGcnConfig,
+        frame: &CaseFrame,
+        mesh: &TetMesh,
+        correspondence: &Correspondence,
+        cparams: &CorrespondenceParams,
+        meas: &Measurements,
+        u: &[f64],
+        transform: &Rigid,
+        neighbour_positions: Option<&[[f64; 3]]>,
     ) -> Result<Self, GcnError> {
         let nodes = mesh.nodes();
         let v = nodes.len();
@@ -369,7 +397,7 @@ impl SampleData {
                 u.len()
             )));
         }
-        if let Some(t) = truth_physical
+        if let Some(t) = neighbour_positions
             && t.len() != v
         {
             return Err(GcnError::Invalid(format!(
@@ -386,7 +414,7 @@ impl SampleData {
         // diagnostic: nearest ground-truth vertices, see `SrGcnConfig::diagnostic_truth_neighbours`).
         let bipartite = if cfg.bipartite {
             let near = if cfg.diagnostic_truth_neighbours {
-                let Some(truth) = truth_physical else {
+                let Some(truth) = neighbour_positions else {
                     return Err(GcnError::Invalid(
                         "this model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak): it needs the ground truth and cannot register".into(),
                     ));
@@ -502,21 +530,6 @@ impl SampleData {
                 node_features.extend_from_slice(&loads[3 * i..3 * i + 3]);
             }
         }
-        let target = match truth_physical {
-            None => None,
-            Some(t) => {
-                let mut out = Vec::with_capacity(3 * v);
-                for i in 0..v {
-                    let q = inv.apply(t[i]);
-                    let base = match cfg.target {
-                        Target::Residual => deformed[i],
-                        Target::Gt => nodes[i],
-                    };
-                    out.extend((0..3).map(|a| ((q[a] - base[a]) / unit) as f32));
-                }
-                Some(out)
-            }
-        };
         Ok(Self {
             num_nodes: v,
             node_features,
@@ -524,7 +537,7 @@ impl SampleData {
             bipartite,
             sparse_rows,
             sparse_target,
-            target,
+            target: None,
         })
     }
 

@@ -40,6 +40,20 @@ pub fn norm(a: [f64; 3]) -> f64 {
     dot(a, a).sqrt()
 }
 
+/// Squared distance `|a − b|²`.
+#[inline]
+pub fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let d = sub(a, b);
+    dot(d, d)
+}
+
+/// `a / |a|`, or zero for a zero vector.
+#[inline]
+pub fn unit(a: [f64; 3]) -> [f64; 3] {
+    let l = dot(a, a).sqrt();
+    if l > 0.0 { a.map(|x| x / l) } else { [0.0; 3] }
+}
+
 /// Signed volume of the tetrahedron (p0, p1, p2, p3): `det[p1−p0, p2−p0, p3−p0] / 6`.
 #[inline]
 pub fn tet_signed_volume(p: &[[f64; 3]; 4]) -> f64 {

@@ -10,7 +10,6 @@
 //! converge is recorded in the manifest's `failed` list and redrawn with the next seed, never
 //! written as ground truth.
 
-use super::labels::{AnatomyLabels, LabelParams, label};
 use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
 use super::patterns::{Pattern, PatternParams, load_case};
 use super::shape::{ShapeVariantParams, variant};
@@ -21,7 +20,7 @@ use super::truth::{
 use super::vessels::{VesselParams, VesselTree};
 use crate::dataset::{
     DeformationEntry, FORMAT, FailedEntry, GeometryEntry, Manifest, ScenarioEntry, TumourEntry,
-    VERSION, fnv1a_hex,
+    VERSION,
 };
 use crate::fem::LameField;
 use crate::fem::hyperelastic::NewtonParams;
@@ -30,7 +29,9 @@ use crate::mesh::io::{self, DataArray, MeshFile};
 use crate::mesh::rigid::Rigid;
 use crate::mesh::tetra::{TetraParams, tetrahedralize};
 use crate::mesh::{TetMesh, TriSurface};
+use crate::register::anatomy::{AnatomyLabels, LabelParams, label};
 use crate::util::SplitMix64;
+use crate::util::fnv1a_hex;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -369,7 +370,7 @@ fn rigid_matrix(r: &Rigid) -> [f64; 16] {
     ]
 }
 
-/// The npz arrays of a deformation's scenarios (documented in the README).
+/// The npz arrays of a deformation's scenarios (documented in docs/dataset-and-models.md).
 fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Vec<u8>, String> {
     let s = scenarios.len();
     let total: usize = scenarios.iter().map(|c| c.points.len()).sum();

@@ -47,8 +47,8 @@ use crate::mesh::TetMesh;
 use crate::mesh::locate::TetLocator;
 use crate::mesh::rigid::Rigid;
 use crate::mesh::vec3::{add, cross, dot, norm, scale, sub};
-use crate::phantom::labels::{AnatomyLabels, Region};
 use crate::phantom::vessels::VesselTree;
+use crate::register::anatomy::{AnatomyLabels, Region};
 use crate::util::SplitMix64;
 
 /// What a scenario measures: the anterior surface, plus 0, 1, 2, 3 or 16 ultrasound planes.

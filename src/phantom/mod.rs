@@ -5,7 +5,6 @@
 //! surgery cannot see how the ground truth was made.
 
 pub mod dataset;
-pub mod labels;
 pub mod measure;
 pub mod patterns;
 pub mod shape;

@@ -22,9 +22,9 @@
 //!
 //! Loads are dead loads on the reference configuration (see `fem::hyperelastic`).
 
-use super::labels::{AnatomyLabels, Region};
 use crate::fem::{ContactSpring, Dirichlet, NodeSpring, loads};
 use crate::mesh::{TetMesh, TriSurface};
+use crate::register::anatomy::{AnatomyLabels, Region};
 use crate::util::SplitMix64;
 
 /// A deformation pattern.

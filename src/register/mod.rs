@@ -12,9 +12,9 @@
 //! A registration returns `image_to_physical` (rigid) and node displacements `u` in the image frame,
 //! so the intraoperative position of node i is `image_to_physical.apply(X_i + u_i)`.
 
+pub mod anatomy;
 pub mod correspondence;
 pub mod libr;
-pub mod pipeline;
 pub mod wicp;
 
 use crate::mesh::TetMesh;

@@ -40,10 +40,10 @@ pub fn end_traction(mesh: &TetMesh, len: f64, t: [f64; 3]) -> Vec<f64> {
     f
 }
 
-/// The largest component of `../shared/data/sofa_liver.vtk` (mm), oriented outward.
+/// The largest component of `assets/livers/sofa_liver.vtk` (mm), oriented outward.
 pub fn sofa_liver_surface() -> librplus::mesh::TriSurface {
     let path =
-        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/sofa_liver.vtk");
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/livers/sofa_liver.vtk");
     let file = librplus::mesh::io::read(path, librplus::mesh::io::Unit::Mm).unwrap();
     let mut s = librplus::mesh::TriSurface::from_file(&file)
         .unwrap()

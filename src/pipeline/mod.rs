@@ -3,13 +3,15 @@
 //! every iteration. A [`Prepared`] case (correspondence structures and the LIBR basis) is built once
 //! before surgery; [`register`] then answers one set of measurements.
 
-use super::correspondence::{Correspondence, CorrespondenceParams, validate_measurements};
-use super::libr::{self, LibrBasis, LibrInfo, LibrParams};
-use super::wicp::{WicpParams, WicpResult, wicp};
-use super::{Measurements, PreopModel};
 use crate::gcn::infer::LibrPlusCase;
 use crate::gcn::io::TrainedModel;
 use crate::mesh::rigid::Rigid;
+use crate::register::correspondence::{
+    Correspondence, CorrespondenceParams, validate_measurements,
+};
+use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
+use crate::register::wicp::{WicpParams, WicpResult, wicp};
+use crate::register::{Measurements, PreopModel};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -186,7 +188,7 @@ pub fn refit(
     };
     let cparams = &params.libr_correspondence();
     let corr = &case.correspondence;
-    libr::register_active(
+    libr::solve_with_limits(
         &case.model.mesh,
         basis,
         &lp,
@@ -274,7 +276,7 @@ pub fn register(
     };
     let cparams = &params.libr_correspondence();
     let corr = &case.correspondence;
-    let sol = libr::register_active(
+    let sol = libr::solve_with_limits(
         &case.model.mesh,
         basis,
         &params.libr,

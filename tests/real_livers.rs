@@ -1,4 +1,4 @@
-//! The real livers in `../shared/data`, read through the same readers a user would use, against the
+//! The real livers in `assets/livers`, read through the same readers a user would use, against the
 //! facts in its SOURCES.md; and the sag problem against the committed scikit-fem reference.
 
 use librplus::fem::sag;
@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data")
+        .join("assets/livers")
         .join(name)
 }
 

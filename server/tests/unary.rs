@@ -1,0 +1,143 @@
+//! Unary `Register` over loopback equals the library called directly, for LIBR and for LIBR+.
+
+mod common;
+
+use common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unary_register_equals_the_library() {
+    let (running, mut c) = server(4).await;
+    let cases = c
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(cases.cases.len(), 2, "{cases:?}");
+    assert!(
+        cases
+            .cases
+            .iter()
+            .all(|s| s.libr_ready && s.basis_from_cache)
+    );
+    let (geo, sc) = scenario("surface+2us");
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let desc = c
+        .describe_case(pb::DescribeCaseRequest {
+            case_id: case.clone(),
+            include_mesh: true,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(desc.nodes_mm.len(), 3 * geo.model.mesh.num_nodes());
+    assert_eq!(desc.tets.len(), 4 * geo.model.mesh.num_tets());
+    let anterior = desc.node_labels.iter().filter(|&&l| l & 1 != 0).count();
+    assert_eq!(anterior, geo.model.anterior.iter().filter(|&&a| a).count());
+    for (method, pm) in [
+        (Method::Rigid, pb::Method::Rigid),
+        (Method::Libr, pb::Method::Libr),
+    ] {
+        let r = c
+            .register(request(&case, pm, measurements_pb(&sc.measurements)))
+            .await
+            .unwrap()
+            .into_inner();
+        let lib = direct(&geo, &sc.measurements, method);
+        let (dt, du) = difference(&r, &lib);
+        eprintln!(
+            "unary {method:?}: quality {:?} ({}), |Δtransform| {dt:.1e}, |Δu| {du:.1e} mm, {:.0} ms",
+            r.quality(),
+            r.quality_reason,
+            r.timings.as_ref().unwrap().total_ms
+        );
+        assert_eq!(r.method_used, pm as i32);
+        assert_ne!(r.quality(), pb::Quality::Degraded);
+        assert!(dt < 1e-9, "transform differs by {dt}");
+        // f32 on the wire: displacements of tens of mm round at ~1e-6 relative.
+        assert!(du < 1e-4, "displacements differ by {du} mm");
+        if method == Method::Libr {
+            assert!(
+                lib.u.iter().any(|&x| x.abs() > 0.5),
+                "LIBR deformed nothing"
+            );
+        }
+    }
+    assert_eq!(running.shutdown().await, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn librplus_answers_through_the_same_api_as_the_library() {
+    use librplus::gcn::io::{TrainedModel, save_model};
+    use librplus::gcn::model::SrGcnConfig;
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = SrGcnConfig::new()
+        .with_width(8)
+        .with_convs(1)
+        .with_levels(2);
+    let model = TrainedModel::untrained(cfg, 7).unwrap();
+    save_model(
+        tmp.path(),
+        &model.config,
+        &model.net,
+        model.provenance.clone(),
+    )
+    .unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        model: Some(tmp.path().to_path_buf()),
+        librplus: true,
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut c = client(running.addr).await;
+    let cases = c
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(cases.cases.iter().all(|s| s.libr_plus_ready), "{cases:?}");
+    let (geo, sc) = scenario("surface+1us");
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let r = c
+        .register(request(
+            &case,
+            pb::Method::LibrPlus,
+            measurements_pb(&sc.measurements),
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.method_used, pb::Method::LibrPlus as i32, "{r:?}");
+    assert_ne!(r.quality(), pb::Quality::Degraded, "{}", r.quality_reason);
+    let t = r.timings.as_ref().unwrap();
+    assert!(
+        t.gcn_ms > 0.0 && t.refit_ms > 0.0 && t.refit_ms < t.gcn_ms,
+        "{t:?}"
+    );
+    assert!(t.refit_iterations >= 1, "{t:?}");
+    let prepared = Prepared::new(
+        geo.model.clone(),
+        Some(&LibrParams::default()),
+        Some(&dataset().join("cache")),
+    )
+    .unwrap()
+    .with_model(std::sync::Arc::new(
+        librplus::gcn::io::load_model_on_device(tmp.path()).unwrap(),
+    ))
+    .unwrap();
+    let p = PipelineParams::default();
+    let lib = register(&prepared, &sc.measurements, Method::LibrPlus, &p).unwrap();
+    let (dt, du) = difference(&r, &lib);
+    assert!(
+        dt < 1e-9 && du < 1e-4,
+        "transform {dt}, displacements {du} mm"
+    );
+    // The fit figures are the refit's, the answer's last stage.
+    let refit = lib.correction.as_ref().unwrap().refit.as_ref().unwrap();
+    assert_eq!(t.refit_iterations as usize, refit.iterations);
+    assert!((r.residual_rms_mm - refit.rms_mm).abs() < 1e-6, "{r:?}");
+    let libr = register(&prepared, &sc.measurements, Method::Libr, &p).unwrap();
+    assert_ne!(lib.u, libr.u);
+    assert_eq!(running.shutdown().await, 0);
+}

@@ -1,0 +1,680 @@
+//! The command line: clap's parser, the commands and their arguments, and the value enums.
+
+use clap::{Args, Parser, Subcommand};
+use librplus::fem;
+use librplus::mesh::io::Unit;
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(
+    name = "librplus",
+    version,
+    about = "LIBR+ intraoperative liver registration"
+)]
+pub(crate) struct Cli {
+    #[command(subcommand)]
+    pub(crate) command: Command,
+    /// Where SR-GCN training and inference compute: cpu, or (in a build with the `gpu` or
+    /// `vulkan` feature) gpu or gpu:N. wICP, LIBR and the FEM always run on the CPU.
+    #[arg(long, global = true, default_value = "cpu")]
+    pub(crate) device: String,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum Command {
+    /// Inspect and convert meshes.
+    #[command(subcommand)]
+    Mesh(MeshCmd),
+    /// Finite-element reference problems.
+    #[command(subcommand)]
+    Fem(FemCmd),
+    /// Whole-pipeline benchmarks with stage timings.
+    #[command(subcommand)]
+    Bench(BenchCmd),
+    /// Generates a dataset: liver phantoms, ground-truth deformations and sparse scenarios
+    /// (format in docs/dataset-and-models.md; deterministic for a seed, resumable, shardable).
+    Generate(GenerateArgs),
+    /// Liver phantoms: what the ground truth contains that the linear model lacks.
+    #[command(subcommand)]
+    Phantom(PhantomCmd),
+    /// Registers one dataset scenario (rigid wICP, or wICP then LIBR) and reports its TRE.
+    Register(RegisterArgs),
+    /// Evaluates methods over a dataset split: summary.json, report.md, per-scenario results.
+    Evaluate(EvaluateArgs),
+    /// Trains SR-GCN (LIBR+) on a dataset split, then tests LIBR and LIBR+ on the held-out
+    /// scenarios: MODEL_DIR/model.json + weights.bin (+ provenance), training.json, test.json,
+    /// loss curves (PNG).
+    Train(TrainArgs),
+    /// Runs the paper's experiments in one go: `train` on every split (random, geometry-
+    /// deformation hold-out, each leave-one-geometry-out, pattern V) and the Table 2 ablations,
+    /// then writes OUT/RESULTS.md (tables), OUT/results.json and OUT/ratios.png.
+    Experiments(ExperimentsArgs),
+    /// Makes an ensemble directory from trained model directories: LIBR+ with it averages the
+    /// members' corrections (docs/dataset-and-models.md, "SR-GCN ensemble directory"). Usable wherever `--model` is.
+    Ensemble(EnsembleArgs),
+}
+
+#[derive(Args)]
+pub(crate) struct EnsembleArgs {
+    /// The new ensemble directory (must not exist, or be empty).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Model directories (from `librplus train`); an ensemble directory adds its members.
+    #[arg(required = true)]
+    pub(crate) models: Vec<PathBuf>,
+}
+
+#[derive(Args)]
+pub(crate) struct ExperimentsArgs {
+    /// Dataset directory (from `librplus generate`).
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// Output directory: one model directory per run under `runs/`, and the reports.
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Splits, comma-separated: random, geo-def, logo (every geometry), logo:G, pattern-v.
+    #[arg(long, default_value = "random,geo-def,logo,pattern-v")]
+    pub(crate) splits: String,
+    /// Table 2 settings to run on `--ablation-split` (comma-separated, 1-6; empty: none).
+    #[arg(long, default_value = "1,2,3,4,5,6")]
+    pub(crate) ablations: String,
+    /// The split the ablations run on (the paper: random).
+    #[arg(long, default_value = "random")]
+    pub(crate) ablation_split: String,
+    /// Use every k-th block of five scenarios, in every run.
+    #[arg(long, default_value_t = 16)]
+    pub(crate) every: usize,
+    /// Training time limit per run (minutes; stage 2 stops before an epoch would pass it).
+    #[arg(long, default_value_t = 6.0)]
+    pub(crate) minutes: f64,
+    /// Seed of every run.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) seed: u64,
+    /// More `librplus train` options for every run, as one string (e.g. "--width 48").
+    #[arg(long, default_value = "", allow_hyphen_values = true)]
+    pub(crate) train_args: String,
+    /// Keep runs whose directory already has test.json (resume an interrupted campaign).
+    #[arg(long)]
+    pub(crate) resume: bool,
+}
+
+#[derive(Parser)]
+pub(crate) struct TrainOnly {
+    #[command(flatten)]
+    pub(crate) args: TrainArgs,
+}
+
+#[derive(Args)]
+pub(crate) struct TrainArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// Dataset directory (from `librplus generate`).
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// random, geo-def, logo:GEOMETRY or pattern-v.
+    #[arg(long, default_value = "pattern-v")]
+    pub(crate) split: String,
+    /// Model directory to write.
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Use every k-th block of five scenarios (train and test).
+    #[arg(long, default_value_t = 2)]
+    pub(crate) every: usize,
+    /// Seed (split, initialisation, sample order).
+    #[arg(long, default_value_t = 1)]
+    pub(crate) seed: u64,
+    /// Stage-2 epochs at most.
+    #[arg(long, default_value_t = 12)]
+    pub(crate) epochs: usize,
+    /// Stage-1 (bipartite branch) epochs.
+    #[arg(long, default_value_t = 2)]
+    pub(crate) epochs_bipartite: usize,
+    /// Initial Adam learning rate.
+    #[arg(long, default_value_t = 2e-3)]
+    pub(crate) lr: f64,
+    /// Feature width.
+    #[arg(long, default_value_t = 32)]
+    pub(crate) width: usize,
+    /// Convoluters per branch (N_c; the mesh branch's at full resolution).
+    #[arg(long, default_value_t = 1)]
+    pub(crate) convs: usize,
+    /// Spline kernel size per dimension.
+    #[arg(long, default_value_t = 3)]
+    pub(crate) kernel_size: usize,
+    /// Level the mesh branch runs at: 0 the full mesh (as the paper), 1 the first cluster level
+    /// (inputs pooled, the correction interpolated back to every node).
+    #[arg(long, default_value_t = 1)]
+    pub(crate) resolution: usize,
+    /// Coarse levels of the mesh branch's U-Net below `--resolution` (0: single resolution).
+    #[arg(long, default_value_t = 2)]
+    pub(crate) levels: usize,
+    /// Nodes per cluster from one U-Net level to the next.
+    #[arg(long, default_value_t = 8)]
+    pub(crate) pool_ratio: usize,
+    /// Clusters of the first cluster level whatever the mesh's resolution, so coarse and fine
+    /// meshes give the network the same graphs (0: `1/pool_ratio` of the nodes).
+    #[arg(long, default_value_t = 1024)]
+    pub(crate) clusters: usize,
+    /// Spline convolutions per coarse level on the way down.
+    #[arg(long, default_value_t = 3)]
+    pub(crate) coarse_convs: usize,
+    /// Nearest LIBR-deformed vertices per measured point (N_top).
+    #[arg(long, default_value_t = 4)]
+    pub(crate) n_top: usize,
+    /// Weight λ of the sparse-measurement loss.
+    #[arg(long)]
+    pub(crate) sparse_weight: Option<f64>,
+    /// The paper's Table 2 setting 1-6 (inputs and losses; 6 = the full model).
+    #[arg(long, default_value_t = 6)]
+    pub(crate) ablation: u32,
+    /// Add the measured-misfit input channels to the mesh branch (not in the paper).
+    #[arg(long)]
+    pub(crate) misfit_input: bool,
+    /// Add the surface input channels to the mesh branch: a boundary flag and the outward
+    /// normal of each node, from the preoperative mesh (not in the paper)
+    #[arg(long)]
+    pub(crate) surface_input: bool,
+    /// Add the loads LIBR's displacement implies (K·u of the preoperative mesh's linear
+    /// stiffness, 3 channels) to the mesh branch (not in the paper)
+    #[arg(long)]
+    pub(crate) load_input: bool,
+    /// DIAGNOSTIC, not a registration setting: link each measured point to its nearest
+    /// ground-truth vertices, as the LIBR+ paper did (a leak: surgery has no ground truth). The
+    /// training and test figures then show what that leak buys; the model cannot register.
+    #[arg(long)]
+    pub(crate) diagnostic_truth_neighbours: bool,
+    /// Plain convolutions in the mesh branch instead of residual blocks (as format-2 models).
+    #[arg(long)]
+    pub(crate) no_residual: bool,
+    /// Stage 2 stops before an epoch that would end past this many minutes.
+    #[arg(long, default_value_t = 25.0)]
+    pub(crate) max_minutes: f64,
+    /// Stage 2 stops after this many epochs in a row without a better validation error (the
+    /// learning rate halves at each; plateau schedule only)
+    #[arg(long, default_value_t = 3)]
+    pub(crate) patience: usize,
+    /// Stage-2 learning-rate schedule: `cosine` anneals it from `--lr` to 0 over `--epochs` or
+    /// `--max-minutes`, whichever ends first, and keeps the best epoch; `plateau` (before
+    /// session 10) halves it when validation stalls and stops after `--patience` stalls
+    #[arg(long, value_enum, default_value_t = ScheduleArg::Cosine)]
+    pub(crate) schedule: ScheduleArg,
+    /// Train on the raw correction instead of through LIBR+'s refit (by default, with the refit
+    /// on and a residual target, the node loss scores what the refit, linearised at each
+    /// scenario's LIBR solution, makes of the correction)
+    #[arg(long)]
+    pub(crate) no_refit_loss: bool,
+    /// Validate and keep an exponential moving average of the stage-2 weights over this many
+    /// epochs instead of the weights themselves (0: off)
+    #[arg(long, default_value_t = 0.0)]
+    pub(crate) average_epochs: f64,
+    /// L2 penalty on the mesh branch's weights (stage 2), added to the gradients before Adam
+    /// (0: none)
+    #[arg(long, default_value_t = 0.0)]
+    pub(crate) weight_decay: f64,
+    /// Jitter the normalised position inputs (preoperative and LIBR-deformed coordinates,
+    /// bipartite features) of every training step by a random affine map of this strength
+    /// (rotation, shear, scaling and translation up to about this fraction of the liver's RMS
+    /// radius; 0: none). Validation and inference are never jittered
+    #[arg(long, default_value_t = 0.0)]
+    pub(crate) position_jitter: f64,
+    /// What validation (early stopping, the correction scale) holds out of the training
+    /// scenarios: `deformations` (about one in ten whole deformations; on the random split a
+    /// tenth of the blocks) or `geometry` (one whole training liver, judging generalisation to
+    /// a new shape as the leave-one-geometry-out and pattern-V tests do; needs 3 training
+    /// livers)
+    #[arg(long, value_enum, default_value_t = ValidationArg::Deformations)]
+    pub(crate) validation: ValidationArg,
+    /// Start from this model's weights and network (its model.json replaces the network
+    /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
+    /// correction scale fitted again and tested
+    #[arg(long)]
+    pub(crate) init: Option<PathBuf>,
+}
+
+/// LIBR options shared by `register` and `evaluate`.
+#[derive(Args, Clone)]
+pub(crate) struct LibrOpts {
+    /// LIBR strain-energy regularization λ (dimensionless; default 1e-3).
+    #[arg(long)]
+    pub(crate) lambda: Option<f64>,
+    /// Most LIBR iterations (default 20).
+    #[arg(long)]
+    pub(crate) iterations: Option<usize>,
+    /// LIBR control points (default 25; changes the cached basis).
+    #[arg(long)]
+    pub(crate) control_points: Option<usize>,
+    /// Width σ of each control point's load, as a multiple of the control-point spacing
+    /// (default 1.25; changes the cached basis).
+    #[arg(long)]
+    pub(crate) load_width: Option<f64>,
+    /// LIBR+ only: most LIBR iterations of the data-consistency refit after the SR-GCN
+    /// correction (default 5; 0: none)
+    #[arg(long)]
+    pub(crate) refit_iterations: Option<usize>,
+    /// The rigid stage (wICP) registers the anterior-surface points alone, as Clements et al.
+    /// and the LIBR+ paper's wICP baseline do; ultrasound points are then used by LIBR only
+    #[arg(long)]
+    pub(crate) wicp_surface_only: bool,
+}
+
+impl LibrOpts {
+    pub(crate) fn params(&self) -> librplus::pipeline::PipelineParams {
+        let mut p = librplus::pipeline::PipelineParams::default();
+        if let Some(l) = self.lambda {
+            p.libr.regularization = l;
+        }
+        if let Some(i) = self.iterations {
+            p.libr.max_iterations = i;
+        }
+        if let Some(k) = self.control_points {
+            p.libr.control_points = k;
+        }
+        if let Some(w) = self.load_width {
+            p.libr.load_width = librplus::register::libr::LoadWidth::Spacing(w);
+        }
+        if let Some(k) = self.refit_iterations {
+            p.refit_iterations = k;
+        }
+        p.wicp.surface_only = self.wicp_surface_only;
+        p
+    }
+}
+
+#[derive(Args)]
+pub(crate) struct EvaluateArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// Dataset directory.
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// Comma-separated methods: rigid, libr, librplus (--model, or the built-in model).
+    #[arg(long, default_value = "rigid,libr")]
+    pub(crate) methods: String,
+    /// A trained SR-GCN model directory (from `librplus train`), or an ensemble directory (from
+    /// `librplus ensemble`): evaluates LIBR+ and restricts every method to the model's held-out
+    /// test scenarios (an ensemble: those every member held out; its split replaces --split).
+    #[arg(long)]
+    pub(crate) model: Option<PathBuf>,
+    /// Comma-separated splits: all, train, test (the held-out geometry with pattern V).
+    #[arg(long, default_value = "all")]
+    pub(crate) split: String,
+    /// Evaluate every k-th scenario of each deformation.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) every: usize,
+    /// Report directory (summary.json, report.md, results.json, PNG plots, error_maps/).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Print summary.json on stdout.
+    #[arg(long)]
+    pub(crate) json: bool,
+}
+
+#[derive(Args)]
+pub(crate) struct RegisterArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// Dataset directory (from `librplus generate`), with --scenario.
+    #[arg(long, requires = "scenario", required_unless_present = "preop")]
+    pub(crate) data: Option<PathBuf>,
+    /// Scenario: `DEFORMATION/INDEX`, e.g. `g1-L-00/3`.
+    #[arg(long, requires = "data")]
+    pub(crate) scenario: Option<String>,
+    /// Your own preoperative liver instead of a dataset: a tet mesh (.vtu .vtk .msh; labelled
+    /// from its `region`/`falciform`/`inferior_ridge` point arrays when present, else from its
+    /// geometry, LPS frame) or a closed surface (.obj .stl .vtp .vtk), meshed at --edge-mm.
+    #[arg(long, conflicts_with_all = ["data", "scenario"], requires = "surface")]
+    pub(crate) preop: Option<PathBuf>,
+    /// With --preop: anterior-surface points (physical frame; .vtp .vtk .csv .txt .xyz).
+    #[arg(long)]
+    pub(crate) surface: Option<PathBuf>,
+    /// With --preop: ultrasound posterior-contour points (repeatable, one file per plane or all).
+    #[arg(long)]
+    pub(crate) ultrasound: Vec<PathBuf>,
+    /// With --preop: ultrasound vessel-feature points (repeatable).
+    #[arg(long)]
+    pub(crate) vessel_points: Vec<PathBuf>,
+    /// With --preop: the navigation system's coarse alignment image → physical, a JSON file
+    /// `{"rotation": [[r00, r01, r02], [r10, ...], [...]], "translation": [tx, ty, tz]}` (in --unit);
+    /// default identity (points already near the preoperative model).
+    #[arg(long)]
+    pub(crate) initial_alignment: Option<PathBuf>,
+    /// With --preop: length unit of the mesh and point files (mm, cm or m).
+    #[arg(long, default_value = "mm")]
+    pub(crate) unit: Unit,
+    /// With --preop and a surface file: tet edge length (mm).
+    #[arg(long, default_value_t = 7.6)]
+    pub(crate) edge_mm: f64,
+    /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
+    #[arg(long, default_value = "libr")]
+    pub(crate) method: MethodArg,
+    /// SR-GCN model directory (from `librplus train`) or ensemble directory (from `librplus
+    /// ensemble`) for --method librplus (default: the built-in model).
+    #[arg(long)]
+    pub(crate) model: Option<PathBuf>,
+    /// Write the preoperative mesh with the registered `displacement` (image frame) and the
+    /// per-node `error_mm` against the ground truth (.vtu).
+    #[arg(long)]
+    pub(crate) out: Option<PathBuf>,
+    /// Where the LIBR basis is cached (default DATA/cache).
+    #[arg(long)]
+    pub(crate) cache: Option<PathBuf>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub(crate) json: bool,
+}
+
+#[derive(Args)]
+pub(crate) struct BenchRegisterArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// Dataset directory (from `librplus generate`). Default: the `small` preset (seed 1)
+    /// generated from --surface into a temporary directory, so the benchmark runs anywhere.
+    #[arg(long)]
+    pub(crate) data: Option<PathBuf>,
+    /// A tet mesh instead of a dataset: only the LIBR basis preload is measured (a bare mesh has
+    /// no anatomical labels, so no correspondence and no registrations).
+    #[arg(long, conflicts_with_all = ["data", "geometry"])]
+    pub(crate) mesh: Option<PathBuf>,
+    /// Closed liver surface for the default dataset (default: the built-in SOFA liver).
+    #[arg(long)]
+    pub(crate) surface: Option<PathBuf>,
+    /// Geometry id of the dataset (default: the first).
+    #[arg(long)]
+    pub(crate) geometry: Option<String>,
+    /// Registrations to time, taken evenly across the five measurement categories.
+    #[arg(long, default_value_t = 50)]
+    pub(crate) scenarios: usize,
+    /// Threads of the pool the registrations run in, one after another (1: single-registration
+    /// latency on one core, the surgical metric). The preload uses every core.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) threads: usize,
+    /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
+    #[arg(long, default_value = "libr")]
+    pub(crate) method: MethodArg,
+    /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model).
+    #[arg(long)]
+    pub(crate) model: Option<PathBuf>,
+    #[command(flatten)]
+    pub(crate) common: Common,
+}
+
+/// `train --validation`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum ValidationArg {
+    Deformations,
+    Geometry,
+}
+
+impl ValidationArg {
+    pub(crate) fn get(self) -> librplus::eval::train::Validation {
+        match self {
+            ValidationArg::Deformations => librplus::eval::train::Validation::Deformations,
+            ValidationArg::Geometry => librplus::eval::train::Validation::Geometry,
+        }
+    }
+}
+
+/// `train --schedule`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum ScheduleArg {
+    Plateau,
+    Cosine,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum MethodArg {
+    /// Salient-feature weighted rigid ICP.
+    Rigid,
+    /// wICP, then LIBR.
+    Libr,
+    /// wICP, LIBR, then the SR-GCN correction (--model, or the built-in model).
+    Librplus,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum PhantomCmd {
+    /// For each pattern and seed: the gap between the ground truth and the linear homogeneous
+    /// model under the same loads and supports, and what contributes (heterogeneity, nonlinear
+    /// material and geometry, unilateral bed contact; gravity vs the pattern's own load).
+    Effect {
+        /// Closed liver surface (LPS). Default: the built-in SOFA liver (largest piece).
+        #[arg(long)]
+        surface: Option<PathBuf>,
+        /// Mesher target edge (mm).
+        #[arg(long, default_value_t = 12.0)]
+        edge_mm: f64,
+        /// Seeds: first..=last draws of loads and tissue.
+        #[arg(long, default_value_t = 1)]
+        first_seed: u64,
+        /// Number of seeds.
+        #[arg(long, default_value_t = 10)]
+        seeds: u64,
+        #[command(flatten)]
+        common: Common,
+    },
+}
+
+#[derive(Args)]
+pub(crate) struct GenerateArgs {
+    /// small (CI-sized: 2 coarse geometries, 3 deformations, 10 scenarios each) or paper (3 training
+    /// geometries × L, R, W plus a 4th with V, 700 scenarios each, ~9,000-node meshes).
+    #[arg(long, default_value = "small")]
+    pub(crate) preset: PresetArg,
+    /// Output directory (created; an interrupted run resumes into it).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Master seed.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) seed: u64,
+    /// Do the i-th of N shares of the deformations (`--shard 0/4`); run once more without
+    /// `--shard` (it skips finished work) to write the complete manifest.
+    #[arg(long)]
+    pub(crate) shard: Option<String>,
+    /// Closed liver surface(s) in LPS (repeatable); geometries cycle through them, then through
+    /// seeded shape variants. Default: the built-in SOFA liver (largest component).
+    #[arg(long)]
+    pub(crate) surface: Vec<PathBuf>,
+    /// Override: number of geometries (the last one is the held-out V geometry).
+    #[arg(long)]
+    pub(crate) geometries: Option<usize>,
+    /// Override: deformations per geometry and pattern.
+    #[arg(long)]
+    pub(crate) deformations: Option<usize>,
+    /// Override: scenarios per deformation.
+    #[arg(long)]
+    pub(crate) scenarios: Option<usize>,
+    /// Override: the patterns of the training geometries, comma-separated from L, R, W (the
+    /// paper's, the default), X (random packs anywhere on the surface: a training augmentation,
+    /// not in the paper) and V (a diagnostic: the held-out geometry's pattern seen in training, so
+    /// that pattern-v measures an unseen liver alone). The held-out geometry keeps V only.
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) patterns: Vec<String>,
+    /// Override: mesher target edge length (mm).
+    #[arg(long)]
+    pub(crate) edge_mm: Option<f64>,
+    /// Ground-truth physics: nonlinear (heterogeneous Neo-Hookean with unilateral bed contact) or
+    /// linear (the linear homogeneous model LIBR assumes, same loads: a control dataset).
+    #[arg(long, value_enum, default_value = "nonlinear")]
+    pub(crate) truth: TruthArg,
+    /// The five scenarios of each block (one per category) share the surface patch, noise,
+    /// misalignment and landmarks and differ only in their ultrasound planes, so the categories
+    /// are compared on the same draws (off by default: every scenario is drawn on its own).
+    #[arg(long)]
+    pub(crate) paired_categories: bool,
+    #[command(flatten)]
+    pub(crate) common: Common,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum TruthArg {
+    /// Heterogeneous compressible Neo-Hookean, unilateral bed contact.
+    Nonlinear,
+    /// Linear homogeneous elasticity, bilateral bed springs.
+    Linear,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum PresetArg {
+    /// CI-sized.
+    Small,
+    /// The paper's design.
+    Paper,
+}
+
+#[derive(Args, Clone)]
+pub(crate) struct Common {
+    /// Length unit of input files (mm, cm or m); meshes are held in millimetres.
+    #[arg(long, default_value = "mm")]
+    pub(crate) unit: Unit,
+    /// Print one JSON object on stdout instead of human-readable text.
+    #[arg(long)]
+    pub(crate) json: bool,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum MeshCmd {
+    /// Counts, volume, quality, components and bounding box of a mesh or surface file.
+    Info {
+        /// Mesh file (.vtu .vtp .vtk .msh .obj .stl).
+        file: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Converts between formats (by extension); output in millimetres.
+    Convert {
+        /// Input file.
+        input: PathBuf,
+        /// Output file (.vtu .vtp .vtk .msh .obj .stl); a tet mesh written to a surface format
+        /// writes its boundary.
+        output: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Write ASCII instead of binary where the format has both.
+        #[arg(long)]
+        ascii: bool,
+    },
+    /// Tetrahedralizes a closed surface (isosurface stuffing on a BCC lattice).
+    Tetra {
+        /// Closed triangle surface (.obj .stl .vtk .vtp .vtu; a tet mesh is re-meshed from its
+        /// boundary).
+        surface: PathBuf,
+        /// Target edge length in mm.
+        #[arg(long)]
+        edge_mm: f64,
+        /// Output tet mesh (.vtu .vtk .msh).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Keep every face-connected piece (default: the largest only).
+        #[arg(long)]
+        all_pieces: bool,
+    },
+}
+
+#[derive(Subcommand)]
+pub(crate) enum FemCmd {
+    /// Gravity sag: E = 5 kPa, ν = 0.45, 0.0104 mN/mm³ along +y, top 20% of the y-range fixed.
+    Sag {
+        /// Tetrahedral mesh file.
+        #[arg(long)]
+        mesh: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Write the mesh with `displacement` (mm) and `fixed` point data (.vtu, .vtk, ...).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Material model: linear elasticity, or compressible Neo-Hookean (same E, ν; also
+        /// reports its difference from the linear solution).
+        #[arg(long, default_value = "linear")]
+        model: ModelArg,
+        /// Multiplies the body force (e.g. 3 for a stronger load to show nonlinearity).
+        #[arg(long, default_value_t = 1.0)]
+        load_scale: f64,
+    },
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum ModelArg {
+    /// Linear elasticity.
+    Linear,
+    /// Compressible Neo-Hookean, total Lagrangian, Newton with line search and load stepping.
+    NeoHookean,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum OrderingArg {
+    /// Geometric nested dissection.
+    Nd,
+    /// Approximate minimum degree.
+    Amd,
+}
+
+impl From<OrderingArg> for fem::Ordering {
+    fn from(o: OrderingArg) -> Self {
+        match o {
+            OrderingArg::Nd => fem::Ordering::NestedDissection,
+            OrderingArg::Amd => fem::Ordering::Amd,
+        }
+    }
+}
+
+#[derive(Subcommand)]
+pub(crate) enum BenchCmd {
+    /// Whole registration pipeline: the case preload (LIBR basis built cold, then read from its
+    /// cache) and single-registration latency with stage timings over scenarios spread across
+    /// the measurement categories.
+    Register(BenchRegisterArgs),
+    /// A spline-convolution stack on the graph of `../shared/bench/splineconv_peer.py` (random
+    /// points, symmetric kNN, Cartesian pseudo-coordinates; layers 6 → hidden … → 3): inference
+    /// and one training step, medians in ms, as the peer prints them.
+    Gcn {
+        /// Nodes.
+        #[arg(long, default_value_t = 9000)]
+        nodes: usize,
+        /// Target mean in-degree.
+        #[arg(long, default_value_t = 14)]
+        avg_degree: usize,
+        /// Kernel size per dimension (3-D).
+        #[arg(long, default_value_t = 5)]
+        kernel: usize,
+        /// Hidden width.
+        #[arg(long, default_value_t = 64)]
+        hidden: usize,
+        /// Layers.
+        #[arg(long, default_value_t = 4)]
+        layers: usize,
+        /// Threads (rayon pool).
+        #[arg(long, default_value_t = 2)]
+        threads: usize,
+        /// Seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Untimed repetitions.
+        #[arg(long, default_value_t = 2)]
+        warmup: usize,
+        /// Timed repetitions.
+        #[arg(long, default_value_t = 10)]
+        repeats: usize,
+    },
+    /// LIBR preload workload: assemble, factorize once, solve `rhs` unit-load right-hand sides.
+    Basis {
+        /// Tetrahedral mesh file.
+        #[arg(long)]
+        mesh: PathBuf,
+        #[command(flatten)]
+        common: Common,
+        /// Number of right-hand sides.
+        #[arg(long, default_value_t = 300)]
+        rhs: usize,
+        /// Repetitions; medians are reported.
+        #[arg(long, default_value_t = 1)]
+        repeat: usize,
+        /// Seed for the random load positions.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Fill-reducing ordering: nd (geometric nested dissection) or amd.
+        #[arg(long, default_value = "nd")]
+        ordering: OrderingArg,
+    },
+}

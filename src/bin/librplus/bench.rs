@@ -1,0 +1,352 @@
+//! `librplus bench`: basis (the LIBR preload workload) and register (the whole pipeline, with
+//! the preload printed); `bench gcn` is dispatched in `main`.
+
+use crate::args::{BenchRegisterArgs, Common, MethodArg};
+use crate::data::liver_surface;
+use crate::mesh::load_volume;
+use crate::register::shared_models;
+use crate::util::emit;
+use anyhow::{Context, Result, bail};
+use librplus::fem;
+use librplus::mesh::io::Unit;
+use serde_json::{Value, json};
+use std::path::Path;
+
+pub(crate) fn bench_basis(
+    path: &Path,
+    c: &Common,
+    rhs: usize,
+    repeat: usize,
+    seed: u64,
+    ordering: fem::Ordering,
+) -> Result<()> {
+    if rhs == 0 {
+        bail!("--rhs must be at least 1");
+    }
+    let mesh = load_volume(path, c.unit)?.mesh;
+    let rhs_bytes = 3.0 * mesh.num_nodes() as f64 * rhs as f64 * 8.0;
+    if rhs_bytes > 8.0 * (1u64 << 30) as f64 {
+        bail!(
+            "--rhs {rhs} on {} nodes needs {:.1} GiB for the right-hand sides alone (limit 8 GiB); use fewer",
+            mesh.num_nodes(),
+            rhs_bytes / (1u64 << 30) as f64
+        );
+    }
+    let bar = indicatif::ProgressBar::new(repeat.max(1) as u64).with_message("bench basis");
+    let mut runs = Vec::new();
+    for _ in 0..repeat.max(1) {
+        runs.push(fem::basis_bench::run(&mesh, rhs, seed, ordering)?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let pick = |f: fn(&fem::basis_bench::BasisBench) -> f64| {
+        librplus::util::median(&runs.iter().map(f).collect::<Vec<_>>())
+    };
+    let first = &runs[0];
+    let out = json!({
+        "mesh": path.display().to_string(),
+        "nodes": first.nodes,
+        "tets": first.tets,
+        "dofs_free": first.dofs_free,
+        "nrhs": rhs,
+        "repeat": runs.len(),
+        "threads": rayon::current_num_threads(),
+        "assemble_s": pick(|r| r.assemble_s),
+        "factor_s": pick(|r| r.factor_s),
+        "factor_symbolic_s": pick(|r| r.factor.symbolic_s),
+        "factor_numeric_s": pick(|r| r.factor.numeric_s),
+        "solve_all_s": pick(|r| r.solve_all_s),
+        "solve_per_rhs_ms": 1e3 * pick(|r| r.solve_all_s) / rhs as f64,
+        "total_s": pick(|r| r.total_s),
+        "nnz_lower": first.factor.nnz_lower,
+        "nnz_factor": first.factor.nnz_factor,
+        "ordering": first.factor.ordering,
+        "max_rel_residual": runs.iter().map(|r| r.max_rel_residual).fold(0.0, f64::max),
+    });
+    emit(c.json, &out);
+    Ok(())
+}
+
+fn preload_json(p: &librplus::eval::bench::PreloadBench) -> Value {
+    let one = |x: &librplus::eval::bench::Preload| {
+        json!({
+            "from_cache": x.from_cache,
+            "loads_s": x.basis.loads_s,
+            "assemble_s": x.basis.assemble_s,
+            "factor_s": x.basis.factor_s,
+            "solve_s": x.basis.solve_s,
+            "energy_s": x.basis.energy_s,
+            "cache_read_s": x.basis.cache_read_s,
+            "basis_total_s": x.basis.total_s,
+            "correspondence_s": x.correspondence_s,
+            "total_s": x.total_s,
+        })
+    };
+    json!({
+        "nodes": p.nodes,
+        "tets": p.tets,
+        "columns": p.columns,
+        "cache_bytes": p.cache_bytes,
+        "threads": rayon::current_num_threads(),
+        "cold": one(&p.cold),
+        "warm": one(&p.warm),
+    })
+}
+
+fn print_preload(p: &librplus::eval::bench::PreloadBench) {
+    println!(
+        "preload: {} nodes, {} tets, {} basis columns, cache file {:.1} MB, {} threads",
+        p.nodes,
+        p.tets,
+        p.columns,
+        p.cache_bytes as f64 / 1e6,
+        rayon::current_num_threads()
+    );
+    println!(
+        "  {:<5} {:>8} {:>9} {:>8} {:>8} {:>8} {:>11} {:>9} {:>15} {:>8}",
+        "(s)",
+        "loads",
+        "assemble",
+        "factor",
+        "solve",
+        "energy",
+        "cache read",
+        "basis",
+        "correspondence",
+        "total"
+    );
+    for (name, x) in [("cold", &p.cold), ("warm", &p.warm)] {
+        println!(
+            "  {:<5} {:>8.3} {:>9.3} {:>8.3} {:>8.3} {:>8.3} {:>11.3} {:>9.3} {:>15} {:>8.3}",
+            name,
+            x.basis.loads_s,
+            x.basis.assemble_s,
+            x.basis.factor_s,
+            x.basis.solve_s,
+            x.basis.energy_s,
+            x.basis.cache_read_s,
+            x.basis.total_s,
+            x.correspondence_s
+                .map_or_else(|| "–".to_string(), |c| format!("{c:.3}")),
+            x.total_s
+        );
+    }
+}
+
+pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
+    use librplus::eval::bench::{
+        pick_across_categories, preload_mesh, preload_model, time_registrations,
+    };
+    use librplus::pipeline::Method;
+    if a.threads == 0 {
+        bail!("--threads must be at least 1");
+    }
+    if a.scenarios == 0 {
+        bail!("--scenarios must be at least 1");
+    }
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    let tmp = tempfile::Builder::new()
+        .prefix("librplus-bench-register-")
+        .tempdir()
+        .context("a temporary directory for the benchmark's cache")?;
+    let cache = tmp.path().join("cache");
+    let spinner = |msg: &str| {
+        let bar = indicatif::ProgressBar::new_spinner().with_message(msg.to_string());
+        bar.enable_steady_tick(std::time::Duration::from_millis(200));
+        bar
+    };
+    if let Some(path) = &a.mesh {
+        let mesh = load_volume(path, a.common.unit)?.mesh;
+        let bar = spinner("LIBR basis: cold build, then warm load");
+        let p = preload_mesh(&mesh, &params.libr, &cache);
+        bar.finish_and_clear();
+        let p = p.map_err(anyhow::Error::msg)?;
+        if a.common.json {
+            println!(
+                "{}",
+                json!({"mesh": path.display().to_string(), "preload": preload_json(&p), "registrations": Value::Null})
+            );
+        } else {
+            println!(
+                "bench register: {} (mesh only: preload, no registrations)",
+                path.display()
+            );
+            print_preload(&p);
+        }
+        return Ok(());
+    }
+    let data = match &a.data {
+        Some(d) => d.clone(),
+        None => {
+            let dir = tmp.path().join("data");
+            let bar = spinner("generating the small preset (no --data given)");
+            let r = small_dataset(&dir, a.surface.as_deref());
+            bar.finish_and_clear();
+            r?;
+            dir
+        }
+    };
+    let m = librplus::eval::open(&data).map_err(anyhow::Error::msg)?;
+    let geometry = match &a.geometry {
+        Some(g) => g.clone(),
+        None => m
+            .geometries
+            .first()
+            .map(|g| g.id.clone())
+            .with_context(|| format!("{}: the manifest has no geometry", data.display()))?,
+    };
+    let geo = librplus::eval::load_geometry(&data, &m, &geometry)
+        .map_err(|e| anyhow::anyhow!("--geometry {geometry:?}: {e}"))?;
+    let mut scenarios = Vec::new();
+    for d in m.deformations.iter().filter(|d| d.geometry == geometry) {
+        scenarios.extend(librplus::eval::load_scenarios(&data, d).map_err(anyhow::Error::msg)?);
+    }
+    let cats: Vec<&str> = scenarios.iter().map(|s| s.category.as_str()).collect();
+    let picked: Vec<&librplus::eval::ScenarioData> = pick_across_categories(&cats, a.scenarios)
+        .into_iter()
+        .map(|i| &scenarios[i])
+        .collect();
+    if picked.is_empty() {
+        bail!(
+            "{}: geometry {geometry} has no scenarios in the categories {:?}",
+            data.display(),
+            librplus::eval::report::CATEGORY_ORDER
+        );
+    }
+    let bar = spinner("preload: LIBR basis cold build, then warm load");
+    let pre = preload_model(&geo.model, &params.libr, &cache);
+    bar.finish_and_clear();
+    let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
+    let method = match a.method {
+        MethodArg::Rigid => Method::Rigid,
+        MethodArg::Libr => Method::Libr,
+        MethodArg::Librplus => Method::LibrPlus,
+    };
+    match (&a.model, method) {
+        (Some(dir), Method::LibrPlus) => {
+            let m = librplus::gcn::io::load_models_on_device(dir)
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?;
+            case = case
+                .with_models(shared_models(m))
+                .map_err(anyhow::Error::msg)?;
+        }
+        (None, Method::LibrPlus) => {
+            let m = librplus::gcn::io::builtin_models()
+                .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?;
+            case = case
+                .with_models(shared_models(m))
+                .map_err(anyhow::Error::msg)?;
+        }
+        (Some(_), _) => bail!("--model is only used with --method librplus"),
+        (None, _) => {}
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.threads)
+        .build()
+        .context("building the thread pool")?;
+    let bar = indicatif::ProgressBar::new(picked.len() as u64).with_message("registrations");
+    let progress = |done: usize, _: usize| bar.set_position(done as u64);
+    let r = pool.install(|| {
+        time_registrations(
+            &case,
+            &picked,
+            &geo.surface,
+            &geo.targets,
+            method,
+            &params,
+            &progress,
+        )
+    });
+    bar.finish_and_clear();
+    let r = r.map_err(anyhow::Error::msg)?;
+    let out = json!({
+        "data": data.display().to_string(),
+        "data_generated": a.data.is_none(),
+        "geometry": geometry,
+        "method": method.name(),
+        "threads": a.threads,
+        "preload": preload_json(&pre),
+        "registrations": {
+            "count": r.count,
+            "failed": r.failed,
+            "per_category": r.per_category,
+            "total_s": r.total_s,
+            "median_s": {
+                "total": r.median.total_s,
+                "wicp": r.median.wicp_s,
+                "libr": r.median.libr_s,
+                "libr_matching": r.median.libr_matching_s,
+                "libr_assemble": r.median.libr_assemble_s,
+                "libr_solve": r.median.libr_solve_s,
+                "libr_other": r.median.libr_other_s,
+                "gcn": r.median.gcn_s,
+                "gcn_network": r.median.gcn_network_s,
+                "gcn_refit": r.median.gcn_refit_s,
+            },
+            "wicp_iterations_mean": r.wicp_iterations_mean,
+            "libr_iterations_mean": r.libr_iterations_mean,
+            "libr_converged": r.libr_converged,
+            "tre_mm_mean": r.tre_mm_mean,
+        },
+    });
+    if a.common.json {
+        println!("{out}");
+        return Ok(());
+    }
+    println!(
+        "bench register: geometry {geometry} of {}{}, method {}, {} registrations one at a time in a {}-thread pool",
+        data.display(),
+        if a.data.is_none() { " (generated)" } else { "" },
+        method.name(),
+        r.count,
+        a.threads
+    );
+    print_preload(&pre);
+    println!(
+        "registration (s): median {:.4}, p10 {:.4}, p90 {:.4}, p99 {:.4}, mean {:.4}, max {:.4}; failed {}",
+        r.total_s.median,
+        r.total_s.p10,
+        r.total_s.p90,
+        r.total_s.p99,
+        r.total_s.mean,
+        r.total_s.max,
+        r.failed
+    );
+    println!(
+        "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4} (network {:.4}, refit {:.4})",
+        r.median.wicp_s,
+        r.median.libr_s,
+        r.median.libr_matching_s,
+        r.median.libr_assemble_s,
+        r.median.libr_solve_s,
+        r.median.libr_other_s,
+        r.median.gcn_s,
+        r.median.gcn_network_s,
+        r.median.gcn_refit_s
+    );
+    println!(
+        "  iterations (mean): wicp {:.1}, libr {:.1} (converged {}/{}); mean TRE {:.2} mm; per category {:?}",
+        r.wicp_iterations_mean,
+        r.libr_iterations_mean,
+        r.libr_converged,
+        r.count,
+        r.tre_mm_mean,
+        r.per_category
+    );
+    Ok(())
+}
+
+/// Generates the `small` preset (seed 1) from `surface` into `dir`, quietly.
+fn small_dataset(dir: &Path, surface: Option<&Path>) -> Result<()> {
+    use librplus::phantom::dataset::{GenerateConfig, Preset};
+    let (s, name) = liver_surface(surface, Unit::Mm).context("the default dataset")?;
+    let config = GenerateConfig::preset(Preset::Small, 1, vec![name]);
+    std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    librplus::phantom::dataset::generate(&config, &[s], dir, (0, 1), &|_, _, _| {})
+        .map_err(|e| anyhow::anyhow!("generating the small preset into {}: {e}", dir.display()))?;
+    Ok(())
+}

@@ -1,0 +1,337 @@
+//! `librplus generate` and `librplus phantom effect`, and the liver surfaces they read.
+
+use crate::args::{Common, GenerateArgs, PresetArg, TruthArg};
+use crate::mesh::read_file;
+use crate::util::emit;
+use anyhow::{Context, Result, bail};
+use librplus::mesh::io::Unit;
+use librplus::mesh::{TetMesh, TriSurface};
+use serde_json::{Value, json};
+use std::path::Path;
+use std::time::Instant;
+
+/// Reads a surface file's triangles, or a tet mesh file's outward boundary, as a surface.
+pub(crate) fn read_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
+    let file = read_file(path, unit)?;
+    let triangles = if !file.triangles.is_empty() {
+        file.triangles.clone()
+    } else if !file.tets.is_empty() {
+        let mut m = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
+        m.orient_positive();
+        m.boundary()
+            .with_context(|| path.display().to_string())?
+            .triangles
+    } else {
+        bail!("{}: has no triangles or tetrahedra to mesh", path.display());
+    };
+    TriSurface::new(file.nodes, triangles).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+}
+
+/// Reads a closed surface for meshing: its triangles (or a tet mesh's boundary), the largest
+/// connected piece, oriented outward.
+fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
+    let mut surface = read_surface(path, unit)?.largest_component();
+    let stats = surface.stats();
+    if !stats.closed {
+        bail!(
+            "{}: the surface (largest piece) is not closed; a liver surface must enclose a volume",
+            path.display()
+        );
+    }
+    if surface.signed_volume() < 0.0 {
+        surface.flip();
+    }
+    Ok(surface)
+}
+
+/// The closed liver surface of `--surface` ([`load_closed_surface`]), or the built-in default
+/// liver when none is given; with the source name a dataset records (the file name).
+pub(crate) fn liver_surface(path: Option<&Path>, unit: Unit) -> Result<(TriSurface, String)> {
+    match path {
+        Some(p) => {
+            let s = load_closed_surface(p, unit)
+                .with_context(|| format!("--surface {}", p.display()))?;
+            let name = p
+                .file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_else(|| p.display().to_string());
+            Ok((s, name))
+        }
+        None => Ok((
+            librplus::assets::default_liver()?,
+            librplus::assets::DEFAULT_LIVER_NAME.to_string(),
+        )),
+    }
+}
+
+pub(crate) fn phantom_effect(
+    surface: Option<&Path>,
+    edge_mm: f64,
+    first_seed: u64,
+    seeds: u64,
+    c: &Common,
+) -> Result<()> {
+    use librplus::fem::hyperelastic::NewtonParams;
+    use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
+    use librplus::phantom::tissue::{Tissue, TissueParams};
+    use librplus::phantom::truth::breakdown;
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    use librplus::register::anatomy::{LabelParams, label};
+    if !(edge_mm.is_finite() && edge_mm > 0.5) || seeds == 0 {
+        bail!("need --edge-mm > 0.5 and --seeds ≥ 1");
+    }
+    let (s, source) = liver_surface(surface, c.unit)?;
+    let mesh = librplus::mesh::tetra::tetrahedralize(
+        &s,
+        &librplus::mesh::tetra::TetraParams::with_edge(edge_mm),
+    )
+    .with_context(|| source.clone())?;
+    let labels = label(&mesh, &LabelParams::default()).map_err(anyhow::Error::msg)?;
+    let tree = VesselTree::grow(&mesh, &VesselParams::default()).map_err(anyhow::Error::msg)?;
+    let tp = TissueParams::default();
+    let pp = PatternParams::default();
+    let bar = indicatif::ProgressBar::new(4 * seeds).with_message("ground truth and breakdowns");
+    let mut rows = Vec::new();
+    for seed in first_seed..first_seed + seeds {
+        let tissue = Tissue::build(&mesh, &tree, &tp, seed).map_err(anyhow::Error::msg)?;
+        let lame = tissue.lame_field();
+        for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V, Pattern::X] {
+            let case = load_case(&mesh, &labels, pattern, &pp, seed).map_err(anyhow::Error::msg)?;
+            let b = breakdown(
+                &mesh,
+                &lame,
+                &tp.parenchyma,
+                &case,
+                &NewtonParams::default(),
+            );
+            bar.inc(1);
+            match b {
+                Ok(b) => rows.push((pattern, seed, b)),
+                Err(e) => eprintln!("{pattern:?} seed {seed}: did not converge ({e}); skipped"),
+            }
+        }
+    }
+    bar.finish_and_clear();
+    let mut per = serde_json::Map::new();
+    for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V, Pattern::X] {
+        let r: Vec<_> = rows
+            .iter()
+            .filter(|r| r.0 == pattern)
+            .map(|r| &r.2)
+            .collect();
+        if r.is_empty() {
+            continue;
+        }
+        let n = r.len() as f64;
+        let avg = |f: &dyn Fn(&librplus::phantom::truth::Breakdown) -> f64| {
+            r.iter().map(|b| f(b)).sum::<f64>() / n
+        };
+        let gaps: Vec<f64> = r.iter().map(|b| b.gap_mm).collect();
+        per.insert(
+            format!("{pattern:?}"),
+            json!({
+                "draws": r.len(),
+                "mean_displacement_mm": avg(&|b| b.truth_mean_mm),
+                "max_displacement_mm": r.iter().map(|b| b.truth_max_mm).fold(0.0, f64::max),
+                "gap_mm_mean": avg(&|b| b.gap_mm),
+                "gap_mm_min": gaps.iter().copied().fold(f64::INFINITY, f64::min),
+                "gap_mm_max": gaps.iter().copied().fold(0.0, f64::max),
+                "step_heterogeneity_mm": avg(&|b| b.steps[0].mean_mm),
+                "step_nonlinearity_mm": avg(&|b| b.steps[1].mean_mm),
+                "step_unilateral_bed_mm": avg(&|b| b.steps[2].mean_mm),
+                "gap_gravity_only_mm": avg(&|b| b.by_load[0].mean_mm),
+                "gap_pattern_load_only_mm": avg(&|b| b.by_load[1].mean_mm),
+            }),
+        );
+    }
+    let out = json!({
+        "surface": source,
+        "nodes": mesh.num_nodes(),
+        "seeds": format!("{first_seed}..={}", first_seed + seeds - 1),
+        "per_pattern": Value::Object(per),
+        "draws": rows.iter().map(|(p, s, b)| json!({"pattern": format!("{p:?}"), "seed": s, "breakdown": b})).collect::<Vec<_>>(),
+    });
+    if c.json {
+        println!("{out}");
+    } else {
+        println!(
+            "{} nodes, seeds {}",
+            mesh.num_nodes(),
+            out["seeds"].as_str().unwrap_or("")
+        );
+        println!(
+            "pattern  mean(mm)  gap mean [min, max]   heterog.  nonlin.  unilat.  | gravity-only  pattern-only"
+        );
+        for (p, v) in out["per_pattern"].as_object().into_iter().flatten() {
+            let f = |k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+            println!(
+                "{p:7}  {:8.1}  {:5.2} [{:5.2}, {:5.2}]  {:8.2}  {:7.2}  {:7.2}  | {:12.2}  {:12.2}",
+                f("mean_displacement_mm"),
+                f("gap_mm_mean"),
+                f("gap_mm_min"),
+                f("gap_mm_max"),
+                f("step_heterogeneity_mm"),
+                f("step_nonlinearity_mm"),
+                f("step_unilateral_bed_mm"),
+                f("gap_gravity_only_mm"),
+                f("gap_pattern_load_only_mm"),
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The training patterns named by `generate --patterns`, each once.
+fn train_patterns(names: &[String]) -> Result<Vec<librplus::phantom::patterns::Pattern>> {
+    use librplus::phantom::patterns::Pattern;
+    let mut out = Vec::new();
+    for name in names {
+        let p = match name.trim() {
+            "L" | "l" => Pattern::L,
+            "R" | "r" => Pattern::R,
+            "W" | "w" => Pattern::W,
+            "X" | "x" => Pattern::X,
+            "V" | "v" => Pattern::V,
+            other => bail!("--patterns: unknown pattern {other:?} (have L, R, W, X, V)"),
+        };
+        if out.contains(&p) {
+            bail!("--patterns: {name} is named twice");
+        }
+        out.push(p);
+    }
+    Ok(out)
+}
+
+pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
+    use librplus::phantom::dataset::{GenerateConfig, Preset};
+    let shard = match &a.shard {
+        None => (0, 1),
+        Some(s) => {
+            let (i, n) = s
+                .split_once('/')
+                .with_context(|| format!("--shard {s:?}: expected i/N, e.g. 0/4"))?;
+            let (i, n): (usize, usize) = (
+                i.trim()
+                    .parse()
+                    .with_context(|| format!("--shard {s:?}: i is not a number"))?,
+                n.trim()
+                    .parse()
+                    .with_context(|| format!("--shard {s:?}: N is not a number"))?,
+            );
+            if n == 0 || i >= n {
+                bail!("--shard {s:?}: need 0 ≤ i < N");
+            }
+            (i, n)
+        }
+    };
+    let paths: Vec<Option<&Path>> = if a.surface.is_empty() {
+        vec![None]
+    } else {
+        a.surface.iter().map(|p| Some(p.as_path())).collect()
+    };
+    let mut surfaces = Vec::new();
+    let mut sources = Vec::new();
+    for p in paths {
+        let (s, name) = liver_surface(p, a.common.unit)?;
+        surfaces.push(s);
+        sources.push(name);
+    }
+    let preset = match a.preset {
+        PresetArg::Small => Preset::Small,
+        PresetArg::Paper => Preset::Paper,
+    };
+    let mut config = GenerateConfig::preset(preset, a.seed, sources);
+    if let Some(g) = a.geometries {
+        if g == 0 {
+            bail!("--geometries must be at least 1");
+        }
+        config.geometries = g;
+    }
+    if let Some(d) = a.deformations {
+        config.deformations_per_pattern = d;
+    }
+    if !a.patterns.is_empty() {
+        config.train_patterns = train_patterns(&a.patterns)?;
+    }
+    config.paired_categories = a.paired_categories;
+    config.truth = match a.truth {
+        TruthArg::Nonlinear => librplus::phantom::dataset::TruthModel::Nonlinear,
+        TruthArg::Linear => librplus::phantom::dataset::TruthModel::LinearHomogeneous,
+    };
+    if let Some(s) = a.scenarios {
+        if s == 0 {
+            bail!("--scenarios must be at least 1");
+        }
+        config.scenarios = s;
+    }
+    if let Some(h) = a.edge_mm {
+        if !(h.is_finite() && h > 0.5) {
+            bail!("--edge-mm {h}: must be a length above 0.5 mm");
+        }
+        config.edge_mm = h;
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
+    let t0 = Instant::now();
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} {msg} [{bar:30}] {pos}/{len} deformations, {elapsed} (eta {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_message("meshing and labelling geometries");
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let progress = |done: usize, total: usize, msg: &str| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+        bar.set_message(msg.to_string());
+    };
+    let result = librplus::phantom::dataset::generate(&config, &surfaces, &a.out, shard, &progress);
+    bar.finish_and_clear();
+    let report = result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))?;
+    let m = report.manifest.as_ref().expect("manifest written");
+    let per_pattern: serde_json::Map<String, Value> = ["L", "R", "W", "V", "X"]
+        .iter()
+        .filter_map(|p| {
+            let d: Vec<_> = m.deformations.iter().filter(|d| d.pattern == *p).collect();
+            (!d.is_empty()).then(|| {
+                let n = d.len() as f64;
+                (
+                    p.to_string(),
+                    json!({
+                        "deformations": d.len(),
+                        "mean_displacement_mm": d.iter().map(|d| d.mean_displacement_mm).sum::<f64>() / n,
+                        "max_displacement_mm": d.iter().map(|d| d.max_displacement_mm).fold(0.0, f64::max),
+                        "linear_homogeneous_gap_mm": d.iter().map(|d| d.linear_homogeneous_gap_mm).sum::<f64>() / n,
+                    }),
+                )
+            })
+        })
+        .collect();
+    let out = json!({
+        "out": a.out.display().to_string(),
+        "preset": m.preset,
+        "seed": m.seed,
+        "shard": format!("{}/{}", shard.0, shard.1),
+        "geometries": m.geometries.len(),
+        "nodes": m.geometries.iter().map(|g| g.nodes).collect::<Vec<_>>(),
+        "deformations_written": report.written.len(),
+        "deformations_resumed": report.resumed.len(),
+        "deformations_missing": m.missing.len(),
+        "scenarios": m.deformations.iter().map(|d| d.scenarios.len()).sum::<usize>(),
+        "failed_draws": m.failed.len(),
+        "complete": m.complete,
+        "per_pattern": per_pattern,
+        "seconds_per_deformation_median": if report.seconds.is_empty() { 0.0 } else { librplus::util::median(&report.seconds) },
+        "total_s": t0.elapsed().as_secs_f64(),
+    });
+    emit(a.common.json, &out);
+    if !report.errors.is_empty() {
+        bail!(
+            "{} deformation(s) failed every draw: {}",
+            report.errors.len(),
+            report.errors.join("; ")
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,185 @@
+//! `librplus experiments`: every split and ablation as `train` runs, then RESULTS.md.
+
+use crate::args::{ExperimentsArgs, TrainOnly};
+use crate::train::train;
+use crate::util::{git_commit, shell_command};
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use serde_json::{Value, json};
+use std::time::Instant;
+
+/// `librplus experiments`: every split and ablation as `librplus train` runs, then the reports.
+pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
+    use librplus::eval::experiments::{RunOutcome, results_markdown, scenario_results};
+    let t0 = Instant::now();
+    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let test_geos = m.test_geometries();
+    let mut train_geos: Vec<String> = m
+        .deformations
+        .iter()
+        .filter(|d| !test_geos.contains(&d.geometry.as_str()))
+        .map(|d| d.geometry.clone())
+        .collect();
+    train_geos.sort();
+    train_geos.dedup();
+    // (split, setting) of every run, the full model's splits first.
+    let mut plan: Vec<(String, u32)> = Vec::new();
+    for s in a.splits.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        if s == "logo" {
+            plan.extend(train_geos.iter().map(|g| (format!("logo:{g}"), 6)));
+        } else {
+            librplus::eval::train::TrainSplit::parse(s)
+                .map_err(|e| anyhow::anyhow!("--splits: {e}"))?;
+            plan.push((s.to_string(), 6));
+        }
+    }
+    let ablation_split = a.ablation_split.trim().to_string();
+    for t in a
+        .ablations
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+    {
+        let k: u32 = t
+            .parse()
+            .ok()
+            .filter(|k| (1..=6).contains(k))
+            .ok_or_else(|| anyhow::anyhow!("--ablations: {t:?} is not a setting 1-6"))?;
+        if !plan.contains(&(ablation_split.clone(), k)) {
+            plan.push((ablation_split.clone(), k));
+        }
+    }
+    let extra: Vec<String> = a.train_args.split_whitespace().map(String::from).collect();
+    for reserved in [
+        "--data",
+        "--split",
+        "--out",
+        "--every",
+        "--seed",
+        "--ablation",
+    ] {
+        if extra
+            .iter()
+            .any(|x| x == reserved || x.starts_with(&format!("{reserved}=")))
+        {
+            bail!("--train-args: {reserved} is set by `experiments` itself");
+        }
+    }
+    std::fs::create_dir_all(a.out.join("runs")).with_context(|| a.out.display().to_string())?;
+    eprintln!(
+        "experiments: {} runs, about {:.0} minutes of training each",
+        plan.len(),
+        a.minutes
+    );
+    let mut outcomes: Vec<RunOutcome> = Vec::new();
+    for (i, (split, setting)) in plan.iter().enumerate() {
+        let name = format!("{}-ablation{setting}", split.replace(':', "-"));
+        let dir = a.out.join("runs").join(&name);
+        let test_path = dir.join("test.json");
+        if !(a.resume && test_path.exists()) {
+            eprintln!(
+                "\n[{}/{}] {split}, setting {setting} → {}",
+                i + 1,
+                plan.len(),
+                dir.display()
+            );
+            let mut argv: Vec<String> = vec![
+                "train".into(),
+                "--data".into(),
+                a.data.display().to_string(),
+                "--split".into(),
+                split.clone(),
+                "--out".into(),
+                dir.display().to_string(),
+                "--every".into(),
+                a.every.to_string(),
+                "--seed".into(),
+                a.seed.to_string(),
+                "--ablation".into(),
+                setting.to_string(),
+                "--max-minutes".into(),
+                a.minutes.to_string(),
+            ];
+            argv.extend(extra.iter().cloned());
+            let args = TrainOnly::try_parse_from(&argv)
+                .map_err(|e| anyhow::anyhow!("--train-args: {e}"))?
+                .args;
+            train(&args).with_context(|| format!("run {name}"))?;
+        }
+        let test: Value = serde_json::from_str(
+            &std::fs::read_to_string(&test_path)
+                .with_context(|| test_path.display().to_string())?,
+        )
+        .with_context(|| test_path.display().to_string())?;
+        let png = librplus::eval::plot::tre_by_category_png(split, &scenario_results(&test))
+            .map_err(anyhow::Error::msg)?;
+        std::fs::write(a.out.join(format!("tre_by_category_{name}.png")), png)?;
+        outcomes.push(RunOutcome {
+            name,
+            split: split.clone(),
+            ablation: *setting,
+            test,
+        });
+    }
+    let main: Vec<RunOutcome> = outcomes
+        .iter()
+        .filter(|r| r.ablation == 6)
+        .cloned()
+        .collect();
+    let mut abl: Vec<RunOutcome> = outcomes
+        .iter()
+        .filter(|r| r.split == ablation_split && plan.contains(&(r.split.clone(), r.ablation)))
+        .filter(|r| {
+            a.ablations
+                .split(',')
+                .any(|t| t.trim() == r.ablation.to_string())
+        })
+        .cloned()
+        .collect();
+    abl.sort_by_key(|r| r.ablation);
+    let command = shell_command();
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|c| {
+            c.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let header = format!(
+        "# LIBR+ results\n\nMade by one command (commit `{}`):\n\n```\n{}\n```\n\n\
+         - Data: `{}` (preset {}, seed {}, parameters {}); every {}th block of five scenarios.\n\
+         - Each run is `librplus train` with a training limit of {} minutes; its model, \
+         `training.json` and `test.json` are under `runs/`.\n\
+         - Machine: {cpu}, {threads} threads. Total wall time {:.0} minutes.\n\
+         - TRE: mean distance over mesh nodes between the registered and the true deformed \
+         liver (physical frame), averaged over the held-out scenarios.\n",
+        git_commit(),
+        command,
+        a.data.display(),
+        m.preset,
+        m.seed,
+        m.parameters_hash,
+        a.every,
+        a.minutes,
+        t0.elapsed().as_secs_f64() / 60.0
+    );
+    let md = results_markdown(&header, &main, &abl);
+    std::fs::write(a.out.join("RESULTS.md"), &md)?;
+    let runs: Vec<Value> = outcomes
+        .iter()
+        .map(|r| {
+            json!({"name": r.name, "split": r.split, "ablation": r.ablation,
+                   "figures": librplus::eval::experiments::figures(&r.test)})
+        })
+        .collect();
+    std::fs::write(
+        a.out.join("results.json"),
+        serde_json::to_string_pretty(&json!({"format": 1, "command": command, "runs": runs}))?,
+    )?;
+    println!("{md}");
+    eprintln!("wrote {}", a.out.join("RESULTS.md").display());
+    Ok(())
+}

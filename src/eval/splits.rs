@@ -1,0 +1,284 @@
+//! Train/validation/test splits of a dataset's scenarios for SR-GCN training (`random`,
+//! `geo-def`, `logo:G`, `pattern-v`), with a seeded validation set.
+
+use crate::dataset::Manifest;
+use crate::util::SplitMix64;
+
+/// Scenarios per block (one per measurement category).
+const BLOCK: usize = 5;
+
+/// A train/test split of a dataset.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TrainSplit {
+    /// Random blocks of scenarios of the training deformations.
+    Random,
+    /// Whole geometry–pattern deformations held out.
+    GeoDef,
+    /// Every deformation of one geometry held out.
+    Logo(String),
+    /// Train on the training deformations, test on the test geometry (pattern V).
+    PatternV,
+}
+
+impl TrainSplit {
+    /// Parses `random`, `geo-def`, `logo:G`, `pattern-v`.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "random" => Ok(Self::Random),
+            "geo-def" => Ok(Self::GeoDef),
+            "pattern-v" => Ok(Self::PatternV),
+            _ => match s.strip_prefix("logo:") {
+                Some(g) if !g.is_empty() => Ok(Self::Logo(g.to_string())),
+                _ => Err(format!(
+                    "unknown split {s:?}: expected random, geo-def, logo:GEOMETRY or pattern-v"
+                )),
+            },
+        }
+    }
+
+    /// Name as parsed.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Random => "random".into(),
+            Self::GeoDef => "geo-def".into(),
+            Self::Logo(g) => format!("logo:{g}"),
+            Self::PatternV => "pattern-v".into(),
+        }
+    }
+}
+
+/// A scenario: deformation id and scenario index.
+pub type ScenarioRef = (String, usize);
+
+/// The scenarios of a split.
+#[derive(Debug, Clone, Default)]
+pub struct SplitSets {
+    /// Training scenarios.
+    pub train: Vec<ScenarioRef>,
+    /// Validation scenarios (from the training deformations).
+    pub valid: Vec<ScenarioRef>,
+    /// Test scenarios.
+    pub test: Vec<ScenarioRef>,
+}
+
+pub(crate) fn shuffle<T>(v: &mut [T], seed: u64) {
+    let mut rng = SplitMix64::new(seed);
+    for i in (1..v.len()).rev() {
+        let j = (rng.next_u64() % (i as u64 + 1)) as usize;
+        v.swap(i, j);
+    }
+}
+
+/// What the validation set holds out of the training scenarios.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Validation {
+    /// Whole training deformations (about one in ten, by the seed) where the test holds out
+    /// whole deformations or livers; a tenth of the blocks on the random split.
+    #[default]
+    Deformations,
+    /// One whole training liver (by the seed), all its deformations: validation then judges
+    /// what the test of an unseen liver judges, generalisation to a new shape, at the price of
+    /// that liver's training data. Needs at least three training livers.
+    Geometry,
+}
+
+impl Validation {
+    /// The name used on the command line and in provenance files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Validation::Deformations => "deformations",
+            Validation::Geometry => "geometry",
+        }
+    }
+}
+
+/// Assigns scenarios to train, validation and test. `every`: keep every `every`-th block of
+/// each deformation (1 = all). `validation`: what validation holds out of the training
+/// scenarios (the test set does not depend on it).
+pub fn split_scenarios(
+    m: &Manifest,
+    split: &TrainSplit,
+    seed: u64,
+    every: usize,
+    validation: Validation,
+) -> Result<SplitSets, String> {
+    let every = every.max(1);
+    let test_geos = m.test_geometries();
+    let train_defs: Vec<_> = m
+        .deformations
+        .iter()
+        .filter(|d| !test_geos.contains(&d.geometry.as_str()))
+        .collect();
+    let mut geos: Vec<&str> = train_defs.iter().map(|d| d.geometry.as_str()).collect();
+    geos.dedup();
+    let mut pats: Vec<&str> = train_defs.iter().map(|d| d.pattern.as_str()).collect();
+    pats.sort();
+    pats.dedup();
+    let blocks = |d: &crate::dataset::DeformationEntry| -> Vec<Vec<ScenarioRef>> {
+        (0..d.scenarios.len().div_ceil(BLOCK))
+            .filter(|b| b % every == 0)
+            .map(|b| {
+                (b * BLOCK..((b + 1) * BLOCK).min(d.scenarios.len()))
+                    .map(|i| (d.id.clone(), i))
+                    .collect()
+            })
+            .collect()
+    };
+    let geometry_of: std::collections::HashMap<&str, &str> = m
+        .deformations
+        .iter()
+        .map(|d| (d.id.as_str(), d.geometry.as_str()))
+        .collect();
+    let mut train_blocks = Vec::new();
+    let mut test = Vec::new();
+    match split {
+        TrainSplit::Random => {
+            let mut all: Vec<Vec<ScenarioRef>> =
+                train_defs.iter().flat_map(|d| blocks(d)).collect();
+            shuffle(&mut all, seed ^ 0x5EED);
+            let n_test = (all.len() / 5).max(1).min(all.len().saturating_sub(2));
+            for (i, b) in all.into_iter().enumerate() {
+                if i < n_test {
+                    test.extend(b);
+                } else {
+                    train_blocks.push(b);
+                }
+            }
+        }
+        TrainSplit::GeoDef | TrainSplit::Logo(_) => {
+            if let TrainSplit::Logo(g) = split
+                && !geos.contains(&g.as_str())
+            {
+                return Err(format!(
+                    "logo:{g}: no training geometry {g} (have {})",
+                    geos.join(", ")
+                ));
+            }
+            if matches!(split, TrainSplit::GeoDef) && (geos.len() < 2 || pats.len() < 3) {
+                return Err("geo-def needs at least 2 geometries and 3 patterns".into());
+            }
+            for d in &train_defs {
+                let held = match split {
+                    TrainSplit::Logo(g) => &d.geometry == g,
+                    _ => {
+                        let gi = geos.iter().position(|g| *g == d.geometry).unwrap_or(0);
+                        let pi = pats.iter().position(|p| *p == d.pattern).unwrap_or(0);
+                        (gi == 0 && pi < 2) || (gi == geos.len() - 1 && pi == 2)
+                    }
+                };
+                for b in blocks(d) {
+                    if held {
+                        test.extend(b);
+                    } else {
+                        train_blocks.push(b);
+                    }
+                }
+            }
+        }
+        TrainSplit::PatternV => {
+            if test_geos.is_empty() {
+                return Err("pattern-v: the dataset has no test geometry".into());
+            }
+            for d in &m.deformations {
+                for b in blocks(d) {
+                    if test_geos.contains(&d.geometry.as_str()) {
+                        test.extend(b);
+                    } else {
+                        train_blocks.push(b);
+                    }
+                }
+            }
+        }
+    }
+    shuffle(&mut train_blocks, seed ^ 0xA11D);
+    let mut sets = SplitSets {
+        test,
+        ..Default::default()
+    };
+    // Validation is like the test: where the test holds out whole deformations, validation is
+    // whole training deformations (about one in ten, at least one, chosen by the seed), so early
+    // stopping and the learning-rate schedule judge generalisation to unseen deformations, not
+    // memorisation of seen ones.
+    let mut defs: Vec<&str> = train_blocks
+        .iter()
+        .filter_map(|b| b.first().map(|r| r.0.as_str()))
+        .collect();
+    defs.sort();
+    defs.dedup();
+    let held_out_valid = !matches!(split, TrainSplit::Random) && defs.len() >= 3;
+    if validation == Validation::Geometry {
+        // The livers left for training, in manifest order, one drawn by the seed.
+        let mut livers: Vec<&str> = Vec::new();
+        for b in &train_blocks {
+            if let Some(g) = b.first().and_then(|r| geometry_of.get(r.0.as_str())) {
+                if !livers.contains(g) {
+                    livers.push(g);
+                }
+            }
+        }
+        livers.sort();
+        if livers.len() < 3 {
+            return Err(format!(
+                "validation by geometry needs at least 3 training livers, split {} leaves {}",
+                split.name(),
+                livers.len()
+            ));
+        }
+        let mut rng = SplitMix64::new(seed ^ 0x6E0);
+        let held = livers[(rng.next_u64() % livers.len() as u64) as usize];
+        for b in train_blocks {
+            if b.first()
+                .and_then(|r| geometry_of.get(r.0.as_str()))
+                .is_some_and(|g| *g == held)
+            {
+                sets.valid.extend(b);
+            } else {
+                sets.train.extend(b);
+            }
+        }
+    } else if held_out_valid {
+        // Drawn without replacement.
+        let mut rng = SplitMix64::new(seed ^ 0xDEF0);
+        let mut pool = defs;
+        let mut held = Vec::new();
+        for _ in 0..validation_deformations(pool.len()) {
+            let k = (rng.next_u64() % pool.len() as u64) as usize;
+            held.push(pool.remove(k).to_string());
+        }
+        for b in train_blocks {
+            if b.first().is_some_and(|r| held.contains(&r.0)) {
+                sets.valid.extend(b);
+            } else {
+                sets.train.extend(b);
+            }
+        }
+    } else {
+        let n_valid = (train_blocks.len() / 10)
+            .max(1)
+            .min(train_blocks.len().saturating_sub(1));
+        for (i, b) in train_blocks.into_iter().enumerate() {
+            if i < n_valid {
+                sets.valid.extend(b);
+            } else {
+                sets.train.extend(b);
+            }
+        }
+    }
+    sets.train.sort();
+    sets.valid.sort();
+    sets.test.sort();
+    if sets.train.is_empty() || sets.test.is_empty() {
+        return Err(format!(
+            "split {} leaves no training or no test scenarios",
+            split.name()
+        ));
+    }
+    Ok(sets)
+}
+
+/// How many of `n` training deformations validate on held-out-deformation splits: about one in
+/// ten, at least one.
+pub fn validation_deformations(n: usize) -> usize {
+    n.div_ceil(10).max(1).min(n.saturating_sub(1))
+}

@@ -1,0 +1,496 @@
+//! The LIBR deformation basis: FEM responses to Gaussian tractions at control points spread by
+//! farthest-point sampling over the surface, under 3-2-1 supports with inertia relief.
+
+use super::*;
+use crate::fem::{Dirichlet, StiffnessSystem, loads};
+use crate::mesh::TetMesh;
+use faer::Mat;
+use nalgebra::{Matrix6, Vector6};
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// Stage timings of a basis build or load (seconds).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct BasisTimings {
+    /// Control-point sampling and load assembly.
+    pub loads_s: f64,
+    /// Stiffness assembly.
+    pub assemble_s: f64,
+    /// Sparse Cholesky factorization.
+    pub factor_s: f64,
+    /// All 3K solves.
+    pub solve_s: f64,
+    /// Rigid-mode projection, scaling and the energy matrix.
+    pub energy_s: f64,
+    /// Reading the cache file (zero when built).
+    pub cache_read_s: f64,
+    /// Total.
+    pub total_s: f64,
+}
+
+/// The LIBR basis of one mesh: control points, displacement responses and their energy matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LibrBasis {
+    /// Control points (boundary node indices), in sampling order.
+    pub control_nodes: Vec<u32>,
+    /// Mesh nodes n.
+    pub nodes: usize,
+    /// Φ, row-major 3n × 3K: row `3·node + axis`, column `3·k + axis'` (control point k, load
+    /// axis axis'); unit: mm per unit weight.
+    pub phi: Vec<f64>,
+    /// E = ΦᵀKΦ, row-major 3K × 3K (mN·mm per mm²).
+    pub energy: Vec<f64>,
+    /// Per column: peak traction (kPa) of the load whose response is the column.
+    pub load_scale: Vec<f64>,
+    /// Resolved Gaussian width σ of the traction patches (mm).
+    pub load_width_mm: f64,
+    /// [`mesh_hash`] of the mesh the basis belongs to.
+    pub mesh_hash: String,
+    /// [`LibrParams::basis_hash`] of the parameters it was built with.
+    pub params_hash: String,
+    /// How long building (or loading) took.
+    pub timings: BasisTimings,
+}
+
+/// Farthest-point sampling of `count` boundary nodes (Euclidean). The first is chosen by `seed`;
+/// ties go to the lowest node index. Returns fewer when the boundary has fewer nodes.
+pub fn farthest_point_sampling(
+    nodes: &[[f64; 3]],
+    candidates: &[u32],
+    count: usize,
+    seed: u64,
+) -> Vec<u32> {
+    if candidates.is_empty() || count == 0 {
+        return Vec::new();
+    }
+    let mut rng = crate::util::SplitMix64::new(seed);
+    let first = rng.below(candidates.len());
+    let mut chosen = vec![candidates[first]];
+    let mut dist: Vec<f64> = candidates
+        .iter()
+        .map(|&v| dist2(nodes[v as usize], nodes[candidates[first] as usize]))
+        .collect();
+    while chosen.len() < count.min(candidates.len()) {
+        let mut best = 0usize;
+        for (i, &d) in dist.iter().enumerate() {
+            if d > dist[best] {
+                best = i;
+            }
+        }
+        if dist[best] <= 0.0 {
+            break;
+        }
+        let c = nodes[candidates[best] as usize];
+        chosen.push(candidates[best]);
+        for (i, &v) in candidates.iter().enumerate() {
+            dist[i] = dist[i].min(dist2(nodes[v as usize], c));
+        }
+    }
+    chosen
+}
+
+/// The raw (not equilibrated) traction load of a control point: on each boundary triangle the
+/// traction `e_axis · exp(−|x_t − c|²/2σ²) · max(0, n_t·n_c)` (kPa, peak 1) with `x_t` the
+/// triangle's centroid and `n_t` its unit outward normal, lumped by [`loads::add_traction`].
+pub fn control_traction(
+    nodes: &[[f64; 3]],
+    triangles: &[[u32; 3]],
+    center: [f64; 3],
+    normal: [f64; 3],
+    axis: usize,
+    width_mm: f64,
+) -> Vec<f64> {
+    let mut tr = Vec::with_capacity(triangles.len());
+    for t in triangles {
+        let [a, b, c] = t.map(|v| nodes[v as usize]);
+        let x = [0, 1, 2].map(|k| (a[k] + b[k] + c[k]) / 3.0);
+        let n = unit(cross(sub(b, a), sub(c, a)));
+        let g = (-dist2(x, center) / (2.0 * width_mm * width_mm)).exp() * dot(n, normal).max(0.0);
+        let mut v = [0.0; 3];
+        v[axis] = g;
+        tr.push(v);
+    }
+    let mut f = vec![0.0; 3 * nodes.len()];
+    loads::add_traction(&mut f, nodes, triangles, &tr);
+    f
+}
+
+/// Lumped nodal volumes (mm³): each node gets a quarter of each of its tets' volume.
+pub fn lumped_volumes(mesh: &TetMesh) -> Vec<f64> {
+    let mut m = vec![0.0; mesh.num_nodes()];
+    for (t, tet) in mesh.tets().iter().enumerate() {
+        let v = mesh.tet_volume(t).abs() / 4.0;
+        for &i in tet {
+            m[i as usize] += v;
+        }
+    }
+    m
+}
+
+/// The six rigid modes of a node set (3 translations, 3 rotations about `center`) and their
+/// mass matrix `RᵀMR`, for projections.
+pub(super) struct RigidModes {
+    center: [f64; 3],
+    mass: Vec<f64>,
+    ginv: Matrix6<f64>,
+}
+
+impl RigidModes {
+    fn new(nodes: &[[f64; 3]], mass: &[f64]) -> Result<Self, String> {
+        let total: f64 = mass.iter().sum();
+        let mut center = [0.0; 3];
+        for (p, &w) in nodes.iter().zip(mass) {
+            for a in 0..3 {
+                center[a] += w * p[a] / total;
+            }
+        }
+        let mut g = Matrix6::<f64>::zeros();
+        for (i, p) in nodes.iter().enumerate() {
+            let r = mode_rows(*p, center);
+            for a in 0..3 {
+                for k in 0..6 {
+                    for l in 0..6 {
+                        g[(k, l)] += mass[i] * r[a][k] * r[a][l];
+                    }
+                }
+            }
+        }
+        let ginv = g
+            .try_inverse()
+            .ok_or("the mesh's rigid-mode mass matrix is singular (zero volume?)")?;
+        Ok(Self {
+            center,
+            mass: mass.to_vec(),
+            ginv,
+        })
+    }
+
+    /// `Rᵀ v` (6) for a node-major vector, optionally weighted by the lumped mass.
+    fn project(&self, nodes: &[[f64; 3]], v: &[f64], weighted: bool) -> Vector6<f64> {
+        let mut s = Vector6::zeros();
+        for (i, p) in nodes.iter().enumerate() {
+            let r = mode_rows(*p, self.center);
+            let w = if weighted { self.mass[i] } else { 1.0 };
+            for a in 0..3 {
+                for k in 0..6 {
+                    s[k] += w * r[a][k] * v[3 * i + a];
+                }
+            }
+        }
+        s
+    }
+
+    /// `f − M R G⁻¹ Rᵀ f`: the self-equilibrated part of a load (inertia relief).
+    fn equilibrate(&self, nodes: &[[f64; 3]], f: &mut [f64]) {
+        let c = self.ginv * self.project(nodes, f, false);
+        for (i, p) in nodes.iter().enumerate() {
+            let r = mode_rows(*p, self.center);
+            for a in 0..3 {
+                let acc: f64 = (0..6).map(|k| r[a][k] * c[k]).sum();
+                f[3 * i + a] -= self.mass[i] * acc;
+            }
+        }
+    }
+
+    /// `u − R G⁻¹ RᵀM u`: removes the (mass-weighted) rigid part of a displacement.
+    fn remove_rigid(&self, nodes: &[[f64; 3]], u: &mut [f64]) {
+        let c = self.ginv * self.project(nodes, u, true);
+        for (i, p) in nodes.iter().enumerate() {
+            let r = mode_rows(*p, self.center);
+            for a in 0..3 {
+                let acc: f64 = (0..6).map(|k| r[a][k] * c[k]).sum();
+                u[3 * i + a] -= acc;
+            }
+        }
+    }
+}
+
+/// Rows (per axis) of the rigid modes at point p: translations e_a, rotations e_k × (p − c).
+pub(super) fn mode_rows(p: [f64; 3], c: [f64; 3]) -> [[f64; 6]; 3] {
+    let d = sub(p, c);
+    // e_k × d: k=0 → (0, −d_z, d_y); k=1 → (d_z, 0, −d_x); k=2 → (−d_y, d_x, 0)
+    [
+        [1.0, 0.0, 0.0, 0.0, d[2], -d[1]],
+        [0.0, 1.0, 0.0, -d[2], 0.0, d[0]],
+        [0.0, 0.0, 1.0, d[1], -d[0], 0.0],
+    ]
+}
+
+/// A statically determinate 3-2-1 support on boundary nodes: node a fixed, node b fixed across
+/// the a→b direction's dominant axis, node c fixed along the axis that best stops rotation
+/// about a–b.
+pub(super) fn support_321(
+    nodes: &[[f64; 3]],
+    boundary: &[u32],
+    center: [f64; 3],
+) -> Result<Dirichlet, String> {
+    let far = |from: [f64; 3]| -> u32 {
+        let mut best = boundary[0];
+        for &v in boundary {
+            if dist2(nodes[v as usize], from) > dist2(nodes[best as usize], from) {
+                best = v;
+            }
+        }
+        best
+    };
+    let a = far(center);
+    let pa = nodes[a as usize];
+    let b = far(pa);
+    let d = sub(nodes[b as usize], pa);
+    let dn = unit(d);
+    let mut c = boundary[0];
+    let mut best = -1.0;
+    for &v in boundary {
+        let e = sub(nodes[v as usize], pa);
+        let off = cross(dn, e);
+        let l = dot(off, off);
+        if l > best {
+            best = l;
+            c = v;
+        }
+    }
+    let moment = cross(dn, sub(nodes[c as usize], pa));
+    if dot(d, d) <= 0.0 || best <= 1e-12 * dot(d, d) {
+        return Err("the boundary is degenerate (all nodes on a line): cannot support it".into());
+    }
+    let free_b = argmax_abs(d);
+    let fix_c = argmax_abs(moment);
+    let mut bc = Dirichlet::new(nodes.len());
+    bc.prescribe_node(a, [0.0; 3]);
+    for axis in 0..3 {
+        if axis != free_b {
+            bc.prescribe_dof(b, axis, 0.0);
+        }
+    }
+    bc.prescribe_dof(c, fix_c, 0.0);
+    Ok(bc)
+}
+
+pub(super) fn argmax_abs(v: [f64; 3]) -> usize {
+    let mut k = 0;
+    for a in 1..3 {
+        if v[a].abs() > v[k].abs() {
+            k = a;
+        }
+    }
+    k
+}
+
+impl LibrBasis {
+    /// Number of basis columns (3K).
+    pub fn columns(&self) -> usize {
+        self.load_scale.len()
+    }
+
+    /// Builds the basis: control points, loads, one factorization, 3K solves (parallel column
+    /// blocks), rigid-mode removal, scaling, `E = ΦᵀKΦ`.
+    pub fn build(mesh: &TetMesh, params: &LibrParams) -> Result<Self, String> {
+        params.validate()?;
+        let t0 = Instant::now();
+        let nodes = mesh.nodes();
+        let n = nodes.len();
+        let boundary = mesh.boundary().map_err(|e| format!("mesh boundary: {e}"))?;
+        if boundary.nodes.len() < 3 {
+            return Err("mesh has fewer than 3 boundary nodes".into());
+        }
+        let control =
+            farthest_point_sampling(nodes, &boundary.nodes, params.control_points, params.seed);
+        if control.len() < params.control_points {
+            return Err(format!(
+                "control_points = {} but the boundary has only {} distinct nodes",
+                params.control_points,
+                control.len()
+            ));
+        }
+        // Area-weighted vertex normals and the boundary area.
+        let mut vnormal = vec![[0.0; 3]; n];
+        let mut area = 0.0;
+        for t in &boundary.triangles {
+            let [a, b, c] = t.map(|v| nodes[v as usize]);
+            let na = cross(sub(b, a), sub(c, a));
+            area += 0.5 * dot(na, na).sqrt();
+            for &v in t {
+                for k in 0..3 {
+                    vnormal[v as usize][k] += na[k];
+                }
+            }
+        }
+        let kk = control.len();
+        let width = match params.load_width {
+            LoadWidth::Mm(w) => w,
+            LoadWidth::Spacing(s) => s * (2.0 * area / (3f64.sqrt() * kk as f64)).sqrt(),
+        };
+        let modes = RigidModes::new(nodes, &lumped_volumes(mesh))?;
+        let m = 3 * kk;
+        let mut fmat = Mat::<f64>::zeros(3 * n, m);
+        for (k, &c) in control.iter().enumerate() {
+            let nc = unit(vnormal[c as usize]);
+            for axis in 0..3 {
+                let mut f = control_traction(
+                    nodes,
+                    &boundary.triangles,
+                    nodes[c as usize],
+                    nc,
+                    axis,
+                    width,
+                );
+                modes.equilibrate(nodes, &mut f);
+                for (r, &x) in f.iter().enumerate() {
+                    fmat[(r, 3 * k + axis)] = x;
+                }
+            }
+        }
+        let loads_s = crate::util::secs(t0);
+        let t1 = Instant::now();
+        let system = StiffnessSystem::linear(mesh, &params.material).map_err(|e| e.to_string())?;
+        let assemble_s = crate::util::secs(t1);
+        let t2 = Instant::now();
+        let bc = support_321(nodes, &boundary.nodes, modes.center)?;
+        let fact = system.factorize(&bc).map_err(|e| e.to_string())?;
+        let factor_s = crate::util::secs(t2);
+        let t3 = Instant::now();
+        let umat = fact.solve_many_homogeneous(fmat.as_ref());
+        let solve_s = crate::util::secs(t3);
+        let t4 = Instant::now();
+        let mut phi = vec![0.0; 3 * n * m];
+        let mut load_scale = vec![0.0; m];
+        let mut col = vec![0.0; 3 * n];
+        for j in 0..m {
+            for (r, x) in col.iter_mut().enumerate() {
+                *x = umat[(r, j)];
+            }
+            modes.remove_rigid(nodes, &mut col);
+            let peak = (0..n)
+                .map(|i| {
+                    (col[3 * i].powi(2) + col[3 * i + 1].powi(2) + col[3 * i + 2].powi(2)).sqrt()
+                })
+                .fold(0.0f64, f64::max);
+            if !(peak.is_finite() && peak > 0.0) {
+                return Err(format!(
+                    "basis column {j} (control node {}, axis {}) has peak displacement {peak}: the load patch is empty or the solve failed",
+                    control[j / 3],
+                    j % 3
+                ));
+            }
+            load_scale[j] = 1.0 / peak;
+            for (r, &x) in col.iter().enumerate() {
+                phi[r * m + j] = x / peak;
+            }
+        }
+        // E = Φᵀ (K Φ), symmetrized.
+        let mut kphi = Mat::<f64>::zeros(3 * n, m);
+        let mut phimat = Mat::<f64>::zeros(3 * n, m);
+        for j in 0..m {
+            for r in 0..3 * n {
+                col[r] = phi[r * m + j];
+                phimat[(r, j)] = col[r];
+            }
+            let kc = system.apply(&col);
+            for (r, &x) in kc.iter().enumerate() {
+                kphi[(r, j)] = x;
+            }
+        }
+        let e = phimat.transpose() * &kphi;
+        let mut energy = vec![0.0; m * m];
+        for i in 0..m {
+            for j in 0..m {
+                energy[i * m + j] = 0.5 * (e[(i, j)] + e[(j, i)]);
+            }
+        }
+        let energy_s = crate::util::secs(t4);
+        Ok(Self {
+            control_nodes: control,
+            nodes: n,
+            phi,
+            energy,
+            load_scale,
+            load_width_mm: width,
+            mesh_hash: mesh_hash(mesh),
+            params_hash: params.basis_hash(),
+            timings: BasisTimings {
+                loads_s,
+                assemble_s,
+                factor_s,
+                solve_s,
+                energy_s,
+                cache_read_s: 0.0,
+                total_s: crate::util::secs(t0),
+            },
+        })
+    }
+
+    /// Node displacements `u = Φ α` (node-major 3n, mm). Panics if `alpha.len() != 3K`.
+    pub fn displacement(&self, alpha: &[f64]) -> Vec<f64> {
+        let m = self.columns();
+        assert_eq!(
+            alpha.len(),
+            m,
+            "displacement: alpha must have 3K = {m} entries"
+        );
+        // Rows in parallel, each a dot product with four accumulators (vectorizes; the same bits
+        // whatever the thread count, since every row is summed in a fixed order).
+        let dot = |row: &[f64]| dot_row(row, alpha);
+        let mut out = vec![0.0; self.phi.len() / m.max(1)];
+        out.par_chunks_mut(256)
+            .zip(self.phi.par_chunks(256 * m))
+            .for_each(|(o, rows)| {
+                for (x, row) in o.iter_mut().zip(rows.chunks_exact(m)) {
+                    *x = dot(row);
+                }
+            });
+        out
+    }
+
+    /// Writes `u = Φ α` at the given nodes only into `out` (node-major 3n; other entries are left
+    /// as they are). Panics if `alpha.len() != 3K`, `out.len() != 3n` or a node is out of range.
+    pub fn displacement_at(&self, alpha: &[f64], nodes: &[u32], out: &mut [f64]) {
+        let m = self.columns();
+        assert_eq!(
+            alpha.len(),
+            m,
+            "displacement_at: alpha must have 3K = {m} entries"
+        );
+        assert_eq!(
+            out.len(),
+            3 * self.nodes,
+            "displacement_at: out must have 3n entries"
+        );
+        let rows: Vec<[f64; 3]> = nodes
+            .par_chunks(256)
+            .flat_map_iter(|chunk| {
+                chunk.iter().map(|&v| {
+                    [0, 1, 2].map(|a| {
+                        let r = 3 * v as usize + a;
+                        dot_row(&self.phi[r * m..(r + 1) * m], alpha)
+                    })
+                })
+            })
+            .collect();
+        for (&v, r) in nodes.iter().zip(rows) {
+            out[3 * v as usize..3 * v as usize + 3].copy_from_slice(&r);
+        }
+    }
+
+    /// Strain energy `½ αᵀEα` (µJ). Panics if `alpha.len() != 3K`.
+    pub fn strain_energy(&self, alpha: &[f64]) -> f64 {
+        let m = self.columns();
+        assert_eq!(
+            alpha.len(),
+            m,
+            "strain_energy: alpha must have 3K = {m} entries"
+        );
+        let mut s = 0.0;
+        for i in 0..m {
+            for j in 0..m {
+                s += alpha[i] * self.energy[i * m + j] * alpha[j];
+            }
+        }
+        0.5 * s
+    }
+
+    /// Mean diagonal of E: the energy scale ē of one 1 mm mode (λ's normalisation).
+    pub fn energy_scale(&self) -> f64 {
+        let m = self.columns();
+        (0..m).map(|i| self.energy[i * m + i]).sum::<f64>() / m as f64
+    }
+}

@@ -1,0 +1,179 @@
+//! The on-disk cache of LIBR bases: one `.npz` per mesh and basis-relevant parameters, named by
+//! their hashes; an unreadable, truncated or mismatched file is rebuilt and overwritten.
+
+use super::*;
+use crate::mesh::TetMesh;
+use crate::mesh::io::npz::{NpyArray, NpyData, read_npz, write_npz};
+use crate::util::fnv1a_hex;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Hash (16 hex digits) of a mesh's node coordinates (exact bits) and tets.
+pub fn mesh_hash(mesh: &TetMesh) -> String {
+    let mut bytes = Vec::with_capacity(24 * mesh.num_nodes() + 16 * mesh.num_tets() + 16);
+    bytes.extend_from_slice(&(mesh.num_nodes() as u64).to_le_bytes());
+    for p in mesh.nodes() {
+        for c in p {
+            bytes.extend_from_slice(&c.to_bits().to_le_bytes());
+        }
+    }
+    bytes.extend_from_slice(&(mesh.num_tets() as u64).to_le_bytes());
+    for t in mesh.tets() {
+        for v in t {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    fnv1a_hex(&bytes)
+}
+
+impl LibrBasis {
+    /// The cache file of a mesh and parameters in `cache_dir`.
+    pub fn cache_path(mesh: &TetMesh, params: &LibrParams, cache_dir: &Path) -> PathBuf {
+        cache_dir.join(format!(
+            "libr_basis_{}_{}.npz",
+            mesh_hash(mesh),
+            params.basis_hash()
+        ))
+    }
+
+    /// Loads the basis from `cache_dir` if a valid file for this mesh and these parameters is
+    /// there, otherwise builds it and writes the file (atomically: temporary file + rename).
+    /// Returns the basis and whether it came from the cache. A corrupt, truncated or mismatched
+    /// file is rebuilt and overwritten; failure to write the cache is an error.
+    pub fn load_or_build(
+        mesh: &TetMesh,
+        params: &LibrParams,
+        cache_dir: &Path,
+    ) -> Result<(Self, bool), String> {
+        params.validate()?;
+        let path = Self::cache_path(mesh, params, cache_dir);
+        let t0 = Instant::now();
+        if let Ok(bytes) = std::fs::read(&path)
+            && let Ok(mut b) = Self::from_npz(&bytes)
+            && b.mesh_hash == mesh_hash(mesh)
+            && b.params_hash == params.basis_hash()
+            && b.nodes == mesh.num_nodes()
+            && b.control_nodes.len() == params.control_points
+        {
+            b.timings = BasisTimings {
+                cache_read_s: crate::util::secs(t0),
+                total_s: crate::util::secs(t0),
+                ..Default::default()
+            };
+            return Ok((b, true));
+        }
+        let b = Self::build(mesh, params)?;
+        crate::util::write_atomic(&path, &b.to_npz()?)?;
+        Ok((b, false))
+    }
+
+    /// The basis as `.npz` bytes: `phi` (3n, 3K) f8, `energy` (3K, 3K) f8, `control_nodes` (K)
+    /// i8, `load_scale` (3K) f8, `load_width_mm` (1) f8, `version` (1) i8, `mesh_hash` and
+    /// `params_hash` (16 ASCII bytes each, u1).
+    pub fn to_npz(&self) -> Result<Vec<u8>, String> {
+        let m = self.columns();
+        let arrays = vec![
+            NpyArray::new("phi", &[3 * self.nodes, m], NpyData::F64(self.phi.clone()))?,
+            NpyArray::new("energy", &[m, m], NpyData::F64(self.energy.clone()))?,
+            NpyArray::new(
+                "control_nodes",
+                &[self.control_nodes.len()],
+                NpyData::I64(self.control_nodes.iter().map(|&v| v as i64).collect()),
+            )?,
+            NpyArray::new("load_scale", &[m], NpyData::F64(self.load_scale.clone()))?,
+            NpyArray::new(
+                "load_width_mm",
+                &[1],
+                NpyData::F64(vec![self.load_width_mm]),
+            )?,
+            NpyArray::new("version", &[1], NpyData::I64(vec![BASIS_VERSION as i64]))?,
+            NpyArray::new(
+                "mesh_hash",
+                &[self.mesh_hash.len()],
+                NpyData::U8(self.mesh_hash.as_bytes().to_vec()),
+            )?,
+            NpyArray::new(
+                "params_hash",
+                &[self.params_hash.len()],
+                NpyData::U8(self.params_hash.as_bytes().to_vec()),
+            )?,
+        ];
+        write_npz(&arrays)
+    }
+
+    /// Reads what [`LibrBasis::to_npz`] wrote; checks names, dtypes, shapes and finiteness.
+    pub fn from_npz(bytes: &[u8]) -> Result<Self, String> {
+        let arrays = read_npz(bytes)?;
+        let get = |name: &str| {
+            arrays
+                .iter()
+                .find(|a| a.name == name)
+                .ok_or_else(|| format!("basis file has no array {name}"))
+        };
+        let f64s = |name: &str| -> Result<(Vec<usize>, Vec<f64>), String> {
+            let a = get(name)?;
+            match &a.data {
+                NpyData::F64(v) => Ok((a.shape.clone(), v.clone())),
+                _ => Err(format!("basis array {name} is not f8")),
+            }
+        };
+        let text = |name: &str| -> Result<String, String> {
+            match &get(name)?.data {
+                NpyData::U8(v) => String::from_utf8(v.clone()).map_err(|e| format!("{name}: {e}")),
+                _ => Err(format!("basis array {name} is not u1")),
+            }
+        };
+        match &get("version")?.data {
+            NpyData::I64(v) if v.as_slice() == [BASIS_VERSION as i64] => {}
+            _ => return Err(format!("basis file version is not {BASIS_VERSION}")),
+        }
+        let (ps, phi) = f64s("phi")?;
+        let (es, energy) = f64s("energy")?;
+        let (ls, load_scale) = f64s("load_scale")?;
+        let (_, width) = f64s("load_width_mm")?;
+        let control_nodes: Vec<u32> = match &get("control_nodes")?.data {
+            NpyData::I64(v) => v
+                .iter()
+                .map(|&x| u32::try_from(x).map_err(|_| format!("control node {x} out of range")))
+                .collect::<Result<_, _>>()?,
+            _ => return Err("basis array control_nodes is not i8".into()),
+        };
+        let m = 3 * control_nodes.len();
+        if ps.len() != 2
+            || ps[1] != m
+            || ps[0] % 3 != 0
+            || es != [m, m]
+            || ls != [m]
+            || width.len() != 1
+        {
+            return Err(format!(
+                "basis arrays have inconsistent shapes (phi {ps:?}, energy {es:?}, load_scale {ls:?}, {} control nodes)",
+                control_nodes.len()
+            ));
+        }
+        let nodes = ps[0] / 3;
+        if control_nodes.iter().any(|&c| c as usize >= nodes) {
+            return Err("a control node is out of range".into());
+        }
+        if !phi
+            .iter()
+            .chain(&energy)
+            .chain(&load_scale)
+            .chain(&width)
+            .all(|x| x.is_finite())
+        {
+            return Err("basis file holds non-finite values".into());
+        }
+        Ok(Self {
+            control_nodes,
+            nodes,
+            phi,
+            energy,
+            load_scale,
+            load_width_mm: width[0],
+            mesh_hash: text("mesh_hash")?,
+            params_hash: text("params_hash")?,
+            timings: BasisTimings::default(),
+        })
+    }
+}

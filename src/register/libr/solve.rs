@@ -1,0 +1,233 @@
+//! LIBR's iterations: re-match, fit a step, compose its rigid correction, until the model stops
+//! moving or a deadline comes.
+
+use super::*;
+use crate::mesh::TetMesh;
+use crate::mesh::rigid::Rigid;
+use crate::register::Match;
+use std::time::Instant;
+
+/// What [`solve`] did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct LibrInfo {
+    /// Iterations run (matching + step).
+    pub iterations: usize,
+    /// True when the largest node movement of the last iteration was below the tolerance.
+    pub converged: bool,
+    /// True when the iterations stopped early because the next one would have passed the
+    /// caller's deadline ([`solve_with_limits`]).
+    pub stopped_at_deadline: bool,
+    /// Weighted residual RMS after each iteration (mm).
+    pub rms_history_mm: Vec<f64>,
+    /// Largest node movement of each iteration (mm).
+    pub movement_history_mm: Vec<f64>,
+    /// Final weighted residual RMS (mm).
+    pub rms_mm: f64,
+    /// Total time in the matching function (s).
+    pub matching_s: f64,
+    /// Total time forming the step's rows and normal equations (s).
+    pub assemble_s: f64,
+    /// Total time in the step's solves (s).
+    pub solve_s: f64,
+    /// Total time (s).
+    pub total_s: f64,
+}
+
+/// The result of [`solve`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct LibrSolution {
+    /// Basis weights α (3K, mm).
+    pub alpha: Vec<f64>,
+    /// Node displacements `u = Φα` (image frame, node-major 3n, mm).
+    pub u: Vec<f64>,
+    /// Image → physical transform: node i is at `image_to_physical.apply(X_i + u_i)`.
+    pub image_to_physical: Rigid,
+    /// Iterations, residuals, timings.
+    pub info: LibrInfo,
+}
+
+/// The LIBR iteration: starting from `initial` (image → physical) and u = 0, repeatedly calls
+/// `rematch(u, image_to_physical)` for matches of the measured points (`measured_physical`,
+/// physical frame) to the current model, maps the measured points into the image frame, takes
+/// one [`fit_step`] and composes its rigid correction, until no node moves more than
+/// `params.tolerance_mm` in an iteration or `params.max_iterations` is reached. `mesh` must be
+/// the basis's mesh (its node positions measure the movement).
+pub fn solve(
+    mesh: &TetMesh,
+    basis: &LibrBasis,
+    params: &LibrParams,
+    measured_physical: &[[f64; 3]],
+    initial: &Rigid,
+    rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
+) -> Result<LibrSolution, String> {
+    solve_with_limits(
+        mesh,
+        basis,
+        params,
+        measured_physical,
+        initial,
+        RunLimits::default(),
+        rematch,
+    )
+}
+
+/// What [`solve_with_limits`] updates between matchings and when it must stop.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RunLimits<'a> {
+    /// Nodes whose displacement `rematch` reads (None: all).
+    pub active: Option<&'a [u32]>,
+    /// Stop before an iteration that would end past this instant (None: no deadline).
+    pub deadline: Option<Instant>,
+    /// A displacement the fit starts from and keeps (node-major 3n, image frame; None: zero):
+    /// the result is `offset + Φα`, and the strain energy regularises `Φα` alone.
+    pub offset: Option<&'a [f64]>,
+}
+
+/// [`solve`], updating between matchings only the displacement of `active` nodes (those
+/// `rematch` reads, e.g. [`super::correspondence::Correspondence::active_nodes`]; `None`: all)
+/// and measuring the movement there; the returned `u` is complete. On a 9,000-node liver the
+/// boundary and vessel tets are about half the nodes, and `Φα` is the largest cost of an
+/// iteration after matching. With a `deadline`, the iterations stop before one that the last
+/// one's duration says would end past it ([`LibrInfo::stopped_at_deadline`]); at least one
+/// iteration always runs.
+pub fn solve_with_limits(
+    mesh: &TetMesh,
+    basis: &LibrBasis,
+    params: &LibrParams,
+    measured_physical: &[[f64; 3]],
+    initial: &Rigid,
+    run: RunLimits<'_>,
+    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
+) -> Result<LibrSolution, String> {
+    let RunLimits {
+        active,
+        deadline,
+        offset,
+    } = run;
+    if let Some(o) = offset {
+        if o.len() != 3 * basis.nodes {
+            return Err(format!(
+                "offset has {} values, the basis needs {}",
+                o.len(),
+                3 * basis.nodes
+            ));
+        }
+        if o.iter().any(|x| !x.is_finite()) {
+            return Err("offset is not finite".into());
+        }
+    }
+    params.validate()?;
+    if let Some(v) = active.and_then(|a| a.iter().find(|&&v| v as usize >= basis.nodes)) {
+        return Err(format!(
+            "active node {v} out of range ({} nodes)",
+            basis.nodes
+        ));
+    }
+    let all: Vec<u32>;
+    let active = match active {
+        Some(a) => a,
+        None => {
+            all = (0..basis.nodes as u32).collect();
+            &all
+        }
+    };
+    if mesh.num_nodes() != basis.nodes {
+        return Err(format!(
+            "mesh has {} nodes, the basis {}",
+            mesh.num_nodes(),
+            basis.nodes
+        ));
+    }
+    if params.max_iterations == 0 {
+        return Err("max_iterations must be at least 1".into());
+    }
+    let t0 = Instant::now();
+    let mut info = LibrInfo::default();
+    let mut t = *initial;
+    let mut alpha = vec![0.0; basis.columns()];
+    let mut u = offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec);
+    for _ in 0..params.max_iterations {
+        let tm = Instant::now();
+        let matches = rematch(&u, &t)?;
+        info.matching_s += crate::util::secs(tm);
+        let inv = t.inverse();
+        let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+        if let Some(o) = offset {
+            // Fit Φα to what the offset leaves.
+            offset_targets(&matches, &mut targets, o);
+        }
+        let step = fit_step(basis, &matches, &targets, params)?;
+        info.assemble_s += step.timings.rows_s + step.timings.normal_s;
+        info.solve_s += step.timings.solve_s;
+        let mut u_new = u.clone();
+        basis.displacement_at(&step.alpha, active, &mut u_new);
+        if let Some(o) = offset {
+            for &i in active {
+                for a in 0..3 {
+                    let k = 3 * i as usize + a;
+                    u_new[k] += o[k];
+                }
+            }
+        }
+        // Movement in the image frame of the old estimate: δ(X + u_new) − (X + u_old).
+        let mut moved = 0.0f64;
+        for &i in active {
+            let (i, x) = (i as usize, mesh.nodes()[i as usize]);
+            let old = [0, 1, 2].map(|a| x[a] + u[3 * i + a]);
+            let new = step
+                .rigid_correction
+                .apply([0, 1, 2].map(|a| x[a] + u_new[3 * i + a]));
+            moved = moved.max(dist2(old, new).sqrt());
+        }
+        t = step.rigid_correction.then(&t);
+        alpha = step.alpha;
+        u = u_new;
+        info.iterations += 1;
+        info.rms_history_mm.push(step.rms_mm);
+        info.movement_history_mm.push(moved);
+        info.rms_mm = step.rms_mm;
+        if moved <= params.tolerance_mm {
+            info.converged = true;
+            break;
+        }
+        // Stop before an iteration that would end past the deadline (the last one's duration
+        // predicts the next).
+        if let Some(d) = deadline {
+            let now = Instant::now();
+            if info.iterations < params.max_iterations && now + (now - tm) > d {
+                info.stopped_at_deadline = true;
+                break;
+            }
+        }
+    }
+    let mut u = basis.displacement(&alpha);
+    if let Some(o) = offset {
+        for (x, y) in u.iter_mut().zip(o) {
+            *x += y;
+        }
+    }
+    info.total_s = crate::util::secs(t0);
+    Ok(LibrSolution {
+        alpha,
+        u,
+        image_to_physical: t,
+        info,
+    })
+}
+
+/// A row of Φ times α with four accumulators (vectorizes; the same bits whatever the thread
+/// count, since every row is summed in a fixed order).
+pub(super) fn dot_row(row: &[f64], alpha: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (body, tail) = row.split_at(row.len() - row.len() % 4);
+    for (r, a) in body.chunks_exact(4).zip(alpha.chunks_exact(4)) {
+        for k in 0..4 {
+            acc[k] += r[k] * a[k];
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (r, a) in tail.iter().zip(&alpha[body.len()..]) {
+        s += r * a;
+    }
+    s
+}

@@ -1,0 +1,392 @@
+//! The layers of `../shared/DESIGN.md`, kept by a test (as rust-analyzer's tidy tests and
+//! ArchUnit do): every source file is parsed (`syn`), every path it names through `crate::`,
+//! `super::`, `librplus::` or `librplus_client::` — in `use` items, expressions, types and macro
+//! bodies — is resolved to the module it reaches, and an edge against the order below fails the
+//! test, naming the file and line.
+//!
+//! Bottom to top: `util, assets, mesh → fem → register, input → dataset → phantom`, and
+//! `register → gcn → pipeline → discover → eval → CLI, server`. `register`, `input`, `dataset`,
+//! `gcn`, `pipeline`, `discover`, the server and the clients never import `phantom` (what runs in
+//! surgery cannot reach how the ground truth was made); `gcn` (inference) never imports `eval`
+//! (training) or `dataset` (where the truth is read); the server's library never imports the
+//! client crate (its `demo`, part of the binary, replays through it).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use syn::visit::Visit;
+
+/// The modules of the `librplus` crate each module may import (besides itself).
+fn allowed() -> BTreeMap<&'static str, &'static [&'static str]> {
+    BTreeMap::from([
+        ("util", &[][..]),
+        ("mesh", &["util"][..]),
+        ("assets", &["util", "mesh"][..]),
+        ("fem", &["util", "assets", "mesh"][..]),
+        ("register", &["util", "assets", "mesh", "fem"][..]),
+        ("input", &["util", "assets", "mesh", "fem", "register"][..]),
+        (
+            "dataset",
+            &["util", "assets", "mesh", "fem", "register"][..],
+        ),
+        (
+            "phantom",
+            &["util", "assets", "mesh", "fem", "register", "dataset"][..],
+        ),
+        ("gcn", &["util", "assets", "mesh", "fem", "register"][..]),
+        (
+            "pipeline",
+            &["util", "assets", "mesh", "fem", "register", "gcn"][..],
+        ),
+        (
+            "discover",
+            &[
+                "util", "assets", "mesh", "fem", "register", "input", "dataset", "gcn", "pipeline",
+            ][..],
+        ),
+        (
+            "eval",
+            &[
+                "util", "assets", "mesh", "fem", "register", "input", "dataset", "gcn", "pipeline",
+                "discover",
+            ][..],
+        ),
+    ])
+}
+
+/// What one file may reach: in its own crate (`crate::`/`super::` paths) and in `librplus` from
+/// the other crates.
+#[derive(Debug, Clone)]
+enum Rule {
+    /// A module of the `librplus` library: the modules of `allowed()[layer]`.
+    Library { layer: String },
+    /// The server's library or the client crate: `librplus` except `phantom`; the server's also
+    /// not `librplus_client`.
+    Service { may_use_client: bool },
+    /// A binary (the command line, the server's `main` and its demo): anything.
+    Binary,
+}
+
+/// One forbidden edge: `file:line: from → to (path)`.
+#[derive(Debug, Clone, PartialEq)]
+struct Violation {
+    file: String,
+    line: usize,
+    from: String,
+    to: String,
+    path: String,
+}
+
+impl std::fmt::Display for Violation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{}:{}: {} must not import {} (`{}`)",
+            self.file, self.line, self.from, self.to, self.path
+        )
+    }
+}
+
+/// The rule and the module path of a file, from where it lies in the repository.
+fn classify(rel: &str) -> Option<(Rule, Vec<String>)> {
+    let parts: Vec<&str> = rel.split('/').collect();
+    match parts.as_slice() {
+        ["src", "bin", ..] => Some((Rule::Binary, vec![])),
+        ["src", rest @ ..] => {
+            let mut module: Vec<String> = rest.iter().map(|s| s.to_string()).collect();
+            let last = module.pop()?;
+            match last.as_str() {
+                "lib.rs" | "mod.rs" => {}
+                file => module.push(file.trim_end_matches(".rs").to_string()),
+            }
+            let layer = module.first().cloned().unwrap_or_else(|| "lib".into());
+            Some((Rule::Library { layer }, module))
+        }
+        ["server", "src", "main.rs" | "demo.rs"] => Some((Rule::Binary, vec![])),
+        ["server", "src", ..] => Some((
+            Rule::Service {
+                may_use_client: false,
+            },
+            vec![],
+        )),
+        ["client", "src", ..] => Some((
+            Rule::Service {
+                may_use_client: true,
+            },
+            vec![],
+        )),
+        _ => None,
+    }
+}
+
+/// Collects every path of a file with the inline-module nesting it appears in.
+struct Paths {
+    /// Inline modules (`mod tests { … }`) around the current item.
+    inline: Vec<String>,
+    /// (line, inline modules, segments).
+    found: Vec<(usize, usize, Vec<String>)>,
+}
+
+impl Paths {
+    fn push(&mut self, line: usize, segments: Vec<String>) {
+        let interesting = matches!(
+            segments.first().map(String::as_str),
+            Some("crate" | "super" | "librplus" | "librplus_client")
+        );
+        if interesting {
+            self.found.push((line, self.inline.len(), segments));
+        }
+    }
+
+    fn use_tree(&mut self, prefix: &mut Vec<String>, tree: &syn::UseTree, line: usize) {
+        match tree {
+            syn::UseTree::Path(p) => {
+                prefix.push(p.ident.to_string());
+                self.use_tree(prefix, &p.tree, p.ident.span().start().line);
+                prefix.pop();
+            }
+            syn::UseTree::Name(n) => {
+                let mut s = prefix.clone();
+                s.push(n.ident.to_string());
+                self.push(n.ident.span().start().line, s);
+            }
+            syn::UseTree::Rename(r) => {
+                let mut s = prefix.clone();
+                s.push(r.ident.to_string());
+                self.push(r.ident.span().start().line, s);
+            }
+            syn::UseTree::Glob(_) => self.push(line, prefix.clone()),
+            syn::UseTree::Group(g) => {
+                for t in &g.items {
+                    self.use_tree(prefix, t, line);
+                }
+            }
+        }
+    }
+}
+
+impl<'ast> Visit<'ast> for Paths {
+    fn visit_item_mod(&mut self, m: &'ast syn::ItemMod) {
+        self.inline.push(m.ident.to_string());
+        syn::visit::visit_item_mod(self, m);
+        self.inline.pop();
+    }
+
+    fn visit_item_use(&mut self, u: &'ast syn::ItemUse) {
+        let line = u.use_token.span.start().line;
+        self.use_tree(&mut Vec::new(), &u.tree, line);
+    }
+
+    fn visit_path(&mut self, p: &'ast syn::Path) {
+        let segments: Vec<String> = p.segments.iter().map(|s| s.ident.to_string()).collect();
+        if let Some(first) = p.segments.first() {
+            self.push(first.ident.span().start().line, segments);
+        }
+        syn::visit::visit_path(self, p);
+    }
+
+    fn visit_macro(&mut self, m: &'ast syn::Macro) {
+        // Macro bodies are not parsed as Rust: read `a::b::c` runs off their tokens.
+        let mut tokens: Vec<proc_macro2::TokenTree> = Vec::new();
+        flatten(m.tokens.clone(), &mut tokens);
+        let mut i = 0;
+        while i < tokens.len() {
+            if let proc_macro2::TokenTree::Ident(id) = &tokens[i] {
+                let line = id.span().start().line;
+                let mut segments = vec![id.to_string()];
+                let mut j = i + 1;
+                while let (
+                    Some(proc_macro2::TokenTree::Punct(a)),
+                    Some(proc_macro2::TokenTree::Punct(b)),
+                    Some(proc_macro2::TokenTree::Ident(next)),
+                ) = (tokens.get(j), tokens.get(j + 1), tokens.get(j + 2))
+                {
+                    if a.as_char() != ':' || b.as_char() != ':' {
+                        break;
+                    }
+                    segments.push(next.to_string());
+                    j += 3;
+                }
+                if segments.len() > 1 {
+                    self.push(line, segments);
+                }
+                i = j;
+            } else {
+                i += 1;
+            }
+        }
+        syn::visit::visit_macro(self, m);
+    }
+}
+
+fn flatten(stream: proc_macro2::TokenStream, out: &mut Vec<proc_macro2::TokenTree>) {
+    for t in stream {
+        match t {
+            proc_macro2::TokenTree::Group(g) => flatten(g.stream(), out),
+            other => out.push(other),
+        }
+    }
+}
+
+/// The forbidden edges of one file (`rel`: its path in the repository) with source `text`.
+fn violations(rel: &str, text: &str) -> Result<Vec<Violation>, String> {
+    let Some((rule, module)) = classify(rel) else {
+        return Ok(Vec::new());
+    };
+    let file = syn::parse_file(text).map_err(|e| format!("{rel}: does not parse: {e}"))?;
+    let mut paths = Paths {
+        inline: Vec::new(),
+        found: Vec::new(),
+    };
+    paths.visit_file(&file);
+    let allowed = allowed();
+    let mut out = Vec::new();
+    for (line, depth, segments) in paths.found {
+        let edge = |to: &str| Violation {
+            file: rel.to_string(),
+            line,
+            from: match &rule {
+                Rule::Library { layer } => layer.clone(),
+                _ => rel.to_string(),
+            },
+            to: to.to_string(),
+            path: segments.join("::"),
+        };
+        match &rule {
+            Rule::Binary => {}
+            Rule::Service { may_use_client } => match segments[0].as_str() {
+                "librplus" if segments.get(1).is_some_and(|m| m == "phantom") => {
+                    out.push(edge("librplus::phantom"))
+                }
+                "librplus_client" if !may_use_client => out.push(edge("librplus_client")),
+                _ => {}
+            },
+            Rule::Library { layer } => {
+                // The module the path reaches, from the crate root.
+                let target = match segments[0].as_str() {
+                    "crate" => segments.get(1).cloned(),
+                    "super" => {
+                        let ups = segments.iter().take_while(|s| *s == "super").count();
+                        // The module the path starts in: the file's, then its inline modules.
+                        let here = module.len() + depth;
+                        if ups > here {
+                            return Err(format!("{rel}:{line}: `super` above the crate root"));
+                        }
+                        if here - ups >= 1 {
+                            // Still inside a top-level module: the file's, or (in lib.rs) an
+                            // inline one, which belongs to the crate root's own layer.
+                            Some(module.first().cloned().unwrap_or_else(|| layer.clone()))
+                        } else {
+                            segments.get(ups).cloned()
+                        }
+                    }
+                    _ => None,
+                };
+                let Some(target) = target else { continue };
+                if layer == "lib" || &target == layer {
+                    continue;
+                }
+                let Some(ok) = allowed.get(layer.as_str()) else {
+                    out.push(Violation {
+                        to: format!(
+                            "{target} (module `{layer}` has no layer: add it to allowed())"
+                        ),
+                        ..edge(&target)
+                    });
+                    continue;
+                };
+                if allowed.contains_key(target.as_str()) && !ok.contains(&target.as_str()) {
+                    out.push(edge(&target));
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn sources(root: &Path, dir: &str, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = std::fs::read_dir(root.join(dir)) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let p = e.path();
+        let rel = p
+            .strip_prefix(root)
+            .unwrap()
+            .to_string_lossy()
+            .replace('\\', "/");
+        if p.is_dir() {
+            sources(root, &rel, out);
+        } else if rel.ends_with(".rs") {
+            out.push(PathBuf::from(rel));
+        }
+    }
+}
+
+#[test]
+fn every_import_follows_the_layers() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut files = Vec::new();
+    for dir in ["src", "server/src", "client/src"] {
+        sources(root, dir, &mut files);
+    }
+    files.sort();
+    assert!(files.len() > 50, "found only {} source files", files.len());
+    let mut bad = Vec::new();
+    let mut modules = std::collections::BTreeSet::new();
+    for rel in &files {
+        let rel = rel.to_string_lossy().to_string();
+        if let Some((Rule::Library { layer }, _)) = classify(&rel) {
+            modules.insert(layer);
+        }
+        let text = std::fs::read_to_string(root.join(&rel)).unwrap();
+        bad.extend(violations(&rel, &text).unwrap());
+    }
+    // Every top-level module of the library has a place in the order.
+    let allowed = allowed();
+    let missing: Vec<_> = modules
+        .iter()
+        .filter(|m| *m != "lib" && !allowed.contains_key(m.as_str()))
+        .collect();
+    assert!(missing.is_empty(), "modules without a layer: {missing:?}");
+    assert!(
+        bad.is_empty(),
+        "{} import(s) against the layers of DESIGN.md:\n{}",
+        bad.len(),
+        bad.iter()
+            .map(|v| v.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+}
+
+#[test]
+fn a_planted_back_edge_fails_with_its_file_and_line() {
+    // A `use` line, an expression path and a macro body, each against the order.
+    let planted = "use crate::mesh::TetMesh;\n\
+                   use crate::gcn::model::SrGcn;\n\
+                   fn f() {\n    let _ = crate::eval::train::split_scenarios;\n}\n\
+                   fn g() {\n    println!(\"{:?}\", crate::phantom::dataset::VERSION);\n}\n";
+    let v = violations("src/register/planted.rs", planted).unwrap();
+    let got: Vec<(usize, &str)> = v.iter().map(|v| (v.line, v.to.as_str())).collect();
+    assert_eq!(got, [(2, "gcn"), (4, "eval"), (7, "phantom")], "{v:?}");
+    assert!(
+        v[0].to_string()
+            .starts_with("src/register/planted.rs:2: register must not import gcn")
+    );
+    // `super::` climbing out of a nested module to a forbidden sibling.
+    let nested = "mod tests {\n    use super::super::super::phantom::truth;\n}\n";
+    let v = violations("src/gcn/x.rs", nested).unwrap();
+    assert_eq!(v.iter().map(|v| v.line).collect::<Vec<_>>(), [2]);
+    // …while `super::*` inside a file's own test module is the file's own layer.
+    let own = "mod tests {\n    use super::*;\n    use super::super::sample::SampleData;\n}\n";
+    assert!(violations("src/gcn/x.rs", own).unwrap().is_empty());
+    // The server's library must not reach the phantom or the client; its binary may.
+    let server = "use librplus::phantom::dataset::generate;\nuse librplus_client::replay;\n";
+    assert_eq!(
+        violations("server/src/service.rs", server).unwrap().len(),
+        2
+    );
+    assert!(violations("server/src/demo.rs", server).unwrap().is_empty());
+    // The client may use its own crate name but not the phantom.
+    assert_eq!(violations("client/src/replay.rs", server).unwrap().len(), 1);
+}
