@@ -57,7 +57,7 @@ fn samples(
     f: &Fixture,
     cfg: &SrGcnConfig,
     range: std::ops::Range<usize>,
-) -> (Vec<tr::Prepared2>, Vec<Option<tr::LibrSolution>>) {
+) -> (Vec<tr::TrainingSample>, Vec<Option<tr::LibrSolution>>) {
     let items: Vec<_> = f.scenarios[range]
         .iter()
         .map(|(s, g)| (s, g.as_str()))

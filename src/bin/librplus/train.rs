@@ -195,7 +195,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
     let libr_seconds = t_libr.elapsed().as_secs_f64();
     let samples = |items: &[(&librplus::eval::ScenarioData, &str)],
                    sols: &[Option<tr::LibrSolution>]|
-     -> Result<Vec<tr::Prepared2>> {
+     -> Result<Vec<tr::TrainingSample>> {
         let z: Vec<_> = items
             .iter()
             .zip(sols)

@@ -35,7 +35,8 @@ pub use cache::{
 };
 pub use calibrate::{fit_refit_scale, refit_scale_grid};
 pub use samples::{
-    Prepared2, RefitLoss, answer_through_refit, build_samples, refit_loss_data, training_target,
+    RefitLoss, TrainingSample, answer_through_refit, build_samples, refit_loss_data,
+    training_target,
 };
 
 use super::splits::shuffle;
@@ -193,8 +194,8 @@ pub struct TrainReport {
 pub fn train(
     opts: &TrainOptions,
     cases: &BTreeMap<String, GeometryCase>,
-    train: &[Prepared2],
-    valid: &[Prepared2],
+    train: &[TrainingSample],
+    valid: &[TrainingSample],
     out: &Path,
     provenance: &serde_json::Value,
     progress: &dyn Fn(u32, usize, usize, usize, f64),
@@ -270,7 +271,7 @@ pub fn train(
     // device.
     fn through<'a>(
         modes: &'a BTreeMap<String, (Tensor<2>, Tensor<2>)>,
-        s: &'a Prepared2,
+        s: &'a TrainingSample,
         k: usize,
     ) -> Option<(&'a RefitLoss, &'a Tensor<2>)> {
         let m = modes.get(&s.geometry)?;

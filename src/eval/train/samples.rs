@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 /// A prepared sample: its geometry and host data.
-pub struct Prepared2 {
+pub struct TrainingSample {
     /// Geometry id.
     pub geometry: String,
     /// Inputs and targets.
@@ -145,7 +145,7 @@ pub fn build_samples(
     params: &PipelineParams,
     with_truth: bool,
     refit_loss: bool,
-) -> Result<Vec<Option<Prepared2>>, String> {
+) -> Result<Vec<Option<TrainingSample>>, String> {
     let cparams = final_cparams(params);
     items
         .par_iter()
@@ -183,7 +183,7 @@ pub fn build_samples(
             } else {
                 None
             };
-            Ok(Some(Prepared2 {
+            Ok(Some(TrainingSample {
                 geometry: g.to_string(),
                 data,
                 refit,
