@@ -8,7 +8,7 @@
 //! the load is a smooth, localized surface traction `t(x) = e_a · exp(−|x − c|²/2σ²) ·
 //! max(0, n(x)·n_c)` (σ = [`LibrParams::load_width`]; the normal factor keeps a patch from leaking
 //! through thin parts of the organ to the opposite face), lumped to nodes by
-//! [`loads::add_traction`]. Column `j` of the basis `Φ` (3n × 3K, node-major rows) is the
+//! [`loads::add_traction`](crate::fem::loads::add_traction). Column `j` of the basis `Φ` (3n × 3K, node-major rows) is the
 //! linear-elastic response to load `j`, all columns from one sparse Cholesky factorization.
 //!
 //! **Supports (the free-floating body).** The liver in the abdomen is not clamped anywhere we

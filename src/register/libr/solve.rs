@@ -84,7 +84,7 @@ pub struct RunLimits<'a> {
 }
 
 /// [`solve`], updating between matchings only the displacement of `active` nodes (those
-/// `rematch` reads, e.g. [`super::correspondence::Correspondence::active_nodes`]; `None`: all)
+/// `rematch` reads, e.g. [`crate::register::correspondence::Correspondence::active_nodes`]; `None`: all)
 /// and measuring the movement there; the returned `u` is complete. On a 9,000-node liver the
 /// boundary and vessel tets are about half the nodes, and `Φα` is the largest cost of an
 /// iteration after matching. With a `deadline`, the iterations stop before one that the last
