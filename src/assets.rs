@@ -60,16 +60,9 @@ pub fn default_liver() -> Result<TriSurface, AssetError> {
         name: DEFAULT_LIVER_NAME,
         reason,
     };
-    let mut surface = TriSurface::from_file(&file)
-        .map_err(not_closed)?
-        .largest_component();
-    if !surface.stats().closed {
-        return Err(not_closed("its largest piece has open edges".into()));
-    }
-    if surface.signed_volume() < 0.0 {
-        surface.flip();
-    }
-    Ok(surface)
+    TriSurface::from_file(&file)
+        .and_then(|s| s.largest_closed_outward())
+        .map_err(not_closed)
 }
 
 #[cfg(test)]

@@ -49,7 +49,7 @@ fn closed_surface(path: &Path) -> Result<librplus::mesh::TriSurface> {
             path.display()
         )
     })?;
-    let mut surface = if !file.triangles.is_empty() {
+    let surface = if !file.triangles.is_empty() {
         librplus::mesh::TriSurface::from_file(&file)
             .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
     } else {
@@ -57,15 +57,10 @@ fn closed_surface(path: &Path) -> Result<librplus::mesh::TriSurface> {
         m.orient_positive();
         m.boundary_surface()
             .with_context(|| path.display().to_string())?
-    }
-    .largest_component();
-    if !surface.stats().closed {
-        bail!("{}: the surface is not closed", path.display());
-    }
-    if surface.signed_volume() < 0.0 {
-        surface.flip();
-    }
-    Ok(surface)
+    };
+    surface
+        .largest_closed_outward()
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
 /// Generates the default case into `dir` unless it is there already.

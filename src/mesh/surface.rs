@@ -193,6 +193,22 @@ impl TriSurface {
         uf.labels(self.triangles.iter().map(|t| t[0]))
     }
 
+    /// A liver surface ready for meshing: the [`largest_component`](Self::largest_component),
+    /// oriented outward. Errors when that piece is not closed (it must enclose a volume).
+    pub fn largest_closed_outward(&self) -> Result<TriSurface, String> {
+        let mut surface = self.largest_component();
+        if !surface.stats().closed {
+            return Err(
+                "the surface (largest piece) is not closed; a liver surface must enclose a volume"
+                    .into(),
+            );
+        }
+        if surface.signed_volume() < 0.0 {
+            surface.flip();
+        }
+        Ok(surface)
+    }
+
     /// The component with the most triangles, with unused vertices removed.
     pub fn largest_component(&self) -> TriSurface {
         let (ids, count) = self.components();

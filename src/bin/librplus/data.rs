@@ -30,18 +30,9 @@ pub(crate) fn read_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
 /// Reads a closed surface for meshing: its triangles (or a tet mesh's boundary), the largest
 /// connected piece, oriented outward.
 fn load_closed_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
-    let mut surface = read_surface(path, unit)?.largest_component();
-    let stats = surface.stats();
-    if !stats.closed {
-        bail!(
-            "{}: the surface (largest piece) is not closed; a liver surface must enclose a volume",
-            path.display()
-        );
-    }
-    if surface.signed_volume() < 0.0 {
-        surface.flip();
-    }
-    Ok(surface)
+    read_surface(path, unit)?
+        .largest_closed_outward()
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
 /// The closed liver surface of `--surface` ([`load_closed_surface`]), or the built-in default
