@@ -356,7 +356,7 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
     let e = train_with(&other, &tmp.path().join("d")).err().unwrap();
     assert!(e.contains("differs"), "{e}");
     // A corrupted weights file is an error, not a panic.
-    let w = dir.join("weights.bin");
+    let w = dir.join("weights.safetensors");
     let bytes = std::fs::read(&w).unwrap();
     std::fs::write(&w, &bytes[..bytes.len() / 2]).unwrap();
     assert!(load_model(&dir, &dev).is_err());
@@ -396,7 +396,7 @@ fn train_then_evaluate_agree_on_the_held_out_scenarios() {
     ]);
     for f in [
         "model.json",
-        "weights.bin",
+        "weights.safetensors",
         "training.json",
         "test.json",
         "loss_stage2.png",
@@ -572,6 +572,77 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
     assert!(!c.applied, "{c:?}");
     assert!(c.skipped.as_deref().unwrap().contains("no time"), "{c:?}");
     assert!(r.u.iter().all(|x| x.is_finite()));
+}
+
+/// Writes `model`'s weights the way format 3 did (`weights.bin`: little-endian, magic
+/// `SRGCNW01`, u32 tensor count, per tensor u32 name length, name, u32 rank, u64 dims, f32
+/// values) beside a format-3 `model.json`: an independent writer of the legacy layout.
+fn save_format_3(dir: &Path, model: &librplus::gcn::io::TrainedModel) {
+    save_model(dir, &model.config, &model.net, serde_json::json!({})).unwrap();
+    std::fs::remove_file(dir.join("weights.safetensors")).unwrap();
+    let tensors = librplus::gcn::io::named_tensors(&model.net);
+    let mut b = b"SRGCNW01".to_vec();
+    b.extend((tensors.len() as u32).to_le_bytes());
+    for (name, dims, vals) in &tensors {
+        b.extend((name.len() as u32).to_le_bytes());
+        b.extend(name.as_bytes());
+        b.extend((dims.len() as u32).to_le_bytes());
+        dims.iter()
+            .for_each(|&d| b.extend((d as u64).to_le_bytes()));
+        vals.iter().for_each(|v| b.extend(v.to_le_bytes()));
+    }
+    std::fs::write(dir.join("weights.bin"), b).unwrap();
+    let p = dir.join("model.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+    j["format"] = 3.into();
+    j["weights"] = "weights.bin".into();
+    std::fs::write(&p, j.to_string()).unwrap();
+}
+
+#[test]
+fn a_format_3_model_and_its_format_4_copy_predict_the_same() {
+    let f = fixture();
+    let (cfg, model) = untrained_model(21);
+    let (s, sols) = samples(&f, &cfg, 0..1);
+    let tmp = tempfile::tempdir().unwrap();
+    let (d3, d4, dc) = (
+        tmp.path().join("f3"),
+        tmp.path().join("f4"),
+        tmp.path().join("converted"),
+    );
+    save_format_3(&d3, &model);
+    save_format_3(&dc, &model);
+    save_model(&d4, &model.config, &model.net, serde_json::json!({})).unwrap();
+    librplus::gcn::io::convert_model_dir(&dc).unwrap().unwrap();
+    let dev = burn::tensor::Device::flex();
+    let bits = |m: &librplus::gcn::io::TrainedModel| {
+        librplus::gcn::io::named_tensors(&m.net)
+            .into_iter()
+            .map(|(n, d, v)| (n, d, v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>()))
+            .collect::<Vec<_>>()
+    };
+    let gc = &f.cases[&f.scenarios[0].1];
+    let graph = gc.frame.mesh_graphs(&cfg, &dev).unwrap();
+    let u = &sols[0].as_ref().unwrap().u;
+    let predict = |m: &librplus::gcn::io::TrainedModel| {
+        librplus::gcn::infer::correct(m, &gc.frame, &graph, &s[0].data, u).unwrap()
+    };
+    let want = predict(&model);
+    for d in [&d3, &d4, &dc] {
+        let m = load_model(d, &dev).unwrap();
+        assert_eq!(bits(&m), bits(&model), "{}: weights differ", d.display());
+        let got = predict(&m);
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst <= 1e-6,
+            "{}: predictions differ by {worst} mm",
+            d.display()
+        );
+    }
 }
 
 #[test]

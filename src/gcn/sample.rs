@@ -268,79 +268,50 @@ pub struct SampleData {
     pub target: Option<Vec<f32>>,
 }
 
-/// The `k` nearest of `nodes` to each of `points`, by a uniform grid (exact).
+/// The `k` nearest of `nodes` to each of `points` (exact; all of them when `k` ≥ their count),
+/// nearest first by squared Euclidean distance, exact ties in the order of the node index (the
+/// lower index first, at the k-th place too). A k-d tree (`kiddo`) finds the candidates; their
+/// distances are recomputed here, so the order depends on the coordinates alone.
 pub fn knn(nodes: &[[f64; 3]], points: &[[f64; 3]], k: usize) -> Vec<Vec<usize>> {
     let k = k.min(nodes.len());
-    if k == 0 {
+    let Some(k1) = std::num::NonZero::new(k) else {
         return vec![Vec::new(); points.len()];
-    }
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for p in nodes {
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
-        }
-    }
-    // About 2 nodes per cell.
-    let vol: f64 = (0..3).map(|a| (hi[a] - lo[a]).max(1e-9)).product();
-    let h = (2.0 * vol / nodes.len() as f64).cbrt().max(1e-9);
-    let dims = [0, 1, 2].map(|a| (((hi[a] - lo[a]) / h).floor() as usize + 1).min(1 << 10));
-    let cell = |p: &[f64; 3]| {
-        [0, 1, 2].map(|a| (((p[a] - lo[a]) / h).floor().max(0.0) as usize).min(dims[a] - 1))
     };
-    let idx = |c: [usize; 3]| (c[2] * dims[1] + c[1]) * dims[0] + c[0];
-    let mut start = vec![0usize; dims[0] * dims[1] * dims[2] + 1];
-    for p in nodes {
-        start[idx(cell(p)) + 1] += 1;
+    let d2 = |p: &[f64; 3], i: usize| (0..3).map(|a| (nodes[i][a] - p[a]).powi(2)).sum::<f64>();
+    // Nearest first, ties by index; the first k.
+    let order = |mut c: Vec<(f64, usize)>| -> Vec<usize> {
+        c.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        c.into_iter().take(k).map(|(_, i)| i).collect()
+    };
+    if k == nodes.len() {
+        return points
+            .par_iter()
+            .map(|p| order((0..nodes.len()).map(|i| (d2(p, i), i)).collect()))
+            .collect();
     }
-    for i in 1..start.len() {
-        start[i] += start[i - 1];
-    }
-    let mut fill = start.clone();
-    let mut items = vec![0usize; nodes.len()];
-    for (i, p) in nodes.iter().enumerate() {
-        let c = idx(cell(p));
-        items[fill[c]] = i;
-        fill[c] += 1;
-    }
+    let tree: kiddo::ImmutableKdTree<f64, 3> = kiddo::ImmutableKdTree::new_from_slice(nodes);
+    // One more than k: when the (k+1)-th is clearly farther than the k-th, the k nearest are
+    // those k; otherwise (a tie, or a near-tie within round-off, at the k-th place) every node
+    // within the k-th distance, widened by a relative 1e-9, competes by (distance, index).
+    let more = k1.saturating_add(1);
     points
         .par_iter()
         .map(|p| {
-            let c = cell(p);
-            let mut best: Vec<(f64, usize)> = Vec::new();
-            let mut r = 0usize;
-            loop {
-                // Visit the shell of cells at Chebyshev ring r.
-                for z in c[2].saturating_sub(r)..=(c[2] + r).min(dims[2] - 1) {
-                    for y in c[1].saturating_sub(r)..=(c[1] + r).min(dims[1] - 1) {
-                        for x in c[0].saturating_sub(r)..=(c[0] + r).min(dims[0] - 1) {
-                            let ring = (x.abs_diff(c[0]))
-                                .max(y.abs_diff(c[1]))
-                                .max(z.abs_diff(c[2]));
-                            if ring != r {
-                                continue;
-                            }
-                            let ci = idx([x, y, z]);
-                            for &i in &items[start[ci]..start[ci + 1]] {
-                                let q = &nodes[i];
-                                let d = (0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>();
-                                best.push((d, i));
-                            }
-                        }
-                    }
-                }
-                best.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                best.truncate(k);
-                // Everything outside ring r is at least (r + dist to cell wall) away; r·h is a
-                // safe lower bound for ring r + 1.
-                let bound = (r as f64 * h).powi(2);
-                let all_cells = r >= dims[0].max(dims[1]).max(dims[2]);
-                if (best.len() == k && best[k - 1].0 <= bound) || all_cells {
-                    return best.into_iter().map(|(_, i)| i).collect();
-                }
-                r += 1;
-            }
+            let near = tree.nearest_n::<kiddo::SquaredEuclidean>(p, more);
+            let kth = near[k - 1].distance;
+            let candidates: Vec<usize> = if !kth.is_finite() {
+                // A point with a non-finite coordinate: every node, as (NaN, index) orders them.
+                (0..nodes.len()).collect()
+            } else if near[k].distance > kth * (1.0 + 1e-9) {
+                near[..k].iter().map(|n| n.item as usize).collect()
+            } else {
+                let r = kth * (1.0 + 1e-9) + f64::MIN_POSITIVE;
+                tree.within_unsorted::<kiddo::SquaredEuclidean>(p, r)
+                    .iter()
+                    .map(|n| n.item as usize)
+                    .collect()
+            };
+            order(candidates.into_iter().map(|i| (d2(p, i), i)).collect())
         })
         .collect()
 }
@@ -732,7 +703,7 @@ mod tests {
     }
 
     #[test]
-    fn grid_knn_equals_brute_force() {
+    fn knn_equals_brute_force() {
         let mut s = 3u64;
         let mut rnd = move || {
             s = s
@@ -753,15 +724,56 @@ mod tests {
         for k in [1, 4, 9] {
             let got = knn(&nodes, &points, k);
             for (p, list) in points.iter().zip(&got) {
-                let mut all: Vec<(f64, usize)> = nodes
-                    .iter()
-                    .enumerate()
-                    .map(|(i, q)| ((0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>(), i))
-                    .collect();
-                all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                let want: Vec<usize> = all[..k].iter().map(|x| x.1).collect();
-                assert_eq!(list, &want);
+                assert_eq!(list, &brute_force_knn(&nodes, p, k));
             }
         }
+    }
+
+    /// The `k` nearest of `nodes` to `p`: nearest first, ties by index.
+    fn brute_force_knn(nodes: &[[f64; 3]], p: &[f64; 3], k: usize) -> Vec<usize> {
+        let mut all: Vec<(f64, usize)> = nodes
+            .iter()
+            .enumerate()
+            .map(|(i, q)| ((0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>(), i))
+            .collect();
+        all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        all.iter().take(k).map(|x| x.1).collect()
+    }
+
+    #[test]
+    fn knn_breaks_exact_ties_by_node_index() {
+        // A regular 7 × 6 × 5 grid of 2-mm spacing, its nodes in a scrambled order: a cell
+        // centre has 8 nodes at one distance, a face centre 4, an edge midpoint 2, a node 6 at
+        // the spacing, so most k cut through a tie.
+        let mut nodes: Vec<[f64; 3]> = Vec::new();
+        for z in 0..5 {
+            for y in 0..6 {
+                for x in 0..7 {
+                    nodes.push([2.0 * x as f64, 2.0 * y as f64, 2.0 * z as f64]);
+                }
+            }
+        }
+        let n = nodes.len();
+        let nodes: Vec<[f64; 3]> = (0..n).map(|i| nodes[(i * 97) % n]).collect();
+        let mut points: Vec<[f64; 3]> = Vec::new();
+        for (x, y, z) in [(0, 0, 0), (3, 2, 1), (6, 5, 4), (2, 4, 3)] {
+            let c = [2.0 * x as f64, 2.0 * y as f64, 2.0 * z as f64];
+            points.push(c);
+            points.push([c[0] + 1.0, c[1] + 1.0, c[2] + 1.0]);
+            points.push([c[0] + 1.0, c[1] + 1.0, c[2]]);
+            points.push([c[0] + 1.0, c[1], c[2]]);
+            points.push([c[0] - 1.0, c[1] - 1.0, c[2] - 1.0]);
+        }
+        // Outside the grid, level with a face: a square of ties.
+        points.push([-5.0, 5.0, 3.0]);
+        for k in [1, 2, 3, 4, 5, 6, 7, 8, 9, 13, 27, n - 1, n, n + 3] {
+            let got = knn(&nodes, &points, k);
+            for (p, list) in points.iter().zip(&got) {
+                let want = brute_force_knn(&nodes, p, k);
+                assert_eq!(list, &want, "k {k}, point {p:?}");
+            }
+        }
+        assert!(knn(&nodes, &points, 0).iter().all(|l| l.is_empty()));
+        assert!(knn(&[], &points, 3).iter().all(|l| l.is_empty()));
     }
 }

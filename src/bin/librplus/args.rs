@@ -42,7 +42,7 @@ pub(crate) enum Command {
     /// Evaluates methods over a dataset split: summary.json, report.md, per-scenario results.
     Evaluate(EvaluateArgs),
     /// Trains SR-GCN (LIBR+) on a dataset split, then tests LIBR and LIBR+ on the held-out
-    /// scenarios: MODEL_DIR/model.json + weights.bin (+ provenance), training.json, test.json,
+    /// scenarios: MODEL_DIR/model.json + weights.safetensors (+ provenance), training.json, test.json,
     /// loss curves (PNG).
     Train(TrainArgs),
     /// Runs the paper's experiments in one go: `train` on every split (random, geometry-
