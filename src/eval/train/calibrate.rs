@@ -74,7 +74,7 @@ pub fn fit_refit_scale(
         .map(|(sc, g, sol, sample)| -> Result<Vec<f64>, EvalError> {
             let gc = &cases[g];
             let y = predict(&unit_model, &graphs[g], &sample.data)
-                .map_err(|e| EvalError::within(format!("{}", sc.id), e))?;
+                .map_err(|e| EvalError::within(sc.id.clone(), e))?;
             let nodes = gc.geo.model.mesh.nodes();
             grid.iter()
                 .map(|&a| {
@@ -83,7 +83,7 @@ pub fn fit_refit_scale(
                         ..unit_model.config.clone()
                     };
                     let ua = apply_prediction(&config, &gc.frame, &sol.u, &y)
-                        .map_err(|e| EvalError::within(format!("{}", sc.id), e))?;
+                        .map_err(|e| EvalError::within(sc.id.clone(), e))?;
                     let r = crate::pipeline::refit(
                         &gc.case,
                         &sc.measurements,

@@ -156,7 +156,7 @@ pub fn build_samples(
                 &sol.transform,
                 truth.as_deref(),
             )
-            .map_err(|e| EvalError::within(format!("{}", sc.id), e))?;
+            .map_err(|e| EvalError::within(sc.id.clone(), e))?;
             if let Some(t) = &truth {
                 data.target = Some(training_target(
                     cfg,
