@@ -29,12 +29,12 @@ pub enum AssetError {
         source: IoError,
     },
     /// The embedded file is not a closed surface.
-    #[error("the built-in {name} is not a closed surface: {reason}")]
+    #[error("the built-in {name} is not a closed surface: {source}")]
     NotClosed {
         /// The asset's file name.
         name: &'static str,
         /// Why.
-        reason: String,
+        source: crate::mesh::SurfaceError,
     },
 }
 
@@ -56,9 +56,9 @@ pub fn default_liver_file() -> Result<io::MeshFile, AssetError> {
 /// three tiny degenerate pieces besides the liver), closed, oriented outward (mm, LPS).
 pub fn default_liver() -> Result<TriSurface, AssetError> {
     let file = default_liver_file()?;
-    let not_closed = |reason: String| AssetError::NotClosed {
+    let not_closed = |source| AssetError::NotClosed {
         name: DEFAULT_LIVER_NAME,
-        reason,
+        source,
     };
     TriSurface::from_file(&file)
         .and_then(|s| s.largest_closed_outward())

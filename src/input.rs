@@ -8,7 +8,64 @@ use crate::mesh::{TetMesh, TriSurface};
 use crate::register::PreopModel;
 use crate::register::anatomy::{LabelParams, label};
 use crate::register::correspondence::preop_model_from_file;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Why a user's mesh or point file could not be used; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum InputError {
+    /// The file could not be read as a mesh (its own message names the file).
+    #[error(transparent)]
+    Read(#[from] io::IoError),
+    /// The file could not be read at all.
+    #[error(transparent)]
+    File(#[from] crate::util::FileError),
+    /// The file was read but does not hold what is needed; the problem says what.
+    #[error("{}: {problem}", path.display())]
+    Content {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong and what is expected.
+        problem: String,
+    },
+    /// A row of a point table is not `x y z`.
+    #[error("line {line}: {problem}")]
+    Row {
+        /// 1-based line.
+        line: usize,
+        /// What is wrong.
+        problem: String,
+    },
+    /// A row of the point table `path` is not `x y z`.
+    #[error("{}: {source}", path.display())]
+    Table {
+        /// The file.
+        path: PathBuf,
+        /// The row's problem.
+        source: Box<InputError>,
+    },
+    /// The mesh's labels or vessels are inconsistent, or the labeller failed.
+    #[error("{}: {source}", path.display())]
+    Model {
+        /// The file.
+        path: PathBuf,
+        /// What the model builder found.
+        source: crate::register::RegisterError,
+    },
+    /// The surface could not be tetrahedralised or the tet mesh is invalid.
+    #[error("{}: {message}", path.display())]
+    Mesh {
+        /// The file.
+        path: PathBuf,
+        /// The mesher's or mesh check's message.
+        message: String,
+    },
+    /// The tetrahedralisation edge length is not usable.
+    #[error("edge length {edge_mm} mm: need a finite value > 0.5")]
+    EdgeLength {
+        /// The value given (mm).
+        edge_mm: f64,
+    },
+}
 
 /// A preoperative model from a mesh file already read (`path` for messages and to find
 /// `STEM.vessels.vtp` beside it).
@@ -25,46 +82,43 @@ pub fn preop_model_from_mesh(
     file: &MeshFile,
     unit: Unit,
     edge_mm: f64,
-) -> Result<PreopModel, String> {
-    let ctx = |e: String| format!("{}: {e}", path.display());
+) -> Result<PreopModel, InputError> {
+    let model = |source| InputError::Model {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mesh_err = |e: &dyn std::fmt::Display| InputError::Mesh {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    };
     if !file.tets.is_empty() && file.point_array("region").is_some() {
         let vessels_path = path.with_extension("vessels.vtp");
         let vessels = if vessels_path.is_file() {
-            io::read(&vessels_path, unit).map_err(|e| format!("{}: {e}", vessels_path.display()))?
+            io::read(&vessels_path, unit)?
         } else {
             MeshFile::default()
         };
-        return preop_model_from_file(file, &vessels).map_err(ctx);
+        return preop_model_from_file(file, &vessels).map_err(model);
     }
     let mut mesh = if file.tets.is_empty() {
         if file.triangles.is_empty() {
-            return Err(ctx(
-                "neither tetrahedra nor triangles: not a liver mesh or surface".into(),
-            ));
+            return Err(InputError::Content {
+                path: path.to_path_buf(),
+                problem: "neither tetrahedra nor triangles: not a liver mesh or surface".into(),
+            });
         }
         if !(edge_mm.is_finite() && edge_mm > 0.5) {
-            return Err(format!(
-                "edge length {edge_mm} mm: need a finite value > 0.5"
-            ));
+            return Err(InputError::EdgeLength { edge_mm });
         }
-        let mut s = TriSurface::from_file(file)
-            .map_err(ctx)?
-            .largest_component();
-        if !s.stats().closed {
-            return Err(ctx(
-                "the surface (largest piece) is not closed; a liver surface must enclose a volume"
-                    .into(),
-            ));
-        }
-        if s.signed_volume() < 0.0 {
-            s.flip();
-        }
-        tetrahedralize(&s, &TetraParams::with_edge(edge_mm)).map_err(|e| ctx(e.to_string()))?
+        let s = TriSurface::from_file(file)
+            .and_then(|s| s.largest_closed_outward())
+            .map_err(|e| mesh_err(&e))?;
+        tetrahedralize(&s, &TetraParams::with_edge(edge_mm)).map_err(|e| mesh_err(&e))?
     } else {
-        TetMesh::from_file(file).map_err(|e| ctx(e.to_string()))?
+        TetMesh::from_file(file).map_err(|e| mesh_err(&e))?
     };
     mesh.orient_positive();
-    let labels = label(&mesh, &LabelParams::default()).map_err(ctx)?;
+    let labels = label(&mesh, &LabelParams::default()).map_err(model)?;
     Ok(labels.preop_model(&mesh, &[], &[]))
 }
 
@@ -72,41 +126,43 @@ pub fn preop_model_from_mesh(
 /// table (`.csv`: comma-separated; `.txt`, `.xyz`: whitespace- or comma-separated) whose rows are
 /// `x y z` (more columns are ignored). Lines starting with `#`, blank lines and one header line of
 /// non-numbers are skipped. Every coordinate must be finite; errors name the file and line.
-pub fn read_points(path: &Path, unit: Unit) -> Result<Vec<[f64; 3]>, String> {
+pub fn read_points(path: &Path, unit: Unit) -> Result<Vec<[f64; 3]>, InputError> {
+    let content = |problem: String| InputError::Content {
+        path: path.to_path_buf(),
+        problem,
+    };
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase())
         .unwrap_or_default();
     let points = match ext.as_str() {
-        "vtp" | "vtu" | "vtk" => {
-            io::read(path, unit)
-                .map_err(|e| format!("{}: {e}", path.display()))?
-                .nodes
-        }
+        "vtp" | "vtu" | "vtk" => io::read(path, unit)?.nodes,
         "csv" | "txt" | "xyz" => {
-            let text =
-                std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-            parse_points(&text, unit.to_mm()).map_err(|e| format!("{}: {e}", path.display()))?
+            let text = std::fs::read_to_string(path)
+                .map_err(crate::util::FileError::at("reading", path))?;
+            parse_points(&text, unit.to_mm()).map_err(|e| InputError::Table {
+                path: path.to_path_buf(),
+                source: Box::new(e),
+            })?
         }
         _ => {
-            return Err(format!(
-                "{}: unknown point file type (use .vtp, .vtk, .csv, .txt or .xyz)",
-                path.display()
+            return Err(content(
+                "unknown point file type (use .vtp, .vtk, .csv, .txt or .xyz)".into(),
             ));
         }
     };
     if points.is_empty() {
-        return Err(format!("{}: no points", path.display()));
+        return Err(content("no points".into()));
     }
     if let Some(i) = points.iter().position(|p| !p.iter().all(|x| x.is_finite())) {
-        return Err(format!("{}: point {i} is not finite", path.display()));
+        return Err(content(format!("point {i} is not finite")));
     }
     Ok(points)
 }
 
 /// Parses `x y z` rows (see [`read_points`]), scaling by `factor`.
-pub fn parse_points(text: &str, factor: f64) -> Result<Vec<[f64; 3]>, String> {
+pub fn parse_points(text: &str, factor: f64) -> Result<Vec<[f64; 3]>, InputError> {
     let mut out = Vec::new();
     let mut header_seen = false;
     for (k, line) in text.lines().enumerate() {
@@ -124,20 +180,23 @@ pub fn parse_points(text: &str, factor: f64) -> Result<Vec<[f64; 3]>, String> {
             continue;
         }
         if fields.len() < 3 {
-            return Err(format!(
-                "line {}: {} values, need x y z",
-                k + 1,
-                fields.len()
-            ));
+            return Err(InputError::Row {
+                line: k + 1,
+                problem: format!("{} values, need x y z", fields.len()),
+            });
         }
         let mut p = [0.0; 3];
         for a in 0..3 {
-            p[a] = nums[a]
-                .ok_or_else(|| format!("line {}: {:?} is not a number", k + 1, fields[a]))?
-                * factor;
+            p[a] = nums[a].ok_or_else(|| InputError::Row {
+                line: k + 1,
+                problem: format!("{:?} is not a number", fields[a]),
+            })? * factor;
         }
         if !p.iter().all(|x| x.is_finite()) {
-            return Err(format!("line {}: not finite", k + 1));
+            return Err(InputError::Row {
+                line: k + 1,
+                problem: "not finite".into(),
+            });
         }
         out.push(p);
     }
@@ -159,11 +218,11 @@ mod tests {
             parse_points("1 2 3 0.9\n4\t5\t6\n", 1.0).unwrap(),
             vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
         );
-        let e = parse_points("1,2,3\n1,2\n", 1.0).unwrap_err();
+        let e = parse_points("1,2,3\n1,2\n", 1.0).unwrap_err().to_string();
         assert!(e.contains("line 2"), "{e}");
-        let e = parse_points("1,2,3\n1,x,3\n", 1.0).unwrap_err();
+        let e = parse_points("1,2,3\n1,x,3\n", 1.0).unwrap_err().to_string();
         assert!(e.contains("line 2") && e.contains("\"x\""), "{e}");
-        let e = parse_points("1,2,nan\n", 1.0).unwrap_err();
+        let e = parse_points("1,2,nan\n", 1.0).unwrap_err().to_string();
         assert!(e.contains("not finite"), "{e}");
     }
 }

@@ -1,5 +1,6 @@
 //! Small shared utilities: a seeded deterministic random generator and timers.
 
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// SplitMix64: tiny, fast, deterministic pseudo-random numbers for test geometry and benchmarks.
@@ -48,27 +49,65 @@ pub fn secs(start: Instant) -> f64 {
 /// creating the parent directories. The temporary name is unique to this process and call, so
 /// threads or processes writing the same file at once (two tests building the same cached
 /// basis, say) each rename a complete file and none loses its temporary to another.
-pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), String> {
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
     use std::sync::atomic::{AtomicU64, Ordering};
     static NEXT: AtomicU64 = AtomicU64::new(0);
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .map_err(|e| format!("creating directory {}: {e}", parent.display()))?;
+        std::fs::create_dir_all(parent).map_err(FileError::at("creating directory", parent))?;
     }
     let name = path
         .file_name()
-        .ok_or_else(|| format!("{}: not a file path", path.display()))?
+        .ok_or_else(|| {
+            FileError::new(
+                "writing",
+                path,
+                std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path"),
+            )
+        })?
         .to_string_lossy();
     let tmp = path.with_file_name(format!(
         ".{name}.tmp{}-{}",
         std::process::id(),
         NEXT.fetch_add(1, Ordering::Relaxed)
     ));
-    std::fs::write(&tmp, bytes).map_err(|e| format!("writing {}: {e}", tmp.display()))?;
+    std::fs::write(&tmp, bytes).map_err(FileError::at("writing", &tmp))?;
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
-        format!("renaming to {}: {e}", path.display())
+        FileError::new("renaming to", path, e)
     })
+}
+
+/// The operating system refused to read, write or create a file or directory: what was being
+/// done, the path and the system's reason.
+#[derive(Debug, thiserror::Error)]
+#[error("{action} {}: {source}", path.display())]
+pub struct FileError {
+    /// What was being done ("reading", "writing", "creating directory", …).
+    pub action: &'static str,
+    /// The path.
+    pub path: PathBuf,
+    /// The system's error.
+    #[source]
+    pub source: std::io::Error,
+}
+
+impl FileError {
+    /// A file error.
+    pub fn new(action: &'static str, path: &Path, source: std::io::Error) -> Self {
+        Self {
+            action,
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+
+    /// For `map_err`: `std::fs::read(&p).map_err(FileError::at("reading", &p))`.
+    pub fn at<'a>(
+        action: &'static str,
+        path: &'a Path,
+    ) -> impl FnOnce(std::io::Error) -> Self + 'a {
+        move |source| Self::new(action, path, source)
+    }
 }
 
 /// numpy-style linear-interpolation quantile of `values` (q in [0, 1]).
@@ -126,7 +165,7 @@ mod tests {
             "no temporaries left"
         );
         let err = write_atomic(dir.path(), b"x").unwrap_err();
-        assert!(err.contains("renaming to"), "{err}");
+        assert!(err.to_string().contains("renaming to"), "{err}");
     }
 
     #[test]

@@ -93,7 +93,8 @@ fn check(
                     .unwrap_or_default();
                 problems.push(format!("{tag}: PANIC {what}"));
             }
-            Ok(Err(msg)) => {
+            Ok(Err(e)) => {
+                let msg = e.to_string();
                 lines.push(format!("{tag}: Err({msg})"));
                 if !names_it(&msg) {
                     problems.push(format!(

@@ -809,7 +809,9 @@ fn categories_determinism_and_errors() {
 
     // Errors name the problem.
     let err = |u: &[f64], labels: &AnatomyLabels, p: &MeasureParams| {
-        simulate(&l.mesh, labels, &l.vessels, u, Category::Planes1, p, 0).unwrap_err()
+        simulate(&l.mesh, labels, &l.vessels, u, Category::Planes1, p, 0)
+            .unwrap_err()
+            .to_string()
     };
     let e = err(&l.u[..l.u.len() - 1], &l.labels, &params);
     assert!(e.contains("displacement"), "{e}");

@@ -20,7 +20,7 @@ use librplus::register::correspondence::{
     Correspondence, CorrespondenceParams, preop_model_from_file,
 };
 use librplus::register::wicp::{WicpParams, WicpResult, wicp};
-use librplus::register::{MeasuredKind, Measurements, PreopModel};
+use librplus::register::{MeasuredKind, Measurements, PreopModel, RegisterError};
 use librplus::util::SplitMix64;
 use std::sync::OnceLock;
 
@@ -528,7 +528,7 @@ fn garbage_inputs_give_errors_or_degenerate_flags() {
     let s = scenario(Category::Planes1, &MeasureParams::default(), 41);
     let good = measurements(&s);
     let p = WicpParams::default();
-    let err = |m: &Measurements| wicp(&l.model, &l.corr, m, &p).unwrap_err();
+    let err = |m: &Measurements| wicp(&l.model, &l.corr, m, &p).unwrap_err().to_string();
 
     let e = err(&Measurements::default());
     assert!(e.contains("points") && e.contains("empty"), "{e}");
@@ -560,6 +560,10 @@ fn garbage_inputs_give_errors_or_degenerate_flags() {
     }
     let e = err(&m);
     assert!(e.contains("mm from the model"), "{e}");
+    assert!(matches!(
+        wicp(&l.model, &l.corr, &m, &p),
+        Err(RegisterError::FarFromModel { .. })
+    ));
 
     // A few points 1 m away: dropped, flagged, the rest registers.
     let mut m = good.clone();
@@ -629,7 +633,9 @@ fn garbage_inputs_give_errors_or_degenerate_flags() {
         },
         ..WicpParams::default()
     };
-    let e = wicp(&l.model, &l.corr, &good, &bad).unwrap_err();
+    let e = wicp(&l.model, &l.corr, &good, &bad)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("trim_factor"), "{e}");
 
     // Correspondence: wrong displacement length, wrong flag lengths.
@@ -641,17 +647,19 @@ fn garbage_inputs_give_errors_or_degenerate_flags() {
             Some(&[0.0; 5]),
             &CorrespondenceParams::default(),
         )
-        .unwrap_err();
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("displacement"), "{e}");
     let mut model = l.model.clone();
     model.posterior.pop();
-    let e = Correspondence::new(&model).unwrap_err();
+    let e = Correspondence::new(&model).unwrap_err().to_string();
     assert!(e.contains("posterior"), "{e}");
     let mut model = l.model.clone();
     model.vessel_segments.push([0, 1_000_000]);
     assert!(
         Correspondence::new(&model)
             .unwrap_err()
+            .to_string()
             .contains("vessel segment")
     );
 }
@@ -706,6 +714,7 @@ fn preop_model_reads_back_from_dataset_arrays() {
     assert!(
         preop_model_from_file(&f, &vessels)
             .unwrap_err()
+            .to_string()
             .contains("region")
     );
     let mut f = file.clone();
@@ -713,6 +722,7 @@ fn preop_model_reads_back_from_dataset_arrays() {
     assert!(
         preop_model_from_file(&f, &vessels)
             .unwrap_err()
+            .to_string()
             .contains("region[4]")
     );
     let mut v = vessels.clone();
@@ -720,6 +730,7 @@ fn preop_model_reads_back_from_dataset_arrays() {
     assert!(
         preop_model_from_file(&file, &v)
             .unwrap_err()
+            .to_string()
             .contains("parent[2]")
     );
     let mut v = vessels.clone();
@@ -727,6 +738,7 @@ fn preop_model_reads_back_from_dataset_arrays() {
     assert!(
         preop_model_from_file(&file, &v)
             .unwrap_err()
+            .to_string()
             .contains("parent")
     );
     // No vessels at all is fine.

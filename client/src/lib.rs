@@ -19,8 +19,8 @@ pub use librplus_proto::v1 as pb;
 pub use data::{Loaded, Replayable, ScenarioRef, Selection, load_selection, select};
 pub use load::{LoadOptions, LoadSummary, load, load_table};
 pub use messages::{
-    measurements_from_stream, measurements_message, rigid_from_message, rigid_message,
-    stream_messages,
+    MessageError, measurements_from_stream, measurements_message, rigid_from_message,
+    rigid_message, stream_messages,
 };
 pub use replay::{
     ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,

@@ -20,19 +20,43 @@ pub fn rigid_message(r: &Rigid) -> pb::Rigid {
     }
 }
 
-/// A wire `Rigid` as a library transform; an error names the field with the wrong length.
-pub fn rigid_from_message(r: &pb::Rigid) -> Result<Rigid, String> {
-    if r.rotation.len() != 9 {
-        return Err(format!(
-            "rotation has {} values, expected 9",
-            r.rotation.len()
-        ));
+/// A field of a server message the client cannot use: the field's path and the problem.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field} {problem}")]
+pub struct MessageError {
+    /// Field path (e.g. `registration.image_to_physical.rotation`).
+    pub field: String,
+    /// What is wrong.
+    pub problem: String,
+}
+
+impl MessageError {
+    /// The same problem, in a field of the message `parent`.
+    pub fn within(self, parent: &str) -> Self {
+        Self {
+            field: format!("{parent}.{}", self.field),
+            problem: self.problem,
+        }
     }
-    if r.translation_mm.len() != 3 {
-        return Err(format!(
-            "translation_mm has {} values, expected 3",
-            r.translation_mm.len()
-        ));
+}
+
+/// A wire `Rigid` as a library transform; an error names the field with the wrong length.
+pub fn rigid_from_message(r: &pb::Rigid) -> Result<Rigid, MessageError> {
+    let pb::Rigid {
+        rotation,
+        translation_mm,
+    } = r;
+    if rotation.len() != 9 {
+        return Err(MessageError {
+            field: "rotation".into(),
+            problem: format!("has {} values, expected 9", rotation.len()),
+        });
+    }
+    if translation_mm.len() != 3 {
+        return Err(MessageError {
+            field: "translation_mm".into(),
+            problem: format!("has {} values, expected 3", translation_mm.len()),
+        });
     }
     let m = &r.rotation;
     Ok(Rigid {

@@ -2,7 +2,7 @@
 //! in lockstep, and scores every registration against the ground truth (TRE).
 
 use crate::data::{Selection, load_selection};
-use crate::messages::{rigid_from_message, stream_messages};
+use crate::messages::{MessageError, rigid_from_message, stream_messages};
 use crate::pb;
 use crate::session::{SessionConfig, SessionEnd, connect, run_session};
 use crate::stats::{Latencies, LatencyMs};
@@ -230,7 +230,7 @@ fn mean(v: impl IntoIterator<Item = f64>) -> f64 {
 }
 
 /// A registration's transform and displacements, or why they could not be read.
-type RegistrationState = Result<(Rigid, Vec<f64>), String>;
+type RegistrationState = Result<(Rigid, Vec<f64>), MessageError>;
 
 /// Reads a registration's transform and displacements (empty displacements count as zeros for a
 /// rigid result).
@@ -238,19 +238,25 @@ fn registration_state(r: &pb::Registration, nodes: usize) -> RegistrationState {
     let t = r
         .image_to_physical
         .as_ref()
-        .ok_or_else(|| "registration.image_to_physical is unset".to_string())
+        .ok_or_else(|| MessageError {
+            field: "registration.image_to_physical".into(),
+            problem: "is unset".into(),
+        })
         .and_then(|t| {
-            rigid_from_message(t).map_err(|e| format!("registration.image_to_physical.{e}"))
+            rigid_from_message(t).map_err(|e| e.within("registration.image_to_physical"))
         })?;
     let u = if r.displacement_mm.len() == 3 * nodes {
         r.displacement_mm.iter().map(|&x| f64::from(x)).collect()
     } else if r.displacement_mm.is_empty() && r.method_used == pb::Method::Rigid as i32 {
         vec![0.0; 3 * nodes]
     } else {
-        return Err(format!(
-            "registration.displacement_mm has {} values, expected 3 × {nodes} nodes",
-            r.displacement_mm.len()
-        ));
+        return Err(MessageError {
+            field: "registration.displacement_mm".into(),
+            problem: format!(
+                "has {} values, expected 3 × {nodes} nodes",
+                r.displacement_mm.len()
+            ),
+        });
     };
     Ok((t, u))
 }
@@ -307,7 +313,7 @@ async fn replay_one(
                         |m| method_name(m).to_string(),
                     ),
                     latency_ms: lat.map(|l| l.as_secs_f64() * 1e3),
-                    error: state.as_ref().err().cloned(),
+                    error: state.as_ref().err().map(|e| e.to_string()),
                 });
                 last = Some((state, quality));
             }
@@ -329,7 +335,7 @@ async fn replay_one(
     };
     let (tre, final_quality, mut error) = match last {
         Some((Ok((t, u)), q)) => (Some(score(&t, &u)), Some(q), None),
-        Some((Err(e), q)) => (None, Some(q), Some(e)),
+        Some((Err(e), q)) => (None, Some(q), Some(e.to_string())),
         None => (None, None, Some("no registration received".to_string())),
     };
     if !outcome.end.is_completed() {

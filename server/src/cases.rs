@@ -76,16 +76,68 @@ pub enum CaseSource {
     },
 }
 
+/// Why a case could not be found, read or prepared; each names the directory or file.
+#[derive(Debug, thiserror::Error)]
+pub enum CaseError {
+    /// Two cases have the same id.
+    #[error("case id {id:?} appears twice (in {} and before): rename one", dir.display())]
+    DuplicateId {
+        /// The id.
+        id: String,
+        /// The second directory holding it.
+        dir: PathBuf,
+    },
+    /// A configured case path holds no case.
+    #[error("{}: {problem}", path.display())]
+    NoCase {
+        /// The path.
+        path: PathBuf,
+        /// What it holds instead.
+        problem: String,
+    },
+    /// A case directory could not be listed.
+    #[error("{}: {source}", path.display())]
+    List {
+        /// The directory.
+        path: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+    /// A dataset case could not be read.
+    #[error(transparent)]
+    Dataset(#[from] librplus::dataset::DatasetError),
+    /// A mesh case could not be read.
+    #[error(transparent)]
+    Mesh(#[from] io::IoError),
+    /// A mesh case's model could not be built.
+    #[error(transparent)]
+    Input(#[from] librplus::input::InputError),
+    /// The case could not be prepared (correspondence, basis, SR-GCN).
+    #[error("{}: {source}", path.display())]
+    Prepare {
+        /// The case's file.
+        path: PathBuf,
+        /// What failed.
+        source: librplus::pipeline::PipelineError,
+    },
+    /// The configuration does not fit the case.
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
+    /// The configured default method needs a model that is not loaded.
+    #[error("default_method librplus needs an SR-GCN model (none is loaded)")]
+    NoModel,
+}
+
 /// Lists the cases under the configured paths (ids must be unique).
-pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, String> {
+pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, CaseError> {
     let mut out: BTreeMap<String, CaseSource> = BTreeMap::new();
     for dir in &config.cases {
-        let mut add = |id: String, src: CaseSource| -> Result<(), String> {
+        let mut add = |id: String, src: CaseSource| -> Result<(), CaseError> {
             if out.insert(id.clone(), src).is_some() {
-                return Err(format!(
-                    "case id {id:?} appears twice (in {} and before): rename one",
-                    dir.display()
-                ));
+                return Err(CaseError::DuplicateId {
+                    id,
+                    dir: dir.clone(),
+                });
             }
             Ok(())
         };
@@ -102,7 +154,10 @@ pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, Stri
             }
         } else if dir.is_dir() {
             let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-                .map_err(|e| format!("{}: {e}", dir.display()))?
+                .map_err(|source| CaseError::List {
+                    path: dir.clone(),
+                    source,
+                })?
                 .filter_map(|e| e.ok().map(|e| e.path()))
                 .filter(|p| {
                     let name = p.to_string_lossy();
@@ -115,10 +170,10 @@ pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, Stri
                 .collect();
             files.sort();
             if files.is_empty() {
-                return Err(format!(
-                    "{}: no manifest.json and no .vtu/.vtk/.msh meshes",
-                    dir.display()
-                ));
+                return Err(CaseError::NoCase {
+                    path: dir.clone(),
+                    problem: "no manifest.json and no .vtu/.vtk/.msh meshes".into(),
+                });
             }
             for f in files {
                 let id = f
@@ -128,7 +183,10 @@ pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, Stri
                 add(id, CaseSource::Mesh { path: f })?;
             }
         } else {
-            return Err(format!("{}: not a directory", dir.display()));
+            return Err(CaseError::NoCase {
+                path: dir.clone(),
+                problem: "not a directory".into(),
+            });
         }
     }
     Ok(out.into_iter().collect())
@@ -141,7 +199,7 @@ pub fn load(
     config: &ServerConfig,
     libr: &LibrParams,
     gcn: Option<&Vec<Arc<TrainedModel>>>,
-) -> Result<Case, String> {
+) -> Result<Case, CaseError> {
     let (model, path, cache) = match source {
         CaseSource::Dataset { dir, geometry } => {
             let m = librplus::eval::open(dir)?;
@@ -150,28 +208,32 @@ pub fn load(
                 .geometries
                 .iter()
                 .find(|e| &e.id == geometry)
-                .ok_or_else(|| format!("{}: no geometry {geometry}", dir.display()))?;
+                .ok_or_else(|| CaseError::NoCase {
+                    path: dir.clone(),
+                    problem: format!("no geometry {geometry}"),
+                })?;
             (g.model, dir.join(&entry.preop), dir.join("cache"))
         }
         CaseSource::Mesh { path } => {
             let unit = config.unit()?;
-            let file = io::read(path, unit).map_err(|e| format!("{}: {e}", path.display()))?;
+            let file = io::read(path, unit)?;
             let model = model_from_mesh_file(path, &file, unit)?;
             let cache = path.parent().unwrap_or(Path::new(".")).join("cache");
             (model, path.clone(), cache)
         }
     };
     let cache = config.cache_dir.clone().unwrap_or(cache);
-    let mut prepared = Prepared::new(model, Some(libr), Some(&cache))
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let prepare = |source| CaseError::Prepare {
+        path: path.clone(),
+        source,
+    };
+    let mut prepared = Prepared::new(model, Some(libr), Some(&cache)).map_err(prepare)?;
     if let Some(m) = gcn {
-        prepared = prepared
-            .with_models(m.clone())
-            .map_err(|e| format!("{}: SR-GCN: {e}", path.display()))?;
+        prepared = prepared.with_models(m.clone()).map_err(prepare)?;
     }
     let default_method = config.method()?;
     if default_method == Method::LibrPlus && prepared.librplus.is_none() {
-        return Err("default_method librplus needs an SR-GCN model (none is loaded)".into());
+        return Err(CaseError::NoModel);
     }
     let n = prepared.model.mesh.num_nodes() as f64;
     Ok(Case {
@@ -195,6 +257,6 @@ fn model_from_mesh_file(
     path: &Path,
     file: &MeshFile,
     unit: io::Unit,
-) -> Result<PreopModel, String> {
+) -> Result<PreopModel, librplus::input::InputError> {
     librplus::input::preop_model_from_mesh(path, file, unit, 7.6)
 }

@@ -3,7 +3,8 @@
 //! result when LIBR cannot fit, flagged DEGRADED, rather than a late answer.
 
 use crate::cases::Case;
-use crate::convert::{BadInput, method_to_pb, rigid_to_pb};
+use crate::convert::{method_to_pb, rigid_to_pb};
+use crate::error::{ServiceError, libr_can_fall_back};
 use librplus::pipeline::{Method, PipelineParams, register};
 use librplus::register::Measurements;
 use librplus_proto::v1 as pb;
@@ -11,7 +12,6 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 use tokio::sync::Semaphore;
-use tonic::Code;
 
 /// One registration to compute.
 pub struct Job {
@@ -48,7 +48,7 @@ impl Engine {
 
     /// Runs a job. With `bounded`, refuses (RESOURCE_EXHAUSTED) when `max_queued` jobs already
     /// wait; sessions are admitted at their start and always queue.
-    pub async fn run(&self, job: Job, bounded: bool) -> Result<pb::Registration, BadInput> {
+    pub async fn run(&self, job: Job, bounded: bool) -> Result<pb::Registration, ServiceError> {
         let waiting = self.queued.fetch_add(1, Ordering::SeqCst);
         struct Dec<'a>(&'a AtomicUsize);
         impl Drop for Dec<'_> {
@@ -59,20 +59,24 @@ impl Engine {
         let dec = Dec(&self.queued);
         if bounded && waiting >= self.max_queued {
             metrics::counter!("librplus_refused_total", "reason" => "queue").increment(1);
-            return Err(BadInput::new(
-                Code::ResourceExhausted,
-                format!(
+            return Err(ServiceError::Quota {
+                message: format!(
                     "{waiting} registrations are already waiting for a compute slot (limit {}); retry later",
                     self.max_queued
                 ),
-            ));
+                subject: "queue",
+                description: format!(
+                    "at most {} unary registrations wait for a compute slot; retry later",
+                    self.max_queued
+                ),
+            });
         }
         let permit = self
             .slots
             .clone()
             .acquire_owned()
             .await
-            .map_err(|_| BadInput::new(Code::Unavailable, "the server is shutting down"))?;
+            .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))?;
         drop(dec);
         let handle = tokio::task::spawn_blocking(move || {
             let r = compute(job);
@@ -84,9 +88,9 @@ impl Engine {
             Err(e) => {
                 tracing::error!(error = %e, "registration task failed");
                 metrics::counter!("librplus_errors_total", "code" => "INTERNAL").increment(1);
-                Err(BadInput::new(
-                    Code::Internal,
-                    "the registration failed inside the server (logged); the session goes on",
+                Err(ServiceError::Internal(
+                    "the registration failed inside the server (logged); the session goes on"
+                        .into(),
                 ))
             }
         }
@@ -98,7 +102,7 @@ fn ms(d: Duration) -> f64 {
 }
 
 /// Plans and runs one registration within its budget.
-fn compute(job: Job) -> Result<pb::Registration, BadInput> {
+fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let start = Instant::now();
     let case = &job.case;
     let queue_ms = ms(start - job.arrival);
@@ -146,19 +150,17 @@ fn compute(job: Job) -> Result<pb::Registration, BadInput> {
     }
     let mut result = register(&case.prepared, &job.measurements, method, &params);
     let mut fallback: Option<String> = None;
-    if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, method) {
-        // LIBR cannot run on these data (too few or degenerate points): the rigid result,
-        // flagged, is still the best available answer.
+    if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, method)
+        && libr_can_fall_back(e)
+    {
+        // The data stopped LIBR (too few, degenerate or clustered points): the rigid result,
+        // flagged, is still the best available answer. Any other error is the server's and is
+        // reported as such.
         fallback = Some(format!("LIBR could not run: {e}; rigid result"));
         method = Method::Rigid;
         result = register(&case.prepared, &job.measurements, method, &params);
     }
-    let reg = result.map_err(|e| {
-        BadInput::new(
-            Code::FailedPrecondition,
-            format!("these measurements do not permit a registration: {e}"),
-        )
-    })?;
+    let reg = result?;
     let rigid_ms = reg.rigid.seconds * 1e3;
     let libr_ms = reg.libr.as_ref().map(|i| i.total_s * 1e3);
     case.observe(

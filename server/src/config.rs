@@ -83,24 +83,66 @@ impl Default for ServerConfig {
     }
 }
 
+/// Why a server configuration is refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{}: {source}", path.display())]
+    Read {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+    /// The file is not JSON of the configuration's shape.
+    #[error("{}: {source}", path.display())]
+    Json {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The parser's error.
+        source: serde_json::Error,
+    },
+    /// A value is out of range; the message names the field and the range.
+    #[error("{0}")]
+    Field(String),
+    /// A value of the file `path` is out of range.
+    #[error("{}: {source}", path.display())]
+    InFile {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The bad value.
+        source: Box<ConfigError>,
+    },
+}
+
 impl ServerConfig {
     /// Reads a config file (JSON).
-    pub fn from_file(path: &std::path::Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let c: Self =
-            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-        c.validate()
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+    pub fn from_file(path: &std::path::Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let c: Self = serde_json::from_str(&text).map_err(|source| ConfigError::Json {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        c.validate().map_err(|e| ConfigError::InFile {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })?;
         Ok(c)
     }
 
     /// Checks the values; the message names the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         if self.format != 1 {
-            return Err(format!("format {} is not supported (1)", self.format));
+            return Err(ConfigError::Field(format!(
+                "format {} is not supported (1)",
+                self.format
+            )));
         }
         if self.cases.is_empty() {
-            return Err("cases: no case directory given".into());
+            return Err(ConfigError::Field("cases: no case directory given".into()));
         }
         self.unit()?;
         self.method()?;
@@ -111,52 +153,56 @@ impl ServerConfig {
             ("max_message_bytes", self.max_message_bytes),
         ] {
             if v == 0 {
-                return Err(format!("{name} must be at least 1"));
+                return Err(ConfigError::Field(format!("{name} must be at least 1")));
             }
         }
         if self.time_budget_ms == 0 || self.time_budget_ms > self.max_time_budget_ms {
-            return Err(format!(
+            return Err(ConfigError::Field(format!(
                 "time_budget_ms {} must be in 1..=max_time_budget_ms ({})",
                 self.time_budget_ms, self.max_time_budget_ms
-            ));
+            )));
         }
         for (name, v) in [
             ("session_idle_timeout_s", self.session_idle_timeout_s),
             ("drain_grace_s", self.drain_grace_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("{name} must be finite and > 0, got {v}"));
+                return Err(ConfigError::Field(format!(
+                    "{name} must be finite and > 0, got {v}"
+                )));
             }
         }
         Ok(())
     }
 
     /// The mesh unit.
-    pub fn unit(&self) -> Result<librplus::mesh::io::Unit, String> {
+    pub fn unit(&self) -> Result<librplus::mesh::io::Unit, ConfigError> {
         use librplus::mesh::io::Unit;
         match self.mesh_unit.as_str() {
             "mm" => Ok(Unit::Mm),
             "cm" => Ok(Unit::Cm),
             "m" => Ok(Unit::M),
-            u => Err(format!("mesh_unit {u:?}: expected mm, cm or m")),
+            u => Err(ConfigError::Field(format!(
+                "mesh_unit {u:?}: expected mm, cm or m"
+            ))),
         }
     }
 
     /// The default method.
-    pub fn method(&self) -> Result<librplus::pipeline::Method, String> {
+    pub fn method(&self) -> Result<librplus::pipeline::Method, ConfigError> {
         use librplus::pipeline::Method;
         match self.default_method.as_str() {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
             "librplus" if self.librplus => Ok(Method::LibrPlus),
-            m => Err(format!(
+            m => Err(ConfigError::Field(format!(
                 "default_method {m:?}: expected rigid, libr{}",
                 if self.librplus {
                     " or librplus"
                 } else {
                     " (librplus is off)"
                 }
-            )),
+            ))),
         }
     }
 
@@ -180,23 +226,27 @@ mod tests {
         let f = dir.path().join("c.json");
         std::fs::write(&f, r#"{"format": 1, "cases": ["x"], "max_sesions": 3}"#).unwrap();
         let e = ServerConfig::from_file(&f).unwrap_err();
-        assert!(e.contains("max_sesions"), "{e}");
+        assert!(matches!(e, ConfigError::Json { .. }), "{e}");
+        assert!(e.to_string().contains("max_sesions"), "{e}");
         std::fs::write(&f, r#"{"format": 1, "cases": ["x"], "time_budget_ms": 0}"#).unwrap();
         assert!(
             ServerConfig::from_file(&f)
                 .unwrap_err()
+                .to_string()
                 .contains("time_budget_ms")
         );
         std::fs::write(&f, r#"{"format": 2, "cases": ["x"]}"#).unwrap();
         assert!(
             ServerConfig::from_file(&f)
                 .unwrap_err()
+                .to_string()
                 .contains("format 2")
         );
         std::fs::write(&f, r#"{"cases": ["x"], "mesh_unit": "in"}"#).unwrap();
         assert!(
             ServerConfig::from_file(&f)
                 .unwrap_err()
+                .to_string()
                 .contains("mesh_unit")
         );
         std::fs::write(
@@ -210,6 +260,7 @@ mod tests {
             ServerConfig::default()
                 .validate()
                 .unwrap_err()
+                .to_string()
                 .contains("cases")
         );
     }

@@ -1,88 +1,25 @@
 //! Between the wire (`librplus.v1`) and the library: checks every field of what a client sends
 //! and names the field of each problem; builds the replies.
 
+use crate::error::ServiceError;
 use librplus::mesh::rigid::Rigid;
 use librplus::register::{MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
-use tonic::{Code, Status};
-use tonic_types::{ErrorDetails, StatusExt};
 
 /// Coordinates beyond this (mm) are rejected as nonsense (10 m).
 pub const MAX_ABS_MM: f64 = 1e4;
-
-/// A request the server does not take: status code, message and field violations.
-#[derive(Debug, Clone)]
-pub struct BadInput {
-    /// gRPC status code.
-    pub code: Code,
-    /// Summary.
-    pub message: String,
-    /// (field path, problem) pairs.
-    pub violations: Vec<(String, String)>,
-}
-
-impl BadInput {
-    /// INVALID_ARGUMENT with violations.
-    pub fn invalid(message: impl Into<String>, violations: Vec<(String, String)>) -> Self {
-        Self {
-            code: Code::InvalidArgument,
-            message: message.into(),
-            violations,
-        }
-    }
-
-    /// One invalid field.
-    pub fn field(field: impl Into<String>, problem: impl Into<String>) -> Self {
-        let (f, p) = (field.into(), problem.into());
-        Self::invalid(format!("{f}: {p}"), vec![(f, p)])
-    }
-
-    /// Another code without violations.
-    pub fn new(code: Code, message: impl Into<String>) -> Self {
-        Self {
-            code,
-            message: message.into(),
-            violations: Vec::new(),
-        }
-    }
-
-    /// As a gRPC status with google.rpc details (BadRequest for field violations).
-    pub fn to_status(&self) -> Status {
-        if self.violations.is_empty() {
-            return Status::new(self.code, self.message.clone());
-        }
-        let mut d = ErrorDetails::new();
-        for (f, p) in &self.violations {
-            d.add_bad_request_violation(f.clone(), p.clone());
-        }
-        Status::with_error_details(self.code, self.message.clone(), d)
-    }
-
-    /// As an in-stream rejection of message `client_seq`.
-    pub fn to_rejection(&self, client_seq: u64) -> pb::Rejection {
-        pb::Rejection {
-            client_seq,
-            code: code_name(self.code).to_string(),
-            message: self.message.clone(),
-            violations: self
-                .violations
-                .iter()
-                .map(|(f, p)| pb::FieldViolation {
-                    field: f.clone(),
-                    description: p.clone(),
-                })
-                .collect(),
-        }
-    }
-}
 
 /// The canonical name of a status code (as in grpc's status codes), shared with the clients.
 pub use librplus_proto::code_name;
 
 /// A rigid transform from the wire.
-pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, BadInput> {
+pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, ServiceError> {
+    let pb::Rigid {
+        rotation: _,
+        translation_mm: _,
+    } = r; // every field is checked below
     if r.rotation.len() != 9 {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.rotation"),
             format!(
                 "has {} values, expected 9 (row-major 3×3)",
@@ -91,13 +28,13 @@ pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, BadInput> {
         ));
     }
     if r.translation_mm.len() != 3 {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.translation_mm"),
             format!("has {} values, expected 3", r.translation_mm.len()),
         ));
     }
     if let Some(i) = r.rotation.iter().position(|x| !x.is_finite()) {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.rotation[{i}]"),
             "is not finite",
         ));
@@ -107,7 +44,7 @@ pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, BadInput> {
         .iter()
         .position(|x| !(x.is_finite() && x.abs() <= MAX_ABS_MM))
     {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.translation_mm[{i}]"),
             format!(
                 "{} is not finite or beyond ±{MAX_ABS_MM} mm",
@@ -127,7 +64,7 @@ pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, BadInput> {
         - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
         + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
     if err > 1e-6 || det <= 0.0 {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.rotation"),
             format!("is not a rotation (|RᵀR − I| = {err:.2e}, det = {det:.6})"),
         ));
@@ -155,9 +92,9 @@ pub fn rigid_to_pb(r: &Rigid) -> pb::Rigid {
 }
 
 /// Points packed 3 per point (`field`), checked: length, finite, within ±10 m.
-pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]>, BadInput> {
+pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]>, ServiceError> {
     if v.len() % 3 != 0 {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             field,
             format!(
                 "has {} values, not a multiple of 3 (x, y, z per point)",
@@ -166,17 +103,16 @@ pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]
         ));
     }
     if v.len() / 3 > max_points {
-        return Err(BadInput {
-            code: Code::InvalidArgument,
-            message: format!(
+        return Err(ServiceError::invalid(
+            format!(
                 "{field}: {} points, more than the {max_points} allowed in one message",
                 v.len() / 3
             ),
-            violations: vec![(
+            vec![(
                 field.to_string(),
                 format!("{} points; at most {max_points} per message", v.len() / 3),
             )],
-        });
+        ));
     }
     let mut bad = Vec::new();
     for (i, x) in v.iter().enumerate() {
@@ -195,7 +131,7 @@ pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]
         }
     }
     if !bad.is_empty() {
-        return Err(BadInput::invalid(
+        return Err(ServiceError::invalid(
             format!(
                 "{field}: {} bad coordinate(s), first {}",
                 bad.len(),
@@ -208,12 +144,12 @@ pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]
 }
 
 /// Salient-feature designations (`field`): empty, or one valid value per point.
-pub fn features(v: &[i32], n: usize, field: &str) -> Result<Vec<u8>, BadInput> {
+pub fn features(v: &[i32], n: usize, field: &str) -> Result<Vec<u8>, ServiceError> {
     if v.is_empty() {
         return Ok(vec![0; n]);
     }
     if v.len() != n {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             field,
             format!(
                 "has {} values for {n} points (give none or one per point)",
@@ -225,7 +161,7 @@ pub fn features(v: &[i32], n: usize, field: &str) -> Result<Vec<u8>, BadInput> {
         .enumerate()
         .map(|(i, &f)| match pb::SalientFeature::try_from(f) {
             Ok(x) => Ok(x as u8),
-            Err(_) => Err(BadInput::field(
+            Err(_) => Err(ServiceError::field(
                 format!("{field}[{i}]"),
                 format!("{f} is not a SalientFeature (0 none, 1 falciform, 2 inferior ridge)"),
             )),
@@ -238,43 +174,47 @@ pub fn measurements_from_pb(
     m: &pb::Measurements,
     field: &str,
     max_points: usize,
-) -> Result<Measurements, BadInput> {
-    let points = points3(&m.xyz_mm, &format!("{field}.xyz_mm"), max_points)?;
+) -> Result<Measurements, ServiceError> {
+    let pb::Measurements {
+        xyz_mm,
+        kind,
+        feature,
+        initial_alignment,
+    } = m;
+    let points = points3(xyz_mm, &format!("{field}.xyz_mm"), max_points)?;
     let n = points.len();
     if n == 0 {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.xyz_mm"),
             "is empty: no points",
         ));
     }
-    if m.kind.len() != n {
-        return Err(BadInput::field(
+    if kind.len() != n {
+        return Err(ServiceError::field(
             format!("{field}.kind"),
-            format!("has {} values for {n} points (one per point)", m.kind.len()),
+            format!("has {} values for {n} points (one per point)", kind.len()),
         ));
     }
-    let kind = m
-        .kind
+    let kind = kind
         .iter()
         .enumerate()
         .map(|(i, &k)| {
             kind_from_pb(k).ok_or_else(|| {
-                BadInput::field(
+                ServiceError::field(
                     format!("{field}.kind[{i}]"),
                     format!("{k} is not a point kind (1 surface, 2 posterior contour, 3 vessel)"),
                 )
             })
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let feature = features(&m.feature, n, &format!("{field}.feature"))?;
+    let feature = features(feature, n, &format!("{field}.feature"))?;
     if let Some(i) = (0..n).find(|&i| feature[i] != 0 && kind[i] != MeasuredKind::Surface) {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.feature[{i}]"),
             "only surface points can be designated on a salient feature",
         ));
     }
-    let initial_alignment = m
-        .initial_alignment
+    let initial_alignment = initial_alignment
         .as_ref()
         .map(|r| rigid_from_pb(r, &format!("{field}.initial_alignment")))
         .transpose()?;
@@ -303,15 +243,20 @@ pub type Points = Vec<[f64; 3]>;
 pub fn plane_points(
     p: &pb::UltrasoundPlane,
     max_points: usize,
-) -> Result<(Points, Points), BadInput> {
-    let pose = p
-        .plane_to_physical
+) -> Result<(Points, Points), ServiceError> {
+    let pb::UltrasoundPlane {
+        acquired_at: _, // checked by the session (ordering)
+        plane_to_physical,
+        contour_uv_mm,
+        vessel_uv_mm,
+    } = p;
+    let pose = plane_to_physical
         .as_ref()
-        .ok_or_else(|| BadInput::field("ultrasound.plane_to_physical", "is missing"))?;
+        .ok_or_else(|| ServiceError::field("ultrasound.plane_to_physical", "is missing"))?;
     let pose = rigid_from_pb(pose, "ultrasound.plane_to_physical")?;
-    let uv = |v: &[f64], field: &str| -> Result<Vec<[f64; 3]>, BadInput> {
+    let uv = |v: &[f64], field: &str| -> Result<Vec<[f64; 3]>, ServiceError> {
         if v.len() % 2 != 0 {
-            return Err(BadInput::field(
+            return Err(ServiceError::field(
                 field,
                 format!(
                     "has {} values, not a multiple of 2 (u, v per point)",
@@ -323,7 +268,7 @@ pub fn plane_points(
             .iter()
             .position(|x| !(x.is_finite() && x.abs() <= MAX_ABS_MM))
         {
-            return Err(BadInput::field(
+            return Err(ServiceError::field(
                 format!("{field}[{i}]"),
                 format!("{} is not finite or beyond ±{MAX_ABS_MM} mm", v[i]),
             ));
@@ -332,11 +277,11 @@ pub fn plane_points(
             .map(|c| pose.apply([c[0], c[1], 0.0]))
             .collect())
     };
-    let contour = uv(&p.contour_uv_mm, "ultrasound.contour_uv_mm")?;
-    let vessels = uv(&p.vessel_uv_mm, "ultrasound.vessel_uv_mm")?;
+    let contour = uv(contour_uv_mm, "ultrasound.contour_uv_mm")?;
+    let vessels = uv(vessel_uv_mm, "ultrasound.vessel_uv_mm")?;
     let n = contour.len() + vessels.len();
     if n > max_points {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             "ultrasound",
             format!("{n} points; at most {max_points} per message"),
         ));
@@ -351,21 +296,22 @@ pub fn method_from_pb(
     default: librplus::pipeline::Method,
     has_model: bool,
     field: &str,
-) -> Result<librplus::pipeline::Method, BadInput> {
+) -> Result<librplus::pipeline::Method, ServiceError> {
     use librplus::pipeline::Method;
     match pb::Method::try_from(m) {
         Ok(pb::Method::Unspecified) => Ok(default),
         Ok(pb::Method::Rigid) => Ok(Method::Rigid),
         Ok(pb::Method::Libr) => Ok(Method::Libr),
         Ok(pb::Method::LibrPlus) if has_model => Ok(Method::LibrPlus),
-        Ok(pb::Method::LibrPlus) => Err(BadInput {
-            code: Code::FailedPrecondition,
-            message: format!(
+        Ok(pb::Method::LibrPlus) => Err(ServiceError::precondition(
+            "CASE",
+            field,
+            "METHOD_LIBR_PLUS needs a case with an SR-GCN model",
+            format!(
                 "{field}: METHOD_LIBR_PLUS needs an SR-GCN model, and this case has none (use METHOD_LIBR)"
             ),
-            violations: Vec::new(),
-        }),
-        Err(_) => Err(BadInput::field(
+        )),
+        Err(_) => Err(ServiceError::field(
             field,
             format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+)"),
         )),
@@ -399,19 +345,28 @@ mod tests {
         assert!(
             rigid_from_pb(&m, "t")
                 .unwrap_err()
-                .message
+                .to_status()
+                .message()
                 .contains("not a rotation")
         );
         let mut m = rigid_to_pb(&r);
         m.translation_mm[1] = f64::NAN;
         assert_eq!(
-            rigid_from_pb(&m, "t").unwrap_err().violations[0].0,
+            rigid_from_pb(&m, "t")
+                .unwrap_err()
+                .to_rejection(0)
+                .violations[0]
+                .field,
             "t.translation_mm[1]"
         );
         let mut m = rigid_to_pb(&r);
         m.rotation.pop();
         assert_eq!(
-            rigid_from_pb(&m, "t").unwrap_err().violations[0].0,
+            rigid_from_pb(&m, "t")
+                .unwrap_err()
+                .to_rejection(0)
+                .violations[0]
+                .field,
             "t.rotation"
         );
     }
@@ -439,7 +394,11 @@ mod tests {
         let mut odd = p.clone();
         odd.contour_uv_mm.push(3.0);
         assert_eq!(
-            plane_points(&odd, 10).unwrap_err().violations[0].0,
+            plane_points(&odd, 10)
+                .unwrap_err()
+                .to_rejection(0)
+                .violations[0]
+                .field,
             "ultrasound.contour_uv_mm"
         );
         assert!(plane_points(&p, 0).is_err());

@@ -121,7 +121,7 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         "server on {} preloading (LIBR bases are cached after the first run)",
         running.addr
     );
-    let pre = running.ready().await.map_err(anyhow::Error::msg)?;
+    let pre = running.ready().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let opts = ReplayOptions {
         server: format!("http://{}", running.addr),
         data: o.data.clone(),

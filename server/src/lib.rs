@@ -13,6 +13,7 @@ pub mod cases;
 pub mod compute;
 pub mod config;
 pub mod convert;
+pub mod error;
 pub mod metrics_http;
 pub mod service;
 
@@ -44,6 +45,36 @@ pub struct PreloadReport {
     pub seconds: f64,
 }
 
+/// Why preload failed (the server then stays NOT_SERVING).
+#[derive(Debug, thiserror::Error)]
+pub enum PreloadError {
+    /// The configured case paths could not be listed.
+    #[error(transparent)]
+    Cases(#[from] cases::CaseError),
+    /// The SR-GCN model could not be loaded (`which`: "model" or "built-in model").
+    #[error("{which}: {source}")]
+    Model {
+        /// Which model.
+        which: &'static str,
+        /// What failed.
+        source: librplus::gcn::GcnError,
+    },
+    /// Every case failed.
+    #[error("no case could be loaded ({found} found): {failed:?}")]
+    NoCase {
+        /// Cases found.
+        found: usize,
+        /// (id, error) of each.
+        failed: Vec<(String, String)>,
+    },
+    /// The preload task itself failed (a panic; logged).
+    #[error("preload task failed: {0}")]
+    Task(String),
+    /// The server stopped before preload finished.
+    #[error("preload task ended")]
+    Ended,
+}
+
 /// A running server.
 pub struct Running {
     /// The gRPC address it listens on.
@@ -54,7 +85,7 @@ pub struct Running {
     drain: watch::Sender<bool>,
     stop: Option<oneshot::Sender<()>>,
     serve: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
-    ready: watch::Receiver<Option<Result<PreloadReport, String>>>,
+    ready: watch::Receiver<Option<Result<PreloadReport, Arc<PreloadError>>>>,
     health: tonic_health::server::HealthReporter,
 }
 
@@ -167,9 +198,9 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
                 }
                 Ok(Err(e)) => {
                     tracing::error!(error = %e, "preload failed; staying NOT_SERVING");
-                    Err(e)
+                    Err(Arc::new(e))
                 }
-                Err(e) => Err(format!("preload task failed: {e}")),
+                Err(e) => Err(Arc::new(PreloadError::Task(e.to_string()))),
             };
             let _ = ready_tx.send(Some(report));
         });
@@ -188,13 +219,19 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
 
 /// The SR-GCN model every case gets for LIBR+: the configured directory (a model or an
 /// ensemble), else the built-in one; its networks, shared between cases.
-fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, String> {
+fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, PreloadError> {
     if !config.librplus {
         return Ok(None);
     }
     let models = match &config.model {
-        Some(dir) => load_models_on_device(dir).map_err(|e| format!("model: {e}"))?,
-        None => builtin_models().map_err(|e| format!("built-in model: {e}"))?,
+        Some(dir) => load_models_on_device(dir).map_err(|e| PreloadError::Model {
+            which: "model",
+            source: librplus::gcn::GcnError::ModelFile(e),
+        })?,
+        None => builtin_models().map_err(|e| PreloadError::Model {
+            which: "built-in model",
+            source: librplus::gcn::GcnError::ModelFile(e),
+        })?,
     };
     let first = &models[0];
     tracing::info!(
@@ -207,7 +244,9 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, Str
     Ok(Some(models.into_iter().map(Arc::new).collect()))
 }
 
-fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, PreloadReport), String> {
+fn preload(
+    config: &ServerConfig,
+) -> Result<(BTreeMap<String, Arc<Case>>, PreloadReport), PreloadError> {
     let t0 = Instant::now();
     let found = cases::discover(config)?;
     let libr = LibrParams::default();
@@ -238,16 +277,15 @@ fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, Preloa
             }
             Err(e) => {
                 tracing::error!(case = %id, error = %e, "case failed to load; skipped");
-                report.failed.push((id.clone(), e));
+                report.failed.push((id.clone(), e.to_string()));
             }
         }
     }
     if out.is_empty() {
-        return Err(format!(
-            "no case could be loaded ({} found): {:?}",
-            found.len(),
-            report.failed
-        ));
+        return Err(PreloadError::NoCase {
+            found: found.len(),
+            failed: report.failed,
+        });
     }
     report.seconds = t0.elapsed().as_secs_f64();
     Ok((out, report))
@@ -255,12 +293,12 @@ fn preload(config: &ServerConfig) -> Result<(BTreeMap<String, Arc<Case>>, Preloa
 
 impl Running {
     /// Waits for preload to finish; its report, or why it failed.
-    pub async fn ready(&mut self) -> Result<PreloadReport, String> {
+    pub async fn ready(&mut self) -> Result<PreloadReport, Arc<PreloadError>> {
         let r = self
             .ready
             .wait_for(|r| r.is_some())
             .await
-            .map_err(|_| "preload task ended".to_string())?;
+            .map_err(|_| Arc::new(PreloadError::Ended))?;
         r.clone().expect("checked is_some")
     }
 

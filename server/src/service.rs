@@ -5,9 +5,9 @@ use crate::cases::Case;
 use crate::compute::{Engine, Job};
 use crate::config::ServerConfig;
 use crate::convert::{
-    BadInput, code_name, features, measurements_from_pb, method_from_pb, plane_points, points3,
-    rigid_from_pb,
+    code_name, features, measurements_from_pb, method_from_pb, plane_points, points3, rigid_from_pb,
 };
+use crate::error::ServiceError;
 use librplus::pipeline::Method;
 use librplus::register::{MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
@@ -19,7 +19,6 @@ use std::time::{Duration, Instant};
 use tokio::sync::{Semaphore, mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Request, Response, Status, Streaming};
-use tonic_types::StatusExt;
 use tracing::Instrument;
 
 /// State shared by every request.
@@ -46,8 +45,8 @@ fn count_error(code: Code) {
     metrics::counter!("librplus_errors_total", "code" => code_name(code)).increment(1);
 }
 
-fn fail(b: BadInput) -> Status {
-    count_error(b.code);
+fn fail(b: ServiceError) -> Status {
+    count_error(b.code());
     b.to_status()
 }
 
@@ -71,36 +70,43 @@ pub fn grpc_timeout(md: &tonic::metadata::MetadataMap) -> Option<Duration> {
 }
 
 impl Svc {
-    fn cases(&self) -> Result<&BTreeMap<String, Arc<Case>>, BadInput> {
+    fn cases(&self) -> Result<&BTreeMap<String, Arc<Case>>, ServiceError> {
         self.0.cases.get().ok_or_else(|| {
-            BadInput::new(
-                Code::Unavailable,
-                "the server is still preloading its cases; retry when health reports SERVING",
+            ServiceError::Unavailable(
+                "the server is still preloading its cases; retry when health reports SERVING"
+                    .into(),
             )
         })
     }
 
-    fn case(&self, id: &str, field: &str) -> Result<Arc<Case>, BadInput> {
+    fn case(&self, id: &str, field: &str) -> Result<Arc<Case>, ServiceError> {
         let cases = self.cases()?;
-        cases.get(id).cloned().ok_or_else(|| BadInput {
-            code: Code::NotFound,
-            message: format!(
-                "{field}: no case {id:?} (cases: {})",
-                cases.keys().cloned().collect::<Vec<_>>().join(", ")
-            ),
-            violations: vec![(field.to_string(), format!("no case {id:?}"))],
-        })
+        cases
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ServiceError::UnknownCase {
+                field: field.to_string(),
+                id: id.to_string(),
+                known: cases.keys().cloned().collect(),
+            })
     }
 
     fn budget(
         &self,
         options: Option<&pb::RegisterOptions>,
         field: &str,
-    ) -> Result<Duration, BadInput> {
+    ) -> Result<Duration, ServiceError> {
         let c = &self.0.config;
-        let ms = options.map_or(0, |o| o.time_budget_ms);
+        // Every field of the options; `omit_displacements` is read by the caller.
+        let ms = options.map_or(
+            0,
+            |pb::RegisterOptions {
+                 time_budget_ms,
+                 omit_displacements: _,
+             }| *time_budget_ms,
+        );
         if ms > c.max_time_budget_ms {
-            return Err(BadInput::field(
+            return Err(ServiceError::field(
                 format!("{field}.time_budget_ms"),
                 format!(
                     "{ms} ms is above the server's limit of {} ms",
@@ -112,7 +118,7 @@ impl Svc {
         Ok(Duration::from_millis(ms as u64))
     }
 
-    fn check_method(&self, case: &Case, m: i32, field: &str) -> Result<Method, BadInput> {
+    fn check_method(&self, case: &Case, m: i32, field: &str) -> Result<Method, ServiceError> {
         let method = method_from_pb(
             m,
             case.default_method,
@@ -120,8 +126,10 @@ impl Svc {
             field,
         )?;
         if method != Method::Rigid && case.prepared.basis.is_none() {
-            return Err(BadInput::new(
-                Code::FailedPrecondition,
+            return Err(ServiceError::precondition(
+                "CASE",
+                field,
+                format!("case {} has no LIBR basis: only METHOD_RIGID", case.id),
                 format!("{field}: case {} has no LIBR basis", case.id),
             ));
         }
@@ -168,15 +176,18 @@ impl LibRPlus for Svc {
         &self,
         req: Request<pb::DescribeCaseRequest>,
     ) -> Result<Response<pb::DescribeCaseResponse>, Status> {
-        let r = req.into_inner();
-        let c = self.case(&r.case_id, "case_id").map_err(fail)?;
+        let pb::DescribeCaseRequest {
+            case_id,
+            include_mesh,
+        } = req.into_inner();
+        let c = self.case(&case_id, "case_id").map_err(fail)?;
         let mut out = pb::DescribeCaseResponse {
             summary: Some(summary(&c)),
             length_unit: "mm".into(),
             frame: "image (preoperative), LPS".into(),
             ..Default::default()
         };
-        if r.include_mesh {
+        if include_mesh {
             let model = &c.prepared.model;
             out.nodes_mm = model.mesh.nodes().iter().flatten().copied().collect();
             out.tets = model.mesh.tets().iter().flatten().copied().collect();
@@ -205,25 +216,29 @@ impl LibRPlus for Svc {
     ) -> Result<Response<pb::Registration>, Status> {
         let arrival = Instant::now();
         if *self.0.drain.borrow() {
-            return Err(fail(BadInput::new(
-                Code::Unavailable,
-                "the server is shutting down",
+            return Err(fail(ServiceError::Unavailable(
+                "the server is shutting down".into(),
             )));
         }
         let client_deadline = grpc_timeout(req.metadata());
-        let r = req.into_inner();
+        // Every field, so that a new one breaks the build until it is handled.
+        let pb::RegisterRequest {
+            case_id,
+            method,
+            measurements,
+            options,
+        } = req.into_inner();
         let run = async {
-            let case = self.case(&r.case_id, "case_id")?;
-            let method = self.check_method(&case, r.method, "method")?;
-            let m = r
-                .measurements
+            let case = self.case(&case_id, "case_id")?;
+            let method = self.check_method(&case, method, "method")?;
+            let m = measurements
                 .as_ref()
-                .ok_or_else(|| BadInput::field("measurements", "is missing"))?;
+                .ok_or_else(|| ServiceError::field("measurements", "is missing"))?;
             let meas =
                 measurements_from_pb(m, "measurements", self.0.config.max_points_per_message)?;
             librplus::register::correspondence::validate_measurements(&meas)
-                .map_err(|e| BadInput::field("measurements", e))?;
-            let mut budget = self.budget(r.options.as_ref(), "options")?;
+                .map_err(|e| ServiceError::field("measurements", e.to_string()))?;
+            let mut budget = self.budget(options.as_ref(), "options")?;
             if let Some(d) = client_deadline {
                 // Answer before the client gives up: keep 10% (at least 5 ms) for the reply.
                 budget = budget.min(d.mul_f64(0.9).saturating_sub(Duration::from_millis(5)));
@@ -234,15 +249,15 @@ impl LibRPlus for Svc {
                 method,
                 budget,
                 arrival,
-                omit_displacements: r.options.as_ref().is_some_and(|o| o.omit_displacements),
+                omit_displacements: options.as_ref().is_some_and(|o| o.omit_displacements),
             };
             self.0.engine.run(job, true).await
         };
-        let span = tracing::info_span!("register", case = %r.case_id);
+        let span = tracing::info_span!("register", case = %case_id);
         match run.instrument(span).await {
             Ok(reg) => Ok(Response::new(reg)),
             Err(b) => {
-                tracing::info!(case = %r.case_id, code = code_name(b.code), message = %b.message, "register refused");
+                tracing::info!(case = %case_id, code = code_name(b.code()), message = %b.to_status().message(), "register refused");
                 Err(fail(b))
             }
         }
@@ -255,9 +270,8 @@ impl LibRPlus for Svc {
         req: Request<Streaming<pb::StreamRegisterRequest>>,
     ) -> Result<Response<Self::StreamRegisterStream>, Status> {
         if *self.0.drain.borrow() {
-            return Err(fail(BadInput::new(
-                Code::Unavailable,
-                "the server is shutting down",
+            return Err(fail(ServiceError::Unavailable(
+                "the server is shutting down".into(),
             )));
         }
         self.cases().map_err(fail)?;
@@ -273,23 +287,17 @@ impl LibRPlus for Svc {
         };
         let permit = permit.map_err(|_| {
             metrics::counter!("librplus_refused_total", "reason" => "sessions").increment(1);
-            count_error(Code::ResourceExhausted);
-            let mut d = tonic_types::ErrorDetails::new();
-            d.add_quota_failure_violation(
-                "sessions",
-                format!(
-                    "{} streamed sessions are open, the server's limit; retry after one ends",
-                    self.0.config.max_sessions
-                ),
-            );
-            Status::with_error_details(
-                Code::ResourceExhausted,
-                format!(
+            fail(ServiceError::Quota {
+                message: format!(
                     "session limit reached ({} open); retry later",
                     self.0.config.max_sessions
                 ),
-                d,
-            )
+                subject: "sessions",
+                description: format!(
+                    "{} streamed sessions are open, the server's limit; retry after one ends",
+                    self.0.config.max_sessions
+                ),
+            })
         })?;
         let deadline = grpc_timeout(req.metadata()).map(|d| Instant::now() + d);
         let sid = format!(
@@ -397,11 +405,12 @@ async fn session(
         Next::End => return Ok(()),
     };
     let Some(pb::stream_register_request::Msg::Start(start)) = first.msg else {
-        return Err(BadInput {
-            code: Code::FailedPrecondition,
-            message: "msg: the first message of a session must be a SessionStart".into(),
-            violations: vec![("msg".into(), "expected start".into())],
-        }
+        return Err(ServiceError::precondition(
+            "SESSION",
+            "msg",
+            "expected start",
+            "msg: the first message of a session must be a SessionStart",
+        )
         .to_status());
     };
     let mut s = start_session(&svc, &start, first.client_seq).map_err(|b| b.to_status())?;
@@ -454,7 +463,7 @@ async fn session(
             match accept(&mut s, m, cfg) {
                 Ok(()) => accepted = Some(seq),
                 Err(b) => {
-                    count_error(b.code);
+                    count_error(b.code());
                     let r = pb::stream_update::Update::Rejection(b.to_rejection(seq));
                     if send(&mut s, r, arrival).await.is_err() {
                         return Ok(());
@@ -477,7 +486,7 @@ async fn session(
             let update = match svc.0.engine.run(job, false).await {
                 Ok(r) => pb::stream_update::Update::Registration(r),
                 Err(b) => {
-                    count_error(b.code);
+                    count_error(b.code());
                     pb::stream_update::Update::Rejection(b.to_rejection(seq))
                 }
             };
@@ -492,12 +501,17 @@ async fn session(
     }
 }
 
-fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Session, BadInput> {
-    let case = svc.case(&start.case_id, "start.case_id")?;
-    let method = svc.check_method(&case, start.method, "start.method")?;
-    let budget = svc.budget(start.options.as_ref(), "start.options")?;
-    let initial = start
-        .initial_alignment
+fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Session, ServiceError> {
+    let pb::SessionStart {
+        case_id,
+        method,
+        options,
+        initial_alignment,
+    } = start;
+    let case = svc.case(case_id, "start.case_id")?;
+    let method = svc.check_method(&case, *method, "start.method")?;
+    let budget = svc.budget(options.as_ref(), "start.options")?;
+    let initial = initial_alignment
         .as_ref()
         .map(|r| rigid_from_pb(r, "start.initial_alignment"))
         .transpose()?;
@@ -505,7 +519,7 @@ fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Sessio
         case,
         method,
         budget,
-        omit: start.options.as_ref().is_some_and(|o| o.omit_displacements),
+        omit: options.as_ref().is_some_and(|o| o.omit_displacements),
         meas: Measurements {
             initial_alignment: initial,
             ..Default::default()
@@ -520,12 +534,12 @@ fn check_time(
     s: &Session,
     t: Option<&prost_types::Timestamp>,
     field: &str,
-) -> Result<Option<(i64, i32)>, BadInput> {
+) -> Result<Option<(i64, i32)>, ServiceError> {
     let Some(t) = t else {
         return Ok(None);
     };
     if !(0..1_000_000_000).contains(&t.nanos) {
-        return Err(BadInput::field(
+        return Err(ServiceError::field(
             format!("{field}.nanos"),
             format!("{} is outside 0..1e9", t.nanos),
         ));
@@ -534,14 +548,15 @@ fn check_time(
     if let Some(last) = s.last_time
         && now < last
     {
-        return Err(BadInput {
-            code: Code::FailedPrecondition,
-            message: format!(
+        return Err(ServiceError::precondition(
+            "ORDER",
+            field,
+            "goes back in time",
+            format!(
                 "{field}: {}.{:09} s is before the previous message's {}.{:09} s (out-of-order frame)",
                 now.0, now.1, last.0, last.1
             ),
-            violations: vec![(field.to_string(), "goes back in time".into())],
-        });
+        ));
     }
     Ok(Some(now))
 }
@@ -551,13 +566,18 @@ fn accept(
     s: &mut Session,
     m: pb::StreamRegisterRequest,
     cfg: &ServerConfig,
-) -> Result<(), BadInput> {
+) -> Result<(), ServiceError> {
     use pb::stream_register_request::Msg;
-    let seq = m.client_seq;
+    let pb::StreamRegisterRequest {
+        client_seq: seq,
+        msg,
+    } = m;
     if seq <= s.last_seq {
-        return Err(BadInput {
-            code: Code::FailedPrecondition,
-            message: if seq == s.last_seq {
+        return Err(ServiceError::precondition(
+            "ORDER",
+            "client_seq",
+            format!("must be greater than {}", s.last_seq),
+            if seq == s.last_seq {
                 format!("client_seq {seq}: duplicate of the previous message")
             } else {
                 format!(
@@ -565,34 +585,35 @@ fn accept(
                     s.last_seq
                 )
             },
-            violations: vec![(
-                "client_seq".into(),
-                format!("must be greater than {}", s.last_seq),
-            )],
-        });
+        ));
     }
     s.last_seq = seq;
-    let (points, kinds, feature, time) = match m.msg {
+    let (points, kinds, feature, time) = match msg {
         None => {
-            return Err(BadInput::field(
+            return Err(ServiceError::field(
                 "msg",
                 "is empty: set start, surface or ultrasound",
             ));
         }
         Some(Msg::Start(_)) => {
-            return Err(BadInput {
-                code: Code::FailedPrecondition,
-                message: "start: the session has already started".into(),
-                violations: vec![("start".into(), "only the first message may start".into())],
-            });
+            return Err(ServiceError::precondition(
+                "SESSION",
+                "start",
+                "only the first message may start",
+                "start: the session has already started",
+            ));
         }
-        Some(Msg::Surface(b)) => {
-            let time = check_time(s, b.acquired_at.as_ref(), "surface.acquired_at")?;
-            let p = points3(&b.xyz_mm, "surface.xyz_mm", cfg.max_points_per_message)?;
+        Some(Msg::Surface(pb::SurfaceBatch {
+            acquired_at,
+            xyz_mm,
+            feature,
+        })) => {
+            let time = check_time(s, acquired_at.as_ref(), "surface.acquired_at")?;
+            let p = points3(&xyz_mm, "surface.xyz_mm", cfg.max_points_per_message)?;
             if p.is_empty() {
-                return Err(BadInput::field("surface.xyz_mm", "is empty: no points"));
+                return Err(ServiceError::field("surface.xyz_mm", "is empty: no points"));
             }
-            let f = features(&b.feature, p.len(), "surface.feature")?;
+            let f = features(&feature, p.len(), "surface.feature")?;
             let k = vec![MeasuredKind::Surface; p.len()];
             (p, k, f, time)
         }
@@ -609,13 +630,16 @@ fn accept(
     };
     let total = s.meas.points.len() + points.len();
     if total > cfg.max_points_per_session {
-        return Err(BadInput {
-            code: Code::ResourceExhausted,
+        return Err(ServiceError::Quota {
             message: format!(
                 "the session would hold {total} points, above the server's limit of {}",
                 cfg.max_points_per_session
             ),
-            violations: Vec::new(),
+            subject: "points_per_session",
+            description: format!(
+                "at most {} points in one session; start a new session",
+                cfg.max_points_per_session
+            ),
         });
     }
     if let Some(t) = time {

@@ -193,29 +193,66 @@ pub struct FailedEntry {
     pub error: String,
 }
 
+/// Why a dataset (its manifest, meshes or scenario arrays) could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    /// A file could not be read.
+    #[error(transparent)]
+    File(#[from] crate::util::FileError),
+    /// The manifest is not valid JSON of the expected shape.
+    #[error("{}: {source}", path.display())]
+    Json {
+        /// The manifest.
+        path: std::path::PathBuf,
+        /// The parser's error.
+        source: serde_json::Error,
+    },
+    /// A mesh file could not be read.
+    #[error(transparent)]
+    Mesh(#[from] crate::mesh::io::IoError),
+    /// A scenario archive could not be decoded.
+    #[error("{file}: {source}")]
+    Npz {
+        /// The archive (relative to the dataset).
+        file: String,
+        /// The decoder's error.
+        source: crate::mesh::io::npz::NpzError,
+    },
+    /// A file holds something other than this format expects (the message names the file and
+    /// what it expects): another format or version, a missing array, an index out of range.
+    #[error("{0}")]
+    Content(String),
+    /// The preoperative mesh's labels or vessels are inconsistent.
+    #[error(transparent)]
+    Model(#[from] crate::register::RegisterError),
+}
+
 /// Reads and checks a manifest (`manifest.json` in `dir`, or the file itself).
-pub fn read_manifest(path: &Path) -> Result<Manifest, String> {
+pub fn read_manifest(path: &Path) -> Result<Manifest, DatasetError> {
     let file = if path.is_dir() {
         path.join("manifest.json")
     } else {
         path.to_path_buf()
     };
-    let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-    let m: Manifest =
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", file.display()))?;
+    let text =
+        std::fs::read_to_string(&file).map_err(crate::util::FileError::at("reading", &file))?;
+    let m: Manifest = serde_json::from_str(&text).map_err(|source| DatasetError::Json {
+        path: file.clone(),
+        source,
+    })?;
     if m.format != FORMAT {
-        return Err(format!(
+        return Err(DatasetError::Content(format!(
             "{}: format is {:?}, expected {FORMAT:?}",
             file.display(),
             m.format
-        ));
+        )));
     }
     if m.version != VERSION {
-        return Err(format!(
+        return Err(DatasetError::Content(format!(
             "{}: format version {} is not supported (this program reads version {VERSION})",
             file.display(),
             m.version
-        ));
+        )));
     }
     Ok(m)
 }

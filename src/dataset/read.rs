@@ -3,7 +3,7 @@
 //! training read them. Registration never reads the truth: [`ScenarioData`] keeps `measurements`
 //! and `truth` separate.
 
-use super::{DeformationEntry, Manifest, read_manifest};
+use super::{DatasetError, DeformationEntry, Manifest, read_manifest};
 use crate::mesh::io::npz::{NpyArray, read_npz};
 use crate::mesh::io::{self, Unit};
 use crate::mesh::rigid::Rigid;
@@ -45,14 +45,20 @@ pub struct GeometryData {
 }
 
 /// Reads a geometry of a dataset (its `preop.vtu` and `vessels.vtp`).
-pub fn load_geometry(dir: &Path, m: &Manifest, geometry: &str) -> Result<GeometryData, String> {
+pub fn load_geometry(
+    dir: &Path,
+    m: &Manifest,
+    geometry: &str,
+) -> Result<GeometryData, DatasetError> {
     let g = m
         .geometries
         .iter()
         .find(|g| g.id == geometry)
-        .ok_or_else(|| format!("the manifest has no geometry {geometry:?}"))?;
-    let preop = io::read(dir.join(&g.preop), Unit::Mm).map_err(|e| e.to_string())?;
-    let vessels = io::read(dir.join(&g.vessels), Unit::Mm).map_err(|e| e.to_string())?;
+        .ok_or_else(|| {
+            DatasetError::Content(format!("the manifest has no geometry {geometry:?}"))
+        })?;
+    let preop = io::read(dir.join(&g.preop), Unit::Mm)?;
+    let vessels = io::read(dir.join(&g.vessels), Unit::Mm)?;
     let model = preop_model_from_file(&preop, &vessels)?;
     let surface = model
         .anterior
@@ -67,11 +73,11 @@ pub fn load_geometry(dir: &Path, m: &Manifest, geometry: &str) -> Result<Geometr
     })
 }
 
-fn array<'a>(arrays: &'a [NpyArray], name: &str, file: &str) -> Result<&'a NpyArray, String> {
+fn array<'a>(arrays: &'a [NpyArray], name: &str, file: &str) -> Result<&'a NpyArray, DatasetError> {
     arrays
         .iter()
         .find(|a| a.name == name)
-        .ok_or_else(|| format!("{file}: no array {name:?}"))
+        .ok_or_else(|| DatasetError::Content(format!("{file}: no array {name:?}")))
 }
 
 fn rigid_from(m: &[f64]) -> Rigid {
@@ -82,34 +88,42 @@ fn rigid_from(m: &[f64]) -> Rigid {
 }
 
 /// Reads every scenario of a deformation from its `scenarios.npz`.
-pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioData>, String> {
-    let bytes = std::fs::read(dir.join(&d.npz)).map_err(|e| format!("{}: {e}", d.npz))?;
-    let a = read_npz(&bytes).map_err(|e| format!("{}: {e}", d.npz))?;
+pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioData>, DatasetError> {
+    let bytes = std::fs::read(dir.join(&d.npz))
+        .map_err(crate::util::FileError::at("reading", &dir.join(&d.npz)))?;
+    let a = read_npz(&bytes).map_err(|source| DatasetError::Npz {
+        file: d.npz.clone(),
+        source,
+    })?;
     let get = |name: &str| array(&a, name, &d.npz).map(|x| x.data.to_f64());
     let (points, kind, feature) = (get("points")?, get("kind")?, get("feature")?);
     let offsets = get("offsets")?;
     let (t_true, t_init) = (get("image_to_physical")?, get("initial_alignment")?);
     let displacement = get("displacement")?;
     if offsets.len() != d.scenarios.len() + 1 {
-        return Err(format!(
+        return Err(DatasetError::Content(format!(
             "{}: {} offsets for {} scenarios",
             d.npz,
             offsets.len(),
             d.scenarios.len()
-        ));
+        )));
     }
     d.scenarios
         .iter()
         .map(|s| {
             let (lo, hi) = (offsets[s.index] as usize, offsets[s.index + 1] as usize);
             if hi < lo || 3 * hi > points.len() || hi > kind.len() || hi > feature.len() {
-                return Err(format!("{}: scenario {} out of range", d.npz, s.index));
+                return Err(DatasetError::Content(format!(
+                    "{}: scenario {} out of range",
+                    d.npz, s.index
+                )));
             }
             let kinds = kind[lo..hi]
                 .iter()
                 .map(|&k| {
-                    MeasuredKind::from_code(k as u8)
-                        .ok_or_else(|| format!("{}: unknown point kind {k}", d.npz))
+                    MeasuredKind::from_code(k as u8).ok_or_else(|| {
+                        DatasetError::Content(format!("{}: unknown point kind {k}", d.npz))
+                    })
                 })
                 .collect::<Result<Vec<_>, _>>()?;
             Ok(ScenarioData {
@@ -163,9 +177,13 @@ pub struct ScenarioPlanes {
 pub fn load_scenario_planes(
     dir: &Path,
     d: &DeformationEntry,
-) -> Result<Vec<ScenarioPlanes>, String> {
-    let bytes = std::fs::read(dir.join(&d.npz)).map_err(|e| format!("{}: {e}", d.npz))?;
-    let a = read_npz(&bytes).map_err(|e| format!("{}: {e}", d.npz))?;
+) -> Result<Vec<ScenarioPlanes>, DatasetError> {
+    let bytes = std::fs::read(dir.join(&d.npz))
+        .map_err(crate::util::FileError::at("reading", &dir.join(&d.npz)))?;
+    let a = read_npz(&bytes).map_err(|source| DatasetError::Npz {
+        file: d.npz.clone(),
+        source,
+    })?;
     let get = |name: &str| array(&a, name, &d.npz).map(|x| x.data.to_f64());
     let (kind, plane, offsets) = (get("kind")?, get("plane")?, get("offsets")?);
     let plane_offsets = get("plane_offsets")?;
@@ -177,20 +195,20 @@ pub fn load_scenario_planes(
     ];
     let s = d.scenarios.len();
     if offsets.len() != s + 1 || plane_offsets.len() != s + 1 {
-        return Err(format!(
+        return Err(DatasetError::Content(format!(
             "{}: {} offsets and {} plane_offsets for {s} scenarios",
             d.npz,
             offsets.len(),
             plane_offsets.len()
-        ));
+        )));
     }
     let q = axes[0].len();
     if q % 3 != 0 || axes.iter().any(|x| x.len() != q) {
-        return Err(format!(
+        return Err(DatasetError::Content(format!(
             "{}: plane_origin, plane_lateral_dir, plane_depth_dir and plane_normal need the same \
              shape (Q, 3)",
             d.npz
-        ));
+        )));
     }
     let at = |x: &[f64], i: usize| [x[3 * i], x[3 * i + 1], x[3 * i + 2]];
     d.scenarios
@@ -198,23 +216,29 @@ pub fn load_scenario_planes(
         .map(|sc| {
             let k = sc.index;
             if k >= s {
-                return Err(format!("{}: scenario {k} out of range", d.npz));
+                return Err(DatasetError::Content(format!(
+                    "{}: scenario {k} out of range",
+                    d.npz
+                )));
             }
             let (lo, hi) = (offsets[k] as usize, offsets[k + 1] as usize);
             let (plo, phi) = (plane_offsets[k] as usize, plane_offsets[k + 1] as usize);
             if hi < lo || hi > plane.len() || hi > kind.len() || phi < plo || 3 * phi > q {
-                return Err(format!("{}: scenario {k} out of range", d.npz));
+                return Err(DatasetError::Content(format!(
+                    "{}: scenario {k} out of range",
+                    d.npz
+                )));
             }
             let n = (phi - plo) as i64;
             let plane_of_point: Vec<i32> = plane[lo..hi].iter().map(|&p| p as i32).collect();
             for (j, (&p, &kd)) in plane_of_point.iter().zip(&kind[lo..hi]).enumerate() {
                 let surface = kd as u8 == MeasuredKind::Surface as u8;
                 if (p as i64) < -1 || p as i64 >= n || (p == -1) != surface {
-                    return Err(format!(
+                    return Err(DatasetError::Content(format!(
                         "{}: scenario {k}, point {j}: plane {p} for a point of kind {kd} \
                          (the scenario has {n} planes; -1 exactly for surface points)",
                         d.npz
-                    ));
+                    )));
                 }
             }
             let planes = (plo..phi)
@@ -234,6 +258,6 @@ pub fn load_scenario_planes(
 }
 
 /// Opens a dataset: its manifest.
-pub fn open(dir: &Path) -> Result<Manifest, String> {
+pub fn open(dir: &Path) -> Result<Manifest, DatasetError> {
     read_manifest(dir)
 }

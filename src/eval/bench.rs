@@ -5,7 +5,9 @@
 
 use super::report::CATEGORY_ORDER;
 use super::{ScenarioData, tre};
+use crate::eval::EvalError;
 use crate::mesh::TetMesh;
+use crate::pipeline::PipelineError;
 use crate::pipeline::{Method, PipelineParams, Prepared, Registration, register};
 use crate::register::PreopModel;
 use crate::register::libr::{BasisTimings, LibrBasis, LibrParams};
@@ -50,13 +52,13 @@ pub fn preload_model(
     model: &PreopModel,
     params: &LibrParams,
     cache_dir: &Path,
-) -> Result<(PreloadBench, Prepared), String> {
+) -> Result<(PreloadBench, Prepared), EvalError> {
     let path = LibrBasis::cache_path(&model.mesh, params, cache_dir);
     if path.exists() {
-        return Err(format!(
+        return Err(EvalError::Parameter(format!(
             "{} already exists: a cold preload needs an empty cache directory",
             path.display()
-        ));
+        )));
     }
     let mut runs = Vec::new();
     let mut last = None;
@@ -64,7 +66,7 @@ pub fn preload_model(
         let t0 = Instant::now();
         let case = Prepared::new(model.clone(), Some(params), Some(cache_dir))?;
         let total_s = crate::util::secs(t0);
-        let basis = case.basis.as_ref().ok_or("no basis was prepared")?;
+        let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
         runs.push(Preload {
             from_cache: case.basis_from_cache,
             basis: basis.timings,
@@ -73,8 +75,8 @@ pub fn preload_model(
         });
         last = Some(case);
     }
-    let case = last.ok_or("no preload ran")?;
-    let basis = case.basis.as_ref().ok_or("no basis was prepared")?;
+    let case = last.ok_or_else(|| EvalError::Internal("no preload ran".into()))?;
+    let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
     let bench = PreloadBench {
         nodes: model.mesh.num_nodes(),
         tets: model.mesh.num_tets(),
@@ -84,10 +86,10 @@ pub fn preload_model(
         warm: runs[1],
     };
     if bench.cold.from_cache || !bench.warm.from_cache {
-        return Err(format!(
+        return Err(EvalError::Parameter(format!(
             "expected a cold build then a cache hit, got from_cache = {} then {}",
             bench.cold.from_cache, bench.warm.from_cache
-        ));
+        )));
     }
     Ok((bench, case))
 }
@@ -98,13 +100,13 @@ pub fn preload_mesh(
     mesh: &TetMesh,
     params: &LibrParams,
     cache_dir: &Path,
-) -> Result<PreloadBench, String> {
+) -> Result<PreloadBench, EvalError> {
     let path = LibrBasis::cache_path(mesh, params, cache_dir);
     if path.exists() {
-        return Err(format!(
+        return Err(EvalError::Parameter(format!(
             "{} already exists: a cold preload needs an empty cache directory",
             path.display()
-        ));
+        )));
     }
     let mut runs = Vec::new();
     let mut columns = 0;
@@ -292,7 +294,7 @@ pub fn time_registrations(
     method: Method,
     params: &PipelineParams,
     progress: &dyn Fn(usize, usize),
-) -> Result<RegistrationBench, String> {
+) -> Result<RegistrationBench, EvalError> {
     if let Some(first) = scenarios.first() {
         let _ = register(case, &first.measurements, method, params);
     }

@@ -17,6 +17,8 @@ pub use crate::dataset::read::{
 };
 
 pub mod bench;
+mod error;
+pub use error::EvalError;
 pub mod experiments;
 pub mod plot;
 pub mod report;

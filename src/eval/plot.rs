@@ -5,6 +5,7 @@
 //! license), never with a system font, so plots render the same on a machine without fonts.
 
 use super::report::{CATEGORY_ORDER, ScenarioResult};
+use crate::eval::EvalError;
 use crate::util::quantile;
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -28,14 +29,17 @@ const COLOURS: [RGBColor; 5] = [
     RGBColor(148, 103, 189),
 ];
 
-fn font() -> Result<(), String> {
-    static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
-    REGISTERED
-        .get_or_init(|| {
-            plotters::style::register_font(FAMILY, FontStyle::Normal, FONT)
-                .map_err(|_| "the embedded font DejaVuSans.ttf could not be parsed".to_string())
-        })
-        .clone()
+fn font() -> Result<(), EvalError> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    let ok = *REGISTERED
+        .get_or_init(|| plotters::style::register_font(FAMILY, FontStyle::Normal, FONT).is_ok());
+    if ok {
+        Ok(())
+    } else {
+        Err(EvalError::Plot(
+            "the embedded font DejaVuSans.ttf could not be parsed".into(),
+        ))
+    }
 }
 
 /// Box-plot statistics of a sample (linear-interpolated quantiles; mm for TRE).
@@ -107,26 +111,28 @@ fn scenario_count(results: &[ScenarioResult]) -> usize {
 
 /// Renders into an RGB buffer with `draw`, then encodes it as PNG.
 fn render(
-    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), String>,
-) -> Result<Vec<u8>, String> {
+    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<(), EvalError>,
+) -> Result<Vec<u8>, EvalError> {
     font()?;
     let (w, h) = PLOT_SIZE;
     let mut rgb = vec![0u8; 3 * w as usize * h as usize];
     {
         let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        root.fill(&WHITE)?;
         draw(&root)?;
-        root.present().map_err(|e| e.to_string())?;
+        root.present()?;
     }
     let mut png_bytes = Vec::new();
     {
         let mut enc = png::Encoder::new(&mut png_bytes, w, h);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
-        let mut writer = enc.write_header().map_err(|e| format!("PNG header: {e}"))?;
+        let mut writer = enc
+            .write_header()
+            .map_err(|e| EvalError::Plot(format!("PNG header: {e}")))?;
         writer
             .write_image_data(&rgb)
-            .map_err(|e| format!("PNG data: {e}"))?;
+            .map_err(|e| EvalError::Plot(format!("PNG data: {e}")))?;
     }
     Ok(png_bytes)
 }
@@ -139,7 +145,7 @@ fn text(size: u32) -> TextStyle<'static> {
 /// other category in name order) for each method: box = quartiles, line = median, whiskers = 5th
 /// and 95th percentiles, diamond = mean. Failed registrations are left out (and counted in the
 /// legend). Returns the PNG bytes ([`PLOT_SIZE`]).
-pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, String> {
+pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, EvalError> {
     let mut categories: Vec<String> = CATEGORY_ORDER.iter().map(|c| c.to_string()).collect();
     let mut extra: Vec<String> = results
         .iter()
@@ -184,8 +190,7 @@ pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Ve
             .margin(24)
             .x_label_area_size(70)
             .y_label_area_size(80)
-            .build_cartesian_2d(-0.5f64..(ncat as f64 - 0.5), 0f64..ymax)
-            .map_err(|e| e.to_string())?;
+            .build_cartesian_2d(-0.5f64..(ncat as f64 - 0.5), 0f64..ymax)?;
         let cats = categories.clone();
         let label = move |x: &f64| {
             let k = x.round();
@@ -207,14 +212,13 @@ pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Ve
             .label_style(text(17))
             .max_light_lines(4)
             .light_line_style(RGBColor(235, 235, 235))
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         let slot = 0.8 / nm as f64;
         let half = 0.35 * slot;
         for (mi, (method, rs)) in methods.iter().enumerate() {
             let colour = COLOURS[mi % COLOURS.len()];
             let area = chart.plotting_area();
-            let err = |e: DrawingAreaErrorKind<_>| e.to_string();
+            let err = |e: DrawingAreaErrorKind<_>| EvalError::Plot(e.to_string());
             for (ci, s) in stats[mi].iter().enumerate() {
                 let Some(s) = s else { continue };
                 let x = ci as f64 - 0.4 + (mi as f64 + 0.5) * slot;
@@ -260,8 +264,7 @@ pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Ve
                 format!("{method} (n = {ok})")
             };
             chart
-                .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
-                .map_err(|e| e.to_string())?
+                .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())?
                 .label(name)
                 .legend(move |(x, y)| {
                     Rectangle::new([(x, y - 8), (x + 20, y + 8)], colour.mix(0.5).filled())
@@ -269,8 +272,7 @@ pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Ve
         }
         // A legend entry for the marker conventions.
         chart
-            .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
-            .map_err(|e| e.to_string())?
+            .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())?
             .label("◇ mean; box: quartiles, line: median, whiskers: 5th–95th pct")
             .legend(|(x, y)| {
                 EmptyElement::at((x + 10, y))
@@ -286,8 +288,7 @@ pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Ve
             .background_style(WHITE.mix(0.9))
             .border_style(BLACK)
             .label_font(text(17))
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         Ok(())
     })
 }
@@ -295,7 +296,7 @@ pub fn tre_by_category_png(split: &str, results: &[ScenarioResult]) -> Result<Ve
 /// Empirical cumulative distribution of per-scenario TRE for each method (fraction of a
 /// method's registered scenarios with TRE ≤ x), with each method's median in the legend.
 /// Returns the PNG bytes ([`PLOT_SIZE`]).
-pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, String> {
+pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, EvalError> {
     let methods = by_method(results);
     let sorted: Vec<Vec<f64>> = methods
         .iter()
@@ -321,8 +322,7 @@ pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, S
             .margin(24)
             .x_label_area_size(70)
             .y_label_area_size(80)
-            .build_cartesian_2d(0f64..xmax, 0f64..1.03)
-            .map_err(|e| e.to_string())?;
+            .build_cartesian_2d(0f64..xmax, 0f64..1.03)?;
         chart
             .configure_mesh()
             .x_labels(12)
@@ -333,8 +333,7 @@ pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, S
             .label_style(text(17))
             .max_light_lines(4)
             .light_line_style(RGBColor(235, 235, 235))
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         for (mi, ((method, rs), v)) in methods.iter().zip(&sorted).enumerate() {
             let colour = COLOURS[mi % COLOURS.len()];
             let n = v.len();
@@ -363,8 +362,7 @@ pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, S
                 .then(|| PathElement::new(path, colour.stroke_width(3)))
                 .into_iter();
             chart
-                .draw_series(elements)
-                .map_err(|e| e.to_string())?
+                .draw_series(elements)?
                 .label(name)
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3))
@@ -376,8 +374,7 @@ pub fn tre_cdf_png(split: &str, results: &[ScenarioResult]) -> Result<Vec<u8>, S
             .background_style(WHITE.mix(0.9))
             .border_style(BLACK)
             .label_font(text(17))
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         Ok(())
     })
 }
@@ -389,7 +386,7 @@ pub fn line_chart_png(
     x_desc: &str,
     y_desc: &str,
     series: &[(String, Vec<(f64, f64)>)],
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, EvalError> {
     let pts = series
         .iter()
         .flat_map(|s| s.1.iter())
@@ -413,8 +410,7 @@ pub fn line_chart_png(
             .margin(24)
             .x_label_area_size(70)
             .y_label_area_size(90)
-            .build_cartesian_2d(x0..x1, 0f64..y1)
-            .map_err(|e| e.to_string())?;
+            .build_cartesian_2d(x0..x1, 0f64..y1)?;
         chart
             .configure_mesh()
             .x_desc(x_desc)
@@ -422,8 +418,7 @@ pub fn line_chart_png(
             .axis_desc_style(text(20))
             .label_style(text(17))
             .light_line_style(RGBColor(235, 235, 235))
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         for (i, (name, pts)) in series.iter().enumerate() {
             let colour = COLOURS[i % COLOURS.len()];
             let pts: Vec<(f64, f64)> = pts
@@ -435,8 +430,7 @@ pub fn line_chart_png(
                 .draw_series(std::iter::once(PathElement::new(
                     pts,
                     colour.stroke_width(3),
-                )))
-                .map_err(|e| e.to_string())?
+                )))?
                 .label(name.clone())
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3))
@@ -447,8 +441,7 @@ pub fn line_chart_png(
             .label_font(text(18))
             .background_style(WHITE.mix(0.9))
             .border_style(BLACK)
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         Ok(())
     })
 }

@@ -11,6 +11,7 @@
 
 use super::{Tre, error_map_file, load_geometry, load_scenarios, node_errors_mm, tre_from_errors};
 use crate::dataset::Manifest;
+use crate::eval::EvalError;
 use crate::gcn::infer::LibrPlusCase;
 use crate::gcn::io::TrainedModel;
 use crate::mesh::TetMesh;
@@ -33,14 +34,14 @@ pub enum Split {
 
 impl Split {
     /// Parses `all`, `test`, `train`.
-    pub fn parse(s: &str) -> Result<Self, String> {
+    pub fn parse(s: &str) -> Result<Self, EvalError> {
         match s {
             "all" => Ok(Split::All),
             "test" => Ok(Split::Test),
             "train" => Ok(Split::Train),
-            other => Err(format!(
+            other => Err(EvalError::Parameter(format!(
                 "unknown split {other:?}: expected all, test or train"
-            )),
+            ))),
         }
     }
 
@@ -138,15 +139,15 @@ impl ErrorMap {
     }
 
     /// Adds one scenario's node errors (one per node).
-    pub fn add(&mut self, err: &[f64]) -> Result<(), String> {
+    pub fn add(&mut self, err: &[f64]) -> Result<(), EvalError> {
         if err.len() != self.sum_mm.len() {
-            return Err(format!(
+            return Err(EvalError::Internal(format!(
                 "error map {}/{}: {} node errors for {} nodes",
                 self.geometry,
                 self.method,
                 err.len(),
                 self.sum_mm.len()
-            ));
+            )));
         }
         for (i, &e) in err.iter().enumerate() {
             self.sum_mm[i] += e;
@@ -183,15 +184,15 @@ impl ErrorMap {
     }
 
     /// The error map as a mesh file on `mesh` (the geometry's preoperative mesh).
-    pub fn to_file(&self, mesh: &TetMesh) -> Result<MeshFile, String> {
+    pub fn to_file(&self, mesh: &TetMesh) -> Result<MeshFile, EvalError> {
         if mesh.num_nodes() != self.sum_mm.len() {
-            return Err(format!(
+            return Err(EvalError::Internal(format!(
                 "error map {}/{} has {} nodes, the mesh {}",
                 self.geometry,
                 self.method,
                 self.sum_mm.len(),
                 mesh.num_nodes()
-            ));
+            )));
         }
         Ok(error_map_file(mesh, self.point_data()))
     }
@@ -244,7 +245,7 @@ pub fn evaluate(
     params: &PipelineParams,
     librplus: Option<LibrPlusEval<'_>>,
     progress: &(dyn Fn(usize, usize) + Sync),
-) -> Result<Evaluation, String> {
+) -> Result<Evaluation, EvalError> {
     let every = every.max(1);
     let test_geos = m.test_geometries();
     let defs: Vec<_> = m
@@ -312,7 +313,7 @@ pub fn evaluate(
             let map = maps
                 .iter_mut()
                 .find(|e| e.geometry == d.geometry && e.method == method.name())
-                .ok_or("internal: no error map for the geometry")?;
+                .ok_or_else(|| EvalError::Internal("no error map for the geometry".into()))?;
             for chunk in picked.chunks(CHUNK) {
                 let results: Vec<Outcome> = chunk
                     .par_iter()
@@ -353,7 +354,7 @@ pub fn evaluate(
                                     }
                                     Err(e) => (
                                         Some(ScenarioResult {
-                                            error: Some(e),
+                                            error: Some(e.to_string()),
                                             ..base
                                         }),
                                         None,
@@ -388,7 +389,7 @@ pub fn evaluate(
                                     category: sc.category.clone(),
                                     method: method.name().into(),
                                     tre: None,
-                                    error: Some(e),
+                                    error: Some(e.to_string()),
                                     seconds: 0.0,
                                 },
                                 None,
@@ -412,7 +413,7 @@ pub fn evaluate(
             let map = maps
                 .iter_mut()
                 .find(|e| e.geometry == d.geometry && e.method == "librplus")
-                .ok_or("internal: no LIBR+ error map for the geometry")?;
+                .ok_or_else(|| EvalError::Internal("no LIBR+ error map for the geometry".into()))?;
             for (res, err) in plus {
                 if let Some(err) = err {
                     map.add(&err)?;
@@ -440,7 +441,7 @@ fn correct_one(
     params: &PipelineParams,
     sc: &super::ScenarioData,
     r: &crate::pipeline::Registration,
-) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), String> {
+) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), EvalError> {
     let (u, _) = lp.correct(
         &case.model.mesh,
         &case.correspondence,
@@ -460,7 +461,7 @@ fn correct_one(
         &r.image_to_physical,
         None,
     )
-    .map_err(|e| format!("refit: {e}"))?;
+    .map_err(|e| EvalError::within("refit", e))?;
     Ok((s.u, s.image_to_physical))
 }
 

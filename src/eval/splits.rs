@@ -2,6 +2,7 @@
 //! `geo-def`, `logo:G`, `pattern-v`), with a seeded validation set.
 
 use crate::dataset::Manifest;
+use crate::eval::EvalError;
 use crate::util::SplitMix64;
 
 /// Scenarios per block (one per measurement category).
@@ -22,16 +23,16 @@ pub enum TrainSplit {
 
 impl TrainSplit {
     /// Parses `random`, `geo-def`, `logo:G`, `pattern-v`.
-    pub fn parse(s: &str) -> Result<Self, String> {
+    pub fn parse(s: &str) -> Result<Self, EvalError> {
         match s {
             "random" => Ok(Self::Random),
             "geo-def" => Ok(Self::GeoDef),
             "pattern-v" => Ok(Self::PatternV),
             _ => match s.strip_prefix("logo:") {
                 Some(g) if !g.is_empty() => Ok(Self::Logo(g.to_string())),
-                _ => Err(format!(
+                _ => Err(EvalError::Parameter(format!(
                     "unknown split {s:?}: expected random, geo-def, logo:GEOMETRY or pattern-v"
-                )),
+                ))),
             },
         }
     }
@@ -102,7 +103,7 @@ pub fn split_scenarios(
     seed: u64,
     every: usize,
     validation: Validation,
-) -> Result<SplitSets, String> {
+) -> Result<SplitSets, EvalError> {
     let every = every.max(1);
     let test_geos = m.test_geometries();
     let train_defs: Vec<_> = m
@@ -150,13 +151,15 @@ pub fn split_scenarios(
             if let TrainSplit::Logo(g) = split
                 && !geos.contains(&g.as_str())
             {
-                return Err(format!(
+                return Err(EvalError::Data(format!(
                     "logo:{g}: no training geometry {g} (have {})",
                     geos.join(", ")
-                ));
+                )));
             }
             if matches!(split, TrainSplit::GeoDef) && (geos.len() < 2 || pats.len() < 3) {
-                return Err("geo-def needs at least 2 geometries and 3 patterns".into());
+                return Err(EvalError::Data(
+                    "geo-def needs at least 2 geometries and 3 patterns".into(),
+                ));
             }
             for d in &train_defs {
                 let held = match split {
@@ -178,7 +181,9 @@ pub fn split_scenarios(
         }
         TrainSplit::PatternV => {
             if test_geos.is_empty() {
-                return Err("pattern-v: the dataset has no test geometry".into());
+                return Err(EvalError::Data(
+                    "pattern-v: the dataset has no test geometry".into(),
+                ));
             }
             for d in &m.deformations {
                 for b in blocks(d) {
@@ -219,11 +224,11 @@ pub fn split_scenarios(
         }
         livers.sort();
         if livers.len() < 3 {
-            return Err(format!(
+            return Err(EvalError::Data(format!(
                 "validation by geometry needs at least 3 training livers, split {} leaves {}",
                 split.name(),
                 livers.len()
-            ));
+            )));
         }
         let mut rng = SplitMix64::new(seed ^ 0x6E0);
         let held = livers[(rng.next_u64() % livers.len() as u64) as usize];
@@ -269,10 +274,10 @@ pub fn split_scenarios(
     sets.valid.sort();
     sets.test.sort();
     if sets.train.is_empty() || sets.test.is_empty() {
-        return Err(format!(
+        return Err(EvalError::Data(format!(
             "split {} leaves no training or no test scenarios",
             split.name()
-        ));
+        )));
     }
     Ok(sets)
 }

@@ -14,7 +14,9 @@
 
 use super::assembly::{LameField, assemble_blocks};
 use super::element::p1_gradients;
-use super::solver::{Dirichlet, FemError, NodeSpring, ReducedPattern, StiffnessSystem};
+use super::solver::{
+    Dirichlet, FemError, NewtonFailure, NodeSpring, ReducedPattern, StiffnessSystem,
+};
 use crate::mesh::TetMesh;
 use faer::Mat;
 use rayon::prelude::*;
@@ -543,7 +545,7 @@ impl HyperelasticModel {
         s: f64,
         params: &NewtonParams,
         info: &mut NewtonInfo,
-    ) -> Result<usize, String> {
+    ) -> Result<usize, NewtonFailure> {
         let free = reduced.free_dofs();
         let potential = |u: &[f64]| -> Option<f64> {
             let e = self.energy(u)?;
@@ -564,8 +566,8 @@ impl HyperelasticModel {
         };
         let ta = Instant::now();
         let (mut r, mut rn, mut scale) =
-            residual(u).ok_or("an element is inverted at the start of the step")?;
-        let mut pi = potential(u).ok_or("an element is inverted at the start of the step")?;
+            residual(u).ok_or(NewtonFailure::Inverted("at the start of the step"))?;
+        let mut pi = potential(u).ok_or(NewtonFailure::Inverted("at the start of the step"))?;
         info.assemble_s += ta.elapsed().as_secs_f64();
         for it in 1..=params.max_iterations {
             info.iterations += 1;
@@ -576,14 +578,14 @@ impl HyperelasticModel {
             let ta = Instant::now();
             let values = self
                 .tangent_values(u)
-                .ok_or("inverted element in tangent")?;
+                .ok_or(NewtonFailure::Inverted("in the tangent"))?;
             info.assemble_s += ta.elapsed().as_secs_f64();
             let tf = Instant::now();
             let factor = reduced.factor(&values).map_err(|e| match e {
-                FemError::NotPositiveDefinite { node, axis, .. } => format!(
-                    "tangent stiffness not positive definite at node {node}, axis {axis}: a structural instability under this load, or too little support"
-                ),
-                other => other.to_string(),
+                FemError::NotPositiveDefinite { node, axis, .. } => {
+                    NewtonFailure::Unstable { node, axis }
+                }
+                other => NewtonFailure::Factorisation(Box::new(other)),
             })?;
             info.factor_s += tf.elapsed().as_secs_f64();
             let mut du = Mat::<f64>::zeros(free.len(), 1);
@@ -618,17 +620,16 @@ impl HyperelasticModel {
             }
             if !accepted {
                 u.copy_from_slice(&base);
-                return Err(format!("line search failed at iteration {it}"));
+                return Err(NewtonFailure::LineSearch { iteration: it });
             }
         }
         if rn <= params.tolerance * scale.max(f64::MIN_POSITIVE) {
             info.relative_residual = rn / scale.max(f64::MIN_POSITIVE);
             return Ok(params.max_iterations);
         }
-        Err(format!(
-            "no convergence in {} iterations (relative residual {:.2e})",
-            params.max_iterations,
-            rn / scale.max(f64::MIN_POSITIVE)
-        ))
+        Err(NewtonFailure::NoConvergence {
+            iterations: params.max_iterations,
+            relative_residual: rn / scale.max(f64::MIN_POSITIVE),
+        })
     }
 }

@@ -1,5 +1,7 @@
 //! Material parameters for linear elasticity (units: kPa).
 
+use super::solver::FemError;
+
 /// Isotropic linear-elastic material. Defaults are liver-like: E = 5 kPa, ν = 0.45.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LinearMaterial {
@@ -28,18 +30,18 @@ impl LinearMaterial {
     }
 
     /// Checks E > 0 and −1 < ν < 0.5; the message names the bad field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FemError> {
         if !(self.youngs_modulus_kpa.is_finite() && self.youngs_modulus_kpa > 0.0) {
-            return Err(format!(
-                "youngs_modulus_kpa must be finite and > 0, got {}",
-                self.youngs_modulus_kpa
-            ));
+            return Err(FemError::InvalidParameter {
+                field: "youngs_modulus_kpa",
+                message: format!("must be finite and > 0, got {}", self.youngs_modulus_kpa),
+            });
         }
         if !(self.poisson_ratio > -1.0 && self.poisson_ratio < 0.5) {
-            return Err(format!(
-                "poisson_ratio must be in (-1, 0.5), got {}",
-                self.poisson_ratio
-            ));
+            return Err(FemError::InvalidParameter {
+                field: "poisson_ratio",
+                message: format!("must be in (-1, 0.5), got {}", self.poisson_ratio),
+            });
         }
         Ok(())
     }

@@ -22,6 +22,6 @@ pub use assembly::{BlockPattern, LameField};
 pub use hyperelastic::ContactSpring;
 pub use material::LinearMaterial;
 pub use solver::{
-    CholeskyFactor, Dirichlet, FactorInfo, FactorizedSystem, FemError, NodeSpring, Ordering,
-    ReducedPattern, StiffnessSystem,
+    CholeskyFactor, Dirichlet, FactorInfo, FactorizedSystem, FemError, NewtonFailure, NodeSpring,
+    Ordering, ReducedPattern, StiffnessSystem,
 };

@@ -82,13 +82,7 @@ pub fn fixed_nodes(mesh: &TetMesh, fixed_fraction: f64) -> Vec<u32> {
 }
 
 fn check(params: &SagParams) -> Result<(), FemError> {
-    params
-        .material
-        .validate()
-        .map_err(|message| FemError::InvalidParameter {
-            field: "material",
-            message,
-        })?;
+    params.material.validate()?;
     if !(params.fixed_fraction >= 0.0 && params.fixed_fraction < 1.0) {
         return Err(FemError::InvalidParameter {
             field: "fixed_fraction",

@@ -27,6 +27,43 @@ pub enum Ordering {
     Amd,
 }
 
+/// Why one Newton solve of a load step failed (the load step is then halved).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NewtonFailure {
+    /// An element is inverted (J ≤ 0) in the state the step starts from or its tangent.
+    #[error("an element is inverted ({0})")]
+    Inverted(&'static str),
+    /// The tangent stiffness is not positive definite.
+    #[error(
+        "tangent stiffness not positive definite at node {node}, axis {axis}: a structural instability under this load, or too little support"
+    )]
+    Unstable {
+        /// Node of the first bad pivot.
+        node: usize,
+        /// Axis of that pivot.
+        axis: usize,
+    },
+    /// The tangent could not be factorised for another reason.
+    #[error("tangent factorisation failed: {0}")]
+    Factorisation(Box<FemError>),
+    /// No step length lowered the energy or the residual.
+    #[error("line search failed at iteration {iteration}")]
+    LineSearch {
+        /// Newton iteration.
+        iteration: usize,
+    },
+    /// The residual stayed above the tolerance.
+    #[error(
+        "no convergence in {iterations} iterations (relative residual {relative_residual:.2e})"
+    )]
+    NoConvergence {
+        /// Iterations run.
+        iterations: usize,
+        /// Final relative residual.
+        relative_residual: f64,
+    },
+}
+
 /// Errors from building or solving an elastic system; each says how to fix the input.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum FemError {
@@ -90,7 +127,7 @@ pub enum FemError {
         /// Newton iterations spent.
         iterations: usize,
         /// Why the last step failed.
-        reason: String,
+        reason: NewtonFailure,
     },
     /// Every dof is constrained: nothing to solve.
     #[error("every degree of freedom is constrained; nothing to solve")]
@@ -215,12 +252,7 @@ pub struct StiffnessSystem {
 impl StiffnessSystem {
     /// Assembles homogeneous linear elasticity. Rejects invalid materials and degenerate tets.
     pub fn linear(mesh: &TetMesh, material: &LinearMaterial) -> Result<Self, FemError> {
-        material
-            .validate()
-            .map_err(|message| FemError::InvalidParameter {
-                field: "material",
-                message,
-            })?;
+        material.validate()?;
         let (l, m) = material.lame();
         Self::linear_field(mesh, &LameField::Uniform(l, m))
     }

@@ -3,6 +3,7 @@
 //! through burn's wgpu runtime (Vulkan, Metal or DX12; `vulkan` adds SPIR-V shaders). The choice is made once per process (`librplus --device ...`) and read by every
 //! SR-GCN entry point through [`compute`]; LIBR, wICP and the FEM stay on the CPU.
 
+use super::GcnError;
 use burn::tensor::Device;
 use std::str::FromStr;
 use std::sync::RwLock;
@@ -19,16 +20,16 @@ pub enum ComputeDevice {
 }
 
 impl FromStr for ComputeDevice {
-    type Err = String;
+    type Err = GcnError;
 
     /// `cpu`, `gpu` (the GPU wgpu prefers) or `gpu:N` (the N-th discrete GPU).
-    fn from_str(s: &str) -> Result<Self, String> {
+    fn from_str(s: &str) -> Result<Self, GcnError> {
         let s = s.trim();
         if s.eq_ignore_ascii_case("cpu") {
             return Ok(Self::Cpu);
         }
         let lower = s.to_ascii_lowercase();
-        let bad = || format!("device {s:?}: expected cpu, gpu or gpu:N");
+        let bad = || GcnError::Device(format!("device {s:?}: expected cpu, gpu or gpu:N"));
         match lower.strip_prefix("gpu") {
             Some("") => Ok(Self::Gpu(None)),
             Some(rest) => rest
@@ -53,7 +54,7 @@ impl std::fmt::Display for ComputeDevice {
 
 impl ComputeDevice {
     /// The burn device, or an error naming the missing feature.
-    pub fn burn(self) -> Result<Device, String> {
+    pub fn burn(self) -> Result<Device, GcnError> {
         match self {
             Self::Cpu => Ok(Device::flex()),
             #[cfg(feature = "gpu")]
@@ -62,9 +63,9 @@ impl ComputeDevice {
                 Some(i) => burn::tensor::DeviceKind::DiscreteGpu(i),
             })),
             #[cfg(not(feature = "gpu"))]
-            Self::Gpu(_) => Err(format!(
+            Self::Gpu(_) => Err(GcnError::Device(format!(
                 "device {self}: this build has no GPU support (rebuild with `--features gpu` or `--features vulkan`)"
-            )),
+            ))),
         }
     }
 }
@@ -73,7 +74,7 @@ static CHOSEN: RwLock<ComputeDevice> = RwLock::new(ComputeDevice::Cpu);
 
 /// Chooses the device of every later SR-GCN computation in this process. Errors (and keeps the
 /// current choice) when the build cannot run on it.
-pub fn select(d: ComputeDevice) -> Result<(), String> {
+pub fn select(d: ComputeDevice) -> Result<(), GcnError> {
     d.burn()?;
     *CHOSEN.write().unwrap_or_else(|p| p.into_inner()) = d;
     Ok(())
@@ -106,13 +107,17 @@ mod tests {
         }
         for bad in ["cuda", "gpu:", "gpu:x", "gpu0", ""] {
             let e = bad.parse::<ComputeDevice>().unwrap_err();
-            assert!(e.contains("expected cpu, gpu or gpu:N"), "{bad}: {e}");
+            assert!(matches!(e, GcnError::Device(_)), "{bad}: {e}");
+            assert!(
+                e.to_string().contains("expected cpu, gpu or gpu:N"),
+                "{bad}: {e}"
+            );
         }
         assert_eq!(ComputeDevice::Cpu.burn().unwrap(), Device::flex());
         #[cfg(not(feature = "gpu"))]
         {
             let e = select(ComputeDevice::Gpu(None)).unwrap_err();
-            assert!(e.contains("--features gpu"), "{e}");
+            assert!(e.to_string().contains("--features gpu"), "{e}");
             assert_eq!(chosen(), ComputeDevice::Cpu);
         }
     }

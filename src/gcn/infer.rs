@@ -44,23 +44,23 @@ pub struct LibrPlusCase {
 impl LibrPlusCase {
     /// Prepares `models` (one network, or the members of an ensemble) for the preoperative
     /// `mesh`.
-    pub fn new(models: Vec<Arc<TrainedModel>>, mesh: &TetMesh) -> Result<Self, String> {
+    pub fn new(models: Vec<Arc<TrainedModel>>, mesh: &TetMesh) -> Result<Self, GcnError> {
         if models.is_empty() {
-            return Err("no SR-GCN model given (an ensemble needs at least one member)".into());
+            return Err(GcnError::Unusable(
+                "no SR-GCN model given (an ensemble needs at least one member)".into(),
+            ));
         }
         if models.iter().any(|m| m.config.diagnostic_truth_neighbours) {
-            return Err("the SR-GCN model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak, a diagnostic): it needs the ground truth and cannot register".into());
+            return Err(GcnError::Unusable("the SR-GCN model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak, a diagnostic): it needs the ground truth and cannot register".into()));
         }
-        let frame = CaseFrame::new(mesh).map_err(|e| e.to_string())?;
+        let frame = CaseFrame::new(mesh)?;
         let members = models
             .into_iter()
             .map(|model| {
-                let graphs = frame
-                    .mesh_graphs(&model.config, &crate::gcn::device::compute())
-                    .map_err(|e| e.to_string())?;
+                let graphs = frame.mesh_graphs(&model.config, &crate::gcn::device::compute())?;
                 Ok(Member { model, graphs })
             })
-            .collect::<Result<Vec<_>, String>>()?;
+            .collect::<Result<Vec<_>, GcnError>>()?;
         Ok(Self {
             members,
             frame,
@@ -112,7 +112,7 @@ impl LibrPlusCase {
         meas: &Measurements,
         u: &[f64],
         transform: &Rigid,
-    ) -> Result<(Vec<f64>, f64), String> {
+    ) -> Result<(Vec<f64>, f64), GcnError> {
         let mut network_s = 0.0;
         let mut sum = vec![0.0; u.len()];
         // Members whose configurations build the same sample share it.
@@ -131,21 +131,19 @@ impl LibrPlusCase {
                     meas,
                     u,
                     transform,
-                )
-                .map_err(|e| e.to_string())?;
+                )?;
                 built = Some((k, sample));
             }
             let sample = &built.as_ref().expect("built above").1;
             let t1 = Instant::now();
-            let out =
-                correct(&m.model, &self.frame, &m.graphs, sample, u).map_err(|e| e.to_string())?;
+            let out = correct(&m.model, &self.frame, &m.graphs, sample, u)?;
             network_s += t1.elapsed().as_secs_f64();
             if out.iter().any(|x| !x.is_finite()) {
-                return Err(if self.members.len() == 1 {
+                return Err(GcnError::NonFinite(if self.members.len() == 1 {
                     "the network's correction is not finite".into()
                 } else {
                     format!("ensemble member {}: its correction is not finite", k + 1)
-                });
+                }));
             }
             for (s, x) in sum.iter_mut().zip(&out) {
                 *s += x;

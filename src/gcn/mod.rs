@@ -26,6 +26,25 @@ pub enum GcnError {
     /// Invalid input: shapes, ranges, kernel settings.
     #[error("invalid input: {0}")]
     Invalid(String),
+    /// The stiffness behind the load input could not be assembled (a degenerate tet).
+    #[error("the load input's stiffness: {0}")]
+    LoadStiffness(crate::fem::FemError),
+    /// The model cannot serve this use (an empty ensemble, a diagnostic network that needs the
+    /// ground truth).
+    #[error("{0}")]
+    Unusable(String),
+    /// The network's correction came out non-finite.
+    #[error("{0}")]
+    NonFinite(String),
+    /// A model directory or weights file is unreadable or of another format.
+    #[error("{0}")]
+    ModelFile(String),
+    /// The compute device is not available in this build or on this machine.
+    #[error("{0}")]
+    Device(String),
+    /// Matching the measurements to the model (building a sample) failed.
+    #[error(transparent)]
+    Register(#[from] crate::register::RegisterError),
     /// A node index outside `0..num_nodes`.
     #[error("edge {edge}: node index {index} out of range for {num_nodes} nodes")]
     IndexOutOfRange {

@@ -15,7 +15,7 @@ use super::graph::Graph;
 use super::model::{BipartiteInput, CoarseLevel, MeshGraphs, SrGcnConfig, Target};
 use super::sparse::{Csr, SparseOp};
 use super::{GcnError, SplineGraph, cartesian_pseudo, mesh_graph};
-use crate::fem::{LameField, StiffnessSystem};
+use crate::fem::{FemError, LameField, StiffnessSystem};
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::Measurements;
@@ -39,7 +39,7 @@ pub struct CaseFrame {
     pub surface: Vec<f32>,
     /// The unit-modulus stiffness of the preoperative mesh and its mean edge length (mm), built
     /// on first use by [`SrGcnConfig::load_input`].
-    stiffness: std::sync::Arc<std::sync::OnceLock<Result<(StiffnessSystem, f64), String>>>,
+    stiffness: std::sync::Arc<std::sync::OnceLock<Result<(StiffnessSystem, f64), FemError>>>,
 }
 
 impl CaseFrame {
@@ -125,11 +125,12 @@ impl CaseFrame {
         let built = self.stiffness.get_or_init(|| {
             let (mu, nu) = (1.0, 0.45);
             let lambda = 2.0 * mu * nu / (1.0 - 2.0 * nu);
-            let k = StiffnessSystem::linear_field(mesh, &LameField::Uniform(lambda, mu))
-                .map_err(|e| format!("the load input's stiffness: {e}"))?;
+            let k = StiffnessSystem::linear_field(mesh, &LameField::Uniform(lambda, mu))?;
             Ok((k, self.mean_edge_mm(mesh)))
         });
-        let (k, h) = built.as_ref().map_err(|e| GcnError::Invalid(e.clone()))?;
+        let (k, h) = built
+            .as_ref()
+            .map_err(|e| GcnError::LoadStiffness(e.clone()))?;
         if u.len() != k.dofs() {
             return Err(GcnError::Invalid(format!(
                 "u has {} values, the stiffness {} unknowns",
@@ -437,9 +438,7 @@ impl SampleData {
         };
         // Sparse loss: the model point matched to each measured point on the LIBR-deformed model.
         let unit = frame.unit_mm();
-        let (matches, _) = correspondence
-            .match_points(&points, meas, Some(u), cparams)
-            .map_err(GcnError::Invalid)?;
+        let (matches, _) = correspondence.match_points(&points, meas, Some(u), cparams)?;
         let mut trip = Vec::new();
         let mut sparse_target = Vec::with_capacity(3 * matches.len());
         for (row, m) in matches.iter().enumerate() {

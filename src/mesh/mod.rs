@@ -17,7 +17,7 @@ mod tet_mesh;
 pub mod tetra;
 pub(crate) mod vec3;
 
-pub use surface::{SurfaceStats, TriSurface};
+pub use surface::{SurfaceError, SurfaceStats, TriSurface};
 pub use tet_mesh::{
     BoundarySurface, DEGENERATE_REL, MeshError, NodeAdjacency, TetMesh, longest_edge,
 };

@@ -22,8 +22,8 @@
 //! Every per-triangle computation takes the corners in vertex-index order, with the orientation as a
 //! ±1 factor, so a surface and its flipped copy give bit-identical distances and signs.
 
-use super::TriSurface;
 use super::vec3::{add, cross, dot, norm, scale, sub};
+use super::{SurfaceError, TriSurface};
 
 /// Most triangles a leaf of [`TriangleBvh`] holds.
 pub const LEAF_SIZE: usize = 4;
@@ -403,22 +403,21 @@ pub struct SignedDistance {
 impl SignedDistance {
     /// Prepares the signed distance of a closed (every edge in exactly two triangles), consistently
     /// oriented surface; inward-facing surfaces are handled by flipping the orientation.
-    pub fn new(surface: &TriSurface) -> Result<Self, String> {
+    pub fn new(surface: &TriSurface) -> Result<Self, SurfaceError> {
         let stats = surface.stats();
         if stats.triangles == 0 {
-            return Err("the surface has no triangles".into());
+            return Err(SurfaceError::Empty);
         }
         if !stats.closed {
-            return Err(format!(
-                "the surface is not closed: {} edges have one triangle and {} have more than two",
-                stats.boundary_edges, stats.nonmanifold_edges
-            ));
+            return Err(SurfaceError::NotClosed {
+                boundary_edges: stats.boundary_edges,
+                nonmanifold_edges: stats.nonmanifold_edges,
+            });
         }
         if !stats.consistently_oriented {
-            return Err(format!(
-                "the surface is not consistently oriented: {} edges are traversed the same way by both triangles",
-                stats.misoriented_edges
-            ));
+            return Err(SurfaceError::Misoriented {
+                misoriented_edges: stats.misoriented_edges,
+            });
         }
         let orientation = if stats.signed_volume_mm3 < 0.0 {
             -1.0
@@ -728,13 +727,18 @@ mod tests {
         let mut tris = c.triangles().to_vec();
         tris.pop();
         let open = TriSurface::new(c.nodes().to_vec(), tris).unwrap();
-        assert!(
-            SignedDistance::new(&open)
-                .unwrap_err()
-                .contains("not closed")
-        );
+        assert!(matches!(
+            SignedDistance::new(&open),
+            Err(SurfaceError::NotClosed {
+                boundary_edges: 3,
+                nonmanifold_edges: 0
+            })
+        ));
         let empty = TriSurface::new(vec![], vec![]).unwrap();
-        assert!(SignedDistance::new(&empty).is_err());
+        assert!(matches!(
+            SignedDistance::new(&empty),
+            Err(SurfaceError::Empty)
+        ));
         assert!(TriangleBvh::new(&empty).closest([0.0; 3], None).is_none());
     }
 }

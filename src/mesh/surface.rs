@@ -42,22 +42,74 @@ pub struct SurfaceStats {
     pub area_mm2: f64,
 }
 
+/// A problem with a triangle surface; each names the vertex or triangle and what a usable surface
+/// needs.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SurfaceError {
+    /// A vertex coordinate is NaN or infinite.
+    #[error("vertex {vertex} has a non-finite coordinate {position:?}")]
+    NonFiniteVertex {
+        /// Vertex index.
+        vertex: usize,
+        /// Its coordinates.
+        position: [f64; 3],
+    },
+    /// A triangle refers to a vertex that does not exist.
+    #[error(
+        "triangle {triangle} refers to vertex {vertex}, but the surface has only {vertices} vertices"
+    )]
+    IndexOutOfRange {
+        /// Triangle index.
+        triangle: usize,
+        /// The bad vertex index.
+        vertex: u32,
+        /// Vertex count.
+        vertices: usize,
+    },
+    /// The surface has no triangles.
+    #[error("the surface has no triangles")]
+    Empty,
+    /// The surface does not enclose a volume.
+    #[error(
+        "the surface is not closed: {boundary_edges} edges have one triangle and {nonmanifold_edges} have more than two; a liver surface must enclose a volume"
+    )]
+    NotClosed {
+        /// Edges with one triangle.
+        boundary_edges: usize,
+        /// Edges with more than two triangles.
+        nonmanifold_edges: usize,
+    },
+    /// Neighbouring triangles disagree on orientation.
+    #[error(
+        "the surface is not consistently oriented: {misoriented_edges} edges are traversed the same way by both triangles"
+    )]
+    Misoriented {
+        /// Edges traversed the same way by both of their triangles.
+        misoriented_edges: usize,
+    },
+}
+
 impl TriSurface {
     /// Builds a surface after checking indices and coordinates.
-    pub fn new(nodes: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>) -> Result<Self, String> {
+    pub fn new(nodes: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>) -> Result<Self, SurfaceError> {
         if let Some((i, p)) = nodes
             .iter()
             .enumerate()
             .find(|(_, p)| p.iter().any(|c| !c.is_finite()))
         {
-            return Err(format!("vertex {i} has a non-finite coordinate {p:?}"));
+            return Err(SurfaceError::NonFiniteVertex {
+                vertex: i,
+                position: *p,
+            });
         }
         let n = nodes.len();
         for (t, tri) in triangles.iter().enumerate() {
             if let Some(&v) = tri.iter().find(|&&v| v as usize >= n) {
-                return Err(format!(
-                    "triangle {t} refers to vertex {v}, but the surface has only {n} vertices"
-                ));
+                return Err(SurfaceError::IndexOutOfRange {
+                    triangle: t,
+                    vertex: v,
+                    vertices: n,
+                });
             }
         }
         Ok(Self { nodes, triangles })
@@ -69,7 +121,7 @@ impl TriSurface {
     }
 
     /// Surface from a file's nodes and triangles.
-    pub fn from_file(file: &MeshFile) -> Result<Self, String> {
+    pub fn from_file(file: &MeshFile) -> Result<Self, SurfaceError> {
         Self::new(file.nodes.clone(), file.triangles.clone())
     }
 
@@ -195,13 +247,17 @@ impl TriSurface {
 
     /// A liver surface ready for meshing: the [`largest_component`](Self::largest_component),
     /// oriented outward. Errors when that piece is not closed (it must enclose a volume).
-    pub fn largest_closed_outward(&self) -> Result<TriSurface, String> {
+    pub fn largest_closed_outward(&self) -> Result<TriSurface, SurfaceError> {
         let mut surface = self.largest_component();
-        if !surface.stats().closed {
-            return Err(
-                "the surface (largest piece) is not closed; a liver surface must enclose a volume"
-                    .into(),
-            );
+        let stats = surface.stats();
+        if stats.triangles == 0 {
+            return Err(SurfaceError::Empty);
+        }
+        if !stats.closed {
+            return Err(SurfaceError::NotClosed {
+                boundary_edges: stats.boundary_edges,
+                nonmanifold_edges: stats.nonmanifold_edges,
+            });
         }
         if surface.signed_volume() < 0.0 {
             surface.flip();

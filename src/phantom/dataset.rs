@@ -10,6 +10,7 @@
 //! converge is recorded in the manifest's `failed` list and redrawn with the next seed, never
 //! written as ground truth.
 
+use super::PhantomError;
 use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
 use super::patterns::{Pattern, PatternParams, load_case};
 use super::shape::{ShapeVariantParams, variant};
@@ -248,15 +249,14 @@ fn plan(config: &GenerateConfig) -> (Vec<GeometryPlan>, Vec<DeformationPlan>) {
     (geometries, deformations)
 }
 
-fn write_mesh_file(path: &Path, file: &MeshFile) -> Result<(), String> {
-    let format = io::Format::from_path(path).map_err(|e| e.to_string())?;
-    let bytes =
-        io::write_bytes(file, format, Default::default(), path).map_err(|e| e.to_string())?;
-    crate::util::write_atomic(path, &bytes)
+fn write_mesh_file(path: &Path, file: &MeshFile) -> Result<(), PhantomError> {
+    let format = io::Format::from_path(path)?;
+    let bytes = io::write_bytes(file, format, Default::default(), path)?;
+    Ok(crate::util::write_atomic(path, &bytes)?)
 }
 
-fn json_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, String> {
-    let mut s = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
+fn json_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, PhantomError> {
+    let mut s = serde_json::to_string_pretty(value)?;
     s.push('\n');
     Ok(s.into_bytes())
 }
@@ -265,14 +265,14 @@ fn build_geometry(
     config: &GenerateConfig,
     surfaces: &[TriSurface],
     g: &GeometryPlan,
-) -> Result<Built, String> {
+) -> Result<Built, PhantomError> {
     let base = &surfaces[g.source];
     let surface = match g.variant_seed {
         Some(s) => variant(base, &config.shape, s)?.0,
         None => base.clone(),
     };
     let mesh = tetrahedralize(&surface, &TetraParams::with_edge(config.edge_mm))
-        .map_err(|e| format!("{}: meshing failed: {e}", g.id))?;
+        .map_err(|e| PhantomError::within(format!("{}: meshing failed", g.id), e))?;
     let labels = label(
         &mesh,
         &LabelParams {
@@ -280,7 +280,7 @@ fn build_geometry(
             ..config.labels
         },
     )
-    .map_err(|e| format!("{}: labelling failed: {e}", g.id))?;
+    .map_err(|e| PhantomError::within(format!("{}: labelling failed", g.id), e))?;
     let vessels = VesselTree::grow(
         &mesh,
         &VesselParams {
@@ -288,9 +288,9 @@ fn build_geometry(
             ..config.vessels
         },
     )
-    .map_err(|e| format!("{}: vessel tree: {e}", g.id))?;
+    .map_err(|e| PhantomError::within(format!("{}: vessel tree", g.id), e))?;
     let tissue = Tissue::build(&mesh, &vessels, &config.tissue, derive(g.seed, &[5]))
-        .map_err(|e| format!("{}: tissue: {e}", g.id))?;
+        .map_err(|e| PhantomError::within(format!("{}: tissue", g.id), e))?;
     let lame = tissue.lame_field();
     Ok(Built {
         mesh,
@@ -332,7 +332,7 @@ fn geometry_entry(config: &GenerateConfig, g: &GeometryPlan, b: &Built) -> Geome
     }
 }
 
-fn write_geometry(dir: &Path, entry: &GeometryEntry, b: &Built) -> Result<(), String> {
+fn write_geometry(dir: &Path, entry: &GeometryEntry, b: &Built) -> Result<(), PhantomError> {
     let mut file = b.mesh.to_file();
     file.point_data = b.labels.to_point_data();
     file.point_data.push(DataArray::new(
@@ -371,7 +371,11 @@ fn rigid_matrix(r: &Rigid) -> [f64; 16] {
 }
 
 /// The npz arrays of a deformation's scenarios (documented in docs/dataset-and-models.md).
-fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Vec<u8>, String> {
+fn scenarios_npz(
+    mesh: &TetMesh,
+    u: &[f64],
+    scenarios: &[Scenario],
+) -> Result<Vec<u8>, PhantomError> {
     let s = scenarios.len();
     let total: usize = scenarios.iter().map(|c| c.points.len()).sum();
     let planes: usize = scenarios.iter().map(|c| c.planes.len()).sum();
@@ -380,7 +384,9 @@ fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Ve
         .iter()
         .any(|c| c.landmark_nodes.len() != landmarks)
     {
-        return Err("scenarios have different numbers of landmarks".into());
+        return Err(PhantomError::Inconsistent(
+            "scenarios have different numbers of landmarks".into(),
+        ));
     }
     let mut offsets = vec![0i64];
     let mut plane_offsets = vec![0i64];
@@ -467,7 +473,7 @@ fn scenarios_npz(mesh: &TetMesh, u: &[f64], scenarios: &[Scenario]) -> Result<Ve
         NpyArray::points("plane_normal", &plane_data[3]),
     ];
     debug_assert_eq!(planes, plane_data[0].len());
-    write_npz(&arrays)
+    Ok(write_npz(&arrays)?)
 }
 
 /// What a run did.
@@ -497,31 +503,35 @@ pub fn generate(
     dir: &Path,
     shard: (usize, usize),
     progress: Progress<'_>,
-) -> Result<RunReport, String> {
+) -> Result<RunReport, PhantomError> {
     if surfaces.is_empty() || surfaces.len() != config.sources.len() {
-        return Err("need at least one source surface (and one name per surface)".into());
-    }
-    if shard.1 == 0 || shard.0 >= shard.1 {
-        return Err(format!(
-            "shard {}/{} is invalid: need 0 ≤ i < N",
-            shard.0, shard.1
+        return Err(PhantomError::Parameter(
+            "need at least one source surface (and one name per surface)".into(),
         ));
     }
+    if shard.1 == 0 || shard.0 >= shard.1 {
+        return Err(PhantomError::Parameter(format!(
+            "shard {}/{} is invalid: need 0 ≤ i < N",
+            shard.0, shard.1
+        )));
+    }
     if config.geometries == 0 || config.scenarios == 0 {
-        return Err("need at least one geometry and one scenario per deformation".into());
+        return Err(PhantomError::Parameter(
+            "need at least one geometry and one scenario per deformation".into(),
+        ));
     }
     config.measure.validate()?;
-    let parameters = serde_json::to_value(config).map_err(|e| e.to_string())?;
+    let parameters = serde_json::to_value(config)?;
     let hash = fnv1a_hex(parameters.to_string().as_bytes());
     // A directory holding another dataset is refused rather than mixed.
     if let Ok(old) = crate::dataset::read_manifest(dir)
         && old.parameters_hash != hash
     {
-        return Err(format!(
+        return Err(PhantomError::Parameter(format!(
             "{} already holds a dataset generated with other parameters (hash {} ≠ {hash}); use another --out",
             dir.display(),
             old.parameters_hash
-        ));
+        )));
     }
     let (geo_plan, def_plan) = plan(config);
     let built: Vec<Built> = geo_plan
@@ -552,7 +562,7 @@ pub fn generate(
     let done = std::sync::atomic::AtomicUsize::new(0);
     let total = mine.len();
     progress(0, total, "solving ground truth");
-    type Outcome = (String, Result<(bool, f64), String>, Vec<FailedEntry>);
+    type Outcome = (String, Result<(bool, f64), PhantomError>, Vec<FailedEntry>);
     let outcomes: Vec<Outcome> = mine
         .par_iter()
         .map(|d| {
@@ -645,7 +655,7 @@ fn make_deformation(
     d: &DeformationPlan,
     b: &Built,
     failed: &mut Vec<FailedEntry>,
-) -> Result<(), String> {
+) -> Result<(), PhantomError> {
     let mut last_error = String::new();
     for attempt in 0..config.attempts.max(1) {
         let seed = if attempt == 0 {
@@ -656,7 +666,7 @@ fn make_deformation(
         let case = load_case(&b.mesh, &b.labels, d.pattern, &config.patterns, seed)?;
         let (lam, mu) = config.tissue.parenchyma.lame();
         let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
-            .map_err(|e| format!("linear comparison: {e}"))?;
+            .map_err(|e| PhantomError::within("linear comparison", e))?;
         let solved = match config.truth {
             TruthModel::Nonlinear => solve_truth(&b.mesh, &b.lame, &case, &config.newton),
             // The control: the linear solution is the truth (no Newton; every bed spring acts).
@@ -693,7 +703,7 @@ fn make_deformation(
                     &config.measure,
                     derive(seed, &[7, scenario_stream(k, config.paired_categories)]),
                 )
-                .map_err(|e| format!("scenario {k}: {e}"))
+                .map_err(|e| PhantomError::within(format!("scenario {k}"), e))
             })
             .collect::<Result<_, _>>()?;
         let base = format!("deformations/{}", d.id);
@@ -754,13 +764,13 @@ fn make_deformation(
             scenarios: entries,
         };
         // Written last: its presence marks the deformation complete.
-        return crate::util::write_atomic(
+        return Ok(crate::util::write_atomic(
             &dir.join(format!("{base}/deformation.json")),
             &json_bytes(&entry)?,
-        );
+        )?);
     }
-    Err(format!(
+    Err(PhantomError::Inconsistent(format!(
         "no convergence in {} draws (last: {last_error})",
         config.attempts.max(1)
-    ))
+    )))
 }

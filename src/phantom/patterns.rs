@@ -22,6 +22,7 @@
 //!
 //! Loads are dead loads on the reference configuration (see `fem::hyperelastic`).
 
+use super::PhantomError;
 use crate::fem::{ContactSpring, Dirichlet, NodeSpring, loads};
 use crate::mesh::{TetMesh, TriSurface};
 use crate::register::anatomy::{AnatomyLabels, Region};
@@ -138,7 +139,7 @@ pub fn gaussian_patch(
     sigma: f64,
     dir: [f64; 3],
     force: f64,
-) -> Result<(usize, f64), String> {
+) -> Result<(usize, f64), PhantomError> {
     let patch: Vec<[u32; 3]> = triangles
         .iter()
         .copied()
@@ -156,7 +157,9 @@ pub fn gaussian_patch(
         .map(|f| f[0] * dir[0] + f[1] * dir[1] + f[2] * dir[2])
         .sum::<f64>();
     if total <= 0.0 {
-        return Err("the packing patch has no area".into());
+        return Err(PhantomError::Geometry(
+            "the packing patch has no area".into(),
+        ));
     }
     for (l, u) in load.iter_mut().zip(&unit_load) {
         *l += u * force / total;
@@ -204,18 +207,18 @@ pub fn load_case(
     pattern: Pattern,
     params: &PatternParams,
     seed: u64,
-) -> Result<LoadCase, String> {
+) -> Result<LoadCase, PhantomError> {
     let n = mesh.num_nodes();
     let nodes = mesh.nodes();
-    let boundary = mesh.boundary().map_err(|e| e.to_string())?;
+    let boundary = mesh.boundary()?;
     let surface = TriSurface::new(nodes.to_vec(), boundary.triangles.clone())?;
     let normals = surface.vertex_normals();
     let area = node_areas(nodes, &boundary.triangles, n);
     if !(params.load_scale >= 0.0 && params.load_scale.is_finite()) {
-        return Err(format!(
+        return Err(PhantomError::Geometry(format!(
             "load_scale must be finite and ≥ 0, got {}",
             params.load_scale
-        ));
+        )));
     }
     let mut rng = SplitMix64::new(seed ^ (pattern as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
@@ -253,7 +256,9 @@ pub fn load_case(
         }
     }
     if !labels.bare_area.iter().any(|&b| b) {
-        return Err("the mesh has no bare-area nodes to support it".into());
+        return Err(PhantomError::Geometry(
+            "the mesh has no bare-area nodes to support it".into(),
+        ));
     }
     let mut load = vec![0.0; 3 * n];
     let mut gravity = vec![0.0; 3 * n];
@@ -278,7 +283,9 @@ pub fn load_case(
                 ridge
             };
             if cands.is_empty() {
-                return Err("no left-lobe surface to retract".into());
+                return Err(PhantomError::Geometry(
+                    "no left-lobe surface to retract".into(),
+                ));
             }
             let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
             let radius = uniform(30.0, 50.0);
@@ -321,7 +328,9 @@ pub fn load_case(
                 .filter(|&i| nodes[i as usize][0] < x_f && nodes[i as usize][2] < centroid_z)
                 .collect();
             if cands.is_empty() {
-                return Err("no right-lobe posterior-inferior surface to pack".into());
+                return Err(PhantomError::Geometry(
+                    "no right-lobe posterior-inferior surface to pack".into(),
+                ));
             }
             let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
             // A pack of total force F (mN) pressing over a soft-edged patch.
@@ -370,7 +379,9 @@ pub fn load_case(
                 .filter(|&v| !labels.bare_area[v as usize])
                 .collect();
             if cands.is_empty() {
-                return Err("no surface off the bare area to load".into());
+                return Err(PhantomError::Geometry(
+                    "no surface off the bare area to load".into(),
+                ));
             }
             let loads_text = if uniform(0.0, 1.0) < 0.5 {
                 let packs = 1 + (uniform(0.0, 3.0) as usize).min(2);
@@ -417,7 +428,9 @@ pub fn load_case(
                     })
                     .collect();
                 if cap.is_empty() {
-                    return Err("the random cap has no triangles".into());
+                    return Err(PhantomError::Geometry(
+                        "the random cap has no triangles".into(),
+                    ));
                 }
                 let p = ls * uniform(0.2, 1.2);
                 loads::add_pressure(&mut load, nodes, &cap, p);

@@ -8,6 +8,7 @@
 //! makes `φ` a diffeomorphism: the variant is again a closed, consistently oriented surface with no
 //! self-intersection, and anatomy drawn on the original maps onto it.
 
+use super::PhantomError;
 use crate::mesh::TriSurface;
 use crate::util::SplitMix64;
 
@@ -51,28 +52,28 @@ impl ShapeMap {
         surface: &TriSurface,
         params: &ShapeVariantParams,
         seed: u64,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, PhantomError> {
         if !(params.max_gradient > 0.0 && params.max_gradient < 1.0) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "max_gradient must be in (0, 1), got {}",
                 params.max_gradient
-            ));
+            )));
         }
         if !(params.width_fraction > 0.0 && params.width_fraction.is_finite()) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "width_fraction must be > 0, got {}",
                 params.width_fraction
-            ));
+            )));
         }
         if !(0.0..0.5).contains(&params.scale_jitter) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "scale_jitter must be in [0, 0.5), got {}",
                 params.scale_jitter
-            ));
+            )));
         }
         let used = surface.used_vertices();
         if used.is_empty() {
-            return Err("surface has no triangles".into());
+            return Err(PhantomError::Parameter("surface has no triangles".into()));
         }
         let (lo, hi) = surface.bounding_box();
         let mut centroid = [0.0; 3];
@@ -168,7 +169,7 @@ pub fn variant(
     surface: &TriSurface,
     params: &ShapeVariantParams,
     seed: u64,
-) -> Result<(TriSurface, ShapeMap), String> {
+) -> Result<(TriSurface, ShapeMap), PhantomError> {
     let map = ShapeMap::random(surface, params, seed)?;
     let nodes = surface.nodes().iter().map(|&p| map.apply(p)).collect();
     let moved = TriSurface::new(nodes, surface.triangles().to_vec())?;

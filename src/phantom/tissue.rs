@@ -11,6 +11,7 @@
 //! Poisson's ratio is the same everywhere. The per-tet label (0 parenchyma, 1 vessel, 2 tumour) and
 //! the modulus are exported as cell data.
 
+use super::PhantomError;
 use super::vessels::VesselTree;
 use crate::fem::{LameField, LinearMaterial};
 use crate::mesh::io::DataArray;
@@ -111,7 +112,7 @@ impl Tissue {
         vessels: &VesselTree,
         params: &TissueParams,
         seed: u64,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, PhantomError> {
         params.parenchyma.validate()?;
         let ranges = [
             ("vessel_factor", params.vessel_factor),
@@ -120,17 +121,21 @@ impl Tissue {
         ];
         for (name, r) in ranges {
             if !(r[0] > 0.0 && r[0] <= r[1] && r[1].is_finite()) {
-                return Err(format!("{name} must be a range 0 < lo ≤ hi, got {r:?}"));
+                return Err(PhantomError::Parameter(format!(
+                    "{name} must be a range 0 < lo ≤ hi, got {r:?}"
+                )));
             }
         }
         if params.tumours[0] > params.tumours[1] {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "tumours must be a range lo ≤ hi, got {:?}",
                 params.tumours
-            ));
+            )));
         }
         if !(params.parenchyma_log_std >= 0.0 && params.correlation_mm > 0.0) {
-            return Err("parenchyma_log_std must be ≥ 0 and correlation_mm > 0".into());
+            return Err(PhantomError::Parameter(
+                "parenchyma_log_std must be ≥ 0 and correlation_mm > 0".into(),
+            ));
         }
         let mut rng = SplitMix64::new(seed ^ 0x7155_0E00_0000_0003);
         let uniform = |lo: f64, hi: f64, rng: &mut SplitMix64| lo + (hi - lo) * rng.next_f64();
@@ -160,7 +165,7 @@ impl Tissue {
         };
         let vessel_factor = uniform(params.vessel_factor[0], params.vessel_factor[1], &mut rng);
         // Tumours: rejection sampling of centres deep enough, not overlapping each other.
-        let boundary = mesh.boundary().map_err(|e| e.to_string())?;
+        let boundary = mesh.boundary()?;
         let surface = TriSurface::new(mesh.nodes().to_vec(), boundary.triangles)?;
         let sd = SignedDistance::new(&surface)?;
         let count = params.tumours[0] + rng.below(params.tumours[1] - params.tumours[0] + 1);
@@ -194,13 +199,13 @@ impl Tissue {
             });
         }
         if tumours.len() < params.tumours[0] {
-            return Err(format!(
+            return Err(PhantomError::Geometry(format!(
                 "could place only {} of {} tumours inside the liver (radius {:?} mm, margin {} mm)",
                 tumours.len(),
                 params.tumours[0],
                 params.tumour_radius_mm,
                 params.margin_mm
-            ));
+            )));
         }
         let in_vessel = vessels.tets_inside(mesh);
         let e0 = params.parenchyma.youngs_modulus_kpa;

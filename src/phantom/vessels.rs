@@ -9,6 +9,7 @@
 //! Tets whose centroid lies inside a vessel tube get their Young's modulus multiplied by
 //! `stiffness_factor` (vessel walls and blood-filled vessels are stiffer than parenchyma).
 
+use super::PhantomError;
 use crate::fem::{LameField, LinearMaterial};
 use crate::mesh::spatial::SignedDistance;
 use crate::mesh::{TetMesh, TriSurface};
@@ -113,17 +114,19 @@ pub use crate::mesh::spatial::point_segment_distance;
 
 impl VesselTree {
     /// Grows a tree inside the liver mesh (LPS frame).
-    pub fn grow(mesh: &TetMesh, params: &VesselParams) -> Result<Self, String> {
+    pub fn grow(mesh: &TetMesh, params: &VesselParams) -> Result<Self, PhantomError> {
         if !(params.radius_ratio > 0.0 && params.radius_ratio < 1.0) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "radius_ratio must be in (0, 1), got {}",
                 params.radius_ratio
-            ));
+            )));
         }
         if !(params.min_radius_mm > 0.0 && params.root_radius_mm >= params.min_radius_mm) {
-            return Err("need 0 < min_radius_mm ≤ root_radius_mm".into());
+            return Err(PhantomError::Parameter(
+                "need 0 < min_radius_mm ≤ root_radius_mm".into(),
+            ));
         }
-        let boundary = mesh.boundary().map_err(|e| e.to_string())?;
+        let boundary = mesh.boundary()?;
         let surface = TriSurface::new(mesh.nodes().to_vec(), boundary.triangles)?;
         let sd = SignedDistance::new(&surface)?;
         let (lo, hi) = mesh.bounding_box();
@@ -145,11 +148,14 @@ impl VesselTree {
         };
         // Portal tree from the hilum (posterior-inferior quarter); hepatic-vein tree from near the
         // vena cava (posterior-superior quarter), both heading for the liver's centre.
-        let mut roots =
-            vec![deepest(&|p| p[1] > centre[1] && p[2] < centre[2]).ok_or("mesh has no nodes")?];
+        let mut roots = vec![
+            deepest(&|p| p[1] > centre[1] && p[2] < centre[2])
+                .ok_or_else(|| PhantomError::Geometry("mesh has no nodes".into()))?,
+        ];
         if params.hepatic_tree {
             roots.push(
-                deepest(&|p| p[1] > centre[1] && p[2] > centre[2]).ok_or("mesh has no nodes")?,
+                deepest(&|p| p[1] > centre[1] && p[2] > centre[2])
+                    .ok_or_else(|| PhantomError::Geometry("mesh has no nodes".into()))?,
             );
         }
         let mut rng = SplitMix64::new(params.seed ^ 0x0E55_E150_0000_0001);

@@ -11,10 +11,45 @@ use crate::register::correspondence::{
 };
 use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
-use crate::register::{Measurements, PreopModel};
+use crate::register::{Measurements, PreopModel, RegisterError};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+/// Why a case could not be prepared or a registration did not run, by stage.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// The case's correspondence structures or LIBR basis could not be built.
+    #[error(transparent)]
+    Case(RegisterError),
+    /// The case's SR-GCN could not be prepared for its mesh.
+    #[error(transparent)]
+    Model(crate::gcn::GcnError),
+    /// The measurements were refused, or the rigid stage (wICP) could not run.
+    #[error(transparent)]
+    Rigid(RegisterError),
+    /// The rigid stage found the points degenerate (one spot, a line): LIBR cannot run.
+    #[error("the rigid stage found the data degenerate ({reason}); LIBR needs spread-out points")]
+    Degenerate {
+        /// What the rigid stage found.
+        reason: String,
+    },
+    /// LIBR could not run on these data.
+    #[error(transparent)]
+    Libr(RegisterError),
+    /// LIBR+'s data-consistency refit could not run.
+    #[error(transparent)]
+    Refit(RegisterError),
+    /// LIBR or LIBR+ was asked of a case prepared without a LIBR basis.
+    #[error("the case was prepared without a LIBR basis")]
+    NoBasis,
+    /// LIBR+ was asked of a case without an SR-GCN model.
+    #[error("the case has no SR-GCN model: LIBR+ needs one (use LIBR)")]
+    NoModel,
+    /// The refit was asked with no iterations.
+    #[error("refit_iterations is 0")]
+    NoRefitIterations,
+}
 
 /// Registration method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -103,16 +138,20 @@ impl Prepared {
         model: PreopModel,
         libr: Option<&LibrParams>,
         cache_dir: Option<&Path>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, PipelineError> {
         let t0 = Instant::now();
-        let correspondence = Correspondence::new(&model)?;
+        let correspondence = Correspondence::new(&model).map_err(PipelineError::Case)?;
         let (basis, basis_from_cache) = match (libr, cache_dir) {
             (None, _) => (None, false),
             (Some(p), Some(dir)) => {
-                let (b, cached) = LibrBasis::load_or_build(&model.mesh, p, dir)?;
+                let (b, cached) =
+                    LibrBasis::load_or_build(&model.mesh, p, dir).map_err(PipelineError::Case)?;
                 (Some(b), cached)
             }
-            (Some(p), None) => (Some(LibrBasis::build(&model.mesh, p)?), false),
+            (Some(p), None) => (
+                Some(LibrBasis::build(&model.mesh, p).map_err(PipelineError::Case)?),
+                false,
+            ),
         };
         Ok(Self {
             model,
@@ -125,15 +164,16 @@ impl Prepared {
     }
 
     /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
-    pub fn with_model(self, model: Arc<TrainedModel>) -> Result<Self, String> {
+    pub fn with_model(self, model: Arc<TrainedModel>) -> Result<Self, PipelineError> {
         self.with_models(vec![model])
     }
 
     /// Adds an ensemble of trained SR-GCNs (their corrections averaged; one member is a single
     /// model) so the case answers [`Method::LibrPlus`].
-    pub fn with_models(mut self, models: Vec<Arc<TrainedModel>>) -> Result<Self, String> {
+    pub fn with_models(mut self, models: Vec<Arc<TrainedModel>>) -> Result<Self, PipelineError> {
         let t0 = Instant::now();
-        self.librplus = Some(LibrPlusCase::new(models, &self.model.mesh)?);
+        self.librplus =
+            Some(LibrPlusCase::new(models, &self.model.mesh).map_err(PipelineError::Model)?);
         self.seconds += crate::util::secs(t0);
         Ok(self)
     }
@@ -174,13 +214,10 @@ pub fn refit(
     u_start: &[f64],
     transform: &Rigid,
     deadline: Option<Instant>,
-) -> Result<libr::LibrSolution, String> {
-    let basis = case
-        .basis
-        .as_ref()
-        .ok_or("the case was prepared without a LIBR basis")?;
+) -> Result<libr::LibrSolution, PipelineError> {
+    let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
     if params.refit_iterations == 0 {
-        return Err("refit_iterations is 0".into());
+        return Err(PipelineError::NoRefitIterations);
     }
     let lp = LibrParams {
         max_iterations: params.refit_iterations,
@@ -206,6 +243,7 @@ pub fn refit(
                 .map(|(m, _)| m)
         },
     )
+    .map_err(PipelineError::Refit)
 }
 
 /// What a registration returns.
@@ -233,10 +271,11 @@ pub fn register(
     meas: &Measurements,
     method: Method,
     params: &PipelineParams,
-) -> Result<Registration, String> {
+) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
-    validate_measurements(meas)?;
-    let rigid = wicp(&case.model, &case.correspondence, meas, &params.wicp)?;
+    validate_measurements(meas).map_err(PipelineError::Rigid)?;
+    let rigid = wicp(&case.model, &case.correspondence, meas, &params.wicp)
+        .map_err(PipelineError::Rigid)?;
     let n = case.model.mesh.num_nodes();
     if method == Method::Rigid {
         return Ok(Registration {
@@ -250,20 +289,13 @@ pub fn register(
         });
     }
     if let Some(reason) = &rigid.degenerate {
-        return Err(format!(
-            "the rigid stage found the data degenerate ({reason}); LIBR needs spread-out points"
-        ));
+        return Err(PipelineError::Degenerate {
+            reason: reason.clone(),
+        });
     }
-    let basis = case
-        .basis
-        .as_ref()
-        .ok_or("the case was prepared without a LIBR basis")?;
+    let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
     let gcn = match method {
-        Method::LibrPlus => Some(
-            case.librplus
-                .as_ref()
-                .ok_or("the case has no SR-GCN model: LIBR+ needs one (use LIBR)")?,
-        ),
+        Method::LibrPlus => Some(case.librplus.as_ref().ok_or(PipelineError::NoModel)?),
         _ => None,
     };
     // LIBR+ leaves the correction its expected time before the deadline.
@@ -293,7 +325,8 @@ pub fn register(
             corr.match_points(&pts, meas, Some(u), cparams)
                 .map(|(m, _)| m)
         },
-    )?;
+    )
+    .map_err(PipelineError::Libr)?;
     let mut u = sol.u;
     let mut image_to_physical = sol.image_to_physical;
     let correction = gcn.map(|g| {
@@ -334,7 +367,7 @@ pub fn register(
                     image_to_physical = r.image_to_physical;
                     (Some(r.info), None)
                 }
-                Err(e) => (None, Some(e)),
+                Err(e) => (None, Some(e.to_string())),
             }
         } else {
             (None, None)

@@ -20,6 +20,7 @@
 //! These are geometric stand-ins for what a clinician would mark; they are deterministic and only
 //! need the mesh to be in LPS.
 
+use super::RegisterError;
 use crate::mesh::io::DataArray;
 use crate::mesh::spatial::TriangleBvh;
 use crate::mesh::{TetMesh, TriSurface};
@@ -153,9 +154,9 @@ impl AnatomyLabels {
 }
 
 /// Labels a liver mesh given in LPS.
-pub fn label(mesh: &TetMesh, params: &LabelParams) -> Result<AnatomyLabels, String> {
+pub fn label(mesh: &TetMesh, params: &LabelParams) -> Result<AnatomyLabels, RegisterError> {
     let n = mesh.num_nodes();
-    let boundary = mesh.boundary().map_err(|e| e.to_string())?;
+    let boundary = mesh.boundary()?;
     let surface = TriSurface::new(mesh.nodes().to_vec(), boundary.triangles.clone())?;
     let normals = surface.vertex_normals();
     let mut region = vec![Region::Interior; n];

@@ -31,6 +31,7 @@
 //!
 //! Surgery code: this module never sees how the ground truth was made (no `phantom`).
 
+use super::RegisterError;
 use super::{Match, MeasuredKind, Measurements, PreopModel};
 use crate::mesh::io::MeshFile;
 use crate::mesh::locate::TetLocator;
@@ -77,7 +78,7 @@ impl Default for CorrespondenceParams {
 
 impl CorrespondenceParams {
     /// Checks that every weight and distance is finite and non-negative (and the cap positive).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), RegisterError> {
         for (name, v) in [
             ("surface_weight", self.surface_weight),
             ("contour_weight", self.contour_weight),
@@ -89,13 +90,15 @@ impl CorrespondenceParams {
             ("max_distance_mm", self.max_distance_mm),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!(
+                return Err(RegisterError::Parameter(format!(
                     "correspondence parameter {name} must be finite and ≥ 0, got {v}"
-                ));
+                )));
             }
         }
         if self.max_distance_mm <= 0.0 {
-            return Err("correspondence parameter max_distance_mm must be > 0".into());
+            return Err(RegisterError::Parameter(
+                "correspondence parameter max_distance_mm must be > 0".into(),
+            ));
         }
         Ok(())
     }
@@ -167,39 +170,41 @@ impl TargetSet {
 /// Checks the measurements: at least one point, `kind` (and `feature` when given) as long as
 /// `points`, finite coordinates, feature codes 0–2, a finite initial alignment. The error names the
 /// field and the index.
-pub fn validate_measurements(meas: &Measurements) -> Result<(), String> {
+pub fn validate_measurements(meas: &Measurements) -> Result<(), RegisterError> {
     if meas.points.is_empty() {
-        return Err("measurements.points is empty: nothing to register".into());
+        return Err(RegisterError::Measurements(
+            "measurements.points is empty: nothing to register".into(),
+        ));
     }
     let n = meas.points.len();
     if meas.kind.len() != n {
-        return Err(format!(
+        return Err(RegisterError::Measurements(format!(
             "measurements.kind has {} entries, measurements.points has {n}",
             meas.kind.len()
-        ));
+        )));
     }
     if !meas.feature.is_empty() && meas.feature.len() != n {
-        return Err(format!(
+        return Err(RegisterError::Measurements(format!(
             "measurements.feature has {} entries, measurements.points has {n} (leave it empty when \
              there are no designations)",
             meas.feature.len()
-        ));
+        )));
     }
     if let Some(i) = meas
         .points
         .iter()
         .position(|p| p.iter().any(|c| !c.is_finite()))
     {
-        return Err(format!(
+        return Err(RegisterError::Measurements(format!(
             "measurements.points[{i}] is not finite: {:?}",
             meas.points[i]
-        ));
+        )));
     }
     if let Some(i) = meas.feature.iter().position(|&f| f > 2) {
-        return Err(format!(
+        return Err(RegisterError::Measurements(format!(
             "measurements.feature[{i}] is {}, expected 0 (none), 1 (falciform) or 2 (inferior ridge)",
             meas.feature[i]
-        ));
+        )));
     }
     if let Some(t) = &meas.initial_alignment {
         if t.rotation
@@ -208,7 +213,9 @@ pub fn validate_measurements(meas: &Measurements) -> Result<(), String> {
             .chain(&t.translation)
             .any(|c| !c.is_finite())
         {
-            return Err("measurements.initial_alignment is not finite".into());
+            return Err(RegisterError::Measurements(
+                "measurements.initial_alignment is not finite".into(),
+            ));
         }
         // A rotation: RᵀR = I to a loose tolerance.
         let r = &t.rotation;
@@ -217,10 +224,10 @@ pub fn validate_measurements(meas: &Measurements) -> Result<(), String> {
                 let rtr: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
                 let want = if i == j { 1.0 } else { 0.0 };
                 if (rtr - want).abs() > 1e-6 {
-                    return Err(format!(
+                    return Err(RegisterError::Measurements(format!(
                         "measurements.initial_alignment.rotation is not a rotation (RᵀR[{i}][{j}] \
                          = {rtr})"
-                    ));
+                    )));
                 }
             }
         }
@@ -231,11 +238,13 @@ pub fn validate_measurements(meas: &Measurements) -> Result<(), String> {
 impl Correspondence {
     /// Builds the target sets of `model`. Fails when the flags do not have one entry per node, the
     /// mesh has no boundary, or a vessel point or segment is invalid.
-    pub fn new(model: &PreopModel) -> Result<Self, String> {
+    pub fn new(model: &PreopModel) -> Result<Self, RegisterError> {
         let mesh = &model.mesh;
         let n = mesh.num_nodes();
         if n == 0 || mesh.num_tets() == 0 {
-            return Err("preoperative model: the mesh is empty".into());
+            return Err(RegisterError::Model(
+                "preoperative model: the mesh is empty".into(),
+            ));
         }
         for (name, len) in [
             ("anterior", model.anterior.len()),
@@ -244,9 +253,9 @@ impl Correspondence {
             ("inferior_ridge", model.inferior_ridge.len()),
         ] {
             if len != n {
-                return Err(format!(
+                return Err(RegisterError::Model(format!(
                     "preoperative model: {name} has {len} entries, the mesh has {n} nodes"
-                ));
+                )));
             }
         }
         if let Some(i) = model
@@ -254,9 +263,9 @@ impl Correspondence {
             .iter()
             .position(|p| p.iter().any(|c| !c.is_finite()))
         {
-            return Err(format!(
+            return Err(RegisterError::Model(format!(
                 "preoperative model: vessel point {i} is not finite"
-            ));
+            )));
         }
         if let Some((k, s)) = model
             .vessel_segments
@@ -264,14 +273,16 @@ impl Correspondence {
             .enumerate()
             .find(|(_, s)| s.iter().any(|&i| i as usize >= model.vessel_points.len()))
         {
-            return Err(format!(
+            return Err(RegisterError::Model(format!(
                 "preoperative model: vessel segment {k} {s:?} refers past the {} vessel points",
                 model.vessel_points.len()
-            ));
+            )));
         }
-        let boundary = mesh
-            .boundary()
-            .map_err(|e| format!("preoperative model: cannot take the mesh boundary: {e}"))?;
+        let boundary = mesh.boundary().map_err(|e| {
+            RegisterError::Model(format!(
+                "preoperative model: cannot take the mesh boundary: {e}"
+            ))
+        })?;
         let nodes = mesh.nodes().to_vec();
         let tris = boundary.triangles;
         let all_of = |flags: &[bool]| -> Vec<u32> {
@@ -395,33 +406,38 @@ impl Correspondence {
         meas: &Measurements,
         u: Option<&[f64]>,
         params: &CorrespondenceParams,
-    ) -> Result<(Vec<Match>, MatchStats), String> {
+    ) -> Result<(Vec<Match>, MatchStats), RegisterError> {
         validate_measurements(meas)?;
         params.validate()?;
         if points_image.len() != meas.points.len() {
-            return Err(format!(
+            return Err(RegisterError::Inconsistent(format!(
                 "points_image has {} points, measurements.points has {}",
                 points_image.len(),
                 meas.points.len()
-            ));
+            )));
         }
         if let Some(i) = points_image
             .iter()
             .position(|p| p.iter().any(|c| !c.is_finite()))
         {
-            return Err(format!("points_image[{i}] is not finite"));
+            return Err(RegisterError::Inconsistent(format!(
+                "points_image[{i}] is not finite"
+            )));
         }
         let n = self.nodes.len();
         if let Some(u) = u {
             if u.len() != 3 * n {
-                return Err(format!(
+                return Err(RegisterError::Inconsistent(format!(
                     "displacement has {} values, the model has {n} nodes and needs {}",
                     u.len(),
                     3 * n
-                ));
+                )));
             }
             if let Some(i) = u.iter().position(|v| !v.is_finite()) {
-                return Err(format!("displacement of node {} is not finite", i / 3));
+                return Err(RegisterError::Inconsistent(format!(
+                    "displacement of node {} is not finite",
+                    i / 3
+                )));
             }
         }
         let deformed: Option<Vec<[f64; 3]>> = u.map(|u| {
@@ -686,21 +702,27 @@ fn triangle_barycentric(q: [f64; 3], p: [[f64; 3]; 3]) -> [f64; 3] {
 /// — 0 interior, 1 anterior, 2 posterior — and, when present, `falciform` and `inferior_ridge`
 /// 0/1 flags) and its `vessels.vtp` (centerline points with a `parent` array, −1 for roots; an
 /// empty file means no vessels). Errors name the file role, array and index.
-pub fn preop_model_from_file(file: &MeshFile, vessels: &MeshFile) -> Result<PreopModel, String> {
-    let mesh = TetMesh::from_file(file).map_err(|e| format!("preop mesh: {e}"))?;
+pub fn preop_model_from_file(
+    file: &MeshFile,
+    vessels: &MeshFile,
+) -> Result<PreopModel, RegisterError> {
+    let mesh =
+        TetMesh::from_file(file).map_err(|e| RegisterError::Model(format!("preop mesh: {e}")))?;
     let n = mesh.num_nodes();
-    let array = |name: &str, required: bool| -> Result<Option<Vec<f64>>, String> {
+    let array = |name: &str, required: bool| -> Result<Option<Vec<f64>>, RegisterError> {
         match file.point_array(name) {
-            None if required => Err(format!("preop mesh: point array '{name}' is missing")),
+            None if required => Err(RegisterError::Model(format!(
+                "preop mesh: point array '{name}' is missing"
+            ))),
             None => Ok(None),
             Some(a) => {
                 if a.components != 1 || a.values.len() != n {
-                    return Err(format!(
+                    return Err(RegisterError::Model(format!(
                         "preop mesh: point array '{name}' has {} values in {} components, \
                          expected one per node ({n})",
                         a.values.len(),
                         a.components
-                    ));
+                    )));
                 }
                 Ok(Some(a.values.clone()))
             }
@@ -711,20 +733,20 @@ pub fn preop_model_from_file(file: &MeshFile, vessels: &MeshFile) -> Result<Preo
         .iter()
         .position(|&r| !(r == 0.0 || r == 1.0 || r == 2.0))
     {
-        return Err(format!(
+        return Err(RegisterError::Model(format!(
             "preop mesh: region[{i}] is {}, expected 0 (interior), 1 (anterior) or 2 (posterior)",
             region[i]
-        ));
+        )));
     }
-    let flags = |name: &str| -> Result<Vec<bool>, String> {
+    let flags = |name: &str| -> Result<Vec<bool>, RegisterError> {
         let Some(v) = array(name, false)? else {
             return Ok(vec![false; n]);
         };
         if let Some(i) = v.iter().position(|&x| !(x == 0.0 || x == 1.0)) {
-            return Err(format!(
+            return Err(RegisterError::Model(format!(
                 "preop mesh: {name}[{i}] is {}, expected 0 or 1",
                 v[i]
-            ));
+            )));
         }
         Ok(v.iter().map(|&x| x == 1.0).collect())
     };
@@ -735,19 +757,21 @@ pub fn preop_model_from_file(file: &MeshFile, vessels: &MeshFile) -> Result<Preo
         .iter()
         .position(|p| p.iter().any(|c| !c.is_finite()))
     {
-        return Err(format!("vessels: point {i} is not finite"));
+        return Err(RegisterError::Model(format!(
+            "vessels: point {i} is not finite"
+        )));
     }
     let mut vessel_segments = Vec::new();
     if !vessel_points.is_empty() {
-        let parent = vessels
-            .point_array("parent")
-            .ok_or("vessels: point array 'parent' is missing")?;
+        let parent = vessels.point_array("parent").ok_or_else(|| {
+            RegisterError::Model("vessels: point array 'parent' is missing".into())
+        })?;
         if parent.components != 1 || parent.values.len() != vessel_points.len() {
-            return Err(format!(
+            return Err(RegisterError::Model(format!(
                 "vessels: point array 'parent' has {} values, expected one per point ({})",
                 parent.values.len(),
                 vessel_points.len()
-            ));
+            )));
         }
         for (i, &p) in parent.values.iter().enumerate() {
             if p == -1.0 {
@@ -756,11 +780,11 @@ pub fn preop_model_from_file(file: &MeshFile, vessels: &MeshFile) -> Result<Preo
             if !(p >= 0.0 && p.fract() == 0.0 && (p as usize) < vessel_points.len())
                 || p as usize == i
             {
-                return Err(format!(
+                return Err(RegisterError::Model(format!(
                     "vessels: parent[{i}] is {p}, expected −1 or the index of another of the {} \
                      points",
                     vessel_points.len()
-                ));
+                )));
             }
             vessel_segments.push([p as u32, i as u32]);
         }

@@ -14,8 +14,11 @@
 
 pub mod anatomy;
 pub mod correspondence;
+mod error;
 pub mod libr;
 pub mod wicp;
+
+pub use error::RegisterError;
 
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;

@@ -16,6 +16,7 @@
 //! flagged `degenerate` with the transform left where it was (all points on one spot, collinear
 //! points, fewer than three pairs left, a rank-deficient fit) — never NaN.
 
+use super::RegisterError;
 use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector3};
@@ -103,22 +104,22 @@ pub fn wicp(
     corr: &Correspondence,
     meas: &Measurements,
     params: &WicpParams,
-) -> Result<WicpResult, String> {
+) -> Result<WicpResult, RegisterError> {
     let clock = Instant::now();
     validate_measurements(meas)?;
     params.correspondence.validate()?;
     if !(params.tolerance_mm.is_finite() && params.tolerance_mm >= 0.0) {
-        return Err(format!(
+        return Err(RegisterError::Parameter(format!(
             "wicp parameter tolerance_mm must be finite and ≥ 0, got {}",
             params.tolerance_mm
-        ));
+        )));
     }
     if corr.num_nodes() != model.mesh.num_nodes() {
-        return Err(format!(
+        return Err(RegisterError::Inconsistent(format!(
             "the correspondence was built for {} nodes, the model has {}",
             corr.num_nodes(),
             model.mesh.num_nodes()
-        ));
+        )));
     }
     // Clements' data: the anterior-surface points alone, when asked and there are enough.
     let mut warnings = Vec::new();
@@ -169,13 +170,13 @@ pub fn wicp(
         let worst = (0..npts)
             .max_by(|&a, &b| dist[a].total_cmp(&dist[b]))
             .unwrap_or(0);
-        return Err(format!(
-            "{} of {npts} measured points are more than {cap} mm from the model after the initial \
-             alignment (measurements.points[{worst}] is {:.0} mm away): wrong units, wrong frame or \
-             a wrong initial alignment?",
-            far.len(),
-            dist[worst]
-        ));
+        return Err(RegisterError::FarFromModel {
+            far: far.len(),
+            total: npts,
+            cap_mm: cap,
+            worst,
+            worst_mm: dist[worst],
+        });
     }
     if !far.is_empty() {
         warnings.push(format!(

@@ -41,7 +41,7 @@ fn run(cli: Cli) -> Result<()> {
     let device: librplus::gcn::device::ComputeDevice = cli
         .device
         .parse()
-        .map_err(|e: String| anyhow::anyhow!("--device: {e}"))?;
+        .map_err(|e: librplus::gcn::GcnError| anyhow::anyhow!("--device: {e}"))?;
     librplus::gcn::device::select(device).map_err(|e| anyhow::anyhow!("--device: {e}"))?;
     match cli.command {
         Command::Mesh(MeshCmd::Info { file, common }) => mesh_info(&file, &common),

@@ -79,7 +79,7 @@ fn prepare_case(
     params: &librplus::pipeline::PipelineParams,
     cache: &Path,
     gcn: Option<Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>>,
-) -> std::result::Result<librplus::pipeline::Prepared, String> {
+) -> std::result::Result<librplus::pipeline::Prepared, librplus::pipeline::PipelineError> {
     use librplus::pipeline::{Method, Prepared};
     let case = Prepared::new(
         preop,

@@ -1,6 +1,7 @@
 //! Weight averaging of a network's parameters over training (an exponential moving average
 //! after a warm-up).
 
+use crate::eval::EvalError;
 use crate::gcn::model::SrGcn;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::Tensor;
@@ -56,11 +57,11 @@ pub struct WeightAverage {
 
 impl WeightAverage {
     /// An average with `decay` per step, in [0, 1).
-    pub fn new(decay: f64) -> Result<Self, String> {
+    pub fn new(decay: f64) -> Result<Self, EvalError> {
         if !(0.0..1.0).contains(&decay) {
-            return Err(format!(
+            return Err(EvalError::Parameter(format!(
                 "weight-average decay must be in [0, 1), got {decay}"
-            ));
+            )));
         }
         Ok(Self {
             net: None,
@@ -70,7 +71,7 @@ impl WeightAverage {
     }
 
     /// Takes the weights after a step (a plain-device copy, `SrGcn::valid`).
-    pub fn update(&mut self, net: SrGcn) -> Result<(), String> {
+    pub fn update(&mut self, net: SrGcn) -> Result<(), EvalError> {
         self.steps += 1;
         self.net = Some(match self.net.take() {
             None => net,
@@ -85,7 +86,9 @@ impl WeightAverage {
                 };
                 let out = avg.map(&mut blend);
                 if blend.mismatch || blend.towards.next().is_some() {
-                    return Err("internal: the averaged network's parameters differ".into());
+                    return Err(EvalError::Internal(
+                        "internal: the averaged network's parameters differ".into(),
+                    ));
                 }
                 out
             }

@@ -3,6 +3,7 @@
 
 use crate::dataset::Manifest;
 use crate::dataset::read::{GeometryData, ScenarioData, load_geometry};
+use crate::eval::EvalError;
 use crate::gcn::sample::CaseFrame;
 use crate::mesh::rigid::Rigid;
 use crate::pipeline::{Method, PipelineParams, Prepared, register};
@@ -100,7 +101,7 @@ pub fn load_cases(
     m: &Manifest,
     geometries: &[String],
     params: &PipelineParams,
-) -> Result<BTreeMap<String, GeometryCase>, String> {
+) -> Result<BTreeMap<String, GeometryCase>, EvalError> {
     let mut out = BTreeMap::new();
     for g in geometries {
         if out.contains_key(g) {
@@ -112,7 +113,7 @@ pub fn load_cases(
             Some(&params.libr),
             Some(&dir.join("cache")),
         )?;
-        let frame = CaseFrame::new(&geo.model.mesh).map_err(|e| e.to_string())?;
+        let frame = CaseFrame::new(&geo.model.mesh)?;
         out.insert(g.clone(), GeometryCase { geo, case, frame });
     }
     Ok(out)
@@ -126,7 +127,7 @@ pub fn libr_solutions(
     scenarios: &[(&ScenarioData, &str)],
     params: &PipelineParams,
     progress: &(dyn Fn(usize, usize) + Sync),
-) -> Result<Vec<Option<LibrSolution>>, String> {
+) -> Result<Vec<Option<LibrSolution>>, EvalError> {
     let root = dir
         .join("cache")
         .join("libr-solutions")
@@ -138,7 +139,7 @@ pub fn libr_solutions(
         .map(|(sc, geometry)| {
             let gc = cases
                 .get(*geometry)
-                .ok_or_else(|| format!("no case for geometry {geometry}"))?;
+                .ok_or_else(|| EvalError::Internal(format!("no case for geometry {geometry}")))?;
             let n3 = 3 * gc.geo.model.mesh.num_nodes();
             let path = root.join(format!("{}.bin", sc.id.replace('/', "__")));
             let cached = std::fs::read(&path)

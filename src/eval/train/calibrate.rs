@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::dataset::read::ScenarioData;
+use crate::eval::EvalError;
 use crate::gcn::infer::{apply_prediction, predict};
 use crate::gcn::io::TrainedModel;
 use crate::gcn::model::{SrGcnConfig, Target};
@@ -27,19 +28,25 @@ pub fn fit_refit_scale(
     items: &[(&ScenarioData, &str, &Option<LibrSolution>)],
     params: &PipelineParams,
     grid: &[f64],
-) -> Result<(f64, Vec<f64>), String> {
+) -> Result<(f64, Vec<f64>), EvalError> {
     if model.config.target != Target::Residual {
-        return Err("only a residual model's correction has a scale".into());
+        return Err(EvalError::Parameter(
+            "only a residual model's correction has a scale".into(),
+        ));
     }
     if params.refit_iterations == 0 {
-        return Err("refit_iterations is 0: nothing to refit".into());
+        return Err(EvalError::Parameter(
+            "refit_iterations is 0: nothing to refit".into(),
+        ));
     }
     if grid.is_empty()
         || grid
             .iter()
             .any(|a| !(a.is_finite() && (0.0..=2.0).contains(a)))
     {
-        return Err("the scale grid must be non-empty, in [0, 2]".into());
+        return Err(EvalError::Parameter(
+            "the scale grid must be non-empty, in [0, 2]".into(),
+        ));
     }
     let unit_model = TrainedModel {
         config: SrGcnConfig {
@@ -52,12 +59,7 @@ pub fn fit_refit_scale(
     let plain = crate::gcn::device::compute();
     let mut graphs = BTreeMap::new();
     for (g, gc) in cases {
-        graphs.insert(
-            g.clone(),
-            gc.frame
-                .mesh_graphs(&unit_model.config, &plain)
-                .map_err(|e| e.to_string())?,
-        );
+        graphs.insert(g.clone(), gc.frame.mesh_graphs(&unit_model.config, &plain)?);
     }
     // Validation samples carry no truth, except for the paper's leak (a diagnostic).
     let leak = unit_model.config.diagnostic_truth_neighbours;
@@ -69,10 +71,10 @@ pub fn fit_refit_scale(
             let (sol, sample) = (sol.as_ref()?, sample.as_ref()?);
             Some((sc, *g, sol, sample))
         })
-        .map(|(sc, g, sol, sample)| -> Result<Vec<f64>, String> {
+        .map(|(sc, g, sol, sample)| -> Result<Vec<f64>, EvalError> {
             let gc = &cases[g];
             let y = predict(&unit_model, &graphs[g], &sample.data)
-                .map_err(|e| format!("{}: {e}", sc.id))?;
+                .map_err(|e| EvalError::within(sc.id.clone(), e))?;
             let nodes = gc.geo.model.mesh.nodes();
             grid.iter()
                 .map(|&a| {
@@ -81,7 +83,7 @@ pub fn fit_refit_scale(
                         ..unit_model.config.clone()
                     };
                     let ua = apply_prediction(&config, &gc.frame, &sol.u, &y)
-                        .map_err(|e| format!("{}: {e}", sc.id))?;
+                        .map_err(|e| EvalError::within(sc.id.clone(), e))?;
                     let r = crate::pipeline::refit(
                         &gc.case,
                         &sc.measurements,
@@ -90,7 +92,7 @@ pub fn fit_refit_scale(
                         &sol.transform,
                         None,
                     )
-                    .map_err(|e| format!("{}: refit: {e}", sc.id))?;
+                    .map_err(|e| EvalError::within(format!("{}: refit", sc.id), e))?;
                     let e = crate::eval::node_errors_mm(
                         nodes,
                         (&r.image_to_physical, &r.u),
@@ -102,7 +104,9 @@ pub fn fit_refit_scale(
         })
         .collect::<Result<_, _>>()?;
     if per.is_empty() {
-        return Err("no validation scenario with a LIBR solution".into());
+        return Err(EvalError::Data(
+            "no validation scenario with a LIBR solution".into(),
+        ));
     }
     let mean: Vec<f64> = (0..grid.len())
         .map(|k| per.iter().map(|e| e[k]).sum::<f64>() / per.len() as f64)

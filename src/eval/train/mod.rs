@@ -40,6 +40,7 @@ pub use samples::{
 };
 
 use super::splits::shuffle;
+use crate::eval::EvalError;
 use crate::gcn::GcnError;
 use crate::gcn::io::{TrainedModel, save_model};
 use crate::gcn::model::{MeshGraphs, SrGcn, SrGcnConfig, Target};
@@ -199,66 +200,66 @@ pub fn train(
     out: &Path,
     provenance: &serde_json::Value,
     progress: &dyn Fn(u32, usize, usize, usize, f64),
-) -> Result<TrainReport, String> {
+) -> Result<TrainReport, EvalError> {
     let cfg = &opts.config;
-    cfg.validate().map_err(|e| e.to_string())?;
+    cfg.validate()?;
     if !(opts.weight_decay >= 0.0 && opts.weight_decay.is_finite()) {
-        return Err(format!(
+        return Err(EvalError::Data(format!(
             "weight_decay must be finite and ≥ 0, got {}",
             opts.weight_decay
-        ));
+        )));
     }
     if !(opts.position_jitter >= 0.0 && opts.position_jitter.is_finite()) {
-        return Err(format!(
+        return Err(EvalError::Data(format!(
             "position_jitter must be finite and ≥ 0, got {}",
             opts.position_jitter
-        ));
+        )));
     }
     if train.is_empty() || valid.is_empty() {
-        return Err("no training or no validation samples".into());
+        return Err(EvalError::Data(
+            "no training or no validation samples".into(),
+        ));
     }
-    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    std::fs::create_dir_all(out).map_err(crate::util::FileError::at("creating directory", out))?;
     let t0 = Instant::now();
     let plain = crate::gcn::device::compute();
     let device = plain.clone().autodiff();
     device.seed(opts.seed);
     let mut net = match &opts.init {
-        None => cfg.init(&device).map_err(|e| e.to_string())?,
+        None => cfg.init(&device)?,
         Some(dir) => {
-            let m = crate::gcn::io::load_model(dir, &device)
-                .map_err(|e| format!("initial model {}: {e}", dir.display()))?;
+            let m = crate::gcn::io::load_model(dir, &device).map_err(|e| {
+                EvalError::within(
+                    format!("initial model {}", dir.display()),
+                    GcnError::ModelFile(e),
+                )
+            })?;
             let (mut a, mut b) = (m.config.clone(), cfg.clone());
             a.correction_scale = 1.0;
             b.correction_scale = 1.0;
             if serde_json::to_value(&a).ok() != serde_json::to_value(&b).ok() {
-                return Err(format!(
+                return Err(EvalError::Training(format!(
                     "initial model {}: its network differs from the one asked for",
                     dir.display()
-                ));
+                )));
             }
             m.net
         }
     };
     let mut graphs: BTreeMap<String, (MeshGraphs, MeshGraphs)> = BTreeMap::new();
     for (g, gc) in cases {
-        let ad = gc
-            .frame
-            .mesh_graphs(cfg, &device)
-            .map_err(|e| e.to_string())?;
-        let pl = gc
-            .frame
-            .mesh_graphs(cfg, &plain)
-            .map_err(|e| e.to_string())?;
+        let ad = gc.frame.mesh_graphs(cfg, &device)?;
+        let pl = gc.frame.mesh_graphs(cfg, &plain)?;
         graphs.insert(g.clone(), (ad, pl));
     }
     // The refit modes of every geometry, when training through the refit.
     let mut modes: BTreeMap<String, (Tensor<2>, Tensor<2>)> = BTreeMap::new();
     if opts.refit_loss {
         if let Some(s) = train.iter().chain(valid).find(|s| s.refit.is_none()) {
-            return Err(format!(
+            return Err(EvalError::Training(format!(
                 "training through the refit needs every sample's linearised refit; a sample of {} has none",
                 s.geometry
-            ));
+            )));
         }
         for (g, gc) in cases {
             modes.insert(
@@ -277,7 +278,7 @@ pub fn train(
         let m = modes.get(&s.geometry)?;
         Some((s.refit.as_ref()?, if k == 0 { &m.0 } else { &m.1 }))
     }
-    let err = |e: GcnError| e.to_string();
+    let err = EvalError::from;
     // A training sample as the network sees it at step (stage, epoch, k): jittered when asked.
     fn seen<'a>(
         opts: &TrainOptions,
@@ -311,11 +312,11 @@ pub fn train(
                 let (_, bip) = seen(opts, &train[i].data, 1, epoch, k)
                     .tensors(cfg, &device)
                     .map_err(err)?;
-                let b = bip.ok_or("internal: no bipartite input")?;
+                let b = bip.ok_or_else(|| EvalError::Internal("no bipartite input".into()))?;
                 let o = net
                     .forward_bipartite(&b)
                     .map_err(err)?
-                    .ok_or("internal: no bipartite branch")?;
+                    .ok_or_else(|| EvalError::Internal("no bipartite branch".into()))?;
                 let loss = (o.reconstruction - b.features.clone())
                     .powi_scalar(2)
                     .mean();
@@ -329,8 +330,11 @@ pub fn train(
             let mut vsum = 0.0;
             for s in valid {
                 let (_, bip) = s.data.tensors(cfg, &plain).map_err(err)?;
-                let b = bip.ok_or("internal: no bipartite input")?;
-                let o = vnet.forward_bipartite(&b).map_err(err)?.ok_or("internal")?;
+                let b = bip.ok_or_else(|| EvalError::Internal("no bipartite input".into()))?;
+                let o = vnet
+                    .forward_bipartite(&b)
+                    .map_err(err)?
+                    .ok_or_else(|| EvalError::Internal("no output".into()))?;
                 vsum += (o.reconstruction - b.features)
                     .powi_scalar(2)
                     .mean()
@@ -377,7 +381,7 @@ pub fn train(
         vec![1.0]
     };
     // Validation node error at every candidate correction scale (the last is 1).
-    let validate = |vnet: &SrGcn| -> Result<Vec<f64>, String> {
+    let validate = |vnet: &SrGcn| -> Result<Vec<f64>, EvalError> {
         let mut verr = vec![0.0; grid.len()];
         for s in valid {
             let (_, y) = mesh_loss(
@@ -410,10 +414,10 @@ pub fn train(
         best = best_err[grid.len() - 1];
     }
     if !(opts.average_epochs >= 0.0 && opts.average_epochs.is_finite()) {
-        return Err(format!(
+        return Err(EvalError::Training(format!(
             "average_epochs must be finite and ≥ 0, got {}",
             opts.average_epochs
-        ));
+        )));
     }
     let mut average = if opts.average_epochs > 0.0 {
         let steps = opts.average_epochs * order.len() as f64;
@@ -441,7 +445,9 @@ pub fn train(
             .map_err(err)?;
             let l: f64 = loss.clone().into_scalar::<f32>() as f64;
             if !l.is_finite() {
-                return Err(format!("stage 2, epoch {epoch}: the loss is not finite"));
+                return Err(EvalError::Training(format!(
+                    "stage 2, epoch {epoch}: the loss is not finite"
+                )));
             }
             sum += l;
             if opts.schedule == Schedule::Cosine {
@@ -485,7 +491,7 @@ pub fn train(
             let mut prov = provenance.clone();
             prov["checkpoint"] =
                 serde_json::json!({"stage": 2, "epoch": epoch, "valid_node_error_mm": v});
-            save_model(out, cfg, &best_net, prov)?;
+            save_model(out, cfg, &best_net, prov).map_err(GcnError::ModelFile)?;
         } else if opts.schedule == Schedule::Plateau {
             stall += 1;
             lr *= 0.5;
@@ -613,14 +619,15 @@ mod tests {
     fn the_weight_average_refuses_a_bad_decay_or_another_network() {
         for d in [1.0, -0.1, f64::NAN] {
             let e = WeightAverage::new(d).err().unwrap();
-            assert!(e.contains("decay"), "{e}");
+            assert!(matches!(e, EvalError::Parameter(_)), "{e}");
+            assert!(e.to_string().contains("decay"), "{e}");
         }
         let mut avg = WeightAverage::new(0.5).unwrap();
         avg.update(net(1)).unwrap();
         let device = Device::flex();
         let other = SrGcnConfig::new().with_width(4).init(&device).unwrap();
         let e = avg.update(other).err().unwrap();
-        assert!(e.contains("differ"), "{e}");
+        assert!(e.to_string().contains("differ"), "{e}");
     }
 
     #[test]
@@ -653,7 +660,7 @@ mod tests {
                     Ok(_) => panic!("{field} {x} accepted"),
                     Err(e) => e,
                 };
-                assert!(err.contains(field), "{field} {x}: {err}");
+                assert!(err.to_string().contains(field), "{field} {x}: {err}");
             }
         }
     }

@@ -3,10 +3,12 @@
 
 use super::*;
 use crate::dataset::read::ScenarioData;
+use crate::eval::EvalError;
 use crate::gcn::GcnError;
 use crate::gcn::model::{SrGcnConfig, Target};
 use crate::gcn::sample::{CaseFrame, SampleData};
 use crate::mesh::rigid::Rigid;
+use crate::pipeline::PipelineError;
 use crate::pipeline::PipelineParams;
 use crate::register::libr;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -43,12 +45,8 @@ pub fn refit_loss_data(
     meas: &crate::register::Measurements,
     sol: &LibrSolution,
     params: &PipelineParams,
-) -> Result<RefitLoss, String> {
-    let basis = gc
-        .case
-        .basis
-        .as_ref()
-        .ok_or("the case was prepared without a LIBR basis")?;
+) -> Result<RefitLoss, EvalError> {
+    let basis = gc.case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
     let inv = sol.transform.inverse();
     let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
     let (matches, _) =
@@ -68,20 +66,15 @@ pub fn refit_loss_data(
     let trip: Vec<(usize, usize, f32)> = lin.d.iter().map(|&(r, c, v)| (r, c, v as f32)).collect();
     let unit = gc.frame.unit_mm();
     Ok(RefitLoss {
-        d: crate::gcn::sparse::Csr::from_triplets(lin.rows, 3 * mesh.num_nodes(), &trip)
-            .map_err(|e| e.to_string())?,
+        d: crate::gcn::sparse::Csr::from_triplets(lin.rows, 3 * mesh.num_nodes(), &trip)?,
         gain: lin.gain.iter().map(|&x| x as f32).collect(),
         step0: lin.step0.iter().map(|&x| (x / unit) as f32).collect(),
     })
 }
 
 /// The geometry's refit modes `G` (`[3V, p]`) on a device.
-pub(super) fn refit_modes(gc: &GeometryCase, device: &Device) -> Result<Tensor<2>, String> {
-    let basis = gc
-        .case
-        .basis
-        .as_ref()
-        .ok_or("the case was prepared without a LIBR basis")?;
+pub(super) fn refit_modes(gc: &GeometryCase, device: &Device) -> Result<Tensor<2>, EvalError> {
+    let basis = gc.case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
     let g = libr::LinearRefit::modes(basis, &gc.geo.model.mesh, gc.frame.center);
     let p = basis.columns() + 6;
     let rows = g.len() / p;
@@ -101,16 +94,15 @@ pub fn answer_through_refit(
     gc: &GeometryCase,
     r: &RefitLoss,
     y: &[f32],
-) -> Result<Vec<f32>, String> {
+) -> Result<Vec<f32>, EvalError> {
     let device = crate::gcn::device::compute();
     let g = refit_modes(gc, &device)?;
     let v = y.len() / 3;
-    through_refit(tensor2(y, v, &device), r, &g, &device)
-        .map_err(|e| e.to_string())?
+    through_refit(tensor2(y, v, &device), r, &g, &device)?
         .into_data()
         .convert::<f32>()
         .try_to_vec::<f32>()
-        .map_err(|e| format!("{e:?}"))
+        .map_err(|e| EvalError::Internal(format!("{e:?}")))
 }
 
 /// What the pipeline answers for the correction `y` (`[V, 3]`, output units) through the
@@ -145,7 +137,7 @@ pub fn build_samples(
     params: &PipelineParams,
     with_truth: bool,
     refit_loss: bool,
-) -> Result<Vec<Option<TrainingSample>>, String> {
+) -> Result<Vec<Option<TrainingSample>>, EvalError> {
     let cparams = final_cparams(params);
     items
         .par_iter()
@@ -164,7 +156,7 @@ pub fn build_samples(
                 &sol.transform,
                 truth.as_deref(),
             )
-            .map_err(|e| format!("{}: {e}", sc.id))?;
+            .map_err(|e| EvalError::within(sc.id.clone(), e))?;
             if let Some(t) = &truth {
                 data.target = Some(training_target(
                     cfg,
@@ -177,8 +169,9 @@ pub fn build_samples(
             }
             let refit = if refit_loss {
                 Some(
-                    refit_loss_data(gc, &sc.measurements, sol, params)
-                        .map_err(|e| format!("{}: linearised refit: {e}", sc.id))?,
+                    refit_loss_data(gc, &sc.measurements, sol, params).map_err(|e| {
+                        EvalError::within(format!("{}: linearised refit", sc.id), e)
+                    })?,
                 )
             } else {
                 None

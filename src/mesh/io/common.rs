@@ -5,6 +5,30 @@ use super::{DataArray, IoError, MeshFile};
 use std::fmt::Write as _;
 use std::path::Path;
 
+/// What is wrong with a token, a cell or a mesh about to be written, before the reader or writer
+/// adds the file and the line or byte offset (it becomes an [`IoError`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub(crate) struct Malformed(pub(crate) String);
+
+impl From<String> for Malformed {
+    fn from(m: String) -> Self {
+        Self(m)
+    }
+}
+
+impl From<&str> for Malformed {
+    fn from(m: &str) -> Self {
+        Self(m.to_string())
+    }
+}
+
+impl From<Malformed> for String {
+    fn from(m: Malformed) -> Self {
+        m.0
+    }
+}
+
 /// Builds an [`IoError::Line`].
 pub(super) fn line_err(path: &Path, line: usize, message: impl Into<String>) -> IoError {
     IoError::Line {
@@ -210,7 +234,7 @@ impl CellCollector {
 
     /// Adds a VTK cell by type id; types other than triangles, quads and tetrahedra are counted as
     /// skipped. Errors say what node count the type needs.
-    pub(super) fn add_vtk(&mut self, vtk_type: u8, n: &[u32], src: usize) -> Result<(), String> {
+    pub(super) fn add_vtk(&mut self, vtk_type: u8, n: &[u32], src: usize) -> Result<(), Malformed> {
         let need = match vtk_type {
             5 => 3,
             8..=10 => 4,
@@ -232,11 +256,11 @@ impl CellCollector {
             }
         };
         if n.len() != need {
-            return Err(format!(
+            return Err(Malformed(format!(
                 "cell {src} of type {vtk_type} ({}) has {} nodes, expected {need}",
                 vtk_type_name(vtk_type),
                 n.len()
-            ));
+            )));
         }
         match vtk_type {
             5 | 22 => self.tri([n[0], n[1], n[2]], src),
@@ -315,7 +339,10 @@ pub(super) fn gather(a: &DataArray, idx: &[usize]) -> Option<Vec<f64>> {
 }
 
 /// Splits a concatenation of ends-offsets and connectivity into cells, checking the offsets.
-pub(super) fn split_cells<'a>(offsets: &[f64], conn: &'a [u32]) -> Result<Vec<&'a [u32]>, String> {
+pub(super) fn split_cells<'a>(
+    offsets: &[f64],
+    conn: &'a [u32],
+) -> Result<Vec<&'a [u32]>, Malformed> {
     let mut cells = Vec::with_capacity(offsets.len());
     let mut start = 0usize;
     for (i, &o) in offsets.iter().enumerate() {
@@ -335,13 +362,15 @@ pub(super) fn split_cells<'a>(offsets: &[f64], conn: &'a [u32]) -> Result<Vec<&'
 }
 
 /// Converts connectivity values to node indices; the error names the first bad position.
-pub(super) fn to_indices(values: &[f64], what: &str) -> Result<Vec<u32>, String> {
+pub(super) fn to_indices(values: &[f64], what: &str) -> Result<Vec<u32>, Malformed> {
     values
         .iter()
         .enumerate()
         .map(|(i, &v)| {
             to_index(v).ok_or_else(|| {
-                format!("{what} value {i} is {v}; expected a non-negative integer node index")
+                Malformed(format!(
+                    "{what} value {i} is {v}; expected a non-negative integer node index"
+                ))
             })
         })
         .collect()
@@ -365,13 +394,13 @@ pub(super) fn triangle_normal(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> [f64; 3]
 }
 
 /// Error for surface-only formats asked to write a mesh that has only tetrahedra.
-pub(super) fn surface_only(file: &MeshFile, format: &str) -> Result<(), String> {
+pub(super) fn surface_only(file: &MeshFile, format: &str) -> Result<(), Malformed> {
     if file.triangles.is_empty() && !file.tets.is_empty() {
-        return Err(format!(
+        return Err(Malformed(format!(
             "{format} stores surfaces only, but the mesh has {} tetrahedra and no triangles; \
              extract the boundary surface first or write .vtu, .vtk or .msh",
             file.tets.len()
-        ));
+        )));
     }
     Ok(())
 }

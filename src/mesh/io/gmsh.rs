@@ -8,7 +8,7 @@
 //! every node (every kept cell); the last block of a name wins. Other sections (`$Entities`,
 //! `$PhysicalNames`, ...) are skipped. Binary `.msh` files are rejected with a clear message.
 
-use super::common::{capped, gather, line_err, parse_f64, push_f64, shown};
+use super::common::{Malformed, capped, gather, line_err, parse_f64, push_f64, shown};
 use super::{DataArray, IoError, MeshFile};
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -651,7 +651,7 @@ fn read_data(lines: &mut Lines, section: &str) -> Result<RawData, IoError> {
 
 /// Writes Gmsh v2.2 ASCII: nodes, tetrahedra (type 4), triangles (type 2), point data as
 /// `$NodeData`, and cell data as `$ElementData` when the mesh has only one kind of cell.
-pub(crate) fn write(file: &MeshFile) -> Result<Vec<u8>, String> {
+pub(crate) fn write(file: &MeshFile) -> Result<Vec<u8>, Malformed> {
     let mut o = String::with_capacity(
         60 * file.nodes.len() + 40 * (file.tets.len() + file.triangles.len()),
     );
@@ -710,14 +710,14 @@ fn push_xyz(o: &mut String, p: &[f64; 3]) {
 }
 
 /// Writes one data block whose tuples belong to tags `first`, `first + 1`, ...
-fn write_data(o: &mut String, section: &str, a: &DataArray, first: usize) -> Result<(), String> {
+fn write_data(o: &mut String, section: &str, a: &DataArray, first: usize) -> Result<(), Malformed> {
     if a.components == 0 || a.values.len() % a.components != 0 {
-        return Err(format!(
+        return Err(Malformed(format!(
             "data array '{}' has {} values, not a multiple of {} components",
             a.name,
             a.values.len(),
             a.components
-        ));
+        )));
     }
     let name = a.name.replace('"', "'");
     let _ = writeln!(

@@ -318,9 +318,9 @@ pub fn write_bytes(
         Format::Obj => obj::write(file, path),
         Format::Stl => stl::write(file, options, path),
     }
-    .map_err(|message| IoError::Content {
+    .map_err(|m| IoError::Content {
         path: path.to_path_buf(),
-        message,
+        message: m.into(),
     })
 }
 

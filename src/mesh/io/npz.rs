@@ -83,16 +83,52 @@ pub struct NpyArray {
     pub data: NpyData,
 }
 
+/// Why arrays could not be written to or read from `.npz` bytes.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NpzError {
+    /// An array's shape does not hold its number of values.
+    #[error("array {array}: shape {shape:?} holds {expected} values, got {got}")]
+    ShapeMismatch {
+        /// Array name.
+        array: String,
+        /// Its shape.
+        shape: Vec<usize>,
+        /// Values the shape holds ("overflow" when the product overflows).
+        expected: String,
+        /// Values given.
+        got: usize,
+    },
+    /// Two arrays share a name.
+    #[error("duplicate array name {0:?}: each array of an archive needs its own name")]
+    DuplicateName(String),
+    /// An array or the archive is over the 4 GiB ZIP limit (ZIP64 is not supported).
+    #[error("{0} is over 4 GiB (ZIP64 not supported)")]
+    TooLarge(String),
+    /// One `.npy` entry is not readable (header, dtype, order or data).
+    #[error("array {array}: {problem}")]
+    Npy {
+        /// Array name.
+        array: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// The ZIP container is not readable (truncated, corrupt, compressed, CRC mismatch).
+    #[error("not a readable .npz archive: {0}")]
+    Archive(String),
+}
+
 impl NpyArray {
     /// An array; checks that the shape matches the number of values.
-    pub fn new(name: impl Into<String>, shape: &[usize], data: NpyData) -> Result<Self, String> {
+    pub fn new(name: impl Into<String>, shape: &[usize], data: NpyData) -> Result<Self, NpzError> {
         let name = name.into();
         let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
         if count != Some(data.len()) {
-            return Err(format!(
-                "array {name}: shape {shape:?} holds {count:?} values, got {}",
-                data.len()
-            ));
+            return Err(NpzError::ShapeMismatch {
+                array: name,
+                shape: shape.to_vec(),
+                expected: count.map_or_else(|| "overflow".into(), |c| c.to_string()),
+                got: data.len(),
+            });
         }
         Ok(Self {
             name,
@@ -140,7 +176,7 @@ pub fn encode_npy(a: &NpyArray) -> Vec<u8> {
 }
 
 /// Writes arrays into `.npz` bytes (ZIP, stored). Fails on duplicate names or entries over 4 GiB.
-pub fn write_npz(arrays: &[NpyArray]) -> Result<Vec<u8>, String> {
+pub fn write_npz(arrays: &[NpyArray]) -> Result<Vec<u8>, NpzError> {
     let mut out = Vec::new();
     let mut central = Vec::new();
     let mut names = std::collections::HashSet::new();
@@ -148,14 +184,14 @@ pub fn write_npz(arrays: &[NpyArray]) -> Result<Vec<u8>, String> {
     const DOS_DATE: u16 = (1 << 5) | 1; // 1980-01-01
     for a in arrays {
         if !names.insert(a.name.clone()) {
-            return Err(format!("duplicate array name {:?}", a.name));
+            return Err(NpzError::DuplicateName(a.name.clone()));
         }
         let name = format!("{}.npy", a.name);
         let data = encode_npy(a);
         let size = u32::try_from(data.len())
-            .map_err(|_| format!("array {} is over 4 GiB (ZIP64 not supported)", a.name))?;
-        let offset = u32::try_from(out.len())
-            .map_err(|_| "archive over 4 GiB (ZIP64 not supported)".to_string())?;
+            .map_err(|_| NpzError::TooLarge(format!("array {}", a.name)))?;
+        let offset =
+            u32::try_from(out.len()).map_err(|_| NpzError::TooLarge("the archive".into()))?;
         let mut crc = Crc::new();
         crc.update(&data);
         let crc = crc.sum();
@@ -185,8 +221,9 @@ pub fn write_npz(arrays: &[NpyArray]) -> Result<Vec<u8>, String> {
         central.extend_from_slice(name.as_bytes());
     }
     let cd_offset =
-        u32::try_from(out.len()).map_err(|_| "archive over 4 GiB (ZIP64 not supported)")?;
-    let entries = u16::try_from(arrays.len()).map_err(|_| "more than 65535 arrays")?;
+        u32::try_from(out.len()).map_err(|_| NpzError::TooLarge("the archive".into()))?;
+    let entries = u16::try_from(arrays.len())
+        .map_err(|_| NpzError::TooLarge(format!("{} arrays (limit 65535)", arrays.len())))?;
     out.extend_from_slice(&central);
     out.extend_from_slice(&0x0605_4b50u32.to_le_bytes());
     out.extend_from_slice(&0u16.to_le_bytes());
@@ -199,34 +236,40 @@ pub fn write_npz(arrays: &[NpyArray]) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-fn u16_at(b: &[u8], i: usize) -> Result<u16, String> {
-    b.get(i..i + 2)
-        .map(|s| u16::from_le_bytes([s[0], s[1]]))
-        .ok_or_else(|| format!("archive truncated at byte {i}"))
+fn u16_at(b: &[u8], i: usize) -> Option<u16> {
+    b.get(i..i + 2).map(|s| u16::from_le_bytes([s[0], s[1]]))
 }
 
-fn u32_at(b: &[u8], i: usize) -> Result<u32, String> {
+fn u32_at(b: &[u8], i: usize) -> Option<u32> {
     b.get(i..i + 4)
         .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]))
-        .ok_or_else(|| format!("archive truncated at byte {i}"))
 }
 
 /// Decodes one `.npy` (format 1.0 or 2.0, C order, the dtypes of [`NpyData`]).
-pub fn decode_npy(name: &str, b: &[u8]) -> Result<NpyArray, String> {
-    let bad = |m: String| format!("array {name}: {m}");
+pub fn decode_npy(name: &str, b: &[u8]) -> Result<NpyArray, NpzError> {
+    let bad = |m: String| NpzError::Npy {
+        array: name.to_string(),
+        problem: m,
+    };
     if b.len() < 10 || &b[..6] != b"\x93NUMPY" {
         return Err(bad("not a .npy (magic \\x93NUMPY missing)".into()));
     }
     let (hlen, start) = match b[6] {
-        1 => (u16_at(b, 8).map_err(&bad)? as usize, 10),
-        2 | 3 => (u32_at(b, 8).map_err(&bad)? as usize, 12),
+        1 => (
+            u16_at(b, 8).ok_or_else(|| bad("header truncated".into()))? as usize,
+            10,
+        ),
+        2 | 3 => (
+            u32_at(b, 8).ok_or_else(|| bad("header truncated".into()))? as usize,
+            12,
+        ),
         v => return Err(bad(format!("unsupported .npy version {v}"))),
     };
     let header = b
         .get(start..start + hlen)
         .ok_or_else(|| bad("header truncated".into()))?;
     let header = std::str::from_utf8(header).map_err(|_| bad("header is not UTF-8".into()))?;
-    let field = |key: &str| -> Result<&str, String> {
+    let field = |key: &str| -> Result<&str, NpzError> {
         let i = header
             .find(&format!("'{key}':"))
             .ok_or_else(|| bad(format!("header has no '{key}'")))?;
@@ -256,7 +299,7 @@ pub fn decode_npy(name: &str, b: &[u8]) -> Result<NpyArray, String> {
         .try_fold(1usize, |acc, &d| acc.checked_mul(d))
         .ok_or_else(|| bad(format!("shape {shape:?} is too large")))?;
     let body = &b[start + hlen..];
-    let need = |size: usize| -> Result<&[u8], String> {
+    let need = |size: usize| -> Result<&[u8], NpzError> {
         let bytes = count
             .checked_mul(size)
             .ok_or_else(|| bad(format!("shape {shape:?} is too large")))?;
@@ -306,47 +349,52 @@ pub fn decode_npy(name: &str, b: &[u8]) -> Result<NpyArray, String> {
 }
 
 /// Reads every array of `.npz` bytes (stored entries only, as [`write_npz`] writes).
-pub fn read_npz(bytes: &[u8]) -> Result<Vec<NpyArray>, String> {
+pub fn read_npz(bytes: &[u8]) -> Result<Vec<NpyArray>, NpzError> {
+    let truncated = |i: usize| NpzError::Archive(format!("truncated at byte {i}"));
+    let u16_ = |i: usize| u16_at(bytes, i).ok_or_else(|| truncated(i));
+    let u32_ = |i: usize| u32_at(bytes, i).ok_or_else(|| truncated(i));
     // End of central directory: the last 22 bytes when there is no comment.
     let eocd = (0..bytes.len().saturating_sub(21))
         .rev()
-        .find(|&i| u32_at(bytes, i).ok() == Some(0x0605_4b50))
-        .ok_or("not a ZIP archive (no end-of-central-directory record)")?;
-    let entries = u16_at(bytes, eocd + 10)? as usize;
-    let mut at = u32_at(bytes, eocd + 16)? as usize;
+        .find(|&i| u32_at(bytes, i) == Some(0x0605_4b50))
+        .ok_or_else(|| {
+            NpzError::Archive("not a ZIP archive (no end-of-central-directory record)".into())
+        })?;
+    let entries = u16_(eocd + 10)? as usize;
+    let mut at = u32_(eocd + 16)? as usize;
     let mut out = Vec::with_capacity(entries);
     for k in 0..entries {
-        if u32_at(bytes, at)? != 0x0201_4b50 {
-            return Err(format!(
+        if u32_(at)? != 0x0201_4b50 {
+            return Err(NpzError::Archive(format!(
                 "central directory entry {k} is corrupt (byte {at})"
-            ));
+            )));
         }
-        let method = u16_at(bytes, at + 10)?;
-        let crc = u32_at(bytes, at + 16)?;
-        let size = u32_at(bytes, at + 20)? as usize;
-        let name_len = u16_at(bytes, at + 28)? as usize;
-        let extra = u16_at(bytes, at + 30)? as usize;
-        let comment = u16_at(bytes, at + 32)? as usize;
-        let local = u32_at(bytes, at + 42)? as usize;
+        let method = u16_(at + 10)?;
+        let crc = u32_(at + 16)?;
+        let size = u32_(at + 20)? as usize;
+        let name_len = u16_(at + 28)? as usize;
+        let extra = u16_(at + 30)? as usize;
+        let comment = u16_(at + 32)? as usize;
+        let local = u32_(at + 42)? as usize;
         let name = bytes
             .get(at + 46..at + 46 + name_len)
-            .ok_or("central directory truncated")?;
+            .ok_or_else(|| NpzError::Archive("central directory truncated".into()))?;
         let name = String::from_utf8_lossy(name).to_string();
         if method != 0 {
-            return Err(format!(
+            return Err(NpzError::Archive(format!(
                 "entry {name} is compressed (method {method}); only stored entries are read"
-            ));
+            )));
         }
-        let lname = u16_at(bytes, local + 26)? as usize;
-        let lextra = u16_at(bytes, local + 28)? as usize;
+        let lname = u16_(local + 26)? as usize;
+        let lextra = u16_(local + 28)? as usize;
         let start = local + 30 + lname + lextra;
         let data = bytes
             .get(start..start + size)
-            .ok_or_else(|| format!("entry {name} truncated"))?;
+            .ok_or_else(|| NpzError::Archive(format!("entry {name} truncated")))?;
         let mut c = Crc::new();
         c.update(data);
         if c.sum() != crc {
-            return Err(format!("entry {name}: CRC mismatch"));
+            return Err(NpzError::Archive(format!("entry {name}: CRC mismatch")));
         }
         let array_name = name.strip_suffix(".npy").unwrap_or(&name);
         out.push(decode_npy(array_name, data)?);
@@ -381,7 +429,7 @@ mod tests {
         let mut bad = a.clone();
         let first_data = 30 + "p.npy".len();
         bad[first_data + 64 + 3] ^= 0xff;
-        assert!(read_npz(&bad).unwrap_err().contains("CRC"));
+        assert!(read_npz(&bad).unwrap_err().to_string().contains("CRC"));
         for i in 0..a.len() {
             let mut b = a.clone();
             b[i] ^= 0x5a;

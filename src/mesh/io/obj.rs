@@ -6,7 +6,7 @@
 //! statement (`vn`, `vt`, `o`, `g`, `s`, `usemtl`, `mtllib`, ...) and comments are ignored.
 //! Writes `v` and `f` lines.
 
-use super::common::{line_err, parse_f64, push_f64, shown, surface_only};
+use super::common::{Malformed, line_err, parse_f64, push_f64, shown, surface_only};
 use super::{IoError, MeshFile};
 use std::path::Path;
 
@@ -59,7 +59,7 @@ pub(crate) fn read(bytes: &[u8], path: &Path) -> Result<MeshFile, IoError> {
 }
 
 /// Parses the coordinates after `v`.
-fn read_vertex<'a>(tokens: impl Iterator<Item = &'a str>) -> Result<[f64; 3], String> {
+fn read_vertex<'a>(tokens: impl Iterator<Item = &'a str>) -> Result<[f64; 3], Malformed> {
     let mut p = [0.0; 3];
     let mut n = 0;
     for t in tokens.take(3) {
@@ -73,13 +73,18 @@ fn read_vertex<'a>(tokens: impl Iterator<Item = &'a str>) -> Result<[f64; 3], St
         n += 1;
     }
     if n < 3 {
-        return Err(format!("expected 3 coordinates after 'v', found {n}"));
+        return Err(Malformed(format!(
+            "expected 3 coordinates after 'v', found {n}"
+        )));
     }
     Ok(p)
 }
 
 /// Parses the vertex references after `f` into 0-based indices.
-fn read_face<'a>(tokens: impl Iterator<Item = &'a str>, nverts: usize) -> Result<Vec<u32>, String> {
+fn read_face<'a>(
+    tokens: impl Iterator<Item = &'a str>,
+    nverts: usize,
+) -> Result<Vec<u32>, Malformed> {
     let mut face = Vec::new();
     for t in tokens {
         let first = t.split('/').next().unwrap_or("");
@@ -94,13 +99,15 @@ fn read_face<'a>(tokens: impl Iterator<Item = &'a str>, nverts: usize) -> Result
         } else if k < 0 {
             let idx = nverts as i64 + k;
             if idx < 0 {
-                return Err(format!(
+                return Err(Malformed(format!(
                     "relative vertex index {k} points before the first vertex ({nverts} vertices defined so far)"
-                ));
+                )));
             }
             idx
         } else {
-            return Err("vertex index 0 is invalid: OBJ indices start at 1".to_string());
+            return Err(Malformed(
+                "vertex index 0 is invalid: OBJ indices start at 1".into(),
+            ));
         };
         let idx = u32::try_from(idx)
             .ok()
@@ -109,16 +116,16 @@ fn read_face<'a>(tokens: impl Iterator<Item = &'a str>, nverts: usize) -> Result
         face.push(idx);
     }
     if face.len() < 3 {
-        return Err(format!(
+        return Err(Malformed(format!(
             "expected at least 3 vertices after 'f', found {}",
             face.len()
-        ));
+        )));
     }
     Ok(face)
 }
 
 /// Writes the triangles (and all nodes) as `v` and `f` lines; tetrahedra are not representable.
-pub(crate) fn write(file: &MeshFile, path: &Path) -> Result<Vec<u8>, String> {
+pub(crate) fn write(file: &MeshFile, path: &Path) -> Result<Vec<u8>, Malformed> {
     surface_only(file, "OBJ")?;
     let mut out = String::with_capacity(40 * file.nodes.len() + 30 * file.triangles.len());
     out.push_str("# written by LIBR+ (units: mm)\n");

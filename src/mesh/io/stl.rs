@@ -7,7 +7,7 @@
 //! from the triangles.
 
 use super::common::{
-    line_err, offset_err, parse_f64, push_f64, shown, surface_only, triangle_normal,
+    Malformed, line_err, offset_err, parse_f64, push_f64, shown, surface_only, triangle_normal,
 };
 use super::{IoError, MeshFile, WriteOptions};
 use std::collections::HashMap;
@@ -269,9 +269,9 @@ pub(crate) fn write(
     file: &MeshFile,
     options: WriteOptions,
     _path: &Path,
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, Malformed> {
     surface_only(file, "STL")?;
-    let corners = |t: &[u32; 3]| -> Result<[[f64; 3]; 3], String> {
+    let corners = |t: &[u32; 3]| -> Result<[[f64; 3]; 3], Malformed> {
         let p = |i: u32| {
             file.nodes.get(i as usize).copied().ok_or_else(|| {
                 format!(

@@ -11,8 +11,8 @@
 //! are any, else `POLYDATA` with the triangles (or one vertex per point for a point set).
 
 use super::common::{
-    CellCollector, DType, capped, content_err, line_err, offset_err, push_f64, shown, split_cells,
-    to_index, to_indices,
+    CellCollector, DType, Malformed, capped, content_err, line_err, offset_err, push_f64, shown,
+    split_cells, to_index, to_indices,
 };
 use super::{DataArray, IoError, MeshFile, WriteOptions};
 use std::path::Path;
@@ -602,7 +602,8 @@ fn assemble(p: Parsed, path: &Path) -> Result<MeshFile, IoError> {
         .collect();
     let mut cc = CellCollector::default();
     let mut ncells = 0usize;
-    let err = |m: String| content_err(path, m);
+    let err = |m: Malformed| content_err(path, m);
+    let say = |m: String| content_err(path, m);
     if p.polydata {
         for (slot, cells) in p.poly.iter().enumerate() {
             let Some(cells) = cells else { continue };
@@ -619,7 +620,7 @@ fn assemble(p: Parsed, path: &Path) -> Result<MeshFile, IoError> {
         let cells = split_cells(&cells.offsets, &cells.conn).map_err(err)?;
         let types = p.types.as_deref().unwrap_or(&[]);
         if types.len() != cells.len() {
-            return Err(err(format!(
+            return Err(say(format!(
                 "CELLS has {} cells but CELL_TYPES has {} entries",
                 cells.len(),
                 types.len()
@@ -628,19 +629,19 @@ fn assemble(p: Parsed, path: &Path) -> Result<MeshFile, IoError> {
         for (i, (cell, &t)) in cells.iter().zip(types).enumerate() {
             let t = to_index(t)
                 .and_then(|t| u8::try_from(t).ok())
-                .ok_or_else(|| err(format!("CELL_TYPES entry {i} is {t}, not a VTK cell type")))?;
+                .ok_or_else(|| say(format!("CELL_TYPES entry {i} is {t}, not a VTK cell type")))?;
             cc.add_vtk(t, cell, i).map_err(err)?;
         }
         ncells = cells.len();
     }
     if let Some(n) = p.point_n.filter(|&n| n != nodes.len()) {
-        return Err(err(format!(
+        return Err(say(format!(
             "POINT_DATA declares {n} tuples, but POINTS has {} points",
             nodes.len()
         )));
     }
     if let Some(n) = p.cell_n.filter(|&n| n != ncells) {
-        return Err(err(format!(
+        return Err(say(format!(
             "CELL_DATA declares {n} tuples, but the file has {ncells} cells"
         )));
     }
@@ -711,7 +712,7 @@ fn encode_name(name: &str) -> String {
 }
 
 /// Cells with a count prefix, as i32.
-fn counted<const K: usize>(cells: &[[u32; K]]) -> Result<Vec<i32>, String> {
+fn counted<const K: usize>(cells: &[[u32; K]]) -> Result<Vec<i32>, Malformed> {
     let mut v = Vec::with_capacity(cells.len() * (K + 1));
     for c in cells {
         v.push(K as i32);
@@ -726,7 +727,7 @@ fn counted<const K: usize>(cells: &[[u32; K]]) -> Result<Vec<i32>, String> {
 }
 
 /// Writes attribute arrays: VECTORS for 3 components, SCALARS for 1, 2 or 4, FIELD otherwise.
-fn write_arrays(o: &mut Out, key: &str, n: usize, arrays: &[DataArray]) -> Result<(), String> {
+fn write_arrays(o: &mut Out, key: &str, n: usize, arrays: &[DataArray]) -> Result<(), Malformed> {
     if arrays.is_empty() {
         return Ok(());
     }
@@ -734,12 +735,12 @@ fn write_arrays(o: &mut Out, key: &str, n: usize, arrays: &[DataArray]) -> Resul
     let mut field = Vec::new();
     for a in arrays {
         if a.components == 0 || a.values.len() != n * a.components {
-            return Err(format!(
+            return Err(Malformed(format!(
                 "data array '{}' has {} values; expected {n} tuples of {}",
                 a.name,
                 a.values.len(),
                 a.components
-            ));
+            )));
         }
         match a.components {
             3 => o.text(&format!("VECTORS {} double\n", encode_name(&a.name))),
@@ -770,7 +771,7 @@ fn write_arrays(o: &mut Out, key: &str, n: usize, arrays: &[DataArray]) -> Resul
 }
 
 /// Writes legacy VTK 4.2, ASCII or BINARY per `options`.
-pub(crate) fn write(file: &MeshFile, options: WriteOptions) -> Result<Vec<u8>, String> {
+pub(crate) fn write(file: &MeshFile, options: WriteOptions) -> Result<Vec<u8>, Malformed> {
     let mut o = Out {
         buf: Vec::new(),
         binary: options.binary,

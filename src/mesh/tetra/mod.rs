@@ -193,6 +193,20 @@ pub enum TetraError {
         /// Target edge length (mm).
         edge_mm: f64,
     },
+    /// No triangulation of a BCC tetrahedron's inside part passed the stencil's validity checks
+    /// (a bug: the stencils cover every sign pattern).
+    #[error(
+        "internal error in the tetrahedral mesher (please report with the surface): no valid triangulation of BCC tetrahedron {lattice_tet:?} with signs {signs:?}"
+    )]
+    NoValidStencil {
+        /// The lattice tetrahedron's points.
+        lattice_tet: [u32; 4],
+        /// Their signs (−1 inside, 0 on, +1 outside).
+        signs: [i8; 4],
+    },
+    /// The surface could not be prepared for the signed distance.
+    #[error("the surface cannot be meshed: {0}")]
+    Surface(#[from] crate::mesh::SurfaceError),
     /// An internal invariant failed (a bug): the message names it.
     #[error("internal error in the tetrahedral mesher (please report with the surface): {0}")]
     Internal(String),
@@ -506,7 +520,7 @@ pub fn tetrahedralize_with_report(
         num_corners,
         num_points: num_corners + n[0] * n[1] * n[2],
     };
-    let sd = SignedDistance::new(surface).map_err(TetraError::Internal)?;
+    let sd = SignedDistance::new(surface)?;
     seconds.setup = start.elapsed().as_secs_f64();
 
     // 1. Signed distance at the lattice points, row by row (x fastest); a point whose distance
@@ -638,7 +652,7 @@ pub fn tetrahedralize_with_report(
         sd: &sd,
     };
     let num_centres = lat.num_points - num_corners;
-    let pieces: Vec<(Vec<[u32; 4]>, usize, Option<String>)> = (0..num_centres)
+    let pieces: Vec<(Vec<[u32; 4]>, usize, Option<TetraError>)> = (0..num_centres)
         .into_par_iter()
         .with_min_len(256)
         .fold(
@@ -657,7 +671,7 @@ pub fn tetrahedralize_with_report(
     let mut global_tets: Vec<[u32; 4]> = Vec::new();
     for (out, all_on, err) in pieces {
         if let Some(e) = err {
-            return Err(TetraError::Internal(e));
+            return Err(e);
         }
         all_on_surface_tets += all_on;
         global_tets.extend_from_slice(&out);

@@ -53,7 +53,7 @@ impl Fill<'_> {
         c: u32,
         out: &mut Vec<[u32; 4]>,
         all_on: &mut usize,
-    ) -> Result<(), String> {
+    ) -> Result<(), TetraError> {
         let d = self.lat.doubled(c);
         for axis in 0..3 {
             let mut d2 = d;
@@ -71,10 +71,9 @@ impl Fill<'_> {
                 k[b] += ob;
                 k[cc] += oc;
                 corner_d[m] = k;
-                corners[m] = self
-                    .lat
-                    .index(k)
-                    .ok_or_else(|| format!("corner {k:?} of centre {d:?} is off the lattice"))?;
+                corners[m] = self.lat.index(k).ok_or_else(|| {
+                    TetraError::Internal(format!("corner {k:?} of centre {d:?} is off the lattice"))
+                })?;
             }
             for m in 0..4 {
                 let m2 = (m + 1) % 4;
@@ -103,7 +102,7 @@ impl Fill<'_> {
         v: [u32; 4],
         out: &mut Vec<[u32; 4]>,
         all_on: &mut usize,
-    ) -> Result<(), String> {
+    ) -> Result<(), TetraError> {
         let s = v.map(|p| self.sign[p as usize]);
         let n_in = s.iter().filter(|&&x| x < 0).count();
         let n_out = s.iter().filter(|&&x| x > 0).count();
@@ -134,7 +133,7 @@ impl Fill<'_> {
         v: [u32; 4],
         s: [i8; 4],
         out: &mut Vec<[u32; 4]>,
-    ) -> Result<(), String> {
+    ) -> Result<(), TetraError> {
         let np = self.lat.num_points as u32;
         // Polytope vertices: global ids and positions.
         let mut ids = [0u32; MAX_PV];
@@ -157,7 +156,12 @@ impl Fill<'_> {
                     let ci = self
                         .cuts
                         .binary_search_by_key(&key, |c| c.key)
-                        .map_err(|_| format!("no cut point on lattice edge {:?}", (v[i], v[j])))?;
+                        .map_err(|_| {
+                            TetraError::Internal(format!(
+                                "no cut point on lattice edge {:?}",
+                                (v[i], v[j])
+                            ))
+                        })?;
                     of_cut[i][j] = count as u8;
                     of_cut[j][i] = count as u8;
                     ids[count] = np + ci as u32;
@@ -196,7 +200,7 @@ impl Fill<'_> {
                     .iter()
                     .copied()
                     .find(|&x| s[x] > 0)
-                    .ok_or("quad without outside")?;
+                    .ok_or_else(|| TetraError::Internal("quad without outside".into()))?;
                 let (u, vv) = (ins[0], ins[1]);
                 let (pu, pv, pw) = (v[u], v[vv], v[w]);
                 let from_u = self.diagonal_from_first(pu, pv, pw);
@@ -343,9 +347,10 @@ impl Fill<'_> {
                 out.extend_from_slice(&t);
                 Ok(())
             }
-            None => Err(format!(
-                "no valid triangulation of BCC tetrahedron {v:?} with signs {s:?}"
-            )),
+            None => Err(TetraError::NoValidStencil {
+                lattice_tet: v,
+                signs: s,
+            }),
         }
     }
 

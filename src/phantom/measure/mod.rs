@@ -42,6 +42,7 @@
 
 mod sampling;
 
+use crate::phantom::PhantomError;
 use sampling::*;
 
 use crate::mesh::TetMesh;
@@ -163,12 +164,12 @@ impl Default for MeasureParams {
 
 impl MeasureParams {
     /// Checks every parameter, naming the first one out of range.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), PhantomError> {
         let [c0, c1] = self.coverage;
         if !(c0 > 0.0 && c0 <= c1 && c1 <= 1.0) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "coverage must satisfy 0 < min ≤ max ≤ 1, got [{c0}, {c1}]"
-            ));
+            )));
         }
         let positive = [
             ("surface_spacing_mm", self.surface_spacing_mm),
@@ -177,7 +178,9 @@ impl MeasureParams {
         ];
         for (name, v) in positive {
             if !(v > 0.0 && v.is_finite()) {
-                return Err(format!("{name} must be positive and finite, got {v}"));
+                return Err(PhantomError::Parameter(format!(
+                    "{name} must be positive and finite, got {v}"
+                )));
             }
         }
         let non_negative = [
@@ -189,26 +192,28 @@ impl MeasureParams {
         ];
         for (name, v) in non_negative {
             if !(v >= 0.0 && v.is_finite()) {
-                return Err(format!("{name} must be ≥ 0 and finite, got {v}"));
+                return Err(PhantomError::Parameter(format!(
+                    "{name} must be ≥ 0 and finite, got {v}"
+                )));
             }
         }
         if !(self.fan_half_angle_deg > 0.0 && self.fan_half_angle_deg <= 90.0) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "fan_half_angle_deg must be in (0, 90], got {}",
                 self.fan_half_angle_deg
-            ));
+            )));
         }
         if !(self.max_rotation_deg >= 0.0 && self.max_rotation_deg <= 180.0) {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "max_rotation_deg must be in [0, 180], got {}",
                 self.max_rotation_deg
-            ));
+            )));
         }
         if self.landmarks < 3 {
-            return Err(format!(
+            return Err(PhantomError::Parameter(format!(
                 "landmarks must be at least 3 for a rigid fit, got {}",
                 self.landmarks
-            ));
+            )));
         }
         Ok(())
     }
@@ -337,22 +342,22 @@ pub fn simulate(
     category: Category,
     params: &MeasureParams,
     seed: u64,
-) -> Result<Scenario, String> {
+) -> Result<Scenario, PhantomError> {
     params.validate()?;
     let n = mesh.num_nodes();
     if displacement.len() != 3 * n {
-        return Err(format!(
+        return Err(PhantomError::Inconsistent(format!(
             "displacement has {} values, the mesh has {n} nodes and needs {}",
             displacement.len(),
             3 * n
-        ));
+        )));
     }
     if let Some(i) = displacement.iter().position(|v| !v.is_finite()) {
-        return Err(format!(
+        return Err(PhantomError::Inconsistent(format!(
             "displacement of node {} is not finite ({})",
             i / 3,
             displacement[i]
-        ));
+        )));
     }
     for (name, len) in [
         ("region", labels.region.len()),
@@ -360,9 +365,9 @@ pub fn simulate(
         ("inferior_ridge", labels.inferior_ridge.len()),
     ] {
         if len != n {
-            return Err(format!(
+            return Err(PhantomError::Inconsistent(format!(
                 "labels.{name} has {len} entries, the mesh has {n} nodes"
-            ));
+            )));
         }
     }
     if let Some(i) = vessels
@@ -370,26 +375,26 @@ pub fn simulate(
         .iter()
         .position(|p| p.iter().any(|c| !c.is_finite()))
     {
-        return Err(format!("vessel point {i} is not finite"));
+        return Err(PhantomError::Inconsistent(format!(
+            "vessel point {i} is not finite"
+        )));
     }
     if let Some(s) = vessels
         .segments
         .iter()
         .find(|s| s.iter().any(|&i| i as usize >= vessels.points.len()))
     {
-        return Err(format!(
+        return Err(PhantomError::Inconsistent(format!(
             "vessel segment {s:?} refers past the {} vessel points",
             vessels.points.len()
-        ));
+        )));
     }
 
     let rest = mesh.nodes();
     let deformed: Vec<[f64; 3]> = (0..n)
         .map(|i| add(rest[i], [0, 1, 2].map(|k| displacement[3 * i + k])))
         .collect();
-    let boundary = mesh
-        .boundary()
-        .map_err(|e| format!("cannot take the mesh boundary: {e}"))?;
+    let boundary = mesh.boundary()?;
     let tris = &boundary.triangles;
     let is = |t: &[u32; 3], r: Region| t.iter().all(|&v| labels.region[v as usize] == r);
     let anterior: Vec<usize> = (0..tris.len())
@@ -405,11 +410,10 @@ pub fn simulate(
     let ant_areas: Vec<f64> = anterior.iter().map(|&t| area(t)).collect();
     let ant_total: f64 = ant_areas.iter().sum();
     if anterior.is_empty() || ant_total.is_nan() || ant_total <= 0.0 {
-        return Err(
-            "no anterior boundary triangle (all three nodes labelled Anterior) with positive area: \
+        return Err(PhantomError::Inconsistent("no anterior boundary triangle (all three nodes labelled Anterior) with positive area: \
              nothing for a laparoscope to see"
                 .into(),
-        );
+        ));
     }
 
     // Surface points on a grown visible patch.
@@ -552,10 +556,10 @@ pub fn simulate(
     let mut rng = stream(seed, STREAM_LANDMARKS);
     let landmark_nodes = choose_landmarks(rest, labels, params.landmarks, &mut rng);
     if landmark_nodes.len() < 3 {
-        return Err(format!(
+        return Err(PhantomError::Inconsistent(format!(
             "only {} distinct landmark nodes could be chosen; a rigid fit needs 3",
             landmark_nodes.len()
-        ));
+        )));
     }
     let mut lm_rng = stream(seed, STREAM_LANDMARK_NOISE);
     let landmarks_image: Vec<[f64; 3]> = landmark_nodes.iter().map(|&v| rest[v as usize]).collect();
@@ -566,8 +570,12 @@ pub fn simulate(
             add(tf.apply(deformed[v as usize]), e)
         })
         .collect();
-    let initial_alignment = Rigid::fit(&landmarks_image, &landmarks_physical, None)
-        .ok_or_else(|| format!("landmark nodes {landmark_nodes:?} are collinear: no rigid fit"))?;
+    let initial_alignment =
+        Rigid::fit(&landmarks_image, &landmarks_physical, None).ok_or_else(|| {
+            PhantomError::Geometry(format!(
+                "landmark nodes {landmark_nodes:?} are collinear: no rigid fit"
+            ))
+        })?;
 
     Ok(Scenario {
         category,

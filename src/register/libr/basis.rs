@@ -136,7 +136,7 @@ pub(super) struct RigidModes {
 }
 
 impl RigidModes {
-    fn new(nodes: &[[f64; 3]], mass: &[f64]) -> Result<Self, String> {
+    fn new(nodes: &[[f64; 3]], mass: &[f64]) -> Result<Self, RegisterError> {
         let total: f64 = mass.iter().sum();
         let mut center = [0.0; 3];
         for (p, &w) in nodes.iter().zip(mass) {
@@ -155,9 +155,11 @@ impl RigidModes {
                 }
             }
         }
-        let ginv = g
-            .try_inverse()
-            .ok_or("the mesh's rigid-mode mass matrix is singular (zero volume?)")?;
+        let ginv = g.try_inverse().ok_or_else(|| {
+            RegisterError::Model(
+                "the mesh's rigid-mode mass matrix is singular (zero volume?)".into(),
+            )
+        })?;
         Ok(Self {
             center,
             mass: mass.to_vec(),
@@ -223,7 +225,7 @@ pub(super) fn support_321(
     nodes: &[[f64; 3]],
     boundary: &[u32],
     center: [f64; 3],
-) -> Result<Dirichlet, String> {
+) -> Result<Dirichlet, RegisterError> {
     let far = |from: [f64; 3]| -> u32 {
         let mut best = boundary[0];
         for &v in boundary {
@@ -251,7 +253,9 @@ pub(super) fn support_321(
     }
     let moment = cross(dn, sub(nodes[c as usize], pa));
     if dot(d, d) <= 0.0 || best <= 1e-12 * dot(d, d) {
-        return Err("the boundary is degenerate (all nodes on a line): cannot support it".into());
+        return Err(RegisterError::Model(
+            "the boundary is degenerate (all nodes on a line): cannot support it".into(),
+        ));
     }
     let free_b = argmax_abs(d);
     let fix_c = argmax_abs(moment);
@@ -284,23 +288,25 @@ impl LibrBasis {
 
     /// Builds the basis: control points, loads, one factorization, 3K solves (parallel column
     /// blocks), rigid-mode removal, scaling, `E = ΦᵀKΦ`.
-    pub fn build(mesh: &TetMesh, params: &LibrParams) -> Result<Self, String> {
+    pub fn build(mesh: &TetMesh, params: &LibrParams) -> Result<Self, RegisterError> {
         params.validate()?;
         let t0 = Instant::now();
         let nodes = mesh.nodes();
         let n = nodes.len();
-        let boundary = mesh.boundary().map_err(|e| format!("mesh boundary: {e}"))?;
+        let boundary = mesh.boundary()?;
         if boundary.nodes.len() < 3 {
-            return Err("mesh has fewer than 3 boundary nodes".into());
+            return Err(RegisterError::Model(
+                "mesh has fewer than 3 boundary nodes".into(),
+            ));
         }
         let control =
             farthest_point_sampling(nodes, &boundary.nodes, params.control_points, params.seed);
         if control.len() < params.control_points {
-            return Err(format!(
+            return Err(RegisterError::Parameter(format!(
                 "control_points = {} but the boundary has only {} distinct nodes",
                 params.control_points,
                 control.len()
-            ));
+            )));
         }
         // Area-weighted vertex normals and the boundary area.
         let mut vnormal = vec![[0.0; 3]; n];
@@ -342,11 +348,11 @@ impl LibrBasis {
         }
         let loads_s = crate::util::secs(t0);
         let t1 = Instant::now();
-        let system = StiffnessSystem::linear(mesh, &params.material).map_err(|e| e.to_string())?;
+        let system = StiffnessSystem::linear(mesh, &params.material)?;
         let assemble_s = crate::util::secs(t1);
         let t2 = Instant::now();
         let bc = support_321(nodes, &boundary.nodes, modes.center)?;
-        let fact = system.factorize(&bc).map_err(|e| e.to_string())?;
+        let fact = system.factorize(&bc)?;
         let factor_s = crate::util::secs(t2);
         let t3 = Instant::now();
         let umat = fact.solve_many_homogeneous(fmat.as_ref());
@@ -366,11 +372,11 @@ impl LibrBasis {
                 })
                 .fold(0.0f64, f64::max);
             if !(peak.is_finite() && peak > 0.0) {
-                return Err(format!(
+                return Err(RegisterError::Model(format!(
                     "basis column {j} (control node {}, axis {}) has peak displacement {peak}: the load patch is empty or the solve failed",
                     control[j / 3],
                     j % 3
-                ));
+                )));
             }
             load_scale[j] = 1.0 / peak;
             for (r, &x) in col.iter().enumerate() {

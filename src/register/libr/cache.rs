@@ -44,7 +44,7 @@ impl LibrBasis {
         mesh: &TetMesh,
         params: &LibrParams,
         cache_dir: &Path,
-    ) -> Result<(Self, bool), String> {
+    ) -> Result<(Self, bool), RegisterError> {
         params.validate()?;
         let path = Self::cache_path(mesh, params, cache_dir);
         let t0 = Instant::now();
@@ -70,7 +70,7 @@ impl LibrBasis {
     /// The basis as `.npz` bytes: `phi` (3n, 3K) f8, `energy` (3K, 3K) f8, `control_nodes` (K)
     /// i8, `load_scale` (3K) f8, `load_width_mm` (1) f8, `version` (1) i8, `mesh_hash` and
     /// `params_hash` (16 ASCII bytes each, u1).
-    pub fn to_npz(&self) -> Result<Vec<u8>, String> {
+    pub fn to_npz(&self) -> Result<Vec<u8>, RegisterError> {
         let m = self.columns();
         let arrays = vec![
             NpyArray::new("phi", &[3 * self.nodes, m], NpyData::F64(self.phi.clone()))?,
@@ -98,34 +98,43 @@ impl LibrBasis {
                 NpyData::U8(self.params_hash.as_bytes().to_vec()),
             )?,
         ];
-        write_npz(&arrays)
+        Ok(write_npz(&arrays)?)
     }
 
     /// Reads what [`LibrBasis::to_npz`] wrote; checks names, dtypes, shapes and finiteness.
-    pub fn from_npz(bytes: &[u8]) -> Result<Self, String> {
+    pub fn from_npz(bytes: &[u8]) -> Result<Self, RegisterError> {
         let arrays = read_npz(bytes)?;
         let get = |name: &str| {
             arrays
                 .iter()
                 .find(|a| a.name == name)
-                .ok_or_else(|| format!("basis file has no array {name}"))
+                .ok_or_else(|| RegisterError::BasisFile(format!("no array {name}")))
         };
-        let f64s = |name: &str| -> Result<(Vec<usize>, Vec<f64>), String> {
+        let f64s = |name: &str| -> Result<(Vec<usize>, Vec<f64>), RegisterError> {
             let a = get(name)?;
             match &a.data {
                 NpyData::F64(v) => Ok((a.shape.clone(), v.clone())),
-                _ => Err(format!("basis array {name} is not f8")),
+                _ => Err(RegisterError::BasisFile(format!(
+                    "basis array {name} is not f8"
+                ))),
             }
         };
-        let text = |name: &str| -> Result<String, String> {
+        let text = |name: &str| -> Result<String, RegisterError> {
             match &get(name)?.data {
-                NpyData::U8(v) => String::from_utf8(v.clone()).map_err(|e| format!("{name}: {e}")),
-                _ => Err(format!("basis array {name} is not u1")),
+                NpyData::U8(v) => String::from_utf8(v.clone())
+                    .map_err(|e| RegisterError::BasisFile(format!("{name}: {e}"))),
+                _ => Err(RegisterError::BasisFile(format!(
+                    "basis array {name} is not u1"
+                ))),
             }
         };
         match &get("version")?.data {
             NpyData::I64(v) if v.as_slice() == [BASIS_VERSION as i64] => {}
-            _ => return Err(format!("basis file version is not {BASIS_VERSION}")),
+            _ => {
+                return Err(RegisterError::BasisFile(format!(
+                    "basis file version is not {BASIS_VERSION}"
+                )));
+            }
         }
         let (ps, phi) = f64s("phi")?;
         let (es, energy) = f64s("energy")?;
@@ -134,9 +143,17 @@ impl LibrBasis {
         let control_nodes: Vec<u32> = match &get("control_nodes")?.data {
             NpyData::I64(v) => v
                 .iter()
-                .map(|&x| u32::try_from(x).map_err(|_| format!("control node {x} out of range")))
+                .map(|&x| {
+                    u32::try_from(x).map_err(|_| {
+                        RegisterError::BasisFile(format!("control node {x} out of range"))
+                    })
+                })
                 .collect::<Result<_, _>>()?,
-            _ => return Err("basis array control_nodes is not i8".into()),
+            _ => {
+                return Err(RegisterError::BasisFile(
+                    "basis array control_nodes is not i8".into(),
+                ));
+            }
         };
         let m = 3 * control_nodes.len();
         if ps.len() != 2
@@ -146,14 +163,16 @@ impl LibrBasis {
             || ls != [m]
             || width.len() != 1
         {
-            return Err(format!(
+            return Err(RegisterError::BasisFile(format!(
                 "basis arrays have inconsistent shapes (phi {ps:?}, energy {es:?}, load_scale {ls:?}, {} control nodes)",
                 control_nodes.len()
-            ));
+            )));
         }
         let nodes = ps[0] / 3;
         if control_nodes.iter().any(|&c| c as usize >= nodes) {
-            return Err("a control node is out of range".into());
+            return Err(RegisterError::BasisFile(
+                "a control node is out of range".into(),
+            ));
         }
         if !phi
             .iter()
@@ -162,7 +181,9 @@ impl LibrBasis {
             .chain(&width)
             .all(|x| x.is_finite())
         {
-            return Err("basis file holds non-finite values".into());
+            return Err(RegisterError::BasisFile(
+                "basis file holds non-finite values".into(),
+            ));
         }
         Ok(Self {
             control_nodes,

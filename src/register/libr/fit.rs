@@ -83,57 +83,60 @@ pub(super) fn assemble<'a>(
     matches: &'a [Match],
     targets_image: &[[f64; 3]],
     params: &LibrParams,
-) -> Result<Assembled<'a>, String> {
+) -> Result<Assembled<'a>, RegisterError> {
     let t0 = Instant::now();
     let lambda = params.regularization;
     if !(lambda.is_finite() && lambda >= 0.0) {
-        return Err(format!(
+        return Err(RegisterError::Parameter(format!(
             "regularization must be finite and >= 0, got {lambda}"
-        ));
+        )));
     }
     if matches.is_empty() {
-        return Err("no matches".into());
+        return Err(RegisterError::TooFewMatches { matched: 0 });
     }
     let n = basis.nodes;
     for (k, mt) in matches.iter().enumerate() {
         if mt.point >= targets_image.len() {
-            return Err(format!(
+            return Err(RegisterError::Inconsistent(format!(
                 "match {k}: point {} out of range ({} targets)",
                 mt.point,
                 targets_image.len()
-            ));
+            )));
         }
         if let Some(&v) = mt.nodes.iter().find(|&&v| v as usize >= n) {
-            return Err(format!("match {k}: node {v} out of range ({n} nodes)"));
+            return Err(RegisterError::Inconsistent(format!(
+                "match {k}: node {v} out of range ({n} nodes)"
+            )));
         }
         if !(mt.weight.is_finite() && mt.weight >= 0.0) {
-            return Err(format!(
+            return Err(RegisterError::Inconsistent(format!(
                 "match {k}: weight {} is not finite and >= 0",
                 mt.weight
-            ));
+            )));
         }
         if !mt.bary.iter().chain(&mt.anchor).all(|x| x.is_finite()) {
-            return Err(format!(
+            return Err(RegisterError::Inconsistent(format!(
                 "match {k}: non-finite anchor or barycentric weight"
-            ));
+            )));
         }
         if mt.weight > 0.0 && !targets_image[mt.point].iter().all(|x| x.is_finite()) {
-            return Err(format!(
+            return Err(RegisterError::Inconsistent(format!(
                 "match {k}: target {} is not finite: {:?}",
                 mt.point, targets_image[mt.point]
-            ));
+            )));
         }
     }
     let used: Vec<&Match> = matches.iter().filter(|m| m.weight > 0.0).collect();
     if used.len() < 3 {
-        return Err(format!(
-            "{} matches with positive weight; at least 3 are needed to fix the rigid correction",
-            used.len()
-        ));
+        return Err(RegisterError::TooFewMatches {
+            matched: used.len(),
+        });
     }
     let wsum: f64 = used.iter().map(|m| m.weight).sum();
     if !(wsum.is_finite() && wsum > 0.0) {
-        return Err(format!("total match weight is {wsum}"));
+        return Err(RegisterError::IllConditioned(format!(
+            "total match weight is {wsum}"
+        )));
     }
     let m = basis.columns();
     let p = m + 6;
@@ -304,7 +307,7 @@ pub fn fit_step(
     matches: &[Match],
     targets_image: &[[f64; 3]],
     params: &LibrParams,
-) -> Result<StepResult, String> {
+) -> Result<StepResult, RegisterError> {
     let Assembled {
         used,
         wsum,
@@ -324,14 +327,16 @@ pub fn fit_step(
     } = assemble(basis, matches, targets_image, params)?;
     let t2 = Instant::now();
     let llt = a.llt(Side::Lower).map_err(|e| {
-        format!(
+        RegisterError::IllConditioned(format!(
             "the normal equations are singular ({e:?}): the {} matches do not determine the basis weights and rigid correction (use λ > 0, or more spread-out matches)",
             used.len()
-        )
+        ))
     })?;
     llt.solve_in_place(b.as_mut());
     if !(0..p).all(|i| b[(i, 0)].is_finite()) {
-        return Err("the step produced non-finite values (ill-conditioned data)".into());
+        return Err(RegisterError::IllConditioned(
+            "the step produced non-finite values (ill-conditioned data)".into(),
+        ));
     }
     let mut lin = Mat::<f64>::zeros(rows, 1);
     matmul(

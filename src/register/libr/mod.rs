@@ -57,6 +57,7 @@ pub use fit::*;
 pub use refit::*;
 pub use solve::*;
 
+use super::RegisterError;
 use crate::fem::LinearMaterial;
 use crate::mesh::vec3::{cross, dist2, dot, sub, unit};
 use crate::util::fnv1a_hex;
@@ -129,45 +130,49 @@ impl Default for LibrParams {
 
 impl LibrParams {
     /// Checks the parameters; the message names the bad field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), RegisterError> {
         if self.control_points == 0 {
-            return Err("control_points must be at least 1".into());
+            return Err(RegisterError::Parameter(
+                "control_points must be at least 1".into(),
+            ));
         }
         match self.load_width {
             LoadWidth::Mm(w) | LoadWidth::Spacing(w) if !(w.is_finite() && w > 0.0) => {
-                return Err(format!("load_width must be finite and > 0, got {w}"));
+                return Err(RegisterError::Parameter(format!(
+                    "load_width must be finite and > 0, got {w}"
+                )));
             }
             _ => {}
         }
         self.material
             .validate()
-            .map_err(|e| format!("material: {e}"))?;
+            .map_err(|e| RegisterError::Parameter(format!("material: {e}")))?;
         if !(self.tangential_weight.is_finite()
             && self.tangential_weight >= 0.0
             && self.tangential_weight <= 1.0)
         {
-            return Err(format!(
+            return Err(RegisterError::Parameter(format!(
                 "tangential_weight must be in [0, 1], got {}",
                 self.tangential_weight
-            ));
+            )));
         }
         if !(self.regularization.is_finite() && self.regularization >= 0.0) {
-            return Err(format!(
+            return Err(RegisterError::Parameter(format!(
                 "regularization must be finite and >= 0, got {}",
                 self.regularization
-            ));
+            )));
         }
         if !(self.trim_floor_mm.is_finite() && self.trim_floor_mm >= 0.0) {
-            return Err(format!(
+            return Err(RegisterError::Parameter(format!(
                 "trim_floor_mm must be finite and >= 0, got {}",
                 self.trim_floor_mm
-            ));
+            )));
         }
         if !(self.tolerance_mm.is_finite() && self.tolerance_mm >= 0.0) {
-            return Err(format!(
+            return Err(RegisterError::Parameter(format!(
                 "tolerance_mm must be finite and >= 0, got {}",
                 self.tolerance_mm
-            ));
+            )));
         }
         Ok(())
     }

@@ -84,20 +84,20 @@ pub fn linearised_refit(
     offset: &[f64],
     centre: [f64; 3],
     params: &LibrParams,
-) -> Result<LinearRefit, String> {
+) -> Result<LinearRefit, RegisterError> {
     if offset.len() != 3 * basis.nodes || offset.iter().any(|x| !x.is_finite()) {
-        return Err(format!(
+        return Err(RegisterError::Inconsistent(format!(
             "offset must hold 3 × {} finite values, has {}",
             basis.nodes,
             offset.len()
-        ));
+        )));
     }
     if mesh.num_nodes() != basis.nodes {
-        return Err(format!(
+        return Err(RegisterError::Inconsistent(format!(
             "mesh has {} nodes, the basis {}",
             mesh.num_nodes(),
             basis.nodes
-        ));
+        )));
     }
     params.validate()?;
     let mut targets = measured_image.to_vec();
@@ -105,10 +105,10 @@ pub fn linearised_refit(
     let asm = assemble(basis, matches, &targets, params)?;
     let (m, p) = (asm.m, asm.p);
     let llt = asm.a.llt(Side::Lower).map_err(|e| {
-        format!(
+        RegisterError::IllConditioned(format!(
             "the normal equations are singular ({e:?}): the {} matches do not determine the basis weights and rigid correction",
             asm.used.len()
-        )
+        ))
     })?;
     // T: identity but for the rotations, ω_G = ω'/radius and τ_G = τ − ω_G × (cen − centre).
     let mut t = Mat::<f64>::identity(p, p);
@@ -128,7 +128,9 @@ pub fn linearised_refit(
     llt.solve_in_place(b.as_mut());
     let theta = &t * &b;
     if !(0..p).all(|i| theta[(i, 0)].is_finite()) {
-        return Err("the step produced non-finite values (ill-conditioned data)".into());
+        return Err(RegisterError::IllConditioned(
+            "the step produced non-finite values (ill-conditioned data)".into(),
+        ));
     }
     let g = LinearRefit::modes(basis, mesh, centre);
     let step0 = g

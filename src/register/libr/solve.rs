@@ -58,8 +58,8 @@ pub fn solve(
     params: &LibrParams,
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
-    rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
-) -> Result<LibrSolution, String> {
+    rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
+) -> Result<LibrSolution, RegisterError> {
     solve_with_limits(
         mesh,
         basis,
@@ -97,8 +97,8 @@ pub fn solve_with_limits(
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
     run: RunLimits<'_>,
-    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, String>,
-) -> Result<LibrSolution, String> {
+    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
+) -> Result<LibrSolution, RegisterError> {
     let RunLimits {
         active,
         deadline,
@@ -106,22 +106,22 @@ pub fn solve_with_limits(
     } = run;
     if let Some(o) = offset {
         if o.len() != 3 * basis.nodes {
-            return Err(format!(
+            return Err(RegisterError::Inconsistent(format!(
                 "offset has {} values, the basis needs {}",
                 o.len(),
                 3 * basis.nodes
-            ));
+            )));
         }
         if o.iter().any(|x| !x.is_finite()) {
-            return Err("offset is not finite".into());
+            return Err(RegisterError::Inconsistent("offset is not finite".into()));
         }
     }
     params.validate()?;
     if let Some(v) = active.and_then(|a| a.iter().find(|&&v| v as usize >= basis.nodes)) {
-        return Err(format!(
+        return Err(RegisterError::Inconsistent(format!(
             "active node {v} out of range ({} nodes)",
             basis.nodes
-        ));
+        )));
     }
     let all: Vec<u32>;
     let active = match active {
@@ -132,14 +132,16 @@ pub fn solve_with_limits(
         }
     };
     if mesh.num_nodes() != basis.nodes {
-        return Err(format!(
+        return Err(RegisterError::Inconsistent(format!(
             "mesh has {} nodes, the basis {}",
             mesh.num_nodes(),
             basis.nodes
-        ));
+        )));
     }
     if params.max_iterations == 0 {
-        return Err("max_iterations must be at least 1".into());
+        return Err(RegisterError::Parameter(
+            "max_iterations must be at least 1".into(),
+        ));
     }
     let t0 = Instant::now();
     let mut info = LibrInfo::default();

@@ -17,8 +17,8 @@
 mod write;
 
 use crate::mesh::io::common::{
-    CellCollector, DType, capped, line_err, offset_err, push_f64, shown, split_cells, surface_only,
-    to_index, to_indices,
+    CellCollector, DType, Malformed, capped, line_err, offset_err, push_f64, shown, split_cells,
+    surface_only, to_index, to_indices,
 };
 use crate::mesh::io::{DataArray, IoError, MeshFile, WriteOptions};
 use base64::Engine as _;
@@ -169,7 +169,7 @@ fn push_text(stack: &mut [El], t: &[u8]) {
 }
 
 /// Decodes base64 text that may be several separately padded streams, ignoring whitespace.
-fn b64_decode(text: &[u8]) -> Result<Vec<u8>, String> {
+fn b64_decode(text: &[u8]) -> Result<Vec<u8>, Malformed> {
     let clean: Vec<u8> = text
         .iter()
         .filter(|c| !c.is_ascii_whitespace())
@@ -282,16 +282,16 @@ impl Ctx<'_> {
     }
 
     /// Reads header value `i` (UInt32 or UInt64).
-    fn header(&self, b: &[u8], i: usize) -> Result<usize, String> {
+    fn header(&self, b: &[u8], i: usize) -> Result<usize, Malformed> {
         let h = if self.header64 { 8 } else { 4 };
         let Some(s) = i.checked_mul(h).and_then(|a| b.get(a..a + h)) else {
-            return Err(format!(
+            return Err(Malformed(format!(
                 "data ended in the {}-byte block header (value {} needs bytes up to {}, have {})",
                 h,
                 i + 1,
                 (i as u128 + 1) * h as u128,
                 b.len()
-            ));
+            )));
         };
         let v = match (s.len(), self.big_endian) {
             (8, false) => u64::from_le_bytes(std::array::from_fn(|i| s[i])),
@@ -299,11 +299,11 @@ impl Ctx<'_> {
             (_, false) => u32::from_le_bytes(std::array::from_fn(|i| s[i])) as u64,
             (_, true) => u32::from_be_bytes(std::array::from_fn(|i| s[i])) as u64,
         };
-        usize::try_from(v).map_err(|_| format!("block header value {v} is too large"))
+        usize::try_from(v).map_err(|_| Malformed(format!("block header value {v} is too large")))
     }
 
     /// Decodes header + data bytes (uncompressed or zlib blocks) into values.
-    fn unpack(&self, b: &[u8], dtype: DType) -> Result<Vec<f64>, String> {
+    fn unpack(&self, b: &[u8], dtype: DType) -> Result<Vec<f64>, Malformed> {
         let h = if self.header64 { 8 } else { 4 };
         let raw: std::borrow::Cow<[u8]> = if !self.compressed {
             let n = self.header(b, 0)?;
@@ -311,21 +311,21 @@ impl Ctx<'_> {
             match data.get(..n) {
                 Some(d) => d.into(),
                 None => {
-                    return Err(format!(
+                    return Err(Malformed(format!(
                         "the header declares {n} bytes of data, but only {} follow",
                         data.len()
-                    ));
+                    )));
                 }
             }
         } else {
             self.inflate(b)?.into()
         };
         if raw.len() % dtype.size() != 0 {
-            return Err(format!(
+            return Err(Malformed(format!(
                 "{} bytes of data is not a whole number of {}-byte values",
                 raw.len(),
                 dtype.size()
-            ));
+            )));
         }
         let mut out = Vec::new();
         dtype.decode(&raw, self.big_endian, &mut out);
@@ -333,26 +333,26 @@ impl Ctx<'_> {
     }
 
     /// Inflates zlib-compressed blocks: header `nblocks, blocksize, lastblocksize, sizes...`.
-    fn inflate(&self, b: &[u8]) -> Result<Vec<u8>, String> {
+    fn inflate(&self, b: &[u8]) -> Result<Vec<u8>, Malformed> {
         let h = if self.header64 { 8 } else { 4 };
         let nblocks = self.header(b, 0)?;
         let block = self.header(b, 1)?;
         let last = self.header(b, 2)?;
         if nblocks > b.len() / h {
-            return Err(format!(
+            return Err(Malformed(format!(
                 "the compression header declares {nblocks} blocks, more than the data can hold"
-            ));
+            )));
         }
         let mut at = h * (3 + nblocks);
         let mut out = Vec::new();
         for i in 0..nblocks {
             let size = self.header(b, 3 + i)?;
             let Some(comp) = at.checked_add(size).and_then(|e| b.get(at..e)) else {
-                return Err(format!(
+                return Err(Malformed(format!(
                     "data ended in compressed block {} of {nblocks} ({size} bytes declared, {} available)",
                     i + 1,
                     b.len().saturating_sub(at)
-                ));
+                )));
             };
             let expect = if i + 1 == nblocks && last != 0 {
                 last
@@ -365,11 +365,11 @@ impl Ctx<'_> {
                 .read_to_end(&mut out)
                 .map_err(|e| format!("compressed block {} of {nblocks}: {e}", i + 1))?;
             if out.len() - before != expect {
-                return Err(format!(
+                return Err(Malformed(format!(
                     "compressed block {} of {nblocks} inflates to {} bytes, expected {expect}",
                     i + 1,
                     out.len() - before
-                ));
+                )));
             }
             at += size;
         }

@@ -101,19 +101,19 @@ impl XmlOut {
         self.line(indent, "</DataArray>");
     }
 
-    fn data(&mut self, section: &str, n: usize, arrays: &[DataArray]) -> Result<(), String> {
+    fn data(&mut self, section: &str, n: usize, arrays: &[DataArray]) -> Result<(), Malformed> {
         if arrays.is_empty() {
             return Ok(());
         }
         self.line(3, &format!("<{section}>"));
         for a in arrays {
             if a.components == 0 || Some(a.values.len()) != n.checked_mul(a.components) {
-                return Err(format!(
+                return Err(Malformed(format!(
                     "data array '{}' has {} values; expected {n} tuples of {} components",
                     a.name,
                     a.values.len(),
                     a.components
-                ));
+                )));
             }
             self.array(4, &a.name, a.components, Vals::F64(&a.values));
         }
@@ -163,7 +163,7 @@ pub(super) fn flat<const K: usize>(cells: &[[u32; K]]) -> Vec<i64> {
 }
 
 /// Writes a `.vtu`: the tetrahedra (type 10), or the triangles (type 5) when there are none.
-pub(crate) fn write_vtu(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, String> {
+pub(crate) fn write_vtu(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, Malformed> {
     let (conn, k, t) = if file.tets.is_empty() {
         (flat(&file.triangles), 3, 5)
     } else {
@@ -189,7 +189,7 @@ pub(crate) fn write_vtu(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, Str
 }
 
 /// Writes a `.vtp`: the triangles as `Polys`, or one vertex per point (`Verts`) for a point set.
-pub(crate) fn write_vtp(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, String> {
+pub(crate) fn write_vtp(file: &MeshFile, o: WriteOptions) -> Result<Vec<u8>, Malformed> {
     surface_only(file, "VTK PolyData (.vtp)")?;
     let np = file.nodes.len();
     let mut x = XmlOut {

@@ -1,0 +1,267 @@
+//! Every way a request can fail, and the one place that turns each into a gRPC status with the
+//! `google.rpc` details the proto promises (BadRequest, PreconditionFailure, ResourceInfo,
+//! QuotaFailure) or an in-stream rejection.
+
+use librplus::pipeline::PipelineError;
+use librplus::register::RegisterError;
+use librplus_proto::v1 as pb;
+use tonic::{Code, Status};
+use tonic_types::{ErrorDetails, StatusExt};
+
+/// A request the server did not answer with a registration.
+#[derive(Debug)]
+pub enum ServiceError {
+    /// A field is malformed (INVALID_ARGUMENT, BadRequest: one violation per field).
+    InvalidArgument {
+        /// Summary.
+        message: String,
+        /// (field path, problem) pairs.
+        violations: Vec<(String, String)>,
+    },
+    /// The request is well-formed but the session or case is not in a state to take it
+    /// (FAILED_PRECONDITION, PreconditionFailure): a message out of order, a second start, a
+    /// method the case cannot run.
+    Precondition {
+        /// Summary.
+        message: String,
+        /// Kind of precondition (`ORDER`, `SESSION`, `CASE`).
+        kind: &'static str,
+        /// The field or case it concerns.
+        subject: String,
+        /// What must hold.
+        description: String,
+    },
+    /// No such case (NOT_FOUND, ResourceInfo and a BadRequest violation of the field).
+    UnknownCase {
+        /// The request field that named it.
+        field: String,
+        /// The id asked for.
+        id: String,
+        /// The ids this server has.
+        known: Vec<String>,
+    },
+    /// A limit of the server (RESOURCE_EXHAUSTED, QuotaFailure).
+    Quota {
+        /// Summary.
+        message: String,
+        /// What ran out (`sessions`, `queue`, `points_per_session`).
+        subject: &'static str,
+        /// The limit and what to do.
+        description: String,
+    },
+    /// The server cannot take requests now (UNAVAILABLE): preloading or shutting down.
+    Unavailable(String),
+    /// The pipeline refused or failed; mapped by cause in [`ServiceError::parts`].
+    Registration(PipelineError),
+    /// A registration task failed inside the server (INTERNAL; logged).
+    Internal(String),
+}
+
+impl From<PipelineError> for ServiceError {
+    fn from(e: PipelineError) -> Self {
+        Self::Registration(e)
+    }
+}
+
+/// How a library error reaches the client.
+enum Cause {
+    /// The measurements break a rule: INVALID_ARGUMENT on `measurements`.
+    Input,
+    /// The measurements cannot determine a registration: FAILED_PRECONDITION, type `DATA`.
+    Data,
+    /// The case cannot run the method: FAILED_PRECONDITION, type `CASE`.
+    Case,
+    /// The server's own state or configuration: INTERNAL.
+    Server,
+}
+
+fn register_cause(e: &RegisterError) -> Cause {
+    match e {
+        RegisterError::Measurements(_) => Cause::Input,
+        RegisterError::FarFromModel { .. }
+        | RegisterError::TooFewMatches { .. }
+        | RegisterError::IllConditioned(_) => Cause::Data,
+        RegisterError::Parameter(_)
+        | RegisterError::Model(_)
+        | RegisterError::Inconsistent(_)
+        | RegisterError::BasisFile(_)
+        | RegisterError::Fem(_)
+        | RegisterError::Mesh(_)
+        | RegisterError::Surface(_)
+        | RegisterError::Npz(_)
+        | RegisterError::File(_) => Cause::Server,
+    }
+}
+
+fn pipeline_cause(e: &PipelineError) -> Cause {
+    match e {
+        PipelineError::Rigid(r) | PipelineError::Libr(r) | PipelineError::Refit(r) => {
+            register_cause(r)
+        }
+        PipelineError::Degenerate { .. } => Cause::Data,
+        PipelineError::NoBasis | PipelineError::NoModel => Cause::Case,
+        PipelineError::Case(_) | PipelineError::Model(_) | PipelineError::NoRefitIterations => {
+            Cause::Server
+        }
+    }
+}
+
+impl ServiceError {
+    /// INVALID_ARGUMENT with violations.
+    pub fn invalid(message: impl Into<String>, violations: Vec<(String, String)>) -> Self {
+        Self::InvalidArgument {
+            message: message.into(),
+            violations,
+        }
+    }
+
+    /// One invalid field.
+    pub fn field(field: impl Into<String>, problem: impl Into<String>) -> Self {
+        let (f, p) = (field.into(), problem.into());
+        Self::invalid(format!("{f}: {p}"), vec![(f, p)])
+    }
+
+    /// A precondition on `subject` (a field or a case) that the request breaks.
+    pub fn precondition(
+        kind: &'static str,
+        subject: impl Into<String>,
+        description: impl Into<String>,
+        message: impl Into<String>,
+    ) -> Self {
+        Self::Precondition {
+            message: message.into(),
+            kind,
+            subject: subject.into(),
+            description: description.into(),
+        }
+    }
+
+    /// The gRPC code, message and details: the one mapping of every error to the wire.
+    pub fn parts(&self) -> (Code, String, Option<ErrorDetails>) {
+        let mut d = ErrorDetails::new();
+        match self {
+            Self::InvalidArgument {
+                message,
+                violations,
+            } => {
+                for (f, p) in violations {
+                    d.add_bad_request_violation(f.clone(), p.clone());
+                }
+                (Code::InvalidArgument, message.clone(), Some(d))
+            }
+            Self::Precondition {
+                message,
+                kind,
+                subject,
+                description,
+            } => {
+                d.add_precondition_failure_violation(*kind, subject.clone(), description.clone());
+                (Code::FailedPrecondition, message.clone(), Some(d))
+            }
+            Self::UnknownCase { field, id, known } => {
+                d.add_bad_request_violation(field.clone(), format!("no case {id:?}"));
+                d.set_resource_info(
+                    "case",
+                    id.clone(),
+                    "",
+                    format!("this server's cases: {}", known.join(", ")),
+                );
+                (
+                    Code::NotFound,
+                    format!("{field}: no case {id:?} (cases: {})", known.join(", ")),
+                    Some(d),
+                )
+            }
+            Self::Quota {
+                message,
+                subject,
+                description,
+            } => {
+                d.add_quota_failure_violation(*subject, description.clone());
+                (Code::ResourceExhausted, message.clone(), Some(d))
+            }
+            Self::Unavailable(m) => (Code::Unavailable, m.clone(), None),
+            Self::Internal(m) => (Code::Internal, m.clone(), None),
+            Self::Registration(e) => match pipeline_cause(e) {
+                Cause::Input => {
+                    d.add_bad_request_violation("measurements", e.to_string());
+                    (Code::InvalidArgument, format!("measurements: {e}"), Some(d))
+                }
+                Cause::Data => {
+                    d.add_precondition_failure_violation("DATA", "measurements", e.to_string());
+                    (
+                        Code::FailedPrecondition,
+                        format!("these measurements do not permit a registration: {e}"),
+                        Some(d),
+                    )
+                }
+                Cause::Case => {
+                    d.add_precondition_failure_violation("CASE", "method", e.to_string());
+                    (Code::FailedPrecondition, e.to_string(), Some(d))
+                }
+                Cause::Server => (
+                    Code::Internal,
+                    format!("the registration failed inside the server: {e}"),
+                    None,
+                ),
+            },
+        }
+    }
+
+    /// The gRPC status code.
+    pub fn code(&self) -> Code {
+        self.parts().0
+    }
+
+    /// As a gRPC status with its `google.rpc` details.
+    pub fn to_status(&self) -> Status {
+        match self.parts() {
+            (code, message, Some(details)) => Status::with_error_details(code, message, details),
+            (code, message, None) => Status::new(code, message),
+        }
+    }
+
+    /// As an in-stream rejection of message `client_seq`: the code's name, the message, and the
+    /// fields concerned (BadRequest violations, or the subject of a precondition).
+    pub fn to_rejection(&self, client_seq: u64) -> pb::Rejection {
+        let (code, message, _) = self.parts();
+        let violations = match self {
+            Self::InvalidArgument { violations, .. } => violations.clone(),
+            Self::Precondition {
+                subject,
+                description,
+                ..
+            } => vec![(subject.clone(), description.clone())],
+            Self::UnknownCase { field, id, .. } => vec![(field.clone(), format!("no case {id:?}"))],
+            Self::Quota { .. }
+            | Self::Unavailable(_)
+            | Self::Internal(_)
+            | Self::Registration(_) => Vec::new(),
+        };
+        pb::Rejection {
+            client_seq,
+            code: librplus_proto::code_name(code).to_string(),
+            message,
+            violations: violations
+                .into_iter()
+                .map(|(field, description)| pb::FieldViolation { field, description })
+                .collect(),
+        }
+    }
+}
+
+/// True when LIBR's failure leaves the rigid result as the best answer (the data, not the server,
+/// stopped it): the result is then flagged DEGENERATE instead of failing the request.
+pub fn libr_can_fall_back(e: &PipelineError) -> bool {
+    match e {
+        PipelineError::Degenerate { .. } => true,
+        PipelineError::Libr(r) => r.is_data_limited(),
+        PipelineError::Case(_)
+        | PipelineError::Model(_)
+        | PipelineError::Rigid(_)
+        | PipelineError::Refit(_)
+        | PipelineError::NoBasis
+        | PipelineError::NoModel
+        | PipelineError::NoRefitIterations => false,
+    }
+}
