@@ -265,3 +265,113 @@ pub fn libr_can_fall_back(e: &PipelineError) -> bool {
         | PipelineError::NoRefitIterations => false,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tonic_types::StatusExt;
+
+    fn details(e: &ServiceError) -> (Code, tonic_types::ErrorDetails) {
+        let s = e.to_status();
+        (s.code(), s.get_error_details())
+    }
+
+    #[test]
+    fn each_cause_has_its_code_and_details() {
+        // Data the pipeline cannot register: FAILED_PRECONDITION with a DATA precondition.
+        let far = ServiceError::Registration(PipelineError::Rigid(RegisterError::FarFromModel {
+            far: 9,
+            total: 10,
+            cap_mm: 500.0,
+            worst: 3,
+            worst_mm: 1000.0,
+        }));
+        let (code, d) = details(&far);
+        assert_eq!(code, Code::FailedPrecondition);
+        let v = &d
+            .precondition_failure()
+            .expect("PreconditionFailure")
+            .violations[0];
+        assert_eq!(
+            (v.r#type.as_str(), v.subject.as_str()),
+            ("DATA", "measurements")
+        );
+        assert!(far.to_status().message().contains("wrong units"));
+        // Bad measurements: INVALID_ARGUMENT with a BadRequest naming the field.
+        let bad = ServiceError::Registration(PipelineError::Rigid(RegisterError::Measurements(
+            "measurements.kind has 2 entries".into(),
+        )));
+        let (code, d) = details(&bad);
+        assert_eq!(code, Code::InvalidArgument);
+        assert_eq!(
+            d.bad_request().expect("BadRequest").field_violations[0].field,
+            "measurements"
+        );
+        // The case cannot run the method: FAILED_PRECONDITION, type CASE.
+        let (code, d) = details(&ServiceError::Registration(PipelineError::NoModel));
+        assert_eq!(code, Code::FailedPrecondition);
+        assert_eq!(
+            d.precondition_failure().unwrap().violations[0].r#type,
+            "CASE"
+        );
+        // The server's own failures are INTERNAL, without details.
+        let internal = ServiceError::Registration(PipelineError::Libr(
+            RegisterError::Inconsistent("mesh has 3 nodes, the basis 4".into()),
+        ));
+        let (code, d) = details(&internal);
+        assert_eq!(code, Code::Internal);
+        assert!(d.precondition_failure().is_none() && d.bad_request().is_none());
+        // Unknown case: NOT_FOUND with ResourceInfo and the field.
+        let (code, d) = details(&ServiceError::UnknownCase {
+            field: "case_id".into(),
+            id: "nope".into(),
+            known: vec!["a".into(), "b".into()],
+        });
+        assert_eq!(code, Code::NotFound);
+        let r = d.resource_info().expect("ResourceInfo");
+        assert_eq!(
+            (r.resource_type.as_str(), r.resource_name.as_str()),
+            ("case", "nope")
+        );
+        assert_eq!(
+            d.bad_request().unwrap().field_violations[0].field,
+            "case_id"
+        );
+        // Limits: RESOURCE_EXHAUSTED with QuotaFailure.
+        let (code, d) = details(&ServiceError::Quota {
+            message: "full".into(),
+            subject: "sessions",
+            description: "4 open".into(),
+        });
+        assert_eq!(code, Code::ResourceExhausted);
+        assert_eq!(d.quota_failure().unwrap().violations[0].subject, "sessions");
+    }
+
+    #[test]
+    fn only_data_limited_libr_failures_fall_back_to_rigid() {
+        assert!(libr_can_fall_back(&PipelineError::Degenerate {
+            reason: "one spot".into()
+        }));
+        assert!(libr_can_fall_back(&PipelineError::Libr(
+            RegisterError::TooFewMatches { matched: 2 }
+        )));
+        assert!(!libr_can_fall_back(&PipelineError::Libr(
+            RegisterError::Inconsistent("bug".into())
+        )));
+        assert!(!libr_can_fall_back(&PipelineError::NoBasis));
+        assert!(!libr_can_fall_back(&PipelineError::Rigid(
+            RegisterError::TooFewMatches { matched: 2 }
+        )));
+    }
+
+    #[test]
+    fn rejections_carry_the_code_name_and_the_field() {
+        let r = ServiceError::precondition("ORDER", "client_seq", "must be greater than 3", "dup")
+            .to_rejection(3);
+        assert_eq!(r.code, "FAILED_PRECONDITION");
+        assert_eq!(r.violations[0].field, "client_seq");
+        let r = ServiceError::field("surface.xyz_mm[4]", "is not finite").to_rejection(5);
+        assert_eq!((r.client_seq, r.code.as_str()), (5, "INVALID_ARGUMENT"));
+        assert_eq!(r.violations[0].field, "surface.xyz_mm[4]");
+    }
+}

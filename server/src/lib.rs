@@ -226,11 +226,11 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, Pre
     let models = match &config.model {
         Some(dir) => load_models_on_device(dir).map_err(|e| PreloadError::Model {
             which: "model",
-            source: librplus::gcn::GcnError::ModelFile(e),
+            source: e,
         })?,
         None => builtin_models().map_err(|e| PreloadError::Model {
             which: "built-in model",
-            source: librplus::gcn::GcnError::ModelFile(e),
+            source: e,
         })?,
     };
     let first = &models[0];

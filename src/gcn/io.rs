@@ -13,6 +13,7 @@
 //! for bit. Format 2 (the multi-scale mesh branch, and LIBR's displacement as input) replaced
 //! format 1; a format-1 model is refused with a request to retrain.
 
+use super::GcnError;
 use super::SplineConv;
 use super::model::{Branch, SrGcn, SrGcnConfig};
 use burn::module::Param;
@@ -78,7 +79,7 @@ pub fn named_tensors(net: &SrGcn) -> Vec<NamedTensor> {
 }
 
 /// Serialises parameters as safetensors (format 4's `weights.safetensors`): F32, row-major.
-pub fn encode(tensors: &[NamedTensor]) -> Result<Vec<u8>, String> {
+pub fn encode(tensors: &[NamedTensor]) -> Result<Vec<u8>, GcnError> {
     let bytes: Vec<Vec<u8>> = tensors
         .iter()
         .map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect())
@@ -89,24 +90,24 @@ pub fn encode(tensors: &[NamedTensor]) -> Result<Vec<u8>, String> {
         .map(|((name, dims, _), b)| {
             safetensors::tensor::TensorView::new(safetensors::Dtype::F32, dims.clone(), b)
                 .map(|v| (name.as_str(), v))
-                .map_err(|e| format!("{name}: {e}"))
+                .map_err(|e| GcnError::ModelFile(format!("{name}: {e}")))
         })
-        .collect::<Result<Vec<_>, String>>()?;
-    safetensors::serialize(views, None).map_err(|e| e.to_string())
+        .collect::<Result<Vec<_>, GcnError>>()?;
+    safetensors::serialize(views, None).map_err(|e| GcnError::ModelFile(e.to_string()))
 }
 
 /// Parses parameters written by [`encode`] (a safetensors file): every tensor must be F32 and
 /// finite. Tensors come in the file's order.
-pub fn decode(bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
+pub fn decode(bytes: &[u8]) -> Result<Vec<NamedTensor>, GcnError> {
     let st = safetensors::SafeTensors::deserialize(bytes)
-        .map_err(|e| format!("not a safetensors weights file: {e}"))?;
+        .map_err(|e| GcnError::ModelFile(format!("not a safetensors weights file: {e}")))?;
     st.iter()
         .map(|(name, view)| {
             if view.dtype() != safetensors::Dtype::F32 {
-                return Err(format!(
+                return Err(GcnError::ModelFile(format!(
                     "{name}: dtype {:?} (SR-GCN weights are F32)",
                     view.dtype()
-                ));
+                )));
             }
             let vals = view
                 .data()
@@ -114,7 +115,7 @@ pub fn decode(bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
                 .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
                 .collect::<Vec<f32>>();
             if vals.iter().any(|v| !v.is_finite()) {
-                return Err(format!("{name}: non-finite weights"));
+                return Err(GcnError::ModelFile(format!("{name}: non-finite weights")));
             }
             Ok((name.to_string(), view.shape().to_vec(), vals))
         })
@@ -146,27 +147,30 @@ fn encode_legacy(tensors: &[NamedTensor]) -> Vec<u8> {
 
 /// Parses the format-2/3 weights file (`weights.bin`): little-endian, magic `SRGCNW01`, u32
 /// tensor count, then per tensor u32 name length, UTF-8 name, u32 rank, u64 dims, f32 values.
-fn decode_legacy(bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
+fn decode_legacy(bytes: &[u8]) -> Result<Vec<NamedTensor>, GcnError> {
     let mut at = 0usize;
-    let mut take = |n: usize| -> Result<&[u8], String> {
+    let mut take = |n: usize| -> Result<&[u8], GcnError> {
         let s = bytes
             .get(at..at + n)
-            .ok_or_else(|| format!("weights file truncated at byte {at}"))?;
+            .ok_or_else(|| GcnError::ModelFile(format!("weights file truncated at byte {at}")))?;
         at += n;
         Ok(s)
     };
     if take(8)? != LEGACY_MAGIC {
-        return Err("not an SR-GCN weights file (bad magic)".into());
+        return Err(GcnError::ModelFile(
+            "not an SR-GCN weights file (bad magic)".into(),
+        ));
     }
     let u32_ = |s: &[u8]| u32::from_le_bytes(s.try_into().expect("4 bytes")) as usize;
     let count = u32_(take(4)?);
     let mut out = Vec::with_capacity(count.min(1024));
     for _ in 0..count {
         let len = u32_(take(4)?);
-        let name = String::from_utf8(take(len)?.to_vec()).map_err(|_| "bad tensor name")?;
+        let name = String::from_utf8(take(len)?.to_vec())
+            .map_err(|_| GcnError::ModelFile("bad tensor name".into()))?;
         let rank = u32_(take(4)?);
         if rank > 8 {
-            return Err(format!("{name}: rank {rank}"));
+            return Err(GcnError::ModelFile(format!("{name}: rank {rank}")));
         }
         let mut dims = Vec::with_capacity(rank);
         for _ in 0..rank {
@@ -176,14 +180,14 @@ fn decode_legacy(bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
             .iter()
             .try_fold(1usize, |a, &d| a.checked_mul(d))
             .filter(|&n| n <= bytes.len() / 4)
-            .ok_or_else(|| format!("{name}: impossible shape {dims:?}"))?;
+            .ok_or_else(|| GcnError::ModelFile(format!("{name}: impossible shape {dims:?}")))?;
         let raw = take(4 * n)?;
         let vals = raw
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
             .collect::<Vec<f32>>();
         if vals.iter().any(|v| !v.is_finite()) {
-            return Err(format!("{name}: non-finite weights"));
+            return Err(GcnError::ModelFile(format!("{name}: non-finite weights")));
         }
         out.push((name, dims, vals));
     }
@@ -192,7 +196,7 @@ fn decode_legacy(bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
 
 /// The parameters of a weights file of model format `format` (4: safetensors; 2, 3: the
 /// legacy `weights.bin`).
-fn decode_weights(format: u64, bytes: &[u8]) -> Result<Vec<NamedTensor>, String> {
+fn decode_weights(format: u64, bytes: &[u8]) -> Result<Vec<NamedTensor>, GcnError> {
     if format >= 4 {
         decode(bytes)
     } else {
@@ -201,7 +205,7 @@ fn decode_weights(format: u64, bytes: &[u8]) -> Result<Vec<NamedTensor>, String>
 }
 
 /// Looks a parameter up by name and shape.
-type Finder<'a> = dyn Fn(&str, &[usize]) -> Result<Tensor<1>, String> + 'a;
+type Finder<'a> = dyn Fn(&str, &[usize]) -> Result<Tensor<1>, GcnError> + 'a;
 
 /// Builds a network of `cfg` and overwrites its parameters with `tensors` (every parameter must
 /// be present with its shape).
@@ -209,24 +213,26 @@ pub fn load_net(
     cfg: &SrGcnConfig,
     tensors: &[NamedTensor],
     device: &Device,
-) -> Result<SrGcn, String> {
-    let mut net = cfg.init(device).map_err(|e| e.to_string())?;
-    let find = |name: &str, dims: &[usize]| -> Result<Tensor<1>, String> {
+) -> Result<SrGcn, GcnError> {
+    let mut net = cfg
+        .init(device)
+        .map_err(|e| GcnError::ModelFile(e.to_string()))?;
+    let find = |name: &str, dims: &[usize]| -> Result<Tensor<1>, GcnError> {
         let (_, d, v) = tensors
             .iter()
             .find(|t| t.0 == name)
-            .ok_or_else(|| format!("weights lack {name}"))?;
+            .ok_or_else(|| GcnError::ModelFile(format!("weights lack {name}")))?;
         if d.as_slice() != dims {
-            return Err(format!(
+            return Err(GcnError::ModelFile(format!(
                 "{name}: shape {d:?}, the configuration needs {dims:?}"
-            ));
+            )));
         }
         Ok(Tensor::<1>::from_data(
             TensorData::new(v.clone(), [v.len()]),
             device,
         ))
     };
-    fn set_conv(prefix: &str, c: &mut SplineConv, find: &Finder) -> Result<(), String> {
+    fn set_conv(prefix: &str, c: &mut SplineConv, find: &Finder) -> Result<(), GcnError> {
         let [k, i, o] = c.weight.dims();
         c.weight =
             Param::from_tensor(find(&format!("{prefix}.weight"), &[k, i, o])?.reshape([k, i, o]));
@@ -242,7 +248,7 @@ pub fn load_net(
         }
         Ok(())
     }
-    fn set_branch(prefix: &str, b: &mut Branch, find: &Finder) -> Result<(), String> {
+    fn set_branch(prefix: &str, b: &mut Branch, find: &Finder) -> Result<(), GcnError> {
         set_conv(&format!("{prefix}.encoder"), &mut b.encoder, find)?;
         for (i, c) in b.convs.iter_mut().enumerate() {
             set_conv(&format!("{prefix}.convs.{i}"), c, find)?;
@@ -290,10 +296,12 @@ impl TrainedModel {
     /// A network of `config` with freshly initialised weights (seeded) on the compute device
     /// ([`super::device::compute`]): what training starts from; for tests of the plumbing around
     /// a model.
-    pub fn untrained(config: SrGcnConfig, seed: u64) -> Result<Self, String> {
+    pub fn untrained(config: SrGcnConfig, seed: u64) -> Result<Self, GcnError> {
         let device = super::device::compute();
         device.seed(seed);
-        let net = config.init(&device).map_err(|e| e.to_string())?;
+        let net = config
+            .init(&device)
+            .map_err(|e| GcnError::ModelFile(e.to_string()))?;
         Ok(Self {
             config,
             net,
@@ -308,24 +316,28 @@ pub fn save_model(
     cfg: &SrGcnConfig,
     net: &SrGcn,
     provenance: serde_json::Value,
-) -> Result<(), String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+) -> Result<(), GcnError> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", dir.display())))?;
     let wpath = dir.join(WEIGHTS_FILE);
-    let bytes = encode(&named_tensors(net)).map_err(|e| format!("{}: {e}", wpath.display()))?;
-    std::fs::write(&wpath, bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    let bytes = encode(&named_tensors(net))
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", wpath.display())))?;
+    std::fs::write(&wpath, bytes)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", wpath.display())))?;
     let file = ModelFile {
         format: MODEL_FORMAT,
         config: cfg.clone(),
         weights: WEIGHTS_FILE.into(),
         provenance,
     };
-    let j = serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?;
-    std::fs::write(dir.join("model.json"), j).map_err(|e| format!("{}: {e}", dir.display()))
+    let j = serde_json::to_string_pretty(&file).map_err(|e| GcnError::ModelFile(e.to_string()))?;
+    std::fs::write(dir.join("model.json"), j)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", dir.display())))
 }
 
 /// Reads a model directory onto the compute device ([`super::device::compute`]: the CPU unless
 /// `librplus --device` chose a GPU).
-pub fn load_model_on_device(dir: &Path) -> Result<TrainedModel, String> {
+pub fn load_model_on_device(dir: &Path) -> Result<TrainedModel, GcnError> {
     load_model(dir, &super::device::compute())
 }
 
@@ -367,15 +379,15 @@ const BUILTIN_MEMBERS: [(&str, &str, &[u8]); 2] = [
 /// `ensemble.json` and its provenance; see `assets/models/default/README.md`), on the CPU: its
 /// members, whose corrections LIBR+ averages. Each member's provenance has `"builtin": true` and its name
 /// under `"member"`.
-pub fn builtin_models() -> Result<Vec<TrainedModel>, String> {
+pub fn builtin_models() -> Result<Vec<TrainedModel>, GcnError> {
     let file: EnsembleFile = serde_json::from_str(BUILTIN_ENSEMBLE)
-        .map_err(|e| format!("<built-in>/ensemble.json: {e}"))?;
+        .map_err(|e| GcnError::ModelFile(format!("<built-in>/ensemble.json: {e}")))?;
     let names: Vec<&str> = BUILTIN_MEMBERS.iter().map(|m| m.0).collect();
     if file.members != names {
-        return Err(format!(
+        return Err(GcnError::ModelFile(format!(
             "<built-in>/ensemble.json lists {:?}, the crate embeds {names:?}",
             file.members
-        ));
+        )));
     }
     BUILTIN_MEMBERS
         .iter()
@@ -416,7 +428,7 @@ pub fn save_ensemble(
     dir: &Path,
     members: &[String],
     provenance: serde_json::Value,
-) -> Result<(), String> {
+) -> Result<(), GcnError> {
     let file = EnsembleFile {
         format: ENSEMBLE_FORMAT,
         members: members.to_vec(),
@@ -426,29 +438,32 @@ pub fn save_ensemble(
     for m in members {
         load_model_on_device(&dir.join(m))?;
     }
-    let j = serde_json::to_string_pretty(&file).map_err(|e| e.to_string())?;
+    let j = serde_json::to_string_pretty(&file).map_err(|e| GcnError::ModelFile(e.to_string()))?;
     let p = dir.join("ensemble.json");
-    std::fs::write(&p, j).map_err(|e| format!("{}: {e}", p.display()))
+    std::fs::write(&p, j).map_err(|e| GcnError::ModelFile(format!("{}: {e}", p.display())))
 }
 
-fn check_members(dir: &Path, file: &EnsembleFile) -> Result<(), String> {
+fn check_members(dir: &Path, file: &EnsembleFile) -> Result<(), GcnError> {
     let p = dir.join("ensemble.json");
     if file.format != ENSEMBLE_FORMAT {
-        return Err(format!(
+        return Err(GcnError::ModelFile(format!(
             "{}: ensemble format {} (this build reads {ENSEMBLE_FORMAT})",
             p.display(),
             file.format
-        ));
+        )));
     }
     if file.members.is_empty() {
-        return Err(format!("{}: members is empty", p.display()));
+        return Err(GcnError::ModelFile(format!(
+            "{}: members is empty",
+            p.display()
+        )));
     }
     for (k, m) in file.members.iter().enumerate() {
         if m.is_empty() || m == "." || m == ".." || m.contains(['/', '\\']) {
-            return Err(format!(
+            return Err(GcnError::ModelFile(format!(
                 "{}: members[{k}] {m:?} must be the name of a directory inside the ensemble directory",
                 p.display()
-            ));
+            )));
         }
     }
     Ok(())
@@ -463,17 +478,18 @@ pub fn make_ensemble(
     out: &Path,
     sources: &[std::path::PathBuf],
     provenance: serde_json::Value,
-) -> Result<Vec<String>, String> {
+) -> Result<Vec<String>, GcnError> {
     if sources.is_empty() {
-        return Err("no model directories given".into());
+        return Err(GcnError::ModelFile("no model directories given".into()));
     }
     if out.exists() {
-        let mut entries = std::fs::read_dir(out).map_err(|e| format!("{}: {e}", out.display()))?;
+        let mut entries = std::fs::read_dir(out)
+            .map_err(|e| GcnError::ModelFile(format!("{}: {e}", out.display())))?;
         if entries.next().is_some() {
-            return Err(format!(
+            return Err(GcnError::ModelFile(format!(
                 "{}: exists and is not empty (an ensemble is written into a new directory)",
                 out.display()
-            ));
+            )));
         }
     }
     // Every member directory, with ensembles flattened; each is read before anything is written.
@@ -504,13 +520,16 @@ pub fn make_ensemble(
             k += 1;
         }
         let dst = out.join(&name);
-        std::fs::create_dir_all(&dst).map_err(|e| format!("{}: {e}", dst.display()))?;
-        for entry in std::fs::read_dir(d).map_err(|e| format!("{}: {e}", d.display()))? {
-            let entry = entry.map_err(|e| format!("{}: {e}", d.display()))?;
+        std::fs::create_dir_all(&dst)
+            .map_err(|e| GcnError::ModelFile(format!("{}: {e}", dst.display())))?;
+        for entry in std::fs::read_dir(d)
+            .map_err(|e| GcnError::ModelFile(format!("{}: {e}", d.display())))?
+        {
+            let entry = entry.map_err(|e| GcnError::ModelFile(format!("{}: {e}", d.display())))?;
             let path = entry.path();
             if path.is_file() {
                 std::fs::copy(&path, dst.join(entry.file_name()))
-                    .map_err(|e| format!("{}: {e}", path.display()))?;
+                    .map_err(|e| GcnError::ModelFile(format!("{}: {e}", path.display())))?;
             }
         }
         sources_json.insert(name.clone(), d.display().to_string().into());
@@ -526,44 +545,47 @@ pub fn make_ensemble(
 }
 
 /// `dir`'s `ensemble.json`, checked, or None when `dir` has none (a model directory).
-fn read_ensemble(dir: &Path) -> Result<Option<EnsembleFile>, String> {
+fn read_ensemble(dir: &Path) -> Result<Option<EnsembleFile>, GcnError> {
     let p = dir.join("ensemble.json");
     if !p.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))?;
-    let file: EnsembleFile =
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?;
+    let text = std::fs::read_to_string(&p)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", p.display())))?;
+    let file: EnsembleFile = serde_json::from_str(&text)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", p.display())))?;
     check_members(dir, &file)?;
     Ok(Some(file))
 }
 
 /// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
 /// directories), onto the compute device ([`super::device::compute`]): the networks LIBR+ runs, one for a model directory.
-pub fn load_models_on_device(dir: &Path) -> Result<Vec<TrainedModel>, String> {
+pub fn load_models_on_device(dir: &Path) -> Result<Vec<TrainedModel>, GcnError> {
     let Some(file) = read_ensemble(dir)? else {
         return Ok(vec![load_model_on_device(dir)?]);
     };
     file.members
         .iter()
         .map(|m| {
-            load_model_on_device(&dir.join(m)).map_err(|e| format!("ensemble member {m}: {e}"))
+            load_model_on_device(&dir.join(m))
+                .map_err(|e| GcnError::ModelFile(format!("ensemble member {m}: {e}")))
         })
         .collect()
 }
 
 /// Reads a model directory.
-pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
+pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, GcnError> {
     let mpath = dir.join("model.json");
     if !mpath.exists() && dir.join("ensemble.json").exists() {
-        return Err(format!(
+        return Err(GcnError::ModelFile(format!(
             "{} is an ensemble directory (ensemble.json): this needs one model, give one of its members",
             dir.display()
-        ));
+        )));
     }
-    let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
-    let head: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let text = std::fs::read_to_string(&mpath)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
+    let head: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
     let weights = head.get("weights").and_then(|w| w.as_str()).unwrap_or(
         if head.get("format").and_then(|f| f.as_u64()) < Some(MODEL_FORMAT as u64) {
             LEGACY_WEIGHTS_FILE
@@ -572,13 +594,14 @@ pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
         },
     );
     if weights.contains(['/', '\\']) || weights == ".." || weights.is_empty() {
-        return Err(format!(
+        return Err(GcnError::ModelFile(format!(
             "{}: weights {weights:?} must be a file name in the model directory",
             mpath.display()
-        ));
+        )));
     }
     let wpath = dir.join(weights);
-    let bytes = std::fs::read(&wpath).map_err(|e| format!("{}: {e}", wpath.display()))?;
+    let bytes = std::fs::read(&wpath)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", wpath.display())))?;
     model_from_parts(&text, &bytes, device, &mpath, &wpath)
 }
 
@@ -590,11 +613,12 @@ pub fn load_model(dir: &Path, device: &Device) -> Result<TrainedModel, String> {
 /// with; nothing else changes) and deletes the old weights file. Returns the number of f32
 /// values converted, or `None` when `dir` is already format 4. Ensemble directories are
 /// converted member by member.
-pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, String> {
+pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, GcnError> {
     let mpath = dir.join("model.json");
-    let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
-    let mut head: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let text = std::fs::read_to_string(&mpath)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
+    let mut head: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
     let format = head.get("format").and_then(|f| f.as_u64());
     if format == Some(MODEL_FORMAT as u64) {
         return Ok(None);
@@ -608,10 +632,13 @@ pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, String> {
         .unwrap_or(LEGACY_WEIGHTS_FILE)
         .to_string();
     let old_path = dir.join(&old_name);
-    let bytes = std::fs::read(&old_path).map_err(|e| format!("{}: {e}", old_path.display()))?;
-    let tensors = decode_legacy(&bytes).map_err(|e| format!("{}: {e}", old_path.display()))?;
+    let bytes = std::fs::read(&old_path)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", old_path.display())))?;
+    let tensors = decode_legacy(&bytes)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", old_path.display())))?;
     let new_path = dir.join(WEIGHTS_FILE);
-    let new_bytes = encode(&tensors).map_err(|e| format!("{}: {e}", new_path.display()))?;
+    let new_bytes = encode(&tensors)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", new_path.display())))?;
     let same = |a: &[NamedTensor], b: &[NamedTensor]| {
         a.len() == b.len()
             && a.iter().all(|(name, dims, vals)| {
@@ -624,11 +651,11 @@ pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, String> {
             })
     };
     if !same(&decode(&new_bytes)?, &tensors) {
-        return Err(format!(
+        return Err(GcnError::ModelFile(format!(
             "{}: does not read back as {}",
             new_path.display(),
             old_path.display()
-        ));
+        )));
     }
     if format == 2 {
         if let Some(c) = head["config"].as_object_mut() {
@@ -654,27 +681,30 @@ pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, String> {
         weights: WEIGHTS_FILE,
         provenance: &head["provenance"],
     })
-    .map_err(|e| e.to_string())?;
+    .map_err(|e| GcnError::ModelFile(e.to_string()))?;
     crate::util::write_atomic(&new_path, &new_bytes)?;
     crate::util::write_atomic(&mpath, json.as_bytes())?;
-    let restore = |e: String| {
+    let restore = |e: GcnError| {
         // Put the old model.json back: the old weights file is still there.
         let _ = crate::util::write_atomic(&mpath, text.as_bytes());
         let _ = std::fs::remove_file(&new_path);
         e
     };
     let new = load_model(dir, &device).map_err(restore)?;
-    let config = |m: &TrainedModel| serde_json::to_value(&m.config).map_err(|e| e.to_string());
+    let config = |m: &TrainedModel| {
+        serde_json::to_value(&m.config).map_err(|e| GcnError::ModelFile(e.to_string()))
+    };
     if !same(&named_tensors(&new.net), &named_tensors(&old.net))
         || config(&new).map_err(restore)? != config(&old).map_err(restore)?
     {
-        return Err(restore(format!(
+        return Err(restore(GcnError::ModelFile(format!(
             "{}: the converted model differs from the old one",
             dir.display()
-        )));
+        ))));
     }
     if old_name != WEIGHTS_FILE {
-        std::fs::remove_file(&old_path).map_err(|e| format!("{}: {e}", old_path.display()))?;
+        std::fs::remove_file(&old_path)
+            .map_err(|e| GcnError::ModelFile(format!("{}: {e}", old_path.display())))?;
     }
     Ok(Some(tensors.iter().map(|t| t.2.len()).sum()))
 }
@@ -686,16 +716,16 @@ fn model_from_parts(
     device: &Device,
     mpath: &Path,
     wpath: &Path,
-) -> Result<TrainedModel, String> {
-    let head: serde_json::Value =
-        serde_json::from_str(text).map_err(|e| format!("{}: {e}", mpath.display()))?;
+) -> Result<TrainedModel, GcnError> {
+    let head: serde_json::Value = serde_json::from_str(text)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
     let format = head.get("format").and_then(|f| f.as_u64());
     let Some(format) = format.filter(|f| (2..=MODEL_FORMAT as u64).contains(f)) else {
-        return Err(format!(
+        return Err(GcnError::ModelFile(format!(
             "{}: model format {} (this build reads 2 to {MODEL_FORMAT}; retrain with `librplus train`)",
             mpath.display(),
             format.map_or("missing".to_string(), |f| f.to_string()),
-        ));
+        )));
     };
     let mut head = head;
     if let Some(c) = head.get_mut("config").and_then(|c| c.as_object_mut()) {
@@ -716,14 +746,15 @@ fn model_from_parts(
         c.entry("diagnostic_truth_neighbours")
             .or_insert(false.into());
     }
-    let file: ModelFile =
-        serde_json::from_value(head).map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let file: ModelFile = serde_json::from_value(head)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
     file.config
         .validate()
-        .map_err(|e| format!("{}: {e}", mpath.display()))?;
-    let tensors = decode_weights(format, bytes).map_err(|e| format!("{}: {e}", wpath.display()))?;
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
+    let tensors = decode_weights(format, bytes)
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", wpath.display())))?;
     let net = load_net(&file.config, &tensors, device)
-        .map_err(|e| format!("{}: {e}", wpath.display()))?;
+        .map_err(|e| GcnError::ModelFile(format!("{}: {e}", wpath.display())))?;
     Ok(TrainedModel {
         config: file.config,
         net,
@@ -810,7 +841,7 @@ mod tests {
         let at = good.iter().position(|t| t.0 == name).unwrap();
         let load_with = |bytes: Vec<u8>| {
             std::fs::write(&wpath, bytes).unwrap();
-            load_model_on_device(tmp.path()).unwrap_err()
+            load_model_on_device(tmp.path()).unwrap_err().to_string()
         };
         let named = |e: &str, what: &str| {
             assert!(e.contains("weights.safetensors"), "{e}");
@@ -870,7 +901,7 @@ mod tests {
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
         j["format"] = 5.into();
         std::fs::write(&p, j.to_string()).unwrap();
-        let e = load_model_on_device(tmp.path()).unwrap_err();
+        let e = load_model_on_device(tmp.path()).unwrap_err().to_string();
         assert!(e.contains("model format 5"), "{e}");
     }
 
@@ -925,7 +956,7 @@ mod tests {
         let w = dir3.join("weights.bin");
         let bytes = std::fs::read(&w).unwrap();
         std::fs::write(&w, &bytes[..bytes.len() / 2]).unwrap();
-        let e = convert_model_dir(&dir3).unwrap_err();
+        let e = convert_model_dir(&dir3).unwrap_err().to_string();
         assert!(e.contains("truncated"), "{e}");
         assert!(w.exists() && !dir3.join(WEIGHTS_FILE).exists());
     }
@@ -983,7 +1014,7 @@ mod tests {
         // Format 1 is refused with a request to retrain.
         j["format"] = 1.into();
         std::fs::write(&p, j.to_string()).unwrap();
-        let e = load_model_on_device(tmp.path()).unwrap_err();
+        let e = load_model_on_device(tmp.path()).unwrap_err().to_string();
         assert!(e.contains("retrain"), "{e}");
     }
 
@@ -1025,12 +1056,12 @@ mod tests {
         ] {
             let j = serde_json::json!({"format": format, "members": members});
             std::fs::write(&p, j.to_string()).unwrap();
-            let e = load_models_on_device(tmp.path()).unwrap_err();
+            let e = load_models_on_device(tmp.path()).unwrap_err().to_string();
             assert!(e.contains(want), "{members}: {e}");
         }
         // What needs one model names an ensemble for what it is.
         save_ensemble(tmp.path(), &names, serde_json::json!({})).unwrap();
-        let e = load_model_on_device(tmp.path()).unwrap_err();
+        let e = load_model_on_device(tmp.path()).unwrap_err().to_string();
         assert!(e.contains("ensemble directory"), "{e}");
         // An ensemble made from model directories and another ensemble: members flattened,
         // names made unique, sources recorded; the same networks come back.
@@ -1056,16 +1087,21 @@ mod tests {
                 .ends_with("b")
         );
         // Not over a directory with files in it, not from nothing, not from a broken member.
-        let e = make_ensemble(&out, &[tmp.path().join("a")], serde_json::json!({})).unwrap_err();
+        let e = make_ensemble(&out, &[tmp.path().join("a")], serde_json::json!({}))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("not empty"), "{e}");
-        let e = make_ensemble(&tmp.path().join("x"), &[], serde_json::json!({})).unwrap_err();
+        let e = make_ensemble(&tmp.path().join("x"), &[], serde_json::json!({}))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("no model"), "{e}");
         let e = make_ensemble(
             &tmp.path().join("y"),
             &[tmp.path().join("missing")],
             serde_json::json!({}),
         )
-        .unwrap_err();
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("missing"), "{e}");
         assert!(
             !tmp.path().join("y").exists(),
@@ -1073,7 +1109,8 @@ mod tests {
         );
         // Writing one over a missing member is refused before the file is written.
         let e = save_ensemble(tmp.path(), &["a".into(), "c".into()], serde_json::json!({}))
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("model.json"), "{e}");
     }
 }

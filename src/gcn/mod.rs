@@ -42,6 +42,9 @@ pub enum GcnError {
     /// The compute device is not available in this build or on this machine.
     #[error("{0}")]
     Device(String),
+    /// A model file could not be written.
+    #[error(transparent)]
+    File(#[from] crate::util::FileError),
     /// Matching the measurements to the model (building a sample) failed.
     #[error(transparent)]
     Register(#[from] crate::register::RegisterError),

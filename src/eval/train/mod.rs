@@ -41,7 +41,6 @@ pub use samples::{
 
 use super::splits::shuffle;
 use crate::eval::EvalError;
-use crate::gcn::GcnError;
 use crate::gcn::io::{TrainedModel, save_model};
 use crate::gcn::model::{MeshGraphs, SrGcn, SrGcnConfig, Target};
 use crate::gcn::sample::{PositionJitter, SampleData};
@@ -228,12 +227,8 @@ pub fn train(
     let mut net = match &opts.init {
         None => cfg.init(&device)?,
         Some(dir) => {
-            let m = crate::gcn::io::load_model(dir, &device).map_err(|e| {
-                EvalError::within(
-                    format!("initial model {}", dir.display()),
-                    GcnError::ModelFile(e),
-                )
-            })?;
+            let m = crate::gcn::io::load_model(dir, &device)
+                .map_err(|e| EvalError::within(format!("initial model {}", dir.display()), e))?;
             let (mut a, mut b) = (m.config.clone(), cfg.clone());
             a.correction_scale = 1.0;
             b.correction_scale = 1.0;
@@ -491,7 +486,7 @@ pub fn train(
             let mut prov = provenance.clone();
             prov["checkpoint"] =
                 serde_json::json!({"stage": 2, "epoch": epoch, "valid_node_error_mm": v});
-            save_model(out, cfg, &best_net, prov).map_err(GcnError::ModelFile)?;
+            save_model(out, cfg, &best_net, prov)?;
         } else if opts.schedule == Schedule::Plateau {
             stall += 1;
             lr *= 0.5;
