@@ -87,14 +87,19 @@ fn rigid_from(m: &[f64]) -> Rigid {
     }
 }
 
-/// Reads every scenario of a deformation from its `scenarios.npz`.
-pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioData>, DatasetError> {
-    let bytes = std::fs::read(dir.join(&d.npz))
-        .map_err(crate::util::FileError::at("reading", &dir.join(&d.npz)))?;
-    let a = read_npz(&bytes).map_err(|source| DatasetError::Npz {
+/// The arrays of a deformation's `scenarios.npz`.
+fn read_deformation_npz(dir: &Path, d: &DeformationEntry) -> Result<Vec<NpyArray>, DatasetError> {
+    let path = dir.join(&d.npz);
+    let bytes = std::fs::read(&path).map_err(crate::util::FileError::at("reading", &path))?;
+    read_npz(&bytes).map_err(|source| DatasetError::Npz {
         file: d.npz.clone(),
         source,
-    })?;
+    })
+}
+
+/// Reads every scenario of a deformation from its `scenarios.npz`.
+pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioData>, DatasetError> {
+    let a = read_deformation_npz(dir, d)?;
     let get = |name: &str| array(&a, name, &d.npz).map(|x| x.data.to_f64());
     let (points, kind, feature) = (get("points")?, get("kind")?, get("feature")?);
     let offsets = get("offsets")?;
@@ -178,12 +183,7 @@ pub fn load_scenario_planes(
     dir: &Path,
     d: &DeformationEntry,
 ) -> Result<Vec<ScenarioPlanes>, DatasetError> {
-    let bytes = std::fs::read(dir.join(&d.npz))
-        .map_err(crate::util::FileError::at("reading", &dir.join(&d.npz)))?;
-    let a = read_npz(&bytes).map_err(|source| DatasetError::Npz {
-        file: d.npz.clone(),
-        source,
-    })?;
+    let a = read_deformation_npz(dir, d)?;
     let get = |name: &str| array(&a, name, &d.npz).map(|x| x.data.to_f64());
     let (kind, plane, offsets) = (get("kind")?, get("plane")?, get("offsets")?);
     let plane_offsets = get("plane_offsets")?;

@@ -405,15 +405,7 @@ impl SignedDistance {
     /// oriented surface; inward-facing surfaces are handled by flipping the orientation.
     pub fn new(surface: &TriSurface) -> Result<Self, SurfaceError> {
         let stats = surface.stats();
-        if stats.triangles == 0 {
-            return Err(SurfaceError::Empty);
-        }
-        if !stats.closed {
-            return Err(SurfaceError::NotClosed {
-                boundary_edges: stats.boundary_edges,
-                nonmanifold_edges: stats.nonmanifold_edges,
-            });
-        }
+        stats.check_closed()?;
         if !stats.consistently_oriented {
             return Err(SurfaceError::Misoriented {
                 misoriented_edges: stats.misoriented_edges,

@@ -89,6 +89,22 @@ pub enum SurfaceError {
     },
 }
 
+impl SurfaceStats {
+    /// Ok when the surface has triangles and every edge has exactly two (it encloses a volume).
+    pub fn check_closed(&self) -> Result<(), SurfaceError> {
+        if self.triangles == 0 {
+            return Err(SurfaceError::Empty);
+        }
+        if !self.closed {
+            return Err(SurfaceError::NotClosed {
+                boundary_edges: self.boundary_edges,
+                nonmanifold_edges: self.nonmanifold_edges,
+            });
+        }
+        Ok(())
+    }
+}
+
 impl TriSurface {
     /// Builds a surface after checking indices and coordinates.
     pub fn new(nodes: Vec<[f64; 3]>, triangles: Vec<[u32; 3]>) -> Result<Self, SurfaceError> {
@@ -249,16 +265,7 @@ impl TriSurface {
     /// oriented outward. Errors when that piece is not closed (it must enclose a volume).
     pub fn largest_closed_outward(&self) -> Result<TriSurface, SurfaceError> {
         let mut surface = self.largest_component();
-        let stats = surface.stats();
-        if stats.triangles == 0 {
-            return Err(SurfaceError::Empty);
-        }
-        if !stats.closed {
-            return Err(SurfaceError::NotClosed {
-                boundary_edges: stats.boundary_edges,
-                nonmanifold_edges: stats.nonmanifold_edges,
-            });
-        }
+        surface.stats().check_closed()?;
         if surface.signed_volume() < 0.0 {
             surface.flip();
         }
