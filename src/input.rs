@@ -51,13 +51,29 @@ pub enum InputError {
         /// What the model builder found.
         source: crate::register::RegisterError,
     },
-    /// The surface could not be tetrahedralised or the tet mesh is invalid.
-    #[error("{}: {message}", path.display())]
+    /// The file's surface is not one a liver mesh can be made from.
+    #[error("{}: {source}", path.display())]
+    Surface {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with the surface.
+        source: crate::mesh::SurfaceError,
+    },
+    /// The surface could not be tetrahedralised.
+    #[error("{}: {source}", path.display())]
+    Tetrahedralize {
+        /// The file.
+        path: PathBuf,
+        /// The mesher's error.
+        source: crate::mesh::tetra::TetraError,
+    },
+    /// The file's tetrahedra do not make a valid mesh.
+    #[error("{}: {source}", path.display())]
     Mesh {
         /// The file.
         path: PathBuf,
-        /// The mesher's or mesh check's message.
-        message: String,
+        /// The mesh check's error.
+        source: crate::mesh::MeshError,
     },
     /// The tetrahedralisation edge length is not usable.
     #[error("edge length {edge_mm} mm: need a finite value > 0.5")]
@@ -87,10 +103,7 @@ pub fn preop_model_from_mesh(
         path: path.to_path_buf(),
         source,
     };
-    let mesh_err = |e: &dyn std::fmt::Display| InputError::Mesh {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    };
+    let path_buf = || path.to_path_buf();
     if !file.tets.is_empty() && file.point_array("region").is_some() {
         let vessels_path = path.with_extension("vessels.vtp");
         let vessels = if vessels_path.is_file() {
@@ -112,10 +125,21 @@ pub fn preop_model_from_mesh(
         }
         let s = TriSurface::from_file(file)
             .and_then(|s| s.largest_closed_outward())
-            .map_err(|e| mesh_err(&e))?;
-        tetrahedralize(&s, &TetraParams::with_edge(edge_mm)).map_err(|e| mesh_err(&e))?
+            .map_err(|source| InputError::Surface {
+                path: path_buf(),
+                source,
+            })?;
+        tetrahedralize(&s, &TetraParams::with_edge(edge_mm)).map_err(|source| {
+            InputError::Tetrahedralize {
+                path: path_buf(),
+                source,
+            }
+        })?
     } else {
-        TetMesh::from_file(file).map_err(|e| mesh_err(&e))?
+        TetMesh::from_file(file).map_err(|source| InputError::Mesh {
+            path: path_buf(),
+            source,
+        })?
     };
     mesh.orient_positive();
     let labels = label(&mesh, &LabelParams::default()).map_err(model)?;
