@@ -61,8 +61,8 @@ fn ablation_config(
 /// Trains and tests one model; returns its test.json (without per-scenario rows) and a
 /// summary of its training.
 pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
+    use librplus::eval::load_scenarios;
     use librplus::eval::train::{self as tr, TrainOptions, TrainSplit};
-    use librplus::eval::{load_scenarios, node_errors_mm, tre_from_errors};
     use librplus::gcn::model::SrGcnConfig;
     let t_all = Instant::now();
     let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
@@ -308,80 +308,37 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             "scale_without_refit": scale_without_refit,
         });
     }
-    // Test: LIBR and LIBR+ on the held-out scenarios.
-    let test_items = pick(&sets.test);
-    let test_sol = solve(&test_items, "LIBR on test scenarios")?;
-    let z: Vec<_> = test_items
-        .iter()
-        .zip(&test_sol)
-        .map(|((s, g), o)| (*s, *g, o))
-        .collect();
+    // Test: LIBR and LIBR+ on the held-out scenarios, scored by `librplus evaluate`'s own code
+    // (a diagnostic model needs the truth to build its samples and has its own loop).
+    let model = std::sync::Arc::new(report.model);
     let t_inf = Instant::now();
-    let test_s =
-        // Test samples never carry the truth, except for the paper's leak (a diagnostic).
-        tr::build_samples(
-            &cfg,
-            &cases,
-            &z,
+    let rows = if cfg.diagnostic_truth_neighbours {
+        let test_items = pick(&sets.test);
+        let test_sol = solve(&test_items, "LIBR on test scenarios")?;
+        diagnostic_test_rows(&cfg, &cases, &test_items, &test_sol, &params, &model)?
+    } else {
+        let only: std::collections::BTreeSet<(String, usize)> = sets.test.iter().cloned().collect();
+        let bar = indicatif::ProgressBar::new(0)
+            .with_style(bar_style("LIBR and LIBR+ on test scenarios"));
+        let ev = librplus::eval::report::evaluate(
+            &a.data,
+            &m,
+            librplus::eval::report::Split::All,
+            &[librplus::pipeline::Method::Libr],
+            1,
             &params,
-            cfg.diagnostic_truth_neighbours,
-            false,
-        )
-        .map_err(anyhow::Error::msg)?;
-    let plain = librplus::gcn::device::compute();
-    let mut graphs = std::collections::BTreeMap::new();
-    for (g, gc) in &cases {
-        graphs.insert(
-            g.clone(),
-            gc.frame
-                .mesh_graphs(&cfg, &plain)
-                .map_err(|e| anyhow::anyhow!("{e}"))?,
-        );
-    }
-    let mut rows = Vec::new();
-    let bar = indicatif::ProgressBar::new(test_items.len() as u64)
-        .with_style(bar_style("LIBR+ on test scenarios"));
-    for (((sc, g), sol), sample) in test_items.iter().zip(&test_sol).zip(&test_s) {
-        bar.inc(1);
-        let gc = &cases[*g];
-        let (Some(sol), Some(sample)) = (sol, sample) else {
-            rows.push(json!({"scenario": sc.id, "category": sc.category, "error": "LIBR failed"}));
-            continue;
-        };
-        let nodes = gc.geo.model.mesh.nodes();
-        let truth = (
-            &sc.truth.image_to_physical,
-            sc.truth.displacement.as_slice(),
-        );
-        let e_libr = node_errors_mm(nodes, (&sol.transform, &sol.u), truth);
-        let u_plus = librplus::gcn::infer::correct(
-            &report.model,
-            &gc.frame,
-            &graphs[*g],
-            &sample.data,
-            &sol.u,
-        )
-        .map_err(|e| anyhow::anyhow!("{}: {e}", sc.id))?;
-        let (u_plus, t_plus) = if params.refit_iterations > 0 {
-            let r = librplus::pipeline::refit(
-                &gc.case,
-                &sc.measurements,
-                &params,
-                &u_plus,
-                &sol.transform,
-                None,
-            )
-            .map_err(|e| anyhow::anyhow!("{}: refit: {e}", sc.id))?;
-            (r.u, r.image_to_physical)
-        } else {
-            (u_plus, sol.transform)
-        };
-        let e_plus = node_errors_mm(nodes, (&t_plus, &u_plus), truth);
-        let t_l = tre_from_errors(&e_libr, &gc.geo.surface, &gc.geo.targets);
-        let t_p = tre_from_errors(&e_plus, &gc.geo.surface, &gc.geo.targets);
-        rows.push(json!({"scenario": sc.id, "geometry": g, "category": sc.category, "libr": t_l, "librplus": t_p}));
-    }
-    bar.finish_and_clear();
+            Some(librplus::eval::report::LibrPlusEval {
+                models: std::slice::from_ref(&model),
+                only: Some(&only),
+            }),
+            &|done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            },
+        )?;
+        bar.finish_and_clear();
+        test_rows(&ev.results)
+    };
     let inference_seconds = t_inf.elapsed().as_secs_f64();
     // Aggregate.
     let mut by_cat: std::collections::BTreeMap<String, (f64, f64, usize)> = Default::default();
@@ -422,7 +379,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         "format": 1,
         "log": report.log,
         "best_valid_node_error_mm": report.best_valid_mm,
-        "correction_scale": report.model.config.correction_scale,
+        "correction_scale": model.config.correction_scale,
         "scaled_valid_node_error_mm": report.scaled_valid_mm,
         "refit_scale_fit": refit_fit,
         "libr_valid_node_error_mm": report.libr_valid_mm,
@@ -441,13 +398,13 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
     let mut prov = provenance.clone();
     prov["metrics"] = json!({
         "valid_node_error_mm": report.best_valid_mm,
-        "correction_scale": report.model.config.correction_scale,
+        "correction_scale": model.config.correction_scale,
         "libr_valid_node_error_mm": report.libr_valid_mm,
         "test_libr_tre_mm": sl / nn,
         "test_librplus_tre_mm": sp / nn,
         "train_seconds": report.seconds,
     });
-    librplus::gcn::io::save_model(&a.out, &report.model.config, &report.model.net, prov)
+    librplus::gcn::io::save_model(&a.out, &model.config, &model.net, prov)
         .map_err(anyhow::Error::msg)?;
     // Loss curves.
     let series =
@@ -510,4 +467,99 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         o.insert("training".into(), training);
     }
     Ok(summary)
+}
+
+/// The rows of `test.json` from an evaluation of methods `libr` and `librplus`: per scenario its
+/// two TREs, or why it failed.
+fn test_rows(results: &[librplus::eval::report::ScenarioResult]) -> Vec<Value> {
+    let plus: std::collections::BTreeMap<&str, &librplus::eval::report::ScenarioResult> = results
+        .iter()
+        .filter(|r| r.method == "librplus")
+        .map(|r| (r.scenario.as_str(), r))
+        .collect();
+    results
+        .iter()
+        .filter(|r| r.method == "libr")
+        .map(|l| {
+            let p = plus.get(l.scenario.as_str());
+            match (&l.tre, p.and_then(|p| p.tre.as_ref())) {
+                (Some(tl), Some(tp)) => json!({"scenario": l.scenario, "geometry": l.geometry, "category": l.category, "libr": tl, "librplus": tp}),
+                _ => json!({
+                    "scenario": l.scenario,
+                    "category": l.category,
+                    "error": l.error.clone().or_else(|| p.and_then(|p| p.error.clone())).unwrap_or_else(|| "LIBR+ failed".into()),
+                }),
+            }
+        })
+        .collect()
+}
+
+/// The rows of `test.json` for a diagnostic model (`--diagnostic-truth-neighbours`), which
+/// `evaluate` refuses: its test samples link the measured points to the true deformed mesh.
+fn diagnostic_test_rows(
+    cfg: &librplus::gcn::model::SrGcnConfig,
+    cases: &std::collections::BTreeMap<String, librplus::eval::train::GeometryCase>,
+    test_items: &[(&librplus::eval::ScenarioData, &str)],
+    test_sol: &[Option<librplus::eval::train::LibrSolution>],
+    params: &librplus::pipeline::PipelineParams,
+    model: &librplus::gcn::io::TrainedModel,
+) -> Result<Vec<Value>> {
+    use librplus::eval::train as tr;
+    use librplus::eval::{node_errors_mm, tre_from_errors};
+    let z: Vec<_> = test_items
+        .iter()
+        .zip(test_sol)
+        .map(|((s, g), o)| (*s, *g, o))
+        .collect();
+    // The paper's leak: the test samples link to the true deformed mesh.
+    let test_s = tr::build_samples(cfg, cases, &z, params, true, false)?;
+    let plain = librplus::gcn::device::compute();
+    let mut graphs = std::collections::BTreeMap::new();
+    for (g, gc) in cases {
+        graphs.insert(
+            g.clone(),
+            gc.frame
+                .mesh_graphs(cfg, &plain)
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
+        );
+    }
+    let mut rows = Vec::new();
+    let bar = indicatif::ProgressBar::new(test_items.len() as u64);
+    for (((sc, g), sol), sample) in test_items.iter().zip(test_sol).zip(&test_s) {
+        bar.inc(1);
+        let gc = &cases[*g];
+        let (Some(sol), Some(sample)) = (sol, sample) else {
+            rows.push(json!({"scenario": sc.id, "category": sc.category, "error": "LIBR failed"}));
+            continue;
+        };
+        let nodes = gc.geo.model.mesh.nodes();
+        let truth = (
+            &sc.truth.image_to_physical,
+            sc.truth.displacement.as_slice(),
+        );
+        let e_libr = node_errors_mm(nodes, (&sol.transform, &sol.u), truth);
+        let u_plus =
+            librplus::gcn::infer::correct(model, &gc.frame, &graphs[*g], &sample.data, &sol.u)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", sc.id))?;
+        let (u_plus, t_plus) = if params.refit_iterations > 0 {
+            let r = librplus::pipeline::refit(
+                &gc.case,
+                &sc.measurements,
+                params,
+                &u_plus,
+                &sol.transform,
+                None,
+            )
+            .map_err(|e| anyhow::anyhow!("{}: refit: {e}", sc.id))?;
+            (r.u, r.image_to_physical)
+        } else {
+            (u_plus, sol.transform)
+        };
+        let e_plus = node_errors_mm(nodes, (&t_plus, &u_plus), truth);
+        let t_l = tre_from_errors(&e_libr, &gc.geo.surface, &gc.geo.targets);
+        let t_p = tre_from_errors(&e_plus, &gc.geo.surface, &gc.geo.targets);
+        rows.push(json!({"scenario": sc.id, "geometry": g, "category": sc.category, "libr": t_l, "librplus": t_p}));
+    }
+    bar.finish_and_clear();
+    Ok(rows)
 }
