@@ -313,14 +313,6 @@ impl HyperelasticModel {
         f
     }
 
-    /// Deformation gradient per tet.
-    pub fn deformation_gradients(&self, u: &[f64]) -> Vec<M3> {
-        (0..self.tets.len())
-            .into_par_iter()
-            .map(|t| self.deformation_gradient(t, u))
-            .collect()
-    }
-
     /// Stored energy (strain + springs) in mN·mm; `None` if any element is inverted.
     pub fn energy(&self, u: &[f64]) -> Option<f64> {
         // Per-tet values in parallel, summed in a fixed order: the same bits on every run.

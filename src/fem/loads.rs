@@ -17,18 +17,6 @@ pub fn add_body_force(f: &mut [f64], mesh: &TetMesh, b: [f64; 3]) {
     }
 }
 
-/// Adds a body force that varies per tet (`b[t]` in mN/mm³), e.g. heterogeneous density.
-pub fn add_body_force_per_tet(f: &mut [f64], mesh: &TetMesh, b: &[[f64; 3]]) {
-    for (t, tet) in mesh.tets().iter().enumerate() {
-        let w = mesh.tet_volume(t).abs() / 4.0;
-        for &v in tet {
-            for a in 0..3 {
-                f[3 * v as usize + a] += b[t][a] * w;
-            }
-        }
-    }
-}
-
 /// Adds constant tractions (kPa = mN/mm²) on triangles: each corner gets `t·A/3`.
 /// `traction` holds one vector per triangle.
 ///

@@ -187,17 +187,6 @@ impl TriSurface {
         self.triangle_areas().iter().sum()
     }
 
-    /// Unit normals per triangle (zero for a degenerate triangle).
-    pub fn face_normals(&self) -> Vec<[f64; 3]> {
-        (0..self.triangles.len())
-            .map(|t| {
-                let a = self.area_vector(t);
-                let l = norm(a);
-                if l > 0.0 { scale(a, 1.0 / l) } else { [0.0; 3] }
-            })
-            .collect()
-    }
-
     /// Area-weighted unit vertex normals (zero for vertices no triangle uses).
     pub fn vertex_normals(&self) -> Vec<[f64; 3]> {
         let mut acc = vec![[0.0; 3]; self.nodes.len()];

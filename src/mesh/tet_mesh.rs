@@ -508,26 +508,6 @@ impl TetMesh {
         true
     }
 
-    /// Moves every node by `displacement` (`3 × nodes` values, node-major); returns a new mesh.
-    pub fn displaced(&self, displacement: &[f64]) -> TetMesh {
-        let nodes = self
-            .nodes
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                [
-                    p[0] + displacement[3 * i],
-                    p[1] + displacement[3 * i + 1],
-                    p[2] + displacement[3 * i + 2],
-                ]
-            })
-            .collect();
-        TetMesh {
-            nodes,
-            tets: self.tets.clone(),
-        }
-    }
-
     /// A file value with this mesh's nodes and tets and no data arrays.
     pub fn to_file(&self) -> MeshFile {
         MeshFile {

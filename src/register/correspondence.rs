@@ -378,16 +378,6 @@ impl Correspondence {
         self.nodes.len()
     }
 
-    /// Number of (anterior, posterior, falciform, inferior-ridge) target triangles.
-    pub fn target_counts(&self) -> [usize; 4] {
-        [
-            self.anterior.tris.len(),
-            self.posterior.tris.len(),
-            self.features[0].tris.len(),
-            self.features[1].tris.len(),
-        ]
-    }
-
     /// Distance from `p` (image frame) to the undeformed boundary surface (mm).
     pub fn distance_to_boundary(&self, p: [f64; 3]) -> f64 {
         self.whole.bvh.distance(p)

@@ -533,11 +533,6 @@ pub fn train(
     })
 }
 
-/// Where training writes: the model directory and its extras.
-pub fn model_paths(out: &Path) -> (PathBuf, PathBuf) {
-    (out.join("model.json"), out.join("training.json"))
-}
-
 #[cfg(test)]
 mod tests {
     use super::average::FlatParams;

@@ -1,8 +1,6 @@
 //! Bad input of every kind gets its status and the field it names, while the session and the server go on.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_unary_input_gets_its_status_and_field() {

@@ -1,8 +1,6 @@
 //! Admission control (sessions beyond the limit are refused with RESOURCE_EXHAUSTED), health, reflection and metrics.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_beyond_the_limit_are_refused_and_health_and_reflection_answer() {

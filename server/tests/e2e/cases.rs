@@ -1,8 +1,6 @@
 //! A folder of meshes served as a set of cases.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 /// `--cases` also takes a folder of preoperative meshes: a labelled `.vtu` (with its vessels
 /// beside it) keeps its labels, a bare tet mesh is labelled from its geometry; each file is a case

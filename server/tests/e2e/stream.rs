@@ -1,8 +1,6 @@
 //! Streamed sessions: each update equals the library on the points so far, and messages sent faster than answers are folded into the newest state.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn streamed_session_equals_the_library_on_the_points_so_far() {

@@ -1,8 +1,6 @@
 //! Unary `Register` over loopback equals the library called directly, for LIBR and for LIBR+.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unary_register_equals_the_library() {

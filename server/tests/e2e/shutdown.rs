@@ -1,8 +1,6 @@
 //! Shutdown with streams in flight: in the library (`Running::shutdown`) and in the binary on SIGTERM.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_drains_streams_in_flight() {

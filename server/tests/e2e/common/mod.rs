@@ -18,9 +18,9 @@ pub use tonic::transport::Channel;
 pub use tonic_types::StatusExt;
 
 /// A small dataset (2 geometries, 10 scenarios per deformation) with its LIBR bases cached.
-/// Generated once per `cargo test` run and shared by the server's test binaries (they run one
-/// after another as children of the same process): under `CARGO_TARGET_TMPDIR`, keyed by the
-/// parent process, made in a private folder and renamed into place when complete.
+/// Generated once per `cargo test` run and shared by its tests (and by any other test binary of
+/// the same run): under `CARGO_TARGET_TMPDIR`, keyed by the parent process, made in a private
+/// folder and renamed into place when complete.
 pub fn dataset() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {

@@ -1,0 +1,13 @@
+//! The server's end-to-end tests over loopback gRPC, one module per concern (as tonic's own
+//! integration tests are laid out), built as one test binary so that `cargo test` links the
+//! server and the library once.
+
+mod common;
+
+mod bad_input;
+mod cases;
+mod interop;
+mod limits;
+mod shutdown;
+mod stream;
+mod unary;
