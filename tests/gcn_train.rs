@@ -448,6 +448,53 @@ fn train_then_evaluate_agree_on_the_held_out_scenarios() {
     );
 }
 
+#[test]
+fn experiments_runs_train_with_its_own_settings_and_the_users_options() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("exp");
+    let data = dataset().to_str().unwrap();
+    let run = |train_args: &str| {
+        Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .args([
+                "experiments",
+                "--data",
+                data,
+                "--out",
+                out.to_str().unwrap(),
+                "--splits",
+                "random",
+                "--ablations",
+                "6",
+                "--ablation-split",
+                "random",
+                "--every",
+                "1",
+                "--seed",
+                "3",
+                "--train-args",
+                train_args,
+            ])
+            .output()
+            .unwrap()
+    };
+    // What the command sets itself cannot be passed through.
+    let o = run("--seed 4");
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--seed is set by `experiments`"));
+    let o = run("--epochs 1 --epochs-bipartite 1 --width 8 --convs 1");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let model: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(out.join("runs/random-ablation6/model.json")).unwrap(),
+    )
+    .unwrap();
+    // The run got the command's settings and the user's options.
+    assert_eq!(model["config"]["width"], 8);
+    assert_eq!(model["provenance"]["seed"], 3);
+    assert_eq!(model["provenance"]["split"], "random");
+    assert_eq!(model["provenance"]["every"], 1);
+    assert!(out.join("RESULTS.md").exists() && out.join("results.json").exists());
+}
+
 /// A small SR-GCN with seeded random weights (its correction is arbitrary but fixed).
 fn untrained_model(seed: u64) -> (SrGcnConfig, librplus::gcn::io::TrainedModel) {
     let cfg = SrGcnConfig::new()

@@ -90,7 +90,8 @@ pub(crate) struct ExperimentsArgs {
     /// Seed of every run.
     #[arg(long, default_value_t = 1)]
     pub(crate) seed: u64,
-    /// More `librplus train` options for every run, as one string (e.g. "--width 48").
+    /// More `librplus train` options for every run, as one string (e.g. "--width 48"); not the
+    /// ones this command sets (--data, --split, --out, --every, --seed, --ablation, --max-minutes).
     #[arg(long, default_value = "", allow_hyphen_values = true)]
     pub(crate) train_args: String,
     /// Keep runs whose directory already has test.json (resume an interrupted campaign).

@@ -57,6 +57,7 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
         "--every",
         "--seed",
         "--ablation",
+        "--max-minutes",
     ] {
         if extra
             .iter()
@@ -65,6 +66,20 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
             bail!("--train-args: {reserved} is set by `experiments` itself");
         }
     }
+    // The user's training options, read once by `train`'s own parser (which requires `--data`
+    // and `--out`: placeholders, replaced below with every field this command sets per run).
+    let mut run_args = TrainOnly::try_parse_from(
+        ["train", "--data", "-", "--out", "-"]
+            .into_iter()
+            .map(String::from)
+            .chain(extra.iter().cloned()),
+    )
+    .map_err(|e| anyhow::anyhow!("--train-args: {e}"))?
+    .args;
+    run_args.data = a.data.clone();
+    run_args.every = a.every;
+    run_args.seed = a.seed;
+    run_args.max_minutes = a.minutes;
     std::fs::create_dir_all(a.out.join("runs")).with_context(|| a.out.display().to_string())?;
     eprintln!(
         "experiments: {} runs, about {:.0} minutes of training each",
@@ -83,28 +98,10 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
                 plan.len(),
                 dir.display()
             );
-            let mut argv: Vec<String> = vec![
-                "train".into(),
-                "--data".into(),
-                a.data.display().to_string(),
-                "--split".into(),
-                split.clone(),
-                "--out".into(),
-                dir.display().to_string(),
-                "--every".into(),
-                a.every.to_string(),
-                "--seed".into(),
-                a.seed.to_string(),
-                "--ablation".into(),
-                setting.to_string(),
-                "--max-minutes".into(),
-                a.minutes.to_string(),
-            ];
-            argv.extend(extra.iter().cloned());
-            let args = TrainOnly::try_parse_from(&argv)
-                .map_err(|e| anyhow::anyhow!("--train-args: {e}"))?
-                .args;
-            train(&args).with_context(|| format!("run {name}"))?;
+            run_args.split = split.clone();
+            run_args.out = dir.clone();
+            run_args.ablation = *setting;
+            train(&run_args).with_context(|| format!("run {name}"))?;
         }
         let test: Value = serde_json::from_str(
             &std::fs::read_to_string(&test_path)
