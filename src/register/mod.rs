@@ -16,6 +16,7 @@ pub mod anatomy;
 pub mod correspondence;
 mod error;
 pub mod libr;
+pub mod physics;
 pub mod wicp;
 
 pub use error::RegisterError;

@@ -2,8 +2,10 @@
 //! farthest-point sampling over the surface, under 3-2-1 supports with inertia relief.
 
 use super::*;
-use crate::fem::{Dirichlet, StiffnessSystem, loads};
+use crate::fem::{Dirichlet, loads};
 use crate::mesh::TetMesh;
+use crate::register::physics::Physics;
+use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites, unit_loads};
 use faer::Mat;
 use nalgebra::{Matrix6, Vector6};
 use rayon::prelude::*;
@@ -44,6 +46,13 @@ pub struct LibrBasis {
     pub load_scale: Vec<f64>,
     /// Resolved Gaussian width σ of the traction patches (mm).
     pub load_width_mm: f64,
+    /// Labels of the augmented model's effect columns, which follow the 3K LIBR columns
+    /// (`gravity`, `pack.x`, ...); empty for plain LIBR. An effect column is the model's
+    /// response to the effect's unit load, scaled to a 1 mm peak like the LIBR columns
+    /// (`load_scale` is the load amplitude per unit weight).
+    pub effect_labels: Vec<String>,
+    /// [`crate::register::physics::Physics::hash`] of the physics it carries (empty for none).
+    pub physics_hash: String,
     /// [`mesh_hash`] of the mesh the basis belongs to.
     pub mesh_hash: String,
     /// [`LibrParams::basis_hash`] of the parameters it was built with.
@@ -129,14 +138,14 @@ pub fn lumped_volumes(mesh: &TetMesh) -> Vec<f64> {
 
 /// The six rigid modes of a node set (3 translations, 3 rotations about `center`) and their
 /// mass matrix `RᵀMR`, for projections.
-pub(super) struct RigidModes {
+pub(crate) struct RigidModes {
     center: [f64; 3],
     mass: Vec<f64>,
     ginv: Matrix6<f64>,
 }
 
 impl RigidModes {
-    fn new(nodes: &[[f64; 3]], mass: &[f64]) -> Result<Self, RegisterError> {
+    pub(crate) fn new(nodes: &[[f64; 3]], mass: &[f64]) -> Result<Self, RegisterError> {
         let total: f64 = mass.iter().sum();
         let mut center = [0.0; 3];
         for (p, &w) in nodes.iter().zip(mass) {
@@ -167,6 +176,11 @@ impl RigidModes {
         })
     }
 
+    /// The centre of mass the rotations are about.
+    pub(crate) fn center(&self) -> [f64; 3] {
+        self.center
+    }
+
     /// `Rᵀ v` (6) for a node-major vector, optionally weighted by the lumped mass.
     fn project(&self, nodes: &[[f64; 3]], v: &[f64], weighted: bool) -> Vector6<f64> {
         let mut s = Vector6::zeros();
@@ -183,7 +197,7 @@ impl RigidModes {
     }
 
     /// `f − M R G⁻¹ Rᵀ f`: the self-equilibrated part of a load (inertia relief).
-    fn equilibrate(&self, nodes: &[[f64; 3]], f: &mut [f64]) {
+    pub(crate) fn equilibrate(&self, nodes: &[[f64; 3]], f: &mut [f64]) {
         let c = self.ginv * self.project(nodes, f, false);
         for (i, p) in nodes.iter().enumerate() {
             let r = mode_rows(*p, self.center);
@@ -195,7 +209,7 @@ impl RigidModes {
     }
 
     /// `u − R G⁻¹ RᵀM u`: removes the (mass-weighted) rigid part of a displacement.
-    fn remove_rigid(&self, nodes: &[[f64; 3]], u: &mut [f64]) {
+    pub(crate) fn remove_rigid(&self, nodes: &[[f64; 3]], u: &mut [f64]) {
         let c = self.ginv * self.project(nodes, u, true);
         for (i, p) in nodes.iter().enumerate() {
             let r = mode_rows(*p, self.center);
@@ -221,7 +235,7 @@ pub(super) fn mode_rows(p: [f64; 3], c: [f64; 3]) -> [[f64; 6]; 3] {
 /// A statically determinate 3-2-1 support on boundary nodes: node a fixed, node b fixed across
 /// the a→b direction's dominant axis, node c fixed along the axis that best stops rotation
 /// about a–b.
-pub(super) fn support_321(
+pub(crate) fn support_321(
     nodes: &[[f64; 3]],
     boundary: &[u32],
     center: [f64; 3],
@@ -289,6 +303,25 @@ impl LibrBasis {
     /// Builds the basis: control points, loads, one factorization, 3K solves (parallel column
     /// blocks), rigid-mode removal, scaling, `E = ΦᵀKΦ`.
     pub fn build(mesh: &TetMesh, params: &LibrParams) -> Result<Self, RegisterError> {
+        let none = vec![false; mesh.num_nodes()];
+        let sites = Sites {
+            posterior: &none,
+            falciform: &none,
+        };
+        Self::build_with(mesh, params, &Physics::none(), sites)
+    }
+
+    /// Builds the basis of an augmented model: the LIBR columns solved with the physics'
+    /// supports and material ([`ModelSolver`]), then one column per load-effect amplitude
+    /// ([`crate::register::physics::model::unit_loads`]), all scaled to a 1 mm peak, with
+    /// `E = ΦᵀKΦ` over every column (K with the supports' springs). Plain LIBR when `physics`
+    /// is empty; `sites` are only read by supports.
+    pub fn build_with(
+        mesh: &TetMesh,
+        params: &LibrParams,
+        physics: &Physics,
+        sites: Sites<'_>,
+    ) -> Result<Self, RegisterError> {
         params.validate()?;
         let t0 = Instant::now();
         let nodes = mesh.nodes();
@@ -326,8 +359,28 @@ impl LibrBasis {
             LoadWidth::Mm(w) => w,
             LoadWidth::Spacing(s) => s * (2.0 * area / (3f64.sqrt() * kk as f64)).sqrt(),
         };
-        let modes = RigidModes::new(nodes, &lumped_volumes(mesh))?;
-        let m = 3 * kk;
+        // Effect loads (unit amplitude), after the LIBR columns.
+        let mut effect_loads = Vec::new();
+        let mut effect_labels = Vec::new();
+        if !physics.is_empty() {
+            let geom = BoundaryGeometry::new(mesh)?;
+            for e in &physics.effects {
+                let (cols, _) = unit_loads(mesh, &geom, e)?;
+                let count = cols.len();
+                for (a, c) in cols.into_iter().enumerate() {
+                    effect_labels.push(if count == 1 {
+                        e.kind.name().to_string()
+                    } else {
+                        format!("{}.{}", e.kind.name(), ["x", "y", "z"][a])
+                    });
+                    effect_loads.push(c);
+                }
+            }
+        }
+        let t_model = Instant::now();
+        let solver = ModelSolver::new(mesh, &params.material, sites, physics)?;
+        let model_s = crate::util::secs(t_model);
+        let m = 3 * kk + effect_loads.len();
         let mut fmat = Mat::<f64>::zeros(3 * n, m);
         for (k, &c) in control.iter().enumerate() {
             let nc = unit(vnormal[c as usize]);
@@ -340,22 +393,21 @@ impl LibrBasis {
                     axis,
                     width,
                 );
-                modes.equilibrate(nodes, &mut f);
+                solver.prepare_load(&mut f);
                 for (r, &x) in f.iter().enumerate() {
                     fmat[(r, 3 * k + axis)] = x;
                 }
             }
         }
-        let loads_s = crate::util::secs(t0);
-        let t1 = Instant::now();
-        let system = StiffnessSystem::linear(mesh, &params.material)?;
-        let assemble_s = crate::util::secs(t1);
-        let t2 = Instant::now();
-        let bc = support_321(nodes, &boundary.nodes, modes.center)?;
-        let fact = system.factorize(&bc)?;
-        let factor_s = crate::util::secs(t2);
+        for (j, mut f) in effect_loads.into_iter().enumerate() {
+            solver.prepare_load(&mut f);
+            for (r, &x) in f.iter().enumerate() {
+                fmat[(r, 3 * kk + j)] = x;
+            }
+        }
+        let loads_s = crate::util::secs(t0) - model_s;
         let t3 = Instant::now();
-        let umat = fact.solve_many_homogeneous(fmat.as_ref());
+        let umat = solver.solve_prepared(fmat.as_ref());
         let solve_s = crate::util::secs(t3);
         let t4 = Instant::now();
         let mut phi = vec![0.0; 3 * n * m];
@@ -365,17 +417,19 @@ impl LibrBasis {
             for (r, x) in col.iter_mut().enumerate() {
                 *x = umat[(r, j)];
             }
-            modes.remove_rigid(nodes, &mut col);
             let peak = (0..n)
                 .map(|i| {
                     (col[3 * i].powi(2) + col[3 * i + 1].powi(2) + col[3 * i + 2].powi(2)).sqrt()
                 })
                 .fold(0.0f64, f64::max);
             if !(peak.is_finite() && peak > 0.0) {
+                let what = if j < 3 * kk {
+                    format!("control node {}, axis {}", control[j / 3], j % 3)
+                } else {
+                    format!("effect {}", effect_labels[j - 3 * kk])
+                };
                 return Err(RegisterError::Model(format!(
-                    "basis column {j} (control node {}, axis {}) has peak displacement {peak}: the load patch is empty or the solve failed",
-                    control[j / 3],
-                    j % 3
+                    "basis column {j} ({what}) has peak displacement {peak}: the load is empty, self-balanced to nothing, or the solve failed"
                 )));
             }
             load_scale[j] = 1.0 / peak;
@@ -383,7 +437,8 @@ impl LibrBasis {
                 phi[r * m + j] = x / peak;
             }
         }
-        // E = Φᵀ (K Φ), symmetrized.
+        let system = solver.system();
+        // E = Φᵀ (K Φ), symmetrized (K with the supports' springs).
         let mut kphi = Mat::<f64>::zeros(3 * n, m);
         let mut phimat = Mat::<f64>::zeros(3 * n, m);
         for j in 0..m {
@@ -411,12 +466,14 @@ impl LibrBasis {
             energy,
             load_scale,
             load_width_mm: width,
+            effect_labels,
+            physics_hash: physics.hash(),
             mesh_hash: mesh_hash(mesh),
             params_hash: params.basis_hash(),
             timings: BasisTimings {
                 loads_s,
-                assemble_s,
-                factor_s,
+                assemble_s: solver.assemble_s,
+                factor_s: solver.factor_s,
                 solve_s,
                 energy_s,
                 cache_read_s: 0.0,
@@ -494,9 +551,16 @@ impl LibrBasis {
         0.5 * s
     }
 
-    /// Mean diagonal of E: the energy scale ē of one 1 mm mode (λ's normalisation).
+    /// Mean diagonal of E over the LIBR columns: the energy scale ē of one 1 mm mode (λ's
+    /// normalisation; effect columns do not change it).
     pub fn energy_scale(&self) -> f64 {
         let m = self.columns();
-        (0..m).map(|i| self.energy[i * m + i]).sum::<f64>() / m as f64
+        let k = self.libr_columns();
+        (0..k).map(|i| self.energy[i * m + i]).sum::<f64>() / k as f64
+    }
+
+    /// Number of LIBR columns (3K); the effect columns follow them.
+    pub fn libr_columns(&self) -> usize {
+        self.columns() - self.effect_labels.len()
     }
 }

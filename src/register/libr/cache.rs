@@ -4,6 +4,8 @@
 use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::io::npz::{NpyArray, NpyData, read_npz, write_npz};
+use crate::register::physics::Physics;
+use crate::register::physics::model::Sites;
 use crate::util::fnv1a_hex;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -29,8 +31,25 @@ pub fn mesh_hash(mesh: &TetMesh) -> String {
 impl LibrBasis {
     /// The cache file of a mesh and parameters in `cache_dir`.
     pub fn cache_path(mesh: &TetMesh, params: &LibrParams, cache_dir: &Path) -> PathBuf {
+        Self::cache_path_with(mesh, params, &Physics::none(), cache_dir)
+    }
+
+    /// The cache file of an augmented model: the plain name with `_` and the physics hash
+    /// before the extension (plain LIBR keeps its name).
+    pub fn cache_path_with(
+        mesh: &TetMesh,
+        params: &LibrParams,
+        physics: &Physics,
+        cache_dir: &Path,
+    ) -> PathBuf {
+        let ph = physics.hash();
+        let suffix = if ph.is_empty() {
+            String::new()
+        } else {
+            format!("_{ph}")
+        };
         cache_dir.join(format!(
-            "libr_basis_{}_{}.npz",
+            "libr_basis_{}_{}{suffix}.npz",
             mesh_hash(mesh),
             params.basis_hash()
         ))
@@ -45,8 +64,26 @@ impl LibrBasis {
         params: &LibrParams,
         cache_dir: &Path,
     ) -> Result<(Self, bool), RegisterError> {
+        let none = vec![false; mesh.num_nodes()];
+        let sites = Sites {
+            posterior: &none,
+            falciform: &none,
+        };
+        Self::load_or_build_with(mesh, params, &Physics::none(), sites, cache_dir)
+    }
+
+    /// [`Self::load_or_build`] for an augmented model ([`Self::build_with`]), cached under
+    /// [`Self::cache_path_with`].
+    pub fn load_or_build_with(
+        mesh: &TetMesh,
+        params: &LibrParams,
+        physics: &Physics,
+        sites: Sites<'_>,
+        cache_dir: &Path,
+    ) -> Result<(Self, bool), RegisterError> {
         params.validate()?;
-        let path = Self::cache_path(mesh, params, cache_dir);
+        physics.validate()?;
+        let path = Self::cache_path_with(mesh, params, physics, cache_dir);
         let t0 = Instant::now();
         if let Ok(bytes) = std::fs::read(&path)
             && let Ok(mut b) = Self::from_npz(&bytes)
@@ -54,6 +91,7 @@ impl LibrBasis {
             && b.params_hash == params.basis_hash()
             && b.nodes == mesh.num_nodes()
             && b.control_nodes.len() == params.control_points
+            && b.physics_hash == physics.hash()
         {
             b.timings = BasisTimings {
                 cache_read_s: crate::util::secs(t0),
@@ -62,7 +100,7 @@ impl LibrBasis {
             };
             return Ok((b, true));
         }
-        let b = Self::build(mesh, params)?;
+        let b = Self::build_with(mesh, params, physics, sites)?;
         crate::util::write_atomic(&path, &b.to_npz()?)?;
         Ok((b, false))
     }
@@ -98,6 +136,21 @@ impl LibrBasis {
                 NpyData::U8(self.params_hash.as_bytes().to_vec()),
             )?,
         ];
+        let mut arrays = arrays;
+        if !self.effect_labels.is_empty() {
+            let labels = serde_json::to_string(&self.effect_labels)
+                .map_err(|e| RegisterError::BasisFile(format!("effect_labels: {e}")))?;
+            arrays.push(NpyArray::new(
+                "effect_labels",
+                &[labels.len()],
+                NpyData::U8(labels.into_bytes()),
+            )?);
+            arrays.push(NpyArray::new(
+                "physics_hash",
+                &[self.physics_hash.len()],
+                NpyData::U8(self.physics_hash.as_bytes().to_vec()),
+            )?);
+        }
         Ok(write_npz(&arrays)?)
     }
 
@@ -155,7 +208,19 @@ impl LibrBasis {
                 ));
             }
         };
-        let m = 3 * control_nodes.len();
+        // Optional (augmented models): the effect columns' labels as JSON, and the physics hash.
+        let effect_labels: Vec<String> = if arrays.iter().any(|a| a.name == "effect_labels") {
+            serde_json::from_str(&text("effect_labels")?)
+                .map_err(|e| RegisterError::BasisFile(format!("effect_labels: {e}")))?
+        } else {
+            Vec::new()
+        };
+        let physics_hash = if arrays.iter().any(|a| a.name == "physics_hash") {
+            text("physics_hash")?
+        } else {
+            String::new()
+        };
+        let m = 3 * control_nodes.len() + effect_labels.len();
         if ps.len() != 2
             || ps[1] != m
             || ps[0] % 3 != 0
@@ -192,6 +257,8 @@ impl LibrBasis {
             energy,
             load_scale,
             load_width_mm: width[0],
+            effect_labels,
+            physics_hash,
             mesh_hash: text("mesh_hash")?,
             params_hash: text("params_hash")?,
             timings: BasisTimings::default(),

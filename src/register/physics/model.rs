@@ -1,0 +1,458 @@
+//! The physics of each effect: its supports (springs), its material field, its loads, and the
+//! augmented model's elastic solve ([`ModelSolver`]) that LIBR's basis and the hidden-effect
+//! generator share.
+//!
+//! - `gravity`: body force `m·ĝ` on every tet, carried by a reaction on the dependent surface
+//!   (boundary faces with `s = n·ĝ > 0`, traction `−c·s·ĝ`, `c` so that the reaction balances the
+//!   weight): the organ's weight resting on what lies below it. On a free body the remaining
+//!   moment goes to inertia relief.
+//! - `bed-support`: on every posterior boundary node a spring of `stiffness·A` along the vertex
+//!   normal and a tenth of it across (A the node's lumped boundary area).
+//! - `fixation`: isotropic springs `stiffness·A` on the boundary nodes within `radius_mm` of
+//!   `center`.
+//! - `ligament`: isotropic springs `stiffness·A` on the falciform-ligament nodes.
+//! - `pressure`: `magnitude_kpa` on the boundary faces whose outward normal has `n·d > 0`.
+//! - `pack`: a traction falling off as `exp(−½(r/width)²)` from `center` on faces within
+//!   `2·width`, scaled so the forces add up to `force_mn` (as the phantom's packs).
+//! - `inclusion`: Young's modulus × `stiffness_ratio` in tets whose centroid is within
+//!   `radius_mm` of `center` (ν unchanged).
+//!
+//! Free-floating (no support): each load is replaced by its self-equilibrated part (inertia
+//! relief), solved under a statically determinate 3-2-1 support, and the rigid part is removed,
+//! exactly as LIBR's basis. Supported: the springs carry the load as it is; no constraint is
+//! added and the rigid part is kept (it is the organ moving on its supports).
+
+use super::{Effect, EffectKind, Physics};
+use crate::fem::{
+    Dirichlet, FactorizedSystem, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads,
+};
+use crate::mesh::TetMesh;
+use crate::mesh::vec3::{cross, dist2, dot, sub, unit};
+use crate::register::RegisterError;
+use crate::register::libr::{RigidModes, lumped_volumes, support_321};
+use faer::{Mat, MatRef};
+
+/// Anatomical sites the supports attach to (per node flags, as in [`crate::register::PreopModel`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Sites<'a> {
+    /// Posterior boundary nodes (the organ bed).
+    pub posterior: &'a [bool],
+    /// Falciform-ligament nodes.
+    pub falciform: &'a [bool],
+}
+
+/// The boundary quantities the effects need, computed once per mesh.
+#[derive(Debug, Clone)]
+pub struct BoundaryGeometry {
+    /// Boundary nodes.
+    pub nodes: Vec<u32>,
+    /// Boundary triangles (outward).
+    pub triangles: Vec<[u32; 3]>,
+    /// Per triangle: unit outward normal, area, centroid.
+    pub tri_normal: Vec<[f64; 3]>,
+    /// Per triangle: area (mm²).
+    pub tri_area: Vec<f64>,
+    /// Per triangle: centroid.
+    pub tri_center: Vec<[f64; 3]>,
+    /// Per node (all nodes): lumped boundary area (mm², zero inside).
+    pub node_area: Vec<f64>,
+    /// Per node: area-weighted unit vertex normal (zero inside).
+    pub node_normal: Vec<[f64; 3]>,
+    /// Total volume (mm³).
+    pub volume: f64,
+}
+
+impl BoundaryGeometry {
+    /// Computes the boundary geometry of a mesh.
+    pub fn new(mesh: &TetMesh) -> Result<Self, RegisterError> {
+        let b = mesh.boundary()?;
+        let nodes = mesh.nodes();
+        let n = nodes.len();
+        let mut node_area = vec![0.0; n];
+        let mut node_normal = vec![[0.0; 3]; n];
+        let (mut tri_normal, mut tri_area, mut tri_center) = (vec![], vec![], vec![]);
+        for t in &b.triangles {
+            let [p, q, r] = t.map(|v| nodes[v as usize]);
+            let na = cross(sub(q, p), sub(r, p));
+            let a = 0.5 * dot(na, na).sqrt();
+            tri_normal.push(unit(na));
+            tri_area.push(a);
+            tri_center.push([0, 1, 2].map(|k| (p[k] + q[k] + r[k]) / 3.0));
+            for &v in t {
+                node_area[v as usize] += a / 3.0;
+                for k in 0..3 {
+                    node_normal[v as usize][k] += na[k];
+                }
+            }
+        }
+        for nn in node_normal.iter_mut() {
+            *nn = unit(*nn);
+        }
+        Ok(Self {
+            nodes: b.nodes,
+            triangles: b.triangles,
+            tri_normal,
+            tri_area,
+            tri_center,
+            node_area,
+            node_normal,
+            volume: mesh.volume().abs(),
+        })
+    }
+}
+
+/// Springs on flagged sites: `bed-support` on the posterior nodes, `ligament` on the falciform.
+fn site_springs(geom: &BoundaryGeometry, sites: Sites<'_>, e: &Effect) -> Vec<NodeSpring> {
+    let k = e.scalar("stiffness");
+    let flags = match e.kind {
+        EffectKind::BedSupport => sites.posterior,
+        _ => sites.falciform,
+    };
+    geom.nodes
+        .iter()
+        .copied()
+        .filter(|&v| flags.get(v as usize).copied().unwrap_or(false))
+        .map(|v| {
+            let a = geom.node_area[v as usize];
+            if e.kind == EffectKind::BedSupport {
+                NodeSpring::normal_tangent(v, geom.node_normal[v as usize], k * a, 0.1 * k * a)
+            } else {
+                NodeSpring::isotropic(v, k * a)
+            }
+        })
+        .collect()
+}
+
+/// Boundary nodes within `radius` of `center`.
+pub fn nodes_within(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    center: [f64; 3],
+    radius: f64,
+) -> Vec<u32> {
+    geom.nodes
+        .iter()
+        .copied()
+        .filter(|&v| dist2(mesh.nodes()[v as usize], center) <= radius * radius)
+        .collect()
+}
+
+/// The springs of the physics' supports on a mesh (see the module doc).
+pub fn support_springs(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    sites: Sites<'_>,
+    physics: &Physics,
+) -> Vec<NodeSpring> {
+    let mut out = Vec::new();
+    for e in &physics.effects {
+        match e.kind {
+            EffectKind::Fixation => {
+                let (c, r, k) = (
+                    e.vector("center"),
+                    e.scalar("radius_mm"),
+                    e.scalar("stiffness"),
+                );
+                for v in nodes_within(mesh, geom, c, r) {
+                    out.push(NodeSpring::isotropic(v, k * geom.node_area[v as usize]));
+                }
+            }
+            EffectKind::BedSupport | EffectKind::Ligament => {
+                out.extend(site_springs(geom, sites, e));
+            }
+            _ => {}
+        }
+    }
+    out
+}
+
+/// The Lamé field of the physics' material: homogeneous, or stiffer inside inclusions.
+pub fn lame_field(mesh: &TetMesh, material: &LinearMaterial, physics: &Physics) -> LameField {
+    let (lam, mu) = material.lame();
+    let inclusions: Vec<&Effect> = physics
+        .effects
+        .iter()
+        .filter(|e| e.kind == EffectKind::Inclusion)
+        .collect();
+    if inclusions.is_empty() {
+        return LameField::Uniform(lam, mu);
+    }
+    let per_tet = (0..mesh.num_tets())
+        .map(|t| {
+            let p = mesh.tet_points(t);
+            let c = [0, 1, 2].map(|k| p.iter().map(|q| q[k]).sum::<f64>() / 4.0);
+            let mut f = 1.0;
+            for e in &inclusions {
+                let r = e.scalar("radius_mm");
+                if dist2(c, e.vector("center")) <= r * r {
+                    f *= e.scalar("stiffness_ratio");
+                }
+            }
+            (lam * f, mu * f)
+        })
+        .collect();
+    LameField::PerTet(per_tet)
+}
+
+/// The unit loads of a load effect (mN, node-major), one per fitted amplitude, and the
+/// amplitudes the effect's parameters give them: `gravity` one (magnitude), `pressure` one
+/// (magnitude_kpa), `pack` three (the force's x, y, z in mN). Other kinds have none.
+pub fn unit_loads(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    effect: &Effect,
+) -> Result<(Vec<Vec<f64>>, Vec<f64>), RegisterError> {
+    let n = mesh.num_nodes();
+    let nodes = mesh.nodes();
+    match effect.kind {
+        EffectKind::Gravity => {
+            let g = effect.direction("direction");
+            let mut f = vec![0.0; 3 * n];
+            loads::add_body_force(&mut f, mesh, g);
+            let s: Vec<f64> = geom
+                .tri_normal
+                .iter()
+                .map(|nn| dot(*nn, g).max(0.0))
+                .collect();
+            let support: f64 = s.iter().zip(&geom.tri_area).map(|(s, a)| s * a).sum();
+            if support <= 0.0 {
+                return Err(RegisterError::Model(
+                    "gravity: no boundary face turns towards the gravity direction".into(),
+                ));
+            }
+            let c = geom.volume / support;
+            let tr: Vec<[f64; 3]> = s.iter().map(|&si| g.map(|x| -c * si * x)).collect();
+            loads::add_traction(&mut f, nodes, &geom.triangles, &tr);
+            Ok((vec![f], vec![effect.scalar("magnitude")]))
+        }
+        EffectKind::Pressure => {
+            let d = effect.direction("direction");
+            let faces: Vec<[u32; 3]> = geom
+                .triangles
+                .iter()
+                .zip(&geom.tri_normal)
+                .filter(|(_, nn)| dot(**nn, d) > 0.0)
+                .map(|(t, _)| *t)
+                .collect();
+            if faces.is_empty() {
+                return Err(RegisterError::Model(
+                    "pressure: no boundary face turns towards the direction".into(),
+                ));
+            }
+            let mut f = vec![0.0; 3 * n];
+            loads::add_pressure(&mut f, nodes, &faces, 1.0);
+            Ok((vec![f], vec![effect.scalar("magnitude_kpa")]))
+        }
+        EffectKind::Pack => {
+            let (c, w) = (effect.vector("center"), effect.scalar("width_mm"));
+            let mut patch = Vec::new();
+            let mut weights = Vec::new();
+            let mut total = 0.0;
+            for (t, tri) in geom.triangles.iter().enumerate() {
+                if tri
+                    .iter()
+                    .all(|&v| dist2(nodes[v as usize], c) <= 4.0 * w * w)
+                {
+                    let wt = (-0.5 * dist2(geom.tri_center[t], c) / (w * w)).exp();
+                    total += wt * geom.tri_area[t];
+                    patch.push(*tri);
+                    weights.push(wt);
+                }
+            }
+            if patch.is_empty() || total <= 0.0 {
+                return Err(RegisterError::Model(format!(
+                    "pack: no boundary face within 2 × width_mm = {:.1} mm of center {c:.1?}",
+                    2.0 * w
+                )));
+            }
+            let cols = (0..3)
+                .map(|axis| {
+                    let tr: Vec<[f64; 3]> = weights
+                        .iter()
+                        .map(|wt| {
+                            let mut v = [0.0; 3];
+                            v[axis] = wt / total;
+                            v
+                        })
+                        .collect();
+                    let mut f = vec![0.0; 3 * n];
+                    loads::add_traction(&mut f, nodes, &patch, &tr);
+                    f
+                })
+                .collect();
+            Ok((cols, effect.vector("force_mn").to_vec()))
+        }
+        _ => Ok((Vec::new(), Vec::new())),
+    }
+}
+
+/// The total load of the physics' load effects at their parameters (mN, node-major).
+pub fn effect_load(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    physics: &Physics,
+) -> Result<Vec<f64>, RegisterError> {
+    let mut f = vec![0.0; 3 * mesh.num_nodes()];
+    for e in &physics.effects {
+        let (cols, amps) = unit_loads(mesh, geom, e)?;
+        for (c, a) in cols.iter().zip(&amps) {
+            for (x, y) in f.iter_mut().zip(c) {
+                *x += a * y;
+            }
+        }
+    }
+    Ok(f)
+}
+
+/// The augmented model's factorized elastic system: solves `K u = f` as the module doc says
+/// (free-floating with inertia relief, or carried by the supports).
+pub struct ModelSolver {
+    system: StiffnessSystem,
+    fact: FactorizedSystem,
+    modes: Option<RigidModes>,
+    nodes: Vec<[f64; 3]>,
+    /// Seconds spent assembling (stiffness and springs).
+    pub assemble_s: f64,
+    /// Seconds spent factorizing.
+    pub factor_s: f64,
+}
+
+impl ModelSolver {
+    /// Assembles and factorizes the model of `physics` on `mesh` with `material`. A kind whose
+    /// model is not built yet (`nonlinear`) is an error naming it.
+    pub fn new(
+        mesh: &TetMesh,
+        material: &LinearMaterial,
+        sites: Sites<'_>,
+        physics: &Physics,
+    ) -> Result<Self, RegisterError> {
+        physics.validate()?;
+        if let Some(i) = physics
+            .effects
+            .iter()
+            .position(|e| e.kind == EffectKind::Nonlinear)
+        {
+            return Err(RegisterError::Parameter(format!(
+                "effects[{i}].kind: the augmented model cannot carry `nonlinear` yet (only the generator makes such data)"
+            )));
+        }
+        let n = mesh.num_nodes();
+        if sites.posterior.len() != n || sites.falciform.len() != n {
+            return Err(RegisterError::Inconsistent(format!(
+                "sites: {} posterior and {} falciform flags for {n} nodes",
+                sites.posterior.len(),
+                sites.falciform.len()
+            )));
+        }
+        let t0 = std::time::Instant::now();
+        let geom = BoundaryGeometry::new(mesh)?;
+        let lame = lame_field(mesh, material, physics);
+        let mut system = match &lame {
+            LameField::Uniform(..) => StiffnessSystem::linear(mesh, material)?,
+            LameField::PerTet(_) => StiffnessSystem::linear_field(mesh, &lame)?,
+        };
+        let nodes = mesh.nodes().to_vec();
+        let mut assemble_s = crate::util::secs(t0);
+        let factor_s;
+        let t1 = std::time::Instant::now();
+        let (fact, modes) = if physics.has_support() {
+            let s = support_springs(mesh, &geom, sites, physics);
+            if s.is_empty() {
+                return Err(RegisterError::Model(
+                    "the physics' supports attach to no node (no posterior, falciform or fixation-region nodes)".into(),
+                ));
+            }
+            system.add_springs(&s)?;
+            assemble_s += crate::util::secs(t1);
+            let t2 = std::time::Instant::now();
+            let f = system.factorize(&Dirichlet::new(n))?;
+            factor_s = crate::util::secs(t2);
+            (f, None)
+        } else {
+            let modes = RigidModes::new(&nodes, &lumped_volumes(mesh))?;
+            let bc = support_321(&nodes, &geom.nodes, modes.center())?;
+            assemble_s += crate::util::secs(t1);
+            let t2 = std::time::Instant::now();
+            let f = system.factorize(&bc)?;
+            factor_s = crate::util::secs(t2);
+            (f, Some(modes))
+        };
+        Ok(Self {
+            system,
+            fact,
+            modes,
+            nodes,
+            assemble_s,
+            factor_s,
+        })
+    }
+
+    /// Whether the model is free-floating (no support).
+    pub fn is_free(&self) -> bool {
+        self.modes.is_some()
+    }
+
+    /// The assembled stiffness (with the support springs).
+    pub fn system(&self) -> &StiffnessSystem {
+        &self.system
+    }
+
+    /// Prepares a load for the solve: its self-equilibrated part when free-floating.
+    pub fn prepare_load(&self, f: &mut [f64]) {
+        if let Some(m) = &self.modes {
+            m.equilibrate(&self.nodes, f);
+        }
+    }
+
+    /// Solves for the columns of `f` (3n × m, already prepared by [`Self::prepare_load`]) and
+    /// removes the rigid part of each when free-floating.
+    pub fn solve_prepared(&self, f: MatRef<'_, f64>) -> Mat<f64> {
+        let mut u = self.fact.solve_many_homogeneous(f);
+        if let Some(m) = &self.modes {
+            let mut col = vec![0.0; u.nrows()];
+            for j in 0..u.ncols() {
+                for (r, x) in col.iter_mut().enumerate() {
+                    *x = u[(r, j)];
+                }
+                m.remove_rigid(&self.nodes, &mut col);
+                for (r, &x) in col.iter().enumerate() {
+                    u[(r, j)] = x;
+                }
+            }
+        }
+        u
+    }
+
+    /// The displacement (mm, node-major) under one load (mN, node-major).
+    pub fn solve(&self, f: &[f64]) -> Vec<f64> {
+        let mut f = f.to_vec();
+        self.prepare_load(&mut f);
+        let fm = MatRef::from_column_major_slice(&f, f.len(), 1);
+        let u = self.solve_prepared(fm);
+        (0..f.len()).map(|r| u[(r, 0)]).collect()
+    }
+}
+
+/// The augmented model's displacement under `base_load` plus the physics' own loads: what the
+/// hidden-effect generator uses as the ground truth.
+pub fn forward(
+    mesh: &TetMesh,
+    material: &LinearMaterial,
+    sites: Sites<'_>,
+    physics: &Physics,
+    base_load: &[f64],
+) -> Result<Vec<f64>, RegisterError> {
+    let geom = BoundaryGeometry::new(mesh)?;
+    let mut f = effect_load(mesh, &geom, physics)?;
+    if base_load.len() != f.len() {
+        return Err(RegisterError::Inconsistent(format!(
+            "base load has {} entries for {} dofs",
+            base_load.len(),
+            f.len()
+        )));
+    }
+    for (x, y) in f.iter_mut().zip(base_load) {
+        *x += y;
+    }
+    Ok(ModelSolver::new(mesh, material, sites, physics)?.solve(&f))
+}
