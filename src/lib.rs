@@ -22,6 +22,7 @@
 
 pub mod assets;
 pub mod dataset;
+pub mod discover;
 pub mod eval;
 pub mod fem;
 pub mod gcn;

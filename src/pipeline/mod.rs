@@ -11,6 +11,8 @@ use crate::register::correspondence::{
 };
 use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
+use crate::register::physics::Physics;
+use crate::register::physics::model::Sites;
 use crate::register::{Measurements, PreopModel, RegisterError};
 use std::path::Path;
 use std::sync::Arc;
@@ -127,6 +129,8 @@ pub struct Prepared {
     pub basis_from_cache: bool,
     /// The SR-GCN of LIBR+, when the case has one ([`Prepared::with_model`]).
     pub librplus: Option<LibrPlusCase>,
+    /// The physics LIBR's model carries (empty: plain LIBR).
+    pub physics: Physics,
     /// Preparation time (s).
     pub seconds: f64,
 }
@@ -139,17 +143,36 @@ impl Prepared {
         libr: Option<&LibrParams>,
         cache_dir: Option<&Path>,
     ) -> Result<Self, PipelineError> {
+        Self::with_physics(model, libr, &Physics::none(), cache_dir)
+    }
+
+    /// [`Prepared::new`] with an augmented model: LIBR's basis carries `physics` (its supports,
+    /// material and effect columns; see [`crate::register::physics`]), cached per physics.
+    pub fn with_physics(
+        model: PreopModel,
+        libr: Option<&LibrParams>,
+        physics: &Physics,
+        cache_dir: Option<&Path>,
+    ) -> Result<Self, PipelineError> {
         let t0 = Instant::now();
         let correspondence = Correspondence::new(&model).map_err(PipelineError::Case)?;
+        let sites = Sites {
+            posterior: &model.posterior,
+            falciform: &model.falciform,
+        };
         let (basis, basis_from_cache) = match (libr, cache_dir) {
             (None, _) => (None, false),
             (Some(p), Some(dir)) => {
                 let (b, cached) =
-                    LibrBasis::load_or_build(&model.mesh, p, dir).map_err(PipelineError::Case)?;
+                    LibrBasis::load_or_build_with(&model.mesh, p, physics, sites, dir)
+                        .map_err(PipelineError::Case)?;
                 (Some(b), cached)
             }
             (Some(p), None) => (
-                Some(LibrBasis::build(&model.mesh, p).map_err(PipelineError::Case)?),
+                Some(
+                    LibrBasis::build_with(&model.mesh, p, physics, sites)
+                        .map_err(PipelineError::Case)?,
+                ),
                 false,
             ),
         };
@@ -159,11 +182,11 @@ impl Prepared {
             basis,
             basis_from_cache,
             librplus: None,
+            physics: physics.clone(),
             seconds: crate::util::secs(t0),
         })
     }
 
-    /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
     pub fn with_model(self, model: Arc<TrainedModel>) -> Result<Self, PipelineError> {
         self.with_models(vec![model])
     }

@@ -52,6 +52,44 @@ pub(crate) enum Command {
     /// Makes an ensemble directory from trained model directories: LIBR+ with it averages the
     /// members' corrections (docs/dataset-and-models.md, "SR-GCN ensemble directory"). Usable wherever `--model` is.
     Ensemble(EnsembleArgs),
+    /// The model-discrepancy workflow: per cohort (one deformed state's sweeps), finds where
+    /// LIBR's model and the data disagree, names the missing effect, adds it and shows the gap
+    /// shrink: OUT/discover.json, OUT/report.md, OUT/COHORT/physics.json.
+    Discover(DiscoverArgs),
+}
+
+#[derive(Args)]
+pub(crate) struct DiscoverArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// Dataset directory (from `librplus generate`).
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// A cohort: a deformation id (its scenarios are the sweeps); repeatable. Default: every
+    /// deformation of the dataset.
+    #[arg(long)]
+    pub(crate) cohort: Vec<String>,
+    /// Report directory.
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Spatial blocks held out in turn.
+    #[arg(long, default_value_t = 6)]
+    pub(crate) folds: usize,
+    /// Kinds searched, comma-separated (default: every kind the augmented model carries).
+    #[arg(long)]
+    pub(crate) kinds: Option<String>,
+    /// Most effects named per cohort.
+    #[arg(long, default_value_t = 3)]
+    pub(crate) max_effects: usize,
+    /// At most this many sweeps per cohort (the first ones; 0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) max_sweeps: usize,
+    /// Where LIBR bases are cached (default DATA/cache).
+    #[arg(long)]
+    pub(crate) cache: Option<PathBuf>,
+    /// Print the discover.json object on stdout instead of text.
+    #[arg(long)]
+    pub(crate) json: bool,
 }
 
 #[derive(Args)]
@@ -359,6 +397,10 @@ pub(crate) struct RegisterArgs {
     /// Where the LIBR basis is cached (default DATA/cache).
     #[arg(long)]
     pub(crate) cache: Option<PathBuf>,
+    /// An augmented model (`physics.json`, e.g. from `librplus discover`): LIBR's model carries
+    /// its effects (supports, loads, inclusions); the basis is built and cached per physics.
+    #[arg(long)]
+    pub(crate) physics: Option<PathBuf>,
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub(crate) json: bool,

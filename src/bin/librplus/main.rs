@@ -8,6 +8,7 @@ static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;
 mod args;
 mod bench;
 mod data;
+mod discover;
 mod evaluate;
 mod experiments;
 mod fem;
@@ -124,6 +125,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(args) => train(&args).map(|_| ()),
         Command::Experiments(args) => experiments(&args),
         Command::Ensemble(args) => ensemble(&args),
+        Command::Discover(args) => discover::discover(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,

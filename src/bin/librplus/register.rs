@@ -79,16 +79,27 @@ fn prepare_case(
     params: &librplus::pipeline::PipelineParams,
     cache: &Path,
     gcn: Option<Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>>,
+    physics: &librplus::register::physics::Physics,
 ) -> std::result::Result<librplus::pipeline::Prepared, librplus::pipeline::PipelineError> {
     use librplus::pipeline::{Method, Prepared};
-    let case = Prepared::new(
+    let case = Prepared::with_physics(
         preop,
         (method != Method::Rigid).then_some(&params.libr),
+        physics,
         Some(cache),
     )?;
     match gcn {
         Some(m) => case.with_models(m),
         None => Ok(case),
+    }
+}
+
+/// The `--physics` file, or plain LIBR.
+fn read_physics(a: &RegisterArgs) -> Result<librplus::register::physics::Physics> {
+    match &a.physics {
+        None => Ok(librplus::register::physics::Physics::none()),
+        Some(p) => librplus::register::physics::Physics::read(p)
+            .map_err(|e| anyhow::anyhow!("--physics: {e}")),
     }
 }
 
@@ -150,7 +161,8 @@ pub(crate) fn register_files(a: &RegisterArgs) -> Result<()> {
     }
     let model_pre = model_r?;
     let cache = preop.parent().unwrap_or(Path::new(".")).join("cache");
-    let case = prepare_case(model_pre, method, &params, &cache, model);
+    let physics = read_physics(a)?;
+    let case = prepare_case(model_pre, method, &params, &cache, model, &physics);
     bar.finish_and_clear();
     let case = case.map_err(anyhow::Error::msg)?;
     let prepare_s = t0.elapsed().as_secs_f64();
@@ -182,6 +194,7 @@ pub(crate) fn register_files(a: &RegisterArgs) -> Result<()> {
         "image_to_physical": r.image_to_physical,
         "max_displacement_mm": r.u.chunks_exact(3).map(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()).fold(0.0, f64::max),
         "basis_from_cache": case.basis_from_cache,
+        "physics": case.physics.kinds(),
         "prepare_s": prepare_s,
         "register_s": r.seconds,
         "out": a.out.as_ref().map(|p| p.display().to_string()),
@@ -244,7 +257,8 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
     let t0 = Instant::now();
     let bar = indicatif::ProgressBar::new_spinner().with_message("preparing the case (LIBR basis)");
     bar.enable_steady_tick(std::time::Duration::from_millis(200));
-    let case = prepare_case(geo.model.clone(), method, &params, &cache, model);
+    let physics = read_physics(a)?;
+    let case = prepare_case(geo.model.clone(), method, &params, &cache, model, &physics);
     bar.finish_and_clear();
     let case = case.map_err(anyhow::Error::msg)?;
     let prepare_s = t0.elapsed().as_secs_f64();
@@ -297,6 +311,7 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
         "tre_max_mm": t.max_mm,
         "tre_initial_alignment_mm": start.tre_mm,
         "basis_from_cache": case.basis_from_cache,
+        "physics": case.physics.kinds(),
         "prepare_s": prepare_s,
         "register_s": r.seconds,
     });

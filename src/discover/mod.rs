@@ -1,0 +1,788 @@
+//! The model-discrepancy workflow: find where LIBR's model and a cohort's measured data disagree,
+//! name the missing physical effect, add it to the model, and show the gap shrink.
+//!
+//! A **cohort** is the sparse measurements of one deformed state (several sweeps of the same
+//! organ). The workflow never sees how the data were made, nor any ground truth.
+//!
+//! 1. **Register** each sweep with plain LIBR (wICP, then LIBR); keep its pose and its converged
+//!    correspondences, and linearize the misfit there ([`rows`]): one row per surface match along
+//!    its normal (three for vessel points), with the sweep's six pose columns.
+//! 2. **Find** ([`cv`]): the points of all sweeps are split into spatial blocks (k-means); each
+//!    fold holds one block out of every sweep, fits the shared deformation on the rest with every
+//!    sweep's own pose, and scores the held-out rows after fitting only the sweep's pose. The
+//!    noise floor comes from the data ([`noise`]: local quadric fits); a parametric bootstrap
+//!    (the fitted model plus noise at the floor, cross-validated the same way) says how large the
+//!    held-out misfit would be if the model were right: "disagrees beyond noise" when the observed
+//!    misfit exceeds every bootstrap replicate and the noise floor by a clear margin.
+//! 3. **Name** ([`search`]): every kind in the library is searched over its parameters on top of
+//!    the current model and scored by the same cross-validation. The best is named only when it
+//!    beats the current model on the held-out blocks significantly (a paired t statistic over
+//!    the sweep × block units above [`DiscoverParams::t_threshold`]), by a practical margin
+//!    ([`DiscoverParams::min_gain`]) and by the Bayesian information criterion; then the next is
+//!    tried on top (forward selection). Verdicts: named effects, no missing effect, or an
+//!    unexplained discrepancy (real, but no candidate explains it).
+//! 4. **Add**: the named effects are a [`Physics`] (`physics.json`) that `register --physics`
+//!    carries.
+
+pub mod cv;
+pub mod noise;
+pub mod rows;
+pub mod search;
+
+use crate::pipeline::{Method, PipelineError, PipelineParams, Prepared, register};
+use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites};
+use crate::register::physics::{Effect, EffectKind, Physics};
+use crate::register::{MeasuredKind, Measurements, PreopModel, RegisterError};
+use cv::{CvScore, Design, cross_validate, cross_validate_rhs, fitted};
+use rayon::prelude::*;
+use rows::{CohortRows, cluster_centers, nearest, scenario_rows};
+use search::{Candidate, Current, SearchContext, basis_design};
+use std::path::Path;
+use std::time::Instant;
+
+/// Why discovery could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum DiscoverError {
+    /// The cohort or a parameter is unusable; the message names the field.
+    #[error("{0}")]
+    Input(String),
+    /// A sweep could not be registered (the message names it).
+    #[error("scenario {scenario}: {source}")]
+    Scenario {
+        /// The sweep's id.
+        scenario: String,
+        /// Why.
+        #[source]
+        source: PipelineError,
+    },
+    /// The model (basis, physics) could not be built.
+    #[error(transparent)]
+    Model(#[from] RegisterError),
+    /// The cohort's data do not determine the fit (too few points per sweep).
+    #[error("{0}")]
+    Underdetermined(String),
+}
+
+/// Settings of the workflow.
+#[derive(Debug, Clone)]
+pub struct DiscoverParams {
+    /// Registration settings (wICP, LIBR).
+    pub pipeline: PipelineParams,
+    /// Spatial blocks (folds). Default 6.
+    pub folds: usize,
+    /// Bootstrap replicates of the no-discrepancy null. Default 19 (p ≤ 0.05 when the observed
+    /// misfit exceeds all).
+    pub bootstrap: usize,
+    /// Paired t statistic a candidate must exceed. Default 3.0 (one-sided p ≈ 0.001 for many
+    /// units, a Bonferroni-style margin for searching eight kinds and their parameters).
+    pub t_threshold: f64,
+    /// Smallest fraction of the held-out misfit a candidate must remove. Default 0.05.
+    pub min_gain: f64,
+    /// Most effects named. Default 3.
+    pub max_effects: usize,
+    /// Kinds searched. Default every kind the augmented model carries (not `nonlinear`).
+    pub kinds: Vec<EffectKind>,
+    /// Grid sizes: gravity/pressure directions, pack and fixation sites, inclusion sites.
+    pub grid: SearchGrid,
+    /// Seed of the bootstrap noise.
+    pub seed: u64,
+}
+
+/// How finely each family is searched.
+#[derive(Debug, Clone, Copy)]
+pub struct SearchGrid {
+    /// Directions tried for gravity and pressure (then refined). Default 32.
+    pub directions: usize,
+    /// Boundary sites tried for packs. Default 24.
+    pub pack_sites: usize,
+    /// Pack widths (mm). Default 12, 25.
+    pub pack_widths: [f64; 2],
+    /// Boundary sites tried for fixations. Default 8.
+    pub fixation_sites: usize,
+    /// Interior sites tried for inclusions. Default 6.
+    pub inclusion_sites: usize,
+}
+
+impl Default for SearchGrid {
+    fn default() -> Self {
+        Self {
+            directions: 32,
+            pack_sites: 24,
+            pack_widths: [12.0, 25.0],
+            fixation_sites: 8,
+            inclusion_sites: 6,
+        }
+    }
+}
+
+impl Default for DiscoverParams {
+    fn default() -> Self {
+        Self {
+            pipeline: PipelineParams::default(),
+            folds: 6,
+            bootstrap: 19,
+            t_threshold: 3.0,
+            min_gain: 0.05,
+            max_effects: 3,
+            kinds: EffectKind::ALL
+                .into_iter()
+                .filter(|k| *k != EffectKind::Nonlinear)
+                .collect(),
+            grid: SearchGrid::default(),
+            seed: 0,
+        }
+    }
+}
+
+/// One sweep of a cohort.
+#[derive(Debug, Clone)]
+pub struct Sweep {
+    /// Its id (for messages and reports).
+    pub id: String,
+    /// Its measurements (physical frame).
+    pub measurements: Measurements,
+}
+
+/// The verdict of a cohort.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Verdict {
+    /// Named effects explain (part of) the discrepancy.
+    Effects,
+    /// The model and the data agree within what noise and sparse data allow.
+    None,
+    /// Real discrepancy, no candidate explains it.
+    Unexplained,
+}
+
+/// A named effect with its evidence.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct NamedEffect {
+    /// The effect and its parameters.
+    #[serde(skip)]
+    pub effect: Effect,
+    /// Parameter uncertainty (standard deviations of amplitudes; spread of the searched shape
+    /// parameters among candidates the data cannot tell apart).
+    pub uncertainty: serde_json::Value,
+    /// Evidence: held-out misfit before/after, t statistic, gain, BIC change.
+    pub evidence: serde_json::Value,
+}
+
+/// A candidate's score in one round of the forward selection.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CandidateRecord {
+    /// Round (0 = on top of plain LIBR).
+    pub round: usize,
+    /// Kind.
+    pub kind: String,
+    /// The best parameters found.
+    pub effect: String,
+    /// Held-out RMS misfit with it (mm).
+    pub heldout_rms_mm: f64,
+    /// Fraction of the current held-out misfit (mean square) it removes.
+    pub gain: f64,
+    /// Paired t statistic over units.
+    pub t: f64,
+    /// Change of the Bayesian information criterion (negative favours it).
+    pub delta_bic: f64,
+    /// Whether it passed every test.
+    pub significant: bool,
+}
+
+/// The misfit in one spatial block.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RegionMisfit {
+    /// Block centre (image frame, mm).
+    pub center: [f64; 3],
+    /// Where it lies: `anterior`, `posterior`, with the nearest node's labels.
+    pub region: String,
+    /// Held-out RMS misfit before (plain LIBR) and after (the augmented model), mm.
+    pub before_mm: f64,
+    /// After.
+    pub after_mm: f64,
+    /// Mean signed held-out residual across sweeps (mm, outward) before.
+    pub mean_signed_mm: f64,
+    /// Its t statistic across sweeps (large: the same offset in every sweep, systematic).
+    pub t_across_sweeps: f64,
+    /// Sweeps scored in the block.
+    pub sweeps: usize,
+}
+
+/// What discovery found for one cohort.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CohortDiscovery {
+    /// Verdict.
+    pub verdict: Verdict,
+    /// Named effects.
+    pub effects: Vec<NamedEffect>,
+    /// The augmented model.
+    #[serde(skip)]
+    pub physics: Physics,
+    /// Held-out RMS misfit (mm) before and after.
+    pub heldout_before_mm: f64,
+    /// After.
+    pub heldout_after_mm: f64,
+    /// Noise floor (mm) estimated from the data.
+    pub noise_floor_mm: f64,
+    /// Held-out RMS misfit of the bootstrap replicates under "the model is right" (mm): the
+    /// largest.
+    pub null_max_mm: f64,
+    /// Whether the data disagree with plain LIBR beyond noise.
+    pub beyond_noise: bool,
+    /// Spatial blocks.
+    pub regions: Vec<RegionMisfit>,
+    /// Every candidate scored.
+    pub candidates: Vec<CandidateRecord>,
+    /// Rows (matches along their directions) used.
+    pub rows: usize,
+    /// Sweeps used.
+    pub sweeps: usize,
+    /// Per-sweep registrations with plain LIBR (image → physical and u), for the caller.
+    #[serde(skip)]
+    pub plain: Vec<crate::pipeline::Registration>,
+    /// Stage timings (s).
+    pub timings: StageTimings,
+}
+
+/// Where the time went (s).
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct StageTimings {
+    /// Plain basis and per-sweep registrations.
+    pub register_s: f64,
+    /// Rows, blocks, noise floor, base cross-validation and bootstrap.
+    pub find_s: f64,
+    /// The candidate search.
+    pub name_s: f64,
+    /// Total.
+    pub total_s: f64,
+}
+
+/// Runs the workflow on one cohort. `progress(stage, done, total)` is called as it goes.
+pub fn discover_cohort(
+    model: &PreopModel,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+    cache_dir: Option<&Path>,
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+) -> Result<CohortDiscovery, DiscoverError> {
+    let t0 = Instant::now();
+    if sweeps.is_empty() {
+        return Err(DiscoverError::Input(
+            "cohort: no scenarios (a cohort needs at least 2 sweeps of one deformed state)".into(),
+        ));
+    }
+    if sweeps.len() < 2 {
+        return Err(DiscoverError::Input(format!(
+            "cohort: only 1 scenario ({}); cross-validation across sweeps needs at least 2",
+            sweeps[0].id
+        )));
+    }
+    if params.folds < 2 {
+        return Err(DiscoverError::Input(format!(
+            "folds: {} (at least 2 spatial blocks are needed to hold one out)",
+            params.folds
+        )));
+    }
+    for s in sweeps {
+        crate::register::correspondence::validate_measurements(&s.measurements).map_err(|e| {
+            DiscoverError::Input(format!("scenario {}: measurements: {e}", s.id))
+        })?;
+    }
+    // 1. Register each sweep with plain LIBR.
+    let prepared = Prepared::new(model.clone(), Some(&params.pipeline.libr), cache_dir)
+        .map_err(|e| DiscoverError::Scenario {
+            scenario: "(case)".into(),
+            source: e,
+        })?;
+    progress("registering sweeps", 0, sweeps.len());
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let plain: Vec<crate::pipeline::Registration> = sweeps
+        .par_iter()
+        .map(|s| {
+            let r = register(&prepared, &s.measurements, Method::Libr, &params.pipeline).map_err(
+                |e| DiscoverError::Scenario {
+                    scenario: s.id.clone(),
+                    source: e,
+                },
+            );
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress("registering sweeps", d, sweeps.len());
+            r
+        })
+        .collect::<Result<_, _>>()?;
+    let register_s = crate::util::secs(t0);
+    let t1 = Instant::now();
+    // 2. Rows and blocks.
+    let cparams = params.pipeline.libr_correspondence();
+    let mut images: Vec<Vec<[f64; 3]>> = Vec::with_capacity(sweeps.len());
+    let mut all_matches = Vec::with_capacity(sweeps.len());
+    for (s, reg) in sweeps.iter().zip(&plain) {
+        let inv = reg.image_to_physical.inverse();
+        let pts: Vec<[f64; 3]> = s.measurements.points.iter().map(|&p| inv.apply(p)).collect();
+        let (m, _) = prepared
+            .correspondence
+            .match_points(&pts, &s.measurements, Some(&reg.u), &cparams)
+            .map_err(|e| DiscoverError::Scenario {
+                scenario: s.id.clone(),
+                source: PipelineError::Libr(e),
+            })?;
+        images.push(pts);
+        all_matches.push(m);
+    }
+    let pooled: Vec<[f64; 3]> = images.iter().flatten().copied().collect();
+    let centers = cluster_centers(&pooled, params.folds);
+    let mut rows_v = Vec::new();
+    for (s, (m, pts)) in all_matches.iter().zip(&images).enumerate() {
+        scenario_rows(s, m, pts, |p| nearest(&centers, p), &mut rows_v);
+    }
+    let rows = CohortRows {
+        rows: rows_v,
+        scenarios: sweeps.len(),
+        clusters: centers.len(),
+        centers: centers.clone(),
+    };
+    if rows.rows.len() < 50 {
+        return Err(DiscoverError::Underdetermined(format!(
+            "the cohort's {} sweeps give only {} matched rows; discovery needs at least 50",
+            sweeps.len(),
+            rows.rows.len()
+        )));
+    }
+    // Noise floor: median over sweeps of the local-quadric estimate on surface points.
+    let mut floors: Vec<f64> = sweeps
+        .iter()
+        .zip(&images)
+        .filter_map(|(s, pts)| {
+            let surf: Vec<[f64; 3]> = pts
+                .iter()
+                .zip(&s.measurements.kind)
+                .filter(|(_, k)| **k == MeasuredKind::Surface)
+                .map(|(p, _)| *p)
+                .collect();
+            noise::noise_floor(&surf).map(|(s, _)| s)
+        })
+        .collect();
+    floors.sort_by(f64::total_cmp);
+    let noise_floor_mm = if floors.is_empty() {
+        0.0
+    } else {
+        floors[floors.len() / 2]
+    };
+    // Base model.
+    let geom = BoundaryGeometry::new(&model.mesh)?;
+    let sites = Sites {
+        posterior: &model.posterior,
+        falciform: &model.falciform,
+    };
+    let libr = &params.pipeline.libr;
+    let basis = prepared.basis.clone().ok_or_else(|| {
+        DiscoverError::Input("the case has no LIBR basis".into())
+    })?;
+    let (a, prior) = basis_design(&rows, &basis, libr.regularization);
+    let base_score = cross_validate(&rows, &Design { a: &a, prior: &prior }).ok_or_else(|| {
+        DiscoverError::Underdetermined(
+            "no fold could be fitted: too few points per sweep and block".into(),
+        )
+    })?;
+    // Bootstrap null: the fitted model plus noise at the floor.
+    progress("bootstrap", 0, params.bootstrap);
+    let fit = fitted(&rows, &a, &base_score);
+    let null: Vec<f64> = (0..params.bootstrap)
+        .into_par_iter()
+        .filter_map(|k| {
+            let mut rng = crate::util::SplitMix64::new(params.seed ^ (k as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            let b: Vec<f64> = fit
+                .iter()
+                .map(|f| f + noise_floor_mm * gaussian(&mut rng))
+                .collect();
+            cross_validate_rhs(&rows, &Design { a: &a, prior: &prior }, &b)
+                .map(|s| s.heldout_mse.sqrt())
+        })
+        .collect();
+    let null_max_mm = null.iter().copied().fold(0.0, f64::max);
+    let before_rms = base_score.heldout_mse.sqrt();
+    let beyond_noise = before_rms > null_max_mm && before_rms > 1.25 * noise_floor_mm;
+    let find_s = crate::util::secs(t1);
+    // 3. Name: forward selection.
+    let t2 = Instant::now();
+    let solver = ModelSolver::new(&model.mesh, &libr.material, sites, &Physics::none())?;
+    let mut cur = Current {
+        physics: Physics::none(),
+        basis,
+        solver,
+        a,
+        prior,
+        score: base_score.clone(),
+    };
+    let ctx = SearchContext {
+        mesh: &model.mesh,
+        sites,
+        libr,
+        rows: &rows,
+        geom: &geom,
+    };
+    let mut records = Vec::new();
+    let mut named: Vec<NamedEffect> = Vec::new();
+    for round in 0..params.max_effects {
+        let kinds: Vec<EffectKind> = params
+            .kinds
+            .iter()
+            .copied()
+            .filter(|k| !cur.physics.effects.iter().any(|e| e.kind == *k))
+            .collect();
+        if kinds.is_empty() {
+            break;
+        }
+        let mut best: Option<(Candidate, Vec<Candidate>, f64, f64, f64)> = None;
+        for (i, kind) in kinds.iter().enumerate() {
+            progress(&format!("round {round}: {kind}"), i, kinds.len());
+            let family = search_family(&ctx, &cur, *kind, &params.grid)?;
+            let Some(top) = family
+                .iter()
+                .min_by(|a, b| a.score.heldout_mse.total_cmp(&b.score.heldout_mse))
+                .cloned()
+            else {
+                continue;
+            };
+            let (t, gain) = paired(&cur.score, &top.score);
+            let n = rows.rows.len() as f64;
+            let delta_bic = n * (top.score.full_rss / cur.score.full_rss).ln()
+                + top.parameters as f64 * n.ln();
+            let significant = t > params.t_threshold && gain > params.min_gain && delta_bic < 0.0;
+            records.push(CandidateRecord {
+                round,
+                kind: kind.name().into(),
+                effect: top.effect.describe(),
+                heldout_rms_mm: top.score.heldout_mse.sqrt(),
+                gain,
+                t,
+                delta_bic,
+                significant,
+            });
+            if significant
+                && best
+                    .as_ref()
+                    .is_none_or(|b| top.score.heldout_mse < b.0.score.heldout_mse)
+            {
+                best = Some((top, family, t, gain, delta_bic));
+            }
+        }
+        let Some((top, family, t, gain, delta_bic)) = best else {
+            break;
+        };
+        let before = cur.score.heldout_mse.sqrt();
+        let uncertainty = shape_uncertainty(&top, &family);
+        let evidence = serde_json::json!({
+            "heldout_rms_before_mm": before,
+            "heldout_rms_after_mm": top.score.heldout_mse.sqrt(),
+            "gain": gain,
+            "t": t,
+            "delta_bic": delta_bic,
+            "round": round,
+            "candidates_tried": family.len(),
+        });
+        named.push(NamedEffect {
+            effect: top.effect.clone(),
+            uncertainty,
+            evidence,
+        });
+        cur = adopt(&ctx, cur, top)?;
+    }
+    let name_s = crate::util::secs(t2);
+    // Regions: per block, before and after.
+    let regions = region_table(&rows, model, &base_score, &cur.score);
+    let verdict = if !named.is_empty() {
+        Verdict::Effects
+    } else if beyond_noise {
+        Verdict::Unexplained
+    } else {
+        Verdict::None
+    };
+    Ok(CohortDiscovery {
+        verdict,
+        effects: named,
+        physics: cur.physics.clone(),
+        heldout_before_mm: before_rms,
+        heldout_after_mm: cur.score.heldout_mse.sqrt(),
+        noise_floor_mm,
+        null_max_mm,
+        beyond_noise,
+        regions,
+        candidates: records,
+        rows: rows.rows.len(),
+        sweeps: sweeps.len(),
+        plain,
+        timings: StageTimings {
+            register_s,
+            find_s,
+            name_s,
+            total_s: crate::util::secs(t0),
+        },
+    })
+}
+
+fn gaussian(rng: &mut crate::util::SplitMix64) -> f64 {
+    let (u1, u2) = (rng.next_f64().max(1e-300), rng.next_f64());
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+/// Paired comparison over the units both scored: t statistic of `sse_cur − sse_cand` and the
+/// fraction of the current held-out misfit removed.
+fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64) {
+    let d: Vec<f64> = cur
+        .unit_sse
+        .iter()
+        .zip(&cand.unit_sse)
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .map(|(a, b)| a - b)
+        .collect();
+    let total: f64 = cur.unit_sse.iter().filter(|x| x.is_finite()).sum();
+    if d.len() < 2 || total <= 0.0 {
+        return (0.0, 0.0);
+    }
+    let n = d.len() as f64;
+    let mean = d.iter().sum::<f64>() / n;
+    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    let t = if var > 0.0 {
+        mean / (var / n).sqrt()
+    } else if mean > 0.0 {
+        f64::INFINITY
+    } else {
+        0.0
+    };
+    (t, d.iter().sum::<f64>() / total)
+}
+
+/// Searches one kind over its parameter grid on top of the current model.
+fn search_family(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    kind: EffectKind,
+    grid: &SearchGrid,
+) -> Result<Vec<Candidate>, DiscoverError> {
+    let mut out = Vec::new();
+    let mut push = |c: Option<Candidate>| {
+        if let Some(c) = c {
+            out.push(c);
+        }
+    };
+    match kind {
+        EffectKind::Gravity | EffectKind::Pressure => {
+            let (dir_name, amp, amp_value) = if kind == EffectKind::Gravity {
+                ("direction", "magnitude", 0.01)
+            } else {
+                ("direction", "magnitude_kpa", 1.0)
+            };
+            let make = |d: [f64; 3]| {
+                Effect::new(kind, &[(dir_name, &d), (amp, &[amp_value])])
+            };
+            let mut tried = Vec::new();
+            for d in search::sphere_directions(grid.directions) {
+                let e = make(d)?;
+                let c = search::evaluate_load(ctx, cur, &e)?;
+                tried.push((d, c.as_ref().map(|c| c.score.heldout_mse).unwrap_or(f64::INFINITY)));
+                push(c);
+            }
+            // Refine around the best by shrinking turns.
+            let mut best = tried
+                .iter()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .copied()
+                .unwrap_or(([0.0, 1.0, 0.0], f64::INFINITY));
+            for step in [20.0f64, 10.0, 5.0, 2.5] {
+                for d in search::neighbours(best.0, step.to_radians()) {
+                    let e = make(d)?;
+                    let c = search::evaluate_load(ctx, cur, &e)?;
+                    let s = c.as_ref().map(|c| c.score.heldout_mse).unwrap_or(f64::INFINITY);
+                    if s < best.1 {
+                        best = (d, s);
+                    }
+                    push(c);
+                }
+            }
+        }
+        EffectKind::Pack => {
+            for c in search::boundary_sites(ctx.mesh, ctx.geom, grid.pack_sites) {
+                for w in grid.pack_widths {
+                    let e = Effect::new(
+                        kind,
+                        &[("center", &c), ("width_mm", &[w]), ("force_mn", &[0.0, 0.0, 1.0])],
+                    )?;
+                    push(search::evaluate_load(ctx, cur, &e)?);
+                }
+            }
+        }
+        EffectKind::BedSupport | EffectKind::Ligament => {
+            let ks: &[f64] = if kind == EffectKind::BedSupport {
+                &[0.02, 0.07, 0.25]
+            } else {
+                &[0.1, 0.3, 1.0]
+            };
+            for &k in ks {
+                let e = Effect::new(kind, &[("stiffness", &[k])])?;
+                push(search::evaluate_rebuilt(ctx, cur, &e)?);
+            }
+        }
+        EffectKind::Fixation => {
+            for c in search::boundary_sites(ctx.mesh, ctx.geom, grid.fixation_sites) {
+                for k in [0.3, 1.5] {
+                    let e = Effect::new(
+                        kind,
+                        &[("center", &c), ("radius_mm", &[25.0]), ("stiffness", &[k])],
+                    )?;
+                    push(search::evaluate_rebuilt(ctx, cur, &e)?);
+                }
+            }
+        }
+        EffectKind::Inclusion => {
+            for c in search::interior_sites(ctx.mesh, ctx.geom, 15.0, grid.inclusion_sites) {
+                let e = Effect::new(
+                    kind,
+                    &[("center", &c), ("radius_mm", &[15.0]), ("stiffness_ratio", &[5.0])],
+                )?;
+                push(search::evaluate_rebuilt(ctx, cur, &e)?);
+            }
+        }
+        EffectKind::Nonlinear => {}
+    }
+    Ok(out)
+}
+
+/// The spread of the shape parameters among the family's candidates the data cannot tell apart
+/// from the best (paired t below 2 against it), plus the amplitudes' standard deviations.
+fn shape_uncertainty(top: &Candidate, family: &[Candidate]) -> serde_json::Value {
+    let mut out = serde_json::Map::new();
+    for (name, sd) in &top.amplitude_sd {
+        out.insert(name.clone(), serde_json::json!(sd));
+    }
+    let close: Vec<&Candidate> = family
+        .iter()
+        .filter(|c| paired(&c.score, &top.score).0 < 2.0)
+        .collect();
+    let p = &top.effect.parameters;
+    if p.contains_key("direction") {
+        let d = top.effect.direction("direction");
+        let spread = close
+            .iter()
+            .map(|c| search::angle_deg(d, c.effect.direction("direction")))
+            .fold(0.0, f64::max);
+        out.insert("direction_deg".into(), serde_json::json!(spread));
+    }
+    if p.contains_key("center") {
+        let c0 = top.effect.vector("center");
+        let spread = close
+            .iter()
+            .map(|c| crate::mesh::vec3::dist2(c0, c.effect.vector("center")).sqrt())
+            .fold(0.0, f64::max);
+        out.insert("center_mm".into(), serde_json::json!(spread));
+    }
+    if p.contains_key("stiffness") {
+        let k: Vec<f64> = close.iter().map(|c| c.effect.scalar("stiffness")).collect();
+        let (lo, hi) = k
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+        out.insert("stiffness_range".into(), serde_json::json!([lo, hi]));
+    }
+    serde_json::Value::Object(out)
+}
+
+/// Makes a candidate the current model.
+fn adopt(ctx: &SearchContext<'_>, cur: Current, top: Candidate) -> Result<Current, DiscoverError> {
+    let mut physics = cur.physics.clone();
+    if let Some(basis) = top.basis {
+        // Rebuilt: its physics is the stiffness effects, then the loads, as evaluate_rebuilt made it.
+        physics = Physics {
+            effects: cur
+                .physics
+                .effects
+                .iter()
+                .filter(|e| !e.kind.is_load())
+                .cloned()
+                .chain(std::iter::once(top.effect.clone()))
+                .chain(cur.physics.effects.iter().filter(|e| e.kind.is_load()).cloned())
+                .collect(),
+        };
+        let solver = ModelSolver::new(ctx.mesh, &ctx.libr.material, ctx.sites, &physics)?;
+        let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+        return Ok(Current {
+            physics,
+            basis,
+            solver,
+            a,
+            prior,
+            score: top.score,
+        });
+    }
+    // A load: rebuild the basis with it as an effect column (what `register --physics` uses).
+    physics.effects.push(top.effect.clone());
+    let basis = crate::register::libr::LibrBasis::build_with(ctx.mesh, ctx.libr, &physics, ctx.sites)?;
+    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+    let score = cross_validate(ctx.rows, &Design { a: &a, prior: &prior }).unwrap_or(top.score);
+    Ok(Current {
+        physics,
+        basis,
+        solver: cur.solver,
+        a,
+        prior,
+        score,
+    })
+}
+
+/// Per block: held-out RMS before and after, and how systematic the misfit is across sweeps.
+fn region_table(
+    rows: &CohortRows,
+    model: &PreopModel,
+    before: &CvScore,
+    after: &CvScore,
+) -> Vec<RegionMisfit> {
+    let nc = rows.clusters;
+    (0..nc)
+        .map(|c| {
+            let rms = |s: &CvScore| {
+                let (mut e, mut w) = (0.0, 0.0);
+                for sc in 0..rows.scenarios {
+                    let u = sc * nc + c;
+                    if s.unit_sse[u].is_finite() {
+                        e += s.unit_sse[u];
+                        w += s.unit_w[u];
+                    }
+                }
+                if w > 0.0 { (e / w).sqrt() } else { f64::NAN }
+            };
+            let means: Vec<f64> = (0..rows.scenarios)
+                .map(|sc| before.unit_mean[sc * nc + c])
+                .filter(|x| x.is_finite())
+                .collect();
+            let n = means.len() as f64;
+            let mean = means.iter().sum::<f64>() / n.max(1.0);
+            let sd = (means.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+            let t = if sd > 0.0 && n > 1.0 { mean / (sd / n.sqrt()) } else { 0.0 };
+            let center = rows.centers[c];
+            let node = (0..model.mesh.num_nodes())
+                .filter(|&v| model.anterior[v] || model.posterior[v])
+                .min_by(|&a, &b| {
+                    crate::mesh::vec3::dist2(model.mesh.nodes()[a], center)
+                        .total_cmp(&crate::mesh::vec3::dist2(model.mesh.nodes()[b], center))
+                });
+            let region = match node {
+                Some(v) if model.falciform[v] => "anterior (falciform)",
+                Some(v) if model.inferior_ridge[v] => "anterior (inferior ridge)",
+                Some(v) if model.anterior[v] => "anterior",
+                Some(v) if model.posterior[v] => "posterior",
+                _ => "interior",
+            };
+            RegionMisfit {
+                center,
+                region: region.into(),
+                before_mm: rms(before),
+                after_mm: rms(after),
+                mean_signed_mm: mean,
+                t_across_sweeps: t,
+                sweeps: means.len(),
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,264 @@
+//! Name: the candidate effects of the library, each searched over its parameters on top of the
+//! current model and scored by cross-validation ([`super::cv`]).
+//!
+//! Load effects (`gravity`, `pressure`, `pack`) add columns to the current model's design: the
+//! current model's response to the effect's unit loads, so their amplitudes are fitted linearly
+//! with the LIBR weights and the poses; their shape parameters (direction, centre, width) are
+//! searched on a grid and, for directions, refined. Supports and inclusions change the stiffness
+//! the whole basis is built from: each grid point is a rebuilt augmented basis.
+
+use super::cv::{CvScore, Design, cross_validate};
+use super::rows::CohortRows;
+use super::DiscoverError;
+use crate::mesh::TetMesh;
+use crate::mesh::vec3::{cross, dist2, dot, unit};
+use crate::register::libr::{LibrBasis, LibrParams, farthest_point_sampling};
+use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites, unit_loads};
+use crate::register::physics::{Effect, EffectKind, Physics};
+use nalgebra::DMatrix;
+
+/// The current model: its physics, basis, solver, and design over the rows.
+pub struct Current {
+    /// Physics carried.
+    pub physics: Physics,
+    /// Its basis.
+    pub basis: LibrBasis,
+    /// Its solver (for the unit responses of load candidates).
+    pub solver: ModelSolver,
+    /// Row values of the basis columns.
+    pub a: DMatrix<f64>,
+    /// Prior `λ E / ē`.
+    pub prior: DMatrix<f64>,
+    /// Its cross-validated score.
+    pub score: CvScore,
+}
+
+/// What the search needs of the case.
+pub struct SearchContext<'a> {
+    /// Preoperative mesh.
+    pub mesh: &'a TetMesh,
+    /// Support sites.
+    pub sites: Sites<'a>,
+    /// LIBR parameters (the fit's λ and the basis).
+    pub libr: &'a LibrParams,
+    /// The cohort's rows.
+    pub rows: &'a CohortRows,
+    /// Boundary geometry.
+    pub geom: &'a BoundaryGeometry,
+}
+
+/// One evaluated candidate.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    /// The effect with its parameters (amplitudes from the full fit).
+    pub effect: Effect,
+    /// Cross-validated score of current + this effect.
+    pub score: CvScore,
+    /// Extra parameters (amplitudes + searched shape parameters), for the information criterion.
+    pub parameters: usize,
+    /// Standard deviation of each fitted amplitude, in the parameter's unit (by parameter name).
+    pub amplitude_sd: Vec<(String, f64)>,
+    /// Design columns (for a load effect) to append; empty for a rebuilt model.
+    pub columns: Option<(DMatrix<f64>, DMatrix<f64>)>,
+    /// The rebuilt basis (supports, inclusion).
+    pub basis: Option<LibrBasis>,
+}
+
+/// The design of a basis over the rows: row values and the prior `λ E / ē`.
+pub fn basis_design(rows: &CohortRows, basis: &LibrBasis, lambda: f64) -> (DMatrix<f64>, DMatrix<f64>) {
+    let m = basis.columns();
+    let mut a = DMatrix::<f64>::zeros(rows.rows.len(), m);
+    let mut buf = vec![0.0; m];
+    for (i, r) in rows.rows.iter().enumerate() {
+        r.values_into(&basis.phi, m, &mut buf);
+        for j in 0..m {
+            a[(i, j)] = buf[j];
+        }
+    }
+    let e = basis.energy_scale();
+    let prior = DMatrix::from_fn(m, m, |i, j| lambda * basis.energy[i * m + j] / e);
+    (a, prior)
+}
+
+/// Evaluates a load effect on top of the current model: appends the current model's responses to
+/// the effect's unit loads (scaled to a 1 mm peak) as columns and cross-validates.
+pub fn evaluate_load(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    effect: &Effect,
+) -> Result<Option<Candidate>, DiscoverError> {
+    let (loads, _) = unit_loads(ctx.mesh, ctx.geom, effect)?;
+    let n3 = 3 * ctx.mesh.num_nodes();
+    let m = cur.basis.columns();
+    let k = loads.len();
+    let q = m + k;
+    let mut a = DMatrix::<f64>::zeros(ctx.rows.rows.len(), q);
+    a.view_mut((0, 0), (ctx.rows.rows.len(), m)).copy_from(&cur.a);
+    let mut responses = Vec::with_capacity(k);
+    let mut scales = Vec::with_capacity(k);
+    for l in &loads {
+        let u = cur.solver.solve(l);
+        let peak = u
+            .chunks_exact(3)
+            .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+            .fold(0.0f64, f64::max);
+        if !(peak.is_finite() && peak > 0.0) {
+            return Ok(None);
+        }
+        responses.push(u.iter().map(|x| x / peak).collect::<Vec<f64>>());
+        scales.push(1.0 / peak);
+    }
+    for (j, u) in responses.iter().enumerate() {
+        for (i, r) in ctx.rows.rows.iter().enumerate() {
+            a[(i, m + j)] = r.value(u);
+        }
+    }
+    // Prior: energies with K of the current model, normalised like the LIBR columns.
+    let e = cur.basis.energy_scale();
+    let lambda = ctx.libr.regularization;
+    let mut prior = DMatrix::<f64>::zeros(q, q);
+    prior.view_mut((0, 0), (m, m)).copy_from(&cur.prior);
+    let ku: Vec<Vec<f64>> = responses.iter().map(|u| cur.solver.system().apply(u)).collect();
+    for j in 0..k {
+        for c in 0..m {
+            let mut s = 0.0;
+            for r in 0..n3 {
+                s += cur.basis.phi[r * m + c] * ku[j][r];
+            }
+            prior[(c, m + j)] = lambda * s / e;
+            prior[(m + j, c)] = lambda * s / e;
+        }
+        for l in 0..k {
+            let s: f64 = responses[l].iter().zip(&ku[j]).map(|(x, y)| x * y).sum();
+            prior[(m + l, m + j)] = lambda * s / e;
+        }
+    }
+    let Some(score) = cross_validate(ctx.rows, &Design { a: &a, prior: &prior }) else {
+        return Ok(None);
+    };
+    // Amplitudes (in the effect's unit) and their standard deviations.
+    let var = score.full_rss / score.full_w.max(1e-300);
+    let amp: Vec<f64> = (0..k).map(|j| score.coef[m + j] * scales[j]).collect();
+    let sd: Vec<f64> = (0..k)
+        .map(|j| (var * score.inverse[(m + j, m + j)]).sqrt() * scales[j])
+        .collect();
+    let mut effect = effect.clone();
+    let (name, shape_params) = match effect.kind {
+        EffectKind::Gravity => ("magnitude", 2),
+        EffectKind::Pressure => ("magnitude_kpa", 2),
+        _ => ("force_mn", 4),
+    };
+    effect.parameters.insert(name.to_string(), amp.clone());
+    let amplitude_sd = vec![(name.to_string(), sd.iter().map(|x| x * x).sum::<f64>().sqrt())];
+    let new_cols = a.columns(m, k).into_owned();
+    Ok(Some(Candidate {
+        effect,
+        score,
+        parameters: k + shape_params,
+        amplitude_sd,
+        columns: Some((new_cols, prior)),
+        basis: None,
+    }))
+}
+
+/// Evaluates a stiffness effect (support or inclusion) by rebuilding the basis with it.
+pub fn evaluate_rebuilt(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    effect: &Effect,
+) -> Result<Option<Candidate>, DiscoverError> {
+    let mut physics = Physics {
+        effects: cur
+            .physics
+            .effects
+            .iter()
+            .filter(|e| !e.kind.is_load())
+            .cloned()
+            .collect(),
+    };
+    physics.effects.push(effect.clone());
+    // Load effects already carried are kept as effect columns of the rebuilt basis.
+    physics
+        .effects
+        .extend(cur.physics.effects.iter().filter(|e| e.kind.is_load()).cloned());
+    let basis = match LibrBasis::build_with(ctx.mesh, ctx.libr, &physics, ctx.sites) {
+        Ok(b) => b,
+        // A support that attaches nowhere, or a degenerate column: not a candidate.
+        Err(crate::register::RegisterError::Model(_)) => return Ok(None),
+        Err(e) => return Err(e.into()),
+    };
+    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+    let Some(score) = cross_validate(ctx.rows, &Design { a: &a, prior: &prior }) else {
+        return Ok(None);
+    };
+    let parameters = match effect.kind {
+        EffectKind::Fixation => 3,
+        EffectKind::Inclusion => 4,
+        _ => 1,
+    };
+    Ok(Some(Candidate {
+        effect: effect.clone(),
+        score,
+        parameters,
+        amplitude_sd: Vec::new(),
+        columns: None,
+        basis: Some(basis),
+    }))
+}
+
+/// Unit directions spread over the sphere (Fibonacci lattice).
+pub fn sphere_directions(count: usize) -> Vec<[f64; 3]> {
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..count)
+        .map(|i| {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / count as f64;
+            let r = (1.0 - z * z).sqrt();
+            let t = golden * i as f64;
+            [r * t.cos(), r * t.sin(), z]
+        })
+        .collect()
+}
+
+/// Directions within `angle` (radians) of `d`: `d` turned by ±angle about two perpendicular axes.
+pub fn neighbours(d: [f64; 3], angle: f64) -> Vec<[f64; 3]> {
+    let t1 = unit(if d[0].abs() < 0.9 {
+        cross(d, [1.0, 0.0, 0.0])
+    } else {
+        cross(d, [0.0, 1.0, 0.0])
+    });
+    let t2 = cross(d, t1);
+    let (s, c) = angle.sin_cos();
+    [t1, t2, t1.map(|x| -x), t2.map(|x| -x)]
+        .into_iter()
+        .map(|t| unit([0, 1, 2].map(|k| c * d[k] + s * t[k])))
+        .collect()
+}
+
+/// Angle between two unit vectors (degrees).
+pub fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+    dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Boundary sites for centred effects: farthest-point samples of the boundary nodes.
+pub fn boundary_sites(mesh: &TetMesh, geom: &BoundaryGeometry, count: usize) -> Vec<[f64; 3]> {
+    farthest_point_sampling(mesh.nodes(), &geom.nodes, count, 0)
+        .into_iter()
+        .map(|v| mesh.nodes()[v as usize])
+        .collect()
+}
+
+/// Interior sites for inclusions: farthest-point samples of the nodes at least `depth` from the
+/// boundary nodes.
+pub fn interior_sites(mesh: &TetMesh, geom: &BoundaryGeometry, depth: f64, count: usize) -> Vec<[f64; 3]> {
+    let b: Vec<[f64; 3]> = geom.nodes.iter().map(|&v| mesh.nodes()[v as usize]).collect();
+    let deep: Vec<u32> = (0..mesh.num_nodes() as u32)
+        .filter(|&v| {
+            let p = mesh.nodes()[v as usize];
+            b.iter().all(|q| dist2(*q, p) >= depth * depth)
+        })
+        .collect();
+    farthest_point_sampling(mesh.nodes(), &deep, count, 0)
+        .into_iter()
+        .map(|v| mesh.nodes()[v as usize])
+        .collect()
+}
