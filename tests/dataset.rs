@@ -580,6 +580,285 @@ fn generate_patterns_adds_x_and_leaves_the_other_deformations_byte_identical() {
     assert!(!tmp.path().join("refused").exists());
 }
 
+/// The preoperative mesh and its labels as the dataset wrote them (`preop.vtu`).
+fn preop(
+    dir: &Path,
+    g: &librplus::dataset::GeometryEntry,
+) -> (
+    librplus::mesh::TetMesh,
+    librplus::register::anatomy::AnatomyLabels,
+) {
+    use librplus::register::anatomy::{AnatomyLabels, Region};
+    let f = io::read(dir.join(&g.preop), Unit::Mm).unwrap();
+    let mesh = librplus::mesh::TetMesh::from_file(&f).unwrap();
+    let flags = |name: &str| -> Vec<bool> {
+        f.point_array(name)
+            .unwrap()
+            .values
+            .iter()
+            .map(|&x| x > 0.5)
+            .collect()
+    };
+    let labels = AnatomyLabels {
+        region: f
+            .point_array("region")
+            .unwrap()
+            .values
+            .iter()
+            .map(|&r| match r as u8 {
+                1 => Region::Anterior,
+                2 => Region::Posterior,
+                _ => Region::Interior,
+            })
+            .collect(),
+        falciform: flags("falciform"),
+        inferior_ridge: flags("inferior_ridge"),
+        bare_area: flags("bare_area"),
+        targets: g.targets.clone(),
+    };
+    (mesh, labels)
+}
+
+/// `--truth libr --hidden-effect gravity` against `--truth libr` alone: the same loads, scenario
+/// seeds, misalignments, landmarks and noise draws, the same descriptions, a different truth
+/// (by exactly the gap the run reports) and the drawn gravity recorded in the manifest and in
+/// `hidden_physics.json`. Without the effect (the negative control) the truth is `forward` with
+/// no physics on the case's surface load (pattern L: its retractor as a traction), recomputed
+/// here from the dataset's own files.
+#[test]
+fn libr_truth_with_a_hidden_effect_changes_the_truth_and_no_other_draw() {
+    use librplus::fem::LinearMaterial;
+    use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
+    use librplus::phantom::truth::{LibrSites, libr_base_load};
+    use librplus::register::physics::Physics;
+    use librplus::register::physics::model::forward;
+    let tmp = tempfile::tempdir().unwrap();
+    let (plain, hidden) = (tmp.path().join("plain"), tmp.path().join("hidden"));
+    generate(&plain, &["--scenarios", "5", "--truth", "libr"]);
+    generate(
+        &hidden,
+        &[
+            "--scenarios",
+            "5",
+            "--truth",
+            "libr",
+            "--hidden-effect",
+            "gravity",
+        ],
+    );
+    let (mp, mh) = (
+        read_manifest(&plain).unwrap(),
+        read_manifest(&hidden).unwrap(),
+    );
+    assert_eq!(mp.parameters["truth"], "libr");
+    assert!(
+        mp.parameters.get("hidden_effects").is_none(),
+        "no hidden effect is the unmarked default"
+    );
+    assert_eq!(
+        mh.parameters["hidden_effects"],
+        serde_json::json!([{"kind": "gravity", "given": {}}])
+    );
+    assert_eq!(mp.deformations.len(), 3);
+    assert_eq!(mp.deformations.len(), mh.deformations.len());
+    let gt = |dir: &Path, file: &str| -> Vec<f64> {
+        let f = io::read(dir.join(file), Unit::Mm).unwrap();
+        f.point_array("displacement").unwrap().values.clone()
+    };
+    let f64s = |arrays: &[librplus::mesh::io::npz::NpyArray], name: &str| {
+        array(arrays, name).data.to_f64()
+    };
+    for (dp, dh) in mp.deformations.iter().zip(&mh.deformations) {
+        assert_eq!((&dp.id, dp.seed), (&dh.id, dh.seed), "the same draw");
+        assert_eq!(dp.description, dh.description, "{}: the same loads", dp.id);
+        assert!(dp.description.contains("truth libr"), "{}", dp.description);
+        // What is hidden, recorded in the entry and beside it.
+        assert_eq!(
+            dp.hidden_effects,
+            Some(serde_json::json!({"format": 1, "effects": []}))
+        );
+        let physics = Physics::read(
+            &hidden
+                .join("deformations")
+                .join(&dh.id)
+                .join("hidden_physics.json"),
+        )
+        .unwrap();
+        assert_eq!(physics.kinds(), ["gravity"]);
+        assert_eq!(dh.hidden_effects, Some(physics.to_value(&[])));
+        let m = physics.effects[0].scalar("magnitude");
+        assert!((0.8 * 0.0104..=1.2 * 0.0104).contains(&m), "{m}");
+        // The truths differ by exactly the gap the hidden run reports (its LIBR-alone solve is
+        // the plain run's truth); the plain run reports none.
+        let (up, uh) = (gt(&plain, &dp.gt), gt(&hidden, &dh.gt));
+        let n = up.len() / 3;
+        let gap = (0..n)
+            .map(|i| {
+                (0..3)
+                    .map(|a| (up[3 * i + a] - uh[3 * i + a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum::<f64>()
+            / n as f64;
+        eprintln!(
+            "{}: hidden gravity moves the truth {gap:.3} mm on average (reported {:.3}); {}",
+            dp.id,
+            dh.linear_homogeneous_gap_mm,
+            physics.describe()
+        );
+        assert_eq!(dp.linear_homogeneous_gap_mm, 0.0);
+        assert!(gap > 0.05, "{}: the hidden gravity shows", dp.id);
+        assert!((gap - dh.linear_homogeneous_gap_mm).abs() <= 1e-9 * gap.max(1.0));
+        // Every scenario draw is the same: seeds, misalignment, landmarks, their noise and the
+        // surface points' noise (drawn in order: the common prefix).
+        let ap = read_npz(&std::fs::read(plain.join(&dp.npz)).unwrap()).unwrap();
+        let ah = read_npz(&std::fs::read(hidden.join(&dh.npz)).unwrap()).unwrap();
+        for name in [
+            "seed",
+            "image_to_physical",
+            "landmark_nodes",
+            "landmarks_image",
+        ] {
+            assert!(
+                array(&ap, name).data == array(&ah, name).data,
+                "{}: {name} bit-identical",
+                dp.id
+            );
+        }
+        for (e, s) in dp.scenarios.iter().zip(&dh.scenarios) {
+            assert_eq!(e.misalignment_deg, s.misalignment_deg);
+            assert_eq!(e.seed, s.seed);
+        }
+        let noises = |arrays: &[librplus::mesh::io::npz::NpyArray], u: &[f64]| {
+            let t = f64s(arrays, "image_to_physical");
+            let apply = |k: usize, p: [f64; 3]| -> [f64; 3] {
+                let m = &t[16 * k..16 * k + 16];
+                [0, 1, 2].map(|r| {
+                    m[4 * r] * p[0] + m[4 * r + 1] * p[1] + m[4 * r + 2] * p[2] + m[4 * r + 3]
+                })
+            };
+            let nodes = f64s(arrays, "landmark_nodes");
+            let img = f64s(arrays, "landmarks_image");
+            let phys = f64s(arrays, "landmarks_physical");
+            let per = nodes.len() / 5;
+            let mut landmark = Vec::new();
+            for (j, &v) in nodes.iter().enumerate() {
+                let (k, v) = (j / per, v as usize);
+                let x = [0, 1, 2].map(|a| img[3 * j + a] + u[3 * v + a]);
+                let q = apply(k, x);
+                landmark.push([0, 1, 2].map(|a| phys[3 * j + a] - q[a]));
+            }
+            let (offsets, kind) = (f64s(arrays, "offsets"), f64s(arrays, "kind"));
+            let (points, truth) = (f64s(arrays, "points"), f64s(arrays, "truth_image"));
+            let surface: Vec<Vec<[f64; 3]>> = (0..5)
+                .map(|k| {
+                    (offsets[k] as usize..offsets[k + 1] as usize)
+                        .filter(|&i| kind[i] == 0.0)
+                        .map(|i| {
+                            let q = apply(k, [0, 1, 2].map(|a| truth[3 * i + a]));
+                            [0, 1, 2].map(|a| points[3 * i + a] - q[a])
+                        })
+                        .collect()
+                })
+                .collect();
+            (landmark, surface)
+        };
+        let ((lp, sp), (lh, sh)) = (noises(&ap, &up), noises(&ah, &uh));
+        let close = |a: &[[f64; 3]], b: &[[f64; 3]]| {
+            a.iter()
+                .zip(b)
+                .all(|(p, q)| (0..3).all(|k| (p[k] - q[k]).abs() < 1e-9))
+        };
+        assert!(close(&lp, &lh), "{}: landmark noise", dp.id);
+        assert!(
+            lp.iter().any(|e| e.iter().any(|x| x.abs() > 1e-3)),
+            "noise is there"
+        );
+        for (a, b) in sp.iter().zip(&sh) {
+            assert!(!a.is_empty() && !b.is_empty());
+            assert!(close(a, b), "{}: surface noise", dp.id);
+        }
+    }
+    // The negative control is `forward` with no physics on the case's surface load.
+    for d in &mp.deformations {
+        let g = mp.geometries.iter().find(|g| g.id == d.geometry).unwrap();
+        let (mesh, labels) = preop(&plain, g);
+        let pattern = match d.pattern.as_str() {
+            "L" => Pattern::L,
+            "W" => Pattern::W,
+            "V" => Pattern::V,
+            other => panic!("pattern {other}"),
+        };
+        let params = PatternParams::default();
+        let case = load_case(&mesh, &labels, pattern, &params, d.seed).unwrap();
+        let (base, _) = libr_base_load(&mesh, &case, params.load_scale).unwrap();
+        if pattern == Pattern::L {
+            assert!(case.surface.iter().all(|&x| x == 0.0) && base.iter().any(|&x| x != 0.0));
+        } else {
+            assert_eq!(base, case.surface, "{}: the surface load as it is", d.id);
+        }
+        let sites = LibrSites::new(&labels);
+        let want = forward(
+            &mesh,
+            &LinearMaterial::default(),
+            sites.sites(),
+            &Physics::none(),
+            &base,
+        )
+        .unwrap();
+        let got = gt(&plain, &d.gt);
+        let scale = want.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(scale > 0.1, "{}: it deforms", d.id);
+        let err = got
+            .iter()
+            .zip(&want)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(err <= 1e-9 * scale, "{}: {err} mm off forward", d.id);
+    }
+}
+
+/// `--hidden-effect` errors name what is wrong before anything is written: an unknown kind
+/// (listing the known ones), an out-of-range parameter (by name), `nonlinear` (not generated
+/// yet), and any hidden effect without `--truth libr`.
+#[test]
+fn hidden_effect_errors_name_the_kind_the_field_and_the_truth() {
+    let tmp = tempfile::tempdir().unwrap();
+    for (args, says) in [
+        (
+            &["--truth", "libr", "--hidden-effect", "foo"][..],
+            &["\"foo\"", "gravity", "bed-support", "inclusion"][..],
+        ),
+        (
+            &["--truth", "libr", "--hidden-effect", "gravity:magnitude=5"][..],
+            &["magnitude", "outside"][..],
+        ),
+        (
+            &["--truth", "libr", "--hidden-effect", "nonlinear"][..],
+            &["nonlinear", "not generated"][..],
+        ),
+        (&["--hidden-effect", "gravity"][..], &["--truth libr"][..]),
+        (
+            &["--truth", "linear", "--hidden-effect", "gravity"][..],
+            &["--truth libr"][..],
+        ),
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .args(["generate", "--preset", "small", "--out"])
+            .arg(tmp.path().join("refused"))
+            .args(args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{args:?} was accepted");
+        assert!(err.contains("--hidden-effect"), "{args:?}: {err}");
+        for s in says {
+            assert!(err.contains(s), "{args:?}: {err} does not say {s}");
+        }
+    }
+    assert!(!tmp.path().join("refused").exists());
+}
+
 /// Says on the terminal that a check was skipped: written to stderr directly, past the test
 /// harness's output capture, so the line shows in `cargo test`'s output even when the test passes.
 fn skipped(what: &str) {

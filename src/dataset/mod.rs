@@ -143,7 +143,8 @@ pub struct DeformationEntry {
     /// Largest node displacement (mm).
     pub max_displacement_mm: f64,
     /// Mean node distance between the ground truth and the linear homogeneous model under the
-    /// same loads and supports (mm): what LIBR's physics misses.
+    /// same loads and supports (mm): what LIBR's physics misses. Under `--truth libr`: to LIBR's
+    /// physics without the hidden effects under the same load (0 when nothing is hidden).
     pub linear_homogeneous_gap_mm: f64,
     /// Newton load steps.
     pub load_steps: usize,
@@ -153,6 +154,11 @@ pub struct DeformationEntry {
     pub relative_residual: f64,
     /// Bed contacts active at equilibrium, of all.
     pub active_contacts: [usize; 2],
+    /// Under `generate --truth libr`: the effects hidden in the truth with their drawn
+    /// parameters, as a `physics.json` value (format 1; `"effects": []` when nothing is hidden),
+    /// also written beside it as `hidden_physics.json`. Absent for the other truths.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hidden_effects: Option<serde_json::Value>,
     /// The scenarios.
     pub scenarios: Vec<ScenarioEntry>,
 }

@@ -10,7 +10,7 @@
 //! converge is recorded in the manifest's `failed` list and redrawn with the next seed, never
 //! written as ground truth.
 
-use super::PhantomError;
+use super::hidden::{HiddenEffectSpec, libr_truth};
 use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
 use super::patterns::{Pattern, PatternParams, load_case};
 use super::shape::{ShapeVariantParams, variant};
@@ -19,6 +19,7 @@ use super::truth::{
     GroundTruth, LoadParts, magnitude_stats, mean_distance, solve_linear, solve_truth,
 };
 use super::vessels::{VesselParams, VesselTree};
+use super::{PhantomError, derive};
 use crate::dataset::{
     DeformationEntry, FORMAT, FailedEntry, GeometryEntry, Manifest, ScenarioEntry, TumourEntry,
     VERSION,
@@ -31,7 +32,6 @@ use crate::mesh::rigid::Rigid;
 use crate::mesh::tetra::{TetraParams, tetrahedralize};
 use crate::mesh::{TetMesh, TriSurface};
 use crate::register::anatomy::{AnatomyLabels, LabelParams, label};
-use crate::util::SplitMix64;
 use crate::util::fnv1a_hex;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -69,6 +69,12 @@ pub enum TruthModel {
     /// as bilateral springs), under the same loads: a control dataset on which the remaining
     /// error of LIBR is its sparse-data error alone, not model error.
     LinearHomogeneous,
+    /// LIBR's own physics (free-floating linear homogeneous elasticity, the parenchyma's mean
+    /// material) plus the hidden effects ([`GenerateConfig::hidden_effects`]), under the
+    /// pattern's surface load alone ([`super::truth::libr_base_load`]: no gravity, bed or
+    /// bare-area support; pattern L's retractor as a traction). Without hidden effects nothing is
+    /// hidden: the negative control of effect discovery.
+    Libr,
 }
 
 impl TruthModel {
@@ -84,6 +90,11 @@ pub struct GenerateConfig {
     /// datasets made before the option existed keep their hash.
     #[serde(skip_serializing_if = "TruthModel::is_nonlinear")]
     pub truth: TruthModel,
+    /// Effects hidden in a [`TruthModel::Libr`] truth (`--hidden-effect`), with the parameters
+    /// the command line fixed; the others are drawn per deformation (see [`super::hidden`]). Left
+    /// out of the parameters (and their hash) when empty.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub hidden_effects: Vec<HiddenEffectSpec>,
     /// Preset it started from.
     pub preset: Preset,
     /// Master seed.
@@ -134,6 +145,7 @@ impl GenerateConfig {
     pub fn preset(preset: Preset, seed: u64, sources: Vec<String>) -> Self {
         let base = Self {
             truth: TruthModel::Nonlinear,
+            hidden_effects: Vec::new(),
             preset,
             seed,
             sources,
@@ -202,15 +214,6 @@ struct Built {
     vessels: VesselTree,
     tissue: Tissue,
     lame: LameField,
-}
-
-/// A seed derived from the master seed and a path of keys (SplitMix64 finaliser chain).
-fn derive(seed: u64, keys: &[u64]) -> u64 {
-    let mut s = seed;
-    for &k in keys {
-        s = SplitMix64::new(s ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64();
-    }
-    s
 }
 
 fn plan(config: &GenerateConfig) -> (Vec<GeometryPlan>, Vec<DeformationPlan>) {
@@ -521,6 +524,12 @@ pub fn generate(
         ));
     }
     config.measure.validate()?;
+    if !config.hidden_effects.is_empty() && config.truth != TruthModel::Libr {
+        return Err(PhantomError::Parameter(
+            "hidden effects need the libr truth (--truth libr): they are added to LIBR's own physics"
+                .into(),
+        ));
+    }
     let parameters = serde_json::to_value(config)?;
     let hash = fnv1a_hex(parameters.to_string().as_bytes());
     // A directory holding another dataset is refused rather than mixed.
@@ -647,6 +656,19 @@ pub fn generate(
     Ok(report)
 }
 
+/// A draw's ground truth, with what it is compared with and recorded beside it.
+struct Solved {
+    truth: GroundTruth,
+    /// The linear homogeneous solution under the same loads (`--truth libr`: LIBR's physics
+    /// without the hidden effects).
+    linear: Vec<f64>,
+    description: String,
+    /// The hidden effects (`--truth libr` only).
+    hidden: Option<crate::register::physics::Physics>,
+    /// Bed contacts in the truth.
+    contacts: usize,
+}
+
 /// Solves one deformation (redrawing on non-convergence) and writes its files.
 fn make_deformation(
     config: &GenerateConfig,
@@ -664,20 +686,57 @@ fn make_deformation(
             derive(d.seed, &[6, attempt as u64])
         };
         let case = load_case(&b.mesh, &b.labels, d.pattern, &config.patterns, seed)?;
-        let (lam, mu) = config.tissue.parenchyma.lame();
-        let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
-            .map_err(|e| PhantomError::within("linear comparison", e))?;
-        let solved = match config.truth {
-            TruthModel::Nonlinear => solve_truth(&b.mesh, &b.lame, &case, &config.newton),
-            // The control: the linear solution is the truth (no Newton; every bed spring acts).
-            TruthModel::LinearHomogeneous => Ok(GroundTruth {
-                displacement: linear.clone(),
-                info: Default::default(),
-                active_contacts: case.contacts.len(),
-            }),
+        let solved = if config.truth == TruthModel::Libr {
+            libr_truth(
+                &b.mesh,
+                &b.labels,
+                &config.tissue.parenchyma,
+                &case,
+                &config.patterns,
+                &config.hidden_effects,
+                seed,
+            )
+            .map(|t| Solved {
+                truth: GroundTruth {
+                    displacement: t.displacement,
+                    info: Default::default(),
+                    active_contacts: 0,
+                },
+                // What LIBR's own model gives under the same load: the gap is the hidden effects'.
+                linear: t.libr,
+                description: format!("{}; {}", case.description, t.note),
+                hidden: Some(t.physics),
+                contacts: 0,
+            })
+        } else {
+            let (lam, mu) = config.tissue.parenchyma.lame();
+            let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
+                .map_err(|e| PhantomError::within("linear comparison", e))?;
+            let truth = match config.truth {
+                // The control: the linear solution is the truth (no Newton; every bed spring acts).
+                TruthModel::LinearHomogeneous => Ok(GroundTruth {
+                    displacement: linear.clone(),
+                    info: Default::default(),
+                    active_contacts: case.contacts.len(),
+                }),
+                _ => solve_truth(&b.mesh, &b.lame, &case, &config.newton).map_err(Into::into),
+            };
+            truth.map(|truth| Solved {
+                truth,
+                linear,
+                description: case.description.clone(),
+                hidden: None,
+                contacts: case.contacts.len(),
+            })
         };
-        let truth = match solved {
-            Ok(t) => t,
+        let Solved {
+            truth,
+            linear,
+            description,
+            hidden,
+            contacts,
+        } = match solved {
+            Ok(s) => s,
             Err(e) => {
                 last_error = e.to_string();
                 failed.push(FailedEntry {
@@ -745,13 +804,20 @@ fn make_deformation(
             &dir.join(format!("{base}/scenarios.npz")),
             &scenarios_npz(&b.mesh, u, &scenarios)?,
         )?;
+        let hidden_effects = hidden.map(|p| p.to_value(&[]));
+        if let Some(v) = &hidden_effects {
+            crate::util::write_atomic(
+                &dir.join(format!("{base}/hidden_physics.json")),
+                &json_bytes(v)?,
+            )?;
+        }
         let entry = DeformationEntry {
             id: d.id.clone(),
             geometry: format!("g{}", d.geometry + 1),
             pattern: format!("{:?}", d.pattern),
             seed,
             parameters_hash: hash.to_string(),
-            description: case.description.clone(),
+            description,
             gt: format!("{base}/gt.vtu"),
             npz: format!("{base}/scenarios.npz"),
             mean_displacement_mm: mean,
@@ -760,7 +826,8 @@ fn make_deformation(
             load_steps: truth.info.load_steps,
             newton_iterations: truth.info.iterations,
             relative_residual: truth.info.relative_residual,
-            active_contacts: [truth.active_contacts, case.contacts.len()],
+            active_contacts: [truth.active_contacts, contacts],
+            hidden_effects,
             scenarios: entries,
         };
         // Written last: its presence marks the deformation complete.
@@ -770,7 +837,7 @@ fn make_deformation(
         )?);
     }
     Err(PhantomError::Inconsistent(format!(
-        "no convergence in {} draws (last: {last_error})",
+        "every one of {} draws failed (last: {last_error})",
         config.attempts.max(1)
     )))
 }

@@ -5,6 +5,7 @@
 //! surgery cannot see how the ground truth was made.
 
 pub mod dataset;
+pub mod hidden;
 pub mod measure;
 pub mod patterns;
 pub mod shape;
@@ -40,6 +41,10 @@ pub enum PhantomError {
     /// Anatomical labelling failed.
     #[error(transparent)]
     Labels(#[from] crate::register::RegisterError),
+    /// The augmented model ([`crate::register::physics`]) refused an effect or failed to solve
+    /// (`--truth libr`, hidden effects).
+    #[error(transparent)]
+    Model(crate::register::RegisterError),
     /// An array file could not be encoded.
     #[error(transparent)]
     Npz(#[from] crate::mesh::io::npz::NpzError),
@@ -60,6 +65,16 @@ pub enum PhantomError {
         /// What failed.
         source: Box<PhantomError>,
     },
+}
+
+/// A seed derived from a seed and a path of keys (SplitMix64 finaliser chain): every random stage
+/// of the generator draws from its own derived stream, so adding a stage changes no other draw.
+pub(crate) fn derive(seed: u64, keys: &[u64]) -> u64 {
+    let mut s = seed;
+    for &k in keys {
+        s = crate::util::SplitMix64::new(s ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64();
+    }
+    s
 }
 
 impl PhantomError {

@@ -7,11 +7,21 @@
 //! model (LIBR's physics) gives under the same loads and supports — the bed can only be bilateral
 //! there. [`breakdown`] walks from one to the other, adding one effect at a time, and also splits
 //! the gap by load, so a report can say what the linear model misses and why.
+//!
+//! [`solve_libr`] is the other kind of truth (`generate --truth libr`): LIBR's own free-floating
+//! linear homogeneous model plus named hidden effects ([`crate::register::physics`]), under the
+//! pattern's surface load alone ([`libr_base_load`]).
 
+use super::PhantomError;
 use super::patterns::LoadCase;
 use crate::fem::hyperelastic::{HyperelasticModel, NewtonInfo, NewtonParams};
-use crate::fem::{Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem};
+use crate::fem::{
+    Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads,
+};
 use crate::mesh::TetMesh;
+use crate::register::anatomy::{AnatomyLabels, Region};
+use crate::register::physics::Physics;
+use crate::register::physics::model::{Sites, forward};
 
 /// A converged ground-truth deformation.
 #[derive(Debug, Clone)]
@@ -227,4 +237,125 @@ pub fn breakdown(
         steps,
         by_load,
     })
+}
+
+/// Traction (kPa, times `load_scale`) that replaces pattern L's retractor under `--truth libr`.
+///
+/// A free-floating model cannot carry a prescribed displacement, so the retractor becomes the
+/// load it stands for: a uniform traction on the gripped patch. 1 kPa over the 30–50 mm patch the
+/// retractor grips (about 2,000–5,000 mm² of surface) is 2–5 N, the order of pattern R's pack
+/// (4.5–9 N) and of pattern V's packing pressure (0.8–1.4 kPa).
+pub const RETRACTOR_TRACTION_KPA: f64 = 1.0;
+
+/// The per-node anatomical sites the augmented model's supports attach to, from a phantom's
+/// labels: `posterior` = nodes of [`Region::Posterior`] (boundary nodes on the organ bed),
+/// `falciform` = the falciform-ligament flags.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LibrSites {
+    /// Posterior boundary nodes.
+    pub posterior: Vec<bool>,
+    /// Falciform-ligament nodes.
+    pub falciform: Vec<bool>,
+}
+
+impl LibrSites {
+    /// The sites of a labelled mesh.
+    pub fn new(labels: &AnatomyLabels) -> Self {
+        Self {
+            posterior: labels
+                .region
+                .iter()
+                .map(|r| *r == Region::Posterior)
+                .collect(),
+            falciform: labels.falciform.clone(),
+        }
+    }
+
+    /// Borrowed, as [`forward`] takes them.
+    pub fn sites(&self) -> Sites<'_> {
+        Sites {
+            posterior: &self.posterior,
+            falciform: &self.falciform,
+        }
+    }
+}
+
+/// The load LIBR's own physics carries for a load case (`--truth libr`): the case's surface load
+/// only (packs, pressure); no gravity, no bed or bare-area springs. A retractor (pattern L's
+/// prescribed displacement) is replaced by a uniform traction of
+/// [`RETRACTOR_TRACTION_KPA`] × `load_scale` on the boundary triangles whose three nodes it
+/// prescribes, along the unit mean of the prescribed displacements. Returns the load (mN,
+/// node-major) and a note for the deformation's description (empty when nothing was replaced).
+pub fn libr_base_load(
+    mesh: &TetMesh,
+    case: &LoadCase,
+    load_scale: f64,
+) -> Result<(Vec<f64>, String), PhantomError> {
+    let n = mesh.num_nodes();
+    if case.surface.len() != 3 * n || case.dirichlet.len() != 3 * n {
+        return Err(PhantomError::Inconsistent(format!(
+            "load case has {} load and {} constrained entries for {n} nodes",
+            case.surface.len(),
+            case.dirichlet.len()
+        )));
+    }
+    let mut load = case.surface.clone();
+    if case.dirichlet.count() == 0 {
+        return Ok((load, String::new()));
+    }
+    let gripped: Vec<bool> = (0..n)
+        .map(|v| (0..3).all(|a| case.dirichlet.get(3 * v + a).is_some()))
+        .collect();
+    let mut mean = [0.0; 3];
+    let mut count = 0usize;
+    for (v, _) in gripped.iter().enumerate().filter(|(_, g)| **g) {
+        for (a, m) in mean.iter_mut().enumerate() {
+            *m += case.dirichlet.get(3 * v + a).unwrap_or(0.0);
+        }
+        count += 1;
+    }
+    let length = mean.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let dir = if length > 0.0 {
+        mean.map(|x| x / length)
+    } else {
+        [0.0; 3]
+    };
+    let patch: Vec<[u32; 3]> = mesh
+        .boundary()?
+        .triangles
+        .into_iter()
+        .filter(|t| t.iter().all(|&v| gripped[v as usize]))
+        .collect();
+    if patch.is_empty() {
+        return Err(PhantomError::Geometry(format!(
+            "the retractor prescribes {count} nodes but no boundary triangle: no patch to load in its place"
+        )));
+    }
+    let p = RETRACTOR_TRACTION_KPA * load_scale;
+    loads::add_traction(
+        &mut load,
+        mesh.nodes(),
+        &patch,
+        &vec![dir.map(|d| d * p); patch.len()],
+    );
+    Ok((
+        load,
+        format!(
+            "the retractor replaced by a {p:.2} kPa traction along {dir:.2?} on its {} triangles",
+            patch.len()
+        ),
+    ))
+}
+
+/// LIBR's own physics plus `physics` under `base` (mN, node-major), with the homogeneous
+/// `material`: [`forward`] (free-floating with inertia relief when no effect supports the organ,
+/// carried by the springs otherwise).
+pub fn solve_libr(
+    mesh: &TetMesh,
+    material: &LinearMaterial,
+    sites: &LibrSites,
+    physics: &Physics,
+    base: &[f64],
+) -> Result<Vec<f64>, PhantomError> {
+    forward(mesh, material, sites.sites(), physics, base).map_err(PhantomError::Model)
 }

@@ -535,10 +535,17 @@ pub(crate) struct GenerateArgs {
     /// Override: mesher target edge length (mm).
     #[arg(long)]
     pub(crate) edge_mm: Option<f64>,
-    /// Ground-truth physics: nonlinear (heterogeneous Neo-Hookean with unilateral bed contact) or
-    /// linear (the linear homogeneous model LIBR assumes, same loads: a control dataset).
+    /// Ground-truth physics: nonlinear (heterogeneous Neo-Hookean with unilateral bed contact),
+    /// linear (the linear homogeneous model LIBR assumes, same loads: a control dataset) or libr
+    /// (LIBR's own free-floating model under the pattern's surface load, plus --hidden-effect).
     #[arg(long, value_enum, default_value = "nonlinear")]
     pub(crate) truth: TruthArg,
+    /// An effect hidden in a `--truth libr` ground truth (repeatable): KIND[:key=value,...] with
+    /// KIND gravity, bed-support, fixation, pressure, pack, ligament or inclusion and vectors as
+    /// x/y/z (e.g. `gravity`, `fixation:radius_mm=25`); parameters not given are drawn per
+    /// deformation (docs/hidden-effects.md).
+    #[arg(long = "hidden-effect", value_name = "KIND[:key=value,...]")]
+    pub(crate) hidden_effect: Vec<String>,
     /// The five scenarios of each block (one per category) share the surface patch, noise,
     /// misalignment and landmarks and differ only in their ultrasound planes, so the categories
     /// are compared on the same draws (off by default: every scenario is drawn on its own).
@@ -554,6 +561,8 @@ pub(crate) enum TruthArg {
     Nonlinear,
     /// Linear homogeneous elasticity, bilateral bed springs.
     Linear,
+    /// LIBR's own physics (free-floating, surface load only) plus the hidden effects.
+    Libr,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]

@@ -248,7 +248,22 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
     config.truth = match a.truth {
         TruthArg::Nonlinear => librplus::phantom::dataset::TruthModel::Nonlinear,
         TruthArg::Linear => librplus::phantom::dataset::TruthModel::LinearHomogeneous,
+        TruthArg::Libr => librplus::phantom::dataset::TruthModel::Libr,
     };
+    if !a.hidden_effect.is_empty() && !matches!(a.truth, TruthArg::Libr) {
+        bail!(
+            "--hidden-effect needs --truth libr: hidden effects are added to LIBR's own physics \
+             (the nonlinear and linear truths carry their own loads and supports)"
+        );
+    }
+    config.hidden_effects = a
+        .hidden_effect
+        .iter()
+        .map(|text| {
+            librplus::phantom::hidden::HiddenEffectSpec::parse(text)
+                .map_err(|e| anyhow::anyhow!("--hidden-effect: {e}"))
+        })
+        .collect::<Result<_>>()?;
     if let Some(s) = a.scenarios {
         if s == 0 {
             bail!("--scenarios must be at least 1");

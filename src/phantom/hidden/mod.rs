@@ -1,0 +1,422 @@
+//! Hidden effects (`generate --truth libr --hidden-effect KIND[:key=value,...]`): datasets whose
+//! ground truth is exactly LIBR's own physics plus named effects of the augmented-model library
+//! ([`crate::register::physics`]), for a discovery workflow to find from sparse data.
+//!
+//! A [`HiddenEffectSpec`] is one `--hidden-effect`: a kind and the parameters the command line
+//! fixed. The others are drawn per deformation ([`draw_physics`]) from the effect's own random
+//! stream, `derive(draw seed, [8, index])` (the index of the effect among the hidden effects), so
+//! every other draw of the dataset (loads, scenarios, their noise and misalignment) is
+//! bit-identical to the same command without the effect. Every parameter is drawn, in a fixed
+//! order, whether given or not, so fixing one leaves the others' draws unchanged.
+//!
+//! Drawn ranges (physical; `docs/hidden-effects.md` gives their sources):
+//!
+//! | kind | drawn parameters |
+//! | --- | --- |
+//! | `gravity` | `direction` = `tilted_gravity(1, head_up, lateral)`, head-up U(0°, 30°), lateral U(−30°, 30°); `magnitude` = 0.0104 mN/mm³ × U(0.8, 1.2) |
+//! | `bed-support` | `stiffness` log-U(0.02, 0.3) kPa/mm |
+//! | `fixation` | `center` a posterior boundary node in the superior half; `radius_mm` U(15, 35); `stiffness` log-U(0.2, 2) kPa/mm |
+//! | `pressure` | `magnitude_kpa` U(7, 14) mmHg; `direction` anterior (0, −1, 0) turned by U(0°, 20°) |
+//! | `pack` | `center` a boundary node off the bare area; `width_mm` U(10, 30); `force_mn` U(2000, 8000) mN along the inward vertex normal turned by U(0°, 30°) |
+//! | `ligament` | `stiffness` log-U(0.1, 1) kPa/mm |
+//! | `inclusion` | `radius_mm` U(10, 25); `center` an interior node at least the radius deep (else the deepest); `stiffness_ratio` U(3, 10) |
+//!
+//! "Turned by U(0°, a)" is a uniform angle about a uniform azimuth. `nonlinear` is refused: the
+//! augmented model does not carry large-deformation behaviour, so no LIBR-physics truth can
+//! contain it.
+
+use super::patterns::{LoadCase, PatternParams, tilted_gravity};
+use super::truth::{LibrSites, libr_base_load, solve_libr};
+use super::{PhantomError, derive};
+use crate::fem::LinearMaterial;
+use crate::mesh::spatial::TriangleBvh;
+use crate::mesh::vec3::{cross, dist2, unit};
+use crate::mesh::{TetMesh, TriSurface};
+use crate::register::anatomy::{AnatomyLabels, Region};
+use crate::register::physics::model::BoundaryGeometry;
+use crate::register::physics::{Effect, EffectKind, Physics};
+use crate::util::SplitMix64;
+use std::collections::BTreeMap;
+
+/// Key of the hidden effects' random streams under a draw's seed (`derive(seed, [8, index])`).
+pub const HIDDEN_EFFECT_STREAM: u64 = 8;
+
+/// Gravity's body force at the liver's density, ρ·g = 1.06 g/cm³ × 9.81 m/s² (mN/mm³).
+pub const LIVER_WEIGHT: f64 = 0.0104;
+
+/// kPa per mmHg (1 mmHg = 0.133322 kPa).
+const MMHG_KPA: f64 = 0.133_322;
+
+/// One `--hidden-effect`: the kind and the parameters given on the command line (the rest is
+/// drawn per deformation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct HiddenEffectSpec {
+    /// Kind.
+    pub kind: EffectKind,
+    /// Parameters fixed on the command line, each checked against the kind's valid range.
+    pub given: BTreeMap<String, Vec<f64>>,
+}
+
+impl HiddenEffectSpec {
+    /// Parses `KIND[:key=value,...]` (vectors as `x/y/z`). Errors name an unknown kind (and list
+    /// the known ones), an unknown or out-of-range parameter (by name), and `nonlinear`, which
+    /// the generator cannot make yet.
+    pub fn parse(text: &str) -> Result<Self, PhantomError> {
+        let (kind, given) = Effect::parse_partial(text).map_err(PhantomError::Model)?;
+        if kind == EffectKind::Nonlinear {
+            return Err(PhantomError::Parameter(format!(
+                "hidden effect {text:?}: `nonlinear` is not generated yet: the augmented model \
+                 (register::physics) carries no large-deformation behaviour, so a --truth libr \
+                 dataset cannot contain it"
+            )));
+        }
+        for spec in kind.parameters() {
+            let Some(v) = given.get(spec.name) else {
+                continue;
+            };
+            let field = format!("hidden effect {text:?}: {}", spec.name);
+            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+                return Err(PhantomError::Parameter(format!(
+                    "{field}: {x} is not finite"
+                )));
+            }
+            let value = if spec.len == 1 {
+                v[0]
+            } else {
+                v.iter().map(|x| x * x).sum::<f64>().sqrt()
+            };
+            if let Some((lo, hi)) = spec.range
+                && !(lo..=hi).contains(&value)
+            {
+                let what = if spec.len == 1 { "value" } else { "length" };
+                return Err(PhantomError::Parameter(format!(
+                    "{field}: {what} {value} is outside [{lo}, {hi}] {}",
+                    spec.unit
+                )));
+            }
+        }
+        Ok(Self { kind, given })
+    }
+
+    /// `{"kind", "given": {name: number or [x, y, z]}}`, as the dataset's parameters record it.
+    pub fn to_value(&self) -> serde_json::Value {
+        let given: serde_json::Map<String, serde_json::Value> = self
+            .given
+            .iter()
+            .map(|(k, v)| {
+                let val = if v.len() == 1 {
+                    serde_json::json!(v[0])
+                } else {
+                    serde_json::json!(v)
+                };
+                (k.clone(), val)
+            })
+            .collect();
+        serde_json::json!({"kind": self.kind.name(), "given": given})
+    }
+}
+
+impl serde::Serialize for HiddenEffectSpec {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        self.to_value().serialize(s)
+    }
+}
+
+/// What one mesh offers the draws, computed once per draw.
+struct Context<'a> {
+    mesh: &'a TetMesh,
+    labels: &'a AnatomyLabels,
+    geom: BoundaryGeometry,
+}
+
+impl Context<'_> {
+    /// The boundary node nearest to `p`.
+    fn nearest_boundary_node(&self, p: [f64; 3]) -> u32 {
+        let nodes = self.mesh.nodes();
+        self.geom
+            .nodes
+            .iter()
+            .copied()
+            .min_by(|&a, &b| dist2(nodes[a as usize], p).total_cmp(&dist2(nodes[b as usize], p)))
+            .unwrap_or(0)
+    }
+
+    /// Interior nodes with their distance to the boundary surface (mm).
+    fn interior_depths(&self) -> Result<Vec<(u32, f64)>, PhantomError> {
+        let nodes = self.mesh.nodes();
+        let surface = TriSurface::new(nodes.to_vec(), self.geom.triangles.clone())?;
+        let bvh = TriangleBvh::new(&surface);
+        let mut on_boundary = vec![false; nodes.len()];
+        for &v in &self.geom.nodes {
+            on_boundary[v as usize] = true;
+        }
+        Ok((0..nodes.len())
+            .filter(|&v| !on_boundary[v])
+            .map(|v| (v as u32, bvh.distance(nodes[v])))
+            .collect())
+    }
+}
+
+/// The effect's random draws.
+struct Draws(SplitMix64);
+
+impl Draws {
+    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.0.next_f64()
+    }
+
+    fn log_uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        self.uniform(lo.ln(), hi.ln()).exp()
+    }
+
+    /// One draw picking among `n` candidates (`None` when there are none; the draw is made
+    /// anyway, so the later draws do not depend on `n`).
+    fn pick(&mut self, n: usize) -> Option<usize> {
+        let u = self.0.next_f64();
+        (n > 0).then(|| ((u * n as f64) as usize).min(n - 1))
+    }
+
+    /// `v` (unit) turned by a uniform angle in [0, `max_deg`] about a uniform azimuth.
+    fn turned(&mut self, v: [f64; 3], max_deg: f64) -> [f64; 3] {
+        let angle = self.uniform(0.0, max_deg).to_radians();
+        let azimuth = self.uniform(0.0, std::f64::consts::TAU);
+        let least = (0..3)
+            .min_by(|&a, &b| v[a].abs().total_cmp(&v[b].abs()))
+            .unwrap_or(0);
+        let mut e = [0.0; 3];
+        e[least] = 1.0;
+        let p = unit(cross(v, e));
+        let q = cross(v, p);
+        let (s, c) = angle.sin_cos();
+        let (sa, ca) = azimuth.sin_cos();
+        unit([0, 1, 2].map(|k| c * v[k] + s * (ca * p[k] + sa * q[k])))
+    }
+}
+
+/// Draws every parameter of one effect from `seed` (fixed order, whether given or not), then
+/// keeps the given ones.
+fn draw_effect(
+    ctx: &Context<'_>,
+    spec: &HiddenEffectSpec,
+    seed: u64,
+) -> Result<Effect, PhantomError> {
+    let mut d = Draws(SplitMix64::new(seed));
+    let nodes = ctx.mesh.nodes();
+    let given_vector = |name: &str| -> Option<[f64; 3]> {
+        spec.given
+            .get(name)
+            .filter(|v| v.len() == 3)
+            .map(|v| [v[0], v[1], v[2]])
+    };
+    let given_scalar = |name: &str| spec.given.get(name).and_then(|v| v.first().copied());
+    let mut drawn: Vec<(&str, Vec<f64>)> = Vec::new();
+    let none = |what: &str| {
+        PhantomError::Geometry(format!(
+            "hidden effect {}: the mesh has no {what} to place it on",
+            spec.kind
+        ))
+    };
+    match spec.kind {
+        EffectKind::Gravity => {
+            let (head_up, lateral) = (d.uniform(0.0, 30.0), d.uniform(-30.0, 30.0));
+            let magnitude = LIVER_WEIGHT * d.uniform(0.8, 1.2);
+            drawn.push(("direction", tilted_gravity(1.0, head_up, lateral).to_vec()));
+            drawn.push(("magnitude", vec![magnitude]));
+        }
+        EffectKind::BedSupport => {
+            drawn.push(("stiffness", vec![d.log_uniform(0.02, 0.3)]));
+        }
+        EffectKind::Ligament => {
+            drawn.push(("stiffness", vec![d.log_uniform(0.1, 1.0)]));
+        }
+        EffectKind::Fixation => {
+            let (lo, hi) = ctx.mesh.bounding_box();
+            let mid_z = 0.5 * (lo[2] + hi[2]);
+            let posterior: Vec<u32> = ctx
+                .geom
+                .nodes
+                .iter()
+                .copied()
+                .filter(|&v| ctx.labels.region[v as usize] == Region::Posterior)
+                .collect();
+            let superior: Vec<u32> = posterior
+                .iter()
+                .copied()
+                .filter(|&v| nodes[v as usize][2] >= mid_z)
+                .collect();
+            let cands = if superior.is_empty() {
+                &posterior
+            } else {
+                &superior
+            };
+            let pick = d.pick(cands.len());
+            let (radius, stiffness) = (d.uniform(15.0, 35.0), d.log_uniform(0.2, 2.0));
+            if given_vector("center").is_none() {
+                let v = cands[pick.ok_or_else(|| none("posterior boundary node"))?];
+                drawn.push(("center", nodes[v as usize].to_vec()));
+            }
+            drawn.push(("radius_mm", vec![radius]));
+            drawn.push(("stiffness", vec![stiffness]));
+        }
+        EffectKind::Pressure => {
+            let magnitude = d.uniform(7.0, 14.0) * MMHG_KPA;
+            let direction = d.turned([0.0, -1.0, 0.0], 20.0);
+            drawn.push(("magnitude_kpa", vec![magnitude]));
+            drawn.push(("direction", direction.to_vec()));
+        }
+        EffectKind::Pack => {
+            let cands: Vec<u32> = ctx
+                .geom
+                .nodes
+                .iter()
+                .copied()
+                .filter(|&v| !ctx.labels.bare_area[v as usize])
+                .collect();
+            let pick = d.pick(cands.len());
+            let width = d.uniform(10.0, 30.0);
+            let magnitude = d.uniform(2000.0, 8000.0);
+            let center = match given_vector("center") {
+                Some(c) => c,
+                None => {
+                    nodes[cands[pick.ok_or_else(|| none("boundary node off the bare area"))?]
+                        as usize]
+                }
+            };
+            let at = ctx.nearest_boundary_node(center) as usize;
+            let inward = ctx.geom.node_normal[at].map(|x| -x);
+            let dir = d.turned(inward, 30.0);
+            drawn.push(("center", center.to_vec()));
+            drawn.push(("width_mm", vec![width]));
+            drawn.push(("force_mn", dir.map(|x| x * magnitude).to_vec()));
+        }
+        EffectKind::Inclusion => {
+            let drawn_radius = d.uniform(10.0, 25.0);
+            let radius = given_scalar("radius_mm").unwrap_or(drawn_radius);
+            let depths = ctx.interior_depths()?;
+            let deep: Vec<u32> = depths
+                .iter()
+                .filter(|(_, depth)| *depth >= radius)
+                .map(|(v, _)| *v)
+                .collect();
+            let pick = d.pick(deep.len());
+            let ratio = d.uniform(3.0, 10.0);
+            if given_vector("center").is_none() {
+                let v = match pick {
+                    Some(k) => deep[k],
+                    None => {
+                        depths
+                            .iter()
+                            .max_by(|a, b| a.1.total_cmp(&b.1))
+                            .ok_or_else(|| none("interior node"))?
+                            .0
+                    }
+                };
+                drawn.push(("center", nodes[v as usize].to_vec()));
+            }
+            drawn.push(("radius_mm", vec![radius]));
+            drawn.push(("stiffness_ratio", vec![ratio]));
+        }
+        EffectKind::Nonlinear => {
+            return Err(PhantomError::Parameter(
+                "hidden effect nonlinear: not generated yet (the augmented model does not carry it)"
+                    .into(),
+            ));
+        }
+    }
+    let mut parameters: BTreeMap<String, Vec<f64>> =
+        drawn.into_iter().map(|(k, v)| (k.to_string(), v)).collect();
+    for (k, v) in &spec.given {
+        parameters.insert(k.clone(), v.clone());
+    }
+    let effect = Effect {
+        kind: spec.kind,
+        parameters,
+    };
+    effect
+        .validate(&format!("hidden effect {}", spec.kind))
+        .map_err(PhantomError::Model)?;
+    Ok(effect)
+}
+
+/// The seed of hidden effect `index` of a draw whose seed is `seed`.
+pub fn effect_seed(seed: u64, index: usize) -> u64 {
+    derive(seed, &[HIDDEN_EFFECT_STREAM, index as u64])
+}
+
+/// The hidden effects of one draw: each spec's parameters drawn from [`effect_seed`]`(seed, i)`
+/// (see the module doc), given ones kept.
+pub fn draw_physics(
+    specs: &[HiddenEffectSpec],
+    mesh: &TetMesh,
+    labels: &AnatomyLabels,
+    seed: u64,
+) -> Result<Physics, PhantomError> {
+    if specs.is_empty() {
+        return Ok(Physics::none());
+    }
+    let ctx = Context {
+        mesh,
+        labels,
+        geom: BoundaryGeometry::new(mesh).map_err(PhantomError::Model)?,
+    };
+    let effects = specs
+        .iter()
+        .enumerate()
+        .map(|(i, s)| draw_effect(&ctx, s, effect_seed(seed, i)))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Physics { effects })
+}
+
+/// A `--truth libr` ground truth.
+#[derive(Debug, Clone)]
+pub struct LibrTruth {
+    /// LIBR's physics plus the hidden effects under the base load (mm, node-major).
+    pub displacement: Vec<f64>,
+    /// LIBR's physics alone under the same base load: what LIBR itself would predict with the
+    /// true load (equal to `displacement` when nothing is hidden).
+    pub libr: Vec<f64>,
+    /// The hidden effects with their drawn parameters.
+    pub physics: Physics,
+    /// What the truth left out or replaced, for the deformation's description.
+    pub note: String,
+}
+
+/// Solves a `--truth libr` ground truth for a load case drawn with `seed`: the base load is
+/// [`libr_base_load`] (the case's surface load; pattern L's retractor as a traction), the
+/// material the homogeneous `material`, the supports' sites the labels' ([`LibrSites`]), and
+/// the hidden effects [`draw_physics`]`(specs, mesh, labels, seed)`.
+pub fn libr_truth(
+    mesh: &TetMesh,
+    labels: &AnatomyLabels,
+    material: &LinearMaterial,
+    case: &LoadCase,
+    params: &PatternParams,
+    specs: &[HiddenEffectSpec],
+    seed: u64,
+) -> Result<LibrTruth, PhantomError> {
+    let (base, replaced) = libr_base_load(mesh, case, params.load_scale)?;
+    let physics = draw_physics(specs, mesh, labels, seed)?;
+    let sites = LibrSites::new(labels);
+    let libr = solve_libr(mesh, material, &sites, &Physics::none(), &base)?;
+    let displacement = if physics.is_empty() {
+        libr.clone()
+    } else {
+        solve_libr(mesh, material, &sites, &physics, &base)?
+    };
+    let mut note = "truth libr: LIBR's free-floating linear homogeneous model under the surface \
+                    load alone (no gravity, bed or bare-area support)"
+        .to_string();
+    if !replaced.is_empty() {
+        note.push_str("; ");
+        note.push_str(&replaced);
+    }
+    Ok(LibrTruth {
+        displacement,
+        libr,
+        physics,
+        note,
+    })
+}
+
+#[cfg(test)]
+mod tests;

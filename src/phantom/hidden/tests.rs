@@ -1,0 +1,246 @@
+use super::*;
+use crate::mesh::vec3::dot;
+use crate::phantom::truth::RETRACTOR_TRACTION_KPA;
+
+#[test]
+fn turned_directions_keep_their_angle() {
+    let mut d = Draws(SplitMix64::new(3));
+    for v in [[0.0, -1.0, 0.0], unit([0.3, -0.2, 0.9])] {
+        for _ in 0..50 {
+            let t = d.turned(v, 20.0);
+            let angle = dot(t, v).clamp(-1.0, 1.0).acos().to_degrees();
+            assert!((dot(t, t) - 1.0).abs() < 1e-12);
+            assert!(angle <= 20.0 + 1e-9, "{angle}");
+        }
+    }
+}
+
+#[test]
+fn specs_parse_check_ranges_and_refuse_nonlinear() {
+    let s = HiddenEffectSpec::parse("gravity:magnitude=0.01").unwrap();
+    assert_eq!(s.kind, EffectKind::Gravity);
+    assert_eq!(s.given["magnitude"], vec![0.01]);
+    assert_eq!(
+        s.to_value(),
+        serde_json::json!({"kind": "gravity", "given": {"magnitude": 0.01}})
+    );
+    let e = HiddenEffectSpec::parse("gravity:magnitude=5")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("magnitude") && e.contains("outside"), "{e}");
+    let e = HiddenEffectSpec::parse("foo").unwrap_err().to_string();
+    assert!(e.contains("\"foo\"") && e.contains("bed-support"), "{e}");
+    let e = HiddenEffectSpec::parse("nonlinear")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("nonlinear") && e.contains("not generated"),
+        "{e}"
+    );
+    let e = HiddenEffectSpec::parse("pack:direction=0/1/0")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("direction"), "{e}");
+}
+
+/// The built-in liver at 14 mm (the small preset's edge), labelled; built once.
+fn liver() -> &'static (TetMesh, AnatomyLabels) {
+    static LIVER: std::sync::OnceLock<(TetMesh, AnatomyLabels)> = std::sync::OnceLock::new();
+    LIVER.get_or_init(|| {
+        use crate::mesh::tetra::{TetraParams, tetrahedralize};
+        use crate::register::anatomy::{LabelParams, label};
+        let surface = crate::assets::default_liver().unwrap();
+        let mesh = tetrahedralize(&surface, &TetraParams::with_edge(14.0)).unwrap();
+        let labels = label(&mesh, &LabelParams::default()).unwrap();
+        (mesh, labels)
+    })
+}
+
+const KINDS: [EffectKind; 7] = [
+    EffectKind::Gravity,
+    EffectKind::BedSupport,
+    EffectKind::Fixation,
+    EffectKind::Pressure,
+    EffectKind::Pack,
+    EffectKind::Ligament,
+    EffectKind::Inclusion,
+];
+
+fn spec(text: &str) -> HiddenEffectSpec {
+    HiddenEffectSpec::parse(text).unwrap()
+}
+
+fn norm(v: [f64; 3]) -> f64 {
+    dot(v, v).sqrt()
+}
+
+/// Every kind draws parameters that validate, inside the documented ranges, deterministically
+/// from the seed, and different ones from another seed.
+#[test]
+fn effects_draw_valid_parameters_in_their_documented_ranges() {
+    let (mesh, labels) = liver();
+    let nodes = mesh.nodes();
+    let geom = BoundaryGeometry::new(mesh).unwrap();
+    let on_boundary = |c: [f64; 3]| geom.nodes.iter().any(|&v| nodes[v as usize] == c);
+    let (lo, hi) = mesh.bounding_box();
+    let specs: Vec<HiddenEffectSpec> = KINDS.iter().map(|k| spec(k.name())).collect();
+    for seed in 0..8u64 {
+        let p = draw_physics(&specs, mesh, labels, seed).unwrap();
+        p.validate().unwrap();
+        assert_eq!(p, draw_physics(&specs, mesh, labels, seed).unwrap());
+        assert_ne!(p, draw_physics(&specs, mesh, labels, seed + 100).unwrap());
+        let inside = |x: f64, lo: f64, hi: f64| (lo..=hi).contains(&x);
+        for e in &p.effects {
+            match e.kind {
+                EffectKind::Gravity => {
+                    let g = e.vector("direction");
+                    assert!((norm(g) - 1.0).abs() < 1e-12);
+                    // Head-up 0–30°: no superior component; lateral within ±30° of +y.
+                    assert!(g[2] <= 1e-12 && g[2] >= -(30f64.to_radians().sin()) - 1e-12);
+                    assert!(g[1] > 0.0 && g[0].abs() <= 30f64.to_radians().sin() + 1e-12);
+                    let m = e.scalar("magnitude");
+                    assert!(inside(m, 0.8 * LIVER_WEIGHT, 1.2 * LIVER_WEIGHT), "{m}");
+                }
+                EffectKind::BedSupport => assert!(inside(e.scalar("stiffness"), 0.02, 0.3)),
+                EffectKind::Ligament => assert!(inside(e.scalar("stiffness"), 0.1, 1.0)),
+                EffectKind::Fixation => {
+                    let c = e.vector("center");
+                    assert!(on_boundary(c));
+                    let v = geom
+                        .nodes
+                        .iter()
+                        .find(|&&v| nodes[v as usize] == c)
+                        .unwrap();
+                    assert_eq!(labels.region[*v as usize], Region::Posterior);
+                    assert!(c[2] >= 0.5 * (lo[2] + hi[2]), "superior half: {c:?}");
+                    assert!(inside(e.scalar("radius_mm"), 15.0, 35.0));
+                    assert!(inside(e.scalar("stiffness"), 0.2, 2.0));
+                }
+                EffectKind::Pressure => {
+                    let m = e.scalar("magnitude_kpa");
+                    assert!(inside(m, 0.93, 1.87), "{m}");
+                    let d = e.vector("direction");
+                    let angle = (-d[1]).clamp(-1.0, 1.0).acos().to_degrees();
+                    assert!(angle <= 20.0 + 1e-9, "{angle}");
+                }
+                EffectKind::Pack => {
+                    let c = e.vector("center");
+                    let v = *geom
+                        .nodes
+                        .iter()
+                        .find(|&&v| nodes[v as usize] == c)
+                        .expect("a boundary node");
+                    assert!(!labels.bare_area[v as usize]);
+                    assert!(inside(e.scalar("width_mm"), 10.0, 30.0));
+                    let f = e.vector("force_mn");
+                    assert!(inside(norm(f), 2000.0, 8000.0), "{f:?}");
+                    let inward = geom.node_normal[v as usize].map(|x| -x);
+                    let angle = (dot(f, inward) / norm(f)).clamp(-1.0, 1.0).acos();
+                    assert!(angle.to_degrees() <= 30.0 + 1e-9);
+                }
+                EffectKind::Inclusion => {
+                    let r = e.scalar("radius_mm");
+                    assert!(inside(r, 10.0, 25.0));
+                    assert!(inside(e.scalar("stiffness_ratio"), 3.0, 10.0));
+                    let c = e.vector("center");
+                    assert!(!on_boundary(c));
+                }
+                EffectKind::Nonlinear => unreachable!(),
+            }
+        }
+    }
+}
+
+/// A parameter given on the command line replaces its draw and leaves the others' draws alone;
+/// a second effect leaves the first one's draws alone.
+#[test]
+fn given_parameters_and_added_effects_change_no_other_draw() {
+    let (mesh, labels) = liver();
+    let free = draw_physics(&[spec("fixation")], mesh, labels, 5).unwrap();
+    let fixed = draw_physics(&[spec("fixation:radius_mm=25")], mesh, labels, 5).unwrap();
+    let (a, b) = (&free.effects[0], &fixed.effects[0]);
+    assert_eq!(b.scalar("radius_mm"), 25.0);
+    assert_eq!(a.vector("center"), b.vector("center"));
+    assert_eq!(a.scalar("stiffness"), b.scalar("stiffness"));
+    let two = draw_physics(
+        &[spec("fixation"), spec("gravity:direction=0/1/0")],
+        mesh,
+        labels,
+        5,
+    )
+    .unwrap();
+    assert_eq!(two.effects[0], free.effects[0]);
+    assert_eq!(two.effects[1].vector("direction"), [0.0, 1.0, 0.0]);
+    // The effect's stream is its own: not the seed's first numbers.
+    assert_ne!(effect_seed(5, 0), effect_seed(5, 1));
+}
+
+/// `--truth libr` without hidden effects is [`forward`](crate::register::physics::model::forward)
+/// with no physics on the case's surface load (W: insufflation pressure); pattern L's retractor
+/// becomes a 1 kPa traction on the gripped patch along the mean prescribed displacement (the
+/// load's resultant checks it); a hidden gravity changes the truth by what the model says.
+#[test]
+fn libr_truth_is_forward_on_the_surface_load() {
+    use super::super::patterns::{Pattern, load_case};
+    use crate::register::physics::model::forward;
+    let (mesh, labels) = liver();
+    let params = PatternParams::default();
+    let material = LinearMaterial::default();
+    let sites = LibrSites::new(labels);
+    let w = load_case(mesh, labels, Pattern::W, &params, 3).unwrap();
+    let t = libr_truth(mesh, labels, &material, &w, &params, &[], 3).unwrap();
+    let direct = forward(mesh, &material, sites.sites(), &Physics::none(), &w.surface).unwrap();
+    assert_eq!(t.displacement, direct);
+    assert_eq!(t.libr, direct);
+    assert!(t.physics.is_empty());
+    assert!(super::super::truth::magnitude_stats(&direct).0 > 0.1);
+
+    let l = load_case(mesh, labels, Pattern::L, &params, 3).unwrap();
+    assert!(l.surface.iter().all(|&x| x == 0.0), "L: a retractor only");
+    let (base, note) = libr_base_load(mesh, &l, params.load_scale).unwrap();
+    assert!(note.contains("retractor"), "{note}");
+    let n = mesh.num_nodes();
+    let gripped: Vec<usize> = (0..n)
+        .filter(|&v| l.dirichlet.get(3 * v).is_some())
+        .collect();
+    let mut mean = [0.0; 3];
+    for &v in &gripped {
+        for (a, m) in mean.iter_mut().enumerate() {
+            *m += l.dirichlet.get(3 * v + a).unwrap();
+        }
+    }
+    let dir = unit(mean);
+    let patch_area: f64 = mesh
+        .boundary()
+        .unwrap()
+        .triangles
+        .iter()
+        .filter(|t| t.iter().all(|&v| gripped.contains(&(v as usize))))
+        .map(|t| {
+            let p = t.map(|v| mesh.nodes()[v as usize]);
+            0.5 * norm(cross(
+                crate::mesh::vec3::sub(p[1], p[0]),
+                crate::mesh::vec3::sub(p[2], p[0]),
+            ))
+        })
+        .sum();
+    assert!(patch_area > 100.0, "{patch_area}");
+    let resultant = [0, 1, 2].map(|a| base.iter().skip(a).step_by(3).sum::<f64>());
+    for a in 0..3 {
+        let want = RETRACTOR_TRACTION_KPA * patch_area * dir[a];
+        assert!(
+            (resultant[a] - want).abs() < 1e-9 * patch_area,
+            "{resultant:?}"
+        );
+    }
+    let tl = libr_truth(mesh, labels, &material, &l, &params, &[], 3).unwrap();
+    let direct = forward(mesh, &material, sites.sites(), &Physics::none(), &base).unwrap();
+    assert_eq!(tl.displacement, direct);
+
+    let g = libr_truth(mesh, labels, &material, &w, &params, &[spec("gravity")], 3).unwrap();
+    assert_eq!(g.libr, t.libr, "LIBR alone does not see the hidden effect");
+    let with = forward(mesh, &material, sites.sites(), &g.physics, &w.surface).unwrap();
+    assert_eq!(g.displacement, with);
+    let gap = super::super::truth::mean_distance(&g.displacement, &g.libr);
+    assert!(gap > 0.01, "a hidden gravity changes the truth: {gap}");
+}
