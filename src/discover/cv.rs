@@ -99,6 +99,8 @@ pub struct CvScore {
     pub theta: Vec<Vector6<f64>>,
     /// `(N + W·prior)⁻¹` of the full fit (for parameter uncertainty).
     pub inverse: DMatrix<f64>,
+    /// The multiple of the given prior this score was made with.
+    pub prior_scale: f64,
 }
 
 /// The design of a model over the rows: `a` (rows × q) and its prior `W·λẼ` per unit weight
@@ -110,10 +112,32 @@ pub struct Design<'a> {
     pub prior: &'a DMatrix<f64>,
 }
 
-/// Cross-validates a design against the rows' own right-hand side.
+/// Multiples of LIBR's λ tried for every design: the strain-energy prior's weight is chosen by
+/// the same cross-validation (sparse data extrapolated to a held-out block need more
+/// regularisation than LIBR's in-sample fit), so every model is compared at its own best.
+pub const PRIOR_SCALES: [f64; 4] = [1.0, 10.0, 100.0, 1000.0];
+
+/// Cross-validates a design against the rows' own right-hand side, at the prior scale of
+/// [`PRIOR_SCALES`] that gives the smallest held-out misfit; returns the score and the scale.
 pub fn cross_validate(rows: &CohortRows, design: &Design<'_>) -> Option<CvScore> {
     let b: Vec<f64> = rows.rows.iter().map(|r| r.b).collect();
-    cross_validate_rhs(rows, design, &b)
+    let mut best: Option<CvScore> = None;
+    for s in PRIOR_SCALES {
+        let prior = design.prior * s;
+        let d = Design {
+            a: design.a,
+            prior: &prior,
+        };
+        if let Some(mut score) = cross_validate_rhs(rows, &d, &b)
+            && best
+                .as_ref()
+                .is_none_or(|b| score.heldout_mse < b.heldout_mse)
+        {
+            score.prior_scale = s;
+            best = Some(score);
+        }
+    }
+    best
 }
 
 /// Cross-validates a design against the right-hand side `b` (one per row). `None` when no fold
@@ -241,6 +265,7 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
         coef,
         theta: thetas,
         inverse,
+        prior_scale: 1.0,
     })
 }
 

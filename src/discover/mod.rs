@@ -220,6 +220,10 @@ pub struct CohortDiscovery {
     pub physics: Physics,
     /// Held-out RMS misfit (mm) before and after.
     pub heldout_before_mm: f64,
+    /// In-sample RMS misfit of plain LIBR over the cohort (mm), poses fitted per sweep.
+    pub insample_before_mm: f64,
+    /// The prior weight cross-validation chose for plain LIBR, as a multiple of LIBR's λ.
+    pub prior_scale_before: f64,
     /// After.
     pub heldout_after_mm: f64,
     /// Noise floor (mm) estimated from the data.
@@ -284,32 +288,33 @@ pub fn discover_cohort(
         )));
     }
     for s in sweeps {
-        crate::register::correspondence::validate_measurements(&s.measurements).map_err(|e| {
-            DiscoverError::Input(format!("scenario {}: measurements: {e}", s.id))
-        })?;
+        crate::register::correspondence::validate_measurements(&s.measurements)
+            .map_err(|e| DiscoverError::Input(format!("scenario {}: measurements: {e}", s.id)))?;
     }
     // 1. Register each sweep with plain LIBR.
-    let prepared = Prepared::new(model.clone(), Some(&params.pipeline.libr), cache_dir)
-        .map_err(|e| DiscoverError::Scenario {
-            scenario: "(case)".into(),
-            source: e,
+    let prepared =
+        Prepared::new(model.clone(), Some(&params.pipeline.libr), cache_dir).map_err(|e| {
+            DiscoverError::Scenario {
+                scenario: "(case)".into(),
+                source: e,
+            }
         })?;
     progress("registering sweeps", 0, sweeps.len());
     let done = std::sync::atomic::AtomicUsize::new(0);
-    let plain: Vec<crate::pipeline::Registration> = sweeps
-        .par_iter()
-        .map(|s| {
-            let r = register(&prepared, &s.measurements, Method::Libr, &params.pipeline).map_err(
-                |e| DiscoverError::Scenario {
-                    scenario: s.id.clone(),
-                    source: e,
-                },
-            );
-            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            progress("registering sweeps", d, sweeps.len());
-            r
-        })
-        .collect::<Result<_, _>>()?;
+    let plain: Vec<crate::pipeline::Registration> =
+        sweeps
+            .par_iter()
+            .map(|s| {
+                let r = register(&prepared, &s.measurements, Method::Libr, &params.pipeline)
+                    .map_err(|e| DiscoverError::Scenario {
+                        scenario: s.id.clone(),
+                        source: e,
+                    });
+                let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                progress("registering sweeps", d, sweeps.len());
+                r
+            })
+            .collect::<Result<_, _>>()?;
     let register_s = crate::util::secs(t0);
     let t1 = Instant::now();
     // 2. Rows and blocks.
@@ -318,7 +323,12 @@ pub fn discover_cohort(
     let mut all_matches = Vec::with_capacity(sweeps.len());
     for (s, reg) in sweeps.iter().zip(&plain) {
         let inv = reg.image_to_physical.inverse();
-        let pts: Vec<[f64; 3]> = s.measurements.points.iter().map(|&p| inv.apply(p)).collect();
+        let pts: Vec<[f64; 3]> = s
+            .measurements
+            .points
+            .iter()
+            .map(|&p| inv.apply(p))
+            .collect();
         let (m, _) = prepared
             .correspondence
             .match_points(&pts, &s.measurements, Some(&reg.u), &cparams)
@@ -363,8 +373,8 @@ pub fn discover_cohort(
         })
         .collect();
     floors.sort_by(f64::total_cmp);
-    let noise_floor_mm = if floors.is_empty() {
-        0.0
+    let local_floor = if floors.is_empty() {
+        f64::INFINITY
     } else {
         floors[floors.len() / 2]
     };
@@ -375,28 +385,53 @@ pub fn discover_cohort(
         falciform: &model.falciform,
     };
     let libr = &params.pipeline.libr;
-    let basis = prepared.basis.clone().ok_or_else(|| {
-        DiscoverError::Input("the case has no LIBR basis".into())
-    })?;
+    let basis = prepared
+        .basis
+        .clone()
+        .ok_or_else(|| DiscoverError::Input("the case has no LIBR basis".into()))?;
     let (a, prior) = basis_design(&rows, &basis, libr.regularization);
-    let base_score = cross_validate(&rows, &Design { a: &a, prior: &prior }).ok_or_else(|| {
+    let base_score = cross_validate(
+        &rows,
+        &Design {
+            a: &a,
+            prior: &prior,
+        },
+    )
+    .ok_or_else(|| {
         DiscoverError::Underdetermined(
             "no fold could be fitted: too few points per sweep and block".into(),
         )
     })?;
+    // The noise floor: the smaller of two estimates that can only overstate it, the local
+    // quadrics (curvature the quadric misses) and plain LIBR's in-sample misfit corrected for its
+    // degrees of freedom (model error it cannot fit).
+    let dof = (rows.rows.len() as f64 - a.ncols() as f64 - 6.0 * sweeps.len() as f64).max(1.0);
+    let insample_floor =
+        (base_score.full_rss / base_score.full_w.max(1e-300) * rows.rows.len() as f64 / dof).sqrt();
+    let noise_floor_mm = local_floor.min(insample_floor);
     // Bootstrap null: the fitted model plus noise at the floor.
     progress("bootstrap", 0, params.bootstrap);
     let fit = fitted(&rows, &a, &base_score);
+    let null_prior = &prior * base_score.prior_scale;
     let null: Vec<f64> = (0..params.bootstrap)
         .into_par_iter()
         .filter_map(|k| {
-            let mut rng = crate::util::SplitMix64::new(params.seed ^ (k as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            let mut rng = crate::util::SplitMix64::new(
+                params.seed ^ (k as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            );
             let b: Vec<f64> = fit
                 .iter()
                 .map(|f| f + noise_floor_mm * gaussian(&mut rng))
                 .collect();
-            cross_validate_rhs(&rows, &Design { a: &a, prior: &prior }, &b)
-                .map(|s| s.heldout_mse.sqrt())
+            cross_validate_rhs(
+                &rows,
+                &Design {
+                    a: &a,
+                    prior: &null_prior,
+                },
+                &b,
+            )
+            .map(|s| s.heldout_mse.sqrt())
         })
         .collect();
     let null_max_mm = null.iter().copied().fold(0.0, f64::max);
@@ -437,17 +472,19 @@ pub fn discover_cohort(
         for (i, kind) in kinds.iter().enumerate() {
             progress(&format!("round {round}: {kind}"), i, kinds.len());
             let family = search_family(&ctx, &cur, *kind, &params.grid)?;
+            // Shape parameters by the full fit (maximum likelihood); the held-out score then
+            // judges the effect.
             let Some(top) = family
                 .iter()
-                .min_by(|a, b| a.score.heldout_mse.total_cmp(&b.score.heldout_mse))
+                .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
                 .cloned()
             else {
                 continue;
             };
             let (t, gain) = paired(&cur.score, &top.score);
             let n = rows.rows.len() as f64;
-            let delta_bic = n * (top.score.full_rss / cur.score.full_rss).ln()
-                + top.parameters as f64 * n.ln();
+            let delta_bic =
+                n * (top.score.full_rss / cur.score.full_rss).ln() + top.parameters as f64 * n.ln();
             let significant = t > params.t_threshold && gain > params.min_gain && delta_bic < 0.0;
             records.push(CandidateRecord {
                 round,
@@ -503,6 +540,8 @@ pub fn discover_cohort(
         effects: named,
         physics: cur.physics.clone(),
         heldout_before_mm: before_rms,
+        insample_before_mm: (base_score.full_rss / base_score.full_w.max(1e-300)).sqrt(),
+        prior_scale_before: base_score.prior_scale,
         heldout_after_mm: cur.score.heldout_mse.sqrt(),
         noise_floor_mm,
         null_max_mm,
@@ -573,31 +612,47 @@ fn search_family(
             } else {
                 ("direction", "magnitude_kpa", 1.0)
             };
-            let make = |d: [f64; 3]| {
-                Effect::new(kind, &[(dir_name, &d), (amp, &[amp_value])])
-            };
+            let make = |d: [f64; 3]| Effect::new(kind, &[(dir_name, &d), (amp, &[amp_value])]);
             let mut tried = Vec::new();
             for d in search::sphere_directions(grid.directions) {
                 let e = make(d)?;
                 let c = search::evaluate_load(ctx, cur, &e)?;
-                tried.push((d, c.as_ref().map(|c| c.score.heldout_mse).unwrap_or(f64::INFINITY)));
+                tried.push((
+                    d,
+                    c.as_ref()
+                        .map(|c| c.score.full_rss)
+                        .unwrap_or(f64::INFINITY),
+                ));
                 push(c);
             }
-            // Refine around the best by shrinking turns.
-            let mut best = tried
-                .iter()
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .copied()
-                .unwrap_or(([0.0, 1.0, 0.0], f64::INFINITY));
-            for step in [20.0f64, 10.0, 5.0, 2.5] {
-                for d in search::neighbours(best.0, step.to_radians()) {
-                    let e = make(d)?;
-                    let c = search::evaluate_load(ctx, cur, &e)?;
-                    let s = c.as_ref().map(|c| c.score.heldout_mse).unwrap_or(f64::INFINITY);
-                    if s < best.1 {
-                        best = (d, s);
+            // Refine the three best grid directions by a pattern search with shrinking turns
+            // (a turn is repeated while it improves). Directions are estimated by the full fit's
+            // misfit (maximum likelihood, sharper than the held-out score); whether the effect
+            // is real is the held-out score's question.
+            tried.sort_by(|a, b| a.1.total_cmp(&b.1));
+            let starts: Vec<([f64; 3], f64)> = tried.iter().take(3).copied().collect();
+            for start in starts {
+                let mut best = start;
+                for step in [20.0f64, 10.0, 5.0, 2.5, 1.25] {
+                    let mut moved = true;
+                    let mut guard = 0;
+                    while moved && guard < 6 {
+                        moved = false;
+                        guard += 1;
+                        for d in search::neighbours(best.0, step.to_radians()) {
+                            let e = make(d)?;
+                            let c = search::evaluate_load(ctx, cur, &e)?;
+                            let s = c
+                                .as_ref()
+                                .map(|c| c.score.full_rss)
+                                .unwrap_or(f64::INFINITY);
+                            if s < best.1 {
+                                best = (d, s);
+                                moved = true;
+                            }
+                            push(c);
+                        }
                     }
-                    push(c);
                 }
             }
         }
@@ -606,7 +661,11 @@ fn search_family(
                 for w in grid.pack_widths {
                     let e = Effect::new(
                         kind,
-                        &[("center", &c), ("width_mm", &[w]), ("force_mn", &[0.0, 0.0, 1.0])],
+                        &[
+                            ("center", &c),
+                            ("width_mm", &[w]),
+                            ("force_mn", &[0.0, 0.0, 1.0]),
+                        ],
                     )?;
                     push(search::evaluate_load(ctx, cur, &e)?);
                 }
@@ -638,7 +697,11 @@ fn search_family(
             for c in search::interior_sites(ctx.mesh, ctx.geom, 15.0, grid.inclusion_sites) {
                 let e = Effect::new(
                     kind,
-                    &[("center", &c), ("radius_mm", &[15.0]), ("stiffness_ratio", &[5.0])],
+                    &[
+                        ("center", &c),
+                        ("radius_mm", &[15.0]),
+                        ("stiffness_ratio", &[5.0]),
+                    ],
                 )?;
                 push(search::evaluate_rebuilt(ctx, cur, &e)?);
             }
@@ -699,7 +762,13 @@ fn adopt(ctx: &SearchContext<'_>, cur: Current, top: Candidate) -> Result<Curren
                 .filter(|e| !e.kind.is_load())
                 .cloned()
                 .chain(std::iter::once(top.effect.clone()))
-                .chain(cur.physics.effects.iter().filter(|e| e.kind.is_load()).cloned())
+                .chain(
+                    cur.physics
+                        .effects
+                        .iter()
+                        .filter(|e| e.kind.is_load())
+                        .cloned(),
+                )
                 .collect(),
         };
         let solver = ModelSolver::new(ctx.mesh, &ctx.libr.material, ctx.sites, &physics)?;
@@ -715,9 +784,17 @@ fn adopt(ctx: &SearchContext<'_>, cur: Current, top: Candidate) -> Result<Curren
     }
     // A load: rebuild the basis with it as an effect column (what `register --physics` uses).
     physics.effects.push(top.effect.clone());
-    let basis = crate::register::libr::LibrBasis::build_with(ctx.mesh, ctx.libr, &physics, ctx.sites)?;
+    let basis =
+        crate::register::libr::LibrBasis::build_with(ctx.mesh, ctx.libr, &physics, ctx.sites)?;
     let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
-    let score = cross_validate(ctx.rows, &Design { a: &a, prior: &prior }).unwrap_or(top.score);
+    let score = cross_validate(
+        ctx.rows,
+        &Design {
+            a: &a,
+            prior: &prior,
+        },
+    )
+    .unwrap_or(top.score);
     Ok(Current {
         physics,
         basis,
@@ -755,8 +832,13 @@ fn region_table(
                 .collect();
             let n = means.len() as f64;
             let mean = means.iter().sum::<f64>() / n.max(1.0);
-            let sd = (means.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
-            let t = if sd > 0.0 && n > 1.0 { mean / (sd / n.sqrt()) } else { 0.0 };
+            let sd =
+                (means.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+            let t = if sd > 0.0 && n > 1.0 {
+                mean / (sd / n.sqrt())
+            } else {
+                0.0
+            };
             let center = rows.centers[c];
             let node = (0..model.mesh.num_nodes())
                 .filter(|&v| model.anterior[v] || model.posterior[v])

@@ -42,7 +42,10 @@ impl Row {
                 continue;
             }
             let base = 3 * v as usize;
-            s += w * (self.frame[0] * u[base] + self.frame[1] * u[base + 1] + self.frame[2] * u[base + 2]);
+            s += w
+                * (self.frame[0] * u[base]
+                    + self.frame[1] * u[base + 1]
+                    + self.frame[2] * u[base + 2]);
         }
         s
     }
@@ -102,7 +105,11 @@ pub fn scenario_rows(
             cen[a] += m.weight * m.anchor[a] / wsum;
         }
     }
-    let radius = (used.iter().map(|m| m.weight * dist2(m.anchor, cen)).sum::<f64>() / wsum)
+    let radius = (used
+        .iter()
+        .map(|m| m.weight * dist2(m.anchor, cen))
+        .sum::<f64>()
+        / wsum)
         .sqrt()
         .max(1.0);
     for m in used {
@@ -117,12 +124,8 @@ pub fn scenario_rows(
         let cluster = cluster_of(y);
         for f in frames {
             // e_k × d for the rotation columns, dotted with the frame.
-            let rot = [
-                [0.0, -d[2], d[1]],
-                [d[2], 0.0, -d[0]],
-                [-d[1], d[0], 0.0],
-            ]
-            .map(|c| dot(c, f) / radius);
+            let rot = [[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]]
+                .map(|c| dot(c, f) / radius);
             out.push(Row {
                 scenario,
                 point: m.point,

@@ -7,9 +7,9 @@
 //! searched on a grid and, for directions, refined. Supports and inclusions change the stiffness
 //! the whole basis is built from: each grid point is a rebuilt augmented basis.
 
+use super::DiscoverError;
 use super::cv::{CvScore, Design, cross_validate};
 use super::rows::CohortRows;
-use super::DiscoverError;
 use crate::mesh::TetMesh;
 use crate::mesh::vec3::{cross, dist2, dot, unit};
 use crate::register::libr::{LibrBasis, LibrParams, farthest_point_sampling};
@@ -65,7 +65,11 @@ pub struct Candidate {
 }
 
 /// The design of a basis over the rows: row values and the prior `λ E / ē`.
-pub fn basis_design(rows: &CohortRows, basis: &LibrBasis, lambda: f64) -> (DMatrix<f64>, DMatrix<f64>) {
+pub fn basis_design(
+    rows: &CohortRows,
+    basis: &LibrBasis,
+    lambda: f64,
+) -> (DMatrix<f64>, DMatrix<f64>) {
     let m = basis.columns();
     let mut a = DMatrix::<f64>::zeros(rows.rows.len(), m);
     let mut buf = vec![0.0; m];
@@ -88,12 +92,12 @@ pub fn evaluate_load(
     effect: &Effect,
 ) -> Result<Option<Candidate>, DiscoverError> {
     let (loads, _) = unit_loads(ctx.mesh, ctx.geom, effect)?;
-    let n3 = 3 * ctx.mesh.num_nodes();
     let m = cur.basis.columns();
     let k = loads.len();
     let q = m + k;
     let mut a = DMatrix::<f64>::zeros(ctx.rows.rows.len(), q);
-    a.view_mut((0, 0), (ctx.rows.rows.len(), m)).copy_from(&cur.a);
+    a.view_mut((0, 0), (ctx.rows.rows.len(), m))
+        .copy_from(&cur.a);
     let mut responses = Vec::with_capacity(k);
     let mut scales = Vec::with_capacity(k);
     for l in &loads {
@@ -113,27 +117,17 @@ pub fn evaluate_load(
             a[(i, m + j)] = r.value(u);
         }
     }
-    // Prior: energies with K of the current model, normalised like the LIBR columns.
-    let e = cur.basis.energy_scale();
-    let lambda = ctx.libr.regularization;
+    // Prior: the current model's; the new effect columns are not regularised (the effect is part
+    // of the model, its amplitude estimated freely), as in the augmented basis.
     let mut prior = DMatrix::<f64>::zeros(q, q);
     prior.view_mut((0, 0), (m, m)).copy_from(&cur.prior);
-    let ku: Vec<Vec<f64>> = responses.iter().map(|u| cur.solver.system().apply(u)).collect();
-    for j in 0..k {
-        for c in 0..m {
-            let mut s = 0.0;
-            for r in 0..n3 {
-                s += cur.basis.phi[r * m + c] * ku[j][r];
-            }
-            prior[(c, m + j)] = lambda * s / e;
-            prior[(m + j, c)] = lambda * s / e;
-        }
-        for l in 0..k {
-            let s: f64 = responses[l].iter().zip(&ku[j]).map(|(x, y)| x * y).sum();
-            prior[(m + l, m + j)] = lambda * s / e;
-        }
-    }
-    let Some(score) = cross_validate(ctx.rows, &Design { a: &a, prior: &prior }) else {
+    let Some(score) = cross_validate(
+        ctx.rows,
+        &Design {
+            a: &a,
+            prior: &prior,
+        },
+    ) else {
         return Ok(None);
     };
     // Amplitudes (in the effect's unit) and their standard deviations.
@@ -149,7 +143,15 @@ pub fn evaluate_load(
         _ => ("force_mn", 4),
     };
     effect.parameters.insert(name.to_string(), amp.clone());
-    let amplitude_sd = vec![(name.to_string(), sd.iter().map(|x| x * x).sum::<f64>().sqrt())];
+    // An amplitude outside the kind's physical range (negative weight, a force of tons) is not
+    // that effect: no candidate.
+    if effect.validate("candidate").is_err() {
+        return Ok(None);
+    }
+    let amplitude_sd = vec![(
+        name.to_string(),
+        sd.iter().map(|x| x * x).sum::<f64>().sqrt(),
+    )];
     let new_cols = a.columns(m, k).into_owned();
     Ok(Some(Candidate {
         effect,
@@ -178,9 +180,13 @@ pub fn evaluate_rebuilt(
     };
     physics.effects.push(effect.clone());
     // Load effects already carried are kept as effect columns of the rebuilt basis.
-    physics
-        .effects
-        .extend(cur.physics.effects.iter().filter(|e| e.kind.is_load()).cloned());
+    physics.effects.extend(
+        cur.physics
+            .effects
+            .iter()
+            .filter(|e| e.kind.is_load())
+            .cloned(),
+    );
     let basis = match LibrBasis::build_with(ctx.mesh, ctx.libr, &physics, ctx.sites) {
         Ok(b) => b,
         // A support that attaches nowhere, or a degenerate column: not a candidate.
@@ -188,7 +194,13 @@ pub fn evaluate_rebuilt(
         Err(e) => return Err(e.into()),
     };
     let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
-    let Some(score) = cross_validate(ctx.rows, &Design { a: &a, prior: &prior }) else {
+    let Some(score) = cross_validate(
+        ctx.rows,
+        &Design {
+            a: &a,
+            prior: &prior,
+        },
+    ) else {
         return Ok(None);
     };
     let parameters = match effect.kind {
@@ -249,8 +261,17 @@ pub fn boundary_sites(mesh: &TetMesh, geom: &BoundaryGeometry, count: usize) -> 
 
 /// Interior sites for inclusions: farthest-point samples of the nodes at least `depth` from the
 /// boundary nodes.
-pub fn interior_sites(mesh: &TetMesh, geom: &BoundaryGeometry, depth: f64, count: usize) -> Vec<[f64; 3]> {
-    let b: Vec<[f64; 3]> = geom.nodes.iter().map(|&v| mesh.nodes()[v as usize]).collect();
+pub fn interior_sites(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    depth: f64,
+    count: usize,
+) -> Vec<[f64; 3]> {
+    let b: Vec<[f64; 3]> = geom
+        .nodes
+        .iter()
+        .map(|&v| mesh.nodes()[v as usize])
+        .collect();
     let deep: Vec<u32> = (0..mesh.num_nodes() as u32)
         .filter(|&v| {
             let p = mesh.nodes()[v as usize];

@@ -4,24 +4,40 @@
 
 use super::*;
 use crate::mesh::TetMesh;
-use crate::mesh::procedural::box_mesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::anatomy::{LabelParams, label};
 use crate::register::libr::{LibrParams, control_traction};
 use crate::register::physics::model::forward;
 use crate::util::SplitMix64;
 
+/// The embedded default liver, meshed coarsely (fast tests).
 fn organ() -> (TetMesh, PreopModel) {
-    let mesh = box_mesh([90.0, 60.0, 45.0], [9, 6, 5], 0.0);
+    let surface = crate::assets::default_liver().unwrap();
+    let mesh = crate::mesh::tetra::tetrahedralize(
+        &surface,
+        &crate::mesh::tetra::TetraParams::with_edge(14.0),
+    )
+    .unwrap();
     let labels = label(&mesh, &LabelParams::default()).unwrap();
     let model = labels.preop_model(&mesh, &[], &[]);
     (mesh, model)
 }
 
-/// A broad traction at one boundary node along `dir`: within LIBR's own physics.
-fn broad_load(mesh: &TetMesh, at: [f64; 3], dir: usize, scale: f64) -> Vec<f64> {
+/// A broad traction at the anterior node nearest the anterior centroid, along axis `dir`:
+/// within LIBR's own physics.
+fn broad_load(mesh: &TetMesh, model: &PreopModel, dir: usize, scale: f64) -> Vec<f64> {
     let b = mesh.boundary().unwrap();
-    let mut f = control_traction(mesh.nodes(), &b.triangles, at, [0.0, -1.0, 0.0], dir, 40.0);
+    let ant: Vec<usize> = (0..mesh.num_nodes())
+        .filter(|&v| model.anterior[v])
+        .collect();
+    let c =
+        [0, 1, 2].map(|k| ant.iter().map(|&v| mesh.nodes()[v][k]).sum::<f64>() / ant.len() as f64);
+    let at = ant
+        .iter()
+        .map(|&v| mesh.nodes()[v])
+        .min_by(|a, b| crate::mesh::vec3::dist2(*a, c).total_cmp(&crate::mesh::vec3::dist2(*b, c)))
+        .unwrap();
+    let mut f = control_traction(mesh.nodes(), &b.triangles, at, [0.0, -1.0, 0.0], dir, 50.0);
     f.iter_mut().for_each(|x| *x *= scale);
     f
 }
@@ -31,23 +47,23 @@ fn gauss(rng: &mut SplitMix64) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
 }
 
-/// `sweeps` sweeps of points on the boundary faces turned anteriorly or sideways, each under its
-/// own rigid pose, with Gaussian noise σ.
-fn sweeps(mesh: &TetMesh, u: &[f64], count: usize, sigma: f64, seed: u64) -> Vec<Sweep> {
+/// `sweeps` sweeps of points on the anterior surface, each under its own rigid pose, with
+/// Gaussian noise σ.
+fn sweeps(
+    mesh: &TetMesh,
+    model: &PreopModel,
+    u: &[f64],
+    count: usize,
+    sigma: f64,
+    seed: u64,
+) -> Vec<Sweep> {
     let b = mesh.boundary().unwrap();
     let p = mesh.nodes();
     let faces: Vec<[u32; 3]> = b
         .triangles
         .iter()
         .copied()
-        .filter(|t| {
-            let [a, bb, c] = t.map(|v| p[v as usize]);
-            let n = crate::mesh::vec3::unit(crate::mesh::vec3::cross(
-                crate::mesh::vec3::sub(bb, a),
-                crate::mesh::vec3::sub(c, a),
-            ));
-            n[1] < 0.3
-        })
+        .filter(|t| t.iter().all(|&v| model.anterior[v as usize]))
         .collect();
     let mut rng = SplitMix64::new(seed);
     (0..count)
@@ -112,8 +128,9 @@ fn params() -> DiscoverParams {
 
 fn quiet(_: &str, _: usize, _: usize) {}
 
-/// Hidden gravity on top of a LIBR-scale load: named, direction within 15°, magnitude within
-/// 30 %, held-out misfit lowered.
+/// Hidden gravity on top of a LIBR-scale load, nearly noise-free (σ = 0.05 mm): named, its
+/// direction within 10° and magnitude within 20 % (the tolerances), the held-out misfit
+/// more than halved and near the noise.
 #[test]
 fn hidden_gravity_is_named_with_its_direction_and_magnitude() {
     let (mesh, model) = organ();
@@ -124,26 +141,38 @@ fn hidden_gravity_is_named_with_its_direction_and_magnitude() {
     let g = crate::mesh::vec3::unit([0.3, 1.0, -0.25]);
     let truth = Physics {
         effects: vec![
-            Effect::new(EffectKind::Gravity, &[("direction", &g), ("magnitude", &[0.004])]).unwrap(),
+            Effect::new(
+                EffectKind::Gravity,
+                &[("direction", &g), ("magnitude", &[0.006])],
+            )
+            .unwrap(),
         ],
     };
-    let base = broad_load(&mesh, [45.0, 0.0, 22.0], 1, 0.5);
+    let base = broad_load(&mesh, &model, 1, 0.5);
     let p = params();
     let u = forward(&mesh, &p.pipeline.libr.material, sites, &truth, &base).unwrap();
-    let peak = u.chunks_exact(3).map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt()).fold(0.0, f64::max);
+    let peak = u
+        .chunks_exact(3)
+        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+        .fold(0.0, f64::max);
     assert!(peak > 3.0 && peak < 40.0, "peak displacement {peak} mm");
-    let cohort = sweeps(&mesh, &u, 4, 0.3, 7);
+    let cohort = sweeps(&mesh, &model, &u, 4, 0.05, 7);
     let d = discover_cohort(&model, &cohort, &p, None, &quiet).unwrap();
     eprintln!("{}", serde_json::to_string_pretty(&d).unwrap());
     assert_eq!(d.verdict, Verdict::Effects, "{:?}", d.candidates);
     let e = &d.effects[0].effect;
     assert_eq!(e.kind, EffectKind::Gravity, "named {}", e.describe());
     let angle = search::angle_deg(e.direction("direction"), g);
-    assert!(angle < 15.0, "direction off by {angle}°");
+    assert!(angle < 10.0, "direction off by {angle}°");
     let m = e.scalar("magnitude");
-    assert!((m / 0.004 - 1.0).abs() < 0.3, "magnitude {m}");
-    assert!(d.heldout_after_mm < d.heldout_before_mm);
-    assert!((d.noise_floor_mm / 0.3 - 1.0).abs() < 0.5, "noise floor {}", d.noise_floor_mm);
+    assert!((m / 0.006 - 1.0).abs() < 0.2, "magnitude {m}");
+    assert!(d.heldout_after_mm < 0.5 * d.heldout_before_mm);
+    assert!(
+        d.heldout_after_mm < 3.0 * d.noise_floor_mm,
+        "{} vs floor {}",
+        d.heldout_after_mm,
+        d.noise_floor_mm
+    );
 }
 
 /// Nothing hidden (the truth is a load LIBR's own basis holds): no missing effect.
@@ -154,12 +183,30 @@ fn nothing_hidden_names_nothing() {
         posterior: &model.posterior,
         falciform: &model.falciform,
     };
-    let base = broad_load(&mesh, [45.0, 0.0, 22.0], 1, 0.5);
+    let base = broad_load(&mesh, &model, 1, 0.5);
     let p = params();
-    let u = forward(&mesh, &p.pipeline.libr.material, sites, &Physics::none(), &base).unwrap();
-    let cohort = sweeps(&mesh, &u, 4, 0.3, 11);
+    let u = forward(
+        &mesh,
+        &p.pipeline.libr.material,
+        sites,
+        &Physics::none(),
+        &base,
+    )
+    .unwrap();
+    let cohort = sweeps(&mesh, &model, &u, 4, 0.3, 11);
     let d = discover_cohort(&model, &cohort, &p, None, &quiet).unwrap();
     eprintln!("{}", serde_json::to_string_pretty(&d).unwrap());
+    for (r, s) in d.plain.iter().zip(&cohort) {
+        let pose = s.measurements.initial_alignment.unwrap();
+        let rel = r.image_to_physical.then(&pose.inverse());
+        eprintln!(
+            "libr rms {:?} rigid rms {} pose error {:.2}° {:?}",
+            r.libr.as_ref().map(|l| l.rms_mm),
+            r.rigid.rms_mm,
+            rel.rotation_angle_deg(),
+            rel.translation
+        );
+    }
     assert_eq!(d.verdict, Verdict::None, "{:?}", d.candidates);
     assert!(d.physics.is_empty());
 }
@@ -170,20 +217,28 @@ fn bad_cohorts_are_refused_with_the_field_named() {
     let (mesh, model) = organ();
     let u = vec![0.0; 3 * mesh.num_nodes()];
     let p = params();
-    let e = discover_cohort(&model, &[], &p, None, &quiet).unwrap_err().to_string();
+    let e = discover_cohort(&model, &[], &p, None, &quiet)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("cohort") && e.contains("no scenarios"), "{e}");
-    let one = sweeps(&mesh, &u, 1, 0.3, 1);
-    let e = discover_cohort(&model, &one, &p, None, &quiet).unwrap_err().to_string();
+    let one = sweeps(&mesh, &model, &u, 1, 0.3, 1);
+    let e = discover_cohort(&model, &one, &p, None, &quiet)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("only 1 scenario"), "{e}");
-    let mut two = sweeps(&mesh, &u, 2, 0.3, 1);
+    let mut two = sweeps(&mesh, &model, &u, 2, 0.3, 1);
     two[1].measurements.points[5][2] = f64::NAN;
-    let e = discover_cohort(&model, &two, &p, None, &quiet).unwrap_err().to_string();
+    let e = discover_cohort(&model, &two, &p, None, &quiet)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("sweep-1") && e.contains("points[5]"), "{e}");
     let bad = DiscoverParams {
         folds: 1,
         ..params()
     };
-    let two = sweeps(&mesh, &u, 2, 0.3, 1);
-    let e = discover_cohort(&model, &two, &bad, None, &quiet).unwrap_err().to_string();
+    let two = sweeps(&mesh, &model, &u, 2, 0.3, 1);
+    let e = discover_cohort(&model, &two, &bad, None, &quiet)
+        .unwrap_err()
+        .to_string();
     assert!(e.starts_with("folds"), "{e}");
 }

@@ -10,9 +10,9 @@ use crate::register::correspondence::{
     Correspondence, CorrespondenceParams, validate_measurements,
 };
 use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
-use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::physics::Physics;
 use crate::register::physics::model::Sites;
+use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::{Measurements, PreopModel, RegisterError};
 use std::path::Path;
 use std::sync::Arc;
@@ -187,6 +187,7 @@ impl Prepared {
         })
     }
 
+    /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
     pub fn with_model(self, model: Arc<TrainedModel>) -> Result<Self, PipelineError> {
         self.with_models(vec![model])
     }

@@ -37,7 +37,10 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
             .collect::<Result<_>>()?
     };
     if cohorts.is_empty() {
-        bail!("--data {}: the dataset has no deformations", a.data.display());
+        bail!(
+            "--data {}: the dataset has no deformations",
+            a.data.display()
+        );
     }
     let mut params = DiscoverParams {
         pipeline: a.libr.params(),
@@ -132,7 +135,9 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
                 .par_iter()
                 .map(|s| register(&case, &s.measurements, Method::Libr, &params.pipeline))
                 .collect::<std::result::Result<_, _>>()
-                .with_context(|| format!("cohort {}: registering with the augmented model", d.id))?;
+                .with_context(|| {
+                    format!("cohort {}: registering with the augmented model", d.id)
+                })?;
             tre_of(&regs)
         };
         let dir = a.out.join(&d.id);
@@ -161,7 +166,10 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
     if a.json {
         println!("{doc}");
     } else {
-        emit(false, &json!({"out": a.out.display().to_string(), "summary": summary}));
+        emit(
+            false,
+            &json!({"out": a.out.display().to_string(), "summary": summary}),
+        );
     }
     Ok(())
 }
@@ -221,8 +229,12 @@ fn report_md(doc: &Value) -> String {
         sum["verdicts"]["effects"],
         sum["verdicts"]["none"],
         sum["verdicts"]["unexplained"],
-        sum["heldout_misfit_mm"]["before"].as_f64().unwrap_or(f64::NAN),
-        sum["heldout_misfit_mm"]["after"].as_f64().unwrap_or(f64::NAN),
+        sum["heldout_misfit_mm"]["before"]
+            .as_f64()
+            .unwrap_or(f64::NAN),
+        sum["heldout_misfit_mm"]["after"]
+            .as_f64()
+            .unwrap_or(f64::NAN),
         sum["tre_mm"]["before"].as_f64().unwrap_or(f64::NAN),
         sum["tre_mm"]["after"].as_f64().unwrap_or(f64::NAN),
     );
@@ -239,8 +251,14 @@ fn report_md(doc: &Value) -> String {
             "| {} | {} | {} | {:.2} → {:.2} | {:.2} | {:.2} → {:.2} |",
             c["cohort"].as_str().unwrap_or("?"),
             c["verdict"].as_str().unwrap_or("?"),
-            if effects.is_empty() { "–".into() } else { effects.join(", ") },
-            c["heldout_misfit_mm"]["before"].as_f64().unwrap_or(f64::NAN),
+            if effects.is_empty() {
+                "–".into()
+            } else {
+                effects.join(", ")
+            },
+            c["heldout_misfit_mm"]["before"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
             c["heldout_misfit_mm"]["after"].as_f64().unwrap_or(f64::NAN),
             c["noise_floor_mm"].as_f64().unwrap_or(f64::NAN),
             c["tre_mm"]["before"].as_f64().unwrap_or(f64::NAN),
@@ -249,7 +267,11 @@ fn report_md(doc: &Value) -> String {
     }
     s.push_str("\n## Candidates per cohort\n\n");
     for c in doc["cohorts"].as_array().into_iter().flatten() {
-        let _ = writeln!(s, "### {}\n\n| round | kind | best parameters | held-out RMS (mm) | gain | t | ΔBIC | significant |\n| --- | --- | --- | --- | --- | --- | --- | --- |", c["cohort"].as_str().unwrap_or("?"));
+        let _ = writeln!(
+            s,
+            "### {}\n\n| round | kind | best parameters | held-out RMS (mm) | gain | t | ΔBIC | significant |\n| --- | --- | --- | --- | --- | --- | --- | --- |",
+            c["cohort"].as_str().unwrap_or("?")
+        );
         for r in c["candidates"].as_array().into_iter().flatten() {
             let _ = writeln!(
                 s,

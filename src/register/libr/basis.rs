@@ -40,7 +40,8 @@ pub struct LibrBasis {
     /// Φ, row-major 3n × 3K: row `3·node + axis`, column `3·k + axis'` (control point k, load
     /// axis axis'); unit: mm per unit weight.
     pub phi: Vec<f64>,
-    /// E = ΦᵀKΦ, row-major 3K × 3K (mN·mm per mm²).
+    /// E = ΦᵀKΦ, row-major 3K × 3K (mN·mm per mm²); zero in the rows and columns of effect
+    /// columns (their amplitudes are not regularised).
     pub energy: Vec<f64>,
     /// Per column: peak traction (kPa) of the load whose response is the column.
     pub load_scale: Vec<f64>,
@@ -456,6 +457,15 @@ impl LibrBasis {
         for i in 0..m {
             for j in 0..m {
                 energy[i * m + j] = 0.5 * (e[(i, j)] + e[(j, i)]);
+            }
+        }
+        // Effect columns are not regularised: the effect is part of the model and its amplitude
+        // is estimated freely (their energy is left out of E, so of λαᵀẼα).
+        for i in 0..m {
+            for j in 0..m {
+                if i >= 3 * kk || j >= 3 * kk {
+                    energy[i * m + j] = 0.0;
+                }
             }
         }
         let energy_s = crate::util::secs(t4);
