@@ -16,8 +16,8 @@
 //!    misfit exceeds every bootstrap replicate and the noise floor by a clear margin.
 //! 3. **Name** ([`search`]): every kind in the library is searched over its parameters on top of
 //!    the current model and scored by the same cross-validation. The best is named only when it
-//!    beats the current model on the held-out blocks significantly (a paired t statistic over
-//!    the sweep × block units above [`DiscoverParams::t_threshold`]), by a practical margin
+//!    beats the current model on the held-out blocks significantly (a paired comparison over
+//!    the sweep × block units: sign test above [`DiscoverParams::z_threshold`]), by a practical margin
 //!    ([`DiscoverParams::min_gain`]) and by the Bayesian information criterion; then the next is
 //!    tried on top (forward selection). Verdicts: named effects, no missing effect, or an
 //!    unexplained discrepancy (real, but no candidate explains it).
@@ -73,9 +73,10 @@ pub struct DiscoverParams {
     /// Bootstrap replicates of the no-discrepancy null. Default 19 (p ≤ 0.05 when the observed
     /// misfit exceeds all).
     pub bootstrap: usize,
-    /// Paired t statistic a candidate must exceed. Default 3.0 (one-sided p ≈ 0.001 for many
-    /// units, a Bonferroni-style margin for searching eight kinds and their parameters).
-    pub t_threshold: f64,
+    /// Sign-test z a candidate must exceed over the sweep × block units (units whose held-out
+    /// misfit it lowers against those it raises). Default 3.0 (one-sided p ≈ 0.001, a
+    /// Bonferroni-style margin for searching eight kinds and their parameters).
+    pub z_threshold: f64,
     /// Smallest fraction of the held-out misfit a candidate must remove. Default 0.05.
     pub min_gain: f64,
     /// Most effects named. Default 3.
@@ -121,7 +122,7 @@ impl Default for DiscoverParams {
             pipeline: PipelineParams::default(),
             folds: 6,
             bootstrap: 19,
-            t_threshold: 3.0,
+            z_threshold: 3.0,
             min_gain: 0.05,
             max_effects: 3,
             kinds: EffectKind::ALL
@@ -181,7 +182,9 @@ pub struct CandidateRecord {
     pub heldout_rms_mm: f64,
     /// Fraction of the current held-out misfit (mean square) it removes.
     pub gain: f64,
-    /// Paired t statistic over units.
+    /// Sign test z over units (improved against worsened).
+    pub sign_z: f64,
+    /// Paired t statistic over units (reported).
     pub t: f64,
     /// Change of the Bayesian information criterion (negative favours it).
     pub delta_bic: f64,
@@ -481,17 +484,18 @@ pub fn discover_cohort(
             else {
                 continue;
             };
-            let (t, gain) = paired(&cur.score, &top.score);
+            let (z, t, gain) = paired(&cur.score, &top.score);
             let n = rows.rows.len() as f64;
             let delta_bic =
                 n * (top.score.full_rss / cur.score.full_rss).ln() + top.parameters as f64 * n.ln();
-            let significant = t > params.t_threshold && gain > params.min_gain && delta_bic < 0.0;
+            let significant = z > params.z_threshold && gain > params.min_gain && delta_bic < 0.0;
             records.push(CandidateRecord {
                 round,
                 kind: kind.name().into(),
                 effect: top.effect.describe(),
                 heldout_rms_mm: top.score.heldout_mse.sqrt(),
                 gain,
+                sign_z: z,
                 t,
                 delta_bic,
                 significant,
@@ -501,10 +505,10 @@ pub fn discover_cohort(
                     .as_ref()
                     .is_none_or(|b| top.score.heldout_mse < b.0.score.heldout_mse)
             {
-                best = Some((top, family, t, gain, delta_bic));
+                best = Some((top, family, z, gain, delta_bic));
             }
         }
-        let Some((top, family, t, gain, delta_bic)) = best else {
+        let Some((top, family, z, gain, delta_bic)) = best else {
             break;
         };
         let before = cur.score.heldout_mse.sqrt();
@@ -513,7 +517,7 @@ pub fn discover_cohort(
             "heldout_rms_before_mm": before,
             "heldout_rms_after_mm": top.score.heldout_mse.sqrt(),
             "gain": gain,
-            "t": t,
+            "sign_z": z,
             "delta_bic": delta_bic,
             "round": round,
             "candidates_tried": family.len(),
@@ -565,9 +569,11 @@ fn gaussian(rng: &mut crate::util::SplitMix64) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
 }
 
-/// Paired comparison over the units both scored: t statistic of `sse_cur − sse_cand` and the
-/// fraction of the current held-out misfit removed.
-fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64) {
+/// Paired comparison over the units both scored: the sign test's z (units improved against
+/// units worsened, normal approximation of the binomial; robust to the heavy tails of per-unit
+/// misfits), the t statistic of `sse_cur − sse_cand`, and the fraction of the current held-out
+/// misfit removed.
+fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64, f64) {
     let d: Vec<f64> = cur
         .unit_sse
         .iter()
@@ -577,8 +583,15 @@ fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64) {
         .collect();
     let total: f64 = cur.unit_sse.iter().filter(|x| x.is_finite()).sum();
     if d.len() < 2 || total <= 0.0 {
-        return (0.0, 0.0);
+        return (0.0, 0.0, 0.0);
     }
+    let better = d.iter().filter(|x| **x > 0.0).count() as f64;
+    let worse = d.iter().filter(|x| **x < 0.0).count() as f64;
+    let sign_z = if better + worse > 0.0 {
+        (better - worse) / (better + worse).sqrt()
+    } else {
+        0.0
+    };
     let n = d.len() as f64;
     let mean = d.iter().sum::<f64>() / n;
     let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
@@ -589,7 +602,7 @@ fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64) {
     } else {
         0.0
     };
-    (t, d.iter().sum::<f64>() / total)
+    (sign_z, t, d.iter().sum::<f64>() / total)
 }
 
 /// Searches one kind over its parameter grid on top of the current model.
