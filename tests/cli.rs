@@ -297,3 +297,143 @@ fn bench_register_times_preload_and_registrations() {
     let (ok, _, err) = librplus(&["bench", "register", "--scenarios", "0"]);
     assert!(!ok && err.contains("--scenarios"), "{err}");
 }
+
+/// `discover` on a hidden-effect dataset: the manifest's record of what was hidden is never
+/// read (rewriting it to another effect, and deleting the per-deformation files, changes nothing
+/// in the output), `register --physics` carries the cohort's physics, and bad files are refused
+/// with the field named.
+#[test]
+fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physics() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let d = data.display().to_string();
+    let (ok, _, err) = librplus(&[
+        "generate",
+        "--preset",
+        "small",
+        "--seed",
+        "31",
+        "--truth",
+        "libr",
+        "--hidden-effect",
+        "gravity",
+        "--out",
+        &d,
+    ]);
+    assert!(ok, "{err}");
+    let run = |out: &str| -> Value {
+        let o = dir.path().join(out).display().to_string();
+        let mut v = json(&[
+            "discover",
+            "--data",
+            &d,
+            "--cohort",
+            "g1-W-00",
+            "--max-sweeps",
+            "4",
+            "--kinds",
+            "gravity,pressure",
+            "--max-effects",
+            "1",
+            "--out",
+            &o,
+            "--json",
+        ]);
+        for c in v["cohorts"].as_array_mut().unwrap() {
+            c.as_object_mut().unwrap().remove("timings");
+        }
+        v
+    };
+    let first = run("a");
+    assert_eq!(first["format"], 1);
+    let c = &first["cohorts"][0];
+    assert!(["effects", "none", "unexplained"].contains(&c["verdict"].as_str().unwrap()));
+    for k in ["before", "after"] {
+        assert!(c["heldout_misfit_mm"][k].as_f64().unwrap().is_finite());
+        assert!(c["tre_mm"][k].as_f64().unwrap().is_finite());
+    }
+    // Rewrite the hidden-effect record and delete the per-deformation copies.
+    let manifest = data.join("manifest.json");
+    let text = std::fs::read_to_string(&manifest).unwrap();
+    let mut m: Value = serde_json::from_str(&text).unwrap();
+    for def in m["deformations"].as_array_mut().unwrap() {
+        def["hidden_effects"] = serde_json::json!({"format": 1, "effects": [
+            {"kind": "bed-support", "parameters": {"stiffness": 0.1}}]});
+    }
+    std::fs::write(&manifest, serde_json::to_string(&m).unwrap()).unwrap();
+    for e in walk(&data) {
+        if e.file_name().is_some_and(|n| n == "hidden_physics.json") {
+            std::fs::remove_file(e).unwrap();
+        }
+    }
+    let second = run("b");
+    assert_eq!(first, second, "discover read the hidden-effect record");
+    // register --physics carries the cohort's physics (or none).
+    let physics = dir
+        .path()
+        .join("a/g1-W-00/physics.json")
+        .display()
+        .to_string();
+    let r = json(&[
+        "register",
+        "--data",
+        &d,
+        "--scenario",
+        "g1-W-00/0",
+        "--physics",
+        &physics,
+        "--json",
+    ]);
+    let kinds: Vec<&str> = c["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["kind"].as_str().unwrap())
+        .collect();
+    let carried: Vec<&str> = r["physics"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|k| k.as_str().unwrap())
+        .collect();
+    assert_eq!(carried, kinds);
+    // A bad physics file is refused with the field named.
+    let bad = dir.path().join("bad.json");
+    std::fs::write(
+        &bad,
+        r#"{"format": 1, "effects": [{"kind": "gravity", "parameters": {"direction": [0, 1, 0], "magnitude": 7}}]}"#,
+    )
+    .unwrap();
+    let (ok, _, err) = librplus(&[
+        "register",
+        "--data",
+        &d,
+        "--scenario",
+        "g1-W-00/0",
+        "--physics",
+        &bad.display().to_string(),
+    ]);
+    assert!(
+        !ok && err.contains("effects[0].parameters.magnitude"),
+        "{err}"
+    );
+    // An unknown kind on the command line.
+    let (ok, _, err) = librplus(&["discover", "--data", &d, "--out", &d, "--kinds", "tides"]);
+    assert!(
+        !ok && err.contains("--kinds") && err.contains("tides"),
+        "{err}"
+    );
+}
+
+fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
