@@ -780,7 +780,7 @@ fn libr_truth_with_a_hidden_effect_changes_the_truth_and_no_other_draw() {
             assert!(close(a, b), "{}: surface noise", dp.id);
         }
     }
-    // The negative control is `forward` with no physics on the case's surface load.
+    // The negative control is `forward` with no physics on the base load of LIBR's own kind.
     for d in &mp.deformations {
         let g = mp.geometries.iter().find(|g| g.id == d.geometry).unwrap();
         let (mesh, labels) = preop(&plain, g);
@@ -793,11 +793,7 @@ fn libr_truth_with_a_hidden_effect_changes_the_truth_and_no_other_draw() {
         let params = PatternParams::default();
         let case = load_case(&mesh, &labels, pattern, &params, d.seed).unwrap();
         let (base, _) = libr_base_load(&mesh, &case, params.load_scale).unwrap();
-        if pattern == Pattern::L {
-            assert!(case.surface.iter().all(|&x| x == 0.0) && base.iter().any(|&x| x != 0.0));
-        } else {
-            assert_eq!(base, case.surface, "{}: the surface load as it is", d.id);
-        }
+        assert!(base.iter().any(|&x| x != 0.0), "{}: a base load", d.id);
         let sites = LibrSites::new(&labels);
         let want = forward(
             &mesh,

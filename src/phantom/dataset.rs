@@ -71,8 +71,8 @@ pub enum TruthModel {
     LinearHomogeneous,
     /// LIBR's own physics (free-floating linear homogeneous elasticity, the parenchyma's mean
     /// material) plus the hidden effects ([`GenerateConfig::hidden_effects`]), under the
-    /// pattern's surface load alone ([`super::truth::libr_base_load`]: no gravity, bed or
-    /// bare-area support; pattern L's retractor as a traction). Without hidden effects nothing is
+    /// load of LIBR's own kind ([`super::truth::libr_base_load`]: broad tractions; no gravity,
+    /// bed or bare-area support, none of the pattern's own loads). Without hidden effects nothing is
     /// hidden: the negative control of effect discovery.
     Libr,
 }

@@ -10,14 +10,12 @@
 //!
 //! [`solve_libr`] is the other kind of truth (`generate --truth libr`): LIBR's own free-floating
 //! linear homogeneous model plus named hidden effects ([`crate::register::physics`]), under the
-//! pattern's surface load alone ([`libr_base_load`]).
+//! loads of LIBR's own kind ([`libr_base_load`]).
 
 use super::PhantomError;
 use super::patterns::LoadCase;
 use crate::fem::hyperelastic::{HyperelasticModel, NewtonInfo, NewtonParams};
-use crate::fem::{
-    Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads,
-};
+use crate::fem::{Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem};
 use crate::mesh::TetMesh;
 use crate::register::anatomy::{AnatomyLabels, Region};
 use crate::register::physics::Physics;
@@ -239,13 +237,12 @@ pub fn breakdown(
     })
 }
 
-/// Traction (kPa, times `load_scale`) that replaces pattern L's retractor under `--truth libr`.
-///
-/// A free-floating model cannot carry a prescribed displacement, so the retractor becomes the
-/// load it stands for: a uniform traction on the gripped patch. 1 kPa over the 30–50 mm patch the
-/// retractor grips (about 2,000–5,000 mm² of surface) is 2–5 N, the order of pattern R's pack
-/// (4.5–9 N) and of pattern V's packing pressure (0.8–1.4 kPa).
-pub const RETRACTOR_TRACTION_KPA: f64 = 1.0;
+/// Broad tractions in a `--truth libr` base load ([`libr_base_load`]).
+pub const LIBR_BASE_PATCHES: usize = 3;
+
+/// Range of their peak traction (kPa, times `load_scale`): 0.15–0.45 kPa over LIBR's patch width
+/// moves a liver of E = 5 kPa by roughly 5–20 mm, the order of the phantom's patterns.
+pub const LIBR_BASE_PEAK_KPA: (f64, f64) = (0.15, 0.45);
 
 /// The per-node anatomical sites the augmented model's supports attach to, from a phantom's
 /// labels: `posterior` = nodes of [`Region::Posterior`] (boundary nodes on the organ bed),
@@ -280,69 +277,86 @@ impl LibrSites {
     }
 }
 
-/// The load LIBR's own physics carries for a load case (`--truth libr`): the case's surface load
-/// only (packs, pressure); no gravity, no bed or bare-area springs. A retractor (pattern L's
-/// prescribed displacement) is replaced by a uniform traction of
-/// [`RETRACTOR_TRACTION_KPA`] × `load_scale` on the boundary triangles whose three nodes it
-/// prescribes, along the unit mean of the prescribed displacements. Returns the load (mN,
-/// node-major) and a note for the deformation's description (empty when nothing was replaced).
+/// The load of a `--truth libr` ground truth: loads LIBR's own model is made of, so that without
+/// hidden effects the data hold nothing a discovery could name. [`LIBR_BASE_PATCHES`] smooth
+/// traction patches exactly like LIBR's basis loads
+/// ([`control_traction`](crate::register::libr::control_traction): a Gaussian of LIBR's default
+/// width, 1.25 × the spacing of 25 control points, times the facing factor), each at a boundary
+/// node drawn from the case's seed, along that node's inward normal turned by up to 45°, with a
+/// peak in [`LIBR_BASE_PEAK_KPA`] × `load_scale`. The pattern's own loads (packs, pressure, the
+/// retractor) are not used: each is, or resembles, an effect of the library (`pack`, `pressure`),
+/// and would make the negative control hold one. Returns the load (mN, node-major) and a note
+/// for the deformation's description.
 pub fn libr_base_load(
     mesh: &TetMesh,
     case: &LoadCase,
     load_scale: f64,
 ) -> Result<(Vec<f64>, String), PhantomError> {
+    use crate::mesh::vec3::{cross, dot, sub, unit};
     let n = mesh.num_nodes();
-    if case.surface.len() != 3 * n || case.dirichlet.len() != 3 * n {
+    if case.surface.len() != 3 * n {
         return Err(PhantomError::Inconsistent(format!(
-            "load case has {} load and {} constrained entries for {n} nodes",
-            case.surface.len(),
-            case.dirichlet.len()
+            "load case has {} load entries for {n} nodes",
+            case.surface.len()
         )));
     }
-    let mut load = case.surface.clone();
-    if case.dirichlet.count() == 0 {
-        return Ok((load, String::new()));
-    }
-    let gripped: Vec<bool> = (0..n)
-        .map(|v| (0..3).all(|a| case.dirichlet.get(3 * v + a).is_some()))
-        .collect();
-    let mut mean = [0.0; 3];
-    let mut count = 0usize;
-    for (v, _) in gripped.iter().enumerate().filter(|(_, g)| **g) {
-        for (a, m) in mean.iter_mut().enumerate() {
-            *m += case.dirichlet.get(3 * v + a).unwrap_or(0.0);
+    let nodes = mesh.nodes();
+    let b = mesh.boundary()?;
+    let mut normal = vec![[0.0; 3]; n];
+    let mut area = 0.0;
+    for t in &b.triangles {
+        let [p, q, r] = t.map(|v| nodes[v as usize]);
+        let na = cross(sub(q, p), sub(r, p));
+        area += 0.5 * dot(na, na).sqrt();
+        for &v in t {
+            for k in 0..3 {
+                normal[v as usize][k] += na[k];
+            }
         }
-        count += 1;
     }
-    let length = mean.iter().map(|x| x * x).sum::<f64>().sqrt();
-    let dir = if length > 0.0 {
-        mean.map(|x| x / length)
-    } else {
-        [0.0; 3]
-    };
-    let patch: Vec<[u32; 3]> = mesh
-        .boundary()?
-        .triangles
-        .into_iter()
-        .filter(|t| t.iter().all(|&v| gripped[v as usize]))
-        .collect();
-    if patch.is_empty() {
-        return Err(PhantomError::Geometry(format!(
-            "the retractor prescribes {count} nodes but no boundary triangle: no patch to load in its place"
-        )));
+    let width = 1.25 * (2.0 * area / (3f64.sqrt() * 25.0)).sqrt();
+    let mut rng = crate::util::SplitMix64::new(case.seed ^ 0x4C49_4252_4241_5345);
+    let mut load = vec![0.0; 3 * n];
+    let mut parts = Vec::new();
+    for _ in 0..LIBR_BASE_PATCHES {
+        let v = b.nodes[rng.below(b.nodes.len())];
+        let nv = unit(normal[v as usize]);
+        // Inward normal turned by up to 45° towards a random tangent direction.
+        let helper = if nv[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
+        let t1 = unit(cross(nv, helper));
+        let t2 = cross(nv, t1);
+        let phi = 2.0 * std::f64::consts::PI * rng.next_f64();
+        let tilt = 45f64.to_radians() * rng.next_f64();
+        let dir = [0, 1, 2]
+            .map(|k| -tilt.cos() * nv[k] + tilt.sin() * (phi.cos() * t1[k] + phi.sin() * t2[k]));
+        let peak = load_scale
+            * (LIBR_BASE_PEAK_KPA.0
+                + (LIBR_BASE_PEAK_KPA.1 - LIBR_BASE_PEAK_KPA.0) * rng.next_f64());
+        for (axis, d) in dir.iter().enumerate() {
+            let f = crate::register::libr::control_traction(
+                nodes,
+                &b.triangles,
+                nodes[v as usize],
+                nv,
+                axis,
+                width,
+            );
+            for (x, y) in load.iter_mut().zip(&f) {
+                *x += peak * d * y;
+            }
+        }
+        parts.push(format!("{peak:.2} kPa at node {v} along {dir:.2?}"));
     }
-    let p = RETRACTOR_TRACTION_KPA * load_scale;
-    loads::add_traction(
-        &mut load,
-        mesh.nodes(),
-        &patch,
-        &vec![dir.map(|d| d * p); patch.len()],
-    );
     Ok((
         load,
         format!(
-            "the retractor replaced by a {p:.2} kPa traction along {dir:.2?} on its {} triangles",
-            patch.len()
+            "base load: {} broad tractions of LIBR's own kind (σ {width:.1} mm): {}; the pattern's loads are not used",
+            LIBR_BASE_PATCHES,
+            parts.join("; ")
         ),
     ))
 }

@@ -382,7 +382,7 @@ pub struct LibrTruth {
 }
 
 /// Solves a `--truth libr` ground truth for a load case drawn with `seed`: the base load is
-/// [`libr_base_load`] (the case's surface load; pattern L's retractor as a traction), the
+/// [`libr_base_load`] (broad tractions of LIBR's own kind drawn from the case's seed), the
 /// material the homogeneous `material`, the supports' sites the labels' ([`LibrSites`]), and
 /// the hidden effects [`draw_physics`]`(specs, mesh, labels, seed)`.
 pub fn libr_truth(
@@ -403,8 +403,8 @@ pub fn libr_truth(
     } else {
         solve_libr(mesh, material, &sites, &physics, &base)?
     };
-    let mut note = "truth libr: LIBR's free-floating linear homogeneous model under the surface \
-                    load alone (no gravity, bed or bare-area support)"
+    let mut note = "truth libr: LIBR's free-floating linear homogeneous model under loads of its \
+                    own kind (no gravity, bed or bare-area support)"
         .to_string();
     if !replaced.is_empty() {
         note.push_str("; ");
