@@ -75,25 +75,8 @@ impl HiddenEffectSpec {
                 continue;
             };
             let field = format!("hidden effect {text:?}: {}", spec.name);
-            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
-                return Err(PhantomError::Parameter(format!(
-                    "{field}: {x} is not finite"
-                )));
-            }
-            let value = if spec.len == 1 {
-                v[0]
-            } else {
-                v.iter().map(|x| x * x).sum::<f64>().sqrt()
-            };
-            if let Some((lo, hi)) = spec.range
-                && !(lo..=hi).contains(&value)
-            {
-                let what = if spec.len == 1 { "value" } else { "length" };
-                return Err(PhantomError::Parameter(format!(
-                    "{field}: {what} {value} is outside [{lo}, {hi}] {}",
-                    spec.unit
-                )));
-            }
+            spec.check(&field, v)
+                .map_err(|e| PhantomError::Parameter(e.to_string()))?;
         }
         Ok(Self { kind, given })
     }

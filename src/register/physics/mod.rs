@@ -65,6 +65,40 @@ pub struct ParamSpec {
     pub unit: &'static str,
 }
 
+impl ParamSpec {
+    /// Checks one parameter's values: length, finiteness and range (of the value, or of the
+    /// vector's length); `field` starts the message.
+    pub fn check(&self, field: &str, v: &[f64]) -> Result<(), RegisterError> {
+        if v.len() != self.len {
+            return Err(RegisterError::Parameter(format!(
+                "{field}: expected {} number(s), got {}",
+                self.len,
+                v.len()
+            )));
+        }
+        if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+            return Err(RegisterError::Parameter(format!(
+                "{field}: {x} is not finite"
+            )));
+        }
+        let value = if self.len == 1 {
+            v[0]
+        } else {
+            v.iter().map(|x| x * x).sum::<f64>().sqrt()
+        };
+        if let Some((lo, hi)) = self.range
+            && !(lo..=hi).contains(&value)
+        {
+            let what = if self.len == 1 { "value" } else { "length" };
+            return Err(RegisterError::Parameter(format!(
+                "{field}: {what} {value} is outside [{lo}, {hi}] {}",
+                self.unit
+            )));
+        }
+        Ok(())
+    }
+}
+
 const fn scalar(name: &'static str, lo: f64, hi: f64, unit: &'static str) -> ParamSpec {
     ParamSpec {
         name,
@@ -238,32 +272,7 @@ impl Effect {
                     names(specs)
                 )));
             };
-            if v.len() != s.len {
-                return Err(RegisterError::Parameter(format!(
-                    "{field}: expected {} number(s), got {}",
-                    s.len,
-                    v.len()
-                )));
-            }
-            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
-                return Err(RegisterError::Parameter(format!(
-                    "{field}: {x} is not finite"
-                )));
-            }
-            let value = if s.len == 1 {
-                v[0]
-            } else {
-                v.iter().map(|x| x * x).sum::<f64>().sqrt()
-            };
-            if let Some((lo, hi)) = s.range
-                && !(lo..=hi).contains(&value)
-            {
-                let what = if s.len == 1 { "value" } else { "length" };
-                return Err(RegisterError::Parameter(format!(
-                    "{field}: {what} {value} is outside [{lo}, {hi}] {}",
-                    s.unit
-                )));
-            }
+            s.check(&field, v)?;
         }
         Ok(())
     }
