@@ -103,13 +103,52 @@ pub struct CvScore {
     pub prior_scale: f64,
 }
 
-/// The design of a model over the rows: `a` (rows × q) and its prior `W·λẼ` per unit weight
-/// (q × q; added as `W_fold × prior`).
+/// The design of a model over the rows: `a` (rows × q), its prior `W·λẼ` per unit weight
+/// (q × q; added as `W_fold × prior`), and the effects' amplitude prior.
 pub struct Design<'a> {
     /// Row values of each column.
     pub a: &'a DMatrix<f64>,
     /// Prior (per unit of total weight).
     pub prior: &'a DMatrix<f64>,
+    /// What physics knows of the effects' amplitudes before the data: a Gaussian with precision
+    /// `P` (q × q, in units of the misfit's squared weight) and `P μ`, added to every fold's
+    /// normal equations as it is (not scaled by the fold's weight, nor by the prior scale).
+    pub amplitude: &'a AmplitudePrior,
+}
+
+/// A Gaussian prior on coefficients, as its precision and precision × mean (zero for columns
+/// without one).
+#[derive(Debug, Clone)]
+pub struct AmplitudePrior {
+    /// Precision (q × q).
+    pub precision: DMatrix<f64>,
+    /// Precision × mean (q).
+    pub shift: DVector<f64>,
+}
+
+impl AmplitudePrior {
+    /// No prior on any of `q` columns.
+    pub fn none(q: usize) -> Self {
+        Self {
+            precision: DMatrix::zeros(q, q),
+            shift: DVector::zeros(q),
+        }
+    }
+
+    /// This prior extended by `k` more columns with `precision` and `shift`.
+    pub fn extended(&self, precision: &DMatrix<f64>, shift: &DVector<f64>) -> Self {
+        let (q, k) = (self.shift.len(), shift.len());
+        let mut p = DMatrix::zeros(q + k, q + k);
+        p.view_mut((0, 0), (q, q)).copy_from(&self.precision);
+        p.view_mut((q, q), (k, k)).copy_from(precision);
+        let mut s = DVector::zeros(q + k);
+        s.rows_mut(0, q).copy_from(&self.shift);
+        s.rows_mut(q, k).copy_from(shift);
+        Self {
+            precision: p,
+            shift: s,
+        }
+    }
 }
 
 /// Multiples of LIBR's λ tried for every design: the strain-energy prior's weight is chosen by
@@ -127,6 +166,7 @@ pub fn cross_validate(rows: &CohortRows, design: &Design<'_>) -> Option<CvScore>
         let d = Design {
             a: design.a,
             prior: &prior,
+            amplitude: design.amplitude,
         };
         if let Some(mut score) = cross_validate_rhs(rows, &d, &b)
             && best
@@ -209,7 +249,7 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
                 h
             })
             .collect();
-        let Some((alpha, _)) = solve_shared(&held, design.prior) else {
+        let Some((alpha, _)) = solve_shared(&held, design.prior, design.amplitude) else {
             continue;
         };
         for s in 0..ns {
@@ -238,7 +278,7 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
     if w <= 0.0 {
         return None;
     }
-    let (coef, inverse) = solve_shared(&totals, design.prior)?;
+    let (coef, inverse) = solve_shared(&totals, design.prior, design.amplitude)?;
     let mut full_rss = 0.0;
     let mut full_w = 0.0;
     let mut thetas = vec![Vector6::zeros(); ns];
@@ -298,8 +338,12 @@ fn quad(b: &Block, alpha: &DVector<f64>, theta: &Vector6<f64>) -> f64 {
 }
 
 /// The shared coefficients with each scenario's pose eliminated (Schur complement), weighted
-/// mean-square misfit plus the prior: `(Σ N_s + W·prior) α = Σ r_s`. Returns α and the inverse.
-fn solve_shared(blocks: &[Block], prior: &DMatrix<f64>) -> Option<(DVector<f64>, DMatrix<f64>)> {
+/// mean-square misfit plus the priors: `(Σ N_s + W·prior + P) α = Σ r_s + P μ`. Returns α and the inverse.
+fn solve_shared(
+    blocks: &[Block],
+    prior: &DMatrix<f64>,
+    amplitude: &AmplitudePrior,
+) -> Option<(DVector<f64>, DMatrix<f64>)> {
     let q = prior.nrows();
     let mut n = DMatrix::<f64>::zeros(q, q);
     let mut r = DVector::<f64>::zeros(q);
@@ -323,6 +367,8 @@ fn solve_shared(blocks: &[Block], prior: &DMatrix<f64>) -> Option<(DVector<f64>,
         return None;
     }
     n += prior * w;
+    n += &amplitude.precision;
+    r += &amplitude.shift;
     // A vanishing damping keeps unregularised columns solvable when the data leave them free.
     let damp = 1e-10 * (0..q).map(|i| n[(i, i)]).fold(0.0f64, f64::max).max(1e-300);
     for i in 0..q {

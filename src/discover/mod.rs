@@ -26,6 +26,7 @@
 
 pub mod cv;
 pub mod noise;
+pub mod prior;
 pub mod rows;
 pub mod search;
 
@@ -33,7 +34,7 @@ use crate::pipeline::{Method, PipelineError, PipelineParams, Prepared, register}
 use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites};
 use crate::register::physics::{Effect, EffectKind, Physics};
 use crate::register::{MeasuredKind, Measurements, PreopModel, RegisterError};
-use cv::{CvScore, Design, cross_validate, cross_validate_rhs, fitted};
+use cv::{AmplitudePrior, CvScore, Design, cross_validate, cross_validate_rhs, fitted};
 use rayon::prelude::*;
 use rows::{CohortRows, cluster_centers, nearest, scenario_rows};
 use search::{Candidate, Current, SearchContext, basis_design};
@@ -81,6 +82,8 @@ pub struct DiscoverParams {
     pub min_gain: f64,
     /// Most effects named. Default 3.
     pub max_effects: usize,
+    /// Candidates per round confirmed on their own linearization (the best screened). Default 3.
+    pub confirmations: usize,
     /// Kinds searched. Default every kind the augmented model carries (not `nonlinear`).
     pub kinds: Vec<EffectKind>,
     /// Grid sizes: gravity/pressure directions, pack and fixation sites, inclusion sites.
@@ -125,6 +128,7 @@ impl Default for DiscoverParams {
             z_threshold: 3.0,
             min_gain: 0.05,
             max_effects: 3,
+            confirmations: 3,
             kinds: EffectKind::ALL
                 .into_iter()
                 .filter(|k| *k != EffectKind::Nonlinear)
@@ -188,6 +192,9 @@ pub struct CandidateRecord {
     pub t: f64,
     /// Change of the Bayesian information criterion (negative favours it).
     pub delta_bic: f64,
+    /// Whether the scores come from the candidate's own linearization (every sweep registered
+    /// again with it; the confirming comparison) rather than the current model's (screening).
+    pub relinearized: bool,
     /// Whether it passed every test.
     pub significant: bool,
 }
@@ -302,58 +309,9 @@ pub fn discover_cohort(
                 source: e,
             }
         })?;
-    progress("registering sweeps", 0, sweeps.len());
-    let done = std::sync::atomic::AtomicUsize::new(0);
-    let plain: Vec<crate::pipeline::Registration> =
-        sweeps
-            .par_iter()
-            .map(|s| {
-                let r = register(&prepared, &s.measurements, Method::Libr, &params.pipeline)
-                    .map_err(|e| DiscoverError::Scenario {
-                        scenario: s.id.clone(),
-                        source: e,
-                    });
-                let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-                progress("registering sweeps", d, sweeps.len());
-                r
-            })
-            .collect::<Result<_, _>>()?;
+    let (plain, images, rows) = linearize(&prepared, sweeps, params, None, progress)?;
     let register_s = crate::util::secs(t0);
     let t1 = Instant::now();
-    // 2. Rows and blocks.
-    let cparams = params.pipeline.libr_correspondence();
-    let mut images: Vec<Vec<[f64; 3]>> = Vec::with_capacity(sweeps.len());
-    let mut all_matches = Vec::with_capacity(sweeps.len());
-    for (s, reg) in sweeps.iter().zip(&plain) {
-        let inv = reg.image_to_physical.inverse();
-        let pts: Vec<[f64; 3]> = s
-            .measurements
-            .points
-            .iter()
-            .map(|&p| inv.apply(p))
-            .collect();
-        let (m, _) = prepared
-            .correspondence
-            .match_points(&pts, &s.measurements, Some(&reg.u), &cparams)
-            .map_err(|e| DiscoverError::Scenario {
-                scenario: s.id.clone(),
-                source: PipelineError::Libr(e),
-            })?;
-        images.push(pts);
-        all_matches.push(m);
-    }
-    let pooled: Vec<[f64; 3]> = images.iter().flatten().copied().collect();
-    let centers = cluster_centers(&pooled, params.folds);
-    let mut rows_v = Vec::new();
-    for (s, (m, pts)) in all_matches.iter().zip(&images).enumerate() {
-        scenario_rows(s, m, pts, |p| nearest(&centers, p), &mut rows_v);
-    }
-    let rows = CohortRows {
-        rows: rows_v,
-        scenarios: sweeps.len(),
-        clusters: centers.len(),
-        centers: centers.clone(),
-    };
     if rows.rows.len() < 50 {
         return Err(DiscoverError::Underdetermined(format!(
             "the cohort's {} sweeps give only {} matched rows; discovery needs at least 50",
@@ -393,11 +351,13 @@ pub fn discover_cohort(
         .clone()
         .ok_or_else(|| DiscoverError::Input("the case has no LIBR basis".into()))?;
     let (a, prior) = basis_design(&rows, &basis, libr.regularization);
+    let no_amplitude = AmplitudePrior::none(a.ncols());
     let base_score = cross_validate(
         &rows,
         &Design {
             a: &a,
             prior: &prior,
+            amplitude: &no_amplitude,
         },
     )
     .ok_or_else(|| {
@@ -412,16 +372,26 @@ pub fn discover_cohort(
     let insample_floor =
         (base_score.full_rss / base_score.full_w.max(1e-300) * rows.rows.len() as f64 / dof).sqrt();
     let noise_floor_mm = local_floor.min(insample_floor);
-    // Bootstrap null: the fitted model plus noise at the floor.
+    // Bootstrap null, posterior-predictive: if plain LIBR were right, the truth would be a draw
+    // of its weights from their posterior (the fit plus what the sparse data leave open, at the
+    // prior's scale), seen with noise at the floor. Cross-validating such replicates the same
+    // way gives the held-out misfit that noise *and* sparse extrapolation explain.
     progress("bootstrap", 0, params.bootstrap);
-    let fit = fitted(&rows, &a, &base_score);
     let null_prior = &prior * base_score.prior_scale;
+    let noise_var = noise_floor_mm * noise_floor_mm;
+    let posterior = (&base_score.inverse * noise_var).cholesky();
     let null: Vec<f64> = (0..params.bootstrap)
         .into_par_iter()
         .filter_map(|k| {
             let mut rng = crate::util::SplitMix64::new(
                 params.seed ^ (k as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             );
+            let mut draw = base_score.clone();
+            if let Some(ch) = &posterior {
+                let z = nalgebra::DVector::from_fn(draw.coef.len(), |_, _| gaussian(&mut rng));
+                draw.coef += ch.l() * z;
+            }
+            let fit = fitted(&rows, &a, &draw);
             let b: Vec<f64> = fit
                 .iter()
                 .map(|f| f + noise_floor_mm * gaussian(&mut rng))
@@ -431,6 +401,7 @@ pub fn discover_cohort(
                 &Design {
                     a: &a,
                     prior: &null_prior,
+                    amplitude: &no_amplitude,
                 },
                 &b,
             )
@@ -450,15 +421,11 @@ pub fn discover_cohort(
         solver,
         a,
         prior,
+        amplitude: no_amplitude,
         score: base_score.clone(),
     };
-    let ctx = SearchContext {
-        mesh: &model.mesh,
-        sites,
-        libr,
-        rows: &rows,
-        geom: &geom,
-    };
+    // The rows the current model is linearized at: its own registrations' correspondences.
+    let mut cur_rows = rows.clone();
     let mut records = Vec::new();
     let mut named: Vec<NamedEffect> = Vec::new();
     for round in 0..params.max_effects {
@@ -471,12 +438,20 @@ pub fn discover_cohort(
         if kinds.is_empty() {
             break;
         }
-        let mut best: Option<(Candidate, Vec<Candidate>, f64, f64, f64)> = None;
+        let ctx = SearchContext {
+            mesh: &model.mesh,
+            sites,
+            libr,
+            rows: &cur_rows,
+            geom: &geom,
+            noise_var,
+        };
+        // Screen: every kind searched on the current linearization; shape parameters by the
+        // full fit (maximum likelihood).
+        let mut screened: Vec<(Candidate, Vec<Candidate>, usize)> = Vec::new();
         for (i, kind) in kinds.iter().enumerate() {
-            progress(&format!("round {round}: {kind}"), i, kinds.len());
+            progress(&format!("round {round}: searching {kind}"), i, kinds.len());
             let family = search_family(&ctx, &cur, *kind, &params.grid)?;
-            // Shape parameters by the full fit (maximum likelihood); the held-out score then
-            // judges the effect.
             let Some(top) = family
                 .iter()
                 .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
@@ -485,10 +460,7 @@ pub fn discover_cohort(
                 continue;
             };
             let (z, t, gain) = paired(&cur.score, &top.score);
-            let n = rows.rows.len() as f64;
-            let delta_bic =
-                n * (top.score.full_rss / cur.score.full_rss).ln() + top.parameters as f64 * n.ln();
-            let significant = z > params.z_threshold && gain > params.min_gain && delta_bic < 0.0;
+            let delta_bic = bic_change(&cur.score, &top.score, top.parameters);
             records.push(CandidateRecord {
                 round,
                 kind: kind.name().into(),
@@ -498,24 +470,69 @@ pub fn discover_cohort(
                 sign_z: z,
                 t,
                 delta_bic,
-                significant,
+                relinearized: false,
+                significant: false,
             });
-            if significant
-                && best
-                    .as_ref()
-                    .is_none_or(|b| top.score.heldout_mse < b.0.score.heldout_mse)
-            {
-                best = Some((top, family, z, gain, delta_bic));
+            if gain > 0.0 && delta_bic < 0.0 {
+                let at = records.len() - 1;
+                screened.push((top, family, at));
             }
         }
-        let Some((top, family, z, gain, delta_bic)) = best else {
+        // Confirm the most promising on their own linearization: each sweep registered again
+        // with the augmented model, its misfit linearized at the new correspondences, and the
+        // two models compared unit by unit, each at its own fit (a large hidden effect moves
+        // the correspondences plain LIBR converged to; rows linearized there understate it).
+        screened.sort_by(|a, b| records[b.2].gain.total_cmp(&records[a.2].gain));
+        screened.truncate(params.confirmations.max(1));
+        let mut best: Option<(Confirmed, Candidate, Vec<Candidate>, f64, f64, f64)> = None;
+        for (top, family, _) in screened {
+            progress(
+                &format!("round {round}: confirming {}", top.effect.kind),
+                0,
+                1,
+            );
+            let Some(conf) = confirm(&ctx, &prepared, sweeps, params, &cur, &top, progress)? else {
+                continue;
+            };
+            let (z, t, gain) = paired(&cur.score, &conf.score);
+            let delta_bic = bic_change(&cur.score, &conf.score, top.parameters);
+            let significant = z > params.z_threshold && gain > params.min_gain && delta_bic < 0.0;
+            let mut effect = conf
+                .physics
+                .effects
+                .iter()
+                .rev()
+                .find(|e| e.kind == top.effect.kind)
+                .cloned()
+                .unwrap_or_else(|| top.effect.clone());
+            if let Some(e) = conf.refitted.as_ref() {
+                effect = e.clone();
+            }
+            records.push(CandidateRecord {
+                round,
+                kind: top.effect.kind.name().into(),
+                effect: effect.describe(),
+                heldout_rms_mm: conf.score.heldout_mse.sqrt(),
+                gain,
+                sign_z: z,
+                t,
+                delta_bic,
+                relinearized: true,
+                significant,
+            });
+            if significant && best.as_ref().is_none_or(|b| gain > b.4) {
+                best = Some((conf, top, family, z, gain, delta_bic));
+            }
+        }
+        let Some((conf, top, family, z, gain, delta_bic)) = best else {
             break;
         };
         let before = cur.score.heldout_mse.sqrt();
         let uncertainty = shape_uncertainty(&top, &family);
+        let effect = conf.refitted.clone().unwrap_or_else(|| top.effect.clone());
         let evidence = serde_json::json!({
             "heldout_rms_before_mm": before,
-            "heldout_rms_after_mm": top.score.heldout_mse.sqrt(),
+            "heldout_rms_after_mm": conf.score.heldout_mse.sqrt(),
             "gain": gain,
             "sign_z": z,
             "delta_bic": delta_bic,
@@ -523,11 +540,12 @@ pub fn discover_cohort(
             "candidates_tried": family.len(),
         });
         named.push(NamedEffect {
-            effect: top.effect.clone(),
+            effect,
             uncertainty,
             evidence,
         });
-        cur = adopt(&ctx, cur, top)?;
+        cur_rows = conf.rows;
+        cur = conf.current;
     }
     let name_s = crate::util::secs(t2);
     // Regions: per block, before and after.
@@ -562,6 +580,87 @@ pub fn discover_cohort(
             total_s: crate::util::secs(t0),
         },
     })
+}
+
+/// Registers every sweep with `prepared`'s model (wICP, then LIBR with the physics it carries)
+/// and linearizes the misfit at the converged correspondences: one row per match along its
+/// direction, over the spatial blocks `centers` (k-means of the pooled points when `None`).
+/// Returns the registrations, each sweep's points in the image frame, and the rows.
+#[allow(clippy::type_complexity)]
+fn linearize(
+    prepared: &Prepared,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+    centers: Option<&[[f64; 3]]>,
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+) -> Result<
+    (
+        Vec<crate::pipeline::Registration>,
+        Vec<Vec<[f64; 3]>>,
+        CohortRows,
+    ),
+    DiscoverError,
+> {
+    let stage = if prepared.physics.is_empty() {
+        "registering sweeps".to_string()
+    } else {
+        format!("registering sweeps with {}", prepared.physics.describe())
+    };
+    progress(&stage, 0, sweeps.len());
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let regs: Vec<crate::pipeline::Registration> =
+        sweeps
+            .par_iter()
+            .map(|s| {
+                let r = register(prepared, &s.measurements, Method::Libr, &params.pipeline)
+                    .map_err(|e| DiscoverError::Scenario {
+                        scenario: s.id.clone(),
+                        source: e,
+                    });
+                let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                progress(&stage, d, sweeps.len());
+                r
+            })
+            .collect::<Result<_, _>>()?;
+    let cparams = params.pipeline.libr_correspondence();
+    let mut images: Vec<Vec<[f64; 3]>> = Vec::with_capacity(sweeps.len());
+    let mut all_matches = Vec::with_capacity(sweeps.len());
+    for (s, reg) in sweeps.iter().zip(&regs) {
+        let inv = reg.image_to_physical.inverse();
+        let pts: Vec<[f64; 3]> = s
+            .measurements
+            .points
+            .iter()
+            .map(|&p| inv.apply(p))
+            .collect();
+        let (m, _) = prepared
+            .correspondence
+            .match_points(&pts, &s.measurements, Some(&reg.u), &cparams)
+            .map_err(|e| DiscoverError::Scenario {
+                scenario: s.id.clone(),
+                source: PipelineError::Libr(e),
+            })?;
+        images.push(pts);
+        all_matches.push(m);
+    }
+    let centers = match centers {
+        Some(c) => c.to_vec(),
+        None => {
+            let pooled: Vec<[f64; 3]> = images.iter().flatten().copied().collect();
+            cluster_centers(&pooled, params.folds)
+        }
+    };
+    let mut rows_v = Vec::new();
+    for (s, (m, pts)) in all_matches.iter().zip(&images).enumerate() {
+        scenario_rows(s, m, pts, |p| nearest(&centers, p), &mut rows_v);
+    }
+    let rows = CohortRows {
+        rows: rows_v,
+        scenarios: sweeps.len(),
+        clusters: centers.len(),
+        centers,
+    };
+    Ok((regs, images, rows))
 }
 
 fn gaussian(rng: &mut crate::util::SplitMix64) -> f64 {
@@ -627,7 +726,12 @@ fn search_family(
             };
             let make = |d: [f64; 3]| Effect::new(kind, &[(dir_name, &d), (amp, &[amp_value])]);
             let mut tried = Vec::new();
-            for d in search::sphere_directions(grid.directions) {
+            // Directions over the sphere, those physics rules out dropped (a prone patient,
+            // insufflation behind the organ: see [`prior::direction_cone`]).
+            for d in search::sphere_directions(grid.directions)
+                .into_iter()
+                .filter(|d| prior::direction_plausible(kind, *d))
+            {
                 let e = make(d)?;
                 let c = search::evaluate_load(ctx, cur, &e)?;
                 tried.push((
@@ -652,7 +756,10 @@ fn search_family(
                     while moved && guard < 6 {
                         moved = false;
                         guard += 1;
-                        for d in search::neighbours(best.0, step.to_radians()) {
+                        for d in search::neighbours(best.0, step.to_radians())
+                            .into_iter()
+                            .filter(|d| prior::direction_plausible(kind, *d))
+                        {
                             let e = make(d)?;
                             let c = search::evaluate_load(ctx, cur, &e)?;
                             let s = c
@@ -762,60 +869,146 @@ fn shape_uncertainty(top: &Candidate, family: &[Candidate]) -> serde_json::Value
     serde_json::Value::Object(out)
 }
 
-/// Makes a candidate the current model.
-fn adopt(ctx: &SearchContext<'_>, cur: Current, top: Candidate) -> Result<Current, DiscoverError> {
-    let mut physics = cur.physics.clone();
-    if let Some(basis) = top.basis {
-        // Rebuilt: its physics is the stiffness effects, then the loads, as evaluate_rebuilt made it.
-        physics = Physics {
-            effects: cur
-                .physics
-                .effects
-                .iter()
-                .filter(|e| !e.kind.is_load())
-                .cloned()
-                .chain(std::iter::once(top.effect.clone()))
-                .chain(
-                    cur.physics
-                        .effects
-                        .iter()
-                        .filter(|e| e.kind.is_load())
-                        .cloned(),
-                )
-                .collect(),
-        };
-        let solver = ModelSolver::new(ctx.mesh, &ctx.libr.material, ctx.sites, &physics)?;
-        let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
-        return Ok(Current {
+/// A candidate confirmed on its own linearization.
+struct Confirmed {
+    /// The augmented model's physics.
+    physics: Physics,
+    /// The augmented model as the next round's current model.
+    current: Current,
+    /// Its score on its own rows (= `current.score`).
+    score: CvScore,
+    /// The rows it is linearized at.
+    rows: CohortRows,
+    /// The candidate's effect with its amplitudes fitted on those rows (load effects).
+    refitted: Option<Effect>,
+}
+
+/// The physics of `current` plus `effect`: stiffness effects first, then loads (the order
+/// [`search::evaluate_rebuilt`] builds bases in; loads keep theirs, the new one last).
+fn with_effect(current: &Physics, effect: &Effect) -> Physics {
+    let all: Vec<&Effect> = current
+        .effects
+        .iter()
+        .chain(std::iter::once(effect))
+        .collect();
+    Physics {
+        effects: all
+            .iter()
+            .filter(|e| !e.kind.is_load())
+            .chain(all.iter().filter(|e| e.kind.is_load()))
+            .map(|e| (*e).clone())
+            .collect(),
+    }
+}
+
+/// Registers every sweep again with the current model plus the candidate, linearizes there and
+/// cross-validates the augmented model on those rows. `None` when the augmented model cannot
+/// be built or a sweep cannot be registered with it (then it is no candidate).
+fn confirm(
+    ctx: &SearchContext<'_>,
+    prepared: &Prepared,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+    cur: &Current,
+    top: &Candidate,
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+) -> Result<Option<Confirmed>, DiscoverError> {
+    let physics = with_effect(&cur.physics, &top.effect);
+    let basis = match &top.basis {
+        Some(b) => b.clone(),
+        None => match crate::register::libr::LibrBasis::build_with(
+            ctx.mesh, ctx.libr, &physics, ctx.sites,
+        ) {
+            Ok(b) => b,
+            Err(RegisterError::Model(_)) => return Ok(None),
+            Err(e) => return Err(e.into()),
+        },
+    };
+    let augmented = Prepared {
+        model: prepared.model.clone(),
+        correspondence: prepared.correspondence.clone(),
+        basis: Some(basis.clone()),
+        basis_from_cache: false,
+        librplus: None,
+        physics: physics.clone(),
+        seconds: 0.0,
+    };
+    let rows = match linearize(
+        &augmented,
+        sweeps,
+        params,
+        Some(&ctx.rows.centers),
+        progress,
+    ) {
+        Ok((_, _, rows)) => rows,
+        Err(DiscoverError::Scenario { .. }) => return Ok(None),
+        Err(e) => return Err(e),
+    };
+    let (a, prior) = basis_design(&rows, &basis, ctx.libr.regularization);
+    let amplitude = search::basis_amplitude_prior(ctx, &basis, &physics);
+    let Some(score) = cross_validate(
+        &rows,
+        &Design {
+            a: &a,
+            prior: &prior,
+            amplitude: &amplitude,
+        },
+    ) else {
+        return Ok(None);
+    };
+    // The new effect's amplitudes on these rows.
+    let refitted = if top.effect.kind.is_load() {
+        let mut j = basis.libr_columns();
+        let mut out = None;
+        for e in physics.effects.iter().filter(|e| e.kind.is_load()) {
+            let k = if e.kind == EffectKind::Pack { 3 } else { 1 };
+            if e.kind == top.effect.kind {
+                let amp: Vec<f64> = (0..k)
+                    .map(|i| score.coef[j + i] * basis.load_scale[j + i])
+                    .collect();
+                let name = match e.kind {
+                    EffectKind::Gravity => "magnitude",
+                    EffectKind::Pressure => "magnitude_kpa",
+                    _ => "force_mn",
+                };
+                let mut e = e.clone();
+                e.parameters.insert(name.to_string(), amp);
+                if e.validate("candidate").is_err() {
+                    // A refit outside the kind's physical range is not that effect.
+                    return Ok(None);
+                }
+                out = Some(e);
+            }
+            j += k;
+        }
+        out
+    } else {
+        None
+    };
+    let solver = ModelSolver::new(ctx.mesh, &ctx.libr.material, ctx.sites, &physics)?;
+    Ok(Some(Confirmed {
+        physics: physics.clone(),
+        current: Current {
             physics,
             basis,
             solver,
             a,
             prior,
-            score: top.score,
-        });
-    }
-    // A load: rebuild the basis with it as an effect column (what `register --physics` uses).
-    physics.effects.push(top.effect.clone());
-    let basis =
-        crate::register::libr::LibrBasis::build_with(ctx.mesh, ctx.libr, &physics, ctx.sites)?;
-    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
-    let score = cross_validate(
-        ctx.rows,
-        &Design {
-            a: &a,
-            prior: &prior,
+            amplitude,
+            score: score.clone(),
         },
-    )
-    .unwrap_or(top.score);
-    Ok(Current {
-        physics,
-        basis,
-        solver: cur.solver,
-        a,
-        prior,
         score,
-    })
+        rows,
+        refitted,
+    }))
+}
+
+/// Change of the Bayesian information criterion from `cur` to `cand` (negative favours
+/// `cand`), each by its own mean-square misfit, `extra` parameters added.
+fn bic_change(cur: &CvScore, cand: &CvScore, extra: usize) -> f64 {
+    let n = cand.rows as f64;
+    let ms = |s: &CvScore| s.full_rss / s.full_w.max(1e-300);
+    n * (ms(cand) / ms(cur)).ln() + extra as f64 * n.ln()
 }
 
 /// Per block: held-out RMS before and after, and how systematic the misfit is across sweeps.

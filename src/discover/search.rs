@@ -8,7 +8,8 @@
 //! the whole basis is built from: each grid point is a rebuilt augmented basis.
 
 use super::DiscoverError;
-use super::cv::{CvScore, Design, cross_validate};
+use super::cv::{AmplitudePrior, CvScore, Design, cross_validate};
+use super::prior::{amplitude_prior, coefficient_prior};
 use super::rows::CohortRows;
 use crate::mesh::TetMesh;
 use crate::mesh::vec3::{cross, dist2, dot, unit};
@@ -29,6 +30,8 @@ pub struct Current {
     pub a: DMatrix<f64>,
     /// Prior `λ E / ē`.
     pub prior: DMatrix<f64>,
+    /// The physical prior of the carried load effects' amplitudes.
+    pub amplitude: AmplitudePrior,
     /// Its cross-validated score.
     pub score: CvScore,
 }
@@ -45,6 +48,33 @@ pub struct SearchContext<'a> {
     pub rows: &'a CohortRows,
     /// Boundary geometry.
     pub geom: &'a BoundaryGeometry,
+    /// Noise variance (mm²) the amplitude priors are weighed with.
+    pub noise_var: f64,
+}
+
+/// The amplitude prior of a basis's effect columns (the load effects of `physics`, in order,
+/// after the LIBR columns; see [`LibrBasis::effect_labels`]).
+pub fn basis_amplitude_prior(
+    ctx: &SearchContext<'_>,
+    basis: &LibrBasis,
+    physics: &Physics,
+) -> AmplitudePrior {
+    let m = basis.columns();
+    let mut out = AmplitudePrior::none(basis.libr_columns());
+    let mut j = basis.libr_columns();
+    for e in physics.effects.iter().filter(|e| e.kind.is_load()) {
+        let k = if e.kind == EffectKind::Pack { 3 } else { 1 };
+        let (p, s) = match amplitude_prior(e, ctx.mesh.nodes(), ctx.geom) {
+            Some((p, mu)) => {
+                coefficient_prior(&p, &mu, &basis.load_scale[j..(j + k).min(m)], ctx.noise_var)
+            }
+            None => (DMatrix::zeros(k, k), nalgebra::DVector::zeros(k)),
+        };
+        out = out.extended(&p, &s);
+        j += k;
+    }
+    debug_assert_eq!(j, m, "effect columns of the basis and its physics disagree");
+    out
 }
 
 /// One evaluated candidate.
@@ -62,6 +92,8 @@ pub struct Candidate {
     pub columns: Option<(DMatrix<f64>, DMatrix<f64>)>,
     /// The rebuilt basis (supports, inclusion).
     pub basis: Option<LibrBasis>,
+    /// The amplitude prior of the candidate's design.
+    pub amplitude: Option<AmplitudePrior>,
 }
 
 /// The design of a basis over the rows: row values and the prior `λ E / ē`.
@@ -117,15 +149,26 @@ pub fn evaluate_load(
             a[(i, m + j)] = r.value(u);
         }
     }
-    // Prior: the current model's; the new effect columns are not regularised (the effect is part
-    // of the model, its amplitude estimated freely), as in the augmented basis.
+    // Prior: the current model's; the new effect columns are not under the strain-energy prior
+    // (the effect is part of the model) but under the physics' prior of their amplitude
+    // ([`super::prior`]).
     let mut prior = DMatrix::<f64>::zeros(q, q);
     prior.view_mut((0, 0), (m, m)).copy_from(&cur.prior);
+    let amplitude = match amplitude_prior(effect, ctx.mesh.nodes(), ctx.geom) {
+        Some((p, mu)) => {
+            let (p, s) = coefficient_prior(&p, &mu, &scales, ctx.noise_var);
+            cur.amplitude.extended(&p, &s)
+        }
+        None => cur
+            .amplitude
+            .extended(&DMatrix::zeros(k, k), &nalgebra::DVector::zeros(k)),
+    };
     let Some(score) = cross_validate(
         ctx.rows,
         &Design {
             a: &a,
             prior: &prior,
+            amplitude: &amplitude,
         },
     ) else {
         return Ok(None);
@@ -160,6 +203,7 @@ pub fn evaluate_load(
         amplitude_sd,
         columns: Some((new_cols, prior)),
         basis: None,
+        amplitude: Some(amplitude),
     }))
 }
 
@@ -194,11 +238,13 @@ pub fn evaluate_rebuilt(
         Err(e) => return Err(e.into()),
     };
     let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+    let amplitude = basis_amplitude_prior(ctx, &basis, &physics);
     let Some(score) = cross_validate(
         ctx.rows,
         &Design {
             a: &a,
             prior: &prior,
+            amplitude: &amplitude,
         },
     ) else {
         return Ok(None);
@@ -215,6 +261,7 @@ pub fn evaluate_rebuilt(
         amplitude_sd: Vec::new(),
         columns: None,
         basis: Some(basis),
+        amplitude: Some(amplitude),
     }))
 }
 

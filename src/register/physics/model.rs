@@ -17,10 +17,14 @@
 //! - `inclusion`: Young's modulus × `stiffness_ratio` in tets whose centroid is within
 //!   `radius_mm` of `center` (ν unchanged).
 //!
-//! Free-floating (no support): each load is replaced by its self-equilibrated part (inertia
-//! relief), solved under a statically determinate 3-2-1 support, and the rigid part is removed,
-//! exactly as LIBR's basis. Supported: the springs carry the load as it is; no constraint is
-//! added and the rigid part is kept (it is the organ moving on its supports).
+//! Every load is replaced by its self-equilibrated part (inertia relief), as LIBR's basis: the
+//! organ's surroundings hold what pushes it. Free-floating (no support): solved under a
+//! statically determinate 3-2-1 support, and the rigid part is removed, exactly as LIBR's basis.
+//! Supported: the springs add the stiffness that holds the organ where they act; no constraint
+//! is added and the rigid part is kept (it is the organ moving on its supports). A support does
+//! not carry a load's net force by itself: a fixation patch or the falciform line carrying a
+//! surgeon's push would let the linear model swing through metres (measured: 80–3000 mm mean
+//! displacement under the generator's base load before this rule).
 
 use super::{Effect, EffectKind, Physics};
 use crate::fem::{
@@ -309,7 +313,10 @@ pub fn effect_load(
 pub struct ModelSolver {
     system: StiffnessSystem,
     fact: FactorizedSystem,
-    modes: Option<RigidModes>,
+    /// Inertia relief (every load is balanced by it).
+    relief: RigidModes,
+    /// Free-floating: no support, the rigid part of a solution is removed.
+    free: bool,
     nodes: Vec<[f64; 3]>,
     /// Seconds spent assembling (stiffness and springs).
     pub assemble_s: f64,
@@ -355,7 +362,8 @@ impl ModelSolver {
         let mut assemble_s = crate::util::secs(t0);
         let factor_s;
         let t1 = std::time::Instant::now();
-        let (fact, modes) = if physics.has_support() {
+        let relief = RigidModes::new(&nodes, &lumped_volumes(mesh))?;
+        let fact = if physics.has_support() {
             let s = support_springs(mesh, &geom, sites, physics);
             if s.is_empty() {
                 return Err(RegisterError::Model(
@@ -367,20 +375,20 @@ impl ModelSolver {
             let t2 = std::time::Instant::now();
             let f = system.factorize(&Dirichlet::new(n))?;
             factor_s = crate::util::secs(t2);
-            (f, None)
+            f
         } else {
-            let modes = RigidModes::new(&nodes, &lumped_volumes(mesh))?;
-            let bc = support_321(&nodes, &geom.nodes, modes.center())?;
+            let bc = support_321(&nodes, &geom.nodes, relief.center())?;
             assemble_s += crate::util::secs(t1);
             let t2 = std::time::Instant::now();
             let f = system.factorize(&bc)?;
             factor_s = crate::util::secs(t2);
-            (f, Some(modes))
+            f
         };
         Ok(Self {
             system,
             fact,
-            modes,
+            free: !physics.has_support(),
+            relief,
             nodes,
             assemble_s,
             factor_s,
@@ -389,7 +397,7 @@ impl ModelSolver {
 
     /// Whether the model is free-floating (no support).
     pub fn is_free(&self) -> bool {
-        self.modes.is_some()
+        self.free
     }
 
     /// The assembled stiffness (with the support springs).
@@ -397,18 +405,21 @@ impl ModelSolver {
         &self.system
     }
 
-    /// Prepares a load for the solve: its self-equilibrated part when free-floating.
+    /// Prepares a load for the solve: its self-equilibrated part (inertia relief). Every load
+    /// is balanced so, as LIBR's own model assumes: what pushes the organ is held by its
+    /// surroundings. A support adds the stiffness that holds the organ where it acts; it does not
+    /// carry a load's net force alone (a fixation patch or a ligament line carrying the net force
+    /// of a surgeon's push would swing the linear model through metres).
     pub fn prepare_load(&self, f: &mut [f64]) {
-        if let Some(m) = &self.modes {
-            m.equilibrate(&self.nodes, f);
-        }
+        self.relief.equilibrate(&self.nodes, f);
     }
 
     /// Solves for the columns of `f` (3n × m, already prepared by [`Self::prepare_load`]) and
     /// removes the rigid part of each when free-floating.
     pub fn solve_prepared(&self, f: MatRef<'_, f64>) -> Mat<f64> {
         let mut u = self.fact.solve_many_homogeneous(f);
-        if let Some(m) = &self.modes {
+        if self.free {
+            let m = &self.relief;
             let mut col = vec![0.0; u.nrows()];
             for j in 0..u.ncols() {
                 for (r, x) in col.iter_mut().enumerate() {
