@@ -10,14 +10,18 @@
 //! 2. **Find** ([`cv`]): the points of all sweeps are split into spatial blocks (k-means); each
 //!    fold holds one block out of every sweep, fits the shared deformation on the rest with every
 //!    sweep's own pose, and scores the held-out rows after fitting only the sweep's pose. The
-//!    noise floor comes from the data ([`noise`]: local quadric fits); a parametric bootstrap
-//!    (the fitted model plus noise at the floor, cross-validated the same way) says how large the
-//!    held-out misfit would be if the model were right: "disagrees beyond noise" when the observed
+//!    noise floor comes from the data ([`noise`]: local quadric fits); a posterior-predictive
+//!    bootstrap (LIBR's weights drawn from their posterior, seen with noise at the floor,
+//!    cross-validated the same way) says how large the held-out misfit would be if the model
+//!    were right: "disagrees beyond noise" when the observed
 //!    misfit exceeds every bootstrap replicate and the noise floor by a clear margin.
 //! 3. **Name** ([`search`]): every kind in the library is searched over its parameters on top of
-//!    the current model and scored by the same cross-validation. The best is named only when it
+//!    the current model, under physics' priors on the loads' size and direction ([`prior`]), and
+//!    scored by the same cross-validation; the promising are confirmed on their own
+//!    linearization (every sweep registered again with the augmented model). The best is named
+//!    only when it
 //!    beats the current model on the held-out blocks significantly (a paired comparison over
-//!    the sweep × block units: sign test above [`DiscoverParams::z_threshold`]), by a practical margin
+//!    the sweep × block units: Wilcoxon signed-rank z above [`DiscoverParams::z_threshold`]), by a practical margin
 //!    ([`DiscoverParams::min_gain`]) and by the Bayesian information criterion; then the next is
 //!    tried on top (forward selection). Verdicts: named effects, no missing effect, or an
 //!    unexplained discrepancy (real, but no candidate explains it).
@@ -74,8 +78,8 @@ pub struct DiscoverParams {
     /// Bootstrap replicates of the no-discrepancy null. Default 19 (p ≤ 0.05 when the observed
     /// misfit exceeds all).
     pub bootstrap: usize,
-    /// Sign-test z a candidate must exceed over the sweep × block units (units whose held-out
-    /// misfit it lowers against those it raises). Default 3.0 (one-sided p ≈ 0.001, a
+    /// Wilcoxon signed-rank z a candidate must exceed over the sweep × block units (of the
+    /// held-out misfit it removes per unit). Default 3.0 (one-sided p ≈ 0.001, a
     /// Bonferroni-style margin for searching eight kinds and their parameters).
     pub z_threshold: f64,
     /// Smallest fraction of the held-out misfit a candidate must remove. Default 0.05.
@@ -186,8 +190,9 @@ pub struct CandidateRecord {
     pub heldout_rms_mm: f64,
     /// Fraction of the current held-out misfit (mean square) it removes.
     pub gain: f64,
-    /// Sign test z over units (improved against worsened).
-    pub sign_z: f64,
+    /// Wilcoxon signed-rank z over the sweep × block units (positive: the candidate lowers
+    /// the held-out misfit).
+    pub rank_z: f64,
     /// Paired t statistic over units (reported).
     pub t: f64,
     /// Change of the Bayesian information criterion (negative favours it).
@@ -414,7 +419,13 @@ pub fn discover_cohort(
     let find_s = crate::util::secs(t1);
     // 3. Name: forward selection.
     let t2 = Instant::now();
-    let solver = ModelSolver::new(&model.mesh, &libr.material, sites, &Physics::none())?;
+    let solver = std::sync::Arc::new(ModelSolver::new(
+        &model.mesh,
+        &libr.material,
+        sites,
+        &Physics::none(),
+    )?);
+    let (base_a, base_prior) = (a.clone(), prior.clone());
     let mut cur = Current {
         physics: Physics::none(),
         basis,
@@ -467,13 +478,15 @@ pub fn discover_cohort(
                 effect: top.effect.describe(),
                 heldout_rms_mm: top.score.heldout_mse.sqrt(),
                 gain,
-                sign_z: z,
+                rank_z: z,
                 t,
                 delta_bic,
                 relinearized: false,
                 significant: false,
             });
-            if gain > 0.0 && delta_bic < 0.0 {
+            // Promising: it lowers the held-out misfit or the BIC on the current linearization
+            // (which understates a large effect; the confirmation decides).
+            if gain > 0.0 || delta_bic < 0.0 {
                 let at = records.len() - 1;
                 screened.push((top, family, at));
             }
@@ -494,8 +507,8 @@ pub fn discover_cohort(
             let Some(conf) = confirm(&ctx, &prepared, sweeps, params, &cur, &top, progress)? else {
                 continue;
             };
-            let (z, t, gain) = paired(&cur.score, &conf.score);
-            let delta_bic = bic_change(&cur.score, &conf.score, top.parameters);
+            let (z, t, gain) = paired(&conf.compared.0, &conf.compared.1);
+            let delta_bic = bic_change(&conf.compared.0, &conf.compared.1, top.parameters);
             let significant = z > params.z_threshold && gain > params.min_gain && delta_bic < 0.0;
             let mut effect = conf
                 .physics
@@ -512,9 +525,9 @@ pub fn discover_cohort(
                 round,
                 kind: top.effect.kind.name().into(),
                 effect: effect.describe(),
-                heldout_rms_mm: conf.score.heldout_mse.sqrt(),
+                heldout_rms_mm: conf.compared.1.heldout_mse.sqrt(),
                 gain,
-                sign_z: z,
+                rank_z: z,
                 t,
                 delta_bic,
                 relinearized: true,
@@ -527,14 +540,14 @@ pub fn discover_cohort(
         let Some((conf, top, family, z, gain, delta_bic)) = best else {
             break;
         };
-        let before = cur.score.heldout_mse.sqrt();
+        let before = conf.compared.0.heldout_mse.sqrt();
         let uncertainty = shape_uncertainty(&top, &family);
         let effect = conf.refitted.clone().unwrap_or_else(|| top.effect.clone());
         let evidence = serde_json::json!({
             "heldout_rms_before_mm": before,
-            "heldout_rms_after_mm": conf.score.heldout_mse.sqrt(),
+            "heldout_rms_after_mm": conf.compared.1.heldout_mse.sqrt(),
             "gain": gain,
-            "sign_z": z,
+            "rank_z": z,
             "delta_bic": delta_bic,
             "round": round,
             "candidates_tried": family.len(),
@@ -549,7 +562,34 @@ pub fn discover_cohort(
     }
     let name_s = crate::util::secs(t2);
     // Regions: per block, before and after.
-    let regions = region_table(&rows, model, &base_score, &cur.score);
+    // Before and after on the points both the plain and the final linearization matched.
+    let (before_s, after_s) = if named.is_empty() {
+        (base_score.clone(), cur.score.clone())
+    } else {
+        let (ib, ia) = common_rows(&rows, &cur_rows);
+        let none = AmplitudePrior::none(base_a.ncols());
+        let b = cross_validate(
+            &subset(&rows, &ib),
+            &Design {
+                a: &base_a.select_rows(&ib),
+                prior: &base_prior,
+                amplitude: &none,
+            },
+        );
+        let f = cross_validate(
+            &subset(&cur_rows, &ia),
+            &Design {
+                a: &cur.a.select_rows(&ia),
+                prior: &cur.prior,
+                amplitude: &cur.amplitude,
+            },
+        );
+        match (b, f) {
+            (Some(b), Some(f)) => (b, f),
+            _ => (base_score.clone(), cur.score.clone()),
+        }
+    };
+    let regions = region_table(&rows, model, &before_s, &after_s);
     let verdict = if !named.is_empty() {
         Verdict::Effects
     } else if beyond_noise {
@@ -561,10 +601,10 @@ pub fn discover_cohort(
         verdict,
         effects: named,
         physics: cur.physics.clone(),
-        heldout_before_mm: before_rms,
+        heldout_before_mm: before_s.heldout_mse.sqrt(),
         insample_before_mm: (base_score.full_rss / base_score.full_w.max(1e-300)).sqrt(),
         prior_scale_before: base_score.prior_scale,
-        heldout_after_mm: cur.score.heldout_mse.sqrt(),
+        heldout_after_mm: after_s.heldout_mse.sqrt(),
         noise_floor_mm,
         null_max_mm,
         beyond_noise,
@@ -668,10 +708,11 @@ fn gaussian(rng: &mut crate::util::SplitMix64) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
 }
 
-/// Paired comparison over the units both scored: the sign test's z (units improved against
-/// units worsened, normal approximation of the binomial; robust to the heavy tails of per-unit
-/// misfits), the t statistic of `sse_cur − sse_cand`, and the fraction of the current held-out
-/// misfit removed.
+/// Paired comparison over the units both scored: the Wilcoxon signed-rank test's z for
+/// `sse_cur − sse_cand` (normal approximation with tie correction; ranks make it robust to the
+/// heavy tails of per-unit misfits, and unlike a sign test it weighs a large improvement above a
+/// small worsening), the t statistic of the differences, and the fraction of the current
+/// held-out misfit removed.
 fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64, f64) {
     let d: Vec<f64> = cur
         .unit_sse
@@ -684,13 +725,7 @@ fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64, f64) {
     if d.len() < 2 || total <= 0.0 {
         return (0.0, 0.0, 0.0);
     }
-    let better = d.iter().filter(|x| **x > 0.0).count() as f64;
-    let worse = d.iter().filter(|x| **x < 0.0).count() as f64;
-    let sign_z = if better + worse > 0.0 {
-        (better - worse) / (better + worse).sqrt()
-    } else {
-        0.0
-    };
+    let rank_z = signed_rank_z(&d);
     let n = d.len() as f64;
     let mean = d.iter().sum::<f64>() / n;
     let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
@@ -701,7 +736,42 @@ fn paired(cur: &CvScore, cand: &CvScore) -> (f64, f64, f64) {
     } else {
         0.0
     };
-    (sign_z, t, d.iter().sum::<f64>() / total)
+    (rank_z, t, d.iter().sum::<f64>() / total)
+}
+
+/// Wilcoxon signed-rank z of differences (zeros dropped, tied magnitudes get their mean rank).
+fn signed_rank_z(d: &[f64]) -> f64 {
+    let mut nz: Vec<f64> = d.iter().copied().filter(|x| *x != 0.0).collect();
+    let n = nz.len();
+    if n == 0 {
+        return 0.0;
+    }
+    nz.sort_by(|a, b| a.abs().total_cmp(&b.abs()));
+    let (mut w_plus, mut tie) = (0.0, 0.0);
+    let mut i = 0;
+    while i < n {
+        let mut j = i;
+        while j + 1 < n && nz[j + 1].abs() == nz[i].abs() {
+            j += 1;
+        }
+        let rank = (i + j) as f64 / 2.0 + 1.0;
+        let t = (j - i + 1) as f64;
+        tie += t * t * t - t;
+        for x in &nz[i..=j] {
+            if *x > 0.0 {
+                w_plus += rank;
+            }
+        }
+        i = j + 1;
+    }
+    let nf = n as f64;
+    let mean = nf * (nf + 1.0) / 4.0;
+    let var = nf * (nf + 1.0) * (2.0 * nf + 1.0) / 24.0 - tie / 48.0;
+    if var <= 0.0 {
+        0.0
+    } else {
+        (w_plus - mean) / var.sqrt()
+    }
 }
 
 /// Searches one kind over its parameter grid on top of the current model.
@@ -875,12 +945,40 @@ struct Confirmed {
     physics: Physics,
     /// The augmented model as the next round's current model.
     current: Current,
-    /// Its score on its own rows (= `current.score`).
-    score: CvScore,
     /// The rows it is linearized at.
     rows: CohortRows,
     /// The candidate's effect with its amplitudes fitted on those rows (load effects).
     refitted: Option<Effect>,
+    /// The current model and the candidate scored on the points both linearizations matched
+    /// (each at its own correspondences): the fair comparison.
+    compared: (CvScore, CvScore),
+}
+
+/// The rows of `a` and of `b` whose (sweep, point) both have: the same measured points, each at
+/// its own model's correspondences (trimming keeps different points for different fits).
+fn common_rows(a: &CohortRows, b: &CohortRows) -> (Vec<usize>, Vec<usize>) {
+    use std::collections::HashSet;
+    let ka: HashSet<(usize, usize)> = a.rows.iter().map(|r| (r.scenario, r.point)).collect();
+    let kb: HashSet<(usize, usize)> = b.rows.iter().map(|r| (r.scenario, r.point)).collect();
+    let pick = |rows: &CohortRows, other: &HashSet<(usize, usize)>| {
+        rows.rows
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| other.contains(&(r.scenario, r.point)))
+            .map(|(i, _)| i)
+            .collect::<Vec<usize>>()
+    };
+    (pick(a, &kb), pick(b, &ka))
+}
+
+/// A subset of the rows (same blocks).
+fn subset(rows: &CohortRows, idx: &[usize]) -> CohortRows {
+    CohortRows {
+        rows: idx.iter().map(|&i| rows.rows[i]).collect(),
+        scenarios: rows.scenarios,
+        clusters: rows.clusters,
+        centers: rows.centers.clone(),
+    }
 }
 
 /// The physics of `current` plus `effect`: stiffness effects first, then loads (the order
@@ -901,10 +999,84 @@ fn with_effect(current: &Physics, effect: &Effect) -> Physics {
     }
 }
 
+/// Confirms a candidate ([`confirm_once`]), then estimates its shape parameters again on its own
+/// linearization (the kind searched afresh on the rows the augmented registrations matched,
+/// which lie closer to the truth than plain LIBR's when the effect is large) and, where they
+/// moved, confirms the re-estimate too; the better of the two (by the held-out misfit removed)
+/// is returned.
+#[allow(clippy::too_many_arguments)]
+fn confirm(
+    ctx: &SearchContext<'_>,
+    prepared: &Prepared,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+    cur: &Current,
+    top: &Candidate,
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+) -> Result<Option<Confirmed>, DiscoverError> {
+    let Some(first) = confirm_once(ctx, prepared, sweeps, params, cur, top, progress)? else {
+        return Ok(None);
+    };
+    let (a, _) = basis_design(&first.rows, &cur.basis, ctx.libr.regularization);
+    let Some(score) = cross_validate(
+        &first.rows,
+        &Design {
+            a: &a,
+            prior: &cur.prior,
+            amplitude: &cur.amplitude,
+        },
+    ) else {
+        return Ok(Some(first));
+    };
+    let there = Current {
+        physics: cur.physics.clone(),
+        basis: cur.basis.clone(),
+        solver: cur.solver.clone(),
+        a,
+        prior: cur.prior.clone(),
+        amplitude: cur.amplitude.clone(),
+        score,
+    };
+    let ctx2 = SearchContext {
+        rows: &first.rows,
+        ..*ctx
+    };
+    let family = search_family(&ctx2, &there, top.effect.kind, &params.grid)?;
+    let Some(top2) = family
+        .iter()
+        .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
+    else {
+        return Ok(Some(first));
+    };
+    if same_shape(&top2.effect, &top.effect) {
+        return Ok(Some(first));
+    }
+    // A rebuilt candidate's basis was built for the plain rows' search; it is the same basis.
+    let Some(second) = confirm_once(ctx, prepared, sweeps, params, cur, top2, progress)? else {
+        return Ok(Some(first));
+    };
+    let gain = |c: &Confirmed| paired(&c.compared.0, &c.compared.1).2;
+    Ok(Some(if gain(&second) > gain(&first) {
+        second
+    } else {
+        first
+    }))
+}
+
+/// Whether two effects of a kind have the same shape parameters (amplitudes aside).
+fn same_shape(a: &Effect, b: &Effect) -> bool {
+    const AMPLITUDES: [&str; 3] = ["magnitude", "magnitude_kpa", "force_mn"];
+    a.kind == b.kind
+        && a.parameters
+            .iter()
+            .filter(|(k, _)| !AMPLITUDES.contains(&k.as_str()))
+            .all(|(k, v)| b.parameters.get(k).is_some_and(|w| w == v))
+}
+
 /// Registers every sweep again with the current model plus the candidate, linearizes there and
 /// cross-validates the augmented model on those rows. `None` when the augmented model cannot
 /// be built or a sweep cannot be registered with it (then it is no candidate).
-fn confirm(
+fn confirm_once(
     ctx: &SearchContext<'_>,
     prepared: &Prepared,
     sweeps: &[Sweep],
@@ -956,6 +1128,30 @@ fn confirm(
     ) else {
         return Ok(None);
     };
+    // The fair comparison: both models on the points both matched.
+    let (ic, ia) = common_rows(ctx.rows, &rows);
+    let (rc, ra) = (subset(ctx.rows, &ic), subset(&rows, &ia));
+    let (ac, aa) = (cur.a.select_rows(&ic), a.select_rows(&ia));
+    let (Some(sc), Some(sa)) = (
+        cross_validate(
+            &rc,
+            &Design {
+                a: &ac,
+                prior: &cur.prior,
+                amplitude: &cur.amplitude,
+            },
+        ),
+        cross_validate(
+            &ra,
+            &Design {
+                a: &aa,
+                prior: &prior,
+                amplitude: &amplitude,
+            },
+        ),
+    ) else {
+        return Ok(None);
+    };
     // The new effect's amplitudes on these rows.
     let refitted = if top.effect.kind.is_load() {
         let mut j = basis.libr_columns();
@@ -973,7 +1169,7 @@ fn confirm(
                 };
                 let mut e = e.clone();
                 e.parameters.insert(name.to_string(), amp);
-                if e.validate("candidate").is_err() {
+                if e.validate("candidate").is_err() || !prior::amplitude_plausible(&e) {
                     // A refit outside the kind's physical range is not that effect.
                     return Ok(None);
                 }
@@ -985,7 +1181,12 @@ fn confirm(
     } else {
         None
     };
-    let solver = ModelSolver::new(ctx.mesh, &ctx.libr.material, ctx.sites, &physics)?;
+    let solver = std::sync::Arc::new(ModelSolver::new(
+        ctx.mesh,
+        &ctx.libr.material,
+        ctx.sites,
+        &physics,
+    )?);
     Ok(Some(Confirmed {
         physics: physics.clone(),
         current: Current {
@@ -995,11 +1196,11 @@ fn confirm(
             a,
             prior,
             amplitude,
-            score: score.clone(),
+            score,
         },
-        score,
         rows,
         refitted,
+        compared: (sc, sa),
     }))
 }
 

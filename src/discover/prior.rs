@@ -30,6 +30,39 @@ pub const PRESSURE_KPA: (f64, f64) = (1.4, 0.6);
 /// (mN).
 pub const PACK_FORCE_MN: (f64, f64, f64) = (5000.0, 3000.0, 2500.0);
 
+/// The plausible size of a load effect's amplitude (`magnitude`, `magnitude_kpa`, the norm of
+/// `force_mn`): the physical range of the table above, widened by a factor of two either way
+/// (for the model's Young's modulus, which scales every fitted load). The Gaussian prior alone
+/// does not keep a candidate physical: thousands of rows outweigh it, and the rows' misfit is
+/// mostly correlated model error that a free amplitude fits at any size; a fitted amplitude
+/// outside this range is not the named effect.
+pub fn plausible_amplitude(kind: EffectKind) -> Option<(f64, f64)> {
+    match kind {
+        EffectKind::Gravity => Some((0.8 * GRAVITY_MAGNITUDE / 2.0, 1.2 * GRAVITY_MAGNITUDE * 2.0)),
+        EffectKind::Pressure => Some((0.93 / 2.0, 1.87 * 2.0)),
+        EffectKind::Pack => Some((2000.0 / 2.0, 8000.0 * 2.0)),
+        _ => None,
+    }
+}
+
+/// Whether a load effect's fitted amplitude is of a plausible size (always for other kinds).
+pub fn amplitude_plausible(effect: &Effect) -> bool {
+    let Some((lo, hi)) = plausible_amplitude(effect.kind) else {
+        return true;
+    };
+    let name = match effect.kind {
+        EffectKind::Gravity => "magnitude",
+        EffectKind::Pressure => "magnitude_kpa",
+        _ => "force_mn",
+    };
+    let Some(v) = effect.parameters.get(name) else {
+        return false;
+    };
+    let size = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let signed = if v.len() == 1 { v[0] } else { size };
+    signed >= lo && signed <= hi
+}
+
 /// The cone a load's direction must lie in: axis and largest angle (degrees); `None` where any
 /// direction is plausible.
 pub fn direction_cone(kind: EffectKind) -> Option<([f64; 3], f64)> {

@@ -25,7 +25,7 @@ pub struct Current {
     /// Its basis.
     pub basis: LibrBasis,
     /// Its solver (for the unit responses of load candidates).
-    pub solver: ModelSolver,
+    pub solver: std::sync::Arc<ModelSolver>,
     /// Row values of the basis columns.
     pub a: DMatrix<f64>,
     /// Prior `λ E / ē`.
@@ -37,6 +37,7 @@ pub struct Current {
 }
 
 /// What the search needs of the case.
+#[derive(Clone, Copy)]
 pub struct SearchContext<'a> {
     /// Preoperative mesh.
     pub mesh: &'a TetMesh,
@@ -188,7 +189,7 @@ pub fn evaluate_load(
     effect.parameters.insert(name.to_string(), amp.clone());
     // An amplitude outside the kind's physical range (negative weight, a force of tons) is not
     // that effect: no candidate.
-    if effect.validate("candidate").is_err() {
+    if effect.validate("candidate").is_err() || !super::prior::amplitude_plausible(&effect) {
         return Ok(None);
     }
     let amplitude_sd = vec![(

@@ -269,19 +269,24 @@ fn report_md(doc: &Value) -> String {
     for c in doc["cohorts"].as_array().into_iter().flatten() {
         let _ = writeln!(
             s,
-            "### {}\n\n| round | kind | best parameters | held-out RMS (mm) | gain | sign z | t | ΔBIC | significant |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+            "### {}\n\n| round | kind | stage | best parameters | held-out RMS (mm) | gain | signed-rank z | t | ΔBIC | significant |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
             c["cohort"].as_str().unwrap_or("?")
         );
         for r in c["candidates"].as_array().into_iter().flatten() {
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.1} | {} |",
+                "| {} | {} | {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.1} | {} |",
                 r["round"],
                 r["kind"].as_str().unwrap_or("?"),
+                if r["relinearized"].as_bool().unwrap_or(false) {
+                    "confirm"
+                } else {
+                    "screen"
+                },
                 r["effect"].as_str().unwrap_or("?"),
                 r["heldout_rms_mm"].as_f64().unwrap_or(f64::NAN),
                 r["gain"].as_f64().unwrap_or(f64::NAN),
-                r["sign_z"].as_f64().unwrap_or(f64::NAN),
+                r["rank_z"].as_f64().unwrap_or(f64::NAN),
                 r["t"].as_f64().unwrap_or(f64::NAN),
                 r["delta_bic"].as_f64().unwrap_or(f64::NAN),
                 r["significant"],

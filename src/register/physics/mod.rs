@@ -16,8 +16,9 @@
 //! | `nonlinear` | large-deformation behaviour | none (recognised; the augmented model does not carry it yet) |
 //!
 //! Supports (`bed-support`, `fixation`, `ligament`) are springs per unit boundary area; a model
-//! with any support is no longer free-floating: loads are carried by the supports instead of
-//! inertia relief. Load effects (`gravity`, `pressure`, `pack`) become extra basis columns
+//! with any support is no longer free-floating: it keeps the rigid motion the springs allow.
+//! Every load is balanced by inertia relief in either case (the organ's surroundings hold what
+//! pushes it); the supports add stiffness where they act. Load effects (`gravity`, `pressure`, `pack`) become extra basis columns
 //! whose amplitudes the fit estimates; the others change the stiffness the basis is built from.
 //! The physics of each effect is in [`model`]; the file format in `docs/formats.md`.
 
