@@ -368,6 +368,18 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
     }
     let second = run("b");
     assert_eq!(first, second, "discover read the hidden-effect record");
+    // The maps open as a mesh with the misfit per node; the plots are PNGs.
+    let cohort_dir = dir.path().join("a/g1-W-00");
+    let maps =
+        librplus::mesh::io::read(cohort_dir.join("misfit.vtu"), librplus::mesh::io::Unit::Mm)
+            .unwrap();
+    let before = maps.point_array("heldout_before_mm").unwrap();
+    assert_eq!(before.values.len(), maps.nodes.len());
+    assert!(before.values.iter().any(|v| v.is_finite() && *v > 0.0));
+    for png in ["misfit_by_region.png", "candidates.png"] {
+        let bytes = std::fs::read(cohort_dir.join(png)).unwrap();
+        assert!(bytes.starts_with(b"\x89PNG"), "{png}");
+    }
     // register --physics carries the cohort's physics (or none).
     let physics = dir
         .path()

@@ -29,6 +29,7 @@
 //!    carries.
 
 pub mod cv;
+pub mod maps;
 pub mod noise;
 pub mod prior;
 pub mod rows;

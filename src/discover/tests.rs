@@ -242,3 +242,98 @@ fn bad_cohorts_are_refused_with_the_field_named() {
         .to_string();
     assert!(e.starts_with("folds"), "{e}");
 }
+
+/// The signed-rank z against the textbook formulas: all n differences positive gives
+/// W+ = n(n+1)/2; a sign-symmetric set gives 0; ties take their mean rank and shrink the
+/// variance by Σ(t³ − t)/48.
+#[test]
+fn signed_rank_z_matches_the_textbook_statistic() {
+    let n = 10.0f64;
+    let all: Vec<f64> = (1..=10).map(|i| i as f64 * 0.3).collect();
+    let expect = (n * (n + 1.0) / 2.0 - n * (n + 1.0) / 4.0)
+        / (n * (n + 1.0) * (2.0 * n + 1.0) / 24.0).sqrt();
+    assert!((signed_rank_z(&all) - expect).abs() < 1e-12);
+    let sym: Vec<f64> = all.iter().flat_map(|x| [*x, -*x]).collect();
+    assert!(signed_rank_z(&sym).abs() < 1e-12);
+    // Ties: |d| = 1, 1, 2, 3 (ranks 1.5, 1.5, 3, 4); signs +, −, +, +: W+ = 8.5.
+    let d = [1.0, -1.0, 2.0, 3.0];
+    let var = 4.0 * 5.0 * 9.0 / 24.0 - (8.0 - 2.0) / 48.0;
+    let z = (8.5 - 5.0) / f64::sqrt(var);
+    assert!((signed_rank_z(&d) - z).abs() < 1e-12);
+    // Zeros are dropped: they neither help nor hurt.
+    assert!((signed_rank_z(&[0.0, 0.0, 1.0, 2.0]) - signed_rank_z(&[1.0, 2.0])).abs() < 1e-12);
+}
+
+/// The coefficient-space prior is the amplitude prior rewritten: for columns scaled so that
+/// amplitude = coefficient × scale, σ²(a − μ)ᵀP(a − μ) equals (c − μ_c)ᵀP_c(c − μ_c) for any c.
+#[test]
+fn coefficient_prior_is_the_amplitude_prior_in_coefficients() {
+    use nalgebra::{DMatrix, DVector};
+    let p = DMatrix::from_row_slice(3, 3, &[2.0, 0.3, 0.1, 0.3, 1.0, -0.2, 0.1, -0.2, 0.5]);
+    let mu = DVector::from_row_slice(&[1.0, -2.0, 0.5]);
+    let scales = [0.2, 3.0, 0.05];
+    let var = 0.7;
+    let (pc, shift) = prior::coefficient_prior(&p, &mu, &scales, var);
+    let mu_c = pc.clone().lu().solve(&shift).unwrap();
+    let mut rng = SplitMix64::new(3);
+    for _ in 0..5 {
+        let c = DVector::from_fn(3, |_, _| rng.next_f64() * 4.0 - 2.0);
+        let a = DVector::from_fn(3, |i, _| c[i] * scales[i]);
+        let lhs = var * (&a - &mu).dot(&(&p * (&a - &mu)));
+        let rhs = (&c - &mu_c).dot(&(&pc * (&c - &mu_c)));
+        assert!(
+            (lhs - rhs).abs() < 1e-9 * lhs.abs().max(1.0),
+            "{lhs} vs {rhs}"
+        );
+    }
+}
+
+/// What physics rules out: an anterior weight (a prone patient), insufflation behind the organ,
+/// a load far outside its physical size.
+#[test]
+fn implausible_loads_are_no_candidates() {
+    use crate::register::physics::{Effect, EffectKind};
+    assert!(prior::direction_plausible(
+        EffectKind::Gravity,
+        [0.3, 0.9, -0.3]
+    ));
+    assert!(!prior::direction_plausible(
+        EffectKind::Gravity,
+        [0.0, -1.0, 0.1]
+    ));
+    assert!(prior::direction_plausible(
+        EffectKind::Pressure,
+        [0.2, -0.9, 0.1]
+    ));
+    assert!(!prior::direction_plausible(
+        EffectKind::Pressure,
+        [0.0, 1.0, 0.0]
+    ));
+    assert!(prior::direction_plausible(
+        EffectKind::Pack,
+        [0.0, 1.0, 0.0]
+    ));
+    let g = |m: f64| {
+        Effect::new(
+            EffectKind::Gravity,
+            &[("direction", &[0.0, 1.0, 0.0]), ("magnitude", &[m])],
+        )
+        .unwrap()
+    };
+    assert!(prior::amplitude_plausible(&g(0.0104)));
+    assert!(!prior::amplitude_plausible(&g(0.002)));
+    assert!(!prior::amplitude_plausible(&g(0.05)));
+    let pack = |f: [f64; 3]| {
+        Effect::new(
+            EffectKind::Pack,
+            &[
+                ("center", &[0.0, 0.0, 0.0]),
+                ("width_mm", &[20.0]),
+                ("force_mn", &f),
+            ],
+        )
+        .unwrap()
+    };
+    assert!(prior::amplitude_plausible(&pack([3000.0, 0.0, -4000.0])));
+    assert!(!prior::amplitude_plausible(&pack([300.0, 0.0, 0.0])));
+}

@@ -142,6 +142,7 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
         };
         let dir = a.out.join(&d.id);
         std::fs::create_dir_all(&dir)?;
+        write_figures(&dir, &d.id, &geo.model, &found)?;
         let extra: Vec<Value> = found
             .effects
             .iter()
@@ -171,6 +172,85 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
             &json!({"out": a.out.display().to_string(), "summary": summary}),
         );
     }
+    Ok(())
+}
+
+/// `misfit.vtu` (held-out misfit per block and the named effects on the mesh),
+/// `misfit_by_region.png` (before and after per block) and `candidates.png` (every candidate's
+/// share of the held-out misfit removed, per round and stage).
+fn write_figures(
+    dir: &std::path::Path,
+    id: &str,
+    model: &librplus::register::PreopModel,
+    found: &CohortDiscovery,
+) -> Result<()> {
+    let maps = librplus::discover::maps::discovery_maps(model, found)
+        .with_context(|| format!("cohort {id}: maps"))?;
+    librplus::mesh::io::write(
+        dir.join("misfit.vtu"),
+        &maps,
+        librplus::mesh::io::WriteOptions::default(),
+    )?;
+    let groups: Vec<String> = found
+        .regions
+        .iter()
+        .enumerate()
+        .map(|(i, r)| format!("{i}: {}", r.region))
+        .collect();
+    let png = librplus::eval::plot::grouped_bars_png(
+        &format!("{id}: held-out misfit per block"),
+        "spatial block (held out in turn)",
+        "held-out RMS misfit (mm)",
+        &groups,
+        &[
+            (
+                "plain LIBR".into(),
+                found.regions.iter().map(|r| r.before_mm).collect(),
+            ),
+            (
+                "augmented model".into(),
+                found.regions.iter().map(|r| r.after_mm).collect(),
+            ),
+        ],
+    )
+    .map_err(anyhow::Error::msg)?;
+    librplus::util::write_atomic(&dir.join("misfit_by_region.png"), &png)?;
+    let mut kinds: Vec<String> = found.candidates.iter().map(|c| c.kind.clone()).collect();
+    kinds.sort();
+    kinds.dedup();
+    let rounds = found
+        .candidates
+        .iter()
+        .map(|c| c.round)
+        .max()
+        .map_or(0, |r| r + 1);
+    let mut series = Vec::new();
+    for round in 0..rounds {
+        for (stage, relin) in [("screen", false), ("confirm", true)] {
+            let v: Vec<f64> = kinds
+                .iter()
+                .map(|k| {
+                    found
+                        .candidates
+                        .iter()
+                        .find(|c| c.round == round && &c.kind == k && c.relinearized == relin)
+                        .map_or(f64::NAN, |c| c.gain)
+                })
+                .collect();
+            if v.iter().any(|x| x.is_finite()) {
+                series.push((format!("round {round} {stage}"), v));
+            }
+        }
+    }
+    let png = librplus::eval::plot::grouped_bars_png(
+        &format!("{id}: candidates (named when confirmed, z > 3, gain > 5 %, ΔBIC < 0)"),
+        "effect kind",
+        "share of held-out misfit removed",
+        &kinds,
+        &series,
+    )
+    .map_err(anyhow::Error::msg)?;
+    librplus::util::write_atomic(&dir.join("candidates.png"), &png)?;
     Ok(())
 }
 
