@@ -380,6 +380,51 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
         let bytes = std::fs::read(cohort_dir.join(png)).unwrap();
         assert!(bytes.starts_with(b"\x89PNG"), "{png}");
     }
+    // The same on a user's own files: the preoperative mesh and one point file per sweep; no
+    // truth, so no TRE.
+    let own = dir.path().join("own");
+    std::fs::create_dir_all(&own).unwrap();
+    let scen = data.join("deformations/g1-W-00/scenarios");
+    for i in 0..4 {
+        let name = format!("{i:04}.vtp");
+        std::fs::copy(scen.join(&name), own.join(&name)).unwrap();
+    }
+    let preop = data.join("geometries/g1/preop.vtu").display().to_string();
+    let o3 = dir.path().join("o3").display().to_string();
+    let v = json(&[
+        "discover",
+        "--preop",
+        &preop,
+        "--scenarios",
+        &own.display().to_string(),
+        "--out",
+        &o3,
+        "--json",
+    ]);
+    let oc = &v["cohorts"][0];
+    assert_eq!(oc["cohort"], "own");
+    assert_eq!(oc["sweeps"], 4);
+    assert!(oc.get("tre_mm").is_none(), "TRE without truth: {oc}");
+    assert!(
+        oc["heldout_misfit_mm"]["before"]
+            .as_f64()
+            .unwrap()
+            .is_finite()
+    );
+    // One sweep is not a cohort: the error names --scenarios.
+    for i in 1..4 {
+        std::fs::remove_file(own.join(format!("{i:04}.vtp"))).unwrap();
+    }
+    let (ok, _, err) = librplus(&[
+        "discover",
+        "--preop",
+        &preop,
+        "--scenarios",
+        &own.display().to_string(),
+        "--out",
+        &o3,
+    ]);
+    assert!(!ok && err.contains("--scenarios"), "{err}");
     // register --physics carries the cohort's physics (or none).
     let physics = dir
         .path()

@@ -63,12 +63,28 @@ pub(crate) struct DiscoverArgs {
     #[command(flatten)]
     pub(crate) libr: LibrOpts,
     /// Dataset directory (from `librplus generate`).
-    #[arg(long)]
-    pub(crate) data: PathBuf,
+    #[arg(long, required_unless_present = "preop")]
+    pub(crate) data: Option<PathBuf>,
     /// A cohort: a deformation id (its scenarios are the sweeps); repeatable. Default: every
     /// deformation of the dataset.
-    #[arg(long)]
+    #[arg(long, requires = "data")]
     pub(crate) cohort: Vec<String>,
+    /// Your own preoperative liver instead of a dataset (as `register --preop`: a tet mesh or a
+    /// closed surface meshed at --edge-mm); the sweeps of one cohort are in --scenarios.
+    #[arg(long, conflicts_with = "data", requires = "scenarios")]
+    pub(crate) preop: Option<PathBuf>,
+    /// With --preop: the cohort's sweeps, one per entry of this directory (in name order): a
+    /// point file (.csv .txt .xyz .vtp .vtu .vtk: surface points), or a folder holding `surface.*` and
+    /// optionally `ultrasound*.*` (posterior contours), `vessel*.*` (vessel points) and
+    /// `initial_alignment.json`.
+    #[arg(long, requires = "preop")]
+    pub(crate) scenarios: Option<PathBuf>,
+    /// With --preop: length unit of the mesh and point files (mm, cm or m).
+    #[arg(long, default_value = "mm")]
+    pub(crate) unit: Unit,
+    /// With --preop and a surface file: tet edge length (mm).
+    #[arg(long, default_value_t = 7.6)]
+    pub(crate) edge_mm: f64,
     /// Report directory.
     #[arg(long)]
     pub(crate) out: PathBuf,
@@ -84,7 +100,7 @@ pub(crate) struct DiscoverArgs {
     /// At most this many sweeps per cohort (the first ones; 0 = all).
     #[arg(long, default_value_t = 0)]
     pub(crate) max_sweeps: usize,
-    /// Where LIBR bases are cached (default DATA/cache).
+    /// Where LIBR bases are cached (default DATA/cache, or `cache` beside --preop).
     #[arg(long)]
     pub(crate) cache: Option<PathBuf>,
     /// Print the discover.json object on stdout instead of text.

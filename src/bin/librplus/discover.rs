@@ -1,5 +1,6 @@
 //! `librplus discover`: the model-discrepancy workflow over a dataset's cohorts, with TRE before
-//! and after from the dataset's ground truth (read here, never by the workflow).
+//! and after from the dataset's ground truth (read here, never by the workflow), or over a
+//! user's own mesh and sweeps (`--preop MESH --scenarios DIR`, no TRE).
 
 use crate::args::DiscoverArgs;
 use crate::util::emit;
@@ -15,7 +16,15 @@ use std::fmt::Write as _;
 const DISCOVER_FORMAT: u32 = 1;
 
 pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
-    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let params = discover_params(a)?;
+    if let Some(preop) = &a.preop {
+        return discover_files(a, preop, &params);
+    }
+    let data = a
+        .data
+        .as_ref()
+        .context("--data DIR or --preop MESH --scenarios DIR")?;
+    let m = librplus::eval::open(&data).map_err(anyhow::Error::msg)?;
     let cohorts: Vec<&librplus::dataset::DeformationEntry> = if a.cohort.is_empty() {
         m.deformations.iter().collect()
     } else {
@@ -25,7 +34,7 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
                 m.deformations.iter().find(|d| &d.id == c).with_context(|| {
                     format!(
                         "--cohort {c:?}: no deformation with that id in {} (have: {})",
-                        a.data.display(),
+                        data.display(),
                         m.deformations
                             .iter()
                             .map(|d| d.id.as_str())
@@ -37,41 +46,9 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
             .collect::<Result<_>>()?
     };
     if cohorts.is_empty() {
-        bail!(
-            "--data {}: the dataset has no deformations",
-            a.data.display()
-        );
+        bail!("--data {}: the dataset has no deformations", data.display());
     }
-    let mut params = DiscoverParams {
-        pipeline: a.libr.params(),
-        folds: a.folds,
-        max_effects: a.max_effects,
-        ..DiscoverParams::default()
-    };
-    params
-        .pipeline
-        .libr
-        .validate()
-        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
-    if let Some(k) = &a.kinds {
-        params.kinds = k
-            .split(',')
-            .map(str::trim)
-            .filter(|s| !s.is_empty())
-            .map(|s| {
-                EffectKind::from_name(s).with_context(|| {
-                    format!(
-                        "--kinds: unknown kind {s:?} (known: {})",
-                        EffectKind::ALL.map(|k| k.name()).join(", ")
-                    )
-                })
-            })
-            .collect::<Result<_>>()?;
-        if let Some(k) = params.kinds.iter().find(|k| **k == EffectKind::Nonlinear) {
-            bail!("--kinds: {k} cannot be searched yet (the augmented model does not carry it)");
-        }
-    }
-    let cache = a.cache.clone().unwrap_or_else(|| a.data.join("cache"));
+    let cache = a.cache.clone().unwrap_or_else(|| data.join("cache"));
     std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let bar = indicatif::ProgressBar::new(cohorts.len() as u64);
     bar.set_style(
@@ -82,9 +59,8 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
     for d in &cohorts {
         bar.set_message(d.id.clone());
         let geo =
-            librplus::eval::load_geometry(&a.data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
-        let mut scenarios =
-            librplus::eval::load_scenarios(&a.data, d).map_err(anyhow::Error::msg)?;
+            librplus::eval::load_geometry(data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
+        let mut scenarios = librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?;
         if a.max_sweeps > 0 {
             scenarios.truncate(a.max_sweeps);
         }
@@ -140,23 +116,50 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
                 })?;
             tre_of(&regs)
         };
-        let dir = a.out.join(&d.id);
-        std::fs::create_dir_all(&dir)?;
-        write_figures(&dir, &d.id, &geo.model, &found)?;
-        let extra: Vec<Value> = found
-            .effects
-            .iter()
-            .map(|e| json!({"uncertainty": e.uncertainty, "evidence": e.evidence}))
-            .collect();
-        let physics = found.physics.to_value(&extra);
-        librplus::util::write_atomic(
-            &dir.join("physics.json"),
-            serde_json::to_string_pretty(&physics)?.as_bytes(),
-        )?;
-        entries.push(cohort_json(&d.id, &found, physics, before, after));
+        let physics = write_cohort(&a.out, &d.id, &geo.model, &found)?;
+        entries.push(cohort_json(&d.id, &found, physics, Some((before, after))));
         bar.inc(1);
     }
     bar.finish_and_clear();
+    finish(a, entries)
+}
+
+/// The workflow's settings from the command line.
+fn discover_params(a: &DiscoverArgs) -> Result<DiscoverParams> {
+    let mut params = DiscoverParams {
+        pipeline: a.libr.params(),
+        folds: a.folds,
+        max_effects: a.max_effects,
+        ..DiscoverParams::default()
+    };
+    params
+        .pipeline
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    if let Some(k) = &a.kinds {
+        params.kinds = k
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(|s| {
+                EffectKind::from_name(s).with_context(|| {
+                    format!(
+                        "--kinds: unknown kind {s:?} (known: {})",
+                        EffectKind::ALL.map(|k| k.name()).join(", ")
+                    )
+                })
+            })
+            .collect::<Result<_>>()?;
+        if let Some(k) = params.kinds.iter().find(|k| **k == EffectKind::Nonlinear) {
+            bail!("--kinds: {k} cannot be searched yet (the augmented model does not carry it)");
+        }
+    }
+    Ok(params)
+}
+
+/// Writes `discover.json` and `report.md`, and prints the summary (or the whole document).
+fn finish(a: &DiscoverArgs, entries: Vec<Value>) -> Result<()> {
     let summary = summary_json(&entries);
     let doc = json!({"format": DISCOVER_FORMAT, "cohorts": entries, "summary": summary});
     librplus::util::write_atomic(
@@ -173,6 +176,153 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `COHORT/physics.json` and the figures; returns the physics document.
+fn write_cohort(
+    out: &std::path::Path,
+    id: &str,
+    model: &librplus::register::PreopModel,
+    found: &CohortDiscovery,
+) -> Result<Value> {
+    let dir = out.join(id);
+    std::fs::create_dir_all(&dir).with_context(|| format!("--out {}", dir.display()))?;
+    write_figures(&dir, id, model, found)?;
+    let extra: Vec<Value> = found
+        .effects
+        .iter()
+        .map(|e| json!({"uncertainty": e.uncertainty, "evidence": e.evidence}))
+        .collect();
+    let physics = found.physics.to_value(&extra);
+    librplus::util::write_atomic(
+        &dir.join("physics.json"),
+        serde_json::to_string_pretty(&physics)?.as_bytes(),
+    )?;
+    Ok(physics)
+}
+
+/// `discover --preop MESH --scenarios DIR`: a user's own mesh and sweeps, one cohort, no TRE.
+fn discover_files(
+    a: &DiscoverArgs,
+    preop: &std::path::Path,
+    params: &DiscoverParams,
+) -> Result<()> {
+    use librplus::register::{MeasuredKind, Measurements};
+    let dir = a
+        .scenarios
+        .as_ref()
+        .context("--preop needs --scenarios DIR")?;
+    let file = librplus::mesh::io::read(preop, a.unit)
+        .with_context(|| format!("--preop {}", preop.display()))?;
+    let model = librplus::input::preop_model_from_mesh(preop, &file, a.unit, a.edge_mm)
+        .map_err(anyhow::Error::msg)?;
+    let mut entries: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("--scenarios {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            !p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with('.'))
+        })
+        .collect();
+    entries.sort();
+    let read = |p: &std::path::Path, kind: MeasuredKind, m: &mut Measurements| -> Result<()> {
+        let pts = librplus::input::read_points(p, a.unit)
+            .map_err(|e| anyhow::anyhow!("--scenarios: {e}"))?;
+        m.kind.extend(std::iter::repeat_n(kind, pts.len()));
+        m.points.extend(pts);
+        Ok(())
+    };
+    let mut sweeps = Vec::new();
+    for p in &entries {
+        let id = p
+            .file_stem()
+            .and_then(|n| n.to_str())
+            .unwrap_or("?")
+            .to_string();
+        let mut m = Measurements {
+            points: Vec::new(),
+            kind: Vec::new(),
+            feature: Vec::new(),
+            initial_alignment: None,
+        };
+        if p.is_dir() {
+            let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(p)
+                .with_context(|| format!("--scenarios: {}", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .collect();
+            files.sort();
+            let stem = |f: &std::path::Path| {
+                f.file_stem()
+                    .and_then(|n| n.to_str())
+                    .unwrap_or("")
+                    .to_ascii_lowercase()
+            };
+            let surface: Vec<&std::path::PathBuf> =
+                files.iter().filter(|f| stem(f) == "surface").collect();
+            if surface.len() != 1 {
+                bail!(
+                    "--scenarios: sweep folder {} needs exactly one surface.* point file (found {})",
+                    p.display(),
+                    surface.len()
+                );
+            }
+            read(surface[0], MeasuredKind::Surface, &mut m)?;
+            for f in &files {
+                let s = stem(f);
+                if s.starts_with("ultrasound") {
+                    read(f, MeasuredKind::PosteriorContour, &mut m)?;
+                } else if s.starts_with("vessel") {
+                    read(f, MeasuredKind::Vessel, &mut m)?;
+                } else if f.file_name().is_some_and(|n| n == "initial_alignment.json") {
+                    let text = std::fs::read_to_string(f)
+                        .with_context(|| format!("--scenarios: {}", f.display()))?;
+                    let mut t: librplus::mesh::rigid::Rigid = serde_json::from_str(&text)
+                        .with_context(|| format!("--scenarios: {}: expected {{\"rotation\": [[3×3]], \"translation\": [3]}}", f.display()))?;
+                    t.translation = t.translation.map(|x| x * a.unit.to_mm());
+                    m.initial_alignment = Some(t);
+                }
+            }
+        } else {
+            read(p, MeasuredKind::Surface, &mut m)?;
+        }
+        sweeps.push(Sweep {
+            id,
+            measurements: m,
+        });
+    }
+    if sweeps.len() < 2 {
+        bail!(
+            "--scenarios {}: {} sweeps; a cohort needs at least 2 (one point file or folder per sweep)",
+            dir.display(),
+            sweeps.len()
+        );
+    }
+    if a.max_sweeps > 0 {
+        sweeps.truncate(a.max_sweeps);
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    let cache = a.cache.clone().unwrap_or_else(|| {
+        preop
+            .parent()
+            .unwrap_or(std::path::Path::new("."))
+            .join("cache")
+    });
+    let id = dir
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("cohort")
+        .to_string();
+    let bar = indicatif::ProgressBar::new_spinner();
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let progress = |stage: &str, done: usize, total: usize| {
+        bar.set_message(format!("{id}: {stage} {done}/{total}"));
+    };
+    let found = discover_cohort(&model, &sweeps, params, Some(&cache), &progress)
+        .with_context(|| format!("cohort {id}"))?;
+    bar.finish_and_clear();
+    let physics = write_cohort(&a.out, &id, &model, &found)?;
+    finish(a, vec![cohort_json(&id, &found, physics, None)])
 }
 
 /// `misfit.vtu` (held-out misfit per block and the named effects on the mesh),
@@ -254,14 +404,14 @@ fn write_figures(
     Ok(())
 }
 
-fn cohort_json(id: &str, f: &CohortDiscovery, physics: Value, before: f64, after: f64) -> Value {
+/// One cohort's entry of `discover.json`; `tre` (before, after) only where truth exists.
+fn cohort_json(id: &str, f: &CohortDiscovery, physics: Value, tre: Option<(f64, f64)>) -> Value {
     let effects: Vec<Value> = physics["effects"].as_array().cloned().unwrap_or_default();
-    json!({
+    let mut v = json!({
         "cohort": id,
         "verdict": f.verdict,
         "effects": effects,
         "heldout_misfit_mm": {"before": f.heldout_before_mm, "after": f.heldout_after_mm},
-        "tre_mm": {"before": before, "after": after},
         "noise_floor_mm": f.noise_floor_mm,
         "null_max_mm": f.null_max_mm,
         "beyond_noise": f.beyond_noise,
@@ -270,7 +420,11 @@ fn cohort_json(id: &str, f: &CohortDiscovery, physics: Value, before: f64, after
         "regions": f.regions,
         "candidates": f.candidates,
         "timings": f.timings,
-    })
+    });
+    if let Some((before, after)) = tre {
+        v["tre_mm"] = json!({"before": before, "after": after});
+    }
+    v
 }
 
 fn summary_json(entries: &[Value]) -> Value {
@@ -283,12 +437,17 @@ fn summary_json(entries: &[Value]) -> Value {
                 .or_default() += 1;
         }
     }
-    let mean = |path: [&str; 2]| {
+    // The mean over the cohorts that have the figure (null where none has: no truth, no TRE).
+    let mean = |path: [&str; 2]| -> Value {
         let v: Vec<f64> = entries
             .iter()
             .filter_map(|e| e[path[0]][path[1]].as_f64())
             .collect();
-        v.iter().sum::<f64>() / v.len().max(1) as f64
+        if v.is_empty() {
+            Value::Null
+        } else {
+            json!(v.iter().sum::<f64>() / v.len() as f64)
+        }
     };
     json!({
         "cohorts": entries.len(),
