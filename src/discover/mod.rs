@@ -1066,11 +1066,11 @@ fn confirm(
 
 /// Whether two effects of a kind have the same shape parameters (amplitudes aside).
 fn same_shape(a: &Effect, b: &Effect) -> bool {
-    const AMPLITUDES: [&str; 3] = ["magnitude", "magnitude_kpa", "force_mn"];
+    let amplitude = a.kind.amplitude().map(|(n, _)| n);
     a.kind == b.kind
         && a.parameters
             .iter()
-            .filter(|(k, _)| !AMPLITUDES.contains(&k.as_str()))
+            .filter(|(k, _)| amplitude != Some(k.as_str()))
             .all(|(k, v)| b.parameters.get(k).is_some_and(|w| w == v))
 }
 
@@ -1158,16 +1158,11 @@ fn confirm_once(
         let mut j = basis.libr_columns();
         let mut out = None;
         for e in physics.effects.iter().filter(|e| e.kind.is_load()) {
-            let k = if e.kind == EffectKind::Pack { 3 } else { 1 };
+            let (name, k) = e.kind.amplitude().unwrap_or(("", 0));
             if e.kind == top.effect.kind {
                 let amp: Vec<f64> = (0..k)
                     .map(|i| score.coef[j + i] * basis.load_scale[j + i])
                     .collect();
-                let name = match e.kind {
-                    EffectKind::Gravity => "magnitude",
-                    EffectKind::Pressure => "magnitude_kpa",
-                    _ => "force_mn",
-                };
                 let mut e = e.clone();
                 e.parameters.insert(name.to_string(), amp);
                 if e.validate("candidate").is_err() || !prior::amplitude_plausible(&e) {

@@ -50,10 +50,8 @@ pub fn amplitude_plausible(effect: &Effect) -> bool {
     let Some((lo, hi)) = plausible_amplitude(effect.kind) else {
         return true;
     };
-    let name = match effect.kind {
-        EffectKind::Gravity => "magnitude",
-        EffectKind::Pressure => "magnitude_kpa",
-        _ => "force_mn",
+    let Some((name, _)) = effect.kind.amplitude() else {
+        return true;
     };
     let Some(v) = effect.parameters.get(name) else {
         return false;

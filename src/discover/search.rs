@@ -64,7 +64,7 @@ pub fn basis_amplitude_prior(
     let mut out = AmplitudePrior::none(basis.libr_columns());
     let mut j = basis.libr_columns();
     for e in physics.effects.iter().filter(|e| e.kind.is_load()) {
-        let k = if e.kind == EffectKind::Pack { 3 } else { 1 };
+        let k = e.kind.amplitude().map_or(0, |(_, k)| k);
         let (p, s) = match amplitude_prior(e, ctx.mesh.nodes(), ctx.geom) {
             Some((p, mu)) => {
                 coefficient_prior(&p, &mu, &basis.load_scale[j..(j + k).min(m)], ctx.noise_var)
@@ -181,10 +181,12 @@ pub fn evaluate_load(
         .map(|j| (var * score.inverse[(m + j, m + j)]).sqrt() * scales[j])
         .collect();
     let mut effect = effect.clone();
-    let (name, shape_params) = match effect.kind {
-        EffectKind::Gravity => ("magnitude", 2),
-        EffectKind::Pressure => ("magnitude_kpa", 2),
-        _ => ("force_mn", 4),
+    let name = effect.kind.amplitude().map_or("", |(n, _)| n);
+    // Shape parameters searched: a direction (2), or a centre and a width (4).
+    let shape_params = if effect.kind == EffectKind::Pack {
+        4
+    } else {
+        2
     };
     effect.parameters.insert(name.to_string(), amp.clone());
     // An amplitude outside the kind's physical range (negative weight, a force of tons) is not

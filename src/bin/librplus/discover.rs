@@ -24,7 +24,7 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
         .data
         .as_ref()
         .context("--data DIR or --preop MESH --scenarios DIR")?;
-    let m = librplus::eval::open(&data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(data).map_err(anyhow::Error::msg)?;
     let cohorts: Vec<&librplus::dataset::DeformationEntry> = if a.cohort.is_empty() {
         m.deformations.iter().collect()
     } else {

@@ -195,6 +195,18 @@ impl EffectKind {
         )
     }
 
+    /// A load effect's fitted amplitude: its parameter's name and how many basis columns carry
+    /// it (`gravity`: `magnitude`, 1; `pressure`: `magnitude_kpa`, 1; `pack`: `force_mn`, 3);
+    /// `None` for other kinds.
+    pub fn amplitude(self) -> Option<(&'static str, usize)> {
+        match self {
+            EffectKind::Gravity => Some(("magnitude", 1)),
+            EffectKind::Pressure => Some(("magnitude_kpa", 1)),
+            EffectKind::Pack => Some(("force_mn", 3)),
+            _ => None,
+        }
+    }
+
     /// Whether the effect is a load (an extra basis column family with a fitted amplitude).
     pub fn is_load(self) -> bool {
         matches!(
