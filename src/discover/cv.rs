@@ -160,15 +160,11 @@ pub const PRIOR_SCALES: [f64; 4] = [1.0, 10.0, 100.0, 1000.0];
 /// [`PRIOR_SCALES`] that gives the smallest held-out misfit; returns the score and the scale.
 pub fn cross_validate(rows: &CohortRows, design: &Design<'_>) -> Option<CvScore> {
     let b: Vec<f64> = rows.rows.iter().map(|r| r.b).collect();
+    let blocks = gram_blocks(rows, design.a, &b);
     let mut best: Option<CvScore> = None;
     for s in PRIOR_SCALES {
         let prior = design.prior * s;
-        let d = Design {
-            a: design.a,
-            prior: &prior,
-            amplitude: design.amplitude,
-        };
-        if let Some(mut score) = cross_validate_rhs(rows, &d, &b)
+        if let Some(mut score) = score_blocks(rows, &blocks, &prior, design.amplitude)
             && best
                 .as_ref()
                 .is_none_or(|b| score.heldout_mse < b.heldout_mse)
@@ -183,7 +179,14 @@ pub fn cross_validate(rows: &CohortRows, design: &Design<'_>) -> Option<CvScore>
 /// Cross-validates a design against the right-hand side `b` (one per row). `None` when no fold
 /// could be solved (too few rows).
 pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> Option<CvScore> {
-    let q = design.a.ncols();
+    let blocks = gram_blocks(rows, design.a, b);
+    score_blocks(rows, &blocks, design.prior, design.amplitude)
+}
+
+/// The Gram blocks of every (scenario, cluster): they do not depend on the priors, so one set
+/// serves every prior scale.
+fn gram_blocks(rows: &CohortRows, a: &DMatrix<f64>, b: &[f64]) -> Vec<Block> {
+    let q = a.ncols();
     let (ns, nc) = (rows.scenarios, rows.clusters);
     let mut blocks = vec![Block::zeros(q); ns * nc];
     // Gather each block's rows (scaled by √w) and form its Gram matrices.
@@ -206,13 +209,13 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
             w += wi;
             blk.wb += wi * b[i];
             for j in 0..q {
-                blk.wa[j] += wi * design.a[(i, j)];
+                blk.wa[j] += wi * a[(i, j)];
             }
             for j in 0..6 {
                 blk.wr[j] += wi * rows.rows[i].rigid[j];
             }
             for j in 0..q {
-                x[(k, j)] = s * design.a[(i, j)];
+                x[(k, j)] = s * a[(i, j)];
             }
             for j in 0..6 {
                 rr[(k, j)] = s * rows.rows[i].rigid[j];
@@ -231,6 +234,18 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
         blk.w = w;
         blk.rows = idx.len();
     }
+    blocks
+}
+
+/// Cross-validation and the full fit from the Gram blocks, with the given priors.
+fn score_blocks(
+    rows: &CohortRows,
+    blocks: &[Block],
+    prior: &DMatrix<f64>,
+    amplitude: &AmplitudePrior,
+) -> Option<CvScore> {
+    let q = prior.nrows();
+    let (ns, nc) = (rows.scenarios, rows.clusters);
     let mut totals = vec![Block::zeros(q); ns];
     for s in 0..ns {
         for c in 0..nc {
@@ -249,7 +264,7 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
                 h
             })
             .collect();
-        let Some((alpha, _)) = solve_shared(&held, design.prior, design.amplitude) else {
+        let Some((alpha, _)) = solve_shared(&held, prior, amplitude) else {
             continue;
         };
         for s in 0..ns {
@@ -278,7 +293,7 @@ pub fn cross_validate_rhs(rows: &CohortRows, design: &Design<'_>, b: &[f64]) -> 
     if w <= 0.0 {
         return None;
     }
-    let (coef, inverse) = solve_shared(&totals, design.prior, design.amplitude)?;
+    let (coef, inverse) = solve_shared(&totals, prior, amplitude)?;
     let mut full_rss = 0.0;
     let mut full_w = 0.0;
     let mut thetas = vec![Vector6::zeros(); ns];
