@@ -425,6 +425,29 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
         &o3,
     ]);
     assert!(!ok && err.contains("--scenarios"), "{err}");
+    // A sweep in the wrong units: the error names the sweep and says why, once.
+    let far: String = (0..200)
+        .map(|i| {
+            format!(
+                "{} {} {}\n",
+                5000.0 + (i % 20) as f64,
+                5000.0 + (i / 20) as f64,
+                5000.0
+            )
+        })
+        .collect();
+    std::fs::write(own.join("far.csv"), far).unwrap();
+    let (ok, _, err) = librplus(&[
+        "discover",
+        "--preop",
+        &preop,
+        "--scenarios",
+        &own.display().to_string(),
+        "--out",
+        &o3,
+    ]);
+    assert!(!ok && err.contains("scenario far"), "{err}");
+    assert_eq!(err.matches("wrong units").count(), 1, "{err}");
     // register --physics carries the cohort's physics (or none).
     let physics = dir
         .path()

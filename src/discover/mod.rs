@@ -53,13 +53,14 @@ pub enum DiscoverError {
     #[error("{0}")]
     Input(String),
     /// A sweep could not be registered (the message names it).
-    #[error("scenario {scenario}: {source}")]
+    /// (The cause is in the message and not chained as a source, so an error report prints it
+    /// once.)
+    #[error("scenario {scenario}: {cause}")]
     Scenario {
         /// The sweep's id.
         scenario: String,
         /// Why.
-        #[source]
-        source: PipelineError,
+        cause: PipelineError,
     },
     /// The model (basis, physics) could not be built.
     #[error(transparent)]
@@ -312,7 +313,7 @@ pub fn discover_cohort(
         Prepared::new(model.clone(), Some(&params.pipeline.libr), cache_dir).map_err(|e| {
             DiscoverError::Scenario {
                 scenario: "(case)".into(),
-                source: e,
+                cause: e,
             }
         })?;
     let (plain, images, rows) = linearize(&prepared, sweeps, params, None, progress)?;
@@ -656,7 +657,7 @@ fn linearize(
                 let r = register(prepared, &s.measurements, Method::Libr, &params.pipeline)
                     .map_err(|e| DiscoverError::Scenario {
                         scenario: s.id.clone(),
-                        source: e,
+                        cause: e,
                     });
                 let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 progress(&stage, d, sweeps.len());
@@ -679,7 +680,7 @@ fn linearize(
             .match_points(&pts, &s.measurements, Some(&reg.u), &cparams)
             .map_err(|e| DiscoverError::Scenario {
                 scenario: s.id.clone(),
-                source: PipelineError::Libr(e),
+                cause: PipelineError::Libr(e),
             })?;
         images.push(pts);
         all_matches.push(m);
