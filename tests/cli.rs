@@ -391,16 +391,17 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
     }
     let preop = data.join("geometries/g1/preop.vtu").display().to_string();
     let o3 = dir.path().join("o3").display().to_string();
-    let v = json(&[
+    let own_s = own.display().to_string();
+    let own_args = [
         "discover",
         "--preop",
         &preop,
         "--scenarios",
-        &own.display().to_string(),
+        &own_s,
         "--out",
         &o3,
-        "--json",
-    ]);
+    ];
+    let v = json(&[&own_args[..], &["--json"]].concat());
     let oc = &v["cohorts"][0];
     assert_eq!(oc["cohort"], "own");
     assert_eq!(oc["sweeps"], 4);
@@ -415,15 +416,7 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
     for i in 1..4 {
         std::fs::remove_file(own.join(format!("{i:04}.vtp"))).unwrap();
     }
-    let (ok, _, err) = librplus(&[
-        "discover",
-        "--preop",
-        &preop,
-        "--scenarios",
-        &own.display().to_string(),
-        "--out",
-        &o3,
-    ]);
+    let (ok, _, err) = librplus(&own_args);
     assert!(!ok && err.contains("--scenarios"), "{err}");
     // A sweep in the wrong units: the error names the sweep and says why, once.
     let far: String = (0..200)
@@ -437,15 +430,7 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
         })
         .collect();
     std::fs::write(own.join("far.csv"), far).unwrap();
-    let (ok, _, err) = librplus(&[
-        "discover",
-        "--preop",
-        &preop,
-        "--scenarios",
-        &own.display().to_string(),
-        "--out",
-        &o3,
-    ]);
+    let (ok, _, err) = librplus(&own_args);
     assert!(!ok && err.contains("scenario far"), "{err}");
     assert_eq!(err.matches("wrong units").count(), 1, "{err}");
     // register --physics carries the cohort's physics (or none).

@@ -1159,17 +1159,14 @@ fn confirm_once(
         let mut j = basis.libr_columns();
         let mut out = None;
         for e in physics.effects.iter().filter(|e| e.kind.is_load()) {
-            let (name, k) = e.kind.amplitude().unwrap_or(("", 0));
+            let k = e.kind.amplitude().map_or(0, |(_, k)| k);
             if e.kind == top.effect.kind {
                 let amp: Vec<f64> = (0..k)
                     .map(|i| score.coef[j + i] * basis.load_scale[j + i])
                     .collect();
-                let mut e = e.clone();
-                e.parameters.insert(name.to_string(), amp);
-                if e.validate("candidate").is_err() || !prior::amplitude_plausible(&e) {
-                    // A refit outside the kind's physical range is not that effect.
+                let Some(e) = search::with_amplitudes(e, amp) else {
                     return Ok(None);
-                }
+                };
                 out = Some(e);
             }
             j += k;

@@ -180,7 +180,6 @@ pub fn evaluate_load(
     let sd: Vec<f64> = (0..k)
         .map(|j| (var * score.inverse[(m + j, m + j)]).sqrt() * scales[j])
         .collect();
-    let mut effect = effect.clone();
     let name = effect.kind.amplitude().map_or("", |(n, _)| n);
     // Shape parameters searched: a direction (2), or a centre and a width (4).
     let shape_params = if effect.kind == EffectKind::Pack {
@@ -188,12 +187,9 @@ pub fn evaluate_load(
     } else {
         2
     };
-    effect.parameters.insert(name.to_string(), amp.clone());
-    // An amplitude outside the kind's physical range (negative weight, a force of tons) is not
-    // that effect: no candidate.
-    if effect.validate("candidate").is_err() || !super::prior::amplitude_plausible(&effect) {
+    let Some(effect) = with_amplitudes(effect, amp) else {
         return Ok(None);
-    }
+    };
     let amplitude_sd = vec![(
         name.to_string(),
         sd.iter().map(|x| x * x).sum::<f64>().sqrt(),
@@ -208,6 +204,16 @@ pub fn evaluate_load(
         basis: None,
         amplitude: Some(amplitude),
     }))
+}
+
+/// A load effect with its fitted amplitudes (in its parameter's unit), or `None` when they are
+/// outside the kind's valid or physically plausible range ([`super::prior`]): a negative weight or
+/// a force of tons is not that effect.
+pub fn with_amplitudes(effect: &Effect, amp: Vec<f64>) -> Option<Effect> {
+    let (name, _) = effect.kind.amplitude()?;
+    let mut e = effect.clone();
+    e.parameters.insert(name.to_string(), amp);
+    (e.validate("candidate").is_ok() && super::prior::amplitude_plausible(&e)).then_some(e)
 }
 
 /// Evaluates a stiffness effect (support or inclusion) by rebuilding the basis with it.

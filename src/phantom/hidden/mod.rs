@@ -83,18 +83,7 @@ impl HiddenEffectSpec {
 
     /// `{"kind", "given": {name: number or [x, y, z]}}`, as the dataset's parameters record it.
     pub fn to_value(&self) -> serde_json::Value {
-        let given: serde_json::Map<String, serde_json::Value> = self
-            .given
-            .iter()
-            .map(|(k, v)| {
-                let val = if v.len() == 1 {
-                    serde_json::json!(v[0])
-                } else {
-                    serde_json::json!(v)
-                };
-                (k.clone(), val)
-            })
-            .collect();
+        let given = crate::register::physics::parameters_json(&self.given);
         serde_json::json!({"kind": self.kind.name(), "given": given})
     }
 }

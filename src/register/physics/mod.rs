@@ -222,6 +222,23 @@ impl std::fmt::Display for EffectKind {
     }
 }
 
+/// Parameters as `physics.json` writes them: scalars as numbers, vectors as `[x, y, z]`.
+pub fn parameters_json(
+    params: &BTreeMap<String, Vec<f64>>,
+) -> serde_json::Map<String, serde_json::Value> {
+    params
+        .iter()
+        .map(|(k, v)| {
+            let val = if v.len() == 1 {
+                serde_json::json!(v[0])
+            } else {
+                serde_json::json!(v)
+            };
+            (k.clone(), val)
+        })
+        .collect()
+}
+
 /// One effect with its parameters (each 1 or 3 numbers, keyed by [`ParamSpec::name`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Effect {
@@ -307,19 +324,7 @@ impl Effect {
     }
 
     fn to_value(&self) -> serde_json::Value {
-        let params: serde_json::Map<String, serde_json::Value> = self
-            .parameters
-            .iter()
-            .map(|(k, v)| {
-                let val = if v.len() == 1 {
-                    serde_json::json!(v[0])
-                } else {
-                    serde_json::json!(v)
-                };
-                (k.clone(), val)
-            })
-            .collect();
-        serde_json::json!({"kind": self.kind.name(), "parameters": params})
+        serde_json::json!({"kind": self.kind.name(), "parameters": parameters_json(&self.parameters)})
     }
 
     /// Parses one effect object (`{"kind", "parameters", ...}`; other keys such as
