@@ -321,6 +321,8 @@ pub fn method_from_pb(
 /// A library method to the wire.
 pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
     match m {
+        // A baseline of the library's evaluation; the service never registers with it.
+        librplus::pipeline::Method::Initial => pb::Method::Unspecified,
         librplus::pipeline::Method::Rigid => pb::Method::Rigid,
         librplus::pipeline::Method::Libr => pb::Method::Libr,
         librplus::pipeline::Method::LibrPlus => pb::Method::LibrPlus,

@@ -243,6 +243,7 @@ pub fn evaluate(
     methods: &[Method],
     every: usize,
     params: &PipelineParams,
+    physics: &crate::register::physics::Physics,
     librplus: Option<LibrPlusEval<'_>>,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Evaluation, EvalError> {
@@ -277,7 +278,7 @@ pub fn evaluate(
         if !prepared.contains_key(&d.geometry) {
             let geo = load_geometry(dir, m, &d.geometry)?;
             let libr = methods.contains(&Method::Libr).then_some(&params.libr);
-            let case = Prepared::new(geo.model.clone(), libr, Some(&cache))?;
+            let case = Prepared::with_physics(geo.model.clone(), libr, physics, Some(&cache))?;
             for &method in methods {
                 maps.push(ErrorMap::new(
                     &d.geometry,
@@ -460,6 +461,7 @@ fn correct_one(
         &u,
         &r.image_to_physical,
         None,
+        r.rigid.prior.as_ref(),
     )
     .map_err(|e| EvalError::within("refit", e))?;
     Ok((s.u, s.image_to_physical))

@@ -11,7 +11,7 @@
 //! written as ground truth.
 
 use super::hidden::{HiddenEffectSpec, libr_truth};
-use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate};
+use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate_focused};
 use super::patterns::{Pattern, PatternParams, load_case};
 use super::shape::{ShapeVariantParams, variant};
 use super::tissue::{Tissue, TissueParams};
@@ -749,17 +749,30 @@ fn make_deformation(
         };
         let u = &truth.displacement;
         let (mean, max) = magnitude_stats(u);
+        // A held organ is measured where it is: no misalignment, the navigation start the true
+        // alignment, the camera on the tool's spot.
+        let measure = if case.held {
+            MeasureParams {
+                max_rotation_deg: 0.0,
+                max_translation_mm: 0.0,
+                trusted_start: true,
+                ..config.measure
+            }
+        } else {
+            config.measure
+        };
         let scenarios: Vec<Scenario> = (0..config.scenarios)
             .into_par_iter()
             .map(|k| {
                 let category = Category::ALL[k % Category::ALL.len()];
-                simulate(
+                simulate_focused(
                     &b.mesh,
                     &b.labels,
                     &b.vessels,
                     u,
                     category,
-                    &config.measure,
+                    &measure,
+                    case.focus,
                     derive(seed, &[7, scenario_stream(k, config.paired_categories)]),
                 )
                 .map_err(|e| PhantomError::within(format!("scenario {k}"), e))

@@ -15,6 +15,13 @@
 //!   anterior surface.
 //! - **V** (open surgery, test only): posterior packing over a large part of the posterior surface
 //!   pushing the organ anteriorly, plus gravity.
+//! - **H** (not in the paper; held organ, local tool): the liver held fixed at its hilum (a
+//!   patch of the visceral surface right of the falciform plane, mid-height) and its bare area
+//!   (the vena cava and diaphragm attachment), prescribed zero displacement, with no other support and no gravity, and a tool pushing one anterior region
+//!   30–60 mm roughly inwards (prescribed displacement with a cosine taper). The dataset measures
+//!   it with no misalignment, a navigation start equal to the true alignment and the surface
+//!   patch grown from the pushed spot ([`LoadCase::focus`]): the case where fitting rigid motion
+//!   freely turns a local push into a global rotation. Opt in with `generate --patterns H`.
 //! - **X** (not in the paper; a training augmentation, opt in with `generate --patterns`): a
 //!   random table tilt and either one to three soft-edged packs of random size, force and centre
 //!   anywhere off the bare area, each pushing roughly inwards, or a broad pressure on a random cap
@@ -39,6 +46,9 @@ pub enum Pattern {
     W,
     /// Open surgery: posterior packing, large anterior motion (test only).
     V,
+    /// Held organ, local tool: fixed at the hilum, one anterior region pushed 30–60 mm (not one
+    /// of the paper's patterns; measured without misalignment, see the module doc).
+    H,
     /// Random packs anywhere off the bare area, or a broad pressure on a random cap of the
     /// surface: a training augmentation for learning residuals of loads the named patterns do not
     /// cover (not one of the paper's patterns; never a test pattern).
@@ -93,6 +103,12 @@ pub struct LoadCase {
     pub surface: Vec<f64>,
     /// What was drawn, for provenance.
     pub description: String,
+    /// Where a local tool acts (a node of the mesh), when the pattern has one: the dataset grows
+    /// the measured surface patch from there ([`Pattern::H`]).
+    pub focus: Option<u32>,
+    /// Whether the organ is held in place (the pattern fixes a region): the dataset then measures
+    /// it without misalignment, the navigation start being the true alignment ([`Pattern::H`]).
+    pub held: bool,
 }
 
 /// Area lumped to each node from the boundary triangles (a third of each triangle).
@@ -265,7 +281,71 @@ pub fn load_case(
     let mut dirichlet = Dirichlet::new(n);
     let pick =
         |cands: &[u32], r: f64| cands[((r * cands.len() as f64) as usize).min(cands.len() - 1)];
+    let mut focus = None;
     let description = match pattern {
+        Pattern::H => {
+            // Held at the hilum (the visceral surface just right of the falciform plane at 45 %
+            // of the height) and the bare area; no other support, no gravity.
+            springs.clear();
+            contacts.clear();
+            let width = hi[0] - lo[0];
+            let q = [x_f - 0.08 * width, hi[1], lo[2] + 0.45 * (hi[2] - lo[2])];
+            let visceral: Vec<u32> = labels
+                .nodes_in(Region::Posterior)
+                .into_iter()
+                .filter(|&i| !labels.bare_area[i as usize])
+                .collect();
+            let hilum = visceral
+                .iter()
+                .copied()
+                .min_by(|&a, &b| {
+                    dist(nodes[a as usize], q)
+                        .total_cmp(&dist(nodes[b as usize], q))
+                        .then(a.cmp(&b))
+                })
+                .ok_or_else(|| {
+                    PhantomError::Geometry("no visceral (posterior) surface to hold".into())
+                })?;
+            let h = nodes[hilum as usize];
+            let held_radius = uniform(20.0, 30.0);
+            let mut held = 0;
+            for &v in &boundary.nodes {
+                if dist(nodes[v as usize], h) <= held_radius || labels.bare_area[v as usize] {
+                    dirichlet.prescribe_node(v, [0.0; 3]);
+                    held += 1;
+                }
+            }
+            // The tool: an anterior node at least 60 mm from the hilum, pushed roughly inwards.
+            let cands: Vec<u32> = labels
+                .nodes_in(Region::Anterior)
+                .into_iter()
+                .filter(|&i| dist(nodes[i as usize], h) >= 60.0)
+                .collect();
+            if cands.is_empty() {
+                return Err(PhantomError::Geometry(
+                    "no anterior surface 60 mm from the hilum for the tool".into(),
+                ));
+            }
+            let v = pick(&cands, uniform(0.0, 1.0));
+            let c = nodes[v as usize];
+            let tip = uniform(20.0, 30.0);
+            let depth = ls * uniform(30.0, 60.0);
+            let turn = [uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)];
+            let dir = unit([0, 1, 2].map(|a| -normals[v as usize][a] + 0.4 * turn[a]));
+            let mut pushed = 0;
+            for &w in &boundary.nodes {
+                let r = dist(nodes[w as usize], c);
+                if r <= tip && dirichlet.get(3 * w as usize).is_none() {
+                    let f = 0.5 * (1.0 + (std::f64::consts::PI * r / tip).cos());
+                    dirichlet.prescribe_node(w, dir.map(|d| d * depth * f));
+                    pushed += 1;
+                }
+            }
+            focus = Some(v);
+            format!(
+                "held at the hilum and bare area: {held} nodes (within {held_radius:.1} mm of {h:.1?}, or bare area) fixed; tool pushes {pushed} nodes within {tip:.1} mm of {c:.1?} by up to {depth:.1} mm along {dir:.2?} (cosine taper); no gravity, no bed"
+            )
+        }
         Pattern::L => {
             let (rt, lat) = (uniform(10.0, 30.0), uniform(-15.0, 15.0));
             loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
@@ -479,5 +559,7 @@ pub fn load_case(
         contacts,
         load,
         description,
+        held: pattern == Pattern::H,
+        focus,
     })
 }

@@ -10,8 +10,9 @@ use crate::register::correspondence::{
     Correspondence, CorrespondenceParams, validate_measurements,
 };
 use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
-use crate::register::physics::Physics;
 use crate::register::physics::model::Sites;
+use crate::register::physics::{EffectKind, Physics};
+use crate::register::prior::{HELD_SIGMA_MM, RigidPrior};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::{Measurements, PreopModel, RegisterError};
 use std::path::Path;
@@ -57,6 +58,9 @@ pub enum PipelineError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Method {
+    /// No registration: the navigation system's initial alignment and the undeformed model (the
+    /// baseline every method must beat; identity when the measurements carry no alignment).
+    Initial,
     /// Salient-feature weighted rigid ICP only.
     Rigid,
     /// wICP followed by LIBR.
@@ -70,6 +74,7 @@ impl Method {
     /// Name as on the command line and in reports.
     pub fn name(self) -> &'static str {
         match self {
+            Method::Initial => "initial",
             Method::Rigid => "rigid",
             Method::Libr => "libr",
             Method::LibrPlus => "librplus",
@@ -238,6 +243,7 @@ pub fn refit(
     u_start: &[f64],
     transform: &Rigid,
     deadline: Option<Instant>,
+    rigid_prior: Option<&RigidPrior>,
 ) -> Result<libr::LibrSolution, PipelineError> {
     let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
     if params.refit_iterations == 0 {
@@ -259,6 +265,7 @@ pub fn refit(
             active: Some(corr.active_nodes()),
             deadline,
             offset: Some(u_start),
+            rigid_prior,
         },
         |u, t| {
             let inv = t.inverse();
@@ -289,6 +296,24 @@ pub struct Registration {
     pub seconds: f64,
 }
 
+/// The rigid stage's parameters for a case: the pipeline's, with the start trusted to
+/// [`HELD_SIGMA_MM`] when the case's physics holds the organ (a `fixation` or `ligament` effect)
+/// and no uncertainty was declared.
+pub fn rigid_params(case: &Prepared, params: &PipelineParams) -> WicpParams {
+    let held = case
+        .physics
+        .effects
+        .iter()
+        .any(|e| matches!(e.kind, EffectKind::Fixation | EffectKind::Ligament));
+    WicpParams {
+        trusted_alignment_mm: params
+            .wicp
+            .trusted_alignment_mm
+            .or(held.then_some(HELD_SIGMA_MM)),
+        ..params.wicp
+    }
+}
+
 /// Registers measurements to a prepared case.
 pub fn register(
     case: &Prepared,
@@ -298,10 +323,21 @@ pub fn register(
 ) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
     validate_measurements(meas).map_err(PipelineError::Rigid)?;
-    let rigid = wicp(&case.model, &case.correspondence, meas, &params.wicp)
-        .map_err(PipelineError::Rigid)?;
     let n = case.model.mesh.num_nodes();
-    if method == Method::Rigid {
+    let wparams = rigid_params(case, params);
+    let rigid_params = if method == Method::Initial {
+        // No iterations: the start, with its match statistics.
+        WicpParams {
+            max_iterations: 0,
+            min_conditioning: 0.0,
+            ..wparams
+        }
+    } else {
+        wparams
+    };
+    let rigid = wicp(&case.model, &case.correspondence, meas, &rigid_params)
+        .map_err(PipelineError::Rigid)?;
+    if matches!(method, Method::Rigid | Method::Initial) {
         return Ok(Registration {
             method,
             image_to_physical: rigid.image_to_physical,
@@ -342,6 +378,7 @@ pub fn register(
             active: Some(corr.active_nodes()),
             deadline: libr_deadline,
             offset: None,
+            rigid_prior: rigid.prior.as_ref(),
         },
         |u, t| {
             let inv = t.inverse();
@@ -385,7 +422,15 @@ pub fn register(
         // The refit, when the correction applied and asked for (it fails only on data LIBR
         // itself fitted, so a failure keeps the network's shape).
         let (refit_info, refit_error) = if skipped.is_none() && params.refit_iterations > 0 {
-            match refit(case, meas, params, &u, &image_to_physical, params.deadline) {
+            match refit(
+                case,
+                meas,
+                params,
+                &u,
+                &image_to_physical,
+                params.deadline,
+                rigid.prior.as_ref(),
+            ) {
                 Ok(r) => {
                     u = r.u;
                     image_to_physical = r.image_to_physical;

@@ -17,6 +17,7 @@ pub mod correspondence;
 mod error;
 pub mod libr;
 pub mod physics;
+pub mod prior;
 pub mod wicp;
 
 pub use error::RegisterError;

@@ -25,7 +25,8 @@ use super::PreopModel;
 use super::correspondence::{
     Correspondence, CorrespondenceParams, MatchStats, validate_measurements,
 };
-use super::{MeasuredKind, Measurements};
+use super::prior::RigidPrior;
+use super::{Match, MeasuredKind, Measurements};
 use crate::mesh::rigid::Rigid;
 
 /// Parameters of [`wicp`].
@@ -46,7 +47,27 @@ pub struct WicpParams {
     /// false: every point.
     #[serde(default)]
     pub surface_only: bool,
+    /// The navigation system's initial alignment is trusted to this uncertainty (mm, RMS
+    /// displacement over the organ): the rigid motion is regularised towards it
+    /// ([`crate::register::prior`]) instead of fitted freely. Default None: free.
+    #[serde(default)]
+    pub trusted_alignment_mm: Option<f64>,
+    /// Below this conditioning of the final point-to-plane system ([`WicpResult::conditioning`])
+    /// the data cannot fix the rigid motion (a partial, smooth patch): the fit is redone with the
+    /// start trusted to [`ILL_POSED_SIGMA_MM`] and flagged. 0 turns the check off. Default
+    /// [`MIN_CONDITIONING`].
+    #[serde(default = "default_min_conditioning")]
+    pub min_conditioning: f64,
 }
+
+fn default_min_conditioning() -> f64 {
+    MIN_CONDITIONING
+}
+
+/// Default [`WicpParams::min_conditioning`].
+pub const MIN_CONDITIONING: f64 = 1e-3;
+/// Uncertainty (mm) the start is trusted to when the data cannot fix the rigid motion.
+pub const ILL_POSED_SIGMA_MM: f64 = 10.0;
 
 impl Default for WicpParams {
     fn default() -> Self {
@@ -55,6 +76,8 @@ impl Default for WicpParams {
             tolerance_mm: 1e-3,
             correspondence: CorrespondenceParams::default(),
             surface_only: false,
+            trusted_alignment_mm: None,
+            min_conditioning: MIN_CONDITIONING,
         }
     }
 }
@@ -85,6 +108,22 @@ pub struct WicpResult {
     pub degenerate: Option<String>,
     /// Things worth knowing that did not stop the registration (e.g. far points dropped).
     pub warnings: Vec<String>,
+    /// How well the final pairs fix the rigid motion: the smallest over the largest eigenvalue
+    /// of their point-to-plane system (rotations scaled by the pairs' RMS radius; 1: as well in
+    /// every direction, 0: a direction left free). 0 when degenerate.
+    #[serde(default)]
+    pub conditioning: f64,
+    /// The prior the rigid motion was regularised with (a trusted start, or the start trusted
+    /// because the data could not fix the motion), when there was one; LIBR keeps it.
+    #[serde(default)]
+    pub prior: Option<RigidPrior>,
+    /// Whether the data could not fix the rigid motion ([`WicpParams::min_conditioning`]) and
+    /// the start was trusted instead.
+    #[serde(default)]
+    pub ill_posed: bool,
+    /// RMS displacement of the organ's nodes between the start and the result (mm).
+    #[serde(default)]
+    pub moved_from_start_mm: f64,
     /// Wall-clock time (s).
     pub seconds: f64,
 }
@@ -112,6 +151,19 @@ pub fn wicp(
         return Err(RegisterError::Parameter(format!(
             "wicp parameter tolerance_mm must be finite and ≥ 0, got {}",
             params.tolerance_mm
+        )));
+    }
+    if let Some(sig) = params.trusted_alignment_mm {
+        if !(sig.is_finite() && sig > 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "wicp parameter trusted_alignment_mm must be finite and > 0, got {sig}"
+            )));
+        }
+    }
+    if !(params.min_conditioning.is_finite() && params.min_conditioning >= 0.0) {
+        return Err(RegisterError::Parameter(format!(
+            "wicp parameter min_conditioning must be finite and ≥ 0, got {}",
+            params.min_conditioning
         )));
     }
     if corr.num_nodes() != model.mesh.num_nodes() {
@@ -204,6 +256,10 @@ pub fn wicp(
         degenerate: None,
         warnings,
         seconds: 0.0,
+        conditioning: 0.0,
+        prior: None,
+        ill_posed: false,
+        moved_from_start_mm: 0.0,
     };
 
     // Degenerate point sets: the rotation is undetermined whatever the model.
@@ -217,34 +273,113 @@ pub fn wicp(
         return Ok(result);
     }
 
-    let mut t = start;
+    let nodes = model.mesh.nodes();
+    let declared = params
+        .trusted_alignment_mm
+        .map(|sig| RigidPrior::new(nodes, start, sig, initial_stats.rms_mm));
+    let mut run = icp_loop(
+        meas,
+        params,
+        start,
+        initial_stats,
+        declared.as_ref(),
+        &matching,
+    )?;
+    let mut ill_posed = false;
+    if declared.is_none() && run.degenerate.is_none() && run.conditioning < params.min_conditioning
+    {
+        // The data leave a rigid direction free: trust the start instead of sliding along it.
+        let prior = RigidPrior::new(nodes, start, ILL_POSED_SIGMA_MM, initial_stats.rms_mm);
+        let free = run.conditioning;
+        run = icp_loop(meas, params, start, initial_stats, Some(&prior), &matching)?;
+        ill_posed = true;
+        result.warnings.push(format!(
+            "the measured points do not fix the rigid motion (conditioning {free:.1e} < {:.0e}: a \
+             partial, smooth patch): the start was trusted to {ILL_POSED_SIGMA_MM} mm",
+            params.min_conditioning
+        ));
+    }
+    let t = run.t;
+    result.iterations = run.iterations;
+    result.converged = run.converged;
+    result.degenerate = run.degenerate;
+    result.conditioning = run.conditioning;
+    result.prior = run.prior;
+    result.ill_posed = ill_posed;
+    result.moved_from_start_mm = RigidPrior::new(nodes, start, 1.0, 1.0).rms_mm(&t);
+    result.image_to_physical = t;
+    result.rms_mm = run.stats.rms_mm;
+    result.matched = run.stats.kept;
+    result.trimmed = run.stats.trimmed;
+    result.stats = run.stats;
+    result.seconds = clock.elapsed().as_secs_f64();
+    Ok(result)
+}
+
+/// What one run of the ICP iterations ended with.
+struct LoopEnd {
+    t: Rigid,
+    stats: MatchStats,
+    iterations: usize,
+    converged: bool,
+    degenerate: Option<String>,
+    conditioning: f64,
+    prior: Option<RigidPrior>,
+}
+
+/// The ICP iterations from `start` (match, weighted Kabsch fit with the prior's pose pairs,
+/// until the RMS settles).
+fn icp_loop(
+    meas: &Measurements,
+    params: &WicpParams,
+    start: Rigid,
+    initial_stats: MatchStats,
+    prior: Option<&RigidPrior>,
+    matching: &dyn Fn(&Rigid) -> Result<(Vec<Match>, MatchStats), RegisterError>,
+) -> Result<LoopEnd, RegisterError> {
+    let mut end = LoopEnd {
+        t: start,
+        stats: initial_stats,
+        iterations: 0,
+        converged: false,
+        degenerate: None,
+        conditioning: 0.0,
+        prior: prior.copied(),
+    };
     let mut prev_rms = f64::INFINITY;
-    let mut stats = initial_stats;
-    let mut matches;
-    (matches, _) = matching(&t)?;
+    let (mut matches, _) = matching(&start)?;
     loop {
-        if (prev_rms - stats.rms_mm).abs() < params.tolerance_mm {
-            result.converged = true;
+        if (prev_rms - end.stats.rms_mm).abs() < params.tolerance_mm {
+            end.converged = true;
             break;
         }
-        if result.iterations >= params.max_iterations {
+        if end.iterations >= params.max_iterations {
             break;
         }
         if matches.len() < 3 {
-            result.degenerate = Some(format!(
+            end.degenerate = Some(format!(
                 "only {} pair(s) left after trimming ({} trimmed, {} unmatched): at least 3 are \
                  needed",
                 matches.len(),
-                stats.trimmed,
-                stats.unmatched
+                end.stats.trimmed,
+                end.stats.unmatched
             ));
             break;
         }
-        let src: Vec<[f64; 3]> = matches.iter().map(|m| m.anchor).collect();
-        let dst: Vec<[f64; 3]> = matches.iter().map(|m| meas.points[m.point]).collect();
-        let w: Vec<f64> = matches.iter().map(|m| m.weight).collect();
+        let mut src: Vec<[f64; 3]> = matches.iter().map(|m| m.anchor).collect();
+        let mut dst: Vec<[f64; 3]> = matches.iter().map(|m| meas.points[m.point]).collect();
+        let mut w: Vec<f64> = matches.iter().map(|m| m.weight).collect();
+        if let Some(p) = prior {
+            // The pose pairs: weight κ·W/6 each against the data's total weight W.
+            let wk = p.weight() * w.iter().sum::<f64>() / 6.0;
+            for q in p.pose_points {
+                src.push(q);
+                dst.push(p.start.apply(q));
+                w.push(wk);
+            }
+        }
         let Some(fit) = Rigid::fit(&src, &dst, Some(&w)) else {
-            result.degenerate = Some(format!(
+            end.degenerate = Some(format!(
                 "the {} matched model points are collinear or coincident (or all weights are 0): \
                  the rotation is undetermined",
                 matches.len()
@@ -258,23 +393,72 @@ pub fn wicp(
             .chain(&fit.translation)
             .all(|c| c.is_finite());
         if !fit_ok {
-            result.degenerate = Some("the rigid fit is not finite".into());
+            end.degenerate = Some("the rigid fit is not finite".into());
             break;
         }
-        result.iterations += 1;
+        end.iterations += 1;
         let (m, s) = matching(&fit)?;
-        prev_rms = stats.rms_mm;
-        t = fit;
+        prev_rms = end.stats.rms_mm;
+        end.t = fit;
         matches = m;
-        stats = s;
+        end.stats = s;
     }
-    result.image_to_physical = t;
-    result.rms_mm = stats.rms_mm;
-    result.matched = stats.kept;
-    result.trimmed = stats.trimmed;
-    result.stats = stats;
-    result.seconds = clock.elapsed().as_secs_f64();
-    Ok(result)
+    if end.degenerate.is_none() {
+        end.conditioning = conditioning(&matches);
+    }
+    Ok(end)
+}
+
+/// The smallest over the largest eigenvalue of the weighted point-to-plane system of `matches`
+/// (rotations about their weighted centroid, scaled by their RMS radius so that both blocks are
+/// in millimetres); a match without a normal (a vessel point) counts in all three directions.
+pub fn conditioning(matches: &[Match]) -> f64 {
+    let wsum: f64 = matches.iter().map(|m| m.weight).sum();
+    if !(wsum > 0.0) {
+        return 0.0;
+    }
+    let mut c = [0.0; 3];
+    for m in matches {
+        for a in 0..3 {
+            c[a] += m.weight * m.anchor[a] / wsum;
+        }
+    }
+    let radius = (matches
+        .iter()
+        .map(|m| m.weight * crate::mesh::vec3::dist2(m.anchor, c))
+        .sum::<f64>()
+        / wsum)
+        .sqrt()
+        .max(1e-9);
+    let mut h = nalgebra::Matrix6::<f64>::zeros();
+    let mut add_row = |w: f64, d: [f64; 3], n: [f64; 3]| {
+        let r = crate::mesh::vec3::cross(d, n);
+        let g = nalgebra::Vector6::new(
+            r[0] / radius,
+            r[1] / radius,
+            r[2] / radius,
+            n[0],
+            n[1],
+            n[2],
+        );
+        h += w * g * g.transpose();
+    };
+    for m in matches {
+        let d = crate::mesh::vec3::sub(m.anchor, c);
+        let len = crate::mesh::vec3::dot(m.normal, m.normal).sqrt();
+        if len > 0.0 {
+            add_row(m.weight, d, m.normal.map(|x| x / len));
+        } else {
+            for e in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] {
+                add_row(m.weight, d, e);
+            }
+        }
+    }
+    let ev = h.symmetric_eigenvalues();
+    let (lo, hi) = ev.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &x| {
+        (lo.min(x), hi.max(x))
+    });
+    if hi > 0.0 { (lo / hi).max(0.0) } else { 0.0 }
 }
 
 /// Why a measured point set cannot fix a rotation (one spot, collinear, fewer than 3 points), if so.

@@ -310,6 +310,15 @@ pub(crate) struct LibrOpts {
     /// and the LIBR+ paper's wICP baseline do; ultrasound points are then used by LIBR only
     #[arg(long)]
     pub(crate) wicp_surface_only: bool,
+    /// The navigation system's initial alignment is trusted to this uncertainty (mm, RMS
+    /// displacement over the organ): the rigid motion of wICP, LIBR and the refit is
+    /// regularised towards it instead of fitted freely (an organ held in place)
+    #[arg(long, value_name = "MM")]
+    pub(crate) trusted_alignment: Option<f64>,
+    /// Below this conditioning of the rigid stage's point-to-plane system the start is trusted
+    /// to 10 mm and the registration flagged (default 1e-3; 0: never)
+    #[arg(long)]
+    pub(crate) min_conditioning: Option<f64>,
 }
 
 impl LibrOpts {
@@ -331,6 +340,10 @@ impl LibrOpts {
             p.refit_iterations = k;
         }
         p.wicp.surface_only = self.wicp_surface_only;
+        p.wicp.trusted_alignment_mm = self.trusted_alignment;
+        if let Some(c) = self.min_conditioning {
+            p.wicp.min_conditioning = c;
+        }
         p
     }
 }
@@ -342,7 +355,8 @@ pub(crate) struct EvaluateArgs {
     /// Dataset directory.
     #[arg(long)]
     pub(crate) data: PathBuf,
-    /// Comma-separated methods: rigid, libr, librplus (--model, or the built-in model).
+    /// Comma-separated methods: initial (the navigation start, unregistered: the baseline),
+    /// rigid, libr, librplus (--model, or the built-in model).
     #[arg(long, default_value = "rigid,libr")]
     pub(crate) methods: String,
     /// A trained SR-GCN model directory (from `librplus train`), or an ensemble directory (from
@@ -359,6 +373,11 @@ pub(crate) struct EvaluateArgs {
     /// Report directory (summary.json, report.md, results.json, PNG plots, error_maps/).
     #[arg(long)]
     pub(crate) out: PathBuf,
+    /// An augmented model (`physics.json`, from `librplus discover` or written by hand): LIBR
+    /// and LIBR+ register with its effects (a `fixation` or `ligament` effect also trusts the
+    /// start, see --trusted-alignment)
+    #[arg(long, value_name = "FILE")]
+    pub(crate) physics: Option<PathBuf>,
     /// Print summary.json on stdout.
     #[arg(long)]
     pub(crate) json: bool,

@@ -183,7 +183,8 @@ fn train_patterns(names: &[String]) -> Result<Vec<librplus::phantom::patterns::P
             "W" | "w" => Pattern::W,
             "X" | "x" => Pattern::X,
             "V" | "v" => Pattern::V,
-            other => bail!("--patterns: unknown pattern {other:?} (have L, R, W, X, V)"),
+            "H" | "h" => Pattern::H,
+            other => bail!("--patterns: unknown pattern {other:?} (have L, R, W, X, V, H)"),
         };
         if out.contains(&p) {
             bail!("--patterns: {name} is named twice");

@@ -14,10 +14,11 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
     let mut methods = Vec::new();
     for x in a.methods.split(',') {
         match x.trim() {
+            "initial" => methods.push(Method::Initial),
             "rigid" => methods.push(Method::Rigid),
             "libr" => methods.push(Method::Libr),
             "librplus" => want_plus = true,
-            other => bail!("--methods: unknown method {other:?} (rigid, libr, librplus)"),
+            other => bail!("--methods: unknown method {other:?} (initial, rigid, libr, librplus)"),
         }
     }
     let model = match (&a.model, want_plus) {
@@ -36,12 +37,18 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
         methods.push(Method::Libr);
     }
     // With a model: its held-out scenarios, under its split's name; with an ensemble, the
-    // scenarios every member held out.
+    // scenarios every member held out. A model trained on another dataset (its provenance's
+    // parameters hash differs) saw none of this one: no restriction.
+    let trained_here = |p: &Value| {
+        p["data_parameters_hash"]
+            .as_str()
+            .is_none_or(|h| h == m.parameters_hash)
+    };
     let model_test = match &model {
-        Some(members) => {
+        Some(members) if members.iter().any(|mm| trained_here(&mm.provenance)) => {
             let mut names = Vec::new();
             let mut common: Option<std::collections::BTreeSet<(String, usize)>> = None;
-            for mm in members {
+            for mm in members.iter().filter(|mm| trained_here(&mm.provenance)) {
                 let p = &mm.provenance;
                 let split = p["split"].as_str().unwrap_or("");
                 let sp = librplus::eval::train::TrainSplit::parse(split)
@@ -68,7 +75,7 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             }
             Some((names.join("+"), common.unwrap_or_default()))
         }
-        None => None,
+        _ => None,
     };
     let splits = match &model_test {
         Some(_) => vec![Split::All],
@@ -80,6 +87,11 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
     };
     std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
     let params = a.libr.params();
+    let physics = match &a.physics {
+        None => librplus::register::physics::Physics::none(),
+        Some(p) => librplus::register::physics::Physics::read(p)
+            .map_err(|e| anyhow::anyhow!("--physics: {e}"))?,
+    };
     params
         .libr
         .validate()
@@ -111,7 +123,7 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             only: model_test.as_ref().map(|t| &t.1),
         });
         let results = report::evaluate(
-            &a.data, &m, split, &methods, a.every, &params, plus, &progress,
+            &a.data, &m, split, &methods, a.every, &params, &physics, plus, &progress,
         );
         bar.finish_and_clear();
         let ev = results.map_err(anyhow::Error::msg)?;

@@ -327,6 +327,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             &[librplus::pipeline::Method::Libr],
             1,
             &params,
+            &librplus::register::physics::Physics::none(),
             Some(librplus::eval::report::LibrPlusEval {
                 models: std::slice::from_ref(&model),
                 only: Some(&only),
@@ -548,6 +549,7 @@ fn diagnostic_test_rows(
                 params,
                 &u_plus,
                 &sol.transform,
+                None,
                 None,
             )
             .map_err(|e| anyhow::anyhow!("{}: refit: {e}", sc.id))?;

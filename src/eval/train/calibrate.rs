@@ -91,6 +91,7 @@ pub fn fit_refit_scale(
                         &ua,
                         &sol.transform,
                         None,
+                        None,
                     )
                     .map_err(|e| EvalError::within(format!("{}: refit", sc.id), e))?;
                     let e = crate::eval::node_errors_mm(

@@ -141,6 +141,11 @@ pub struct MeasureParams {
     /// A surface point within this distance of a falciform or inferior-ridge node is designated
     /// as on that salient feature (as a surgeon traces them separately). Default 5.
     pub feature_radius_mm: f64,
+    /// The navigation system's start is the true alignment (an organ held in place and tracked,
+    /// no landmark fit); default false: the rigid fit of noisy landmarks. Left out of the
+    /// parameters (and their hash) when false.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub trusted_start: bool,
 }
 
 impl Default for MeasureParams {
@@ -158,6 +163,7 @@ impl Default for MeasureParams {
             landmarks: 4,
             landmark_noise_mm: 4.0,
             feature_radius_mm: 5.0,
+            trusted_start: false,
         }
     }
 }
@@ -343,6 +349,31 @@ pub fn simulate(
     params: &MeasureParams,
     seed: u64,
 ) -> Result<Scenario, PhantomError> {
+    simulate_focused(
+        mesh,
+        labels,
+        vessels,
+        displacement,
+        category,
+        params,
+        None,
+        seed,
+    )
+}
+
+/// [`simulate`] with the surface patch grown from the anterior triangle nearest node `focus`
+/// (deformed), where a tool acts and the camera looks, instead of an area-weighted random one.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_focused(
+    mesh: &TetMesh,
+    labels: &AnatomyLabels,
+    vessels: &VesselTree,
+    displacement: &[f64],
+    category: Category,
+    params: &MeasureParams,
+    focus: Option<u32>,
+    seed: u64,
+) -> Result<Scenario, PhantomError> {
     params.validate()?;
     let n = mesh.num_nodes();
     if displacement.len() != 3 * n {
@@ -426,6 +457,7 @@ pub fn simulate(
         &ant_areas,
         &deformed,
         [target, c0, c1].map(|c| c * ant_total),
+        focus.and_then(|v| deformed.get(v as usize).copied()),
         &mut rng,
     );
     let patch_area: f64 = patch.iter().map(|&i| ant_areas[i]).sum();
@@ -570,12 +602,15 @@ pub fn simulate(
             add(tf.apply(deformed[v as usize]), e)
         })
         .collect();
-    let initial_alignment =
+    let initial_alignment = if params.trusted_start {
+        tf
+    } else {
         Rigid::fit(&landmarks_image, &landmarks_physical, None).ok_or_else(|| {
             PhantomError::Geometry(format!(
                 "landmark nodes {landmark_nodes:?} are collinear: no rigid fit"
             ))
-        })?;
+        })?
+    };
 
     Ok(Scenario {
         category,

@@ -35,6 +35,7 @@ pub(super) fn grow_patch(
     areas: &[f64],
     xyz: &[[f64; 3]],
     [target, lo, hi]: [f64; 3],
+    near: Option<[f64; 3]>,
     rng: &mut SplitMix64,
 ) -> Vec<usize> {
     let m = anterior.len();
@@ -81,6 +82,16 @@ pub(super) fn grow_patch(
             break;
         }
         u -= a;
+    }
+    // Or the triangle nearest a given point (a tool's contact: the camera looks there).
+    if let Some(q) = near {
+        seed = (0..m)
+            .min_by(|&a, &b| {
+                norm(sub(centroid[a], q))
+                    .total_cmp(&norm(sub(centroid[b], q)))
+                    .then(a.cmp(&b))
+            })
+            .unwrap_or(seed);
     }
     let mut dist = vec![f64::INFINITY; m];
     let mut done = vec![false; m];

@@ -48,6 +48,17 @@ pub struct StepResult {
     pub timings: StepTimings,
 }
 
+/// A rigid prior's pose pairs in the image frame of the current pose (anchor, target: see
+/// [`crate::register::prior::RigidPrior::image_pairs`]) and its weight κ against the weighted mean
+/// squared misfit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PriorPairs {
+    /// Pose point and its trusted position.
+    pub pairs: [([f64; 3], [f64; 3]); 6],
+    /// κ: each pair counts `κ / 6`.
+    pub weight: f64,
+}
+
 pub(super) fn normalize3(a: [f64; 3]) -> [f64; 3] {
     let l = dot(a, a).sqrt();
     if l > 0.0 { a.map(|x| x / l) } else { a }
@@ -83,6 +94,7 @@ pub(super) fn assemble<'a>(
     matches: &'a [Match],
     targets_image: &[[f64; 3]],
     params: &LibrParams,
+    prior: Option<&PriorPairs>,
 ) -> Result<Assembled<'a>, RegisterError> {
     let t0 = Instant::now();
     let lambda = params.regularization;
@@ -258,6 +270,28 @@ pub(super) fn assemble<'a>(
         Par::Seq,
     );
     let rhs0 = rhs;
+    // The rigid prior: each pose pair a point-to-point row on the rigid unknowns alone (the
+    // prior is on the pose, not the deformation), scaled by √(κ/6).
+    if let Some(pr) = prior {
+        let s = (pr.weight / 6.0).sqrt();
+        for &(q, target) in &pr.pairs {
+            let rot = mode_rows(q, cen);
+            for ax in 0..3 {
+                let mut g = [0.0; 6];
+                for k in 0..3 {
+                    g[k] = s * rot[ax][3 + k] / radius;
+                    g[3 + k] = if k == ax { s } else { 0.0 };
+                }
+                let r = s * (target[ax] - q[ax]);
+                for i in 0..6 {
+                    for j in 0..=i {
+                        a[(m + i, m + j)] += g[i] * g[j];
+                    }
+                    b[(m + i, 0)] += g[i] * r;
+                }
+            }
+        }
+    }
     // A vanishing damping of the rigid unknowns keeps the system definite when the data leave
     // a rigid direction free (a flat patch under pure point-to-plane): there Jᵀr = 0, so the
     // step along it is zero instead of a failed factorization.
@@ -308,6 +342,18 @@ pub fn fit_step(
     targets_image: &[[f64; 3]],
     params: &LibrParams,
 ) -> Result<StepResult, RegisterError> {
+    fit_step_with_prior(basis, matches, targets_image, params, None)
+}
+
+/// [`fit_step`] with the rigid correction regularised by a prior on the pose: the objective
+/// gains `κ/6 Σ |δ(qₖ) − zₖ|²` over the prior's pose pairs (linearized like the data rows).
+pub fn fit_step_with_prior(
+    basis: &LibrBasis,
+    matches: &[Match],
+    targets_image: &[[f64; 3]],
+    params: &LibrParams,
+    prior: Option<&PriorPairs>,
+) -> Result<StepResult, RegisterError> {
     let Assembled {
         used,
         wsum,
@@ -324,7 +370,7 @@ pub fn fit_step(
         rows_s,
         normal_s,
         ..
-    } = assemble(basis, matches, targets_image, params)?;
+    } = assemble(basis, matches, targets_image, params, prior)?;
     let t2 = Instant::now();
     let llt = a.llt(Side::Lower).map_err(|e| {
         RegisterError::IllConditioned(format!(

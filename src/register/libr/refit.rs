@@ -102,7 +102,7 @@ pub fn linearised_refit(
     params.validate()?;
     let mut targets = measured_image.to_vec();
     offset_targets(matches, &mut targets, offset);
-    let asm = assemble(basis, matches, &targets, params)?;
+    let asm = assemble(basis, matches, &targets, params, None)?;
     let (m, p) = (asm.m, asm.p);
     let llt = asm.a.llt(Side::Lower).map_err(|e| {
         RegisterError::IllConditioned(format!(

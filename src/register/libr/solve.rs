@@ -5,6 +5,7 @@ use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::Match;
+use crate::register::prior::RigidPrior;
 use std::time::Instant;
 
 /// What [`solve`] did.
@@ -81,6 +82,9 @@ pub struct RunLimits<'a> {
     /// A displacement the fit starts from and keeps (node-major 3n, image frame; None: zero):
     /// the result is `offset + Φα`, and the strain energy regularises `Φα` alone.
     pub offset: Option<&'a [f64]>,
+    /// A prior on the rigid pose (a trusted start, [`crate::register::prior`]): every step's
+    /// rigid correction is regularised towards it (None: fitted freely).
+    pub rigid_prior: Option<&'a RigidPrior>,
 }
 
 /// [`solve`], updating between matchings only the displacement of `active` nodes (those
@@ -103,6 +107,7 @@ pub fn solve_with_limits(
         active,
         deadline,
         offset,
+        rigid_prior,
     } = run;
     if let Some(o) = offset {
         if o.len() != 3 * basis.nodes {
@@ -158,7 +163,11 @@ pub fn solve_with_limits(
             // Fit Φα to what the offset leaves.
             offset_targets(&matches, &mut targets, o);
         }
-        let step = fit_step(basis, &matches, &targets, params)?;
+        let prior = rigid_prior.map(|p| PriorPairs {
+            pairs: p.image_pairs(&t),
+            weight: p.weight(),
+        });
+        let step = fit_step_with_prior(basis, &matches, &targets, params, prior.as_ref())?;
         info.assemble_s += step.timings.rows_s + step.timings.normal_s;
         info.solve_s += step.timings.solve_s;
         let mut u_new = u.clone();
