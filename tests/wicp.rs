@@ -804,3 +804,113 @@ fn surface_only_registration_ignores_the_ultrasound_points() {
         r.warnings
     );
 }
+
+/// A trusted start holds the organ: with exact data of a pose 3° and ~4 mm from the start, the
+/// rigid stage moves the organ from the start the less the smaller the declared uncertainty —
+/// all the way to the data's pose when it is large, and not at all when it is tiny.
+#[test]
+fn a_trusted_start_is_left_in_proportion_to_its_uncertainty() {
+    let sc = scenario(Category::Planes3, &noise_free(), 11);
+    let truth = sc.image_to_physical;
+    let off = Rigid::from_axis_angle([0.2, 1.0, -0.3], 3f64.to_radians(), [3.0, -2.0, 2.0]);
+    let meas = Measurements {
+        initial_alignment: Some(off.then(&truth)),
+        ..measurements(&sc)
+    };
+    let free = run(&meas, &tight());
+    assert!(free.prior.is_none());
+    let apart = free.moved_from_start_mm;
+    assert!(apart > 3.0, "the start is {apart} mm from the data's pose");
+    let mut last = 0.0;
+    for sigma in [0.001, 0.3, 1.0, 3.0, 10.0, 1e4] {
+        let r = run(
+            &meas,
+            &WicpParams {
+                trusted_alignment_mm: Some(sigma),
+                ..tight()
+            },
+        );
+        assert_eq!(r.prior.map(|p| p.sigma_mm), Some(sigma));
+        let moved = r.moved_from_start_mm;
+        eprintln!("trusted to {sigma} mm: moved {moved:.3} mm of {apart:.3}");
+        assert!(moved >= last - 1e-6, "σ {sigma}: moved {moved} < {last}");
+        last = moved;
+        if sigma <= 0.001 {
+            assert!(moved < 0.01, "σ {sigma}: moved {moved} mm");
+        }
+        if sigma >= 1e4 {
+            let (mean, _) = tre(&r.image_to_physical, &free.image_to_physical);
+            assert!(mean < 0.01, "σ {sigma}: {mean} mm from the free fit");
+        }
+    }
+    let bad = WicpParams {
+        trusted_alignment_mm: Some(-1.0),
+        ..tight()
+    };
+    let l = liver();
+    let e = wicp(&l.model, &l.corr, &meas, &bad)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("trusted_alignment_mm"), "{e}");
+}
+
+/// Points on one flat face of a box leave two translations and a rotation free: the
+/// conditioning says so (against a box measured on three faces), the start is trusted, and the
+/// result is flagged with a warning.
+#[test]
+fn a_flat_patch_is_flagged_ill_posed_and_does_not_move_the_organ() {
+    use librplus::mesh::procedural::box_mesh;
+    let mesh = box_mesh([100.0, 60.0, 80.0], [10, 6, 8], 0.0);
+    let n = mesh.num_nodes();
+    let boundary: Vec<bool> = {
+        let mut b = vec![false; n];
+        for v in mesh.boundary().unwrap().nodes {
+            b[v as usize] = true;
+        }
+        b
+    };
+    let model = PreopModel {
+        mesh: mesh.clone(),
+        anterior: boundary.clone(),
+        posterior: vec![false; n],
+        falciform: vec![false; n],
+        inferior_ridge: vec![false; n],
+        vessel_points: Vec::new(),
+        vessel_segments: Vec::new(),
+    };
+    let corr = Correspondence::new(&model).unwrap();
+    let mut g = SplitMix64::new(4);
+    let face = |g: &mut SplitMix64| -> Vec<[f64; 3]> {
+        (0..200)
+            .map(|_| [10.0 + 80.0 * g.next_f64(), 0.0, 10.0 + 60.0 * g.next_f64()])
+            .collect()
+    };
+    let start = Rigid::from_axis_angle([0.0, 1.0, 0.0], 2f64.to_radians(), [2.0, 0.0, -3.0]);
+    let measure = |pts: Vec<[f64; 3]>| Measurements {
+        kind: vec![MeasuredKind::Surface; pts.len()],
+        points: pts,
+        feature: Vec::new(),
+        initial_alignment: Some(start),
+    };
+    // One face (y = 0): ill-posed.
+    let flat = measure(face(&mut g));
+    let r = wicp(&model, &corr, &flat, &WicpParams::default()).unwrap();
+    assert!(r.ill_posed, "conditioning {}", r.conditioning);
+    assert!(r.conditioning < 1e-3, "{}", r.conditioning);
+    assert_eq!(r.prior.map(|p| p.sigma_mm), Some(10.0));
+    assert!(
+        r.warnings
+            .iter()
+            .any(|w| w.contains("do not fix the rigid motion")),
+        "{:?}",
+        r.warnings
+    );
+    assert!(r.moved_from_start_mm < 1.0, "{}", r.moved_from_start_mm);
+    // Three faces (y = 0, x = 0, z = 0): well-posed, not flagged.
+    let mut pts = face(&mut g);
+    pts.extend((0..200).map(|_| [0.0, 5.0 + 50.0 * g.next_f64(), 5.0 + 70.0 * g.next_f64()]));
+    pts.extend((0..200).map(|_| [5.0 + 90.0 * g.next_f64(), 5.0 + 50.0 * g.next_f64(), 0.0]));
+    let r = wicp(&model, &corr, &measure(pts), &WicpParams::default()).unwrap();
+    assert!(!r.ill_posed && r.prior.is_none(), "{}", r.conditioning);
+    assert!(r.conditioning > 1e-2, "{}", r.conditioning);
+}

@@ -80,6 +80,13 @@ impl LibrPlusCase {
         f64::from_bits(self.estimate.load(Ordering::Relaxed))
     }
 
+    /// Why the networks do not apply to a case whose LIBR carries `physics`, if they do not
+    /// ([`physics_mismatch`]).
+    pub fn mismatch(&self, physics: &crate::register::physics::Physics) -> Option<String> {
+        let models: Vec<&TrainedModel> = self.members.iter().map(|m| &*m.model).collect();
+        physics_mismatch(&models, physics)
+    }
+
     /// Lowers [`LibrPlusCase::expected_seconds`] by 2 %: for a caller that skipped the
     /// correction because the estimate did not fit its time budget. Skipped corrections are not
     /// timed, so without this one slow correction (a busy machine) would keep the estimate
@@ -103,6 +110,13 @@ impl LibrPlusCase {
     /// the time (s; the rest builds the sample: graphs, matches, features). `cparams` are the
     /// correspondence settings of LIBR's last iteration. The caller records the stage's time
     /// ([`LibrPlusCase::record_seconds`]).
+    ///
+    /// The correction is damped where LIBR finds little deformation: it is scaled by
+    /// `min(1, ū / DEFORMATION_GATE_MM)` with ū LIBR's mean node displacement. The network
+    /// learned the residual of LIBR under surgical loads, which grows with the deformation; on an
+    /// undeformed liver measured exactly LIBR is exact, and the ungated correction moved it by
+    /// 0.7–1.8 mm (`tests/sanity.rs`). Registrations with ū ≥ 2 mm (every surgical pattern of the
+    /// phantom) are unchanged.
     #[allow(clippy::too_many_arguments)]
     pub fn correct(
         &self,
@@ -150,9 +164,54 @@ impl LibrPlusCase {
             }
         }
         let n = self.members.len() as f64;
-        sum.iter_mut().for_each(|s| *s /= n);
+        let gate = deformation_gate(u);
+        for (s, &x) in sum.iter_mut().zip(u) {
+            *s = x + gate * (*s / n - x);
+        }
         Ok((sum, network_s))
     }
+}
+
+/// Why networks do not apply to a LIBR carrying `physics`, if they do not: a network learns the
+/// residual of the LIBR it was trained on (its provenance's `physics_hash`; plain LIBR when
+/// absent) and corrects nothing else.
+pub fn physics_mismatch(
+    models: &[&TrainedModel],
+    physics: &crate::register::physics::Physics,
+) -> Option<String> {
+    let want = (!physics.is_empty()).then(|| physics.hash());
+    let bad = models
+        .iter()
+        .position(|m| m.provenance["physics_hash"].as_str().map(str::to_string) != want)?;
+    Some(if physics.is_empty() {
+        format!(
+            "SR-GCN member {} learned the residual of LIBR with physics, and this case's LIBR \
+             is plain",
+            bad + 1
+        )
+    } else {
+        format!(
+            "the SR-GCN learned the residual of another LIBR (member {}), and this case's carries \
+             {}: train one with --physics",
+            bad + 1,
+            physics.kinds().join(", ")
+        )
+    })
+}
+
+/// LIBR's mean node displacement (mm) from which the SR-GCN's correction applies in full
+/// ([`LibrPlusCase::correct`]).
+pub const DEFORMATION_GATE_MM: f64 = 2.0;
+
+/// `min(1, ū / DEFORMATION_GATE_MM)` for LIBR's displacement `u` (node-major).
+pub fn deformation_gate(u: &[f64]) -> f64 {
+    let n = (u.len() / 3).max(1) as f64;
+    let mean = u
+        .chunks_exact(3)
+        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+        .sum::<f64>()
+        / n;
+    (mean / DEFORMATION_GATE_MM).min(1.0)
 }
 
 /// Whether two networks read the same sample ([`SampleData::build`] depends on these switches).

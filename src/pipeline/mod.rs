@@ -396,7 +396,9 @@ pub fn register(
         let late = params
             .deadline
             .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
-        let skipped = if late {
+        let skipped = if let Some(why) = g.mismatch(&case.physics) {
+            Some(format!("{why}: LIBR's answer"))
+        } else if late {
             g.relax_estimate();
             Some(format!(
                 "no time left for the SR-GCN correction (about {:.0} ms): LIBR's answer",

@@ -96,6 +96,12 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
         .libr
         .validate()
         .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    if let Some(members) = &model {
+        let refs: Vec<&librplus::gcn::io::TrainedModel> = members.iter().map(|m| &**m).collect();
+        if let Some(why) = librplus::gcn::infer::physics_mismatch(&refs, &physics) {
+            eprintln!("warning: LIBR+ is LIBR's answer throughout: {why}");
+        }
+    }
     let mut summaries = std::collections::BTreeMap::new();
     let mut all_results = serde_json::Map::new();
     let mut plots = serde_json::Map::new();

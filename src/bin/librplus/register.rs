@@ -45,6 +45,11 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             "matched": r.rigid.matched,
             "trimmed": r.rigid.trimmed,
             "degenerate": r.rigid.degenerate,
+            "conditioning": r.rigid.conditioning,
+            "ill_posed": r.rigid.ill_posed,
+            "trusted_alignment_mm": r.rigid.prior.map(|p| p.sigma_mm),
+            "moved_from_start_mm": r.rigid.moved_from_start_mm,
+            "warnings": r.rigid.warnings,
             "seconds": r.rigid.seconds,
         },
         "libr": libr.map(|i| json!({
