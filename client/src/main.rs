@@ -52,6 +52,10 @@ struct Common {
     /// Time budget per registration sent in SessionStart, ms (default: the server's).
     #[arg(long)]
     time_budget_ms: Option<u32>,
+    /// The initial alignment is trusted to this uncertainty (mm, RMS over the organ): the
+    /// server regularises the rigid motion towards it (an organ held in place).
+    #[arg(long, value_name = "MM")]
+    trusted_alignment: Option<f64>,
     /// Bearer token sent as `authorization` metadata.
     #[arg(long)]
     token: Option<String>,
@@ -105,9 +109,10 @@ fn seconds(name: &str, s: f64) -> Result<Duration> {
 }
 
 fn options(c: &Common) -> Option<pb::RegisterOptions> {
-    c.time_budget_ms.map(|ms| pb::RegisterOptions {
-        time_budget_ms: ms,
+    (c.time_budget_ms.is_some() || c.trusted_alignment.is_some()).then(|| pb::RegisterOptions {
+        time_budget_ms: c.time_budget_ms.unwrap_or(0),
         omit_displacements: false,
+        trusted_alignment_mm: c.trusted_alignment.unwrap_or(0.0),
     })
 }
 

@@ -7,6 +7,7 @@ use librplus::mesh::io::{self, MeshFile};
 use librplus::pipeline::{Method, Prepared};
 use librplus::register::PreopModel;
 use librplus::register::libr::LibrParams;
+use librplus::register::physics::Physics;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -120,6 +121,14 @@ pub enum CaseError {
         /// What failed.
         source: librplus::pipeline::PipelineError,
     },
+    /// The case's `physics.json` could not be read.
+    #[error("{}: {source}", path.display())]
+    Physics {
+        /// The physics file.
+        path: PathBuf,
+        /// What was wrong (naming the field).
+        source: librplus::register::RegisterError,
+    },
     /// The configuration does not fit the case.
     #[error(transparent)]
     Config(#[from] crate::config::ConfigError),
@@ -200,7 +209,7 @@ pub fn load(
     libr: &LibrParams,
     gcn: Option<&Vec<Arc<TrainedModel>>>,
 ) -> Result<Case, CaseError> {
-    let (model, path, cache) = match source {
+    let (model, path, cache, physics_path) = match source {
         CaseSource::Dataset { dir, geometry } => {
             let m = librplus::eval::open(dir)?;
             let g = librplus::eval::load_geometry(dir, &m, geometry)?;
@@ -212,14 +221,20 @@ pub fn load(
                     path: dir.clone(),
                     problem: format!("no geometry {geometry}"),
                 })?;
-            (g.model, dir.join(&entry.preop), dir.join("cache"))
+            let physics = dir.join("physics").join(format!("{geometry}.json"));
+            (g.model, dir.join(&entry.preop), dir.join("cache"), physics)
         }
         CaseSource::Mesh { path } => {
             let unit = config.unit()?;
             let file = io::read(path, unit)?;
             let model = model_from_mesh_file(path, &file, unit)?;
-            let cache = path.parent().unwrap_or(Path::new(".")).join("cache");
-            (model, path.clone(), cache)
+            let parent = path.parent().unwrap_or(Path::new("."));
+            let stem = path
+                .file_stem()
+                .map(|s| s.to_string_lossy().to_string())
+                .unwrap_or_default();
+            let physics = parent.join(format!("{stem}.physics.json"));
+            (model, path.clone(), parent.join("cache"), physics)
         }
     };
     let cache = config.cache_dir.clone().unwrap_or(cache);
@@ -227,7 +242,17 @@ pub fn load(
         path: path.clone(),
         source,
     };
-    let mut prepared = Prepared::new(model, Some(libr), Some(&cache)).map_err(prepare)?;
+    // The augmented model beside the case (`physics.json`, from `librplus discover`), if any.
+    let physics = if physics_path.is_file() {
+        Physics::read(&physics_path).map_err(|source| CaseError::Physics {
+            path: physics_path.clone(),
+            source,
+        })?
+    } else {
+        Physics::none()
+    };
+    let mut prepared =
+        Prepared::with_physics(model, Some(libr), &physics, Some(&cache)).map_err(prepare)?;
     if let Some(m) = gcn {
         prepared = prepared.with_models(m.clone()).map_err(prepare)?;
     }

@@ -27,6 +27,8 @@ pub struct Job {
     pub arrival: Instant,
     /// Leave the displacements out of the reply.
     pub omit_displacements: bool,
+    /// The initial alignment trusted to this uncertainty (mm), when the client says so.
+    pub trusted_alignment_mm: Option<f64>,
 }
 
 /// Bounded pool of compute slots.
@@ -111,6 +113,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let mut method = job.method;
     let mut degraded: Option<String> = None;
     let mut params = PipelineParams::default();
+    params.wicp.trusted_alignment_mm = job.trusted_alignment_mm;
     let gcn_ms = case
         .prepared
         .librplus
@@ -264,5 +267,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         }),
         quality: quality as i32,
         quality_reason: reason,
+        effects: crate::service::effects(case),
+        rigid_ill_posed: reg.rigid.ill_posed,
     })
 }

@@ -97,12 +97,14 @@ impl Svc {
         field: &str,
     ) -> Result<Duration, ServiceError> {
         let c = &self.0.config;
-        // Every field of the options; `omit_displacements` is read by the caller.
+        // Every field of the options; `omit_displacements` and `trusted_alignment_mm` are read
+        // by the caller.
         let ms = options.map_or(
             0,
             |pb::RegisterOptions {
                  time_budget_ms,
                  omit_displacements: _,
+                 trusted_alignment_mm: _,
              }| *time_budget_ms,
         );
         if ms > c.max_time_budget_ms {
@@ -149,7 +151,34 @@ fn summary(c: &Case) -> pb::CaseSummary {
         default_method: crate::convert::method_to_pb(c.default_method) as i32,
         preload_seconds: c.prepared.seconds,
         basis_from_cache: c.prepared.basis_from_cache,
+        effects: effects(c),
     }
+}
+
+/// The named effects a case's model carries.
+pub(crate) fn effects(c: &Case) -> Vec<String> {
+    c.prepared
+        .physics
+        .kinds()
+        .into_iter()
+        .map(str::to_string)
+        .collect()
+}
+
+/// The options' trusted-alignment uncertainty: None when 0 or absent; an error naming the field
+/// when negative or not finite.
+fn trusted(
+    options: Option<&pb::RegisterOptions>,
+    field: &str,
+) -> Result<Option<f64>, ServiceError> {
+    let v = options.map_or(0.0, |o| o.trusted_alignment_mm);
+    if !(v.is_finite() && v >= 0.0) {
+        return Err(ServiceError::field(
+            format!("{field}.trusted_alignment_mm"),
+            format!("{v} must be finite and ≥ 0 (mm; 0: fitted freely)"),
+        ));
+    }
+    Ok((v > 0.0).then_some(v))
 }
 
 type UpdateStream = ReceiverStream<Result<pb::StreamUpdate, Status>>;
@@ -239,6 +268,7 @@ impl LibRPlus for Svc {
             librplus::register::correspondence::validate_measurements(&meas)
                 .map_err(|e| ServiceError::field("measurements", e.to_string()))?;
             let mut budget = self.budget(options.as_ref(), "options")?;
+            let trusted_alignment_mm = trusted(options.as_ref(), "options")?;
             if let Some(d) = client_deadline {
                 // Answer before the client gives up: keep 10% (at least 5 ms) for the reply.
                 budget = budget.min(d.mul_f64(0.9).saturating_sub(Duration::from_millis(5)));
@@ -250,6 +280,7 @@ impl LibRPlus for Svc {
                 budget,
                 arrival,
                 omit_displacements: options.as_ref().is_some_and(|o| o.omit_displacements),
+                trusted_alignment_mm,
             };
             self.0.engine.run(job, true).await
         };
@@ -383,6 +414,7 @@ struct Session {
     method: Method,
     budget: Duration,
     omit: bool,
+    trusted_alignment_mm: Option<f64>,
     meas: Measurements,
     last_seq: u64,
     last_time: Option<(i64, i32)>,
@@ -482,6 +514,7 @@ async fn session(
                 },
                 arrival,
                 omit_displacements: s.omit,
+                trusted_alignment_mm: s.trusted_alignment_mm,
             };
             let update = match svc.0.engine.run(job, false).await {
                 Ok(r) => pb::stream_update::Update::Registration(r),
@@ -511,6 +544,7 @@ fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Sessio
     let case = svc.case(case_id, "start.case_id")?;
     let method = svc.check_method(&case, *method, "start.method")?;
     let budget = svc.budget(options.as_ref(), "start.options")?;
+    let trusted_alignment_mm = trusted(options.as_ref(), "start.options")?;
     let initial = initial_alignment
         .as_ref()
         .map(|r| rigid_from_pb(r, "start.initial_alignment"))
@@ -520,6 +554,7 @@ fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Sessio
         method,
         budget,
         omit: options.as_ref().is_some_and(|o| o.omit_displacements),
+        trusted_alignment_mm,
         meas: Measurements {
             initial_alignment: initial,
             ..Default::default()

@@ -86,3 +86,98 @@ async fn a_folder_of_meshes_is_a_set_of_cases() {
     assert_eq!(r.node_count as usize, geo.model.mesh.num_nodes());
     assert_eq!(running.shutdown().await, 0);
 }
+
+/// A case with its augmented model beside it (`NAME.physics.json`): the summary and every
+/// registration name the effects, the answer equals the library's with the same physics (the
+/// same code `librplus register --physics` runs) to f32 rounding, a trusted alignment sent in
+/// the options is applied as the library applies it, and a bad one is refused naming the field.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_case_with_physics_registers_with_its_effects() {
+    use librplus::register::physics::Physics;
+    let m = open(dataset()).unwrap();
+    let g = &m.geometries[0];
+    let geo = load_geometry(dataset(), &m, &g.id).unwrap();
+    let folder = tempfile::tempdir().unwrap();
+    std::fs::copy(dataset().join(&g.preop), folder.path().join("held.vtu")).unwrap();
+    std::fs::copy(
+        dataset().join(&g.vessels),
+        folder.path().join("held.vessels.vtp"),
+    )
+    .unwrap();
+    // Held at a posterior spot, and gravity.
+    let spot = (0..geo.model.mesh.num_nodes())
+        .find(|&i| geo.model.posterior[i])
+        .unwrap();
+    let c = geo.model.mesh.nodes()[spot];
+    let text = format!(
+        r#"{{"format": 1, "effects": [
+            {{"kind": "fixation", "parameters": {{"center": [{}, {}, {}], "radius_mm": 30, "stiffness": 5}}}},
+            {{"kind": "gravity", "parameters": {{"direction": [0, 1, 0], "magnitude": 0.0104}}}}]}}"#,
+        c[0], c[1], c[2]
+    );
+    let path = folder.path().join("held.physics.json");
+    std::fs::write(&path, &text).unwrap();
+    let physics = Physics::read(&path).unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        cases: vec![folder.path().to_path_buf()],
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut client = client(running.addr).await;
+    let list = client
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(list.cases.len(), 1);
+    assert_eq!(list.cases[0].effects, ["fixation", "gravity"]);
+    let (_, sc) = scenario("surface+2us");
+    let lib_case = Prepared::with_physics(
+        geo.model.clone(),
+        Some(&LibrParams::default()),
+        &physics,
+        None,
+    )
+    .unwrap();
+    for trusted in [0.0, 3.0] {
+        let mut req = request("held", pb::Method::Libr, measurements_pb(&sc.measurements));
+        req.options = Some(pb::RegisterOptions {
+            trusted_alignment_mm: trusted,
+            ..Default::default()
+        });
+        let r = client.register(req).await.unwrap().into_inner();
+        let mut params = PipelineParams::default();
+        params.wicp.trusted_alignment_mm = (trusted > 0.0).then_some(trusted);
+        let lib = register(&lib_case, &sc.measurements, Method::Libr, &params).unwrap();
+        // The fixation holds the organ: the start is trusted (5 mm, or as sent).
+        assert_eq!(
+            lib.rigid.prior.map(|p| p.sigma_mm),
+            Some(if trusted > 0.0 { trusted } else { 5.0 })
+        );
+        let (dt, du) = difference(&r, &lib);
+        eprintln!("with physics, trusted {trusted} mm: |Δtransform| {dt:.1e}, |Δu| {du:.1e} mm");
+        assert_eq!(r.effects, ["fixation", "gravity"]);
+        assert!(dt < 1e-9, "transform differs by {dt}");
+        assert!(du <= 1e-5, "displacements differ by {du} mm");
+        assert!(
+            lib.u.iter().any(|&x| x.abs() > 0.5),
+            "LIBR deformed nothing"
+        );
+    }
+    let mut bad = request("held", pb::Method::Libr, measurements_pb(&sc.measurements));
+    bad.options = Some(pb::RegisterOptions {
+        trusted_alignment_mm: -1.0,
+        ..Default::default()
+    });
+    let e = client.register(bad).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(
+        violations(&e)
+            .iter()
+            .any(|v| v.contains("options.trusted_alignment_mm")),
+        "{e:?}"
+    );
+    assert_eq!(running.shutdown().await, 0);
+}
