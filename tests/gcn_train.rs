@@ -584,9 +584,16 @@ fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_w
         (1..=f.params.refit_iterations).contains(&info.iterations),
         "{info:?}"
     );
-    let again =
-        librplus::pipeline::refit(&case, meas, &f.params, &want, &libr.image_to_physical, None)
-            .unwrap();
+    let again = librplus::pipeline::refit(
+        &case,
+        meas,
+        &f.params,
+        &want,
+        &libr.image_to_physical,
+        None,
+        None,
+    )
+    .unwrap();
     assert_eq!(fitted.u, again.u);
     assert_eq!(fitted.image_to_physical, again.image_to_physical);
     let misfit = |t: &librplus::mesh::rigid::Rigid, u: &[f64]| {
@@ -1030,6 +1037,7 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
             &one,
             &u_start,
             &r.image_to_physical,
+            None,
             None,
         )
         .unwrap();

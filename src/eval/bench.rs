@@ -45,15 +45,16 @@ pub struct PreloadBench {
     pub warm: Preload,
 }
 
-/// Measures the preload of `model` (correspondence + LIBR basis) twice with `cache_dir`, which
+/// Measures the preload of `model` (correspondence + LIBR basis, with `physics`) twice with `cache_dir`, which
 /// must not yet hold this basis: a cold build that writes the cache, then a warm load from it.
 /// Returns the measurements and the warm case (ready for registrations).
 pub fn preload_model(
     model: &PreopModel,
     params: &LibrParams,
+    physics: &crate::register::physics::Physics,
     cache_dir: &Path,
 ) -> Result<(PreloadBench, Prepared), EvalError> {
-    let path = LibrBasis::cache_path(&model.mesh, params, cache_dir);
+    let path = LibrBasis::cache_path_with(&model.mesh, params, physics, cache_dir);
     if path.exists() {
         return Err(EvalError::Parameter(format!(
             "{} already exists: a cold preload needs an empty cache directory",
@@ -64,7 +65,7 @@ pub fn preload_model(
     let mut last = None;
     for _ in 0..2 {
         let t0 = Instant::now();
-        let case = Prepared::new(model.clone(), Some(params), Some(cache_dir))?;
+        let case = Prepared::with_physics(model.clone(), Some(params), physics, Some(cache_dir))?;
         let total_s = crate::util::secs(t0);
         let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
         runs.push(Preload {

@@ -316,6 +316,9 @@ pub fn wicp(
     Ok(result)
 }
 
+/// The matching of the measured points under a transform.
+type Matching<'a> = dyn Fn(&Rigid) -> Result<(Vec<Match>, MatchStats), RegisterError> + 'a;
+
 /// What one run of the ICP iterations ended with.
 struct LoopEnd {
     t: Rigid,
@@ -335,7 +338,7 @@ fn icp_loop(
     start: Rigid,
     initial_stats: MatchStats,
     prior: Option<&RigidPrior>,
-    matching: &dyn Fn(&Rigid) -> Result<(Vec<Match>, MatchStats), RegisterError>,
+    matching: &Matching<'_>,
 ) -> Result<LoopEnd, RegisterError> {
     let mut end = LoopEnd {
         t: start,
@@ -414,7 +417,7 @@ fn icp_loop(
 /// in millimetres); a match without a normal (a vessel point) counts in all three directions.
 pub fn conditioning(matches: &[Match]) -> f64 {
     let wsum: f64 = matches.iter().map(|m| m.weight).sum();
-    if !(wsum > 0.0) {
+    if wsum.is_nan() || wsum <= 0.0 {
         return 0.0;
     }
     let mut c = [0.0; 3];

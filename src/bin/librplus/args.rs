@@ -472,6 +472,9 @@ pub(crate) struct BenchRegisterArgs {
     /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model).
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
+    /// An augmented model (`physics.json`): LIBR's basis carries its effects.
+    #[arg(long, value_name = "FILE")]
+    pub(crate) physics: Option<PathBuf>,
     #[command(flatten)]
     pub(crate) common: Common,
 }
@@ -711,7 +714,7 @@ pub(crate) enum BenchCmd {
     /// Whole registration pipeline: the case preload (LIBR basis built cold, then read from its
     /// cache) and single-registration latency with stage timings over scenarios spread across
     /// the measurement categories.
-    Register(BenchRegisterArgs),
+    Register(Box<BenchRegisterArgs>),
     /// A spline-convolution stack on the graph of `../shared/bench/splineconv_peer.py` (random
     /// points, symmetric kNN, Cartesian pseudo-coordinates; layers 6 → hidden … → 3): inference
     /// and one training step, medians in ms, as the peer prints them.

@@ -218,7 +218,12 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         );
     }
     let bar = spinner("preload: LIBR basis cold build, then warm load");
-    let pre = preload_model(&geo.model, &params.libr, &cache);
+    let physics = match &a.physics {
+        None => librplus::register::physics::Physics::none(),
+        Some(p) => librplus::register::physics::Physics::read(p)
+            .map_err(|e| anyhow::anyhow!("--physics: {e}"))?,
+    };
+    let pre = preload_model(&geo.model, &params.libr, &physics, &cache);
     bar.finish_and_clear();
     let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
     let method = match a.method {
