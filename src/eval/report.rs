@@ -207,6 +207,38 @@ pub struct Evaluation {
     pub error_maps: Vec<ErrorMap>,
     /// The preoperative mesh of each evaluated geometry (for writing the error maps).
     pub meshes: BTreeMap<String, TetMesh>,
+    /// With discovery ([`DiscoverEval`]): what each cohort's held-in scenarios named.
+    pub discovered: Vec<CohortPhysics>,
+}
+
+/// `evaluate --discover`: each deformation (a cohort: one organ state) gets its own augmented
+/// model, found by [`crate::discover::discover_cohort`] on its held-in scenarios (the even kept
+/// blocks of five: 0, 2, 4, …) and scored as method [`DISCOVERED_METHOD`] (LIBR with it) on the
+/// held-out ones (the odd blocks), where every other method then runs too: the physics never
+/// sees the scenarios it is scored on.
+#[derive(Debug, Clone, Copy)]
+pub struct DiscoverEval<'a> {
+    /// Discovery's parameters.
+    pub params: &'a crate::discover::DiscoverParams,
+}
+
+/// The method name of LIBR with a cohort's discovered physics.
+pub const DISCOVERED_METHOD: &str = "libr-discovered";
+
+/// What discovery named for one cohort in [`evaluate`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CohortPhysics {
+    /// The deformation.
+    pub deformation: String,
+    /// Held-in scenarios discovery read.
+    pub held_in: usize,
+    /// `effects`, `none` or `unexplained`; `error` when discovery failed (the cohort's
+    /// `libr-discovered` is then plain LIBR).
+    pub verdict: String,
+    /// The augmented model's effects, described.
+    pub effects: Vec<String>,
+    /// Why discovery failed, when it did.
+    pub error: Option<String>,
 }
 
 /// One scenario's result and node errors for a method, and LIBR+'s when it ran on this result.
@@ -245,6 +277,7 @@ pub fn evaluate(
     params: &PipelineParams,
     physics: &crate::register::physics::Physics,
     librplus: Option<LibrPlusEval<'_>>,
+    discover: Option<DiscoverEval<'_>>,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Evaluation, EvalError> {
     let every = every.max(1);
@@ -274,6 +307,7 @@ pub fn evaluate(
     let cache = dir.join("cache");
     let mut prepared: BTreeMap<String, (Prepared, super::GeometryData)> = BTreeMap::new();
     let mut frames: BTreeMap<String, LibrPlusCase> = BTreeMap::new();
+    let mut discovered = Vec::new();
     for d in defs {
         if !prepared.contains_key(&d.geometry) {
             let geo = load_geometry(dir, m, &d.geometry)?;
@@ -283,6 +317,13 @@ pub fn evaluate(
                 maps.push(ErrorMap::new(
                     &d.geometry,
                     method.name(),
+                    geo.model.mesh.num_nodes(),
+                ));
+            }
+            if discover.is_some() {
+                maps.push(ErrorMap::new(
+                    &d.geometry,
+                    DISCOVERED_METHOD,
                     geo.model.mesh.num_nodes(),
                 ));
             }
@@ -301,12 +342,20 @@ pub fn evaluate(
         let scenarios = load_scenarios(dir, d)?;
         // Every `every`-th block of consecutive scenarios (categories cycle through the five in
         // order), so a subsample keeps every category.
+        // With discovery, the kept blocks alternate: held in (discovery reads them), held out
+        // (every method is scored on them).
         let block = CATEGORY_ORDER.len();
-        let _ = block;
+        let held_out = |i: usize| discover.is_none() || (i / block / every) % 2 == 1;
         let picked: Vec<_> = scenarios
             .iter()
             .enumerate()
-            .filter(|(i, _)| keep(&d.id, *i))
+            .filter(|(i, _)| keep(&d.id, *i) && held_out(*i))
+            .map(|(_, s)| s)
+            .collect();
+        let held_in: Vec<_> = scenarios
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| discover.is_some() && keep(&d.id, *i) && !held_out(*i))
             .map(|(_, s)| s)
             .collect();
         let mut plus: Vec<(ScenarioResult, Option<Vec<f64>>)> = Vec::new();
@@ -422,8 +471,42 @@ pub fn evaluate(
                 out.push(res);
             }
         }
+        if let Some(de) = discover {
+            let (found, record) = discover_physics(geo, &held_in, de, &cache, &d.id);
+            discovered.push(record);
+            let own;
+            let case_d = if found.is_empty() {
+                case
+            } else {
+                own = Prepared::with_physics(
+                    geo.model.clone(),
+                    Some(&params.libr),
+                    &found,
+                    Some(&cache),
+                )?;
+                &own
+            };
+            let map = maps
+                .iter_mut()
+                .find(|e| e.geometry == d.geometry && e.method == DISCOVERED_METHOD)
+                .ok_or_else(|| EvalError::Internal("no error map for discovery".into()))?;
+            let results: Vec<(ScenarioResult, Option<Vec<f64>>)> = picked
+                .par_iter()
+                .map(|sc| {
+                    let r = register(case_d, &sc.measurements, Method::Libr, params);
+                    scored(geo, sc, &d.geometry, DISCOVERED_METHOD, r)
+                })
+                .collect();
+            for (res, err) in results {
+                if let Some(err) = err {
+                    map.add(&err)?;
+                }
+                out.push(res);
+            }
+        }
     }
     Ok(Evaluation {
+        discovered,
         results: out,
         error_maps: maps,
         meshes: prepared
@@ -431,6 +514,95 @@ pub fn evaluate(
             .map(|(id, (_, geo))| (id, geo.model.mesh))
             .collect(),
     })
+}
+
+/// A registration's result row and node errors against the scenario's truth.
+fn scored(
+    geo: &super::GeometryData,
+    sc: &super::ScenarioData,
+    geometry: &str,
+    method: &str,
+    r: Result<crate::pipeline::Registration, crate::pipeline::PipelineError>,
+) -> (ScenarioResult, Option<Vec<f64>>) {
+    let base = ScenarioResult {
+        scenario: sc.id.clone(),
+        geometry: geometry.to_string(),
+        category: sc.category.clone(),
+        method: method.into(),
+        tre: None,
+        error: None,
+        seconds: 0.0,
+    };
+    match r {
+        Ok(r) => {
+            let err = node_errors_mm(
+                geo.model.mesh.nodes(),
+                (&r.image_to_physical, &r.u),
+                (&sc.truth.image_to_physical, &sc.truth.displacement),
+            );
+            let t = tre_from_errors(&err, &geo.surface, &geo.targets);
+            (
+                ScenarioResult {
+                    tre: Some(t),
+                    seconds: r.seconds,
+                    ..base
+                },
+                Some(err),
+            )
+        }
+        Err(e) => (
+            ScenarioResult {
+                error: Some(e.to_string()),
+                ..base
+            },
+            None,
+        ),
+    }
+}
+
+/// Discovery on a cohort's held-in scenarios: the augmented model (empty when nothing was named
+/// or discovery failed) and what to report.
+fn discover_physics(
+    geo: &super::GeometryData,
+    held_in: &[&super::ScenarioData],
+    de: DiscoverEval<'_>,
+    cache: &Path,
+    deformation: &str,
+) -> (crate::register::physics::Physics, CohortPhysics) {
+    let sweeps: Vec<crate::discover::Sweep> = held_in
+        .iter()
+        .map(|s| crate::discover::Sweep {
+            id: s.id.clone(),
+            measurements: s.measurements.clone(),
+        })
+        .collect();
+    let mut record = CohortPhysics {
+        deformation: deformation.to_string(),
+        held_in: held_in.len(),
+        verdict: "error".into(),
+        effects: Vec::new(),
+        error: None,
+    };
+    match crate::discover::discover_cohort(
+        &geo.model,
+        &sweeps,
+        de.params,
+        Some(cache),
+        &|_, _, _| {},
+    ) {
+        Ok(f) => {
+            record.verdict = serde_json::to_value(f.verdict)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_string))
+                .unwrap_or_default();
+            record.effects = f.physics.effects.iter().map(|e| e.describe()).collect();
+            (f.physics, record)
+        }
+        Err(e) => {
+            record.error = Some(e.to_string());
+            (crate::register::physics::Physics::none(), record)
+        }
+    }
 }
 
 /// LIBR+ node displacements and image → physical transform for one scenario from its LIBR

@@ -378,6 +378,11 @@ pub(crate) struct EvaluateArgs {
     /// start, see --trusted-alignment)
     #[arg(long, value_name = "FILE")]
     pub(crate) physics: Option<PathBuf>,
+    /// Each deformation (a cohort) gets its own physics: `librplus discover` on its held-in
+    /// scenarios (the even kept blocks of five), LIBR with it scored as method
+    /// `libr-discovered` on the held-out ones (the odd blocks), where every method then runs
+    #[arg(long, conflicts_with = "physics")]
+    pub(crate) discover: bool,
     /// Print summary.json on stdout.
     #[arg(long)]
     pub(crate) json: bool,

@@ -103,6 +103,14 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
         }
     }
     let mut summaries = std::collections::BTreeMap::new();
+    let mut discovered = serde_json::Map::new();
+    let discover_params = a.discover.then(librplus::discover::DiscoverParams::default);
+    if a.discover && !methods.contains(&Method::Libr) {
+        bail!("--discover scores LIBR with each cohort's physics: --methods must include libr");
+    }
+    if a.discover && a.physics.is_some() {
+        bail!("--discover finds each cohort's physics: leave out --physics");
+    }
     let mut all_results = serde_json::Map::new();
     let mut plots = serde_json::Map::new();
     let mut error_maps = serde_json::Map::new();
@@ -128,8 +136,11 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             models: mm,
             only: model_test.as_ref().map(|t| &t.1),
         });
+        let disc = discover_params
+            .as_ref()
+            .map(|p| report::DiscoverEval { params: p });
         let results = report::evaluate(
-            &a.data, &m, split, &methods, a.every, &params, &physics, plus, &progress,
+            &a.data, &m, split, &methods, a.every, &params, &physics, plus, disc, &progress,
         );
         bar.finish_and_clear();
         let ev = results.map_err(anyhow::Error::msg)?;
@@ -173,6 +184,9 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
         plots.insert(name.to_string(), json!(split_plots));
         error_maps.insert(name.to_string(), Value::Array(split_maps));
         summaries.insert(name.to_string(), report::summarize(&ev.results));
+        if a.discover {
+            discovered.insert(name.to_string(), serde_json::to_value(&ev.discovered)?);
+        }
         all_results.insert(name.to_string(), serde_json::to_value(&ev.results)?);
     }
     let summary = json!({
@@ -183,6 +197,10 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
         "plots": plots,
         "error_maps": error_maps,
     });
+    let mut summary = summary;
+    if a.discover {
+        summary["discovered"] = Value::Object(discovered);
+    }
     std::fs::write(
         a.out.join("summary.json"),
         serde_json::to_string_pretty(&summary)? + "\n",

@@ -332,6 +332,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
                 models: std::slice::from_ref(&model),
                 only: Some(&only),
             }),
+            None,
             &|done, total| {
                 bar.set_length(total as u64);
                 bar.set_position(done as u64);
