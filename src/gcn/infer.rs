@@ -166,7 +166,10 @@ impl LibrPlusCase {
         let n = self.members.len() as f64;
         let gate = deformation_gate(u);
         for (s, &x) in sum.iter_mut().zip(u) {
-            *s = x + gate * (*s / n - x);
+            *s /= n;
+            if gate < 1.0 {
+                *s = x + gate * (*s - x);
+            }
         }
         Ok((sum, network_s))
     }
