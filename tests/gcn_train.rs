@@ -41,7 +41,14 @@ fn fixture() -> Fixture {
     let m = librplus::eval::open(dir).unwrap();
     let params = PipelineParams::default();
     let d = m.deformations.iter().find(|d| d.pattern != "V").unwrap();
-    let cases = tr::load_cases(dir, &m, std::slice::from_ref(&d.geometry), &params).unwrap();
+    let cases = tr::load_cases(
+        dir,
+        &m,
+        std::slice::from_ref(&d.geometry),
+        &params,
+        &librplus::register::physics::Physics::none(),
+    )
+    .unwrap();
     let scenarios = load_scenarios(dir, d)
         .unwrap()
         .into_iter()
@@ -1381,4 +1388,53 @@ fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
         "{e}"
     );
     assert!(e.to_string().contains("cannot register"), "{e}");
+}
+
+/// A network corrects only the LIBR it learned: one trained on plain LIBR is not applied to a
+/// case whose LIBR carries physics (LIBR's answer, with the reason), one whose provenance records
+/// that physics (`train --physics`) is, and it is not applied to plain LIBR.
+#[test]
+fn librplus_applies_a_network_only_to_the_physics_it_learned() {
+    use librplus::pipeline::{Method, Prepared, register};
+    use librplus::register::physics::Physics;
+    use std::sync::Arc;
+    let f = fixture();
+    let (sc, g) = &f.scenarios[0];
+    let gc = &f.cases[g];
+    let physics = Physics::from_json(
+        r#"{"format": 1, "effects": [{"kind": "gravity", "parameters": {"direction": [0, 1, 0], "magnitude": 0.0104}}]}"#,
+    )
+    .unwrap();
+    let learned = || {
+        let (_, mut m) = untrained_model(5);
+        m.provenance = serde_json::json!({"physics_hash": physics.hash()});
+        m
+    };
+    let case_with = |p: &Physics, m: librplus::gcn::io::TrainedModel| {
+        Prepared::with_physics(
+            gc.geo.model.clone(),
+            Some(&f.params.libr),
+            p,
+            Some(&dataset().join("cache")),
+        )
+        .unwrap()
+        .with_model(Arc::new(m))
+        .unwrap()
+    };
+    let run = |case: &Prepared| {
+        let r = register(case, &sc.measurements, Method::LibrPlus, &f.params).unwrap();
+        r.correction.unwrap()
+    };
+    let c = run(&case_with(&physics, untrained_model(5).1));
+    assert!(!c.applied, "{c:?}");
+    let why = c.skipped.unwrap();
+    assert!(
+        why.contains("train one with --physics") && why.contains("gravity"),
+        "{why}"
+    );
+    let c = run(&case_with(&physics, learned()));
+    assert!(c.applied, "{c:?}");
+    let c = run(&case_with(&Physics::none(), learned()));
+    assert!(!c.applied, "{c:?}");
+    assert!(c.skipped.unwrap().contains("this case's LIBR is plain"));
 }

@@ -11,6 +11,11 @@
 //! changes by less than `tolerance_mm` between iterations; the reported transform, RMS and counts
 //! belong together (the RMS is that of the returned transform's matches).
 //!
+//! With a trusted start ([`WicpParams::trusted_alignment_mm`], or a held organ) the fit is
+//! regularised towards it ([`crate::register::prior`]); when the final pairs cannot fix the
+//! rigid motion (their point-to-plane conditioning below [`WicpParams::min_conditioning`]) the
+//! fit is redone with the start trusted to [`ILL_POSED_SIGMA_MM`] and flagged `ill_posed`.
+//!
 //! Garbage in gives an error naming the field (no points, length mismatches, non-finite values,
 //! most points more than `max_distance_mm` from the model after the initial alignment) or a result
 //! flagged `degenerate` with the transform left where it was (all points on one spot, collinear

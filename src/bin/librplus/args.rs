@@ -166,6 +166,11 @@ pub(crate) struct TrainArgs {
     /// Dataset directory (from `librplus generate`).
     #[arg(long)]
     pub(crate) data: PathBuf,
+    /// An augmented model (`physics.json`) for every geometry: the network learns the residual
+    /// of LIBR with these effects (its inputs and the refit use it), and LIBR+ applies it only to
+    /// a LIBR with the same physics (recorded as `physics_hash` in the provenance)
+    #[arg(long, value_name = "FILE")]
+    pub(crate) physics: Option<PathBuf>,
     /// random, geo-def, logo:GEOMETRY or pattern-v.
     #[arg(long, default_value = "pattern-v")]
     pub(crate) split: String,

@@ -163,7 +163,13 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
     let spinner =
         indicatif::ProgressBar::new_spinner().with_message("preparing cases (LIBR bases)");
     spinner.enable_steady_tick(std::time::Duration::from_millis(200));
-    let cases = tr::load_cases(&a.data, &m, &geos, &params).map_err(anyhow::Error::msg)?;
+    let physics = match &a.physics {
+        None => librplus::register::physics::Physics::none(),
+        Some(p) => librplus::register::physics::Physics::read(p)
+            .map_err(|e| anyhow::anyhow!("--physics: {e}"))?,
+    };
+    let cases =
+        tr::load_cases(&a.data, &m, &geos, &params, &physics).map_err(anyhow::Error::msg)?;
     spinner.finish_and_clear();
     let pick = |refs: &[(String, usize)]| -> Vec<(&librplus::eval::ScenarioData, &str)> {
         refs.iter()
@@ -225,7 +231,11 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         "ablation": a.ablation,
         "init": init_provenance,
         "commit": git_commit(),
-        "libr_solution_key": tr::solution_key(&params),
+        "libr_solution_key": tr::solution_key(&params, &physics),
+        // The LIBR whose residual the network learns (absent: plain LIBR); LIBR+ applies the
+        // network only to a LIBR with the same physics.
+        "physics_hash": (!physics.is_empty()).then(|| physics.hash()),
+        "physics": (!physics.is_empty()).then(|| physics.to_value(&[])),
         "train_scenarios": sets.train.len(),
         "valid_scenarios": sets.valid.len(),
         "test_scenarios": sets.test.len(),
@@ -327,7 +337,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             &[librplus::pipeline::Method::Libr],
             1,
             &params,
-            &librplus::register::physics::Physics::none(),
+            &physics,
             Some(librplus::eval::report::LibrPlusEval {
                 models: std::slice::from_ref(&model),
                 only: Some(&only),

@@ -21,9 +21,17 @@ pub struct LibrSolution {
     pub u: Vec<f64>,
 }
 
-/// Key of the LIBR solution cache: the registration parameters.
-pub fn solution_key(params: &PipelineParams) -> String {
+/// Key of the LIBR solution cache: the registration parameters and the physics LIBR carries.
+pub fn solution_key(
+    params: &PipelineParams,
+    physics: &crate::register::physics::Physics,
+) -> String {
     let text = format!("{:?}|{:?}", params.wicp, params.libr);
+    let text = if physics.is_empty() {
+        text
+    } else {
+        format!("{text}|{}", physics.hash())
+    };
     crate::util::fnv1a_hex(text.as_bytes())
 }
 
@@ -95,12 +103,14 @@ pub struct GeometryCase {
     pub frame: CaseFrame,
 }
 
-/// Loads (or builds and caches) the registration case of every geometry named.
+/// Loads (or builds and caches) the registration case of every geometry named, its LIBR
+/// carrying `physics` (empty: plain LIBR).
 pub fn load_cases(
     dir: &Path,
     m: &Manifest,
     geometries: &[String],
     params: &PipelineParams,
+    physics: &crate::register::physics::Physics,
 ) -> Result<BTreeMap<String, GeometryCase>, EvalError> {
     let mut out = BTreeMap::new();
     for g in geometries {
@@ -108,9 +118,10 @@ pub fn load_cases(
             continue;
         }
         let geo = load_geometry(dir, m, g)?;
-        let case = Prepared::new(
+        let case = Prepared::with_physics(
             geo.model.clone(),
             Some(&params.libr),
+            physics,
             Some(&dir.join("cache")),
         )?;
         let frame = CaseFrame::new(&geo.model.mesh)?;
@@ -128,10 +139,16 @@ pub fn libr_solutions(
     params: &PipelineParams,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Vec<Option<LibrSolution>>, EvalError> {
+    // Every geometry's case carries the same physics (`load_cases`).
+    let physics = cases
+        .values()
+        .next()
+        .map(|c| c.case.physics.clone())
+        .unwrap_or_default();
     let root = dir
         .join("cache")
         .join("libr-solutions")
-        .join(solution_key(params));
+        .join(solution_key(params, &physics));
     let done = std::sync::atomic::AtomicUsize::new(0);
     let total = scenarios.len();
     scenarios
