@@ -413,38 +413,7 @@ pub fn evaluate(
                             }
                             _ => (None, None),
                         };
-                        let (a, b) = match r {
-                            Ok(r) => {
-                                let err = node_errors_mm(
-                                    geo.model.mesh.nodes(),
-                                    (&r.image_to_physical, &r.u),
-                                    (&sc.truth.image_to_physical, &sc.truth.displacement),
-                                );
-                                let t = tre_from_errors(&err, &geo.surface, &geo.targets);
-                                let res = ScenarioResult {
-                                    scenario: sc.id.clone(),
-                                    geometry: d.geometry.clone(),
-                                    category: sc.category.clone(),
-                                    method: method.name().into(),
-                                    tre: Some(t),
-                                    error: None,
-                                    seconds: r.seconds,
-                                };
-                                (res, Some(err))
-                            }
-                            Err(e) => (
-                                ScenarioResult {
-                                    scenario: sc.id.clone(),
-                                    geometry: d.geometry.clone(),
-                                    category: sc.category.clone(),
-                                    method: method.name().into(),
-                                    tre: None,
-                                    error: Some(e.to_string()),
-                                    seconds: 0.0,
-                                },
-                                None,
-                            ),
-                        };
+                        let (a, b) = scored(geo, sc, &d.geometry, method.name(), r);
                         (a, b, pr, pe)
                     })
                     .collect();
