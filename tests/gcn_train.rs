@@ -275,6 +275,7 @@ fn check_whole_deformations_validate(m: &librplus::dataset::Manifest, n: usize) 
 
 #[test]
 fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
+    let _rng = rng_lock();
     let f = fixture();
     let cfg = SrGcnConfig::new().with_width(16).with_convs(1);
     let (s, sols) = samples(&f, &cfg, 0..4);
@@ -372,6 +373,7 @@ fn training_fits_deterministically_and_the_saved_model_predicts_the_same() {
 
 #[test]
 fn train_then_evaluate_agree_on_the_held_out_scenarios() {
+    let _rng = rng_lock();
     let tmp = tempfile::tempdir().unwrap();
     let model = tmp.path().join("model");
     let report = tmp.path().join("report");
@@ -457,6 +459,7 @@ fn train_then_evaluate_agree_on_the_held_out_scenarios() {
 
 #[test]
 fn experiments_runs_train_with_its_own_settings_and_the_users_options() {
+    let _rng = rng_lock();
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("exp");
     let data = dataset().to_str().unwrap();
@@ -503,6 +506,14 @@ fn experiments_runs_train_with_its_own_settings_and_the_users_options() {
 }
 
 /// A small SR-GCN with seeded random weights (its correction is arbitrary but fixed).
+/// Tests that draw from burn's process-wide random generator (a network's initial weights,
+/// drawn lazily at first use; training) hold this for their whole run: otherwise one test's
+/// draws land in another's, and training is not reproducible within the test binary.
+fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn untrained_model(seed: u64) -> (SrGcnConfig, librplus::gcn::io::TrainedModel) {
     let cfg = SrGcnConfig::new()
         .with_width(8)
@@ -543,6 +554,7 @@ fn sample_of(
 
 #[test]
 fn librplus_in_the_pipeline_is_libr_plus_the_correction_and_falls_back_to_libr_when_late() {
+    let _rng = rng_lock();
     use librplus::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
@@ -675,6 +687,7 @@ fn save_format_3(dir: &Path, model: &librplus::gcn::io::TrainedModel) {
 
 #[test]
 fn a_format_3_model_and_its_format_4_copy_predict_the_same() {
+    let _rng = rng_lock();
     let f = fixture();
     let (cfg, model) = untrained_model(21);
     let (s, sols) = samples(&f, &cfg, 0..1);
@@ -794,6 +807,7 @@ fn mean_tre_libr_and_librplus(f: &Fixture, case: &librplus::pipeline::Prepared) 
 
 #[test]
 fn an_untrained_network_does_not_lower_tre() {
+    let _rng = rng_lock();
     // The check above can fail: the same measure on a network with its initial weights.
     use librplus::pipeline::Prepared;
     let f = fixture();
@@ -817,6 +831,7 @@ fn an_untrained_network_does_not_lower_tre() {
 
 #[test]
 fn an_ensemble_corrects_by_the_mean_of_its_members() {
+    let _rng = rng_lock();
     use librplus::pipeline::{Method, PipelineParams, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
@@ -888,6 +903,7 @@ fn an_ensemble_corrects_by_the_mean_of_its_members() {
 
 #[test]
 fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
+    let _rng = rng_lock();
     use librplus::gcn::io::TrainedModel;
     use librplus::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
@@ -952,6 +968,7 @@ fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
 
 #[test]
 fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
+    let _rng = rng_lock();
     use librplus::pipeline::{Method, refit, register};
     let f = fixture();
     let (cfg, model) = untrained_model(7);
@@ -1180,6 +1197,7 @@ fn training_through_the_refit_scores_what_the_refit_answers_to_first_order() {
 
 #[test]
 fn validation_by_geometry_holds_out_one_whole_training_liver() {
+    let _rng = rng_lock();
     let mut m = librplus::eval::open(dataset()).unwrap();
     let (_, base) = training_deformations(&m);
     let first = base[0].geometry.clone();
@@ -1309,6 +1327,7 @@ fn position_jitter_moves_only_the_position_inputs_by_one_affine_map() {
 /// made with it cannot build an inference sample (no truth) nor register.
 #[test]
 fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
+    let _rng = rng_lock();
     use librplus::pipeline::{Method, Prepared, register};
     use std::sync::Arc;
     let f = fixture();
@@ -1395,6 +1414,7 @@ fn the_papers_truth_neighbour_diagnostic_reads_the_truth_and_cannot_register() {
 /// that physics (`train --physics`) is, and it is not applied to plain LIBR.
 #[test]
 fn librplus_applies_a_network_only_to_the_physics_it_learned() {
+    let _rng = rng_lock();
     use librplus::pipeline::{Method, Prepared, register};
     use librplus::register::physics::Physics;
     use std::sync::Arc;
