@@ -77,6 +77,14 @@ struct ReplayArgs {
     /// At most this many messages per second.
     #[arg(long)]
     rate: Option<f64>,
+    /// Methods replayed once more with in-surgery discovery (comma-separated; reported as
+    /// `METHOD+discovery`): after its last points the session asks the server to discover on
+    /// all of them and takes the augmented model when an effect is named.
+    #[arg(long, default_value = "")]
+    discover_with: String,
+    /// Time limit of each discovery run, ms (0: the server's default).
+    #[arg(long, default_value_t = 0)]
+    discovery_budget_ms: u32,
 }
 
 #[derive(Args)]
@@ -148,6 +156,16 @@ async fn run(cli: Cli) -> Result<()> {
                 token: a.common.token.clone(),
                 timeout: seconds("--timeout-s", a.common.timeout_s)?,
                 progress: true,
+                discover_with: if a.discover_with.trim().is_empty() {
+                    Vec::new()
+                } else {
+                    parse_methods(&a.discover_with)?
+                },
+                discovery: pb::DiscoveryOptions {
+                    enabled: true,
+                    budget_ms: a.discovery_budget_ms,
+                    auto_after_points: 0,
+                },
             };
             let s = replay(&opts).await?;
             print(a.common.json, &s, replay_table)?;

@@ -159,6 +159,7 @@ pub fn stream_messages(
             method: method as i32,
             options,
             initial_alignment: m.initial_alignment.as_ref().map(rigid_message),
+            discovery: None,
         })),
     }];
     let mut push = |msg: Msg| {
@@ -277,7 +278,7 @@ pub fn measurements_from_stream(msgs: &[pb::StreamRegisterRequest]) -> Measureme
                     }
                 }
             }
-            None => {}
+            Some(Msg::Discover(_)) | None => {}
         }
     }
     m

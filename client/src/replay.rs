@@ -78,6 +78,13 @@ pub struct ReplayOptions {
     pub timeout: Duration,
     /// Progress lines on stderr.
     pub progress: bool,
+    /// Methods replayed once more with in-surgery discovery (named `METHOD+discovery`): the
+    /// session opts in with these options and, after its last points, asks for a discovery run
+    /// on all of them; its outcome (and, when the model switched, the registration with the
+    /// augmented model) is the session's final answer.
+    pub discover_with: Vec<pb::Method>,
+    /// Discovery options of those sessions (`enabled` is set).
+    pub discovery: pb::DiscoveryOptions,
 }
 
 impl Default for ReplayOptions {
@@ -93,6 +100,8 @@ impl Default for ReplayOptions {
             token: None,
             timeout: Duration::from_secs(120),
             progress: false,
+            discover_with: Vec::new(),
+            discovery: pb::DiscoveryOptions::default(),
         }
     }
 }
@@ -160,6 +169,25 @@ pub struct ScenarioResult {
     pub status: Option<String>,
     /// Why this scenario has no TRE, or how the session failed.
     pub error: Option<String>,
+    /// The last discovery report (sessions with discovery).
+    pub discovery: Option<DiscoveryRecord>,
+}
+
+/// What a session's discovery run reported last.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct DiscoveryRecord {
+    /// `DISCOVERY_STATE_...` without the prefix.
+    pub state: String,
+    /// `effects`, `none`, `unexplained` (when done).
+    pub verdict: String,
+    /// The effects named.
+    pub effects: Vec<String>,
+    /// Whether the session switched to the augmented model.
+    pub switched: bool,
+    /// Wall time of the run, ms.
+    pub elapsed_ms: f64,
+    /// The server's words.
+    pub message: String,
 }
 
 /// Mean TRE and count of one category.
@@ -194,6 +222,9 @@ pub struct MethodSummary {
     pub latency_ms: LatencyMs,
     /// Mean final TRE per measurement category.
     pub by_category: BTreeMap<String, CategorySummary>,
+    /// Sessions with discovery: their final discovery reports by verdict (or state when not
+    /// done), and how many switched to an augmented model (by its effects).
+    pub discovery: BTreeMap<String, u64>,
 }
 
 /// What `replay` measured (`replay --json` prints it).
@@ -270,11 +301,24 @@ async fn replay_one(
     planes: &librplus::eval::ScenarioPlanes,
     geo: &GeometryData,
     method: pb::Method,
+    discovery: Option<pb::DiscoveryOptions>,
     opts: &ReplayOptions,
     cfg: &SessionConfig,
     all_latencies: &mut Latencies,
 ) -> ScenarioResult {
-    let msgs = stream_messages(case_id, method, opts.options, sc, planes, opts.batch);
+    let mut msgs = stream_messages(case_id, method, opts.options, sc, planes, opts.batch);
+    if let Some(d) = discovery {
+        use pb::stream_register_request::Msg;
+        if let Some(Msg::Start(start)) = msgs.first_mut().and_then(|m| m.msg.as_mut()) {
+            start.discovery = Some(pb::DiscoveryOptions { enabled: true, ..d });
+        }
+        let client_seq = msgs.len() as u64 + 1;
+        msgs.push(pb::StreamRegisterRequest {
+            client_seq,
+            msg: Some(Msg::Discover(pb::DiscoverNow {})),
+        });
+    }
+    let mut found: Option<DiscoveryRecord> = None;
     let nodes = geo.model.mesh.nodes();
     let score = |t: &Rigid, u: &[f64]| {
         tre(
@@ -322,6 +366,23 @@ async fn replay_one(
                 code: r.code.clone(),
                 message: r.message.clone(),
             }),
+            Some(pb::stream_update::Update::Discovery(d)) => {
+                found = Some(DiscoveryRecord {
+                    state: pb::DiscoveryState::try_from(d.state).map_or_else(
+                        |_| format!("UNKNOWN_{}", d.state),
+                        |x| {
+                            x.as_str_name()
+                                .trim_start_matches("DISCOVERY_STATE_")
+                                .to_string()
+                        },
+                    ),
+                    verdict: d.verdict.clone(),
+                    effects: d.effects.clone(),
+                    switched: d.switched,
+                    elapsed_ms: d.elapsed_ms,
+                    message: d.message.clone(),
+                })
+            }
             None => {}
         }
     })
@@ -345,7 +406,11 @@ async fn replay_one(
         scenario: sc.id.clone(),
         category: sc.category.clone(),
         case_id: case_id.to_string(),
-        method: method_name(method).to_string(),
+        method: if discovery.is_some() {
+            format!("{}+discovery", method_name(method))
+        } else {
+            method_name(method).to_string()
+        },
         messages: msgs.len(),
         updates: outcome.updates,
         rejections,
@@ -361,6 +426,7 @@ async fn replay_one(
         end: outcome.end.describe(),
         status,
         error,
+        discovery: found,
     }
 }
 
@@ -378,10 +444,20 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
     let mut all = Latencies::new();
     let mut per_method: BTreeMap<String, Latencies> = BTreeMap::new();
     let mut results = Vec::new();
-    let total = loaded.scenarios.len() * opts.methods.len();
+    let runs: Vec<(pb::Method, Option<pb::DiscoveryOptions>)> = opts
+        .methods
+        .iter()
+        .map(|&m| (m, None))
+        .chain(
+            opts.discover_with
+                .iter()
+                .map(|&m| (m, Some(opts.discovery))),
+        )
+        .collect();
+    let total = loaded.scenarios.len() * runs.len();
     for s in &loaded.scenarios {
         let geo = &loaded.geometries[&s.case_id];
-        for &method in &opts.methods {
+        for &(method, discovery) in &runs {
             let mut lat = Latencies::new();
             let r = replay_one(
                 &client,
@@ -390,6 +466,7 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                 &s.planes,
                 geo,
                 method,
+                discovery,
                 opts,
                 &cfg,
                 &mut lat,
@@ -399,7 +476,7 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
             per_method.entry(r.method.clone()).or_default().merge(&lat);
             if opts.progress {
                 eprintln!(
-                    "[{}/{total}] {} {}: {} updates, {} rejected, TRE {}{}",
+                    "[{}/{total}] {} {}: {} updates, {} rejected, TRE {}{}{}",
                     results.len() + 1,
                     r.scenario,
                     r.method,
@@ -407,6 +484,17 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                     r.rejections.len(),
                     r.tre
                         .map_or("-".to_string(), |t| format!("{:.2} mm", t.tre_mm)),
+                    r.discovery.as_ref().map_or(String::new(), |d| format!(
+                        "; discovery {} {}{} ({:.1} s)",
+                        d.state,
+                        d.verdict,
+                        if d.switched {
+                            format!(", switched to {}", d.effects.join("+"))
+                        } else {
+                            String::new()
+                        },
+                        d.elapsed_ms / 1e3
+                    )),
                     r.error
                         .as_ref()
                         .map_or(String::new(), |e| format!(" ({e})"))
@@ -462,6 +550,16 @@ fn summarize(
         for r in &mine {
             for st in &r.steps {
                 *m.quality.entry(st.quality.clone()).or_default() += 1;
+            }
+            if let Some(d) = &r.discovery {
+                let key = if d.switched {
+                    format!("switched to {}", d.effects.join("+"))
+                } else if d.state == "DONE" {
+                    d.verdict.clone()
+                } else {
+                    d.state.to_lowercase()
+                };
+                *m.discovery.entry(key).or_default() += 1;
             }
         }
         let mut cats: BTreeMap<String, Vec<f64>> = BTreeMap::new();
@@ -551,6 +649,14 @@ pub fn replay_table(s: &ReplaySummary) -> String {
         }
         let q: Vec<String> = m.quality.iter().map(|(k, v)| format!("{k} {v}")).collect();
         let _ = writeln!(o, "  quality: {}", q.join(", "));
+        if !m.discovery.is_empty() {
+            let d: Vec<String> = m
+                .discovery
+                .iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect();
+            let _ = writeln!(o, "  discovery: {}", d.join(", "));
+        }
     }
     let l = &s.latency_ms;
     let _ = writeln!(

@@ -29,6 +29,9 @@ pub struct Job {
     pub omit_displacements: bool,
     /// The initial alignment trusted to this uncertainty (mm), when the client says so.
     pub trusted_alignment_mm: Option<f64>,
+    /// The session's own model (in-surgery discovery switched it to an augmented one), in place
+    /// of the case's.
+    pub prepared: Option<Arc<librplus::pipeline::Prepared>>,
 }
 
 /// Bounded pool of compute slots.
@@ -107,6 +110,7 @@ fn ms(d: Duration) -> f64 {
 fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let start = Instant::now();
     let case = &job.case;
+    let prepared = job.prepared.as_deref().unwrap_or(&case.prepared);
     let queue_ms = ms(start - job.arrival);
     let deadline = job.arrival + job.budget;
     let est = case.estimates();
@@ -114,8 +118,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let mut degraded: Option<String> = None;
     let mut params = PipelineParams::default();
     params.wicp.trusted_alignment_mm = job.trusted_alignment_mm;
-    let gcn_ms = case
-        .prepared
+    let gcn_ms = prepared
         .librplus
         .as_ref()
         .map_or(0.0, |g| 1e3 * g.expected_seconds());
@@ -131,7 +134,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
             if left >= need - gcn_ms {
                 // The SR-GCN estimate alone did not fit: let it fall slowly, so that a
                 // correction once timed slow (a busy machine) is tried and timed again.
-                if let Some(g) = &case.prepared.librplus {
+                if let Some(g) = &prepared.librplus {
                     g.relax_estimate();
                 }
             }
@@ -151,7 +154,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
                 Some(deadline - Duration::from_secs_f64(est.libr_fixed_ms.max(0.0) / 1e3));
         }
     }
-    let mut result = register(&case.prepared, &job.measurements, method, &params);
+    let mut result = register(prepared, &job.measurements, method, &params);
     let mut fallback: Option<String> = None;
     if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, method)
         && libr_can_fall_back(e)
@@ -161,7 +164,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         // reported as such.
         fallback = Some(format!("LIBR could not run: {e}; rigid result"));
         method = Method::Rigid;
-        result = register(&case.prepared, &job.measurements, method, &params);
+        result = register(prepared, &job.measurements, method, &params);
     }
     let reg = result?;
     let rigid_ms = reg.rigid.seconds * 1e3;
@@ -247,7 +250,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         } else {
             reg.u.iter().map(|&x| x as f32).collect()
         },
-        node_count: case.prepared.model.mesh.num_nodes() as u32,
+        node_count: prepared.model.mesh.num_nodes() as u32,
         method_used: method_to_pb(method) as i32,
         residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
         points_used: job.measurements.points.len() as u32,
@@ -267,7 +270,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         }),
         quality: quality as i32,
         quality_reason: reason,
-        effects: crate::service::effects(case),
+        effects: crate::service::effects(prepared),
         rigid_ill_posed: reg.rigid.ill_posed,
     })
 }

@@ -54,6 +54,15 @@ pub struct ServerConfig {
     pub librplus: bool,
     /// Log as JSON lines instead of text.
     pub log_json: bool,
+    /// Default wall-clock limit of one in-surgery discovery run, ms (a session may ask for
+    /// another, up to `max_discovery_budget_ms`). Default 120,000.
+    pub discovery_budget_ms: u32,
+    /// Largest discovery budget a session may ask for, ms. Default 600,000.
+    pub max_discovery_budget_ms: u32,
+    /// In-surgery discovery searches the coarse grid (16 directions, 8 pack and 4 fixation
+    /// sites, 5 blocks, 9 bootstrap replicates) instead of `librplus discover`'s full one: about
+    /// 4× faster, on slow machines. Default false.
+    pub discovery_coarse: bool,
 }
 
 impl Default for ServerConfig {
@@ -79,6 +88,9 @@ impl Default for ServerConfig {
             model: None,
             librplus: true,
             log_json: false,
+            discovery_budget_ms: 120_000,
+            max_discovery_budget_ms: 600_000,
+            discovery_coarse: false,
         }
     }
 }
@@ -155,6 +167,13 @@ impl ServerConfig {
             if v == 0 {
                 return Err(ConfigError::Field(format!("{name} must be at least 1")));
             }
+        }
+        if self.discovery_budget_ms == 0 || self.discovery_budget_ms > self.max_discovery_budget_ms
+        {
+            return Err(ConfigError::Field(format!(
+                "discovery_budget_ms {} must be in 1..=max_discovery_budget_ms ({})",
+                self.discovery_budget_ms, self.max_discovery_budget_ms
+            )));
         }
         if self.time_budget_ms == 0 || self.time_budget_ms > self.max_time_budget_ms {
             return Err(ConfigError::Field(format!(

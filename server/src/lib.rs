@@ -13,6 +13,7 @@ pub mod cases;
 pub mod compute;
 pub mod config;
 pub mod convert;
+pub mod discovery;
 pub mod error;
 pub mod metrics_http;
 pub mod service;

@@ -88,6 +88,12 @@ struct Args {
     /// Log JSON lines.
     #[arg(long)]
     log_json: bool,
+    /// Default wall-clock limit of one in-surgery discovery run, ms.
+    #[arg(long)]
+    discovery_budget_ms: Option<u32>,
+    /// In-surgery discovery on the coarse search grid (about 4× faster).
+    #[arg(long)]
+    discovery_coarse: bool,
 }
 
 fn config(a: &Args) -> Result<ServerConfig> {
@@ -111,6 +117,8 @@ fn config(a: &Args) -> Result<ServerConfig> {
     set!(compute_slots);
     set!(mesh_unit);
     set!(default_method);
+    set!(discovery_budget_ms);
+    c.discovery_coarse |= a.discovery_coarse;
     if a.model.is_some() {
         c.model = a.model.clone();
     }

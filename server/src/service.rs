@@ -151,18 +151,13 @@ fn summary(c: &Case) -> pb::CaseSummary {
         default_method: crate::convert::method_to_pb(c.default_method) as i32,
         preload_seconds: c.prepared.seconds,
         basis_from_cache: c.prepared.basis_from_cache,
-        effects: effects(c),
+        effects: effects(&c.prepared),
     }
 }
 
-/// The named effects a case's model carries.
-pub(crate) fn effects(c: &Case) -> Vec<String> {
-    c.prepared
-        .physics
-        .kinds()
-        .into_iter()
-        .map(str::to_string)
-        .collect()
+/// The named effects a model carries.
+pub(crate) fn effects(p: &librplus::pipeline::Prepared) -> Vec<String> {
+    p.physics.kinds().into_iter().map(str::to_string).collect()
 }
 
 /// The options' trusted-alignment uncertainty: None when 0 or absent; an error naming the field
@@ -281,6 +276,7 @@ impl LibRPlus for Svc {
                 arrival,
                 omit_displacements: options.as_ref().is_some_and(|o| o.omit_displacements),
                 trusted_alignment_mm,
+                prepared: None,
             };
             self.0.engine.run(job, true).await
         };
@@ -368,6 +364,18 @@ impl LibRPlus for Svc {
 enum Next {
     Msg(pb::StreamRegisterRequest),
     End,
+    /// A discovery run finished (None: it ended without an outcome).
+    Discovered(Option<crate::discovery::Outcome>),
+}
+
+/// The outcome of the session's discovery run, when one is running; never, otherwise.
+async fn discovered(
+    pending: &mut Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
+) -> Option<crate::discovery::Outcome> {
+    match pending.as_mut() {
+        Some(rx) => rx.await.ok(),
+        None => std::future::pending().await,
+    }
 }
 
 /// The next client message, or why there is none.
@@ -376,6 +384,7 @@ async fn next(
     idle: Duration,
     deadline: Option<Instant>,
     drain: &mut watch::Receiver<bool>,
+    pending: &mut Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
 ) -> Result<Next, Status> {
     let idle_at = tokio::time::Instant::now() + idle;
     let until = match deadline {
@@ -400,6 +409,7 @@ async fn next(
                 )))
             }
         }
+        o = discovered(pending) => Ok(Next::Discovered(o)),
         m = inbound.message() => match m {
             Ok(Some(m)) => Ok(Next::Msg(m)),
             Ok(None) => Ok(Next::End),
@@ -419,6 +429,27 @@ struct Session {
     last_seq: u64,
     last_time: Option<(i64, i32)>,
     sequence: u64,
+    /// In-surgery discovery, when the session opted in.
+    discovery: Option<DiscoveryPlan>,
+    /// The running discovery's outcome.
+    pending: Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
+    /// The session's augmented model, once discovery switched to one.
+    augmented: Option<Arc<librplus::pipeline::Prepared>>,
+}
+
+/// A session's discovery settings.
+struct DiscoveryPlan {
+    budget: Duration,
+    /// Run automatically at this many points (0: only when asked).
+    auto_at: usize,
+}
+
+/// What an accepted message asks for.
+enum Accepted {
+    /// Points were added.
+    Points,
+    /// A discovery run.
+    Discover,
 }
 
 async fn session(
@@ -432,9 +463,9 @@ async fn session(
     let idle = Duration::from_secs_f64(cfg.session_idle_timeout_s);
     let mut drain = svc.0.drain.clone();
     // The first message must start the session; a bad start ends it with its status.
-    let first = match next(&mut inbound, idle, deadline, &mut drain).await? {
+    let first = match next(&mut inbound, idle, deadline, &mut drain, &mut None).await? {
         Next::Msg(m) => m,
-        Next::End => return Ok(()),
+        Next::End | Next::Discovered(_) => return Ok(()),
     };
     let Some(pb::stream_register_request::Msg::Start(start)) = first.msg else {
         return Err(ServiceError::precondition(
@@ -457,12 +488,24 @@ async fn session(
             points_total: s.meas.points.len() as u32,
         };
         metrics::histogram!("librplus_update_seconds").record(arrival.elapsed().as_secs_f64());
-        tx.send(Ok(out))
+        let tx = tx.clone();
+        Box::pin(async move { tx.send(Ok(out)).await.map_err(|_| ()) })
+            as std::pin::Pin<Box<dyn std::future::Future<Output = Result<(), ()>> + Send>>
     };
     loop {
-        let m = match next(&mut inbound, idle, deadline, &mut drain).await? {
+        let m = match next(&mut inbound, idle, deadline, &mut drain, &mut s.pending).await? {
             Next::Msg(m) => m,
-            Next::End => return Ok(()),
+            Next::End => return finish(&svc, &mut s, deadline, &mut drain, &send).await,
+            Next::Discovered(o) => {
+                s.pending = None;
+                if discovered_update(&svc, &mut s, o, deadline, &send)
+                    .await
+                    .is_err()
+                {
+                    return Ok(());
+                }
+                continue;
+            }
         };
         let arrival = Instant::now();
         // This message and every one already waiting (a client sending faster than its
@@ -490,10 +533,12 @@ async fn session(
             }
         }
         let mut accepted = None;
+        let mut discover_asked = None;
         for m in batch {
             let seq = m.client_seq;
             match accept(&mut s, m, cfg) {
-                Ok(()) => accepted = Some(seq),
+                Ok(Accepted::Points) => accepted = Some(seq),
+                Ok(Accepted::Discover) => discover_asked = Some(seq),
                 Err(b) => {
                     count_error(b.code());
                     let r = pb::stream_update::Update::Rejection(b.to_rejection(seq));
@@ -503,35 +548,175 @@ async fn session(
                 }
             }
         }
+        // A discovery run: asked for, or due (the session grew to its automatic threshold).
+        let due = s.pending.is_none()
+            && s.discovery
+                .as_ref()
+                .is_some_and(|d| d.auto_at > 0 && s.meas.points.len() >= d.auto_at);
+        if let Some(seq) = discover_asked.or(due.then_some(0)) {
+            let update = start_discovery(&svc, &mut s, seq);
+            if send(&mut s, update, arrival).await.is_err() {
+                return Ok(());
+            }
+        }
         if let Some(seq) = accepted {
-            let job = Job {
-                case: s.case.clone(),
-                measurements: s.meas.clone(),
-                method: s.method,
-                budget: match deadline {
-                    Some(d) => s.budget.min(d.saturating_duration_since(arrival)),
-                    None => s.budget,
-                },
-                arrival,
-                omit_displacements: s.omit,
-                trusted_alignment_mm: s.trusted_alignment_mm,
-            };
-            let update = match svc.0.engine.run(job, false).await {
-                Ok(r) => pb::stream_update::Update::Registration(r),
-                Err(b) => {
-                    count_error(b.code());
-                    pb::stream_update::Update::Rejection(b.to_rejection(seq))
-                }
-            };
+            let update = register_session(&svc, &s, arrival, deadline, seq).await;
             if send(&mut s, update, arrival).await.is_err() {
                 // The client went away.
                 return Ok(());
             }
         }
-        if let Some(e) = end {
-            return e;
+        match end {
+            Some(Ok(())) => return finish(&svc, &mut s, deadline, &mut drain, &send).await,
+            Some(e) => return e,
+            None => {}
         }
     }
+}
+
+/// Sends one update of a session (numbered, with its points and last client message).
+type Emit<'a> = dyn Fn(
+        &mut Session,
+        pb::stream_update::Update,
+        Instant,
+    ) -> std::pin::Pin<
+        Box<dyn std::future::Future<Output = Result<(), ()>> + std::marker::Send + 'a>,
+    > + Sync
+    + 'a;
+
+/// A finished discovery run: the session takes its model when it switched, the report is sent,
+/// then (after a switch) the session's points registered with the new model. Err: the client
+/// went away.
+async fn discovered_update(
+    svc: &Svc,
+    s: &mut Session,
+    o: Option<crate::discovery::Outcome>,
+    deadline: Option<Instant>,
+    send: &Emit<'_>,
+) -> Result<(), ()> {
+    let arrival = Instant::now();
+    let Some(o) = o else {
+        tracing::error!("discovery ended without an outcome");
+        return Ok(());
+    };
+    let switched = o.augmented.is_some();
+    let state = pb::DiscoveryState::try_from(o.report.state).map_or("UNKNOWN", |x| x.as_str_name());
+    metrics::counter!("librplus_discovery_total", "state" => state).increment(1);
+    tracing::info!(
+        verdict = %o.report.verdict,
+        switched,
+        elapsed_ms = o.report.elapsed_ms,
+        message = %o.report.message,
+        "discovery finished"
+    );
+    if let Some(p) = o.augmented {
+        s.augmented = Some(p);
+    }
+    send(s, pb::stream_update::Update::Discovery(o.report), arrival).await?;
+    // The switch shows at once: the session's points registered with its new model.
+    if switched && !s.meas.points.is_empty() {
+        let update = register_session(svc, s, arrival, deadline, s.last_seq).await;
+        send(s, update, arrival).await?;
+    }
+    Ok(())
+}
+
+/// The client finished sending: a discovery run it started is still reported (it was
+/// acknowledged), unless the server drains or the call's deadline passes first.
+async fn finish(
+    svc: &Svc,
+    s: &mut Session,
+    deadline: Option<Instant>,
+    drain: &mut watch::Receiver<bool>,
+    send: &Emit<'_>,
+) -> Result<(), Status> {
+    let Some(rx) = s.pending.take() else {
+        return Ok(());
+    };
+    let until = deadline.map_or_else(
+        || tokio::time::Instant::now() + Duration::from_secs(24 * 3600),
+        tokio::time::Instant::from_std,
+    );
+    let o = tokio::select! {
+        biased;
+        _ = drain.wait_for(|d| *d) => return Err(Status::unavailable("the server is shutting down; session ended before its discovery run finished")),
+        _ = tokio::time::sleep_until(until) => return Err(Status::deadline_exceeded("the call's deadline passed before the discovery run finished")),
+        o = rx => o.ok(),
+    };
+    // Err: the client went away; nothing is left to send.
+    let _ = discovered_update(svc, s, o, deadline, send).await;
+    Ok(())
+}
+
+/// Registers every point of the session with its current model; the update to send.
+async fn register_session(
+    svc: &Svc,
+    s: &Session,
+    arrival: Instant,
+    deadline: Option<Instant>,
+    seq: u64,
+) -> pb::stream_update::Update {
+    let job = Job {
+        case: s.case.clone(),
+        measurements: s.meas.clone(),
+        method: s.method,
+        budget: match deadline {
+            Some(d) => s.budget.min(d.saturating_duration_since(arrival)),
+            None => s.budget,
+        },
+        arrival,
+        omit_displacements: s.omit,
+        trusted_alignment_mm: s.trusted_alignment_mm,
+        prepared: s.augmented.clone(),
+    };
+    match svc.0.engine.run(job, false).await {
+        Ok(r) => pb::stream_update::Update::Registration(r),
+        Err(b) => {
+            count_error(b.code());
+            pb::stream_update::Update::Rejection(b.to_rejection(seq))
+        }
+    }
+}
+
+/// Starts a discovery run on the session's points (the caller checked it may); the update that
+/// says so, or why it could not start.
+fn start_discovery(svc: &Svc, s: &mut Session, seq: u64) -> pb::stream_update::Update {
+    let Some(plan) = s.discovery.as_mut() else {
+        // `accept` refuses `discover` when the session did not opt in; kept as a report.
+        return pb::stream_update::Update::Discovery(pb::DiscoveryReport {
+            client_seq: seq,
+            state: pb::DiscoveryState::Failed as i32,
+            message: "discover: this session did not opt in to discovery".into(),
+            ..Default::default()
+        });
+    };
+    let n = s.meas.points.len();
+    if plan.auto_at > 0 {
+        // The next automatic run when the session has grown by half.
+        plan.auto_at = plan.auto_at.max(n + n / 2);
+    }
+    let req = crate::discovery::Request {
+        case: s.case.clone(),
+        measurements: s.meas.clone(),
+        trusted_alignment_mm: s.trusted_alignment_mm,
+        budget: plan.budget,
+        coarse: svc.0.config.discovery_coarse,
+        libr: librplus::register::libr::LibrParams::default(),
+        client_seq: seq,
+    };
+    if n < crate::discovery::MIN_POINTS {
+        let mut r = crate::discovery::started(&req);
+        r.state = pb::DiscoveryState::Failed as i32;
+        r.message = format!(
+            "discover: the session holds {n} points; discovery needs at least {}",
+            crate::discovery::MIN_POINTS
+        );
+        return pb::stream_update::Update::Discovery(r);
+    }
+    tracing::info!(points = n, client_seq = seq, "discovery started");
+    let report = crate::discovery::started(&req);
+    s.pending = Some(crate::discovery::spawn(req));
+    pb::stream_update::Update::Discovery(report)
 }
 
 fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Session, ServiceError> {
@@ -540,6 +725,7 @@ fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Sessio
         method,
         options,
         initial_alignment,
+        discovery,
     } = start;
     let case = svc.case(case_id, "start.case_id")?;
     let method = svc.check_method(&case, *method, "start.method")?;
@@ -549,6 +735,55 @@ fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Sessio
         .as_ref()
         .map(|r| rigid_from_pb(r, "start.initial_alignment"))
         .transpose()?;
+    let discovery = match discovery {
+        Some(pb::DiscoveryOptions {
+            enabled: true,
+            budget_ms,
+            auto_after_points,
+        }) => {
+            let c = &svc.0.config;
+            if *budget_ms > c.max_discovery_budget_ms {
+                return Err(ServiceError::field(
+                    "start.discovery.budget_ms",
+                    format!(
+                        "{budget_ms} ms is above the server's limit of {} ms",
+                        c.max_discovery_budget_ms
+                    ),
+                ));
+            }
+            if case.prepared.basis.is_none() {
+                return Err(ServiceError::precondition(
+                    "CASE",
+                    "start.discovery.enabled",
+                    format!("case {} has no LIBR basis", case.id),
+                    format!(
+                        "start.discovery.enabled: case {} has no LIBR basis to discover with",
+                        case.id
+                    ),
+                ));
+            }
+            let ms = if *budget_ms == 0 {
+                c.discovery_budget_ms
+            } else {
+                *budget_ms
+            };
+            Some(DiscoveryPlan {
+                budget: Duration::from_millis(ms as u64),
+                auto_at: *auto_after_points as usize,
+            })
+        }
+        Some(pb::DiscoveryOptions {
+            enabled: false,
+            budget_ms,
+            auto_after_points,
+        }) if *budget_ms != 0 || *auto_after_points != 0 => {
+            return Err(ServiceError::field(
+                "start.discovery.enabled",
+                "is false while budget_ms or auto_after_points is set: set enabled to opt in",
+            ));
+        }
+        _ => None,
+    };
     Ok(Session {
         case,
         method,
@@ -562,6 +797,9 @@ fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Sessio
         last_seq: seq,
         last_time: None,
         sequence: 0,
+        discovery,
+        pending: None,
+        augmented: None,
     })
 }
 
@@ -601,7 +839,7 @@ fn accept(
     s: &mut Session,
     m: pb::StreamRegisterRequest,
     cfg: &ServerConfig,
-) -> Result<(), ServiceError> {
+) -> Result<Accepted, ServiceError> {
     use pb::stream_register_request::Msg;
     let pb::StreamRegisterRequest {
         client_seq: seq,
@@ -627,8 +865,27 @@ fn accept(
         None => {
             return Err(ServiceError::field(
                 "msg",
-                "is empty: set start, surface or ultrasound",
+                "is empty: set start, surface, ultrasound or discover",
             ));
+        }
+        Some(Msg::Discover(pb::DiscoverNow {})) => {
+            if s.discovery.is_none() {
+                return Err(ServiceError::precondition(
+                    "SESSION",
+                    "discover",
+                    "the session did not opt in",
+                    "discover: this session did not opt in to discovery (start.discovery.enabled)",
+                ));
+            }
+            if s.pending.is_some() {
+                return Err(ServiceError::precondition(
+                    "SESSION",
+                    "discover",
+                    "a discovery run is in progress",
+                    "discover: a discovery run is already in progress; its report will follow",
+                ));
+            }
+            return Ok(Accepted::Discover);
         }
         Some(Msg::Start(_)) => {
             return Err(ServiceError::precondition(
@@ -683,7 +940,7 @@ fn accept(
     s.meas.points.extend(points);
     s.meas.kind.extend(kinds);
     s.meas.feature.extend(feature);
-    Ok(())
+    Ok(Accepted::Points)
 }
 
 #[cfg(test)]

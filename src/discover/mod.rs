@@ -68,6 +68,17 @@ pub enum DiscoverError {
     /// The cohort's data do not determine the fit (too few points per sweep).
     #[error("{0}")]
     Underdetermined(String),
+    /// [`DiscoverParams::deadline`] passed before the workflow finished (the stage named).
+    #[error("out of time: the deadline passed while {0}")]
+    OutOfTime(String),
+}
+
+/// Fails with [`DiscoverError::OutOfTime`] once `params.deadline` has passed.
+fn in_time(params: &DiscoverParams, stage: &str) -> Result<(), DiscoverError> {
+    match params.deadline {
+        Some(d) if Instant::now() >= d => Err(DiscoverError::OutOfTime(stage.to_string())),
+        _ => Ok(()),
+    }
 }
 
 /// Settings of the workflow.
@@ -96,6 +107,10 @@ pub struct DiscoverParams {
     pub grid: SearchGrid,
     /// Seed of the bootstrap noise.
     pub seed: u64,
+    /// Give up (with [`DiscoverError::OutOfTime`]) once this instant has passed; checked
+    /// between stages, sweeps and candidates, so the overrun is at most one such step. None:
+    /// no limit.
+    pub deadline: Option<Instant>,
 }
 
 /// How finely each family is searched.
@@ -141,6 +156,27 @@ impl Default for DiscoverParams {
                 .collect(),
             grid: SearchGrid::default(),
             seed: 0,
+            deadline: None,
+        }
+    }
+}
+
+impl DiscoverParams {
+    /// The coarse search (16 directions, 8 pack, 4 fixation and 2 inclusion sites, 5 blocks, 9
+    /// bootstrap replicates; everything else the default): for discovery under a time limit
+    /// (the server's in-surgery runs) and for tests.
+    pub fn coarse() -> Self {
+        Self {
+            folds: 5,
+            bootstrap: 9,
+            grid: SearchGrid {
+                directions: 16,
+                pack_sites: 8,
+                pack_widths: [12.0, 25.0],
+                fixation_sites: 4,
+                inclusion_sites: 2,
+            },
+            ..Self::default()
         }
     }
 }
@@ -152,6 +188,35 @@ pub struct Sweep {
     pub id: String,
     /// Its measurements (physical frame).
     pub measurements: Measurements,
+}
+
+/// One acquisition (a surgery session's points, all of one deformed state under one pose) as
+/// `parts` sweeps for [`discover_cohort`]: point `i` (in acquisition order) goes to sweep
+/// `i mod parts`, so every sweep covers what the acquisition covers, every ultrasound plane
+/// included. The sweeps are not independent acquisitions: each is registered with its own pose,
+/// which the shared pose makes agree, and the cross-validation still holds out whole spatial
+/// blocks of every sweep, so a misfit must be shared by the region to count.
+pub fn session_sweeps(m: &Measurements, parts: usize) -> Vec<Sweep> {
+    let parts = parts.max(1);
+    (0..parts)
+        .map(|k| {
+            let pick = |i: &usize| i % parts == k;
+            let idx: Vec<usize> = (0..m.points.len()).filter(pick).collect();
+            Sweep {
+                id: format!("part-{}-of-{parts}", k + 1),
+                measurements: Measurements {
+                    points: idx.iter().map(|&i| m.points[i]).collect(),
+                    kind: idx.iter().map(|&i| m.kind[i]).collect(),
+                    feature: if m.feature.len() == m.points.len() {
+                        idx.iter().map(|&i| m.feature[i]).collect()
+                    } else {
+                        Vec::new()
+                    },
+                    initial_alignment: m.initial_alignment,
+                },
+            }
+        })
+        .collect()
 }
 
 /// The verdict of a cohort.
@@ -319,6 +384,7 @@ pub fn discover_cohort(
     let (plain, images, rows) = linearize(&prepared, sweeps, params, None, progress)?;
     let register_s = crate::util::secs(t0);
     let t1 = Instant::now();
+    in_time(params, "registering the sweeps")?;
     if rows.rows.len() < 50 {
         return Err(DiscoverError::Underdetermined(format!(
             "the cohort's {} sweeps give only {} matched rows; discovery needs at least 50",
@@ -419,6 +485,7 @@ pub fn discover_cohort(
     let before_rms = base_score.heldout_mse.sqrt();
     let beyond_noise = before_rms > null_max_mm && before_rms > 1.25 * noise_floor_mm;
     let find_s = crate::util::secs(t1);
+    in_time(params, "testing the misfit against noise")?;
     // 3. Name: forward selection.
     let t2 = Instant::now();
     let solver = std::sync::Arc::new(ModelSolver::new(
@@ -464,6 +531,7 @@ pub fn discover_cohort(
         let mut screened: Vec<(Candidate, Vec<Candidate>, usize)> = Vec::new();
         for (i, kind) in kinds.iter().enumerate() {
             progress(&format!("round {round}: searching {kind}"), i, kinds.len());
+            in_time(params, &format!("searching {kind} (round {round})"))?;
             let family = search_family(&ctx, &cur, *kind, &params.grid)?;
             let Some(top) = family
                 .iter()
@@ -506,6 +574,10 @@ pub fn discover_cohort(
                 0,
                 1,
             );
+            in_time(
+                params,
+                &format!("confirming {} (round {round})", top.effect.kind),
+            )?;
             let Some(conf) = confirm(&ctx, &prepared, sweeps, params, &cur, &top, progress)? else {
                 continue;
             };
@@ -654,6 +726,7 @@ fn linearize(
         sweeps
             .par_iter()
             .map(|s| {
+                in_time(params, &format!("registering sweep {}", s.id))?;
                 let r = register(prepared, &s.measurements, Method::Libr, &params.pipeline)
                     .map_err(|e| DiscoverError::Scenario {
                         scenario: s.id.clone(),

@@ -113,16 +113,7 @@ fn params() -> DiscoverParams {
             },
             ..PipelineParams::default()
         },
-        folds: 5,
-        bootstrap: 9,
-        grid: SearchGrid {
-            directions: 16,
-            pack_sites: 8,
-            pack_widths: [12.0, 25.0],
-            fixation_sites: 4,
-            inclusion_sites: 2,
-        },
-        ..DiscoverParams::default()
+        ..DiscoverParams::coarse()
     }
 }
 
@@ -367,4 +358,69 @@ fn implausible_loads_are_no_candidates() {
     };
     assert!(prior::amplitude_plausible(&pack([3000.0, 0.0, -4000.0])));
     assert!(!prior::amplitude_plausible(&pack([300.0, 0.0, 0.0])));
+}
+
+/// A session's points as interleaved sweeps: every point in exactly one part, in order, with its
+/// kind and feature; every part sees every kind the session has; the alignment is shared.
+#[test]
+fn a_session_splits_into_interleaved_sweeps() {
+    let pose = Rigid::from_axis_angle([0.0, 0.0, 1.0], 0.1, [1.0, 2.0, 3.0]);
+    let n = 11;
+    let m = Measurements {
+        points: (0..n).map(|i| [i as f64, 0.0, 0.0]).collect(),
+        kind: (0..n)
+            .map(|i| {
+                if i < 6 {
+                    MeasuredKind::Surface
+                } else {
+                    MeasuredKind::PosteriorContour
+                }
+            })
+            .collect(),
+        feature: (0..n).map(|i| (i % 3) as u8).collect(),
+        initial_alignment: Some(pose),
+    };
+    for parts in [1, 2, 3] {
+        let s = session_sweeps(&m, parts);
+        assert_eq!(s.len(), parts);
+        let mut seen = vec![0; n];
+        for sw in &s {
+            let x: Vec<usize> = sw
+                .measurements
+                .points
+                .iter()
+                .map(|p| p[0] as usize)
+                .collect();
+            assert!(x.windows(2).all(|w| w[0] < w[1]), "order kept");
+            for (j, &i) in x.iter().enumerate() {
+                seen[i] += 1;
+                assert_eq!(sw.measurements.kind[j], m.kind[i]);
+                assert_eq!(sw.measurements.feature[j], m.feature[i]);
+            }
+            assert_eq!(sw.measurements.initial_alignment, Some(pose));
+            assert!(sw.measurements.kind.contains(&MeasuredKind::Surface));
+            assert!(
+                sw.measurements
+                    .kind
+                    .contains(&MeasuredKind::PosteriorContour)
+            );
+        }
+        assert!(seen.iter().all(|&c| c == 1), "{seen:?}");
+    }
+}
+
+/// A deadline already passed stops the workflow with `OutOfTime`, naming the stage.
+#[test]
+fn a_passed_deadline_stops_discovery() {
+    let (mesh, model) = organ();
+    let u = broad_load(&mesh, &model, 1, 0.0);
+    let cohort = sweeps(&mesh, &model, &u, 2, 0.05, 3);
+    let p = DiscoverParams {
+        deadline: Some(Instant::now()),
+        ..params()
+    };
+    match discover_cohort(&model, &cohort, &p, None, &quiet) {
+        Err(DiscoverError::OutOfTime(stage)) => assert!(stage.contains("sweep"), "{stage}"),
+        other => panic!("{:?}", other.map(|d| d.verdict)),
+    }
 }

@@ -6,6 +6,7 @@ mod common;
 
 mod bad_input;
 mod cases;
+mod discovery;
 mod interop;
 mod limits;
 mod shutdown;

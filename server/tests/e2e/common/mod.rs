@@ -218,6 +218,7 @@ pub fn stream_of(
             method: method as i32,
             options: None,
             initial_alignment: m.initial_alignment.as_ref().map(rigid_pb),
+            discovery: None,
         })),
     }];
     let mut ordered = librplus::register::Measurements {
