@@ -594,7 +594,7 @@ pub fn replay_table(s: &ReplaySummary) -> String {
     let f = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.2}"));
     let _ = writeln!(
         o,
-        "{:<16} {:<13} {:<10} {:>5} {:>7} {:>9} {:>9} {:>9} {:>9}  quality / error",
+        "{:<16} {:<13} {:<14} {:>5} {:>7} {:>9} {:>9} {:>9} {:>9}  quality / error",
         "scenario",
         "category",
         "method",
@@ -608,7 +608,7 @@ pub fn replay_table(s: &ReplaySummary) -> String {
     for r in &s.results {
         let _ = writeln!(
             o,
-            "{:<16} {:<13} {:<10} {:>5} {:>7} {:>9} {:>9} {:>9} {:>9}  {}",
+            "{:<16} {:<13} {:<14} {:>5} {:>7} {:>9} {:>9} {:>9} {:>9}  {}",
             r.scenario,
             r.category,
             r.method,

@@ -22,6 +22,8 @@ pub struct DemoOptions {
     pub scenarios: usize,
     /// Print JSON instead of tables.
     pub json: bool,
+    /// Also replay LIBR with in-surgery discovery.
+    pub discovery: bool,
 }
 
 /// Where the demo keeps its case by default: `$XDG_CACHE_HOME/librplus/demo-v1`, else
@@ -114,6 +116,8 @@ pub async fn run(o: DemoOptions) -> Result<()> {
     let config = ServerConfig {
         listen: "127.0.0.1:0".into(),
         cases: vec![o.data.clone()],
+        // The demo's discovery sessions search the coarse grid (seconds on its 1,800-node livers).
+        discovery_coarse: true,
         ..ServerConfig::default()
     };
     let mut running = librplus_server::start(config).await?;
@@ -126,8 +130,19 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         server: format!("http://{}", running.addr),
         data: o.data.clone(),
         selection: Selection::Spread(o.scenarios),
-        // LIBR and LIBR+ (the built-in SR-GCN) side by side, after the rigid stage alone.
+        // LIBR and LIBR+ (the built-in SR-GCN) side by side, after the rigid stage alone; then
+        // LIBR with in-surgery discovery (the model augmented when the session's points name an
+        // effect it lacks).
         methods: vec![pb::Method::Rigid, pb::Method::Libr, pb::Method::LibrPlus],
+        discover_with: if o.discovery {
+            vec![pb::Method::Libr]
+        } else {
+            Vec::new()
+        },
+        discovery: pb::DiscoveryOptions {
+            enabled: true,
+            ..Default::default()
+        },
         progress: !o.json,
         ..ReplayOptions::default()
     };

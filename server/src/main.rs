@@ -43,6 +43,9 @@ enum Command {
         /// One JSON object on stdout.
         #[arg(long)]
         json: bool,
+        /// Leave out the LIBR sessions with in-surgery discovery.
+        #[arg(long)]
+        no_discovery: bool,
     },
 }
 
@@ -165,6 +168,7 @@ async fn main() -> Result<()> {
             surface,
             scenarios,
             json,
+            no_discovery,
         }) => {
             init_tracing_level(false, "warn");
             return demo::run(demo::DemoOptions {
@@ -172,6 +176,7 @@ async fn main() -> Result<()> {
                 surface,
                 scenarios,
                 json,
+                discovery: !no_discovery,
             })
             .await;
         }
