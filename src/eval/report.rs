@@ -95,6 +95,21 @@ pub struct MethodSummary {
     pub by_category: BTreeMap<String, CategorySummary>,
     /// Per geometry: mean TRE and count (the mean over nodes of that geometry's error map).
     pub by_geometry: BTreeMap<String, CategorySummary>,
+    /// Per deformation pattern (`L`, `R`, `W`, `V`, ... from the deformation id): mean TRE and
+    /// count.
+    pub by_pattern: BTreeMap<String, CategorySummary>,
+}
+
+/// The deformation pattern of a scenario id `GEOMETRY-PATTERN-NN/INDEX` (`g1-L-00/5` → `L`);
+/// `?` when the id has another shape.
+pub fn pattern_of(scenario: &str) -> String {
+    let deformation = scenario.split('/').next().unwrap_or(scenario);
+    let parts: Vec<&str> = deformation.split('-').collect();
+    if parts.len() >= 3 {
+        parts[parts.len() - 2].to_string()
+    } else {
+        "?".into()
+    }
 }
 
 /// Aggregate of one method in one group of scenarios (a category or a geometry).
@@ -631,6 +646,9 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
                 let g = s.by_geometry.entry(r.geometry.clone()).or_default();
                 g.scenarios += 1;
                 g.tre_mm += t.tre_mm;
+                let p = s.by_pattern.entry(pattern_of(&r.scenario)).or_default();
+                p.scenarios += 1;
+                p.tre_mm += t.tre_mm;
                 times.entry(r.method.clone()).or_default().push(r.seconds);
             }
             None => s.failed += 1,
@@ -642,7 +660,12 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
         s.tre_surface_mm /= n;
         s.tre_interior_mm /= n;
         s.tre_targets_mm /= n;
-        for c in s.by_category.values_mut().chain(s.by_geometry.values_mut()) {
+        for c in s
+            .by_category
+            .values_mut()
+            .chain(s.by_geometry.values_mut())
+            .chain(s.by_pattern.values_mut())
+        {
             c.tre_mm /= c.scenarios.max(1) as f64;
         }
         if let Some(t) = times.get_mut(m) {
@@ -700,6 +723,103 @@ pub fn markdown(splits: &BTreeMap<String, BTreeMap<String, MethodSummary>>) -> S
             }
             s.push('\n');
         }
+        s.push_str(&pattern_table(methods));
     }
     s
+}
+
+/// The split's TRE per deformation pattern, and LIBR with discovered physics against plain
+/// LIBR per pattern when both were evaluated (`evaluate --discover`).
+fn pattern_table(methods: &BTreeMap<String, MethodSummary>) -> String {
+    let mut patterns: Vec<String> = methods
+        .values()
+        .flat_map(|v| v.by_pattern.keys().cloned())
+        .collect();
+    patterns.sort();
+    patterns.dedup();
+    if patterns.len() < 2 {
+        return String::new();
+    }
+    let mut s = String::from("\nBy deformation pattern:\n\n| method |");
+    for p in &patterns {
+        s.push_str(&format!(" {p} |"));
+    }
+    s.push_str("\n| --- |");
+    for _ in &patterns {
+        s.push_str(" --- |");
+    }
+    s.push('\n');
+    for (m, v) in methods {
+        s.push_str(&format!("| {m} |"));
+        for p in &patterns {
+            match v.by_pattern.get(p) {
+                Some(x) => s.push_str(&format!(" {:.2} ({}) |", x.tre_mm, x.scenarios)),
+                None => s.push_str(" – |"),
+            }
+        }
+        s.push('\n');
+    }
+    if let (Some(plain), Some(found)) = (methods.get("libr"), methods.get("libr-discovered")) {
+        let change: Vec<String> = patterns
+            .iter()
+            .filter_map(|p| {
+                let (a, b) = (plain.by_pattern.get(p)?, found.by_pattern.get(p)?);
+                Some(format!(
+                    "{p} {:+.1} %",
+                    100.0 * (b.tre_mm / a.tre_mm - 1.0)
+                ))
+            })
+            .collect();
+        s.push_str(&format!(
+            "\nLIBR with each cohort's discovered physics against plain LIBR (TRE change): {}.\n",
+            change.join(", ")
+        ));
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(scenario: &str, method: &str, tre_mm: f64) -> ScenarioResult {
+        ScenarioResult {
+            scenario: scenario.into(),
+            geometry: scenario[..2].into(),
+            category: "surface".into(),
+            method: method.into(),
+            tre: Some(crate::eval::Tre {
+                tre_mm,
+                tre_surface_mm: tre_mm,
+                tre_interior_mm: tre_mm,
+                tre_targets_mm: tre_mm,
+                max_mm: tre_mm,
+            }),
+            error: None,
+            seconds: 0.1,
+        }
+    }
+
+    /// Patterns are read from the deformation id; the per-pattern means are the means of their
+    /// rows, and the discovered-against-plain change is their ratio.
+    #[test]
+    fn tre_by_pattern_and_the_discovered_change() {
+        assert_eq!(pattern_of("g1-L-00/5"), "L");
+        assert_eq!(pattern_of("g12-V-03/0"), "V");
+        assert_eq!(pattern_of("scenario7"), "?");
+        let rows = [
+            row("g1-L-00/1", "libr", 8.0),
+            row("g1-L-00/3", "libr", 6.0),
+            row("g2-V-00/1", "libr", 4.0),
+            row("g1-L-00/1", "libr-discovered", 6.3),
+            row("g1-L-00/3", "libr-discovered", 6.3),
+            row("g2-V-00/1", "libr-discovered", 5.0),
+        ];
+        let s = summarize(&rows);
+        let l = &s["libr"].by_pattern["L"];
+        assert_eq!((l.scenarios, l.tre_mm), (2, 7.0));
+        let md = markdown(&BTreeMap::from([("all".to_string(), s)]));
+        assert!(md.contains("| libr | 7.00 (2) | 4.00 (1) |"), "{md}");
+        assert!(md.contains("L -10.0 %, V +25.0 %"), "{md}");
+    }
 }
