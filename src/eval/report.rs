@@ -764,10 +764,7 @@ fn pattern_table(methods: &BTreeMap<String, MethodSummary>) -> String {
             .iter()
             .filter_map(|p| {
                 let (a, b) = (plain.by_pattern.get(p)?, found.by_pattern.get(p)?);
-                Some(format!(
-                    "{p} {:+.1} %",
-                    100.0 * (b.tre_mm / a.tre_mm - 1.0)
-                ))
+                Some(format!("{p} {:+.1} %", 100.0 * (b.tre_mm / a.tre_mm - 1.0)))
             })
             .collect();
         s.push_str(&format!(
