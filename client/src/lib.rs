@@ -25,7 +25,9 @@ pub use messages::{
 pub use replay::{
     ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,
 };
-pub use session::{Client, SessionConfig, SessionEnd, SessionOutcome, connect, run_session};
+pub use session::{
+    Client, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_with, run_session,
+};
 pub use stats::{Latencies, LatencyMs, code_name};
 
 #[cfg(test)]

@@ -6,7 +6,7 @@ use crate::data::{Selection, load_selection};
 use crate::messages::stream_messages;
 use crate::pb;
 use crate::replay::method_name;
-use crate::session::{Client, SessionConfig, SessionEnd, connect, run_session};
+use crate::session::{Client, SessionConfig, SessionEnd, connect_with, run_session};
 use crate::stats::{Latencies, LatencyMs};
 use anyhow::{Result, bail};
 use std::collections::BTreeMap;
@@ -48,6 +48,8 @@ pub struct LoadOptions {
     pub rate_hz: Option<f64>,
     /// A progress line on stderr every few seconds.
     pub progress: bool,
+    /// TLS settings.
+    pub tls: crate::session::Tls,
 }
 
 impl Default for LoadOptions {
@@ -67,6 +69,7 @@ impl Default for LoadOptions {
             backoff: Duration::from_millis(100),
             rate_hz: None,
             progress: false,
+            tls: crate::session::Tls::default(),
         }
     }
 }
@@ -241,7 +244,7 @@ pub async fn load(opts: &LoadOptions) -> Result<LoadSummary> {
     );
     let mut clients = Vec::new();
     for _ in 0..opts.connections.max(1) {
-        clients.push(connect(&opts.server).await?);
+        clients.push(connect_with(&opts.server, &opts.tls).await?);
     }
     let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
     let t0 = Instant::now();

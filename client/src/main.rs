@@ -56,6 +56,19 @@ struct Common {
     /// server regularises the rigid motion towards it (an organ held in place).
     #[arg(long, value_name = "MM")]
     trusted_alignment: Option<f64>,
+    /// TLS: the CA certificate (PEM) the server's certificate chains to (turns TLS on; an
+    /// http:// URL is then read as https://).
+    #[arg(long, value_name = "FILE")]
+    ca: Option<PathBuf>,
+    /// mTLS: this client's certificate (PEM; with --key).
+    #[arg(long, value_name = "FILE")]
+    cert: Option<PathBuf>,
+    /// mTLS: this client's private key (PEM).
+    #[arg(long, value_name = "FILE")]
+    key: Option<PathBuf>,
+    /// TLS: the name the server's certificate must carry (default: the URL's host).
+    #[arg(long)]
+    tls_domain: Option<String>,
     /// Bearer token sent as `authorization` metadata.
     #[arg(long)]
     token: Option<String>,
@@ -116,6 +129,15 @@ fn seconds(name: &str, s: f64) -> Result<Duration> {
     Ok(Duration::from_secs_f64(s))
 }
 
+fn tls(c: &Common) -> librplus_client::Tls {
+    librplus_client::Tls {
+        ca: c.ca.clone(),
+        cert: c.cert.clone(),
+        key: c.key.clone(),
+        domain: c.tls_domain.clone(),
+    }
+}
+
 fn options(c: &Common) -> Option<pb::RegisterOptions> {
     (c.time_budget_ms.is_some() || c.trusted_alignment.is_some()).then(|| pb::RegisterOptions {
         time_budget_ms: c.time_budget_ms.unwrap_or(0),
@@ -166,6 +188,7 @@ async fn run(cli: Cli) -> Result<()> {
                     budget_ms: a.discovery_budget_ms,
                     auto_after_points: 0,
                 },
+                tls: tls(&a.common),
             };
             let s = replay(&opts).await?;
             print(a.common.json, &s, replay_table)?;
@@ -193,6 +216,7 @@ async fn run(cli: Cli) -> Result<()> {
                 token: a.common.token.clone(),
                 timeout: seconds("--timeout-s", a.common.timeout_s)?,
                 progress: !a.common.json,
+                tls: tls(&a.common),
                 ..Default::default()
             };
             let s = load(&opts).await?;

@@ -4,7 +4,7 @@
 use crate::data::{Selection, load_selection};
 use crate::messages::{MessageError, rigid_from_message, stream_messages};
 use crate::pb;
-use crate::session::{SessionConfig, SessionEnd, connect, run_session};
+use crate::session::{SessionConfig, SessionEnd, connect_with, run_session};
 use crate::stats::{Latencies, LatencyMs};
 use anyhow::{Result, bail};
 use librplus::eval::{GeometryData, ScenarioData, Tre, tre};
@@ -85,6 +85,8 @@ pub struct ReplayOptions {
     pub discover_with: Vec<pb::Method>,
     /// Discovery options of those sessions (`enabled` is set).
     pub discovery: pb::DiscoveryOptions,
+    /// TLS settings.
+    pub tls: crate::session::Tls,
 }
 
 impl Default for ReplayOptions {
@@ -102,6 +104,7 @@ impl Default for ReplayOptions {
             progress: false,
             discover_with: Vec::new(),
             discovery: pb::DiscoveryOptions::default(),
+            tls: crate::session::Tls::default(),
         }
     }
 }
@@ -438,7 +441,7 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
     if loaded.scenarios.is_empty() {
         bail!("no scenarios selected in {}", opts.data.display());
     }
-    let client = connect(&opts.server).await?;
+    let client = connect_with(&opts.server, &opts.tls).await?;
     let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
     cfg.rate_hz = opts.rate_hz;
     let mut all = Latencies::new();

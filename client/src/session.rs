@@ -17,15 +17,85 @@ pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
 /// A connected client.
 pub type Client = LibRPlusClient<Channel>;
 
+/// How the client secures its connection (all unset: plaintext, unless the URL is `https://`).
+#[derive(Debug, Clone, Default)]
+pub struct Tls {
+    /// CA certificate (PEM) the server's certificate must chain to; setting it turns TLS on.
+    /// Unset with an `https://` URL: the system's roots are not loaded, so a CA is required.
+    pub ca: Option<std::path::PathBuf>,
+    /// Client certificate (PEM) for mTLS; with `key`.
+    pub cert: Option<std::path::PathBuf>,
+    /// Client private key (PEM).
+    pub key: Option<std::path::PathBuf>,
+    /// Name the server's certificate must carry (default: the URL's host).
+    pub domain: Option<String>,
+}
+
+impl Tls {
+    /// Whether TLS is on for `server`.
+    pub fn enabled(&self, server: &str) -> bool {
+        self.ca.is_some() || server.starts_with("https://")
+    }
+
+    /// tonic's client TLS settings; errors name the option and the file.
+    pub fn client_config(&self) -> Result<tonic::transport::ClientTlsConfig> {
+        use tonic::transport::{Certificate, ClientTlsConfig, Identity};
+        let read = |flag: &str, p: &std::path::Path| {
+            std::fs::read(p).with_context(|| format!("{flag} {}: cannot read", p.display()))
+        };
+        let Some(ca) = &self.ca else {
+            anyhow::bail!(
+                "--ca: an https:// server needs the CA certificate (PEM) its certificate chains to"
+            );
+        };
+        let mut c = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(read("--ca", ca)?));
+        match (&self.cert, &self.key) {
+            (Some(cert), Some(key)) => {
+                c = c.identity(Identity::from_pem(
+                    read("--cert", cert)?,
+                    read("--key", key)?,
+                ));
+            }
+            (None, None) => {}
+            (Some(_), None) => anyhow::bail!("--key: missing (--cert is set; mTLS needs both)"),
+            (None, Some(_)) => anyhow::bail!("--cert: missing (--key is set; mTLS needs both)"),
+        }
+        if let Some(d) = &self.domain {
+            c = c.domain_name(d.clone());
+        }
+        Ok(c)
+    }
+}
+
 /// Connects to `server` (a URL such as `http://127.0.0.1:50051`) with 64 MiB message limits.
 pub async fn connect(server: &str) -> Result<Client> {
-    let channel = Endpoint::from_shared(server.to_string())
+    connect_with(server, &Tls::default()).await
+}
+
+/// [`connect`] with TLS settings (TLS when `tls.ca` is set or the URL is `https://`; an
+/// `http://` URL is then read as `https://`).
+pub async fn connect_with(server: &str, tls: &Tls) -> Result<Client> {
+    let url = if tls.enabled(server) {
+        match server.strip_prefix("http://") {
+            Some(rest) => format!("https://{rest}"),
+            None => server.to_string(),
+        }
+    } else {
+        server.to_string()
+    };
+    let mut endpoint = Endpoint::from_shared(url.clone())
         .with_context(|| format!("--server {server:?} is not a valid URL"))?
         .connect_timeout(Duration::from_secs(10))
-        .tcp_nodelay(true)
+        .tcp_nodelay(true);
+    if tls.enabled(server) {
+        endpoint = endpoint
+            .tls_config(tls.client_config()?)
+            .context("TLS settings (--ca, --cert, --key)")?;
+    }
+    let channel = endpoint
         .connect()
         .await
-        .with_context(|| format!("connecting to {server}"))?;
+        .with_context(|| format!("connecting to {url}"))?;
     Ok(LibRPlusClient::new(channel)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES))

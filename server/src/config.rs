@@ -59,6 +59,12 @@ pub struct ServerConfig {
     pub discovery_budget_ms: u32,
     /// Largest discovery budget a session may ask for, ms. Default 600,000.
     pub max_discovery_budget_ms: u32,
+    /// TLS: the server's certificate chain (PEM). With `tls_key`, the server speaks only TLS.
+    pub tls_cert: Option<PathBuf>,
+    /// TLS: the server's private key (PEM).
+    pub tls_key: Option<PathBuf>,
+    /// mTLS: clients must present a certificate signed by this CA (PEM); needs `tls_cert`.
+    pub client_ca: Option<PathBuf>,
     /// In-surgery discovery searches the coarse grid (16 directions, 8 pack and 4 fixation
     /// sites, 5 blocks, 9 bootstrap replicates) instead of `librplus discover`'s full one: about
     /// 4× faster, on slow machines. Default false.
@@ -91,6 +97,9 @@ impl Default for ServerConfig {
             discovery_budget_ms: 120_000,
             max_discovery_budget_ms: 600_000,
             discovery_coarse: false,
+            tls_cert: None,
+            tls_key: None,
+            client_ca: None,
         }
     }
 }
@@ -167,6 +176,24 @@ impl ServerConfig {
             if v == 0 {
                 return Err(ConfigError::Field(format!("{name} must be at least 1")));
             }
+        }
+        match (&self.tls_cert, &self.tls_key) {
+            (Some(_), None) => {
+                return Err(ConfigError::Field(
+                    "tls_key: missing (tls_cert is set; TLS needs both)".into(),
+                ));
+            }
+            (None, Some(_)) => {
+                return Err(ConfigError::Field(
+                    "tls_cert: missing (tls_key is set; TLS needs both)".into(),
+                ));
+            }
+            _ => {}
+        }
+        if self.client_ca.is_some() && self.tls_cert.is_none() {
+            return Err(ConfigError::Field(
+                "client_ca: client certificates (mTLS) need TLS: set tls_cert and tls_key".into(),
+            ));
         }
         if self.discovery_budget_ms == 0 || self.discovery_budget_ms > self.max_discovery_budget_ms
         {

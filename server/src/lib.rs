@@ -155,7 +155,13 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
     let request_ids = Arc::new(AtomicU64::new(0));
-    let router = Server::builder()
+    let mut builder = Server::builder();
+    if let Some(tls) = tls_config(&config)? {
+        builder = builder
+            .tls_config(tls)
+            .context("TLS configuration (--tls-cert, --tls-key, --client-ca)")?;
+    }
+    let router = builder
         .trace_fn(move |req: &tonic::codegen::http::Request<()>| {
             let id = req
                 .headers()
@@ -174,7 +180,12 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
     let serve = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async {
         let _ = stop_rx.await;
     }));
-    tracing::info!(%addr, "listening (health NOT_SERVING until preload finishes)");
+    tracing::info!(
+        %addr,
+        tls = config.tls_cert.is_some(),
+        client_certificates = config.client_ca.is_some(),
+        "listening (health NOT_SERVING until preload finishes)"
+    );
     let (ready_tx, ready_rx) = watch::channel(None);
     {
         let shared = shared.clone();
@@ -216,6 +227,26 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         ready: ready_rx,
         health,
     })
+}
+
+/// The server's TLS settings from `tls_cert`/`tls_key` (and `client_ca` for mTLS); None:
+/// plaintext. A file that cannot be read is an error naming it.
+fn tls_config(config: &ServerConfig) -> anyhow::Result<Option<tonic::transport::ServerTlsConfig>> {
+    use tonic::transport::{Certificate, Identity, ServerTlsConfig};
+    let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) else {
+        return Ok(None);
+    };
+    let read = |flag: &str, p: &std::path::Path| {
+        std::fs::read(p).with_context(|| format!("{flag} {}: cannot read", p.display()))
+    };
+    let mut tls = ServerTlsConfig::new().identity(Identity::from_pem(
+        read("--tls-cert", cert)?,
+        read("--tls-key", key)?,
+    ));
+    if let Some(ca) = &config.client_ca {
+        tls = tls.client_ca_root(Certificate::from_pem(read("--client-ca", ca)?));
+    }
+    Ok(Some(tls))
 }
 
 /// The SR-GCN model every case gets for LIBR+: the configured directory (a model or an

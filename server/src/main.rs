@@ -26,7 +26,7 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Serve preloaded cases over gRPC (the default).
-    Serve(Args),
+    Serve(Box<Args>),
     #[cfg(feature = "demo")]
     /// The main job on the embedded default case: generate it at first run (cached), start the
     /// server on loopback, replay scenarios through the client over gRPC, print TRE and latency.
@@ -97,6 +97,15 @@ struct Args {
     /// In-surgery discovery on the coarse search grid (about 4× faster).
     #[arg(long)]
     discovery_coarse: bool,
+    /// Serve TLS with this certificate chain (PEM; needs --tls-key).
+    #[arg(long, value_name = "FILE")]
+    tls_cert: Option<PathBuf>,
+    /// The TLS private key (PEM).
+    #[arg(long, value_name = "FILE")]
+    tls_key: Option<PathBuf>,
+    /// Require client certificates signed by this CA (mTLS; PEM).
+    #[arg(long, value_name = "FILE")]
+    client_ca: Option<PathBuf>,
 }
 
 fn config(a: &Args) -> Result<ServerConfig> {
@@ -122,6 +131,15 @@ fn config(a: &Args) -> Result<ServerConfig> {
     set!(default_method);
     set!(discovery_budget_ms);
     c.discovery_coarse |= a.discovery_coarse;
+    if a.tls_cert.is_some() {
+        c.tls_cert = a.tls_cert.clone();
+    }
+    if a.tls_key.is_some() {
+        c.tls_key = a.tls_key.clone();
+    }
+    if a.client_ca.is_some() {
+        c.client_ca = a.client_ca.clone();
+    }
     if a.model.is_some() {
         c.model = a.model.clone();
     }
@@ -180,7 +198,7 @@ async fn main() -> Result<()> {
             })
             .await;
         }
-        Some(Command::Serve(a)) => a,
+        Some(Command::Serve(a)) => *a,
         None => cli.serve,
     };
     let cfg = config(&args)?;

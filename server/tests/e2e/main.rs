@@ -11,4 +11,5 @@ mod interop;
 mod limits;
 mod shutdown;
 mod stream;
+mod tls;
 mod unary;
