@@ -32,7 +32,6 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 use tokio::sync::{Semaphore, oneshot, watch};
 use tonic::transport::Server;
-use tonic::transport::server::TcpIncoming;
 use tonic_health::ServingStatus;
 
 /// What preload did.
@@ -86,6 +85,7 @@ pub struct Running {
     drain: watch::Sender<bool>,
     stop: Option<oneshot::Sender<()>>,
     serve: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+    reload: tokio::sync::mpsc::Sender<Reload>,
     ready: watch::Receiver<Option<Result<PreloadReport, Arc<PreloadError>>>>,
     health: tonic_health::server::HealthReporter,
 }
@@ -144,42 +144,47 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         cases: OnceLock::new(),
         config: config.clone(),
     });
-    let reflection = || {
-        tonic_reflection::server::Builder::configure()
-            .register_encoded_file_descriptor_set(librplus_proto::FILE_DESCRIPTOR_SET)
-            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-    };
-    let refl_v1 = reflection().build_v1()?;
-    let refl_v1alpha = reflection().build_v1alpha()?;
     let svc = LibRPlusServer::new(Svc(shared.clone()))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
     let request_ids = Arc::new(AtomicU64::new(0));
-    let mut builder = Server::builder();
-    if let Some(tls) = tls_config(&config)? {
-        builder = builder
-            .tls_config(tls)
-            .context("TLS configuration (--tls-cert, --tls-key, --client-ca)")?;
-    }
-    let router = builder
-        .trace_fn(move |req: &tonic::codegen::http::Request<()>| {
-            let id = req
-                .headers()
-                .get("x-request-id")
-                .and_then(|v| v.to_str().ok())
-                .map(|s| s.chars().take(64).collect::<String>())
-                .unwrap_or_else(|| format!("r{}", request_ids.fetch_add(1, Ordering::Relaxed) + 1));
-            tracing::info_span!("rpc", path = %req.uri().path(), request_id = %id)
-        })
-        .add_service(health_svc)
-        .add_service(refl_v1)
-        .add_service(refl_v1alpha)
-        .add_service(svc);
+    // The gRPC server is built once per TLS configuration (a "generation"): a certificate reload
+    // starts a new generation for new connections while the old one finishes its connections'
+    // streams (graceful shutdown: GOAWAY, open sessions go on), so no session is dropped.
+    let make = move |tls: Option<tonic::transport::ServerTlsConfig>| -> anyhow::Result<_> {
+        let reflection = || {
+            tonic_reflection::server::Builder::configure()
+                .register_encoded_file_descriptor_set(librplus_proto::FILE_DESCRIPTOR_SET)
+                .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        };
+        let mut builder = Server::builder();
+        if let Some(tls) = tls {
+            builder = builder
+                .tls_config(tls)
+                .context("TLS configuration (--tls-cert, --tls-key, --client-ca)")?;
+        }
+        let ids = request_ids.clone();
+        Ok(builder
+            .trace_fn(move |req: &tonic::codegen::http::Request<()>| {
+                let id = req
+                    .headers()
+                    .get("x-request-id")
+                    .and_then(|v| v.to_str().ok())
+                    .map(|s| s.chars().take(64).collect::<String>())
+                    .unwrap_or_else(|| format!("r{}", ids.fetch_add(1, Ordering::Relaxed) + 1));
+                tracing::info_span!("rpc", path = %req.uri().path(), request_id = %id)
+            })
+            .add_service(health_svc.clone())
+            .add_service(reflection().build_v1()?)
+            .add_service(reflection().build_v1alpha()?)
+            .add_service(svc.clone()))
+    };
+    let first = make(tls_config(&config)?)?;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let serve = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async {
-        let _ = stop_rx.await;
-    }));
+    let (reload_tx, reload_rx) = tokio::sync::mpsc::channel::<Reload>(1);
+    let serve = tokio::spawn(generations::serve(
+        listener, first, make, reload_rx, stop_rx,
+    ));
     tracing::info!(
         %addr,
         tls = config.tls_cert.is_some(),
@@ -224,9 +229,101 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         drain: drain_tx,
         stop: Some(stop_tx),
         serve,
+        reload: reload_tx,
         ready: ready_rx,
         health,
     })
+}
+
+/// A TLS reload request: the new settings, and where to say whether they took.
+type Reload = (
+    tonic::transport::ServerTlsConfig,
+    oneshot::Sender<Result<(), String>>,
+);
+
+mod generations {
+    //! One listener, successive gRPC servers ("generations") for successive TLS settings.
+
+    use super::Reload;
+    use std::convert::Infallible;
+    use tokio::net::{TcpListener, TcpStream};
+    use tokio::sync::{mpsc, oneshot};
+    use tokio_stream::wrappers::ReceiverStream;
+    use tonic::transport::server::Router;
+
+    type Conn = Result<TcpStream, Infallible>;
+
+    /// One generation: its connections' channel, its stop signal and its task.
+    struct Generation {
+        conns: mpsc::Sender<Conn>,
+        stop: oneshot::Sender<()>,
+        task: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+    }
+
+    fn spawn(router: Router) -> Generation {
+        let (conns, rx) = mpsc::channel::<Conn>(64);
+        let (stop, stop_rx) = oneshot::channel::<()>();
+        let task = tokio::spawn(router.serve_with_incoming_shutdown(
+            ReceiverStream::new(rx),
+            async {
+                let _ = stop_rx.await;
+            },
+        ));
+        Generation { conns, stop, task }
+    }
+
+    /// Accepts connections for the current generation; on a reload, starts the next and lets
+    /// the previous finish its connections; on stop, stops them all.
+    pub(super) async fn serve(
+        listener: TcpListener,
+        first: Router,
+        make: impl Fn(Option<tonic::transport::ServerTlsConfig>) -> anyhow::Result<Router>,
+        mut reload: mpsc::Receiver<Reload>,
+        mut stop: oneshot::Receiver<()>,
+    ) -> Result<(), tonic::transport::Error> {
+        let mut current = spawn(first);
+        let mut old: Vec<Generation> = Vec::new();
+        loop {
+            tokio::select! {
+                _ = &mut stop => break,
+                r = reload.recv() => {
+                    let Some((tls, done)) = r else { break };
+                    match make(Some(tls)) {
+                        Ok(router) => {
+                            let previous = std::mem::replace(&mut current, spawn(router));
+                            let _ = previous.stop.send(());
+                            old.push(Generation { stop: oneshot::channel().0, ..previous });
+                            old.retain(|g| !g.task.is_finished());
+                            tracing::info!("TLS settings reloaded; open connections keep the old ones");
+                            let _ = done.send(Ok(()));
+                        }
+                        Err(e) => {
+                            tracing::warn!(error = %e, "TLS reload failed; the settings are unchanged");
+                            let _ = done.send(Err(format!("{e:#}")));
+                        }
+                    }
+                }
+                a = listener.accept() => match a {
+                    Ok((s, _)) => {
+                        let _ = s.set_nodelay(true);
+                        let _ = current.conns.send(Ok(s)).await;
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "accept failed");
+                        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+                    }
+                }
+            }
+        }
+        let _ = current.stop.send(());
+        let mut result = current.task.await.unwrap_or(Ok(()));
+        for g in old {
+            if let Ok(Err(e)) = g.task.await {
+                result = Err(e);
+            }
+        }
+        result
+    }
 }
 
 /// The server's TLS settings from `tls_cert`/`tls_key` (and `client_ca` for mTLS); None:
@@ -337,6 +434,24 @@ impl Running {
     /// Sessions open now.
     pub fn open_sessions(&self) -> usize {
         self.shared.config.max_sessions - self.shared.sessions.available_permits()
+    }
+
+    /// Reads the TLS files again (`tls_cert`, `tls_key`, `client_ca`) and serves new connections
+    /// with them; open connections and their sessions go on with the old ones until they end
+    /// (SIGHUP in `librplus-server`). An error (a file that does not read, a server without TLS)
+    /// changes nothing.
+    pub async fn reload_tls(&self) -> anyhow::Result<()> {
+        let Some(tls) = tls_config(&self.shared.config)? else {
+            anyhow::bail!("the server does not serve TLS (no --tls-cert): nothing to reload");
+        };
+        let (tx, rx) = oneshot::channel();
+        self.reload
+            .send((tls, tx))
+            .await
+            .map_err(|_| anyhow::anyhow!("the server has stopped"))?;
+        rx.await
+            .map_err(|_| anyhow::anyhow!("the server has stopped"))?
+            .map_err(anyhow::Error::msg)
     }
 
     /// Drains and stops: health NOT_SERVING, sessions end after their current update, the

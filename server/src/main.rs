@@ -217,9 +217,17 @@ async fn main() -> Result<()> {
         _ = term.recv() => { running.shutdown().await; return Ok(()); }
         _ = tokio::signal::ctrl_c() => { running.shutdown().await; return Ok(()); }
     }
-    tokio::select! {
-        _ = term.recv() => {}
-        _ = tokio::signal::ctrl_c() => {}
+    // SIGHUP: read the TLS files again (new connections use them; open sessions go on).
+    let mut hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())?;
+    loop {
+        tokio::select! {
+            _ = term.recv() => break,
+            _ = tokio::signal::ctrl_c() => break,
+            _ = hup.recv() => match running.reload_tls().await {
+                Ok(()) => eprintln!("SIGHUP: TLS certificate files reloaded"),
+                Err(e) => eprintln!("SIGHUP: TLS reload failed, settings unchanged: {e:#}"),
+            },
+        }
     }
     let left = running.shutdown().await;
     if left > 0 {

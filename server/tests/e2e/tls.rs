@@ -138,3 +138,72 @@ async fn tls_and_mutual_tls() {
     .unwrap_err();
     assert!(e.contains("--key"), "{e}");
 }
+
+/// A certificate reload (SIGHUP's `reload_tls`) serves new connections with the new files while
+/// a session opened before it goes on over its old connection; a reload of unreadable files
+/// changes nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn certificates_reload_without_dropping_sessions() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ca1_pem, ca1) = ca("first CA");
+    let (ca2_pem, ca2) = ca("second CA");
+    let ca1_file = write(d, "ca1.pem", &ca1_pem);
+    let ca2_file = write(d, "ca2.pem", &ca2_pem);
+    let (cert, key) = leaf(&["localhost"], &ca1);
+    let cert_file = write(d, "server.pem", &cert);
+    let key_file = write(d, "server.key", &key);
+    let mut running = librplus_server::start(ServerConfig {
+        tls_cert: Some(cert_file.clone()),
+        tls_key: Some(key_file.clone()),
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let url = format!("http://{}", running.addr);
+    let trusting = |ca: &Path| librplus_client::Tls {
+        ca: Some(ca.to_path_buf()),
+        domain: Some("localhost".into()),
+        ..Default::default()
+    };
+    // A session opened under the first certificate.
+    let mut c = librplus_client::connect_with(&url, &trusting(&ca1_file))
+        .await
+        .unwrap();
+    let (_, sc) = scenario("surface+2us");
+    let g = &open(dataset()).unwrap().geometries[0].id;
+    let (msgs, _) = stream_of(g, &sc, pb::Method::Libr);
+    let mut s = open_stream(&mut c, msgs[0].clone()).await.unwrap();
+    let u = s.send(msgs[1].clone()).await.unwrap();
+    assert!(matches!(
+        u.update,
+        Some(pb::stream_update::Update::Registration(_))
+    ));
+    // Unreadable files: refused, nothing changes.
+    std::fs::write(&cert_file, "not a certificate").unwrap();
+    let e = running.reload_tls().await.unwrap_err();
+    eprintln!("reload of a bad file: {e:#}");
+    assert!(format!("{e:#}").contains("--tls-cert"), "{e:#}");
+    assert_eq!(
+        list(&url, &trusting(&ca1_file)).await,
+        Ok(2),
+        "still the first certificate"
+    );
+    let (cert2, key2) = leaf(&["localhost"], &ca2);
+    std::fs::write(&cert_file, &cert2).unwrap();
+    std::fs::write(&key_file, &key2).unwrap();
+    running.reload_tls().await.unwrap();
+    assert_eq!(list(&url, &trusting(&ca2_file)).await, Ok(2));
+    let old_ca = list(&url, &trusting(&ca1_file)).await;
+    eprintln!("new connection trusting only the first CA: {old_ca:?}");
+    assert!(old_ca.is_err());
+    // The session opened before the reload goes on.
+    let u = s.send(msgs[2].clone()).await.unwrap();
+    assert!(
+        matches!(u.update, Some(pb::stream_update::Update::Registration(_))),
+        "{u:?}"
+    );
+    drop(s);
+    assert_eq!(running.shutdown().await, 0);
+}
