@@ -106,6 +106,47 @@ fn ensure_dataset(o: &DemoOptions) -> Result<()> {
     Ok(())
 }
 
+/// The demo's certificates (PEM files in `dir`): a CA made for this run, the server's
+/// certificate for `localhost` and one client certificate, both signed by it.
+struct DemoTls {
+    ca: PathBuf,
+    server: (PathBuf, PathBuf),
+    client: (PathBuf, PathBuf),
+}
+
+fn demo_tls(dir: &Path) -> Result<DemoTls> {
+    use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair};
+    let ca_key = KeyPair::generate()?;
+    let mut ca = CertificateParams::new(Vec::<String>::new())?;
+    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca.distinguished_name
+        .push(DnType::CommonName, "LIBR+ demo CA (this run only)");
+    let ca_pem = ca.self_signed(&ca_key)?.pem();
+    let issuer = Issuer::new(ca, ca_key);
+    let write = |name: &str, text: &str| -> Result<PathBuf> {
+        let p = dir.join(name);
+        std::fs::write(&p, text).with_context(|| p.display().to_string())?;
+        Ok(p)
+    };
+    let leaf = |name: &str| -> Result<(PathBuf, PathBuf)> {
+        let key = KeyPair::generate()?;
+        let mut params = CertificateParams::new(vec![name.to_string()])?;
+        params.distinguished_name.push(DnType::CommonName, name);
+        let cert = params.signed_by(&key, &issuer)?;
+        Ok((
+            write(&format!("{name}.pem"), &cert.pem())?,
+            write(&format!("{name}.key"), &key.serialize_pem())?,
+        ))
+    };
+    let server = leaf("localhost")?;
+    let client = leaf("demo-client")?;
+    Ok(DemoTls {
+        ca: write("ca.pem", &ca_pem)?,
+        server,
+        client,
+    })
+}
+
 /// Runs the demo.
 pub async fn run(o: DemoOptions) -> Result<()> {
     let t0 = Instant::now();
@@ -113,16 +154,23 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         let o = o.clone();
         tokio::task::spawn_blocking(move || ensure_dataset(&o)).await??;
     }
+    // Over mutual TLS, as in an operating room: certificates made for this run.
+    let certs_dir =
+        tempfile::tempdir().context("a temporary folder for the demo's certificates")?;
+    let tls = demo_tls(certs_dir.path())?;
     let config = ServerConfig {
         listen: "127.0.0.1:0".into(),
         cases: vec![o.data.clone()],
+        tls_cert: Some(tls.server.0.clone()),
+        tls_key: Some(tls.server.1.clone()),
+        client_ca: Some(tls.ca.clone()),
         // The demo's discovery sessions search the coarse grid (seconds on its 1,800-node livers).
         discovery_coarse: true,
         ..ServerConfig::default()
     };
     let mut running = librplus_server::start(config).await?;
     eprintln!(
-        "server on {} preloading (LIBR bases are cached after the first run)",
+        "server on {} (mutual TLS, certificates made for this run) preloading (LIBR bases are cached after the first run)",
         running.addr
     );
     let pre = running.ready().await.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -144,6 +192,12 @@ pub async fn run(o: DemoOptions) -> Result<()> {
             ..Default::default()
         },
         progress: !o.json,
+        tls: librplus_client::Tls {
+            ca: Some(tls.ca.clone()),
+            cert: Some(tls.client.0.clone()),
+            key: Some(tls.client.1.clone()),
+            domain: Some("localhost".into()),
+        },
         ..ReplayOptions::default()
     };
     let summary = librplus_client::replay(&opts).await;
