@@ -94,6 +94,46 @@ async fn python_grpcio_client_and_grpcurl() {
     assert_eq!(out["after_rejection"], "registration");
     assert_eq!(out["trailing_updates"], 0);
 
+    // The same Python client over mutual TLS (grpcio's own TLS stack, BoringSSL, against the
+    // server's rustls): the same answer.
+    let certs = tempfile::tempdir().unwrap();
+    let d = certs.path();
+    let (ca_pem, issuer) = ca("interop CA");
+    let (server_cert, server_key) = leaf(&["localhost"], &issuer);
+    let (client_cert, client_key) = leaf(&["python-client"], &issuer);
+    let ca_file = write(d, "ca.pem", &ca_pem);
+    let mut tls_server = librplus_server::start(ServerConfig {
+        tls_cert: Some(write(d, "server.pem", &server_cert)),
+        tls_key: Some(write(d, "server.key", &server_key)),
+        client_ca: Some(ca_file.clone()),
+        ..config(4)
+    })
+    .await
+    .unwrap();
+    tls_server.ready().await.unwrap();
+    let mut c = std::process::Command::new(&py);
+    c.arg(root.join("server/tests/py/stream_client.py"))
+        .arg(stubs.path())
+        .arg(tls_server.addr.to_string())
+        .arg(&scenario_file)
+        .arg(&ca_file)
+        .arg(write(d, "client.pem", &client_cert))
+        .arg(write(d, "client.key", &client_key));
+    let over_tls: serde_json::Value = serde_json::from_str(&run_cmd(c).await).unwrap();
+    let u_tls: Vec<f64> = serde_json::from_value(over_tls["displacement_mm"].clone()).unwrap();
+    let du_tls = u_tls
+        .iter()
+        .zip(&u)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    eprintln!(
+        "python grpcio over mTLS: {} updates, |Δu| against plaintext {du_tls:.1e} mm",
+        over_tls["updates"]
+    );
+    assert_eq!(over_tls["updates"], out["updates"]);
+    assert!(du_tls == 0.0, "{du_tls}");
+    assert_eq!(tls_server.shutdown().await, 0);
+
     // grpcurl (reflection v1alpha, health).
     let grpcurl = py.parent().unwrap().join("grpcurl");
     let mut c = std::process::Command::new(&grpcurl);
