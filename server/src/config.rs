@@ -59,6 +59,10 @@ pub struct ServerConfig {
     pub discovery_budget_ms: u32,
     /// Largest discovery budget a session may ask for, ms. Default 600,000.
     pub max_discovery_budget_ms: u32,
+    /// Listen on an address other machines can reach (not loopback) although no client is
+    /// authenticated. Default false: such an address is refused (authentication, `--auth`, is
+    /// issue 27's next part; until then this flag is the only way to listen beyond loopback).
+    pub insecure: bool,
     /// TLS: the server's certificate chain (PEM). With `tls_key`, the server speaks only TLS.
     pub tls_cert: Option<PathBuf>,
     /// TLS: the server's private key (PEM).
@@ -97,6 +101,7 @@ impl Default for ServerConfig {
             discovery_budget_ms: 120_000,
             max_discovery_budget_ms: 600_000,
             discovery_coarse: false,
+            insecure: false,
             tls_cert: None,
             tls_key: None,
             client_ca: None,

@@ -120,6 +120,13 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .await
         .with_context(|| format!("listen {}", config.listen))?;
     let addr = listener.local_addr()?;
+    if !addr.ip().is_loopback() && !config.insecure {
+        anyhow::bail!(
+            "listen {}: {addr} is reachable from other machines and no client is authenticated; \
+             listen on loopback (127.0.0.1) or pass --insecure (config \"insecure\": true)",
+            config.listen
+        );
+    }
     let metrics_addr = match (&config.metrics_listen, prom) {
         (Some(a), Some(h)) => Some(metrics_http::serve(a, h).await?),
         (Some(_), None) => {

@@ -97,6 +97,9 @@ struct Args {
     /// In-surgery discovery on the coarse search grid (about 4× faster).
     #[arg(long)]
     discovery_coarse: bool,
+    /// Allow a non-loopback listen address without client authentication.
+    #[arg(long)]
+    insecure: bool,
     /// Serve TLS with this certificate chain (PEM; needs --tls-key).
     #[arg(long, value_name = "FILE")]
     tls_cert: Option<PathBuf>,
@@ -131,6 +134,7 @@ fn config(a: &Args) -> Result<ServerConfig> {
     set!(default_method);
     set!(discovery_budget_ms);
     c.discovery_coarse |= a.discovery_coarse;
+    c.insecure |= a.insecure;
     if a.tls_cert.is_some() {
         c.tls_cert = a.tls_cert.clone();
     }

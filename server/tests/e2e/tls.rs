@@ -180,3 +180,29 @@ async fn certificates_reload_without_dropping_sessions() {
     drop(s);
     assert_eq!(running.shutdown().await, 0);
 }
+
+/// Without client authentication the server listens on loopback only, unless told `insecure`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reachable_address_needs_insecure() {
+    let e = librplus_server::start(ServerConfig {
+        listen: "0.0.0.0:0".into(),
+        ..config(2)
+    })
+    .await
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        e.contains("--insecure") && e.contains("listen 0.0.0.0:0"),
+        "{e}"
+    );
+    let mut running = librplus_server::start(ServerConfig {
+        listen: "0.0.0.0:0".into(),
+        insecure: true,
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    assert_eq!(running.shutdown().await, 0);
+}
