@@ -10,6 +10,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .build_server(true)
         .build_client(true)
+        // Decode failures are the client's: INVALID_ARGUMENT (src/lib.rs, `codec`).
+        .codec_path("crate::codec::Checked")
         .compile_fds(fds)?;
     Ok(())
 }

@@ -26,7 +26,8 @@ pub use replay::{
     ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,
 };
 pub use session::{
-    Client, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_with, run_session,
+    Client, Resume, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_with,
+    run_session,
 };
 pub use stats::{Latencies, LatencyMs, code_name};
 

@@ -39,6 +39,8 @@ pub struct LoadOptions {
     pub options: Option<pb::RegisterOptions>,
     /// Bearer token.
     pub token: Option<String>,
+    /// Resume sessions whose stream is lost.
+    pub resume: bool,
     /// Longest wait for a stream to open and for each answer.
     pub timeout: Duration,
     /// Pause after a failed session before the next (100 ms).
@@ -65,6 +67,7 @@ impl Default for LoadOptions {
             batch: 100,
             options: None,
             token: None,
+            resume: false,
             timeout: Duration::from_secs(60),
             backoff: Duration::from_millis(100),
             rate_hz: None,
@@ -247,6 +250,7 @@ pub async fn load(opts: &LoadOptions) -> Result<LoadSummary> {
         clients.push(connect_with(&opts.server, &opts.tls).await?);
     }
     let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
+    cfg.resume = opts.resume.then(crate::session::Resume::default);
     let t0 = Instant::now();
     cfg.deadline = Some(t0 + opts.duration);
     cfg.rate_hz = opts.rate_hz;

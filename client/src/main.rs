@@ -72,6 +72,10 @@ struct Common {
     /// Bearer token sent as `authorization` metadata.
     #[arg(long)]
     token: Option<String>,
+    /// Resume a session whose stream is lost (the server restarted or the network dropped):
+    /// reconnect with backoff and go on from what the server recorded (it needs --audit).
+    #[arg(long)]
+    resume: bool,
     /// Longest wait for a stream to open and for each answer, seconds.
     #[arg(long, default_value_t = 120.0)]
     timeout_s: f64,
@@ -176,6 +180,7 @@ async fn run(cli: Cli) -> Result<()> {
                 batch: a.common.batch,
                 options: options(&a.common),
                 token: a.common.token.clone(),
+                resume: a.common.resume,
                 timeout: seconds("--timeout-s", a.common.timeout_s)?,
                 progress: true,
                 discover_with: if a.discover_with.trim().is_empty() {
@@ -214,6 +219,7 @@ async fn run(cli: Cli) -> Result<()> {
                 batch: a.common.batch,
                 options: options(&a.common),
                 token: a.common.token.clone(),
+                resume: a.common.resume,
                 timeout: seconds("--timeout-s", a.common.timeout_s)?,
                 progress: !a.common.json,
                 tls: tls(&a.common),

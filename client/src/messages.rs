@@ -160,6 +160,7 @@ pub fn stream_messages(
             options,
             initial_alignment: m.initial_alignment.as_ref().map(rigid_message),
             discovery: None,
+            resume_session_id: String::new(),
         })),
     }];
     let mut push = |msg: Msg| {

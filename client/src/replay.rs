@@ -74,6 +74,8 @@ pub struct ReplayOptions {
     pub options: Option<pb::RegisterOptions>,
     /// Bearer token.
     pub token: Option<String>,
+    /// Resume sessions whose stream is lost.
+    pub resume: bool,
     /// Longest wait for a stream to open and for each answer.
     pub timeout: Duration,
     /// Progress lines on stderr.
@@ -100,6 +102,7 @@ impl Default for ReplayOptions {
             batch: 100,
             options: None,
             token: None,
+            resume: false,
             timeout: Duration::from_secs(120),
             progress: false,
             discover_with: Vec::new(),
@@ -443,6 +446,7 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
     }
     let client = connect_with(&opts.server, &opts.tls).await?;
     let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
+    cfg.resume = opts.resume.then(crate::session::Resume::default);
     cfg.rate_hz = opts.rate_hz;
     let mut all = Latencies::new();
     let mut per_method: BTreeMap<String, Latencies> = BTreeMap::new();

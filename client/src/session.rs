@@ -112,6 +112,26 @@ pub struct SessionConfig {
     pub deadline: Option<Instant>,
     /// `authorization: Bearer TOKEN` metadata, when set.
     pub token: Option<AsciiMetadataValue>,
+    /// Resume a lost stream (None: a lost stream ends the session).
+    pub resume: Option<Resume>,
+}
+
+/// How a client resumes a lost session.
+#[derive(Debug, Clone, Copy)]
+pub struct Resume {
+    /// Most reconnections in one session.
+    pub attempts: u32,
+    /// The first wait; it doubles on each retry, up to 5 s.
+    pub first_backoff: Duration,
+}
+
+impl Default for Resume {
+    fn default() -> Self {
+        Self {
+            attempts: 10,
+            first_backoff: Duration::from_millis(100),
+        }
+    }
 }
 
 impl SessionConfig {
@@ -126,6 +146,7 @@ impl SessionConfig {
             timeout,
             deadline: None,
             token,
+            resume: None,
         })
     }
 }
@@ -189,6 +210,8 @@ pub struct SessionOutcome {
     pub updates: u64,
     /// Messages answered (sent and their update received).
     pub answered: u64,
+    /// Times the session was resumed after a lost stream.
+    pub resumed: u32,
     /// How it ended.
     pub end: SessionEnd,
 }
@@ -218,10 +241,30 @@ async fn bounded<T>(
     }
 }
 
+/// Whether a lost stream is worth resuming: the server or the network went away (not a refusal
+/// of what the client sent).
+fn transient(s: &tonic::Status) -> bool {
+    use tonic::Code::*;
+    matches!(s.code(), Unavailable | Unknown | Cancelled | Aborted)
+        || (s.code() == Internal && s.message().contains("h2"))
+}
+
+/// What one connection of a session came to.
+enum Attempt {
+    /// The session ended (`out.end` says how).
+    Over,
+    /// The stream was lost; resumable with the session's id.
+    Lost(SessionEnd),
+}
+
 /// Runs one session: `msgs[0]` must be the `SessionStart` (it gets no answer), then every further
 /// message is sent only after the previous one was answered. `on_update` sees every update with
 /// the latency of the message it answers (None for an update that answers none: extra ones). After
-/// the last answer the client closes its side and reads the stream to its end.
+/// the last answer the client closes its side and reads the stream to its end. With
+/// `cfg.resume`, a stream lost to the server or the network (UNAVAILABLE, a reset, a closed
+/// connection) is opened again after a backoff and the session resumed
+/// (`SessionStart.resume_session_id`): the server answers the messages it recorded, and the
+/// client goes on after them.
 pub async fn run_session<F>(
     client: &Client,
     msgs: &[pb::StreamRegisterRequest],
@@ -234,89 +277,226 @@ where
     let mut out = SessionOutcome {
         updates: 0,
         answered: 0,
+        resumed: 0,
         end: SessionEnd::Completed,
     };
     let Some((start, rest)) = msgs.split_first() else {
         return out;
     };
-    let (tx, rx) = tokio::sync::mpsc::channel(msgs.len());
+    let mut st = State {
+        next: 0,
+        session_id: None,
+        pending: None,
+        last_send: None,
+    };
+    loop {
+        let first = match &st.session_id {
+            None => start.clone(),
+            Some(id) => pb::StreamRegisterRequest {
+                client_seq: start.client_seq,
+                msg: Some(pb::stream_register_request::Msg::Start(pb::SessionStart {
+                    resume_session_id: id.clone(),
+                    ..Default::default()
+                })),
+            },
+        };
+        let resuming = st.session_id.is_some();
+        match attempt(
+            client,
+            first,
+            rest,
+            cfg,
+            &mut st,
+            &mut out,
+            resuming,
+            &mut on_update,
+        )
+        .await
+        {
+            Attempt::Over => return out,
+            Attempt::Lost(end) => {
+                let Some(r) = &cfg.resume else {
+                    out.end = end;
+                    return out;
+                };
+                if out.resumed >= r.attempts {
+                    out.end = end;
+                    return out;
+                }
+                if st.session_id.is_none() {
+                    // Lost before the server named the session: nothing was acknowledged, so
+                    // it starts again.
+                    st.next = 0;
+                    st.pending = None;
+                }
+                let wait = r
+                    .first_backoff
+                    .saturating_mul(1 << out.resumed.min(6))
+                    .min(Duration::from_secs(5));
+                if cfg.deadline.is_some_and(|d| Instant::now() + wait >= d) {
+                    out.end = SessionEnd::Cut;
+                    return out;
+                }
+                tokio::time::sleep(wait).await;
+                out.resumed += 1;
+            }
+        }
+    }
+}
+
+/// Where a session is, across its connections.
+struct State {
+    /// Index in the messages after the start of the next one to send.
+    next: usize,
+    /// The server's id of the session (from its updates).
+    session_id: Option<String>,
+    /// The message sent and not yet answered: its client_seq and when it was sent.
+    pending: Option<(u64, Instant)>,
+    /// When the last message was sent (rate limit).
+    last_send: Option<Instant>,
+}
+
+/// One connection of a session: open the stream (a resume when `resuming`), send what is left,
+/// read the answers.
+#[allow(clippy::too_many_arguments)]
+async fn attempt<F>(
+    client: &Client,
+    first: pb::StreamRegisterRequest,
+    rest: &[pb::StreamRegisterRequest],
+    cfg: &SessionConfig,
+    st: &mut State,
+    out: &mut SessionOutcome,
+    resuming: bool,
+    on_update: &mut F,
+) -> Attempt
+where
+    F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
+{
+    let (tx, rx) = tokio::sync::mpsc::channel(rest.len() + 1);
     // Queued before the call: a server may read the start before it answers with headers.
-    tx.try_send(start.clone()).expect("the channel has room");
+    tx.try_send(first).expect("the channel has room");
     let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
     if let Some(t) = &cfg.token {
         req.metadata_mut().insert("authorization", t.clone());
     }
     let mut client = client.clone();
+    let updates_before = out.updates;
+    let lost_or = |s: tonic::Status, out: &mut SessionOutcome, refused: bool| {
+        let end = if refused && out.updates == 0 {
+            SessionEnd::Refused(s.clone())
+        } else {
+            SessionEnd::Failed(s.clone())
+        };
+        if transient(&s) {
+            Attempt::Lost(end)
+        } else {
+            out.end = end;
+            Attempt::Over
+        }
+    };
     let mut inbound = match bounded(client.stream_register(req), cfg.timeout, cfg.deadline).await {
         Bounded::Done(Ok(r)) => r.into_inner(),
-        Bounded::Done(Err(s)) => {
-            out.end = SessionEnd::Refused(s);
-            return out;
-        }
+        Bounded::Done(Err(s)) => return lost_or(s, out, true),
         Bounded::TimedOut => {
             out.end = SessionEnd::TimedOut(0);
-            return out;
+            return Attempt::Over;
         }
         Bounded::Cut => {
             out.end = SessionEnd::Cut;
-            return out;
+            return Attempt::Over;
         }
     };
+    // A resumed session first answers what the server recorded.
+    if resuming {
+        match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
+            Bounded::Done(Ok(Some(u))) => {
+                out.updates += 1;
+                let done = u.last_client_seq;
+                match st.pending.take() {
+                    Some((seq, sent)) if seq <= done => {
+                        out.answered += 1;
+                        on_update(&u, Some(sent.elapsed()));
+                    }
+                    _ => on_update(&u, None),
+                }
+                st.next = rest
+                    .iter()
+                    .position(|m| m.client_seq > done)
+                    .unwrap_or(rest.len());
+            }
+            Bounded::Done(Ok(None)) => {
+                return Attempt::Lost(SessionEnd::ClosedEarly(
+                    rest.get(st.next).map_or(0, |m| m.client_seq),
+                ));
+            }
+            Bounded::Done(Err(s)) => return lost_or(s, out, false),
+            Bounded::TimedOut => {
+                out.end = SessionEnd::TimedOut(0);
+                return Attempt::Over;
+            }
+            Bounded::Cut => {
+                out.end = SessionEnd::Cut;
+                return Attempt::Over;
+            }
+        }
+    }
     let interval = cfg
         .rate_hz
         .filter(|&r| r > 0.0 && r.is_finite())
         .map(|r| Duration::from_secs_f64(1.0 / r));
-    let mut last_send: Option<Instant> = None;
-    let fail = |s: tonic::Status, updates: u64| {
-        if updates == 0 {
-            SessionEnd::Refused(s)
-        } else {
-            SessionEnd::Failed(s)
-        }
-    };
-    for m in rest {
-        if let (Some(iv), Some(t)) = (interval, last_send) {
+    while st.next < rest.len() {
+        let m = &rest[st.next];
+        if let (Some(iv), Some(t)) = (interval, st.last_send) {
             let at = t + iv;
             if cfg.deadline.is_some_and(|d| at >= d) {
                 out.end = SessionEnd::Cut;
-                return out;
+                return Attempt::Over;
             }
             tokio::time::sleep_until(at).await;
         }
         if cfg.deadline.is_some_and(|d| Instant::now() >= d) {
             out.end = SessionEnd::Cut;
-            return out;
+            return Attempt::Over;
         }
         let sent = Instant::now();
-        last_send = Some(sent);
+        st.last_send = Some(sent);
+        st.pending = Some((m.client_seq, sent));
         // A failed send means the server already ended the stream: its status comes next.
         let _ = tx.send(m.clone()).await;
         loop {
             match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
                 Bounded::Done(Ok(Some(u))) => {
                     out.updates += 1;
+                    if !u.session_id.is_empty() {
+                        st.session_id = Some(u.session_id.clone());
+                    }
                     if u.last_client_seq >= m.client_seq {
                         out.answered += 1;
+                        st.pending = None;
+                        st.next += 1;
                         on_update(&u, Some(sent.elapsed()));
                         break;
                     }
                     on_update(&u, None);
                 }
                 Bounded::Done(Ok(None)) => {
-                    out.end = SessionEnd::ClosedEarly(m.client_seq);
-                    return out;
+                    let end = SessionEnd::ClosedEarly(m.client_seq);
+                    if cfg.resume.is_some() {
+                        return Attempt::Lost(end);
+                    }
+                    out.end = end;
+                    return Attempt::Over;
                 }
                 Bounded::Done(Err(s)) => {
-                    out.end = fail(s, out.updates);
-                    return out;
+                    return lost_or(s, out, out.updates == updates_before && !resuming);
                 }
                 Bounded::TimedOut => {
                     out.end = SessionEnd::TimedOut(m.client_seq);
-                    return out;
+                    return Attempt::Over;
                 }
                 Bounded::Cut => {
                     out.end = SessionEnd::Cut;
-                    return out;
+                    return Attempt::Over;
                 }
             }
         }
@@ -328,17 +508,21 @@ where
                 out.updates += 1;
                 on_update(&u, None);
             }
-            Bounded::Done(Ok(None)) => return out,
+            Bounded::Done(Ok(None)) => return Attempt::Over,
             Bounded::Done(Err(s)) => {
-                out.end = fail(s, out.updates);
-                return out;
+                out.end = if out.updates == 0 {
+                    SessionEnd::Refused(s)
+                } else {
+                    SessionEnd::Failed(s)
+                };
+                return Attempt::Over;
             }
             Bounded::TimedOut => {
-                out.end = SessionEnd::TimedOut(msgs.last().map_or(0, |m| m.client_seq));
-                return out;
+                out.end = SessionEnd::TimedOut(rest.last().map_or(0, |m| m.client_seq));
+                return Attempt::Over;
             }
             // Every message was answered: the session counts as completed.
-            Bounded::Cut => return out,
+            Bounded::Cut => return Attempt::Over,
         }
     }
 }

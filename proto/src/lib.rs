@@ -8,6 +8,79 @@ pub mod v1 {
     tonic::include_proto!("librplus.v1");
 }
 
+/// The codec of every `librplus.v1` call: prost's, except that a request that does not decode
+/// as its message is INVALID_ARGUMENT (the client sent it), not INTERNAL as tonic's default says.
+pub mod codec {
+    use std::marker::PhantomData;
+    use tonic::Status;
+    use tonic::codec::{BufferSettings, Codec, DecodeBuf, Decoder};
+    use tonic_prost::{ProstCodec, ProstDecoder, ProstEncoder};
+
+    /// prost's codec with decode failures as INVALID_ARGUMENT.
+    #[derive(Debug, Clone)]
+    pub struct Checked<T, U> {
+        _pd: PhantomData<(T, U)>,
+    }
+
+    impl<T, U> Default for Checked<T, U> {
+        fn default() -> Self {
+            Self::new()
+        }
+    }
+
+    impl<T, U> Checked<T, U> {
+        /// A codec.
+        pub fn new() -> Self {
+            Self { _pd: PhantomData }
+        }
+    }
+
+    /// The decoder: prost's, its error's code changed.
+    #[derive(Debug, Clone)]
+    pub struct CheckedDecoder<U>(ProstDecoder<U>);
+
+    impl<U: prost::Message + Default> Decoder for CheckedDecoder<U> {
+        type Item = U;
+        type Error = Status;
+
+        fn decode(&mut self, buf: &mut DecodeBuf<'_>) -> Result<Option<U>, Status> {
+            self.0.decode(buf).map_err(|s| {
+                Status::invalid_argument(format!(
+                    "the message does not decode as {}: {}",
+                    std::any::type_name::<U>()
+                        .rsplit("::")
+                        .next()
+                        .unwrap_or("?"),
+                    s.message()
+                ))
+            })
+        }
+
+        fn buffer_settings(&self) -> BufferSettings {
+            self.0.buffer_settings()
+        }
+    }
+
+    impl<T, U> Codec for Checked<T, U>
+    where
+        T: prost::Message + Send + 'static,
+        U: prost::Message + Default + Send + 'static,
+    {
+        type Encode = T;
+        type Decode = U;
+        type Encoder = ProstEncoder<T>;
+        type Decoder = CheckedDecoder<U>;
+
+        fn encoder(&mut self) -> Self::Encoder {
+            ProstEncoder::new(BufferSettings::default())
+        }
+
+        fn decoder(&mut self) -> Self::Decoder {
+            CheckedDecoder(ProstCodec::<T, U>::raw_decoder(BufferSettings::default()))
+        }
+    }
+}
+
 /// Encoded `FileDescriptorSet` of `librplus.v1` (with its imports), for server reflection.
 pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("librplus_descriptor");
 

@@ -37,8 +37,13 @@ pub struct Job {
 /// Bounded pool of compute slots.
 pub struct Engine {
     slots: Arc<Semaphore>,
+    /// Unary registrations hold at most this many slots (or wait for them): the rest are the
+    /// sessions' (surgeries come first).
+    unary: Arc<Semaphore>,
     queued: AtomicUsize,
     max_queued: usize,
+    /// Unary registrations waiting or running, per client (principal and connection).
+    by_client: std::sync::Mutex<std::collections::HashMap<String, usize>>,
 }
 
 impl Engine {
@@ -46,14 +51,66 @@ impl Engine {
     pub fn new(slots: usize, max_queued: usize) -> Self {
         Self {
             slots: Arc::new(Semaphore::new(slots.max(1))),
+            unary: Arc::new(Semaphore::new((slots - slots / 2).max(1))),
             queued: AtomicUsize::new(0),
             max_queued,
+            by_client: Default::default(),
         }
     }
 
-    /// Runs a job. With `bounded`, refuses (RESOURCE_EXHAUSTED) when `max_queued` jobs already
-    /// wait; sessions are admitted at their start and always queue.
-    pub async fn run(&self, job: Job, bounded: bool) -> Result<pb::Registration, ServiceError> {
+    /// Most unary registrations one client may have waiting or running: a quarter of the
+    /// queue (at least 1), so that one client's burst cannot fill it.
+    pub fn per_client(&self) -> usize {
+        (self.max_queued / 4).max(1)
+    }
+
+    /// Runs a job. With `bounded` (a unary request, from that client), refuses
+    /// (RESOURCE_EXHAUSTED) when `max_queued` jobs already wait or that client already has
+    /// [`Engine::per_client`] in the server; sessions are admitted at their start and always
+    /// queue.
+    pub async fn run(
+        &self,
+        job: Job,
+        bounded: Option<&str>,
+    ) -> Result<pb::Registration, ServiceError> {
+        struct Client<'a>(&'a Engine, String);
+        impl Drop for Client<'_> {
+            fn drop(&mut self) {
+                let mut m = self.0.by_client.lock().unwrap_or_else(|e| e.into_inner());
+                if let Some(n) = m.get_mut(&self.1) {
+                    *n -= 1;
+                    if *n == 0 {
+                        m.remove(&self.1);
+                    }
+                }
+            }
+        }
+        let _client = match bounded {
+            None => None,
+            Some(key) => {
+                let mut m = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
+                let n = m.entry(key.to_string()).or_insert(0);
+                if *n >= self.per_client() {
+                    metrics::counter!("librplus_refused_total", "reason" => "client_queue")
+                        .increment(1);
+                    return Err(ServiceError::Quota {
+                        message: format!(
+                            "this client already has {n} registrations in the server (limit {} \
+                             per client); retry when one is answered",
+                            self.per_client()
+                        ),
+                        subject: "client_queue",
+                        description: format!(
+                            "at most {} unary registrations per client wait or run at once",
+                            self.per_client()
+                        ),
+                    });
+                }
+                *n += 1;
+                drop(m);
+                Some(Client(self, key.to_string()))
+            }
+        };
         let waiting = self.queued.fetch_add(1, Ordering::SeqCst);
         struct Dec<'a>(&'a AtomicUsize);
         impl Drop for Dec<'_> {
@@ -62,7 +119,7 @@ impl Engine {
             }
         }
         let dec = Dec(&self.queued);
-        if bounded && waiting >= self.max_queued {
+        if bounded.is_some() && waiting >= self.max_queued {
             metrics::counter!("librplus_refused_total", "reason" => "queue").increment(1);
             return Err(ServiceError::Quota {
                 message: format!(
@@ -76,6 +133,15 @@ impl Engine {
                 ),
             });
         }
+        // A unary request first takes one of the unary slots, so that no more of them than
+        // those wait ahead of a session's update.
+        let unary =
+            match bounded {
+                Some(_) => Some(self.unary.clone().acquire_owned().await.map_err(|_| {
+                    ServiceError::Unavailable("the server is shutting down".into())
+                })?),
+                None => None,
+            };
         let permit = self
             .slots
             .clone()
@@ -86,6 +152,7 @@ impl Engine {
         let handle = tokio::task::spawn_blocking(move || {
             let r = compute(job);
             drop(permit);
+            drop(unary);
             r
         });
         match handle.await {
@@ -104,6 +171,76 @@ impl Engine {
 
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
+}
+
+/// What a registration ran into, for [`judge`].
+struct Outcome<'a> {
+    degenerate: Option<&'a str>,
+    fallback: Option<String>,
+    degraded: Option<String>,
+    refit_error: Option<&'a str>,
+    refit: Option<&'a librplus::register::libr::LibrInfo>,
+    libr: Option<&'a librplus::register::libr::LibrInfo>,
+    rigid_converged: bool,
+    rigid_iterations: usize,
+}
+
+/// The answer's quality and its reason: the first that applies of degenerate data, a fallback,
+/// a planned degradation, a failed or cut-short refit, LIBR cut short, not converged.
+fn judge(o: &Outcome<'_>, budget: Duration, params: &PipelineParams) -> (pb::Quality, String) {
+    if let Some(r) = o.degenerate {
+        (pb::Quality::Degenerate, format!("degenerate data: {r}"))
+    } else if let Some(r) = &o.fallback {
+        (pb::Quality::Degenerate, r.clone())
+    } else if let Some(r) = &o.degraded {
+        (pb::Quality::Degraded, r.clone())
+    } else if let Some(e) = o.refit_error {
+        (
+            pb::Quality::Degraded,
+            format!("LIBR+'s refit failed ({e}); the answer is the network's correction of LIBR"),
+        )
+    } else if let Some(i) = o.refit.filter(|i| i.stopped_at_deadline) {
+        // Finding 7.5: a refit cut short is not the full computation either.
+        (
+            pb::Quality::Degraded,
+            format!(
+                "time budget {:.0} ms: LIBR+'s refit stopped after {} of {} iterations",
+                ms(budget),
+                i.iterations,
+                params.refit_iterations
+            ),
+        )
+    } else if let Some(i) = o.libr.filter(|i| i.stopped_at_deadline) {
+        (
+            pb::Quality::Degraded,
+            format!(
+                "time budget {:.0} ms: LIBR stopped after {} of {} iterations",
+                ms(budget),
+                i.iterations,
+                params.libr.max_iterations
+            ),
+        )
+    } else if let Some(i) = o.libr.filter(|i| !i.converged) {
+        (
+            pb::Quality::NotConverged,
+            format!(
+                "LIBR ran its {} iterations; the last moved the model by up to {:.2} mm (tolerance {} mm)",
+                i.iterations,
+                i.movement_history_mm.last().copied().unwrap_or(f64::NAN),
+                params.libr.tolerance_mm
+            ),
+        )
+    } else if !o.rigid_converged && o.libr.is_none() {
+        (
+            pb::Quality::NotConverged,
+            format!(
+                "the rigid stage ran its {} iterations without converging",
+                o.rigid_iterations
+            ),
+        )
+    } else {
+        (pb::Quality::Ok, String::new())
+    }
 }
 
 /// Plans and runs one registration within its budget.
@@ -182,49 +319,44 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
                 .unwrap_or_else(|| "SR-GCN correction skipped".into())
         });
     }
-    let (quality, reason) = if let Some(r) = &reg.rigid.degenerate {
-        (pb::Quality::Degenerate, format!("degenerate data: {r}"))
-    } else if let Some(r) = fallback {
-        (pb::Quality::Degenerate, r)
-    } else if let Some(r) = degraded {
-        (pb::Quality::Degraded, r)
-    } else if let Some(e) = gcn.and_then(|c| c.refit_error.as_ref()) {
-        (
-            pb::Quality::Degraded,
-            format!("LIBR+'s refit failed ({e}); the answer is the network's correction of LIBR"),
-        )
-    } else if let Some(i) = reg.libr.as_ref().filter(|i| i.stopped_at_deadline) {
-        (
-            pb::Quality::Degraded,
-            format!(
-                "time budget {:.0} ms: LIBR stopped after {} of {} iterations",
-                ms(job.budget),
-                i.iterations,
-                params.libr.max_iterations
-            ),
-        )
-    } else if let Some(i) = reg.libr.as_ref().filter(|i| !i.converged) {
-        (
-            pb::Quality::NotConverged,
-            format!(
-                "LIBR ran its {} iterations; the last moved the model by up to {:.2} mm (tolerance {} mm)",
-                i.iterations,
-                i.movement_history_mm.last().copied().unwrap_or(f64::NAN),
-                params.libr.tolerance_mm
-            ),
-        )
-    } else if !reg.rigid.converged && reg.libr.is_none() {
-        (
-            pb::Quality::NotConverged,
-            format!(
-                "the rigid stage ran its {} iterations without converging",
-                reg.rigid.iterations
-            ),
-        )
-    } else {
-        (pb::Quality::Ok, String::new())
-    };
+    let (quality, reason) = judge(
+        &Outcome {
+            degenerate: reg.rigid.degenerate.as_deref(),
+            fallback,
+            degraded,
+            refit_error: gcn.and_then(|c| c.refit_error.as_deref()),
+            refit: gcn.and_then(|c| c.refit.as_ref()),
+            libr: reg.libr.as_ref(),
+            rigid_converged: reg.rigid.converged,
+            rigid_iterations: reg.rigid.iterations,
+        },
+        job.budget,
+        &params,
+    );
     let total_ms = ms(job.arrival.elapsed());
+    // Finding 7.6: an answer later than its budget says so (the plan above keeps to it when
+    // the estimates hold; a slow machine, a huge request or a tiny budget may not).
+    let (quality, reason) = match quality {
+        pb::Quality::Ok | pb::Quality::NotConverged | pb::Quality::Degraded
+            if total_ms > ms(job.budget) =>
+        {
+            (
+                pb::Quality::Degraded,
+                format!(
+                    "over its time budget: answered in {total_ms:.0} ms of {:.0} ms ({} points; \
+                 {queue_ms:.0} ms waiting, rigid stage {rigid_ms:.0} ms){}",
+                    ms(job.budget),
+                    job.measurements.points.len(),
+                    if reason.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; {reason}")
+                    }
+                ),
+            )
+        }
+        _ => (quality, reason),
+    };
     let stage = |name: &'static str, v: f64| {
         metrics::histogram!("librplus_stage_seconds", "stage" => name).record(v / 1e3);
     };
@@ -273,4 +405,70 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         effects: crate::service::effects(prepared),
         rigid_ill_posed: reg.rigid.ill_posed,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use librplus::register::libr::LibrInfo;
+
+    fn clean<'a>(libr: Option<&'a LibrInfo>, refit: Option<&'a LibrInfo>) -> Outcome<'a> {
+        Outcome {
+            degenerate: None,
+            fallback: None,
+            degraded: None,
+            refit_error: None,
+            refit,
+            libr,
+            rigid_converged: true,
+            rigid_iterations: 10,
+        }
+    }
+
+    /// Finding 7.5: a LIBR+ answer whose refit ran 1 of its 5 iterations (the deadline) was
+    /// flagged OK; it is DEGRADED, and says how far the refit got.
+    #[test]
+    fn a_refit_cut_short_is_degraded() {
+        let params = PipelineParams::default();
+        let budget = Duration::from_millis(250);
+        let libr = LibrInfo {
+            iterations: 4,
+            converged: true,
+            ..Default::default()
+        };
+        let full = LibrInfo {
+            iterations: params.refit_iterations,
+            converged: true,
+            ..Default::default()
+        };
+        assert_eq!(
+            judge(&clean(Some(&libr), Some(&full)), budget, &params).0,
+            pb::Quality::Ok
+        );
+        let cut = LibrInfo {
+            iterations: 1,
+            stopped_at_deadline: true,
+            ..full.clone()
+        };
+        let (q, why) = judge(&clean(Some(&libr), Some(&cut)), budget, &params);
+        assert_eq!(q, pb::Quality::Degraded);
+        assert!(why.contains("refit stopped after 1 of"), "{why}");
+        // LIBR cut short, and not converged, keep their flags.
+        let libr_cut = LibrInfo {
+            stopped_at_deadline: true,
+            ..libr.clone()
+        };
+        assert_eq!(
+            judge(&clean(Some(&libr_cut), None), budget, &params).0,
+            pb::Quality::Degraded
+        );
+        let unconverged = LibrInfo {
+            converged: false,
+            ..libr
+        };
+        assert_eq!(
+            judge(&clean(Some(&unconverged), None), budget, &params).0,
+            pb::Quality::NotConverged
+        );
+    }
 }

@@ -38,8 +38,30 @@ pub struct ServerConfig {
     pub max_points_per_message: usize,
     /// Most points a session accumulates. Default 100,000.
     pub max_points_per_session: usize,
-    /// Largest gRPC message, bytes (in and out). Default 64 MiB.
+    /// Largest gRPC message the server sends, bytes (a described mesh). Default 64 MiB.
     pub max_message_bytes: usize,
+    /// Largest gRPC message the server accepts, bytes; 0: derived from
+    /// `max_points_per_message` (32 bytes a point, at least 1 MiB, plus 64 KiB), so that a
+    /// request is refused by its size before it is decoded. Default 0.
+    pub max_request_bytes: usize,
+    /// A stream must send its SessionStart within this many seconds, or it ends with
+    /// DEADLINE_EXCEEDED (it holds no session slot meanwhile). Default 5.
+    pub session_start_timeout_s: f64,
+    /// Most sessions one principal holds at once (0: `max_sessions`; an auth file entry's
+    /// `max_sessions` overrides it). Default 0.
+    pub max_sessions_per_principal: usize,
+    /// Most open client connections; beyond, new ones are closed at once. Default 512.
+    pub max_connections: usize,
+    /// A connection must send its first bytes (the HTTP/2 preface, or the TLS hello) within this
+    /// many seconds; silent ones are closed (and the oldest silent ones first when more than
+    /// `max_connections` / 4 wait). Default 5.
+    pub preface_timeout_s: f64,
+    /// Most concurrent streams (calls) on one connection (HTTP/2 MAX_CONCURRENT_STREAMS).
+    /// Default 32.
+    pub max_streams_per_connection: u32,
+    /// HTTP/2 keepalive: a ping after this many seconds without frames; a peer that does not
+    /// answer within 20 s is dropped. Default 30.
+    pub keepalive_s: f64,
     /// A session with no message for this long ends with DEADLINE_EXCEEDED, s. Default 600.
     pub session_idle_timeout_s: f64,
     /// How long shutdown waits for sessions to finish their update and close, s. Default 10.
@@ -60,9 +82,16 @@ pub struct ServerConfig {
     /// Largest discovery budget a session may ask for, ms. Default 600,000.
     pub max_discovery_budget_ms: u32,
     /// Listen on an address other machines can reach (not loopback) although no client is
-    /// authenticated. Default false: such an address is refused (authentication, `--auth`, is
-    /// issue 27's next part; until then this flag is the only way to listen beyond loopback).
+    /// authenticated (no `auth`). Default false: such an address is refused without `auth`.
     pub insecure: bool,
+    /// Authentication and authorization file (tokens as SHA-256 hashes, principals, their
+    /// cases and roles; docs/service.md, "Authentication"). None: every caller may do anything
+    /// (loopback only, unless `insecure`).
+    pub auth: Option<PathBuf>,
+    /// The audit log (SQLite; docs/service.md, "Audit log"): every registration, session and
+    /// refusal, committed before the answer is sent; sessions resume from it. None: no log (and
+    /// no resume).
+    pub audit_db: Option<PathBuf>,
     /// TLS: the server's certificate chain (PEM). With `tls_key`, the server speaks only TLS.
     pub tls_cert: Option<PathBuf>,
     /// TLS: the server's private key (PEM).
@@ -92,6 +121,13 @@ impl Default for ServerConfig {
             max_points_per_message: 20_000,
             max_points_per_session: 100_000,
             max_message_bytes: 64 << 20,
+            max_request_bytes: 0,
+            session_start_timeout_s: 5.0,
+            max_sessions_per_principal: 0,
+            max_connections: 512,
+            preface_timeout_s: 5.0,
+            max_streams_per_connection: 32,
+            keepalive_s: 30.0,
             session_idle_timeout_s: 600.0,
             drain_grace_s: 10.0,
             default_method: "libr".into(),
@@ -102,6 +138,8 @@ impl Default for ServerConfig {
             max_discovery_budget_ms: 600_000,
             discovery_coarse: false,
             insecure: false,
+            auth: None,
+            audit_db: None,
             tls_cert: None,
             tls_key: None,
             client_ca: None,
@@ -177,6 +215,11 @@ impl ServerConfig {
             ("max_points_per_message", self.max_points_per_message),
             ("max_points_per_session", self.max_points_per_session),
             ("max_message_bytes", self.max_message_bytes),
+            ("max_connections", self.max_connections),
+            (
+                "max_streams_per_connection",
+                self.max_streams_per_connection as usize,
+            ),
         ] {
             if v == 0 {
                 return Err(ConfigError::Field(format!("{name} must be at least 1")));
@@ -216,6 +259,9 @@ impl ServerConfig {
         for (name, v) in [
             ("session_idle_timeout_s", self.session_idle_timeout_s),
             ("drain_grace_s", self.drain_grace_s),
+            ("session_start_timeout_s", self.session_start_timeout_s),
+            ("preface_timeout_s", self.preface_timeout_s),
+            ("keepalive_s", self.keepalive_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(ConfigError::Field(format!(
@@ -254,6 +300,26 @@ impl ServerConfig {
                     " (librplus is off)"
                 }
             ))),
+        }
+    }
+
+    /// The largest request the server decodes, bytes.
+    pub fn request_bytes(&self) -> usize {
+        if self.max_request_bytes > 0 {
+            self.max_request_bytes
+        } else {
+            self.max_points_per_message
+                .saturating_mul(32)
+                .max(1 << 20)
+                .saturating_add(64 << 10)
+        }
+    }
+
+    /// Most sessions one principal may hold, given its own limit (0: none of its own).
+    pub fn principal_sessions(&self, own: usize) -> usize {
+        match (own, self.max_sessions_per_principal) {
+            (0, 0) => self.max_sessions,
+            (0, n) | (n, _) => n,
         }
     }
 

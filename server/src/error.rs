@@ -40,6 +40,13 @@ pub enum ServiceError {
         /// The ids this server has.
         known: Vec<String>,
     },
+    /// No recorded session of that id for this caller (NOT_FOUND, a BadRequest violation).
+    UnknownSession {
+        /// The request field that named it.
+        field: String,
+        /// The id asked for (bounded by the caller).
+        id: String,
+    },
     /// A limit of the server (RESOURCE_EXHAUSTED, QuotaFailure).
     Quota {
         /// Summary.
@@ -51,6 +58,10 @@ pub enum ServiceError {
     },
     /// The server cannot take requests now (UNAVAILABLE): preloading or shutting down.
     Unavailable(String),
+    /// No credentials, or credentials the server does not know (UNAUTHENTICATED).
+    Unauthenticated(String),
+    /// Known credentials without the role the call needs (PERMISSION_DENIED).
+    PermissionDenied(String),
     /// The pipeline refused or failed; mapped by cause in [`ServiceError::parts`].
     Registration(PipelineError),
     /// A registration task failed inside the server (INTERNAL; logged).
@@ -159,16 +170,34 @@ impl ServiceError {
                 (Code::FailedPrecondition, message.clone(), Some(d))
             }
             Self::UnknownCase { field, id, known } => {
+                // The id is bounded by the caller (MAX_CASE_ID); the list to the first 20.
+                let mut list = known
+                    .iter()
+                    .take(20)
+                    .cloned()
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                if known.len() > 20 {
+                    list.push_str(&format!(" and {} more", known.len() - 20));
+                }
                 d.add_bad_request_violation(field.clone(), format!("no case {id:?}"));
                 d.set_resource_info(
                     "case",
                     id.clone(),
                     "",
-                    format!("this server's cases: {}", known.join(", ")),
+                    format!("the cases you may use: {list}"),
                 );
                 (
                     Code::NotFound,
-                    format!("{field}: no case {id:?} (cases: {})", known.join(", ")),
+                    format!("{field}: no case {id:?} (the cases you may use: {list})"),
+                    Some(d),
+                )
+            }
+            Self::UnknownSession { field, id } => {
+                d.add_bad_request_violation(field.clone(), format!("no session {id:?}"));
+                (
+                    Code::NotFound,
+                    format!("{field}: no recorded session {id:?} of yours to resume"),
                     Some(d),
                 )
             }
@@ -181,6 +210,8 @@ impl ServiceError {
                 (Code::ResourceExhausted, message.clone(), Some(d))
             }
             Self::Unavailable(m) => (Code::Unavailable, m.clone(), None),
+            Self::Unauthenticated(m) => (Code::Unauthenticated, m.clone(), None),
+            Self::PermissionDenied(m) => (Code::PermissionDenied, m.clone(), None),
             Self::Internal(m) => (Code::Internal, m.clone(), None),
             Self::Registration(e) => match pipeline_cause(e) {
                 Cause::Input => {
@@ -233,8 +264,13 @@ impl ServiceError {
                 ..
             } => vec![(subject.clone(), description.clone())],
             Self::UnknownCase { field, id, .. } => vec![(field.clone(), format!("no case {id:?}"))],
+            Self::UnknownSession { field, id } => {
+                vec![(field.clone(), format!("no session {id:?}"))]
+            }
             Self::Quota { .. }
             | Self::Unavailable(_)
+            | Self::Unauthenticated(_)
+            | Self::PermissionDenied(_)
             | Self::Internal(_)
             | Self::Registration(_) => Vec::new(),
         };

@@ -9,6 +9,8 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod audit;
+pub mod auth;
 pub mod cases;
 pub mod compute;
 pub mod config;
@@ -30,7 +32,7 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
-use tokio::sync::{Semaphore, oneshot, watch};
+use tokio::sync::{oneshot, watch};
 use tonic::transport::Server;
 use tonic_health::ServingStatus;
 
@@ -120,10 +122,17 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .await
         .with_context(|| format!("listen {}", config.listen))?;
     let addr = listener.local_addr()?;
-    if !addr.ip().is_loopback() && !config.insecure {
+    let auth = config
+        .auth
+        .as_deref()
+        .map(auth::Auth::load)
+        .transpose()
+        .context("--auth")?;
+    if !addr.ip().is_loopback() && !config.insecure && auth.is_none() {
         anyhow::bail!(
             "listen {}: {addr} is reachable from other machines and no client is authenticated; \
-             listen on loopback (127.0.0.1) or pass --insecure (config \"insecure\": true)",
+             give an auth file (--auth), listen on loopback (127.0.0.1), or pass --insecure \
+             (config \"insecure\": true)",
             config.listen
         );
     }
@@ -143,17 +152,45 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
         .await;
     let (drain_tx, drain_rx) = watch::channel(false);
-    let shared = Arc::new(Shared {
-        engine: compute::Engine::new(config.slots(), config.max_queued),
-        sessions: Arc::new(Semaphore::new(config.max_sessions)),
-        drain: drain_rx,
-        next_session: AtomicU64::new(0),
-        cases: OnceLock::new(),
-        config: config.clone(),
-    });
+    let audit = config
+        .audit_db
+        .as_deref()
+        .map(audit::Audit::open)
+        .transpose()
+        .context("--audit")?;
+    let shared = Arc::new(Shared::new(
+        config.clone(),
+        auth,
+        audit,
+        compute::Engine::new(config.slots(), config.max_queued),
+        drain_rx,
+    ));
+    // Requests are refused by their size before they are decoded (a few hundred kilobytes for
+    // the point limits); replies (a described mesh) may be larger.
     let svc = LibRPlusServer::new(Svc(shared.clone()))
-        .max_decoding_message_size(config.max_message_bytes)
+        .max_decoding_message_size(config.request_bytes())
         .max_encoding_message_size(config.max_message_bytes);
+    // Health and reflection answer without credentials unless the auth file closes them.
+    let gate = |health: bool| {
+        let shared = shared.clone();
+        move |req: tonic::Request<()>| -> Result<tonic::Request<()>, tonic::Status> {
+            let Some(a) = shared.auth() else {
+                return Ok(req);
+            };
+            if (health && a.open_health) || (!health && a.open_reflection) {
+                return Ok(req);
+            }
+            let certs = req.peer_certs();
+            a.authenticate(req.metadata(), certs.as_deref().map(Vec::as_slice))
+                .map_err(|e| e.to_status())?;
+            Ok(req)
+        }
+    };
+    let (health_gate, reflection_gate) = (gate(true), gate(false));
+    let h2 = (
+        config.max_streams_per_connection,
+        Duration::from_secs_f64(config.keepalive_s),
+    );
     let request_ids = Arc::new(AtomicU64::new(0));
     // The gRPC server is built once per TLS configuration (a "generation"): a certificate reload
     // starts a new generation for new connections while the old one finishes its connections'
@@ -164,7 +201,11 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
                 .register_encoded_file_descriptor_set(librplus_proto::FILE_DESCRIPTOR_SET)
                 .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         };
-        let mut builder = Server::builder();
+        use tonic::service::interceptor::InterceptedService;
+        let mut builder = Server::builder()
+            .max_concurrent_streams(Some(h2.0))
+            .http2_keepalive_interval(Some(h2.1))
+            .http2_keepalive_timeout(Some(Duration::from_secs(20)));
         if let Some(tls) = tls {
             builder = builder
                 .tls_config(tls)
@@ -181,21 +222,36 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
                     .unwrap_or_else(|| format!("r{}", ids.fetch_add(1, Ordering::Relaxed) + 1));
                 tracing::info_span!("rpc", path = %req.uri().path(), request_id = %id)
             })
-            .add_service(health_svc.clone())
-            .add_service(reflection().build_v1()?)
-            .add_service(reflection().build_v1alpha()?)
+            .add_service(InterceptedService::new(
+                health_svc.clone(),
+                health_gate.clone(),
+            ))
+            .add_service(InterceptedService::new(
+                reflection().build_v1()?,
+                reflection_gate.clone(),
+            ))
+            .add_service(InterceptedService::new(
+                reflection().build_v1alpha()?,
+                reflection_gate.clone(),
+            ))
             .add_service(svc.clone()))
     };
     let first = make(tls_config(&config)?)?;
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let (reload_tx, reload_rx) = tokio::sync::mpsc::channel::<Reload>(1);
+    let gate = generations::Gate::new(
+        config.max_connections,
+        Duration::from_secs_f64(config.preface_timeout_s),
+    );
     let serve = tokio::spawn(generations::serve(
-        listener, first, make, reload_rx, stop_rx,
+        listener, gate, first, make, reload_rx, stop_rx,
     ));
     tracing::info!(
         %addr,
         tls = config.tls_cert.is_some(),
         client_certificates = config.client_ca.is_some(),
+        auth = config.auth.is_some(),
+        audit = config.audit_db.is_some(),
         "listening (health NOT_SERVING until preload finishes)"
     );
     let (ready_tx, ready_rx) = watch::channel(None);
@@ -252,13 +308,153 @@ mod generations {
     //! One listener, successive gRPC servers ("generations") for successive TLS settings.
 
     use super::Reload;
+    use std::collections::VecDeque;
     use std::convert::Infallible;
+    use std::pin::Pin;
+    use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+    use std::sync::{Arc, Mutex};
+    use std::task::{Context, Poll};
+    use std::time::Duration;
+    use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
     use tokio::net::{TcpListener, TcpStream};
     use tokio::sync::{mpsc, oneshot};
     use tokio_stream::wrappers::ReceiverStream;
-    use tonic::transport::server::Router;
+    use tonic::transport::server::{Connected, Router, TcpConnectInfo};
 
-    type Conn = Result<TcpStream, Infallible>;
+    type Conn = Result<Counted, Infallible>;
+
+    /// The connections that have not spoken yet, oldest first: (id, the signal that closes it).
+    type Silent = VecDeque<(u64, oneshot::Sender<()>)>;
+
+    /// Connection admission: each connection must send its first bytes within `preface`; at
+    /// most `max / 4` may wait silently (a new one closes the oldest silent one, so a flood of
+    /// silent connections cannot keep a real client out); at most `max` that have spoken are
+    /// served (beyond, a new one is closed).
+    pub(super) struct Gate {
+        max: usize,
+        preface: Duration,
+        open: Arc<AtomicUsize>,
+        silent: Arc<Mutex<Silent>>,
+        next: AtomicU64,
+    }
+
+    impl Gate {
+        pub(super) fn new(max: usize, preface: Duration) -> Self {
+            Self {
+                max,
+                preface,
+                open: Arc::new(AtomicUsize::new(0)),
+                silent: Default::default(),
+                next: AtomicU64::new(0),
+            }
+        }
+
+        /// Admits an accepted connection: counts it, waits (in a task) for its first bytes,
+        /// then hands it to `conns`; or closes it.
+        fn admit(&self, s: TcpStream, conns: mpsc::Sender<Conn>) {
+            let id = self.next.fetch_add(1, Ordering::Relaxed);
+            let (kill, killed) = oneshot::channel::<()>();
+            {
+                let mut q = self.silent.lock().unwrap_or_else(|e| e.into_inner());
+                q.push_back((id, kill));
+                while q.len() > (self.max / 4).max(1) {
+                    if let Some((_, k)) = q.pop_front() {
+                        let _ = k.send(());
+                    }
+                }
+            }
+            let silent = self.silent.clone();
+            let preface = self.preface;
+            let (open, max) = (self.open.clone(), self.max);
+            tokio::spawn(async move {
+                // `peek` waits for a byte (readiness alone has false positives); 0: closed.
+                let mut byte = [0u8; 1];
+                let spoke = tokio::select! {
+                    r = tokio::time::timeout(preface, s.peek(&mut byte)) => matches!(r, Ok(Ok(n)) if n > 0),
+                    _ = killed => false,
+                };
+                silent
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .retain(|(i, _)| *i != id);
+                if !spoke {
+                    metrics::counter!("librplus_connections_refused_total", "reason" => "silent")
+                        .increment(1);
+                } else if open.fetch_add(1, Ordering::SeqCst) >= max {
+                    open.fetch_sub(1, Ordering::SeqCst);
+                    metrics::counter!("librplus_connections_refused_total", "reason" => "limit")
+                        .increment(1);
+                    tracing::debug!("connection limit reached; connection closed");
+                } else {
+                    let guard = Open(open);
+                    let _ = conns
+                        .send(Ok(Counted {
+                            io: s,
+                            _open: guard,
+                        }))
+                        .await;
+                }
+            });
+        }
+    }
+
+    /// Holds one unit of the open-connection count.
+    struct Open(Arc<AtomicUsize>);
+
+    impl Drop for Open {
+        fn drop(&mut self) {
+            self.0.fetch_sub(1, Ordering::SeqCst);
+        }
+    }
+
+    /// An admitted connection (counted until it closes).
+    pub(super) struct Counted {
+        io: TcpStream,
+        _open: Open,
+    }
+
+    impl Connected for Counted {
+        type ConnectInfo = TcpConnectInfo;
+        fn connect_info(&self) -> TcpConnectInfo {
+            self.io.connect_info()
+        }
+    }
+
+    impl AsyncRead for Counted {
+        fn poll_read(
+            self: Pin<&mut Self>,
+            cx: &mut Context<'_>,
+            buf: &mut ReadBuf<'_>,
+        ) -> Poll<std::io::Result<()>> {
+            Pin::new(&mut self.get_mut().io).poll_read(cx, buf)
+        }
+    }
+
+    impl AsyncWrite for Counted {
+        fn poll_write(
+            self: Pin<&mut Self>,
+            cx: &mut Context<'_>,
+            buf: &[u8],
+        ) -> Poll<std::io::Result<usize>> {
+            Pin::new(&mut self.get_mut().io).poll_write(cx, buf)
+        }
+        fn poll_write_vectored(
+            self: Pin<&mut Self>,
+            cx: &mut Context<'_>,
+            bufs: &[std::io::IoSlice<'_>],
+        ) -> Poll<std::io::Result<usize>> {
+            Pin::new(&mut self.get_mut().io).poll_write_vectored(cx, bufs)
+        }
+        fn is_write_vectored(&self) -> bool {
+            self.io.is_write_vectored()
+        }
+        fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+            Pin::new(&mut self.get_mut().io).poll_flush(cx)
+        }
+        fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+            Pin::new(&mut self.get_mut().io).poll_shutdown(cx)
+        }
+    }
 
     /// One generation: its connections' channel, its stop signal and its task.
     struct Generation {
@@ -283,6 +479,7 @@ mod generations {
     /// the previous finish its connections; on stop, stops them all.
     pub(super) async fn serve(
         listener: TcpListener,
+        gate: Gate,
         first: Router,
         make: impl Fn(Option<tonic::transport::ServerTlsConfig>) -> anyhow::Result<Router>,
         mut reload: mpsc::Receiver<Reload>,
@@ -313,7 +510,7 @@ mod generations {
                 a = listener.accept() => match a {
                     Ok((s, _)) => {
                         let _ = s.set_nodelay(true);
-                        let _ = current.conns.send(Ok(s)).await;
+                        gate.admit(s, current.conns.clone());
                     }
                     Err(e) => {
                         tracing::warn!(error = %e, "accept failed");
@@ -459,6 +656,19 @@ impl Running {
         rx.await
             .map_err(|_| anyhow::anyhow!("the server has stopped"))?
             .map_err(anyhow::Error::msg)
+    }
+
+    /// Reads the auth file again (`auth`): later calls use the new principals; open sessions
+    /// keep the principal they started with. An error (a file that does not read or check, a
+    /// server without `--auth`) changes nothing.
+    pub fn reload_auth(&self) -> anyhow::Result<()> {
+        let (Some(path), Some(lock)) = (&self.shared.config.auth, &self.shared.auth) else {
+            anyhow::bail!("the server has no auth file (no --auth): nothing to reload");
+        };
+        let a = auth::Auth::load(path)?;
+        *lock.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(a);
+        tracing::info!(file = %path.display(), "auth file reloaded");
+        Ok(())
     }
 
     /// Drains and stops: health NOT_SERVING, sessions end after their current update, the

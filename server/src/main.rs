@@ -47,6 +47,42 @@ enum Command {
         #[arg(long)]
         no_discovery: bool,
     },
+    /// Read the audit log: every registration, session and refusal (of a case, since a time),
+    /// or export a session's points for `librplus discover`.
+    Audit {
+        /// The audit database (`--audit` of the server).
+        #[arg(long)]
+        db: PathBuf,
+        /// Only this case.
+        #[arg(long)]
+        case: Option<String>,
+        /// Only records since this time: Unix seconds or YYYY-MM-DD[THH:MM[:SS]] (UTC).
+        #[arg(long)]
+        since: Option<String>,
+        /// JSON lines instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Write this session's points as a sweep folder (`librplus discover --preop MESH
+        /// --scenarios PARENT`) into --out.
+        #[arg(long, value_name = "SESSION_ID", requires = "out")]
+        export: Option<String>,
+        /// Folder of the exported sweep.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Make a new random bearer token: prints the token (give it to the client; it is shown
+    /// once) and the auth file entry that holds only its SHA-256.
+    Token {
+        /// The principal the token stands for.
+        #[arg(long)]
+        principal: String,
+        /// Cases it may use: ids, or prefixes ending in `*` (repeatable; default `*`: all).
+        #[arg(long = "case")]
+        cases: Vec<String>,
+        /// Its roles: read, register, manage (repeatable; default register).
+        #[arg(long = "role")]
+        roles: Vec<String>,
+    },
 }
 
 /// Serving options.
@@ -109,6 +145,14 @@ struct Args {
     /// Require client certificates signed by this CA (mTLS; PEM).
     #[arg(long, value_name = "FILE")]
     client_ca: Option<PathBuf>,
+    /// Authentication and authorization file (JSON: principals, token hashes, cases, roles;
+    /// see docs/service.md). Reloaded on SIGHUP.
+    #[arg(long, value_name = "FILE")]
+    auth: Option<PathBuf>,
+    /// Audit log database (SQLite, created when absent): every registration is recorded before
+    /// it is answered; sessions resume from it.
+    #[arg(long, value_name = "FILE")]
+    audit: Option<PathBuf>,
 }
 
 fn config(a: &Args) -> Result<ServerConfig> {
@@ -143,6 +187,12 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.client_ca.is_some() {
         c.client_ca = a.client_ca.clone();
+    }
+    if a.auth.is_some() {
+        c.auth = a.auth.clone();
+    }
+    if a.audit.is_some() {
+        c.audit_db = a.audit.clone();
     }
     if a.model.is_some() {
         c.model = a.model.clone();
@@ -202,10 +252,24 @@ async fn main() -> Result<()> {
             })
             .await;
         }
+        Some(Command::Audit {
+            db,
+            case,
+            since,
+            json,
+            export,
+            out,
+        }) => return audit(&db, case.as_deref(), since.as_deref(), json, export, out),
+        Some(Command::Token {
+            principal,
+            cases,
+            roles,
+        }) => return token(principal, cases, roles),
         Some(Command::Serve(a)) => *a,
         None => cli.serve,
     };
     let cfg = config(&args)?;
+    let (has_tls, has_auth) = (cfg.tls_cert.is_some(), cfg.auth.is_some());
     init_tracing(cfg.log_json);
     let mut running = librplus_server::start(cfg).await?;
     eprintln!("librplus-server listening on {}", running.addr);
@@ -221,21 +285,151 @@ async fn main() -> Result<()> {
         _ = term.recv() => { running.shutdown().await; return Ok(()); }
         _ = tokio::signal::ctrl_c() => { running.shutdown().await; return Ok(()); }
     }
-    // SIGHUP: read the TLS files again (new connections use them; open sessions go on).
+    // SIGHUP: read the TLS files (new connections use them; open sessions go on) and the auth
+    // file again.
     let mut hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())?;
     loop {
         tokio::select! {
             _ = term.recv() => break,
             _ = tokio::signal::ctrl_c() => break,
-            _ = hup.recv() => match running.reload_tls().await {
-                Ok(()) => eprintln!("SIGHUP: TLS certificate files reloaded"),
-                Err(e) => eprintln!("SIGHUP: TLS reload failed, settings unchanged: {e:#}"),
-            },
+            _ = hup.recv() => {
+                if has_tls {
+                    match running.reload_tls().await {
+                        Ok(()) => eprintln!("SIGHUP: TLS certificate files reloaded"),
+                        Err(e) => eprintln!("SIGHUP: TLS reload failed, settings unchanged: {e:#}"),
+                    }
+                }
+                if has_auth {
+                    match running.reload_auth() {
+                        Ok(()) => eprintln!("SIGHUP: auth file reloaded"),
+                        Err(e) => eprintln!("SIGHUP: auth reload failed, principals unchanged: {e:#}"),
+                    }
+                }
+            }
         }
     }
     let left = running.shutdown().await;
     if left > 0 {
         eprintln!("{left} session(s) were still open after the drain grace");
+    }
+    Ok(())
+}
+
+/// `librplus-server token`: a new token, and its auth file entry (the hash only).
+fn token(principal: String, cases: Vec<String>, roles: Vec<String>) -> Result<()> {
+    use librplus_server::auth::{AuthFile, PrincipalEntry, Role, new_token};
+    let roles = if roles.is_empty() {
+        vec!["register".to_string()]
+    } else {
+        roles
+    };
+    let roles = roles
+        .iter()
+        .map(|r| match r.as_str() {
+            "read" => Ok(Role::Read),
+            "register" => Ok(Role::Register),
+            "manage" => Ok(Role::Manage),
+            _ => Err(anyhow::anyhow!(
+                "--role {r:?}: expected read, register or manage"
+            )),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let (token, hash) = new_token()?;
+    let entry = PrincipalEntry {
+        principal,
+        token_sha256: vec![hash],
+        certificate_subjects: Vec::new(),
+        cases: if cases.is_empty() {
+            vec!["*".into()]
+        } else {
+            cases
+        },
+        roles,
+        max_sessions: 0,
+    };
+    // The entry must make a valid file on its own.
+    librplus_server::auth::Auth::from_file(AuthFile {
+        format: 1,
+        open_health: true,
+        open_reflection: true,
+        principals: vec![entry.clone()],
+    })
+    .map_err(anyhow::Error::msg)?;
+    eprintln!("token (give it to the client; it is not stored anywhere):");
+    println!("{token}");
+    eprintln!("auth file entry (add it to \"principals\"):");
+    eprintln!("{}", serde_json::to_string_pretty(&entry)?);
+    Ok(())
+}
+
+/// `librplus-server audit`.
+fn audit(
+    db: &std::path::Path,
+    case: Option<&str>,
+    since: Option<&str>,
+    json: bool,
+    export: Option<String>,
+    out: Option<PathBuf>,
+) -> Result<()> {
+    use librplus_server::audit;
+    if !db.exists() {
+        anyhow::bail!("--db {}: no such file", db.display());
+    }
+    let c = audit::open_db(db)?;
+    if let (Some(id), Some(out)) = (export, out) {
+        let e = audit::export_session(&c, &id, &out).map_err(anyhow::Error::msg)?;
+        eprintln!(
+            "session {id} (case {}): {} messages, {} surface, {} contour, {} vessel points -> {}",
+            e.case_id,
+            e.messages,
+            e.surface,
+            e.contour,
+            e.vessel,
+            out.display()
+        );
+        if json {
+            println!("{}", serde_json::to_string(&e)?);
+        }
+        return Ok(());
+    }
+    let since = since
+        .map(audit::parse_since)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    let rows = audit::rows(&c, case, since)?;
+    for r in &rows {
+        if json {
+            println!("{}", serde_json::to_string(r)?);
+        } else {
+            let detail = match r.kind.as_str() {
+                "registration" => {
+                    let d = &r.detail;
+                    format!(
+                        "seq {} {} {} {:.1} ms rms {:.2} mm {} pts sha256 {}",
+                        d["client_seq"],
+                        d["method"].as_str().unwrap_or("?"),
+                        d["quality"].as_str().unwrap_or("?"),
+                        d["total_ms"].as_f64().unwrap_or(f64::NAN),
+                        d["residual_rms_mm"].as_f64().unwrap_or(f64::NAN),
+                        d["points"],
+                        &d["answer_sha256"].as_str().unwrap_or("")
+                            [..12.min(d["answer_sha256"].as_str().map_or(0, str::len))]
+                    )
+                }
+                _ => r.detail.to_string(),
+            };
+            println!(
+                "{}  {:<16} {:<14} {:<18} {:<24} {detail}",
+                r.time,
+                r.kind,
+                r.principal,
+                r.case_id.as_deref().unwrap_or("-"),
+                r.session_id.as_deref().unwrap_or("-"),
+            );
+        }
+    }
+    if !json {
+        eprintln!("{} records", rows.len());
     }
     Ok(())
 }

@@ -1,6 +1,8 @@
 //! The `librplus.v1.LibRPlus` service: case listing, unary and streamed registration, with
 //! admission control, limits, deadlines and drain on shutdown.
 
+use crate::audit::{Audit, Record, RegistrationRecord};
+use crate::auth::{Auth, Principal, Role};
 use crate::cases::Case;
 use crate::compute::{Engine, Job};
 use crate::config::ServerConfig;
@@ -12,11 +14,11 @@ use librplus::pipeline::Method;
 use librplus::register::{MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
 use pb::lib_r_plus_server::LibRPlus;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
-use tokio::sync::{Semaphore, mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Request, Response, Status, Streaming};
 use tracing::Instrument;
@@ -35,6 +37,135 @@ pub struct Shared {
     pub drain: watch::Receiver<bool>,
     /// Session counter (ids).
     pub next_session: AtomicU64,
+    /// The auth file's principals (None: no `--auth`, every caller is [`Shared::anonymous`]);
+    /// replaced on reload.
+    pub auth: Option<std::sync::RwLock<Arc<Auth>>>,
+    /// The principal of every call when there is no auth file.
+    pub anonymous: Arc<Principal>,
+    /// Sessions open per principal.
+    pub per_principal: std::sync::Mutex<HashMap<String, usize>>,
+    /// The audit log, when kept (`audit_db`).
+    pub audit: Option<Arc<Audit>>,
+    /// This run's prefix of session ids (unique across restarts).
+    pub boot: String,
+}
+
+impl Shared {
+    /// Shared state for `config` with `auth` (None: no auth file).
+    pub fn new(
+        config: ServerConfig,
+        auth: Option<Auth>,
+        audit: Option<Audit>,
+        engine: Engine,
+        drain: watch::Receiver<bool>,
+    ) -> Self {
+        Self {
+            audit: audit.map(Arc::new),
+            boot: format!("{:x}", crate::audit::now_ms()),
+            engine,
+            sessions: Arc::new(Semaphore::new(config.max_sessions)),
+            drain,
+            next_session: AtomicU64::new(0),
+            cases: OnceLock::new(),
+            auth: auth.map(|a| std::sync::RwLock::new(Arc::new(a))),
+            anonymous: Principal::anonymous(),
+            per_principal: Default::default(),
+            config,
+        }
+    }
+
+    /// Writes audit records and waits for their commit (nothing without an audit log). An
+    /// error is UNAVAILABLE: nothing is acknowledged that is not recorded.
+    pub async fn record(&self, records: Vec<Record>) -> Result<(), ServiceError> {
+        let Some(a) = &self.audit else {
+            return Ok(());
+        };
+        a.write(records).await.map_err(|e| {
+            ServiceError::Unavailable(format!(
+                "the audit log cannot be written, so nothing is answered: {e}"
+            ))
+        })
+    }
+
+    /// Records a refusal without waiting for it.
+    pub fn refused(&self, rpc: &str, who: &str, case: Option<&str>, e: &ServiceError) {
+        let Some(a) = self.audit.clone() else {
+            return;
+        };
+        let (code, message, _) = e.parts();
+        let r = Record::Event {
+            kind: "refused",
+            principal: who.to_string(),
+            case_id: case.map(|c| short(c, 64).into_owned()),
+            session_id: None,
+            detail: serde_json::json!({
+                "rpc": rpc,
+                "code": code_name(code),
+                "message": short(&message, 300),
+            }),
+        };
+        tokio::spawn(async move {
+            let _ = a.write(vec![r]).await;
+        });
+    }
+
+    /// The current auth file, if any.
+    pub fn auth(&self) -> Option<Arc<Auth>> {
+        self.auth
+            .as_ref()
+            .map(|a| a.read().unwrap_or_else(|e| e.into_inner()).clone())
+    }
+
+    /// The caller of a request: anonymous without an auth file, else its token's or client
+    /// certificate's principal (UNAUTHENTICATED otherwise).
+    pub fn caller(
+        &self,
+        md: &tonic::metadata::MetadataMap,
+        certs: Option<&[tonic::transport::CertificateDer<'static>]>,
+    ) -> Result<Arc<Principal>, ServiceError> {
+        match self.auth() {
+            None => Ok(self.anonymous.clone()),
+            Some(a) => a.authenticate(md, certs),
+        }
+    }
+}
+
+/// Longest case id, bytes.
+pub const MAX_CASE_ID: usize = 256;
+
+/// At most `n` characters of `s` (what is logged or echoed of a client's string).
+pub fn short(s: &str, n: usize) -> std::borrow::Cow<'_, str> {
+    match s.char_indices().nth(n) {
+        None => s.into(),
+        Some((i, _)) => format!("{}… ({} bytes)", &s[..i], s.len()).into(),
+    }
+}
+
+/// A session's hold on a server slot and on its principal's quota; released on drop.
+struct Admission {
+    _permit: OwnedSemaphorePermit,
+    /// The principal whose quota it holds (None: its quota is the server's).
+    principal: Option<String>,
+    shared: Arc<Shared>,
+}
+
+impl Drop for Admission {
+    fn drop(&mut self) {
+        let Some(principal) = &self.principal else {
+            return;
+        };
+        let mut m = self
+            .shared
+            .per_principal
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if let Some(n) = m.get_mut(principal) {
+            *n -= 1;
+            if *n == 0 {
+                m.remove(principal);
+            }
+        }
+    }
 }
 
 /// The service.
@@ -70,6 +201,102 @@ pub fn grpc_timeout(md: &tonic::metadata::MetadataMap) -> Option<Duration> {
 }
 
 impl Svc {
+    /// The caller of `rpc` (refusals are audited).
+    fn caller<T>(&self, req: &Request<T>, rpc: &str) -> Result<Arc<Principal>, Status> {
+        let certs = req.peer_certs();
+        self.0
+            .caller(req.metadata(), certs.as_deref().map(Vec::as_slice))
+            .map_err(|e| {
+                self.0.refused(rpc, "", None, &e);
+                fail(e)
+            })
+    }
+
+    /// `who` may call `rpc` (it holds `role`); refusals are audited.
+    fn allowed(&self, who: &Principal, role: Role, rpc: &str, what: &str) -> Result<(), Status> {
+        who.require(role, what).map_err(|e| {
+            self.0.refused(rpc, &who.name, None, &e);
+            fail(e)
+        })
+    }
+
+    /// A session slot for `who`: its principal's quota, then the server's (waiting briefly for
+    /// a slot a session just released).
+    async fn admit(&self, who: &Principal) -> Result<Admission, ServiceError> {
+        let limit = self.0.config.principal_sessions(who.max_sessions);
+        // A quota of its own only when it is below the server's.
+        let own = limit < self.0.config.max_sessions;
+        if own {
+            let mut m = self
+                .0
+                .per_principal
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
+            let n = m.entry(who.name.clone()).or_insert(0);
+            if *n >= limit {
+                metrics::counter!("librplus_refused_total", "reason" => "principal_sessions")
+                    .increment(1);
+                return Err(ServiceError::Quota {
+                    message: format!(
+                        "principal {:?} holds {n} sessions, its limit; retry after one ends",
+                        who.name
+                    ),
+                    subject: "principal_sessions",
+                    description: format!(
+                        "at most {limit} streamed sessions per principal; retry after one ends"
+                    ),
+                });
+            }
+            *n += 1;
+        }
+        let undo = || {
+            if !own {
+                return;
+            }
+            let mut m = self
+                .0
+                .per_principal
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
+            if let Some(n) = m.get_mut(&who.name) {
+                *n -= 1;
+                if *n == 0 {
+                    m.remove(&who.name);
+                }
+            }
+        };
+        let sessions = self.0.sessions.clone();
+        let permit = match sessions.clone().try_acquire_owned() {
+            Ok(p) => Ok(p),
+            Err(_) => tokio::time::timeout(ADMISSION_GRACE, sessions.acquire_owned())
+                .await
+                .map_err(|_| ())
+                .and_then(|r| r.map_err(|_| ())),
+        };
+        match permit {
+            Ok(p) => Ok(Admission {
+                _permit: p,
+                principal: own.then(|| who.name.clone()),
+                shared: self.0.clone(),
+            }),
+            Err(()) => {
+                undo();
+                metrics::counter!("librplus_refused_total", "reason" => "sessions").increment(1);
+                Err(ServiceError::Quota {
+                    message: format!(
+                        "session limit reached ({} open); retry later",
+                        self.0.config.max_sessions
+                    ),
+                    subject: "sessions",
+                    description: format!(
+                        "{} streamed sessions are open, the server's limit; retry after one ends",
+                        self.0.config.max_sessions
+                    ),
+                })
+            }
+        }
+    }
+
     fn cases(&self) -> Result<&BTreeMap<String, Arc<Case>>, ServiceError> {
         self.0.cases.get().ok_or_else(|| {
             ServiceError::Unavailable(
@@ -79,16 +306,27 @@ impl Svc {
         })
     }
 
-    fn case(&self, id: &str, field: &str) -> Result<Arc<Case>, ServiceError> {
+    /// The case `id` if `who` may use it; NOT_FOUND, worded the same, when it does not exist or
+    /// `who` may not use it (a caller learns nothing of other tenants' cases).
+    fn case(&self, id: &str, field: &str, who: &Principal) -> Result<Arc<Case>, ServiceError> {
+        if id.len() > MAX_CASE_ID {
+            return Err(ServiceError::field(
+                field,
+                format!(
+                    "is {} bytes long; case ids are at most {MAX_CASE_ID}",
+                    id.len()
+                ),
+            ));
+        }
         let cases = self.cases()?;
-        cases
-            .get(id)
-            .cloned()
-            .ok_or_else(|| ServiceError::UnknownCase {
+        match cases.get(id) {
+            Some(c) if who.may_use(id) => Ok(c.clone()),
+            _ => Err(ServiceError::UnknownCase {
                 field: field.to_string(),
                 id: id.to_string(),
-                known: cases.keys().cloned().collect(),
-            })
+                known: cases.keys().filter(|k| who.may_use(k)).cloned().collect(),
+            }),
+        }
     }
 
     fn budget(
@@ -188,11 +426,17 @@ const ADMISSION_GRACE: Duration = Duration::from_millis(100);
 impl LibRPlus for Svc {
     async fn list_cases(
         &self,
-        _req: Request<pb::ListCasesRequest>,
+        req: Request<pb::ListCasesRequest>,
     ) -> Result<Response<pb::ListCasesResponse>, Status> {
+        let who = self.caller(&req, "ListCases")?;
+        self.allowed(&who, Role::Read, "ListCases", "list cases")?;
         let cases = self.cases().map_err(fail)?;
         Ok(Response::new(pb::ListCasesResponse {
-            cases: cases.values().map(|c| summary(c)).collect(),
+            cases: cases
+                .values()
+                .filter(|c| who.may_use(&c.id))
+                .map(|c| summary(c))
+                .collect(),
         }))
     }
 
@@ -200,11 +444,17 @@ impl LibRPlus for Svc {
         &self,
         req: Request<pb::DescribeCaseRequest>,
     ) -> Result<Response<pb::DescribeCaseResponse>, Status> {
+        let who = self.caller(&req, "DescribeCase")?;
+        self.allowed(&who, Role::Read, "DescribeCase", "describe cases")?;
         let pb::DescribeCaseRequest {
             case_id,
             include_mesh,
         } = req.into_inner();
-        let c = self.case(&case_id, "case_id").map_err(fail)?;
+        let c = self.case(&case_id, "case_id", &who).map_err(|e| {
+            self.0
+                .refused("DescribeCase", &who.name, Some(&case_id), &e);
+            fail(e)
+        })?;
         let mut out = pb::DescribeCaseResponse {
             summary: Some(summary(&c)),
             length_unit: "mm".into(),
@@ -245,6 +495,15 @@ impl LibRPlus for Svc {
             )));
         }
         let client_deadline = grpc_timeout(req.metadata());
+        let who = self.caller(&req, "Register")?;
+        self.allowed(&who, Role::Register, "Register", "register")?;
+        // Fairness between clients: the principal and its connection.
+        let client = format!(
+            "{}@{}",
+            who.name,
+            req.remote_addr()
+                .map_or_else(|| "?".to_string(), |a| a.to_string())
+        );
         // Every field, so that a new one breaks the build until it is handled.
         let pb::RegisterRequest {
             case_id,
@@ -253,7 +512,7 @@ impl LibRPlus for Svc {
             options,
         } = req.into_inner();
         let run = async {
-            let case = self.case(&case_id, "case_id")?;
+            let case = self.case(&case_id, "case_id", &who)?;
             let method = self.check_method(&case, method, "method")?;
             let m = measurements
                 .as_ref()
@@ -278,13 +537,24 @@ impl LibRPlus for Svc {
                 trusted_alignment_mm,
                 prepared: None,
             };
-            self.0.engine.run(job, true).await
+            let reg = self.0.engine.run(job, Some(&client)).await?;
+            // Acknowledged only once recorded.
+            if self.0.audit.is_some() {
+                let mut rec = audit_record(&reg, &who.name, &case_id, None, 0);
+                rec.measurements = measurements.as_ref().map(prost::Message::encode_to_vec);
+                self.0
+                    .record(vec![Record::Registration(Box::new(rec))])
+                    .await?;
+            }
+            Ok(reg)
         };
-        let span = tracing::info_span!("register", case = %case_id);
+        let span =
+            tracing::info_span!("register", case = %short(&case_id, 64), principal = %who.name);
         match run.instrument(span).await {
             Ok(reg) => Ok(Response::new(reg)),
             Err(b) => {
-                tracing::info!(case = %case_id, code = code_name(b.code()), message = %b.to_status().message(), "register refused");
+                self.0.refused("Register", &who.name, Some(&case_id), &b);
+                tracing::info!(code = code_name(b.code()), message = %short(b.to_status().message(), 200), "register refused");
                 Err(fail(b))
             }
         }
@@ -302,49 +572,58 @@ impl LibRPlus for Svc {
             )));
         }
         self.cases().map_err(fail)?;
-        // A session that just ended may not have released its slot yet when its client opens
-        // the next one: wait briefly before refusing.
-        let sessions = self.0.sessions.clone();
-        let permit = match sessions.clone().try_acquire_owned() {
-            Ok(p) => Ok(p),
-            Err(_) => tokio::time::timeout(ADMISSION_GRACE, sessions.acquire_owned())
-                .await
-                .map_err(|_| ())
-                .and_then(|r| r.map_err(|_| ())),
-        };
-        let permit = permit.map_err(|_| {
-            metrics::counter!("librplus_refused_total", "reason" => "sessions").increment(1);
-            fail(ServiceError::Quota {
-                message: format!(
-                    "session limit reached ({} open); retry later",
-                    self.0.config.max_sessions
-                ),
-                subject: "sessions",
-                description: format!(
-                    "{} streamed sessions are open, the server's limit; retry after one ends",
-                    self.0.config.max_sessions
-                ),
-            })
-        })?;
+        let who = self.caller(&req, "StreamRegister")?;
+        self.allowed(&who, Role::Register, "StreamRegister", "register")?;
+        // The session's slot is taken when its SessionStart arrives (a stream that never
+        // starts holds none, and is closed after `session_start_timeout_s`).
         let deadline = grpc_timeout(req.metadata()).map(|d| Instant::now() + d);
         let sid = format!(
-            "s{:06}",
+            "s{}-{:06}",
+            self.0.boot,
             self.0.next_session.fetch_add(1, Ordering::Relaxed) + 1
         );
         let inbound = req.into_inner();
         let (tx, rx) = mpsc::channel(8);
         let svc = self.clone();
-        let span = tracing::info_span!("session", session_id = %sid);
+        let span = tracing::info_span!("session", session_id = %sid, principal = %who.name);
         tokio::spawn(
             async move {
                 metrics::gauge!("librplus_sessions_active").increment(1.0);
-                let outcome = session(svc, inbound, &tx, deadline, &sid).await;
+                let mut started = None;
+                let outcome = session(
+                    svc.clone(),
+                    who.clone(),
+                    inbound,
+                    &tx,
+                    deadline,
+                    &sid,
+                    &mut started,
+                )
+                .await;
                 metrics::gauge!("librplus_sessions_active").decrement(1.0);
                 let label = match &outcome {
                     Ok(()) => "OK",
                     Err(s) => code_name(s.code()),
                 };
                 metrics::counter!("librplus_sessions_total", "outcome" => label).increment(1);
+                let text = match &outcome {
+                    Ok(()) => "OK".to_string(),
+                    Err(s) => format!("{label}: {}", short(s.message(), 300)),
+                };
+                let record = match started {
+                    Some(session_id) => Record::SessionEnd {
+                        session_id,
+                        outcome: text,
+                    },
+                    None => Record::Event {
+                        kind: "refused",
+                        principal: who.name.clone(),
+                        case_id: None,
+                        session_id: None,
+                        detail: serde_json::json!({"rpc": "StreamRegister", "outcome": text}),
+                    },
+                };
+                let _ = svc.0.record(vec![record]).await;
                 match outcome {
                     Ok(()) => tracing::info!("session ended"),
                     Err(s) => {
@@ -353,7 +632,6 @@ impl LibRPlus for Svc {
                         let _ = tx.send(Err(s)).await;
                     }
                 }
-                drop(permit);
             }
             .instrument(span),
         );
@@ -452,21 +730,43 @@ enum Accepted {
     Discover,
 }
 
+/// One streamed session. `fresh` is the id of a new session; `started` is set to the session's
+/// id once it has started (and is recorded).
 async fn session(
     svc: Svc,
+    who: Arc<Principal>,
     mut inbound: Streaming<pb::StreamRegisterRequest>,
     tx: &mpsc::Sender<Result<pb::StreamUpdate, Status>>,
     deadline: Option<Instant>,
-    sid: &str,
+    fresh: &str,
+    started: &mut Option<String>,
 ) -> Result<(), Status> {
     let cfg = &svc.0.config;
     let idle = Duration::from_secs_f64(cfg.session_idle_timeout_s);
+    let start_within = Duration::from_secs_f64(cfg.session_start_timeout_s);
     let mut drain = svc.0.drain.clone();
-    // The first message must start the session; a bad start ends it with its status.
-    let first = match next(&mut inbound, idle, deadline, &mut drain, &mut None).await? {
-        Next::Msg(m) => m,
-        Next::End | Next::Discovered(_) => return Ok(()),
+    // The first message must start the session, within `session_start_timeout_s`; a bad start
+    // ends it with its status.
+    let first = match next(&mut inbound, start_within, deadline, &mut drain, &mut None).await {
+        Ok(Next::Msg(m)) => m,
+        Ok(Next::End | Next::Discovered(_)) => return Ok(()),
+        Err(e)
+            if e.code() == Code::DeadlineExceeded
+                && deadline.is_none_or(|d| Instant::now() < d) =>
+        {
+            metrics::counter!("librplus_refused_total", "reason" => "no_start").increment(1);
+            return Err(Status::deadline_exceeded(format!(
+                "no SessionStart within {:.0} s of opening the stream; session closed",
+                start_within.as_secs_f64()
+            )));
+        }
+        Err(e) => return Err(e),
     };
+    let first_bytes = svc
+        .0
+        .audit
+        .is_some()
+        .then(|| prost::Message::encode_to_vec(&first));
     let Some(pb::stream_register_request::Msg::Start(start)) = first.msg else {
         return Err(ServiceError::precondition(
             "SESSION",
@@ -476,8 +776,48 @@ async fn session(
         )
         .to_status());
     };
-    let mut s = start_session(&svc, &start, first.client_seq).map_err(|b| b.to_status())?;
-    tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
+    let resume = !start.resume_session_id.is_empty();
+    let (mut s, sid) = if resume {
+        let id = start.resume_session_id.clone();
+        (
+            resume_session(&svc, &who, &id)
+                .await
+                .map_err(|b| b.to_status())?,
+            id,
+        )
+    } else {
+        (
+            start_session(&svc, &who, &start, first.client_seq).map_err(|b| b.to_status())?,
+            fresh.to_string(),
+        )
+    };
+    let sid = sid.as_str();
+    let _admission = svc.admit(&who).await.map_err(|b| b.to_status())?;
+    if resume {
+        svc.0
+            .record(vec![Record::Event {
+                kind: "session_resumed",
+                principal: who.name.clone(),
+                case_id: Some(s.case.id.clone()),
+                session_id: Some(sid.to_string()),
+                detail: serde_json::json!({"points": s.meas.points.len(), "last_client_seq": s.last_seq}),
+            }])
+            .await
+            .map_err(|b| b.to_status())?;
+        tracing::info!(case = %s.case.id, resumed = sid, points = s.meas.points.len(), last_client_seq = s.last_seq, "session resumed");
+    } else {
+        svc.0
+            .record(vec![Record::SessionStart {
+                session_id: sid.to_string(),
+                principal: who.name.clone(),
+                case_id: s.case.id.clone(),
+                start: first_bytes.unwrap_or_default(),
+            }])
+            .await
+            .map_err(|b| b.to_status())?;
+        tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
+    }
+    *started = Some(sid.to_string());
     let send = |s: &mut Session, update: pb::stream_update::Update, arrival: Instant| {
         s.sequence += 1;
         let out = pb::StreamUpdate {
@@ -492,6 +832,18 @@ async fn session(
         Box::pin(async move { tx.send(Ok(out)).await.map_err(|_| ()) })
             as std::pin::Pin<Box<dyn std::future::Future<Output = Result<(), ()>> + Send>>
     };
+    if resume {
+        // The recorded messages answered again: the client goes on after `last_client_seq`.
+        let arrival = Instant::now();
+        let seq = s.last_seq;
+        let update = register_session(&svc, &s, arrival, deadline, seq).await;
+        audit_update(&svc, &who, &s, sid, &update)
+            .await
+            .map_err(|b| b.to_status())?;
+        if send(&mut s, update, arrival).await.is_err() {
+            return Ok(());
+        }
+    }
     loop {
         let m = match next(&mut inbound, idle, deadline, &mut drain, &mut s.pending).await? {
             Next::Msg(m) => m,
@@ -534,18 +886,58 @@ async fn session(
         }
         let mut accepted = None;
         let mut discover_asked = None;
+        let mut rejections = Vec::new();
+        // What the audit log keeps of this batch: the accepted messages (a resumed session is
+        // rebuilt from them) and the refusals; committed before any update is sent.
+        let mut records = Vec::new();
+        let mut kept = Vec::new();
         for m in batch {
             let seq = m.client_seq;
+            let bytes = svc
+                .0
+                .audit
+                .is_some()
+                .then(|| prost::Message::encode_to_vec(&m));
             match accept(&mut s, m, cfg) {
-                Ok(Accepted::Points) => accepted = Some(seq),
-                Ok(Accepted::Discover) => discover_asked = Some(seq),
-                Err(b) => {
-                    count_error(b.code());
-                    let r = pb::stream_update::Update::Rejection(b.to_rejection(seq));
-                    if send(&mut s, r, arrival).await.is_err() {
-                        return Ok(());
+                Ok(a) => {
+                    kept.extend(bytes.map(|b| (seq, b)));
+                    match a {
+                        Accepted::Points => accepted = Some(seq),
+                        Accepted::Discover => discover_asked = Some(seq),
                     }
                 }
+                Err(b) => {
+                    count_error(b.code());
+                    let r = b.to_rejection(seq);
+                    if svc.0.audit.is_some() {
+                        records.push(Record::Event {
+                            kind: "rejected",
+                            principal: who.name.clone(),
+                            case_id: Some(s.case.id.clone()),
+                            session_id: Some(sid.to_string()),
+                            detail: serde_json::json!({
+                                "client_seq": seq,
+                                "code": r.code,
+                                "message": short(&r.message, 300),
+                            }),
+                        });
+                    }
+                    rejections.push(pb::stream_update::Update::Rejection(r));
+                }
+            }
+        }
+        if !kept.is_empty() {
+            records.push(Record::Messages {
+                session_id: sid.to_string(),
+                messages: kept,
+            });
+        }
+        if !records.is_empty() {
+            svc.0.record(records).await.map_err(|b| b.to_status())?;
+        }
+        for r in rejections {
+            if send(&mut s, r, arrival).await.is_err() {
+                return Ok(());
             }
         }
         // A discovery run: asked for, or due (the session grew to its automatic threshold).
@@ -561,6 +953,9 @@ async fn session(
         }
         if let Some(seq) = accepted {
             let update = register_session(&svc, &s, arrival, deadline, seq).await;
+            audit_update(&svc, &who, &s, sid, &update)
+                .await
+                .map_err(|b| b.to_status())?;
             if send(&mut s, update, arrival).await.is_err() {
                 // The client went away.
                 return Ok(());
@@ -572,6 +967,141 @@ async fn session(
             None => {}
         }
     }
+}
+
+/// The audit record of a registration.
+fn audit_record(
+    reg: &pb::Registration,
+    principal: &str,
+    case_id: &str,
+    session_id: Option<&str>,
+    client_seq: u64,
+) -> RegistrationRecord {
+    use prost::Message;
+    RegistrationRecord {
+        principal: principal.to_string(),
+        case_id: case_id.to_string(),
+        session_id: session_id.map(str::to_string),
+        client_seq,
+        method: reg.method_used().as_str_name().to_string(),
+        quality: reg.quality().as_str_name().to_string(),
+        quality_reason: reg.quality_reason.clone(),
+        total_ms: reg.timings.as_ref().map_or(0.0, |t| t.total_ms),
+        residual_rms_mm: reg.residual_rms_mm,
+        points_total: reg.points_used as u64,
+        measurements: None,
+        answer_sha256: crate::auth::hex(&crate::auth::sha256(&reg.encode_to_vec())),
+        timings: reg
+            .timings
+            .as_ref()
+            .map(|t| {
+                serde_json::json!({
+                    "queue_ms": t.queue_ms, "rigid_ms": t.rigid_ms, "libr_ms": t.libr_ms,
+                    "gcn_ms": t.gcn_ms, "refit_ms": t.refit_ms, "total_ms": t.total_ms,
+                    "libr_iterations": t.libr_iterations, "refit_iterations": t.refit_iterations,
+                })
+                .to_string()
+            })
+            .unwrap_or_default(),
+    }
+}
+
+/// Records a session's registration update (a rejection in its place is an event), and waits
+/// for the commit.
+async fn audit_update(
+    svc: &Svc,
+    who: &Principal,
+    s: &Session,
+    sid: &str,
+    update: &pb::stream_update::Update,
+) -> Result<(), ServiceError> {
+    if svc.0.audit.is_none() {
+        return Ok(());
+    }
+    let record =
+        match update {
+            pb::stream_update::Update::Registration(r) => Record::Registration(Box::new(
+                audit_record(r, &who.name, &s.case.id, Some(sid), s.last_seq),
+            )),
+            pb::stream_update::Update::Rejection(r) => Record::Event {
+                kind: "rejected",
+                principal: who.name.clone(),
+                case_id: Some(s.case.id.clone()),
+                session_id: Some(sid.to_string()),
+                detail: serde_json::json!({
+                    "client_seq": r.client_seq,
+                    "code": r.code,
+                    "message": short(&r.message, 300),
+                }),
+            },
+            pb::stream_update::Update::Discovery(_) => return Ok(()),
+        };
+    svc.0.record(vec![record]).await
+}
+
+/// Rebuilds a recorded session: its start and accepted messages, in order, through the same
+/// checks as when they arrived.
+async fn resume_session(svc: &Svc, who: &Principal, id: &str) -> Result<Session, ServiceError> {
+    use prost::Message;
+    let field = "start.resume_session_id";
+    let Some(audit) = &svc.0.audit else {
+        return Err(ServiceError::precondition(
+            "SESSION",
+            field,
+            "the server keeps no audit log",
+            format!("{field}: this server keeps no audit log (audit_db), so no session resumes"),
+        ));
+    };
+    if id.len() > 128 {
+        return Err(ServiceError::field(
+            field,
+            format!("is {} bytes long; session ids are at most 128", id.len()),
+        ));
+    }
+    let path = audit.path().to_path_buf();
+    let key = id.to_string();
+    let rec = tokio::task::spawn_blocking(move || {
+        let c = crate::audit::open_db(&path).map_err(|e| e.to_string())?;
+        crate::audit::read_session(&c, &key).map_err(|e| e.to_string())
+    })
+    .await
+    .map_err(|e| ServiceError::Internal(format!("reading the session record: {e}")))?
+    .map_err(|e| ServiceError::Unavailable(format!("reading the session record: {e}")))?;
+    let unknown = || ServiceError::UnknownSession {
+        field: field.into(),
+        id: id.to_string(),
+    };
+    let rec = rec.ok_or_else(unknown)?;
+    if rec.principal != who.name {
+        return Err(unknown());
+    }
+    let broken = |what: String| {
+        ServiceError::Internal(format!(
+            "session {id}: its record cannot be replayed: {what}"
+        ))
+    };
+    let first = pb::StreamRegisterRequest::decode(&rec.start[..])
+        .map_err(|e| broken(format!("start: {e}")))?;
+    let Some(pb::stream_register_request::Msg::Start(start)) = &first.msg else {
+        return Err(broken("the first message is not a start".into()));
+    };
+    let mut s = start_session(svc, who, start, first.client_seq)?;
+    for (seq, bytes) in &rec.messages {
+        let m = pb::StreamRegisterRequest::decode(&bytes[..])
+            .map_err(|e| broken(format!("message {seq}: {e}")))?;
+        if matches!(m.msg, Some(pb::stream_register_request::Msg::Discover(_))) {
+            // A discovery run is not repeated; its message still counts.
+            s.last_seq = *seq;
+            continue;
+        }
+        accept(&mut s, m, &svc.0.config).map_err(|e| {
+            broken(format!(
+                "message {seq} is refused now: {}",
+                e.to_status().message()
+            ))
+        })?;
+    }
+    Ok(s)
 }
 
 /// Sends one update of a session (numbered, with its points and last client message).
@@ -656,6 +1186,29 @@ async fn register_session(
     deadline: Option<Instant>,
     seq: u64,
 ) -> pb::stream_update::Update {
+    if s.meas.points.is_empty() {
+        // Nothing measured yet (an ultrasound frame in which nothing was found): the answer is
+        // the starting pose, flagged, as the proto promises.
+        let prepared = s.augmented.as_deref().unwrap_or(&s.case.prepared);
+        let n = prepared.model.mesh.num_nodes();
+        let pose = s.meas.initial_alignment.unwrap_or_default();
+        return pb::stream_update::Update::Registration(pb::Registration {
+            image_to_physical: Some(crate::convert::rigid_to_pb(&pose)),
+            displacement_mm: if s.omit { Vec::new() } else { vec![0.0; 3 * n] },
+            node_count: n as u32,
+            method_used: crate::convert::method_to_pb(Method::Rigid) as i32,
+            quality: pb::Quality::Degenerate as i32,
+            quality_reason: "the session holds no points yet: the initial alignment (identity \
+                             when none was given) is the answer"
+                .into(),
+            effects: effects(prepared),
+            timings: Some(pb::StageTimings {
+                total_ms: arrival.elapsed().as_secs_f64() * 1e3,
+                ..Default::default()
+            }),
+            ..Default::default()
+        });
+    }
     let job = Job {
         case: s.case.clone(),
         measurements: s.meas.clone(),
@@ -669,7 +1222,7 @@ async fn register_session(
         trusted_alignment_mm: s.trusted_alignment_mm,
         prepared: s.augmented.clone(),
     };
-    match svc.0.engine.run(job, false).await {
+    match svc.0.engine.run(job, None).await {
         Ok(r) => pb::stream_update::Update::Registration(r),
         Err(b) => {
             count_error(b.code());
@@ -719,15 +1272,21 @@ fn start_discovery(svc: &Svc, s: &mut Session, seq: u64) -> pb::stream_update::U
     pb::stream_update::Update::Discovery(report)
 }
 
-fn start_session(svc: &Svc, start: &pb::SessionStart, seq: u64) -> Result<Session, ServiceError> {
+fn start_session(
+    svc: &Svc,
+    who: &Principal,
+    start: &pb::SessionStart,
+    seq: u64,
+) -> Result<Session, ServiceError> {
     let pb::SessionStart {
         case_id,
         method,
         options,
         initial_alignment,
         discovery,
+        resume_session_id: _, // handled by the caller
     } = start;
-    let case = svc.case(case_id, "start.case_id")?;
+    let case = svc.case(case_id, "start.case_id", who)?;
     let method = svc.check_method(&case, *method, "start.method")?;
     let budget = svc.budget(options.as_ref(), "start.options")?;
     let trusted_alignment_mm = trusted(options.as_ref(), "start.options")?;

@@ -198,6 +198,7 @@ async fn in_surgery_discovery_names_hidden_gravity_and_switches_the_session() {
             }),
             initial_alignment: Some(rigid_pb(&pose)),
             discovery,
+            resume_session_id: String::new(),
         })),
     };
     // Not opted in: refused, naming the field; the session goes on.

@@ -4,11 +4,14 @@
 
 mod common;
 
+mod adversary;
+mod auth;
 mod bad_input;
 mod cases;
 mod discovery;
 mod interop;
 mod limits;
+mod resume;
 mod shutdown;
 mod stream;
 mod tls;

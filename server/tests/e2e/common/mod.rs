@@ -219,6 +219,7 @@ pub fn stream_of(
             options: None,
             initial_alignment: m.initial_alignment.as_ref().map(rigid_pb),
             discovery: None,
+            resume_session_id: String::new(),
         })),
     }];
     let mut ordered = librplus::register::Measurements {
@@ -356,4 +357,106 @@ pub fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
     let p = dir.join(name);
     std::fs::write(&p, text).unwrap();
     p
+}
+
+// A `librplus-server` process (the binary this package builds), for tests that measure its
+// memory, flood it, or kill it.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+
+/// A server process: its address, its stderr lines (collected), and the child.
+pub struct Proc {
+    pub child: Child,
+    pub addr: String,
+    pub log: Arc<Mutex<Vec<String>>>,
+}
+
+impl Proc {
+    pub fn start(extra: &[&str]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_librplus-server"))
+            .arg("--cases")
+            .arg(dataset())
+            .arg("--no-librplus")
+            .args(if extra.contains(&"--max-sessions") {
+                &[][..]
+            } else {
+                &["--max-sessions", "4"][..]
+            })
+            .args(if extra.contains(&"--listen") {
+                &[][..]
+            } else {
+                &["--listen", "127.0.0.1:0"][..]
+            })
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stderr(Stdio::piped())
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        let log = Arc::new(Mutex::new(Vec::new()));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let stderr = child.stderr.take().unwrap();
+        {
+            let log = log.clone();
+            std::thread::spawn(move || {
+                for line in BufReader::new(stderr).lines() {
+                    let Ok(line) = line else { break };
+                    if let Some(a) = line.strip_prefix("librplus-server listening on ") {
+                        let _ = tx.send(Ok(a.trim().to_string()));
+                    }
+                    if line.starts_with("preloaded ") {
+                        let _ = tx.send(Err(()));
+                    }
+                    log.lock().unwrap().push(line);
+                }
+            });
+        }
+        let addr = match rx.recv_timeout(Duration::from_secs(120)) {
+            Ok(a) => a.unwrap(),
+            Err(e) => {
+                std::thread::sleep(Duration::from_millis(200));
+                panic!("no server address ({e}): {:?}", log.lock().unwrap());
+            }
+        };
+        // Then preload.
+        rx.recv_timeout(Duration::from_secs(300))
+            .expect("server preloaded")
+            .unwrap_err();
+        Self { child, addr, log }
+    }
+
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// Resident memory, MB.
+    pub fn rss_mb(&self) -> f64 {
+        let s = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).unwrap();
+        let kb: f64 = s
+            .lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap();
+        kb / 1024.0
+    }
+
+    pub fn longest_log_line(&self) -> usize {
+        self.log
+            .lock()
+            .unwrap()
+            .iter()
+            .map(String::len)
+            .max()
+            .unwrap_or(0)
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }

@@ -1,0 +1,719 @@
+//! The audit log: a SQLite database (WAL, `synchronous=FULL`) with every case event, session
+//! start and end, accepted stream message, registration and refusal. A writer thread owns the
+//! connection and commits what is waiting in one transaction (group commit); a write returns
+//! only once its transaction is durable, and the server acknowledges a registration to its
+//! client only after that. The session records let a session resume after a reconnect or a
+//! crash (`SessionStart.resume_session_id`), and `librplus-server audit` reads it all back.
+//!
+//! Format 1 (docs/service.md, "Audit log"): tables `meta` (format), `events`, `sessions`,
+//! `messages` (each accepted StreamRegisterRequest, protobuf-encoded), `registrations`.
+
+use rusqlite::{Connection, OptionalExtension, params};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// The audit database format.
+pub const FORMAT: u32 = 1;
+
+/// Why the audit log could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum AuditError {
+    /// SQLite refused (a full disk, a corrupt or foreign file, a locked database).
+    #[error("audit database {}: {source}", path.display())]
+    Sql {
+        /// The database.
+        path: PathBuf,
+        /// SQLite's error.
+        source: rusqlite::Error,
+    },
+    /// The database is of another format.
+    #[error("audit database {}: format {found}, this server reads format {FORMAT}", path.display())]
+    Format {
+        /// The database.
+        path: PathBuf,
+        /// Its format.
+        found: String,
+    },
+    /// The writer thread has stopped.
+    #[error("the audit writer has stopped")]
+    Stopped,
+}
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// One record to write.
+#[derive(Debug, Clone)]
+pub enum Record {
+    /// A case event, a refusal, anything else worth keeping (`detail`: JSON).
+    Event {
+        /// `case_created`, `case_deleted`, `refused`, `server_started`, ...
+        kind: &'static str,
+        /// Who.
+        principal: String,
+        /// The case, if any.
+        case_id: Option<String>,
+        /// The session, if any.
+        session_id: Option<String>,
+        /// What (JSON).
+        detail: serde_json::Value,
+    },
+    /// A session started: its start message (protobuf-encoded `StreamRegisterRequest`).
+    SessionStart {
+        /// The session.
+        session_id: String,
+        /// Who.
+        principal: String,
+        /// The case.
+        case_id: String,
+        /// The start message.
+        start: Vec<u8>,
+    },
+    /// Stream messages a session accepted (client_seq, protobuf-encoded message).
+    Messages {
+        /// The session.
+        session_id: String,
+        /// The messages.
+        messages: Vec<(u64, Vec<u8>)>,
+    },
+    /// A registration answered.
+    Registration(Box<RegistrationRecord>),
+    /// A session ended.
+    SessionEnd {
+        /// The session.
+        session_id: String,
+        /// `OK` or the status code's name, and its message.
+        outcome: String,
+    },
+}
+
+/// One registration as audited.
+#[derive(Debug, Clone, Default)]
+pub struct RegistrationRecord {
+    /// Who.
+    pub principal: String,
+    /// The case.
+    pub case_id: String,
+    /// The session (None: unary).
+    pub session_id: Option<String>,
+    /// The newest client message it reflects (sessions).
+    pub client_seq: u64,
+    /// Method used.
+    pub method: String,
+    /// Quality flag.
+    pub quality: String,
+    /// Why not OK.
+    pub quality_reason: String,
+    /// Milliseconds from arrival to answer.
+    pub total_ms: f64,
+    /// Residual RMS, mm.
+    pub residual_rms_mm: f64,
+    /// Points registered.
+    pub points_total: u64,
+    /// The measurements (unary: the protobuf-encoded `Measurements`; sessions: None, their
+    /// points are the session's messages).
+    pub measurements: Option<Vec<u8>>,
+    /// SHA-256 (hex) of the protobuf-encoded `Registration` sent.
+    pub answer_sha256: String,
+    /// Stage timings (JSON).
+    pub timings: String,
+}
+
+type Reply = tokio::sync::oneshot::Sender<Result<(), String>>;
+
+/// The audit log's writer (cheap to share: a channel to its thread).
+#[derive(Debug)]
+pub struct Audit {
+    tx: std::sync::Mutex<mpsc::Sender<(Vec<Record>, Reply)>>,
+    path: PathBuf,
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS events(
+  id INTEGER PRIMARY KEY, t_ms INTEGER NOT NULL, kind TEXT NOT NULL, principal TEXT,
+  case_id TEXT, session_id TEXT, detail TEXT);
+CREATE TABLE IF NOT EXISTS sessions(
+  session_id TEXT PRIMARY KEY, t_ms INTEGER NOT NULL, principal TEXT NOT NULL,
+  case_id TEXT NOT NULL, start BLOB NOT NULL, ended_ms INTEGER, outcome TEXT);
+CREATE TABLE IF NOT EXISTS messages(
+  session_id TEXT NOT NULL, client_seq INTEGER NOT NULL, t_ms INTEGER NOT NULL,
+  msg BLOB NOT NULL, PRIMARY KEY(session_id, client_seq));
+CREATE TABLE IF NOT EXISTS registrations(
+  id INTEGER PRIMARY KEY, t_ms INTEGER NOT NULL, principal TEXT NOT NULL, case_id TEXT NOT NULL,
+  session_id TEXT, client_seq INTEGER, method TEXT, quality TEXT, quality_reason TEXT,
+  total_ms REAL, residual_rms_mm REAL, points_total INTEGER, measurements BLOB,
+  answer_sha256 TEXT NOT NULL, timings TEXT);
+CREATE INDEX IF NOT EXISTS registrations_case ON registrations(case_id, t_ms);
+CREATE INDEX IF NOT EXISTS registrations_session ON registrations(session_id);
+CREATE INDEX IF NOT EXISTS events_time ON events(t_ms);
+";
+
+/// Opens (creating when absent) an audit database and checks its format.
+pub fn open_db(path: &Path) -> Result<Connection, AuditError> {
+    let sql = |source| AuditError::Sql {
+        path: path.to_path_buf(),
+        source,
+    };
+    let c = Connection::open(path).map_err(sql)?;
+    c.busy_timeout(std::time::Duration::from_secs(10))
+        .map_err(sql)?;
+    c.pragma_update(None, "journal_mode", "WAL").map_err(sql)?;
+    c.pragma_update(None, "synchronous", "FULL").map_err(sql)?;
+    c.execute_batch(SCHEMA).map_err(sql)?;
+    let found: Option<String> = c
+        .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
+            r.get(0)
+        })
+        .optional()
+        .map_err(sql)?;
+    match found {
+        None => {
+            c.execute(
+                "INSERT INTO meta(key, value) VALUES('format', ?1)",
+                [FORMAT.to_string()],
+            )
+            .map_err(sql)?;
+        }
+        Some(f) if f == FORMAT.to_string() => {}
+        Some(f) => {
+            return Err(AuditError::Format {
+                path: path.to_path_buf(),
+                found: f,
+            });
+        }
+    }
+    Ok(c)
+}
+
+fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
+    match r {
+        Record::Event {
+            kind,
+            principal,
+            case_id,
+            session_id,
+            detail,
+        } => {
+            c.execute(
+                "INSERT INTO events(t_ms, kind, principal, case_id, session_id, detail) \
+                 VALUES(?1, ?2, ?3, ?4, ?5, ?6)",
+                params![t, kind, principal, case_id, session_id, detail.to_string()],
+            )?;
+        }
+        Record::SessionStart {
+            session_id,
+            principal,
+            case_id,
+            start,
+        } => {
+            c.execute(
+                "INSERT OR IGNORE INTO sessions(session_id, t_ms, principal, case_id, start) \
+                 VALUES(?1, ?2, ?3, ?4, ?5)",
+                params![session_id, t, principal, case_id, start],
+            )?;
+        }
+        Record::Messages {
+            session_id,
+            messages,
+        } => {
+            let mut st = c.prepare_cached(
+                "INSERT OR IGNORE INTO messages(session_id, client_seq, t_ms, msg) \
+                 VALUES(?1, ?2, ?3, ?4)",
+            )?;
+            for (seq, m) in messages {
+                st.execute(params![session_id, *seq as i64, t, m])?;
+            }
+        }
+        Record::Registration(g) => {
+            c.execute(
+                "INSERT INTO registrations(t_ms, principal, case_id, session_id, client_seq, \
+                 method, quality, quality_reason, total_ms, residual_rms_mm, points_total, \
+                 measurements, answer_sha256, timings) \
+                 VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+                params![
+                    t,
+                    g.principal,
+                    g.case_id,
+                    g.session_id,
+                    g.client_seq as i64,
+                    g.method,
+                    g.quality,
+                    g.quality_reason,
+                    g.total_ms,
+                    g.residual_rms_mm,
+                    g.points_total as i64,
+                    g.measurements,
+                    g.answer_sha256,
+                    g.timings
+                ],
+            )?;
+        }
+        Record::SessionEnd {
+            session_id,
+            outcome,
+        } => {
+            c.execute(
+                "UPDATE sessions SET ended_ms = ?2, outcome = ?3 WHERE session_id = ?1",
+                params![session_id, t, outcome],
+            )?;
+        }
+    }
+    Ok(())
+}
+
+impl Audit {
+    /// Opens the database and starts its writer thread.
+    pub fn open(path: &Path) -> Result<Self, AuditError> {
+        let mut conn = open_db(path)?;
+        let (tx, rx) = mpsc::channel::<(Vec<Record>, Reply)>();
+        let p = path.to_path_buf();
+        std::thread::Builder::new()
+            .name("audit-writer".into())
+            .spawn(move || {
+                // Group commit: everything waiting goes into one transaction.
+                while let Ok(first) = rx.recv() {
+                    let mut batch = vec![first];
+                    while batch.len() < 512 {
+                        match rx.try_recv() {
+                            Ok(x) => batch.push(x),
+                            Err(_) => break,
+                        }
+                    }
+                    let t = now_ms();
+                    let result = (|| -> rusqlite::Result<()> {
+                        let txn = conn.transaction()?;
+                        for (records, _) in &batch {
+                            for r in records {
+                                write(&txn, r, t)?;
+                            }
+                        }
+                        txn.commit()
+                    })();
+                    let result = result.map_err(|e| {
+                        tracing::error!(error = %e, db = %p.display(), "audit write failed");
+                        metrics::counter!("librplus_audit_failures_total").increment(1);
+                        format!("audit database {}: {e}", p.display())
+                    });
+                    metrics::counter!("librplus_audit_commits_total").increment(1);
+                    for (_, reply) in batch {
+                        let _ = reply.send(result.clone());
+                    }
+                }
+            })
+            .map_err(|_| AuditError::Stopped)?;
+        Ok(Self {
+            tx: std::sync::Mutex::new(tx),
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// The database file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Writes `records` in one transaction; returns once it is committed (durable), or why not.
+    pub async fn write(&self, records: Vec<Record>) -> Result<(), String> {
+        let (reply, rx) = tokio::sync::oneshot::channel();
+        self.tx
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .send((records, reply))
+            .map_err(|_| AuditError::Stopped.to_string())?;
+        rx.await.map_err(|_| AuditError::Stopped.to_string())?
+    }
+}
+
+/// A recorded session: its principal, case, start message and accepted messages in order.
+#[derive(Debug, Clone)]
+pub struct SessionRecord {
+    /// Who started it.
+    pub principal: String,
+    /// Its case.
+    pub case_id: String,
+    /// The start message (protobuf `StreamRegisterRequest`).
+    pub start: Vec<u8>,
+    /// (client_seq, protobuf `StreamRegisterRequest`), in client_seq order.
+    pub messages: Vec<(u64, Vec<u8>)>,
+}
+
+/// Reads one session's record (None: no such session).
+pub fn read_session(c: &Connection, session_id: &str) -> rusqlite::Result<Option<SessionRecord>> {
+    let Some((principal, case_id, start)) = c
+        .query_row(
+            "SELECT principal, case_id, start FROM sessions WHERE session_id = ?1",
+            [session_id],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+        )
+        .optional()?
+    else {
+        return Ok(None);
+    };
+    let mut st = c.prepare(
+        "SELECT client_seq, msg FROM messages WHERE session_id = ?1 ORDER BY client_seq",
+    )?;
+    let messages = st
+        .query_map([session_id], |r| {
+            Ok((r.get::<_, i64>(0)? as u64, r.get(1)?))
+        })?
+        .collect::<rusqlite::Result<Vec<_>>>()?;
+    Ok(Some(SessionRecord {
+        principal,
+        case_id,
+        start,
+        messages,
+    }))
+}
+
+/// Reads `--since`: Unix seconds, or a UTC date and time `YYYY-MM-DD[THH:MM[:SS]][Z]`; in ms.
+pub fn parse_since(s: &str) -> Result<i64, String> {
+    if let Ok(x) = s.parse::<f64>()
+        && x.is_finite()
+    {
+        return Ok((x * 1e3) as i64);
+    }
+    let bad =
+        || format!("--since {s:?}: expected Unix seconds or YYYY-MM-DD[THH:MM[:SS]][Z] (UTC)");
+    let t = s.trim_end_matches('Z');
+    let (date, time) = t.split_once(['T', ' ']).unwrap_or((t, "00:00:00"));
+    let d: Vec<i64> = date
+        .split('-')
+        .map(|x| x.parse().map_err(|_| bad()))
+        .collect::<Result<_, _>>()?;
+    let h: Vec<i64> = time
+        .split(':')
+        .map(|x| x.parse().map_err(|_| bad()))
+        .collect::<Result<_, _>>()?;
+    if d.len() != 3 || h.is_empty() || h.len() > 3 {
+        return Err(bad());
+    }
+    let (y, m, day) = (d[0], d[1], d[2]);
+    if !(1..=12).contains(&m) || !(1..=31).contains(&day) {
+        return Err(bad());
+    }
+    // Days from 1970-01-01 (H. Hinnant's days_from_civil).
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let mp = (m + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + day - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let days = era * 146_097 + doe - 719_468;
+    let secs = days * 86_400
+        + h[0] * 3600
+        + h.get(1).copied().unwrap_or(0) * 60
+        + h.get(2).copied().unwrap_or(0);
+    Ok(secs * 1000)
+}
+
+/// A UTC time `YYYY-MM-DDTHH:MM:SS.mmmZ` from ms since the epoch.
+pub fn format_ms(ms: i64) -> String {
+    let secs = ms.div_euclid(1000);
+    let days = secs.div_euclid(86_400);
+    let rem = secs.rem_euclid(86_400);
+    // H. Hinnant's civil_from_days.
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60,
+        ms.rem_euclid(1000)
+    )
+}
+
+/// One row of `librplus-server audit`.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Row {
+    /// When (ms since the epoch).
+    pub t_ms: i64,
+    /// When (UTC).
+    pub time: String,
+    /// `registration`, `session_start`, `session_end`, or an event's kind.
+    pub kind: String,
+    /// Who.
+    pub principal: String,
+    /// The case.
+    pub case_id: Option<String>,
+    /// The session.
+    pub session_id: Option<String>,
+    /// What (JSON).
+    pub detail: serde_json::Value,
+}
+
+/// Every record of the database (of `case`, since `since_ms`), in time order.
+pub fn rows(
+    c: &Connection,
+    case: Option<&str>,
+    since_ms: Option<i64>,
+) -> rusqlite::Result<Vec<Row>> {
+    let since = since_ms.unwrap_or(i64::MIN);
+    let mut out = Vec::new();
+    let row = |t_ms: i64, kind: String, principal: String, case_id, session_id, detail| Row {
+        t_ms,
+        time: format_ms(t_ms),
+        kind,
+        principal,
+        case_id,
+        session_id,
+        detail,
+    };
+    let mut st = c.prepare(
+        "SELECT t_ms, kind, principal, case_id, session_id, detail FROM events \
+         WHERE t_ms >= ?1 AND (?2 IS NULL OR case_id = ?2)",
+    )?;
+    for r in st.query_map(params![since, case], |r| {
+        Ok(row(
+            r.get(0)?,
+            r.get(1)?,
+            r.get::<_, Option<String>>(2)?.unwrap_or_default(),
+            r.get(3)?,
+            r.get(4)?,
+            r.get::<_, Option<String>>(5)?
+                .and_then(|d| serde_json::from_str(&d).ok())
+                .unwrap_or(serde_json::Value::Null),
+        ))
+    })? {
+        out.push(r?);
+    }
+    let mut st = c.prepare(
+        "SELECT t_ms, principal, case_id, session_id, ended_ms, outcome, \
+         (SELECT COUNT(*) FROM messages m WHERE m.session_id = s.session_id) \
+         FROM sessions s WHERE t_ms >= ?1 AND (?2 IS NULL OR case_id = ?2)",
+    )?;
+    for r in st.query_map(params![since, case], |r| {
+        let ended: Option<i64> = r.get(4)?;
+        let outcome: Option<String> = r.get(5)?;
+        let messages: i64 = r.get(6)?;
+        Ok((
+            row(
+                r.get(0)?,
+                "session_start".into(),
+                r.get(1)?,
+                Some(r.get(2)?),
+                Some(r.get(3)?),
+                serde_json::json!({ "messages": messages }),
+            ),
+            ended.map(|t| (t, outcome)),
+        ))
+    })? {
+        let (start, end) = r?;
+        if let Some((t, outcome)) = end {
+            out.push(Row {
+                t_ms: t,
+                time: format_ms(t),
+                kind: "session_end".into(),
+                detail: serde_json::json!({ "outcome": outcome }),
+                ..start.clone()
+            });
+        }
+        out.push(start);
+    }
+    let mut st = c.prepare(
+        "SELECT t_ms, principal, case_id, session_id, client_seq, method, quality, \
+         quality_reason, total_ms, residual_rms_mm, points_total, answer_sha256, timings, \
+         measurements IS NOT NULL FROM registrations \
+         WHERE t_ms >= ?1 AND (?2 IS NULL OR case_id = ?2)",
+    )?;
+    for r in st.query_map(params![since, case], |r| {
+        Ok(row(
+            r.get(0)?,
+            "registration".into(),
+            r.get(1)?,
+            Some(r.get(2)?),
+            r.get(3)?,
+            serde_json::json!({
+                "client_seq": r.get::<_, Option<i64>>(4)?,
+                "method": r.get::<_, Option<String>>(5)?,
+                "quality": r.get::<_, Option<String>>(6)?,
+                "quality_reason": r.get::<_, Option<String>>(7)?,
+                "total_ms": r.get::<_, Option<f64>>(8)?,
+                "residual_rms_mm": r.get::<_, Option<f64>>(9)?,
+                "points": r.get::<_, Option<i64>>(10)?,
+                "answer_sha256": r.get::<_, String>(11)?,
+                "timings": r.get::<_, Option<String>>(12)?
+                    .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok()),
+                "measurements_recorded": r.get::<_, bool>(13)?,
+            }),
+        ))
+    })? {
+        out.push(r?);
+    }
+    out.sort_by_key(|r| r.t_ms);
+    Ok(out)
+}
+
+/// What [`export_session`] wrote.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Exported {
+    /// The session's case.
+    pub case_id: String,
+    /// Surface points.
+    pub surface: usize,
+    /// Posterior-contour points.
+    pub contour: usize,
+    /// Vessel points.
+    pub vessel: usize,
+    /// Messages replayed.
+    pub messages: usize,
+}
+
+/// Writes a recorded session's points as one sweep folder `librplus discover --preop MESH
+/// --scenarios DIR` reads: `surface.csv`, `ultrasound.csv` (posterior contours), `vessel.csv`
+/// and `initial_alignment.json`, in `dir` (created). The points are those the server took, in
+/// its order (salient-feature designations are not kept in these files).
+pub fn export_session(c: &Connection, id: &str, dir: &Path) -> Result<Exported, String> {
+    use crate::convert::{plane_points, points3, rigid_from_pb};
+    use librplus_proto::v1 as pb;
+    use pb::stream_register_request::Msg;
+    use prost::Message;
+    let rec = read_session(c, id)
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| format!("no recorded session {id:?}"))?;
+    let decode = |b: &[u8], what: &str| {
+        pb::StreamRegisterRequest::decode(b).map_err(|e| format!("{what}: {e}"))
+    };
+    let start = match decode(&rec.start, "start")?.msg {
+        Some(Msg::Start(s)) => s,
+        _ => return Err("the first message is not a start".into()),
+    };
+    let (mut surface, mut contour, mut vessel) = (Vec::new(), Vec::new(), Vec::new());
+    for (seq, b) in &rec.messages {
+        let what = format!("message {seq}");
+        match decode(b, &what)?.msg {
+            Some(Msg::Surface(sb)) => surface
+                .extend(points3(&sb.xyz_mm, &what, usize::MAX).map_err(|e| format!("{e:?}"))?),
+            Some(Msg::Ultrasound(u)) => {
+                let (c, v) = plane_points(&u, usize::MAX).map_err(|e| format!("{e:?}"))?;
+                contour.extend(c);
+                vessel.extend(v);
+            }
+            _ => {}
+        }
+    }
+    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let csv = |name: &str, pts: &[[f64; 3]]| -> Result<(), String> {
+        if pts.is_empty() {
+            return Ok(());
+        }
+        let mut text = String::from("x_mm,y_mm,z_mm\n");
+        for p in pts {
+            text.push_str(&format!("{},{},{}\n", p[0], p[1], p[2]));
+        }
+        let f = dir.join(name);
+        std::fs::write(&f, text).map_err(|e| format!("{}: {e}", f.display()))
+    };
+    csv("surface.csv", &surface)?;
+    csv("ultrasound.csv", &contour)?;
+    csv("vessel.csv", &vessel)?;
+    if let Some(r) = &start.initial_alignment {
+        let r = rigid_from_pb(r, "start.initial_alignment").map_err(|e| format!("{e:?}"))?;
+        let f = dir.join("initial_alignment.json");
+        std::fs::write(
+            &f,
+            serde_json::to_string_pretty(&r).map_err(|e| e.to_string())?,
+        )
+        .map_err(|e| format!("{}: {e}", f.display()))?;
+    }
+    Ok(Exported {
+        case_id: rec.case_id,
+        surface: surface.len(),
+        contour: contour.len(),
+        vessel: vessel.len(),
+        messages: rec.messages.len(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn times_parse_and_print_in_utc() {
+        assert_eq!(parse_since("0").unwrap(), 0);
+        assert_eq!(parse_since("1970-01-02").unwrap(), 86_400_000);
+        // 2026-11-26T17:00:00Z (`date -u -d 2026-11-26T17:00:00 +%s` = 1795712400).
+        assert_eq!(
+            parse_since("2026-11-26T17:00:00Z").unwrap(),
+            1_795_712_400_000
+        );
+        assert_eq!(format_ms(1_795_712_400_123), "2026-11-26T17:00:00.123Z");
+        assert_eq!(format_ms(951_782_400_000), "2000-02-29T00:00:00.000Z");
+        assert_eq!(parse_since("2000-02-29T00:00").unwrap(), 951_782_400_000);
+        assert!(parse_since("yesterday").unwrap_err().contains("--since"));
+        assert!(parse_since("2026-13-01").is_err());
+    }
+
+    #[tokio::test]
+    async fn records_are_committed_and_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("audit.db");
+        let a = Audit::open(&db).unwrap();
+        a.write(vec![
+            Record::SessionStart {
+                session_id: "s1".into(),
+                principal: "p".into(),
+                case_id: "c".into(),
+                start: vec![1, 2, 3],
+            },
+            Record::Messages {
+                session_id: "s1".into(),
+                messages: vec![(3, vec![9]), (2, vec![8])],
+            },
+        ])
+        .await
+        .unwrap();
+        // Concurrent writers are committed together and each told so.
+        let mut tasks = Vec::new();
+        let a = std::sync::Arc::new(a);
+        for i in 0..50u64 {
+            let a = a.clone();
+            tasks.push(tokio::spawn(async move {
+                a.write(vec![Record::Registration(Box::new(RegistrationRecord {
+                    principal: "p".into(),
+                    case_id: "c".into(),
+                    session_id: Some("s1".into()),
+                    client_seq: i,
+                    answer_sha256: format!("{i}"),
+                    ..Default::default()
+                }))])
+                .await
+            }));
+        }
+        for t in tasks {
+            t.await.unwrap().unwrap();
+        }
+        // Another connection (as `librplus-server audit` or a restarted server) sees it all.
+        let c = open_db(&db).unwrap();
+        let s = read_session(&c, "s1").unwrap().unwrap();
+        assert_eq!((s.principal.as_str(), s.case_id.as_str()), ("p", "c"));
+        assert_eq!(s.start, [1, 2, 3]);
+        assert_eq!(s.messages, [(2, vec![8]), (3, vec![9])]);
+        let n: i64 = c
+            .query_row("SELECT COUNT(*) FROM registrations", [], |r| r.get(0))
+            .unwrap();
+        assert_eq!(n, 50);
+        assert!(read_session(&c, "s2").unwrap().is_none());
+        let rows = rows(&c, Some("c"), None).unwrap();
+        assert_eq!(rows.iter().filter(|r| r.kind == "registration").count(), 50);
+        assert_eq!(rows.iter().filter(|r| r.kind == "session_start").count(), 1);
+        // Another format is refused.
+        c.execute("UPDATE meta SET value = '9' WHERE key = 'format'", [])
+            .unwrap();
+        assert!(matches!(open_db(&db), Err(AuditError::Format { .. })));
+    }
+}
