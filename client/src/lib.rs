@@ -6,6 +6,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod cases;
 pub mod data;
 pub mod load;
 pub mod messages;
@@ -16,6 +17,7 @@ pub mod stats;
 /// The generated wire types of `librplus.v1`.
 pub use librplus_proto::v1 as pb;
 
+pub use cases::{UploadOptions, UploadSummary, delete, upload};
 pub use data::{Loaded, Replayable, ScenarioRef, Selection, load_selection, select};
 pub use load::{LoadOptions, LoadSummary, load, load_table};
 pub use messages::{

@@ -28,6 +28,81 @@ enum Command {
     Replay(ReplayArgs),
     /// Runs concurrent sessions for a fixed time; prints throughput, latency and errors by code.
     Load(LoadArgs),
+    /// Uploads a preoperative case (a tetrahedral mesh, optional vessels and physics.json) and
+    /// follows its preload to READY.
+    Upload(UploadArgs),
+    /// Deletes an uploaded case.
+    Delete(DeleteArgs),
+}
+
+/// How to reach the server (upload, delete).
+#[derive(Args)]
+struct Conn {
+    /// Server URL.
+    #[arg(long, default_value = "http://127.0.0.1:50051")]
+    server: String,
+    /// TLS: the CA certificate (PEM) the server's certificate chains to.
+    #[arg(long, value_name = "FILE")]
+    ca: Option<PathBuf>,
+    /// mTLS: this client's certificate (PEM; with --key).
+    #[arg(long, value_name = "FILE")]
+    cert: Option<PathBuf>,
+    /// mTLS: this client's private key (PEM).
+    #[arg(long, value_name = "FILE")]
+    key: Option<PathBuf>,
+    /// TLS: the name the server's certificate must carry (default: the URL's host).
+    #[arg(long)]
+    tls_domain: Option<String>,
+    /// Bearer token sent as `authorization` metadata.
+    #[arg(long)]
+    token: Option<String>,
+}
+
+impl Conn {
+    fn tls(&self) -> librplus_client::Tls {
+        librplus_client::Tls {
+            ca: self.ca.clone(),
+            cert: self.cert.clone(),
+            key: self.key.clone(),
+            domain: self.tls_domain.clone(),
+        }
+    }
+}
+
+#[derive(Args)]
+struct UploadArgs {
+    #[command(flatten)]
+    conn: Conn,
+    /// The case id (A-Z a-z 0-9 . _ - /).
+    #[arg(long = "case")]
+    case_id: String,
+    /// Tetrahedral mesh (.vtu, .vtk, .msh; labels as its point data, as `librplus` writes them).
+    #[arg(long)]
+    mesh: PathBuf,
+    /// Vessel centerlines (.vtp).
+    #[arg(long)]
+    vessels: Option<PathBuf>,
+    /// The augmented model (`physics.json` of `librplus discover`).
+    #[arg(long)]
+    physics: Option<PathBuf>,
+    /// Length unit of the mesh and vessels (mm, cm, m).
+    #[arg(long, default_value = "mm")]
+    unit: String,
+    /// Return once stored, without following the preload.
+    #[arg(long)]
+    no_wait: bool,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct DeleteArgs {
+    #[command(flatten)]
+    conn: Conn,
+    /// The case id.
+    #[arg(long = "case")]
+    case_id: String,
 }
 
 /// Options of both commands.
@@ -165,6 +240,33 @@ fn print<T: serde::Serialize>(
 
 async fn run(cli: Cli) -> Result<()> {
     match cli.command {
+        Command::Upload(a) => {
+            let s = librplus_client::upload(&librplus_client::UploadOptions {
+                server: a.conn.server.clone(),
+                tls: a.conn.tls(),
+                token: a.conn.token.clone(),
+                case_id: a.case_id,
+                mesh: a.mesh,
+                vessels: a.vessels,
+                physics: a.physics,
+                unit: a.unit,
+                wait: !a.no_wait,
+                progress: !a.json,
+            })
+            .await?;
+            if a.json {
+                println!("{}", serde_json::to_string(&s)?);
+            }
+            if s.state == "CASE_STATE_FAILED" {
+                bail!("case {} failed to preload: {}", s.case_id, s.error);
+            }
+        }
+        Command::Delete(a) => {
+            let v =
+                librplus_client::delete(&a.conn.server, &a.conn.tls(), &a.conn.token, &a.case_id)
+                    .await?;
+            eprintln!("deleted case {} (version {v})", a.case_id);
+        }
         Command::Replay(a) => {
             if let Some(r) = a.rate
                 && !(r.is_finite() && r > 0.0)

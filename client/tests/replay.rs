@@ -266,6 +266,25 @@ impl LibRPlus for Fake {
     ) -> Result<Response<pb::Registration>, Status> {
         Err(Status::unimplemented("fake"))
     }
+    async fn create_case(
+        &self,
+        _: Request<Streaming<pb::CreateCaseRequest>>,
+    ) -> Result<Response<pb::CreateCaseResponse>, Status> {
+        Err(Status::unimplemented("fake"))
+    }
+    type WatchCaseStream = ReceiverStream<Result<pb::CaseStatus, Status>>;
+    async fn watch_case(
+        &self,
+        _: Request<pb::WatchCaseRequest>,
+    ) -> Result<Response<Self::WatchCaseStream>, Status> {
+        Err(Status::unimplemented("fake"))
+    }
+    async fn delete_case(
+        &self,
+        _: Request<pb::DeleteCaseRequest>,
+    ) -> Result<Response<pb::DeleteCaseResponse>, Status> {
+        Err(Status::unimplemented("fake"))
+    }
     type StreamRegisterStream = ReceiverStream<Result<pb::StreamUpdate, Status>>;
     async fn stream_register(
         &self,

@@ -35,6 +35,10 @@ pub struct Case {
     pub default_method: Method,
     /// Stage-duration estimates (exponential moving averages of what was measured).
     pub estimates: Mutex<Estimates>,
+    /// Its content's version (uploaded cases: the SHA-256 of the upload; else empty).
+    pub version: String,
+    /// Streamed sessions using it now (a case in use is not deleted).
+    pub sessions: std::sync::atomic::AtomicUsize,
 }
 
 impl Case {
@@ -75,6 +79,8 @@ pub enum CaseSource {
         /// The file.
         path: PathBuf,
     },
+    /// A case of the case store (uploaded).
+    Stored(Box<crate::store::Stored>),
 }
 
 /// Why a case could not be found, read or prepared; each names the directory or file.
@@ -209,6 +215,21 @@ pub fn load(
     libr: &LibrParams,
     gcn: Option<&Vec<Arc<TrainedModel>>>,
 ) -> Result<Case, CaseError> {
+    load_with_progress(id, source, config, libr, gcn, &|_, _| {})
+}
+
+/// [`load`], telling `progress` each stage ("reading", "labelling", "preparing", "sr-gcn") and
+/// the fraction done.
+pub fn load_with_progress(
+    id: &str,
+    source: &CaseSource,
+    config: &ServerConfig,
+    libr: &LibrParams,
+    gcn: Option<&Vec<Arc<TrainedModel>>>,
+    progress: &dyn Fn(&str, f64),
+) -> Result<Case, CaseError> {
+    progress("reading", 0.0);
+    let mut version = String::new();
     let (model, path, cache, physics_path) = match source {
         CaseSource::Dataset { dir, geometry } => {
             let m = librplus::eval::open(dir)?;
@@ -236,8 +257,26 @@ pub fn load(
             let physics = parent.join(format!("{stem}.physics.json"));
             (model, path.clone(), parent.join("cache"), physics)
         }
+        CaseSource::Stored(s) => {
+            let path = s.mesh_path();
+            let file = io::read(&path, s.unit())?;
+            progress("labelling", 0.1);
+            let model = model_from_mesh_file(&path, &file, s.unit())?;
+            version = s.version.clone();
+            (
+                model,
+                path,
+                s.dir.join("cache"),
+                s.dir.join("mesh.physics.json"),
+            )
+        }
     };
-    let cache = config.cache_dir.clone().unwrap_or(cache);
+    // A stored case keeps its basis in its own folder (deleted with it).
+    let cache = match source {
+        CaseSource::Stored(_) => cache,
+        _ => config.cache_dir.clone().unwrap_or(cache),
+    };
+    progress("preparing", 0.2);
     let prepare = |source| CaseError::Prepare {
         path: path.clone(),
         source,
@@ -254,6 +293,7 @@ pub fn load(
     let mut prepared =
         Prepared::with_physics(model, Some(libr), &physics, Some(&cache)).map_err(prepare)?;
     if let Some(m) = gcn {
+        progress("sr-gcn", 0.9);
         prepared = prepared.with_models(m.clone()).map_err(prepare)?;
     }
     let default_method = config.method()?;
@@ -273,6 +313,8 @@ pub fn load(
             libr_iteration_ms: 3.0 * n / 1e4,
             libr_fixed_ms: 4.0 * n / 1e4,
         }),
+        version,
+        sessions: Default::default(),
     })
 }
 

@@ -92,6 +92,13 @@ pub struct ServerConfig {
     /// refusal, committed before the answer is sent; sessions resume from it. None: no log (and
     /// no resume).
     pub audit_db: Option<PathBuf>,
+    /// Where cases uploaded over the API (`CreateCase`) are kept (docs/service.md, "Case
+    /// store"); reloaded at start. None: no uploads.
+    pub case_store: Option<PathBuf>,
+    /// Largest upload (all its files), bytes. Default 512 MiB.
+    pub max_case_bytes: usize,
+    /// Most nodes of an uploaded mesh. Default 1,000,000.
+    pub max_case_nodes: usize,
     /// TLS: the server's certificate chain (PEM). With `tls_key`, the server speaks only TLS.
     pub tls_cert: Option<PathBuf>,
     /// TLS: the server's private key (PEM).
@@ -140,6 +147,9 @@ impl Default for ServerConfig {
             insecure: false,
             auth: None,
             audit_db: None,
+            case_store: None,
+            max_case_bytes: 512 << 20,
+            max_case_nodes: 1_000_000,
             tls_cert: None,
             tls_key: None,
             client_ca: None,
@@ -205,8 +215,10 @@ impl ServerConfig {
                 self.format
             )));
         }
-        if self.cases.is_empty() {
-            return Err(ConfigError::Field("cases: no case directory given".into()));
+        if self.cases.is_empty() && self.case_store.is_none() {
+            return Err(ConfigError::Field(
+                "cases: no case directory given (and no case_store for uploads)".into(),
+            ));
         }
         self.unit()?;
         self.method()?;

@@ -62,6 +62,15 @@ pub enum ServiceError {
     Unauthenticated(String),
     /// Known credentials without the role the call needs (PERMISSION_DENIED).
     PermissionDenied(String),
+    /// The client did not send in time (DEADLINE_EXCEEDED).
+    Deadline(String),
+    /// A status from the transport (a message too large, a reset stream), passed on.
+    Received {
+        /// Its code.
+        code: Code,
+        /// Its message.
+        message: String,
+    },
     /// The pipeline refused or failed; mapped by cause in [`ServiceError::parts`].
     Registration(PipelineError),
     /// A registration task failed inside the server (INTERNAL; logged).
@@ -212,6 +221,8 @@ impl ServiceError {
             Self::Unavailable(m) => (Code::Unavailable, m.clone(), None),
             Self::Unauthenticated(m) => (Code::Unauthenticated, m.clone(), None),
             Self::PermissionDenied(m) => (Code::PermissionDenied, m.clone(), None),
+            Self::Deadline(m) => (Code::DeadlineExceeded, m.clone(), None),
+            Self::Received { code, message } => (*code, message.clone(), None),
             Self::Internal(m) => (Code::Internal, m.clone(), None),
             Self::Registration(e) => match pipeline_cause(e) {
                 Cause::Input => {
@@ -271,6 +282,8 @@ impl ServiceError {
             | Self::Unavailable(_)
             | Self::Unauthenticated(_)
             | Self::PermissionDenied(_)
+            | Self::Deadline(_)
+            | Self::Received { .. }
             | Self::Internal(_)
             | Self::Registration(_) => Vec::new(),
         };

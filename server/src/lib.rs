@@ -17,8 +17,12 @@ pub mod config;
 pub mod convert;
 pub mod discovery;
 pub mod error;
+pub mod fuzz;
 pub mod metrics_http;
+pub mod registry;
 pub mod service;
+pub mod store;
+pub mod upload;
 
 use anyhow::Context;
 use cases::Case;
@@ -27,7 +31,6 @@ use librplus::gcn::io::{TrainedModel, builtin_models, load_models_on_device};
 use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
 use service::{Shared, Svc};
-use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -158,10 +161,17 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .map(audit::Audit::open)
         .transpose()
         .context("--audit")?;
+    let store = config
+        .case_store
+        .as_deref()
+        .map(store::Store::open)
+        .transpose()
+        .context("--case-store")?;
     let shared = Arc::new(Shared::new(
         config.clone(),
         auth,
         audit,
+        store,
         compute::Engine::new(config.slots(), config.max_queued),
         drain_rx,
     ));
@@ -259,11 +269,11 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         let shared = shared.clone();
         let health = health.clone();
         tokio::spawn(async move {
-            let cfg = shared.config.clone();
-            let report = tokio::task::spawn_blocking(move || preload(&cfg)).await;
+            let sh = shared.clone();
+            let report = tokio::task::spawn_blocking(move || preload(&sh)).await;
             let report = match report {
-                Ok(Ok((cases, report))) => {
-                    let _ = shared.cases.set(cases);
+                Ok(Ok(report)) => {
+                    shared.registry.set_preloaded();
                     health.set_service_status("", ServingStatus::Serving).await;
                     health
                         .set_service_status(SERVICE_NAME, ServingStatus::Serving)
@@ -577,20 +587,60 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, Pre
     Ok(Some(models.into_iter().map(Arc::new).collect()))
 }
 
-fn preload(
-    config: &ServerConfig,
-) -> Result<(BTreeMap<String, Arc<Case>>, PreloadReport), PreloadError> {
+/// The status of a ready case.
+pub(crate) fn ready_status(c: &Case) -> librplus_proto::v1::CaseStatus {
+    librplus_proto::v1::CaseStatus {
+        case_id: c.id.clone(),
+        version: c.version.clone(),
+        state: librplus_proto::v1::CaseState::Ready as i32,
+        stage: String::new(),
+        fraction: 1.0,
+        error: String::new(),
+        seconds: c.prepared.seconds,
+    }
+}
+
+/// Preloads the configured cases and the case store's, into the registry.
+fn preload(shared: &Shared) -> Result<PreloadReport, PreloadError> {
+    let config = &shared.config;
     let t0 = Instant::now();
-    let found = cases::discover(config)?;
+    let mut found = if config.cases.is_empty() {
+        Vec::new()
+    } else {
+        cases::discover(config)?
+    };
+    let configured = found.len();
+    if let Some(store) = &shared.store {
+        match store.list() {
+            Ok(list) => {
+                for s in list {
+                    match s {
+                        Ok(s) => {
+                            if found.iter().any(|(id, _)| *id == s.case_id) {
+                                tracing::error!(case = %s.case_id, "a stored case has the id of a configured case; skipped");
+                                continue;
+                            }
+                            found.push((s.case_id.clone(), cases::CaseSource::Stored(Box::new(s))));
+                        }
+                        Err(e) => {
+                            tracing::error!(error = %e, "a stored case does not read; skipped")
+                        }
+                    }
+                }
+            }
+            Err(e) => tracing::error!(error = %e, "the case store cannot be listed"),
+        }
+    }
     let libr = LibrParams::default();
     let gcn = load_gcn(config)?;
-    let mut out = BTreeMap::new();
+    let _ = shared.gcn.set(gcn.clone());
     let mut report = PreloadReport {
         cases: Vec::new(),
         failed: Vec::new(),
         seconds: 0.0,
     };
-    for (id, src) in &found {
+    let mut loaded_configured = 0;
+    for (k, (id, src)) in found.iter().enumerate() {
         match cases::load(id, src, config, &libr, gcn.as_ref()) {
             Ok(c) => {
                 tracing::info!(
@@ -606,22 +656,33 @@ fn preload(
                     c.prepared.seconds,
                     c.prepared.basis_from_cache,
                 ));
-                out.insert(id.clone(), Arc::new(c));
+                let c = Arc::new(c);
+                shared.registry.set(ready_status(&c), Some(c));
+                loaded_configured += usize::from(k < configured);
             }
             Err(e) => {
                 tracing::error!(case = %id, error = %e, "case failed to load; skipped");
                 report.failed.push((id.clone(), e.to_string()));
+                shared.registry.set(
+                    librplus_proto::v1::CaseStatus {
+                        case_id: id.clone(),
+                        state: librplus_proto::v1::CaseState::Failed as i32,
+                        error: e.to_string(),
+                        ..Default::default()
+                    },
+                    None,
+                );
             }
         }
     }
-    if out.is_empty() {
+    if configured > 0 && loaded_configured == 0 {
         return Err(PreloadError::NoCase {
-            found: found.len(),
+            found: configured,
             failed: report.failed,
         });
     }
     report.seconds = t0.elapsed().as_secs_f64();
-    Ok((out, report))
+    Ok(report)
 }
 
 impl Running {

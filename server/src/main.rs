@@ -153,6 +153,10 @@ struct Args {
     /// it is answered; sessions resume from it.
     #[arg(long, value_name = "FILE")]
     audit: Option<PathBuf>,
+    /// Case store folder: cases uploaded over the API (CreateCase) are kept there and reloaded
+    /// at start.
+    #[arg(long, value_name = "DIR")]
+    case_store: Option<PathBuf>,
 }
 
 fn config(a: &Args) -> Result<ServerConfig> {
@@ -193,6 +197,9 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.audit.is_some() {
         c.audit_db = a.audit.clone();
+    }
+    if a.case_store.is_some() {
+        c.case_store = a.case_store.clone();
     }
     if a.model.is_some() {
         c.model = a.model.clone();

@@ -14,7 +14,7 @@ use librplus::pipeline::Method;
 use librplus::register::{MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
 use pb::lib_r_plus_server::LibRPlus;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
@@ -27,8 +27,12 @@ use tracing::Instrument;
 pub struct Shared {
     /// Configuration.
     pub config: ServerConfig,
-    /// The preloaded cases (set once preload is done).
-    pub cases: OnceLock<BTreeMap<String, Arc<Case>>>,
+    /// The cases: ready ones, and the state of each.
+    pub registry: crate::registry::Registry,
+    /// The case store (uploads), when configured.
+    pub store: Option<crate::store::Store>,
+    /// The SR-GCN networks every case gets (set by the preload at start).
+    pub gcn: OnceLock<Option<Vec<Arc<librplus::gcn::io::TrainedModel>>>>,
     /// Compute slots.
     pub engine: Engine,
     /// Session admission.
@@ -56,17 +60,20 @@ impl Shared {
         config: ServerConfig,
         auth: Option<Auth>,
         audit: Option<Audit>,
+        store: Option<crate::store::Store>,
         engine: Engine,
         drain: watch::Receiver<bool>,
     ) -> Self {
         Self {
+            store,
+            registry: Default::default(),
+            gcn: OnceLock::new(),
             audit: audit.map(Arc::new),
             boot: format!("{:x}", crate::audit::now_ms()),
             engine,
             sessions: Arc::new(Semaphore::new(config.max_sessions)),
             drain,
             next_session: AtomicU64::new(0),
-            cases: OnceLock::new(),
             auth: auth.map(|a| std::sync::RwLock::new(Arc::new(a))),
             anonymous: Principal::anonymous(),
             per_principal: Default::default(),
@@ -297,18 +304,24 @@ impl Svc {
         }
     }
 
-    fn cases(&self) -> Result<&BTreeMap<String, Arc<Case>>, ServiceError> {
-        self.0.cases.get().ok_or_else(|| {
-            ServiceError::Unavailable(
+    pub(crate) fn cases(&self) -> Result<crate::registry::Ready, ServiceError> {
+        if !self.0.registry.preloaded() {
+            return Err(ServiceError::Unavailable(
                 "the server is still preloading its cases; retry when health reports SERVING"
                     .into(),
-            )
-        })
+            ));
+        }
+        Ok(self.0.registry.ready())
     }
 
     /// The case `id` if `who` may use it; NOT_FOUND, worded the same, when it does not exist or
     /// `who` may not use it (a caller learns nothing of other tenants' cases).
-    fn case(&self, id: &str, field: &str, who: &Principal) -> Result<Arc<Case>, ServiceError> {
+    pub(crate) fn case(
+        &self,
+        id: &str,
+        field: &str,
+        who: &Principal,
+    ) -> Result<Arc<Case>, ServiceError> {
         if id.len() > MAX_CASE_ID {
             return Err(ServiceError::field(
                 field,
@@ -450,6 +463,19 @@ impl LibRPlus for Svc {
             case_id,
             include_mesh,
         } = req.into_inner();
+        // An upload still loading, or failed: its state only.
+        if case_id.len() <= MAX_CASE_ID
+            && who.may_use(&case_id)
+            && !self.cases().map_err(fail)?.contains_key(&case_id)
+            && let Some(status) = self.0.registry.status(&case_id)
+        {
+            return Ok(Response::new(pb::DescribeCaseResponse {
+                status: Some(status),
+                length_unit: "mm".into(),
+                frame: "image (preoperative), LPS".into(),
+                ..Default::default()
+            }));
+        }
         let c = self.case(&case_id, "case_id", &who).map_err(|e| {
             self.0
                 .refused("DescribeCase", &who.name, Some(&case_id), &e);
@@ -457,6 +483,7 @@ impl LibRPlus for Svc {
         })?;
         let mut out = pb::DescribeCaseResponse {
             summary: Some(summary(&c)),
+            status: Some(crate::ready_status(&c)),
             length_unit: "mm".into(),
             frame: "image (preoperative), LPS".into(),
             ..Default::default()
@@ -558,6 +585,84 @@ impl LibRPlus for Svc {
                 Err(fail(b))
             }
         }
+    }
+
+    async fn create_case(
+        &self,
+        req: Request<Streaming<pb::CreateCaseRequest>>,
+    ) -> Result<Response<pb::CreateCaseResponse>, Status> {
+        let who = self.caller(&req, "CreateCase")?;
+        self.allowed(&who, Role::Manage, "CreateCase", "upload cases")?;
+        let r = crate::upload::create(self, &who, req.into_inner()).await;
+        r.map(Response::new).map_err(|e| {
+            self.0.refused("CreateCase", &who.name, None, &e);
+            fail(e)
+        })
+    }
+
+    type WatchCaseStream = ReceiverStream<Result<pb::CaseStatus, Status>>;
+
+    async fn watch_case(
+        &self,
+        req: Request<pb::WatchCaseRequest>,
+    ) -> Result<Response<Self::WatchCaseStream>, Status> {
+        let who = self.caller(&req, "WatchCase")?;
+        self.allowed(&who, Role::Read, "WatchCase", "watch cases")?;
+        let pb::WatchCaseRequest { case_id } = req.into_inner();
+        self.cases().map_err(fail)?;
+        let rx = (case_id.len() <= MAX_CASE_ID && who.may_use(&case_id))
+            .then(|| self.0.registry.watch(&case_id))
+            .flatten();
+        let Some(mut rx) = rx else {
+            // As DescribeCase words it.
+            return Err(fail(self.case(&case_id, "case_id", &who).err().unwrap_or(
+                ServiceError::UnknownCase {
+                    field: "case_id".into(),
+                    id: case_id,
+                    known: Vec::new(),
+                },
+            )));
+        };
+        let (tx, out) = mpsc::channel(4);
+        let mut drain = self.0.drain.clone();
+        tokio::spawn(async move {
+            loop {
+                let s = rx.borrow_and_update().clone();
+                let done = s.state != pb::CaseState::Loading as i32;
+                if tx.send(Ok(s)).await.is_err() || done {
+                    return;
+                }
+                let changed = tokio::select! {
+                    r = rx.changed() => Some(r.is_ok()),
+                    _ = drain.wait_for(|d| *d) => None,
+                };
+                match changed {
+                    Some(true) => {}
+                    Some(false) => return,
+                    None => {
+                        let _ = tx
+                            .send(Err(Status::unavailable("the server is shutting down")))
+                            .await;
+                        return;
+                    }
+                }
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(out)))
+    }
+
+    async fn delete_case(
+        &self,
+        req: Request<pb::DeleteCaseRequest>,
+    ) -> Result<Response<pb::DeleteCaseResponse>, Status> {
+        let who = self.caller(&req, "DeleteCase")?;
+        self.allowed(&who, Role::Manage, "DeleteCase", "delete cases")?;
+        let pb::DeleteCaseRequest { case_id } = req.into_inner();
+        let r = crate::upload::delete(self, &who, &case_id).await;
+        r.map(Response::new).map_err(|e| {
+            self.0.refused("DeleteCase", &who.name, Some(&case_id), &e);
+            fail(e)
+        })
     }
 
     type StreamRegisterStream = UpdateStream;
@@ -793,6 +898,15 @@ async fn session(
     };
     let sid = sid.as_str();
     let _admission = svc.admit(&who).await.map_err(|b| b.to_status())?;
+    // The case is in use while the session lasts (DeleteCase waits for none).
+    struct InUse(Arc<Case>);
+    impl Drop for InUse {
+        fn drop(&mut self) {
+            self.0.sessions.fetch_sub(1, Ordering::SeqCst);
+        }
+    }
+    s.case.sessions.fetch_add(1, Ordering::SeqCst);
+    let _in_use = InUse(s.case.clone());
     if resume {
         svc.0
             .record(vec![Record::Event {

@@ -16,3 +16,4 @@ mod shutdown;
 mod stream;
 mod tls;
 mod unary;
+mod upload;

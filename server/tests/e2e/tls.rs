@@ -81,6 +81,20 @@ async fn tls_and_mutual_tls() {
     let foreign = list(&url, &trusting(&ca_file, Some(&stranger))).await;
     eprintln!("mTLS, certificate of another CA: {foreign:?}");
     assert!(foreign.is_err());
+    // Certificates of the right CA outside their validity.
+    for (what, from, to) in [
+        ("expired", (2020, 1, 1), (2021, 1, 1)),
+        ("not yet valid", (2099, 1, 1), (2100, 1, 1)),
+    ] {
+        let (cert, key) = leaf_valid(&["navigation-system-1"], &ca_issuer, from, to);
+        let id = (
+            write(d, &format!("{what}.pem"), &cert),
+            write(d, &format!("{what}.key"), &key),
+        );
+        let r = list(&url, &trusting(&ca_file, Some(&id))).await;
+        eprintln!("mTLS, {what} client certificate: {r:?}");
+        assert!(r.is_err(), "{what}");
+    }
     assert_eq!(running.shutdown().await, 0);
     // Refused settings name the option.
     let half = ServerConfig {

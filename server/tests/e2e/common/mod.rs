@@ -353,6 +353,23 @@ pub fn leaf(names: &[&str], issuer: &Issuer<'static, KeyPair>) -> (String, Strin
     (cert.pem(), key.serialize_pem())
 }
 
+/// [`leaf`] valid only from `from` to `to` (year, month, day).
+pub fn leaf_valid(
+    names: &[&str],
+    issuer: &Issuer<'static, KeyPair>,
+    from: (i32, u8, u8),
+    to: (i32, u8, u8),
+) -> (String, String) {
+    let key = KeyPair::generate().unwrap();
+    let mut params =
+        CertificateParams::new(names.iter().map(|s| s.to_string()).collect::<Vec<_>>()).unwrap();
+    params.distinguished_name.push(DnType::CommonName, names[0]);
+    params.not_before = rcgen::date_time_ymd(from.0, from.1, from.2);
+    params.not_after = rcgen::date_time_ymd(to.0, to.1, to.2);
+    let cert = params.signed_by(&key, issuer).unwrap();
+    (cert.pem(), key.serialize_pem())
+}
+
 pub fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
     let p = dir.join(name);
     std::fs::write(&p, text).unwrap();

@@ -1,0 +1,105 @@
+//! The cases a server knows: those ready to register against (a snapshot map, replaced on each
+//! change so that readers never wait), and the state of every case (LOADING, READY, FAILED),
+//! watched by `WatchCase`.
+
+use crate::cases::Case;
+use librplus_proto::v1 as pb;
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use tokio::sync::watch;
+
+/// Ready cases by id.
+pub type Ready = Arc<BTreeMap<String, Arc<Case>>>;
+
+/// The registry.
+#[derive(Default)]
+pub struct Registry {
+    ready: RwLock<Ready>,
+    states: Mutex<BTreeMap<String, watch::Sender<pb::CaseStatus>>>,
+    preloaded: AtomicBool,
+}
+
+impl Registry {
+    /// The ready cases now.
+    pub fn ready(&self) -> Ready {
+        self.ready.read().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    /// Whether the preload at start is done.
+    pub fn preloaded(&self) -> bool {
+        self.preloaded.load(Ordering::Acquire)
+    }
+
+    /// Marks the preload at start done.
+    pub fn set_preloaded(&self) {
+        self.preloaded.store(true, Ordering::Release);
+    }
+
+    /// Sets a case's state (creating its watch); a READY state with its case makes it served.
+    pub fn set(&self, status: pb::CaseStatus, case: Option<Arc<Case>>) {
+        let id = status.case_id.clone();
+        if let Some(c) = case {
+            let mut r = self.ready.write().unwrap_or_else(|e| e.into_inner());
+            let mut m = (**r).clone();
+            m.insert(id.clone(), c);
+            *r = Arc::new(m);
+        }
+        let mut s = self.states.lock().unwrap_or_else(|e| e.into_inner());
+        match s.get(&id) {
+            Some(tx) => {
+                tx.send_replace(status);
+            }
+            None => {
+                s.insert(id, watch::channel(status).0);
+            }
+        }
+    }
+
+    /// A case's state, and a receiver of its changes.
+    pub fn watch(&self, id: &str) -> Option<watch::Receiver<pb::CaseStatus>> {
+        self.states
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(id)
+            .map(|tx| tx.subscribe())
+    }
+
+    /// A case's state.
+    pub fn status(&self, id: &str) -> Option<pb::CaseStatus> {
+        self.watch(id).map(|rx| rx.borrow().clone())
+    }
+
+    /// Forgets a case (served no more); its watchers see it FAILED "deleted".
+    pub fn remove(&self, id: &str) -> Option<Arc<Case>> {
+        let case = {
+            let mut r = self.ready.write().unwrap_or_else(|e| e.into_inner());
+            let mut m = (**r).clone();
+            let c = m.remove(id);
+            *r = Arc::new(m);
+            c
+        };
+        if let Some(tx) = self
+            .states
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(id)
+        {
+            let mut st = tx.borrow().clone();
+            st.state = pb::CaseState::Failed as i32;
+            st.error = "the case was deleted".into();
+            tx.send_replace(st);
+        }
+        case
+    }
+
+    /// Every case's state, by id.
+    pub fn all(&self) -> Vec<pb::CaseStatus> {
+        self.states
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .values()
+            .map(|tx| tx.borrow().clone())
+            .collect()
+    }
+}

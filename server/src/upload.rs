@@ -1,0 +1,379 @@
+//! `CreateCase` and `DeleteCase`: an upload received in chunks, checked, stored and preloaded in
+//! the background; a stored case deleted when no session uses it.
+
+use crate::audit::Record;
+use crate::auth::Principal;
+use crate::cases::{self, CaseSource};
+use crate::error::ServiceError;
+use crate::service::{Shared, Svc};
+use crate::store::{self, MeshSource, Stored, Upload};
+use librplus_proto::v1 as pb;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+use tonic::Streaming;
+
+/// Longest wait for the next message of an upload.
+const CHUNK_WAIT: Duration = Duration::from_secs(30);
+
+fn no_store() -> ServiceError {
+    ServiceError::precondition(
+        "CASE",
+        "upload",
+        "the server keeps no case store",
+        "this server keeps no case store (case_store, --case-store): cases cannot be uploaded or deleted",
+    )
+}
+
+async fn next(
+    inbound: &mut Streaming<pb::CreateCaseRequest>,
+) -> Result<Option<pb::create_case_request::Part>, ServiceError> {
+    match tokio::time::timeout(CHUNK_WAIT, inbound.message()).await {
+        Err(_) => Err(ServiceError::Deadline(format!(
+            "no upload message for {} s; nothing was stored",
+            CHUNK_WAIT.as_secs()
+        ))),
+        Ok(Err(s)) => Err(ServiceError::Received {
+            code: s.code(),
+            message: format!("receiving the upload: {}", s.message()),
+        }),
+        Ok(Ok(None)) => Ok(None),
+        Ok(Ok(Some(m))) => match m.part {
+            Some(p) => Ok(Some(p)),
+            None => Err(ServiceError::field(
+                "part",
+                "is empty: set upload (first) or chunk",
+            )),
+        },
+    }
+}
+
+/// Receives, checks, stores and starts preloading an upload.
+pub async fn create(
+    svc: &Svc,
+    who: &Arc<Principal>,
+    mut inbound: Streaming<pb::CreateCaseRequest>,
+) -> Result<pb::CreateCaseResponse, ServiceError> {
+    let shared = &svc.0;
+    if shared.store.is_none() {
+        return Err(no_store());
+    }
+    if *shared.drain.borrow() {
+        return Err(ServiceError::Unavailable(
+            "the server is shutting down".into(),
+        ));
+    }
+    svc.cases()?;
+    let cfg = &shared.config;
+    let Some(pb::create_case_request::Part::Upload(up)) = next(&mut inbound).await? else {
+        return Err(ServiceError::field(
+            "part",
+            "the first message of an upload must be a CaseUpload",
+        ));
+    };
+    let pb::CaseUpload {
+        case_id,
+        mesh_format,
+        mesh_unit,
+        nodes_mm,
+        tets,
+        total_bytes,
+    } = up;
+    store::check_id(&case_id).map_err(|e| ServiceError::field("upload.case_id", e))?;
+    if !who.may_use(&case_id) {
+        return Err(ServiceError::PermissionDenied(format!(
+            "principal {:?} may not upload case {case_id:?}: it is outside the cases it may use",
+            who.name
+        )));
+    }
+    let max = cfg.max_case_bytes;
+    let too_big = |n: u64| ServiceError::Quota {
+        message: format!("upload: {n} bytes, above the server's limit of {max} bytes"),
+        subject: "case_bytes",
+        description: format!("at most {max} bytes per upload (max_case_bytes)"),
+    };
+    if total_bytes > max as u64 {
+        return Err(too_big(total_bytes));
+    }
+    let arrays = !nodes_mm.is_empty() || !tets.is_empty();
+    if arrays && !mesh_format.is_empty() {
+        return Err(ServiceError::field(
+            "upload.mesh_format",
+            "is set while nodes_mm/tets carry the mesh: send one or the other",
+        ));
+    }
+    let mut received = (nodes_mm.len() * 8 + tets.len() * 4) as u64;
+    let (mut mesh, mut vessels, mut physics) = (Vec::new(), None::<Vec<u8>>, None::<Vec<u8>>);
+    while let Some(part) = next(&mut inbound).await? {
+        let pb::create_case_request::Part::Chunk(pb::CaseChunk { file, data }) = part else {
+            return Err(ServiceError::field(
+                "part",
+                "a second CaseUpload: only the first message describes the upload",
+            ));
+        };
+        received += data.len() as u64;
+        if received > max as u64 {
+            return Err(too_big(received));
+        }
+        match pb::CaseFile::try_from(file) {
+            Ok(pb::CaseFile::Mesh) if arrays => {
+                return Err(ServiceError::field(
+                    "chunk.file",
+                    "CASE_FILE_MESH chunks while nodes_mm/tets carry the mesh",
+                ));
+            }
+            Ok(pb::CaseFile::Mesh) => mesh.extend_from_slice(&data),
+            Ok(pb::CaseFile::Vessels) => vessels.get_or_insert_with(Vec::new).extend(data),
+            Ok(pb::CaseFile::Physics) => physics.get_or_insert_with(Vec::new).extend(data),
+            _ => {
+                return Err(ServiceError::field(
+                    "chunk.file",
+                    format!(
+                        "{file}: expected CASE_FILE_MESH, CASE_FILE_VESSELS or CASE_FILE_PHYSICS"
+                    ),
+                ));
+            }
+        }
+    }
+    if !arrays && mesh.is_empty() {
+        return Err(ServiceError::field(
+            "chunk",
+            "no mesh: send CASE_FILE_MESH chunks (with upload.mesh_format) or upload.nodes_mm and upload.tets",
+        ));
+    }
+    // A case the server was started with keeps its id.
+    let store = shared.store.as_ref().expect("checked");
+    if shared.registry.status(&case_id).is_some() && store.find(&case_id).is_none() {
+        return Err(ServiceError::precondition(
+            "CASE",
+            "upload.case_id",
+            format!("case {case_id} exists"),
+            format!(
+                "upload.case_id: the server was started with a case {case_id:?}; choose another id"
+            ),
+        ));
+    }
+    let upload = Upload {
+        case_id: case_id.clone(),
+        mesh: if arrays {
+            MeshSource::Arrays {
+                nodes: nodes_mm,
+                tets,
+            }
+        } else {
+            MeshSource::File {
+                bytes: mesh,
+                format: mesh_format,
+            }
+        },
+        unit: mesh_unit,
+        vessels,
+        physics,
+    };
+    let sh = shared.clone();
+    let principal = who.name.clone();
+    let max_nodes = cfg.max_case_nodes;
+    let (stored, created) = tokio::task::spawn_blocking(move || {
+        let checked = store::check(&upload, max_nodes)?;
+        let store = sh.store.as_ref().expect("checked");
+        store
+            .put(&upload, &checked, &principal)
+            .map_err(|e| e.to_service())
+    })
+    .await
+    .map_err(|e| ServiceError::Internal(format!("storing the upload: {e}")))??;
+    if created {
+        // Acknowledged once recorded.
+        shared
+            .record(vec![Record::Event {
+                kind: "case_created",
+                principal: who.name.clone(),
+                case_id: Some(case_id.clone()),
+                session_id: None,
+                detail: serde_json::json!({
+                    "version": stored.version, "nodes": stored.nodes, "tets": stored.tets,
+                    "bytes": received, "vessels": stored.vessels, "physics": stored.physics,
+                }),
+            }])
+            .await?;
+        tracing::info!(case = %case_id, version = %stored.version, nodes = stored.nodes, principal = %who.name, "case uploaded; preloading");
+    }
+    let status = match shared.registry.status(&case_id) {
+        Some(s) if s.version == stored.version => s,
+        _ => preload(shared.clone(), stored.clone()),
+    };
+    Ok(pb::CreateCaseResponse {
+        case_id,
+        version: stored.version,
+        created,
+        status: Some(status),
+        node_count: stored.nodes as u32,
+        tet_count: stored.tets as u32,
+    })
+}
+
+/// Starts preloading a stored case in the background; its first status.
+pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
+    let t0 = Instant::now();
+    let status = |stage: &str, fraction: f64| pb::CaseStatus {
+        case_id: stored.case_id.clone(),
+        version: stored.version.clone(),
+        state: pb::CaseState::Loading as i32,
+        stage: stage.into(),
+        fraction,
+        error: String::new(),
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    let first = status("queued", 0.0);
+    shared.registry.set(first.clone(), None);
+    tokio::task::spawn_blocking(move || {
+        let id = stored.case_id.clone();
+        let version = stored.version.clone();
+        let progress = |stage: &str, fraction: f64| {
+            shared.registry.set(
+                pb::CaseStatus {
+                    case_id: id.clone(),
+                    version: version.clone(),
+                    state: pb::CaseState::Loading as i32,
+                    stage: stage.into(),
+                    fraction,
+                    error: String::new(),
+                    seconds: t0.elapsed().as_secs_f64(),
+                },
+                None,
+            )
+        };
+        let gcn = shared.gcn.get().cloned().flatten();
+        let r = cases::load_with_progress(
+            &id,
+            &CaseSource::Stored(Box::new(stored)),
+            &shared.config,
+            &librplus::register::libr::LibrParams::default(),
+            gcn.as_ref(),
+            &progress,
+        );
+        match r {
+            Ok(c) => {
+                tracing::info!(case = %id, seconds = t0.elapsed().as_secs_f64(), "uploaded case READY");
+                let c = Arc::new(c);
+                let mut s = crate::ready_status(&c);
+                s.seconds = t0.elapsed().as_secs_f64();
+                shared.registry.set(s, Some(c));
+            }
+            Err(e) => {
+                tracing::error!(case = %id, error = %e, "uploaded case failed to preload");
+                shared.registry.set(
+                    pb::CaseStatus {
+                        case_id: id.clone(),
+                        version,
+                        state: pb::CaseState::Failed as i32,
+                        error: e.to_string(),
+                        seconds: t0.elapsed().as_secs_f64(),
+                        ..Default::default()
+                    },
+                    None,
+                );
+            }
+        }
+    });
+    first
+}
+
+/// Deletes an uploaded case no session uses.
+pub async fn delete(
+    svc: &Svc,
+    who: &Arc<Principal>,
+    case_id: &str,
+) -> Result<pb::DeleteCaseResponse, ServiceError> {
+    let shared = &svc.0;
+    let Some(store) = &shared.store else {
+        return Err(no_store());
+    };
+    let status = (case_id.len() <= crate::service::MAX_CASE_ID && who.may_use(case_id))
+        .then(|| shared.registry.status(case_id))
+        .flatten();
+    let Some(status) = status else {
+        // Worded as for any case the caller may not see.
+        return Err(svc
+            .case(case_id, "case_id", who)
+            .err()
+            .unwrap_or(ServiceError::Internal("case state missing".into())));
+    };
+    if status.state == pb::CaseState::Loading as i32 {
+        return Err(ServiceError::precondition(
+            "CASE",
+            "case_id",
+            "the case is loading",
+            format!(
+                "case_id: case {case_id:?} is still loading; delete it when it is READY or FAILED"
+            ),
+        ));
+    }
+    let Some(stored) = store.find(case_id) else {
+        return Err(ServiceError::precondition(
+            "CASE",
+            "case_id",
+            "not an uploaded case",
+            format!(
+                "case_id: the server was started with case {case_id:?}; only uploaded cases are deleted over the API"
+            ),
+        ));
+    };
+    let in_use = |c: &crate::cases::Case| c.sessions.load(Ordering::SeqCst);
+    let busy = |n: usize| {
+        ServiceError::precondition(
+            "CASE",
+            "case_id",
+            "sessions use the case",
+            format!("case_id: {n} session(s) use case {case_id:?}; delete it when they have ended"),
+        )
+    };
+    let ready = shared.registry.ready().get(case_id).cloned();
+    if let Some(c) = &ready
+        && in_use(c) > 0
+    {
+        return Err(busy(in_use(c)));
+    }
+    shared.registry.remove(case_id);
+    // A session that started meanwhile keeps it.
+    if let Some(c) = &ready
+        && in_use(c) > 0
+    {
+        shared.registry.set(crate::ready_status(c), Some(c.clone()));
+        return Err(busy(in_use(c)));
+    }
+    let sh = shared.clone();
+    let id = case_id.to_string();
+    let removed = tokio::task::spawn_blocking(move || {
+        sh.store
+            .as_ref()
+            .expect("checked")
+            .remove(&id)
+            .map_err(|e| e.to_service())
+    })
+    .await
+    .map_err(|e| ServiceError::Internal(format!("deleting: {e}")))?;
+    if let Err(e) = removed {
+        // Still stored: served again.
+        if let Some(c) = ready {
+            shared.registry.set(crate::ready_status(&c), Some(c));
+        } else {
+            shared.registry.set(status, None);
+        }
+        return Err(e);
+    }
+    shared
+        .record(vec![Record::Event {
+            kind: "case_deleted",
+            principal: who.name.clone(),
+            case_id: Some(case_id.to_string()),
+            session_id: None,
+            detail: serde_json::json!({ "version": stored.version }),
+        }])
+        .await?;
+    tracing::info!(case = %case_id, principal = %who.name, "case deleted");
+    Ok(pb::DeleteCaseResponse {
+        case_id: case_id.to_string(),
+        version: stored.version,
+    })
+}
