@@ -286,6 +286,7 @@ impl Audit {
                         }
                     }
                     let t = now_ms();
+                    let t0 = std::time::Instant::now();
                     let result = (|| -> rusqlite::Result<()> {
                         let txn = conn.transaction()?;
                         for (records, _) in &batch {
@@ -301,6 +302,8 @@ impl Audit {
                         format!("audit database {}: {e}", p.display())
                     });
                     metrics::counter!("librplus_audit_commits_total").increment(1);
+                    metrics::histogram!("librplus_audit_commit_seconds")
+                        .record(t0.elapsed().as_secs_f64());
                     for (_, reply) in batch {
                         let _ = reply.send(result.clone());
                     }

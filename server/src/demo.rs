@@ -115,12 +115,31 @@ struct DemoTls {
 }
 
 fn demo_tls(dir: &Path) -> Result<DemoTls> {
+    let (ca, server, mut clients) =
+        dev_certs(dir, "LIBR+ demo CA (this run only)", &["demo-client"])?;
+    Ok(DemoTls {
+        ca,
+        server,
+        client: clients.remove(0),
+    })
+}
+
+/// A certificate and its key (PEM files).
+pub type CertPair = (PathBuf, PathBuf);
+
+/// A CA (`ca.pem`), a server certificate for `localhost` (`localhost.pem`, `.key`) and one
+/// certificate per client name (`NAME.pem`, `NAME.key`, its subject `CN=NAME`), written into
+/// `dir`: for tests, benchmarks and trials, never for a hospital (`librplus-server dev-certs`).
+pub fn dev_certs(
+    dir: &Path,
+    ca_name: &str,
+    clients: &[&str],
+) -> Result<(PathBuf, CertPair, Vec<CertPair>)> {
     use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair};
     let ca_key = KeyPair::generate()?;
     let mut ca = CertificateParams::new(Vec::<String>::new())?;
     ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    ca.distinguished_name
-        .push(DnType::CommonName, "LIBR+ demo CA (this run only)");
+    ca.distinguished_name.push(DnType::CommonName, ca_name);
     let ca_pem = ca.self_signed(&ca_key)?.pem();
     let issuer = Issuer::new(ca, ca_key);
     let write = |name: &str, text: &str| -> Result<PathBuf> {
@@ -139,12 +158,11 @@ fn demo_tls(dir: &Path) -> Result<DemoTls> {
         ))
     };
     let server = leaf("localhost")?;
-    let client = leaf("demo-client")?;
-    Ok(DemoTls {
-        ca: write("ca.pem", &ca_pem)?,
-        server,
-        client,
-    })
+    let clients = clients
+        .iter()
+        .map(|c| leaf(c))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((write("ca.pem", &ca_pem)?, server, clients))
 }
 
 /// Runs the demo.

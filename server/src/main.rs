@@ -70,6 +70,17 @@ enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    #[cfg(feature = "demo")]
+    /// Write a CA, a server certificate for `localhost` and client certificates into a folder
+    /// (PEM; for tests, benchmarks and trials, not for a hospital's certificates).
+    DevCerts {
+        /// The folder (created).
+        #[arg(long)]
+        out: PathBuf,
+        /// A client certificate with this common name (repeatable; default `client`).
+        #[arg(long = "client")]
+        clients: Vec<String>,
+    },
     /// Make a new random bearer token: prints the token (give it to the client; it is shown
     /// once) and the auth file entry that holds only its SHA-256.
     Token {
@@ -267,6 +278,25 @@ async fn main() -> Result<()> {
             export,
             out,
         }) => return audit(&db, case.as_deref(), since.as_deref(), json, export, out),
+        #[cfg(feature = "demo")]
+        Some(Command::DevCerts { out, clients }) => {
+            std::fs::create_dir_all(&out)?;
+            let names: Vec<&str> = if clients.is_empty() {
+                vec!["client"]
+            } else {
+                clients.iter().map(String::as_str).collect()
+            };
+            let (ca, server, clients) = demo::dev_certs(&out, "LIBR+ development CA", &names)?;
+            eprintln!(
+                "CA {}, server {} / {}, {} client certificate(s) in {}",
+                ca.display(),
+                server.0.display(),
+                server.1.display(),
+                clients.len(),
+                out.display()
+            );
+            return Ok(());
+        }
         Some(Command::Token {
             principal,
             cases,
