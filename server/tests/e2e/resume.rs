@@ -156,6 +156,30 @@ async fn sessions_resume_after_a_lost_stream_and_a_restart() {
     let pts = librplus::input::read_points(&out.join("surface.csv"), librplus::mesh::io::Unit::Mm)
         .unwrap();
     assert_eq!(pts.len(), e.surface);
+    // `librplus-server audit` reads the same, as JSON lines and filtered by case and time.
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_librplus-server"));
+    cmd.arg("audit").arg("--db").arg(&db).args([
+        "--json",
+        "--case",
+        &case,
+        "--since",
+        "2000-01-01",
+    ]);
+    let out = run_cmd(cmd).await;
+    let lines: Vec<serde_json::Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(
+        lines.iter().filter(|l| l["kind"] == "registration").count(),
+        regs.len()
+    );
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_librplus-server"));
+    cmd.arg("audit")
+        .arg("--db")
+        .arg(&db)
+        .args(["--since", "2999-01-01"]);
+    assert_eq!(run_cmd(cmd).await.lines().count(), 0);
     // Without an audit log there is nothing to resume from.
     let mut running = librplus_server::start(config(2)).await.unwrap();
     running.ready().await.unwrap();
