@@ -177,6 +177,38 @@ fn files(dir: &Path) -> Vec<Vec<u8>> {
     paths.iter().filter_map(|p| std::fs::read(p).ok()).collect()
 }
 
+/// A packed corpus: gzip of "LIBRPLUS-CORPUS-1\n" then each input as a u32 (LE) length and its
+/// bytes.
+fn pack_path(target: &str) -> PathBuf {
+    fuzz_dir()
+        .join("corpus")
+        .join(format!("{target}.corpus.gz"))
+}
+
+const PACK_MAGIC: &[u8] = b"LIBRPLUS-CORPUS-1\n";
+
+fn read_pack(target: &str) -> Vec<Vec<u8>> {
+    use std::io::Read;
+    let Ok(f) = std::fs::File::open(pack_path(target)) else {
+        return Vec::new();
+    };
+    let mut raw = Vec::new();
+    flate2::read::GzDecoder::new(f)
+        .read_to_end(&mut raw)
+        .unwrap_or_else(|e| panic!("{}: {e}", pack_path(target).display()));
+    assert!(raw.starts_with(PACK_MAGIC), "{target}: not a corpus pack");
+    let mut out = Vec::new();
+    let mut at = PACK_MAGIC.len();
+    while at + 4 <= raw.len() {
+        let n = u32::from_le_bytes(raw[at..at + 4].try_into().unwrap()) as usize;
+        at += 4;
+        assert!(at + n <= raw.len(), "{target}: truncated corpus pack");
+        out.push(raw[at..at + n].to_vec());
+        at += n;
+    }
+    out
+}
+
 fn fuzz_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz")
 }
@@ -277,7 +309,8 @@ fn every_fuzz_target_survives_its_corpus_regressions_and_mutations() {
         let mut inputs = seeds(target);
         let made = inputs.len();
         assert!(made > 0, "{target}: no seeds");
-        let corpus = files(&fuzz_dir().join("corpus").join(target));
+        let mut corpus = read_pack(target);
+        corpus.extend(files(&fuzz_dir().join("corpus").join(target)));
         let regressions = files(&fuzz_dir().join("regressions").join(target));
         let (nc, nr) = (corpus.len(), regressions.len());
         inputs.extend(corpus);
@@ -310,6 +343,48 @@ fn write_seeds() {
         std::fs::create_dir_all(&dir).unwrap();
         for (i, s) in seeds(target).iter().enumerate() {
             std::fs::write(dir.join(format!("seed-{i}")), s).unwrap();
+        }
+    }
+}
+
+/// Packs each `fuzz/corpus/TARGET/` folder (a libFuzzer corpus, minimized with `-merge=1`) into
+/// `fuzz/corpus/TARGET.corpus.gz`, the form that is committed:
+/// `cargo test -p librplus-server --test fuzz_regressions -- --ignored pack_corpus`.
+#[test]
+#[ignore = "writes fuzz/corpus/*.corpus.gz"]
+fn pack_corpus() {
+    use std::io::Write;
+    for target in TARGETS {
+        let inputs = files(&fuzz_dir().join("corpus").join(target));
+        if inputs.is_empty() {
+            continue;
+        }
+        let mut raw = PACK_MAGIC.to_vec();
+        for i in &inputs {
+            raw.extend((i.len() as u32).to_le_bytes());
+            raw.extend(i);
+        }
+        let mut gz = flate2::write::GzEncoder::new(
+            std::fs::File::create(pack_path(target)).unwrap(),
+            flate2::Compression::best(),
+        );
+        gz.write_all(&raw).unwrap();
+        gz.finish().unwrap();
+        assert_eq!(read_pack(target), inputs);
+        eprintln!("{target}: {} inputs packed", inputs.len());
+    }
+}
+
+/// Unpacks the committed corpora into `fuzz/corpus/TARGET/` for `cargo fuzz run`:
+/// `cargo test -p librplus-server --test fuzz_regressions -- --ignored unpack_corpus`.
+#[test]
+#[ignore = "writes files into fuzz/corpus"]
+fn unpack_corpus() {
+    for target in TARGETS {
+        let dir = fuzz_dir().join("corpus").join(target);
+        std::fs::create_dir_all(&dir).unwrap();
+        for (i, input) in read_pack(target).iter().enumerate() {
+            std::fs::write(dir.join(format!("packed-{i:05}")), input).unwrap();
         }
     }
 }
