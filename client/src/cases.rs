@@ -179,20 +179,24 @@ pub async fn upload(o: &UploadOptions) -> Result<UploadSummary> {
         .await
         .map_err(|s| anyhow::anyhow!("WatchCase: {}: {}", crate::code_name(s.code()), s.message()))?
         .into_inner();
-    let mut last_stage = String::new();
+    let mut last_shown = (String::new(), -1.0f64);
     while let Some(s) = w.message().await.map_err(|s| {
         anyhow::anyhow!("WatchCase: {}: {}", crate::code_name(s.code()), s.message())
     })? {
         out.state = s.state().as_str_name().to_string();
         out.error = s.error.clone();
-        if o.progress && s.state() == pb::CaseState::Loading && s.stage != last_stage {
+        // Each stage, and every 10 % within one.
+        if o.progress
+            && s.state() == pb::CaseState::Loading
+            && (s.stage != last_shown.0 || s.fraction >= last_shown.1 + 0.1)
+        {
             eprintln!(
                 "  {:>6.2} s  loading: {} ({:.0} %)",
                 t0.elapsed().as_secs_f64(),
                 s.stage,
                 100.0 * s.fraction
             );
-            last_stage = s.stage.clone();
+            last_shown = (s.stage.clone(), s.fraction);
         }
     }
     out.ready_s = Some(t0.elapsed().as_secs_f64());
