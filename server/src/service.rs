@@ -31,6 +31,8 @@ pub struct Shared {
     pub registry: crate::registry::Registry,
     /// The case store (uploads), when configured.
     pub store: Option<crate::store::Store>,
+    /// Uploads received at once (each is held in memory until it is checked and stored).
+    pub uploads: Arc<Semaphore>,
     /// The SR-GCN networks every case gets (set by the preload at start).
     pub gcn: OnceLock<Option<Vec<Arc<librplus::gcn::io::TrainedModel>>>>,
     /// Compute slots.
@@ -66,6 +68,7 @@ impl Shared {
     ) -> Self {
         Self {
             store,
+            uploads: Arc::new(Semaphore::new(MAX_UPLOADS)),
             registry: Default::default(),
             gcn: OnceLock::new(),
             audit: audit.map(Arc::new),
@@ -136,6 +139,9 @@ impl Shared {
         }
     }
 }
+
+/// Uploads received at once: each may hold up to `max_case_bytes` in memory.
+pub const MAX_UPLOADS: usize = 2;
 
 /// Longest case id, bytes.
 pub const MAX_CASE_ID: usize = 256;

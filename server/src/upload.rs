@@ -65,6 +65,22 @@ pub async fn create(
     }
     svc.cases()?;
     let cfg = &shared.config;
+    // Each upload is held in memory until stored: a few at once.
+    let _slot = shared
+        .uploads
+        .clone()
+        .try_acquire_owned()
+        .map_err(|_| ServiceError::Quota {
+            message: format!(
+                "{} uploads are being received; retry when one is done",
+                crate::service::MAX_UPLOADS
+            ),
+            subject: "uploads",
+            description: format!(
+                "at most {} uploads are received at once",
+                crate::service::MAX_UPLOADS
+            ),
+        })?;
     let Some(pb::create_case_request::Part::Upload(up)) = next(&mut inbound).await? else {
         return Err(ServiceError::field(
             "part",

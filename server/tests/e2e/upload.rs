@@ -475,3 +475,59 @@ async fn a_full_disk_is_a_clear_error() {
         .unwrap();
     assert_eq!(check, "ok");
 }
+
+/// Uploads are held in memory until stored: only a few are received at once, and a stalled one
+/// ends after 30 s without a message.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_uploads_are_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        case_store: Some(dir.path().join("store")),
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let c = client(running.addr).await;
+    let mut held = Vec::new();
+    for k in 0..librplus_server::service::MAX_UPLOADS {
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tx.send(file_upload(&format!("stall-{k}"), "vtu", b"")[0].clone())
+            .await
+            .unwrap();
+        let mut c = c.clone();
+        let call = tokio::spawn(async move {
+            c.create_case(tokio_stream::wrappers::ReceiverStream::new(rx))
+                .await
+        });
+        held.push((tx, call));
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let m = open(dataset()).unwrap();
+    let g = &m.geometries[0];
+    let mesh = std::fs::read(dataset().join(&g.preop)).unwrap();
+    let e = c
+        .clone()
+        .create_case(tokio_stream::iter(file_upload("third", "vtu", &mesh)))
+        .await
+        .unwrap_err();
+    eprintln!(
+        "a third upload while two are received: {:?} {}",
+        e.code(),
+        e.message()
+    );
+    assert_eq!(e.code(), Code::ResourceExhausted);
+    // The stalled ones end (no mesh), and the slot is free again.
+    for (tx, call) in held {
+        drop(tx);
+        let e = call.await.unwrap().unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    }
+    let r = c
+        .clone()
+        .create_case(tokio_stream::iter(file_upload("third", "vtu", &mesh)))
+        .await
+        .unwrap();
+    assert!(r.into_inner().created);
+    running.shutdown().await;
+}
