@@ -35,13 +35,14 @@ enum Command {
     Delete(DeleteArgs),
 }
 
-/// How to reach the server (upload, delete).
+/// How to reach the server (every command).
 #[derive(Args)]
 struct Conn {
     /// Server URL.
     #[arg(long, default_value = "http://127.0.0.1:50051")]
     server: String,
-    /// TLS: the CA certificate (PEM) the server's certificate chains to.
+    /// TLS: the CA certificate (PEM) the server's certificate chains to (turns TLS on; an
+    /// http:// URL is then read as https://).
     #[arg(long, value_name = "FILE")]
     ca: Option<PathBuf>,
     /// mTLS: this client's certificate (PEM; with --key).
@@ -108,9 +109,8 @@ struct DeleteArgs {
 /// Options of both commands.
 #[derive(Args)]
 struct Common {
-    /// Server URL.
-    #[arg(long, default_value = "http://127.0.0.1:50051")]
-    server: String,
+    #[command(flatten)]
+    conn: Conn,
     /// Dataset directory (as written by `librplus generate`).
     #[arg(long)]
     data: PathBuf,
@@ -131,22 +131,6 @@ struct Common {
     /// server regularises the rigid motion towards it (an organ held in place).
     #[arg(long, value_name = "MM")]
     trusted_alignment: Option<f64>,
-    /// TLS: the CA certificate (PEM) the server's certificate chains to (turns TLS on; an
-    /// http:// URL is then read as https://).
-    #[arg(long, value_name = "FILE")]
-    ca: Option<PathBuf>,
-    /// mTLS: this client's certificate (PEM; with --key).
-    #[arg(long, value_name = "FILE")]
-    cert: Option<PathBuf>,
-    /// mTLS: this client's private key (PEM).
-    #[arg(long, value_name = "FILE")]
-    key: Option<PathBuf>,
-    /// TLS: the name the server's certificate must carry (default: the URL's host).
-    #[arg(long)]
-    tls_domain: Option<String>,
-    /// Bearer token sent as `authorization` metadata.
-    #[arg(long)]
-    token: Option<String>,
     /// Resume a session whose stream is lost (the server restarted or the network dropped):
     /// reconnect with backoff and go on from what the server recorded (it needs --audit).
     #[arg(long)]
@@ -208,15 +192,6 @@ fn seconds(name: &str, s: f64) -> Result<Duration> {
     Ok(Duration::from_secs_f64(s))
 }
 
-fn tls(c: &Common) -> librplus_client::Tls {
-    librplus_client::Tls {
-        ca: c.ca.clone(),
-        cert: c.cert.clone(),
-        key: c.key.clone(),
-        domain: c.tls_domain.clone(),
-    }
-}
-
 fn options(c: &Common) -> Option<pb::RegisterOptions> {
     (c.time_budget_ms.is_some() || c.trusted_alignment.is_some()).then(|| pb::RegisterOptions {
         time_budget_ms: c.time_budget_ms.unwrap_or(0),
@@ -274,14 +249,14 @@ async fn run(cli: Cli) -> Result<()> {
                 bail!("--rate must be a positive number of messages per second, got {r}");
             }
             let opts = ReplayOptions {
-                server: a.common.server.clone(),
+                server: a.common.conn.server.clone(),
                 data: a.common.data.clone(),
                 selection: Selection::parse(a.common.scenarios.as_deref(), a.common.limit),
                 methods: parse_methods(&a.methods)?,
                 rate_hz: a.rate,
                 batch: a.common.batch,
                 options: options(&a.common),
-                token: a.common.token.clone(),
+                token: a.common.conn.token.clone(),
                 resume: a.common.resume,
                 timeout: seconds("--timeout-s", a.common.timeout_s)?,
                 progress: true,
@@ -295,7 +270,7 @@ async fn run(cli: Cli) -> Result<()> {
                     budget_ms: a.discovery_budget_ms,
                     auto_after_points: 0,
                 },
-                tls: tls(&a.common),
+                tls: a.common.conn.tls(),
             };
             let s = replay(&opts).await?;
             print(a.common.json, &s, replay_table)?;
@@ -311,7 +286,7 @@ async fn run(cli: Cli) -> Result<()> {
             }
             let opts = LoadOptions {
                 rate_hz: a.rate,
-                server: a.common.server.clone(),
+                server: a.common.conn.server.clone(),
                 data: a.common.data.clone(),
                 selection: Selection::parse(a.common.scenarios.as_deref(), a.common.limit),
                 method: parse_method(&a.method)?,
@@ -320,11 +295,11 @@ async fn run(cli: Cli) -> Result<()> {
                 connections: a.connections,
                 batch: a.common.batch,
                 options: options(&a.common),
-                token: a.common.token.clone(),
+                token: a.common.conn.token.clone(),
                 resume: a.common.resume,
                 timeout: seconds("--timeout-s", a.common.timeout_s)?,
                 progress: !a.common.json,
-                tls: tls(&a.common),
+                tls: a.common.conn.tls(),
                 ..Default::default()
             };
             let s = load(&opts).await?;

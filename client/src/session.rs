@@ -356,6 +356,12 @@ struct State {
     last_send: Option<Instant>,
 }
 
+/// Ends a session's attempt with `end`.
+fn over(out: &mut SessionOutcome, end: SessionEnd) -> Attempt {
+    out.end = end;
+    Attempt::Over
+}
+
 /// One connection of a session: open the stream (a resume when `resuming`), send what is left,
 /// read the answers.
 #[allow(clippy::too_many_arguments)]
@@ -398,12 +404,10 @@ where
         Bounded::Done(Ok(r)) => r.into_inner(),
         Bounded::Done(Err(s)) => return lost_or(s, out, true),
         Bounded::TimedOut => {
-            out.end = SessionEnd::TimedOut(0);
-            return Attempt::Over;
+            return over(out, SessionEnd::TimedOut(0));
         }
         Bounded::Cut => {
-            out.end = SessionEnd::Cut;
-            return Attempt::Over;
+            return over(out, SessionEnd::Cut);
         }
     };
     // A resumed session first answers what the server recorded.
@@ -431,12 +435,10 @@ where
             }
             Bounded::Done(Err(s)) => return lost_or(s, out, false),
             Bounded::TimedOut => {
-                out.end = SessionEnd::TimedOut(0);
-                return Attempt::Over;
+                return over(out, SessionEnd::TimedOut(0));
             }
             Bounded::Cut => {
-                out.end = SessionEnd::Cut;
-                return Attempt::Over;
+                return over(out, SessionEnd::Cut);
             }
         }
     }
@@ -449,14 +451,12 @@ where
         if let (Some(iv), Some(t)) = (interval, st.last_send) {
             let at = t + iv;
             if cfg.deadline.is_some_and(|d| at >= d) {
-                out.end = SessionEnd::Cut;
-                return Attempt::Over;
+                return over(out, SessionEnd::Cut);
             }
             tokio::time::sleep_until(at).await;
         }
         if cfg.deadline.is_some_and(|d| Instant::now() >= d) {
-            out.end = SessionEnd::Cut;
-            return Attempt::Over;
+            return over(out, SessionEnd::Cut);
         }
         let sent = Instant::now();
         st.last_send = Some(sent);
@@ -484,19 +484,16 @@ where
                     if cfg.resume.is_some() {
                         return Attempt::Lost(end);
                     }
-                    out.end = end;
-                    return Attempt::Over;
+                    return over(out, end);
                 }
                 Bounded::Done(Err(s)) => {
                     return lost_or(s, out, out.updates == updates_before && !resuming);
                 }
                 Bounded::TimedOut => {
-                    out.end = SessionEnd::TimedOut(m.client_seq);
-                    return Attempt::Over;
+                    return over(out, SessionEnd::TimedOut(m.client_seq));
                 }
                 Bounded::Cut => {
-                    out.end = SessionEnd::Cut;
-                    return Attempt::Over;
+                    return over(out, SessionEnd::Cut);
                 }
             }
         }
@@ -518,8 +515,10 @@ where
                 return Attempt::Over;
             }
             Bounded::TimedOut => {
-                out.end = SessionEnd::TimedOut(rest.last().map_or(0, |m| m.client_seq));
-                return Attempt::Over;
+                return over(
+                    out,
+                    SessionEnd::TimedOut(rest.last().map_or(0, |m| m.client_seq)),
+                );
             }
             // Every message was answered: the session counts as completed.
             Bounded::Cut => return Attempt::Over,

@@ -320,6 +320,23 @@ impl Svc {
         Ok(self.0.registry.ready())
     }
 
+    /// Whether `who` may use a case named `id` (whether or not it exists).
+    pub(crate) fn visible(id: &str, who: &Principal) -> bool {
+        id.len() <= MAX_CASE_ID && who.may_use(id)
+    }
+
+    /// The NOT_FOUND (or INVALID_ARGUMENT for an overlong id) a caller gets for case `id` that
+    /// it may not see or that has no state, worded as for any unknown case.
+    pub(crate) fn not_found(&self, id: &str, field: &str, who: &Principal) -> ServiceError {
+        self.case(id, field, who)
+            .err()
+            .unwrap_or_else(|| ServiceError::UnknownCase {
+                field: field.into(),
+                id: id.into(),
+                known: Vec::new(),
+            })
+    }
+
     /// The case `id` if `who` may use it; NOT_FOUND, worded the same, when it does not exist or
     /// `who` may not use it (a caller learns nothing of other tenants' cases).
     pub(crate) fn case(
@@ -470,8 +487,7 @@ impl LibRPlus for Svc {
             include_mesh,
         } = req.into_inner();
         // An upload still loading, or failed: its state only.
-        if case_id.len() <= MAX_CASE_ID
-            && who.may_use(&case_id)
+        if Self::visible(&case_id, &who)
             && !self.cases().map_err(fail)?.contains_key(&case_id)
             && let Some(status) = self.0.registry.status(&case_id)
         {
@@ -616,18 +632,11 @@ impl LibRPlus for Svc {
         self.allowed(&who, Role::Read, "WatchCase", "watch cases")?;
         let pb::WatchCaseRequest { case_id } = req.into_inner();
         self.cases().map_err(fail)?;
-        let rx = (case_id.len() <= MAX_CASE_ID && who.may_use(&case_id))
+        let rx = Self::visible(&case_id, &who)
             .then(|| self.0.registry.watch(&case_id))
             .flatten();
         let Some(mut rx) = rx else {
-            // As DescribeCase words it.
-            return Err(fail(self.case(&case_id, "case_id", &who).err().unwrap_or(
-                ServiceError::UnknownCase {
-                    field: "case_id".into(),
-                    id: case_id,
-                    known: Vec::new(),
-                },
-            )));
+            return Err(fail(self.not_found(&case_id, "case_id", &who)));
         };
         let (tx, out) = mpsc::channel(4);
         let mut drain = self.0.drain.clone();

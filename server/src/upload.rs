@@ -333,15 +333,11 @@ pub async fn delete(
     let Some(store) = &shared.store else {
         return Err(no_store());
     };
-    let status = (case_id.len() <= crate::service::MAX_CASE_ID && who.may_use(case_id))
+    let status = Svc::visible(case_id, who)
         .then(|| shared.registry.status(case_id))
         .flatten();
     let Some(status) = status else {
-        // Worded as for any case the caller may not see.
-        return Err(svc
-            .case(case_id, "case_id", who)
-            .err()
-            .unwrap_or(ServiceError::Internal("case state missing".into())));
+        return Err(svc.not_found(case_id, "case_id", who));
     };
     if status.state == pb::CaseState::Loading as i32 {
         return Err(ServiceError::precondition(
