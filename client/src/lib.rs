@@ -26,10 +26,11 @@ pub use messages::{
 };
 pub use replay::{
     ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,
+    sha256_hex,
 };
 pub use session::{
-    Client, Resume, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_with,
-    run_session,
+    Client, Resume, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_replicas,
+    connect_with, run_session,
 };
 pub use stats::{Latencies, LatencyMs, code_name};
 

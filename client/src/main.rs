@@ -38,7 +38,8 @@ enum Command {
 /// How to reach the server (every command).
 #[derive(Args)]
 struct Conn {
-    /// Server URL.
+    /// Server URL. `replay` also takes replicas, comma-separated: sessions spread over them,
+    /// and with --resume a lost session goes on on the next one.
     #[arg(long, default_value = "http://127.0.0.1:50051")]
     server: String,
     /// TLS: the CA certificate (PEM) the server's certificate chains to (turns TLS on; an
@@ -135,6 +136,9 @@ struct Common {
     /// reconnect with backoff and go on from what the server recorded (it needs --audit).
     #[arg(long)]
     resume: bool,
+    /// Most resumes of one session (replay, with --resume).
+    #[arg(long, default_value_t = 10)]
+    resume_attempts: u32,
     /// Longest wait for a stream to open and for each answer, seconds.
     #[arg(long, default_value_t = 120.0)]
     timeout_s: f64,
@@ -161,6 +165,9 @@ struct ReplayArgs {
     /// Time limit of each discovery run, ms (0: the server's default).
     #[arg(long, default_value_t = 0)]
     discovery_budget_ms: u32,
+    /// Sessions replayed at once.
+    #[arg(long, default_value_t = 1)]
+    concurrency: usize,
 }
 
 #[derive(Args)]
@@ -271,6 +278,8 @@ async fn run(cli: Cli) -> Result<()> {
                     auto_after_points: 0,
                 },
                 tls: a.common.conn.tls(),
+                concurrency: a.concurrency,
+                resume_attempts: a.common.resume_attempts,
             };
             let s = replay(&opts).await?;
             print(a.common.json, &s, replay_table)?;

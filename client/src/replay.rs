@@ -7,6 +7,7 @@ use crate::pb;
 use crate::session::{SessionConfig, SessionEnd, connect_with, run_session};
 use crate::stats::{Latencies, LatencyMs};
 use anyhow::{Result, bail};
+use futures_util::StreamExt;
 use librplus::eval::{GeometryData, ScenarioData, Tre, tre};
 use librplus::mesh::rigid::Rigid;
 use std::collections::BTreeMap;
@@ -89,6 +90,10 @@ pub struct ReplayOptions {
     pub discovery: pb::DiscoveryOptions,
     /// TLS settings.
     pub tls: crate::session::Tls,
+    /// Sessions replayed at once (1: one after another).
+    pub concurrency: usize,
+    /// Most resumes of one session (with `resume`).
+    pub resume_attempts: u32,
 }
 
 impl Default for ReplayOptions {
@@ -108,6 +113,8 @@ impl Default for ReplayOptions {
             discover_with: Vec::new(),
             discovery: pb::DiscoveryOptions::default(),
             tls: crate::session::Tls::default(),
+            concurrency: 1,
+            resume_attempts: crate::session::Resume::default().attempts,
         }
     }
 }
@@ -128,6 +135,9 @@ pub struct RejectionRecord {
 pub struct Step {
     /// Newest message it reflects.
     pub client_seq: u64,
+    /// SHA-256 (hex) of the protobuf-encoded `Registration`, as the server's audit log keeps
+    /// it: the same answer has the same hash, on any replica.
+    pub answer_sha256: String,
     /// Points accepted so far.
     pub points_total: u32,
     /// TRE over all nodes (None when the registration could not be read: see `error`).
@@ -151,6 +161,10 @@ pub struct ScenarioResult {
     pub category: String,
     /// Case id sent.
     pub case_id: String,
+    /// The server's id of the session (empty when none was opened).
+    pub session_id: String,
+    /// Times the session was resumed after a lost stream.
+    pub resumed: u32,
     /// Method asked for.
     pub method: String,
     /// Messages in the session (with the start).
@@ -345,16 +359,19 @@ async fn replay_one(
     let mut steps = Vec::new();
     let mut rejections = Vec::new();
     let mut last: Option<(RegistrationState, String)> = None;
+    let mut session_id = String::new();
     let outcome = run_session(client, &msgs, cfg, |u, lat| {
         if let Some(l) = lat {
             latencies.record(l);
         }
+        session_id.clone_from(&u.session_id);
         match &u.update {
             Some(pb::stream_update::Update::Registration(r)) => {
                 let state = registration_state(r, nodes.len());
                 let quality = quality_name(r.quality);
                 steps.push(Step {
                     client_seq: u.last_client_seq,
+                    answer_sha256: sha256_hex(&prost::Message::encode_to_vec(r)),
                     points_total: u.points_total,
                     tre_mm: state.as_ref().ok().map(|(t, d)| score(t, d).tre_mm),
                     quality: quality.clone(),
@@ -412,6 +429,8 @@ async fn replay_one(
         scenario: sc.id.clone(),
         category: sc.category.clone(),
         case_id: case_id.to_string(),
+        session_id,
+        resumed: outcome.resumed,
         method: if discovery.is_some() {
             format!("{}+discovery", method_name(method))
         } else {
@@ -444,10 +463,24 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
     if loaded.scenarios.is_empty() {
         bail!("no scenarios selected in {}", opts.data.display());
     }
-    let client = connect_with(&opts.server, &opts.tls).await?;
+    // Replicas (several URLs): connected lazily (one may be down now), sessions spread over
+    // them.
+    let replicas = if opts.server.contains(',') {
+        crate::session::connect_replicas(&opts.server, &opts.tls)?
+    } else {
+        Vec::new()
+    };
+    let client = match replicas.first() {
+        Some(c) => c.clone(),
+        None => connect_with(&opts.server, &opts.tls).await?,
+    };
     let mut cfg = SessionConfig::new(opts.timeout, opts.token.as_deref())?;
-    cfg.resume = opts.resume.then(crate::session::Resume::default);
+    cfg.resume = opts.resume.then(|| crate::session::Resume {
+        attempts: opts.resume_attempts,
+        ..Default::default()
+    });
     cfg.rate_hz = opts.rate_hz;
+    cfg.replicas = replicas;
     let mut all = Latencies::new();
     let mut per_method: BTreeMap<String, Latencies> = BTreeMap::new();
     let mut results = Vec::new();
@@ -462,28 +495,42 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
         )
         .collect();
     let total = loaded.scenarios.len() * runs.len();
+    let (client, cfg) = (&client, &cfg);
+    // Futures made in a plain loop (not a closure over borrowed items), so the whole replay
+    // stays `Send`.
+    let mut jobs = Vec::with_capacity(total);
     for s in &loaded.scenarios {
         let geo = &loaded.geometries[&s.case_id];
         for &(method, discovery) in &runs {
-            let mut lat = Latencies::new();
-            let r = replay_one(
-                &client,
-                &s.case_id,
-                &s.scenario,
-                &s.planes,
-                geo,
-                method,
-                discovery,
-                opts,
-                &cfg,
-                &mut lat,
-            )
-            .await;
+            let mut cfg = cfg.clone();
+            cfg.first_replica = jobs.len();
+            jobs.push(async move {
+                let mut lat = Latencies::new();
+                let r = replay_one(
+                    client,
+                    &s.case_id,
+                    &s.scenario,
+                    &s.planes,
+                    geo,
+                    method,
+                    discovery,
+                    opts,
+                    &cfg,
+                    &mut lat,
+                )
+                .await;
+                (r, lat)
+            });
+        }
+    }
+    let mut done = futures_util::stream::iter(jobs).buffered(opts.concurrency.max(1));
+    while let Some((r, lat)) = done.next().await {
+        {
             all.merge(&lat);
             per_method.entry(r.method.clone()).or_default().merge(&lat);
             if opts.progress {
                 eprintln!(
-                    "[{}/{total}] {} {}: {} updates, {} rejected, TRE {}{}{}",
+                    "[{}/{total}] {} {}: {} updates, {} rejected, TRE {}{}{}{}",
                     results.len() + 1,
                     r.scenario,
                     r.method,
@@ -502,6 +549,11 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                         },
                         d.elapsed_ms / 1e3
                     )),
+                    if r.resumed > 0 {
+                        format!("; resumed {}×", r.resumed)
+                    } else {
+                        String::new()
+                    },
                     r.error
                         .as_ref()
                         .map_or(String::new(), |e| format!(" ({e})"))
@@ -672,4 +724,13 @@ pub fn replay_table(s: &ReplaySummary) -> String {
         s.updates, s.sessions, s.scenarios, s.rejections, s.failed, l.p50, l.p95, l.p99, l.max
     );
     o
+}
+
+/// SHA-256 of `bytes`, lower-case hex (the audit log's `answer_sha256`).
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    ring::digest::digest(&ring::digest::SHA256, bytes)
+        .as_ref()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }

@@ -67,14 +67,25 @@ impl Tls {
     }
 }
 
-/// Connects to `server` (a URL such as `http://127.0.0.1:50051`) with 64 MiB message limits.
-pub async fn connect(server: &str) -> Result<Client> {
-    connect_with(server, &Tls::default()).await
+/// Connects to each of `servers` (URLs, comma-separated: replicas of one service), lazily: a
+/// replica that is down now is tried again when a session moves to it.
+pub fn connect_replicas(servers: &str, tls: &Tls) -> Result<Vec<Client>> {
+    servers
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| endpoint(s, tls).map(|(e, _)| client_of(e.connect_lazy())))
+        .collect()
 }
 
-/// [`connect`] with TLS settings (TLS when `tls.ca` is set or the URL is `https://`; an
-/// `http://` URL is then read as `https://`).
-pub async fn connect_with(server: &str, tls: &Tls) -> Result<Client> {
+fn client_of(channel: Channel) -> Client {
+    LibRPlusClient::new(channel)
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES)
+}
+
+/// The endpoint of `server` with the client's settings (TLS when asked), and its URL.
+fn endpoint(server: &str, tls: &Tls) -> Result<(Endpoint, String)> {
     let url = if tls.enabled(server) {
         match server.strip_prefix("http://") {
             Some(rest) => format!("https://{rest}"),
@@ -92,13 +103,23 @@ pub async fn connect_with(server: &str, tls: &Tls) -> Result<Client> {
             .tls_config(tls.client_config()?)
             .context("TLS settings (--ca, --cert, --key)")?;
     }
+    Ok((endpoint, url))
+}
+
+/// Connects to `server` (a URL such as `http://127.0.0.1:50051`) with 64 MiB message limits.
+pub async fn connect(server: &str) -> Result<Client> {
+    connect_with(server, &Tls::default()).await
+}
+
+/// [`connect`] with TLS settings (TLS when `tls.ca` is set or the URL is `https://`; an
+/// `http://` URL is then read as `https://`).
+pub async fn connect_with(server: &str, tls: &Tls) -> Result<Client> {
+    let (endpoint, url) = endpoint(server, tls)?;
     let channel = endpoint
         .connect()
         .await
         .with_context(|| format!("connecting to {url}"))?;
-    Ok(LibRPlusClient::new(channel)
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES))
+    Ok(client_of(channel))
 }
 
 /// How a session runs.
@@ -114,6 +135,12 @@ pub struct SessionConfig {
     pub token: Option<AsciiMetadataValue>,
     /// Resume a lost stream (None: a lost stream ends the session).
     pub resume: Option<Resume>,
+    /// Server replicas (empty: the one client given to [`run_session`]): the session opens on
+    /// `replicas[first_replica]` and each resume moves to the next one in turn, so that a
+    /// session whose replica went away goes on on another.
+    pub replicas: Vec<Client>,
+    /// The replica a session opens on (an index into `replicas`).
+    pub first_replica: usize,
 }
 
 /// How a client resumes a lost session.
@@ -147,6 +174,8 @@ impl SessionConfig {
             deadline: None,
             token,
             resume: None,
+            replicas: Vec::new(),
+            first_replica: 0,
         })
     }
 }
@@ -301,6 +330,10 @@ where
             },
         };
         let resuming = st.session_id.is_some();
+        let client = match cfg.replicas.len() {
+            0 => client,
+            n => &cfg.replicas[(cfg.first_replica + out.resumed as usize) % n],
+        };
         match attempt(
             client,
             first,

@@ -8,6 +8,7 @@
 //! Format 1 (docs/service.md, "Audit log"): tables `meta` (format), `events`, `sessions`,
 //! `messages` (each accepted StreamRegisterRequest, protobuf-encoded), `registrations`.
 
+use crate::journal::Journal;
 use rusqlite::{Connection, OptionalExtension, params};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -83,6 +84,20 @@ pub enum Record {
     },
     /// A registration answered.
     Registration(Box<RegistrationRecord>),
+    /// This replica took over a session recorded elsewhere (a resume): the session journal's
+    /// next epoch, and the session's row here (so that this replica's log holds its start).
+    Takeover {
+        /// The session.
+        session_id: String,
+        /// Who started it.
+        principal: String,
+        /// The case.
+        case_id: String,
+        /// The start message.
+        start: Vec<u8>,
+        /// The last client_seq recorded before the takeover.
+        last_seq: u64,
+    },
     /// A session ended.
     SessionEnd {
         /// The session.
@@ -131,6 +146,55 @@ type Reply = tokio::sync::oneshot::Sender<Result<(), String>>;
 pub struct Audit {
     tx: std::sync::Mutex<mpsc::Sender<(Vec<Record>, Reply)>>,
     path: PathBuf,
+    journal: Option<PathBuf>,
+}
+
+/// Writes a batch's session records into the journal: per item, Ok or why not; `touched`
+/// collects the sessions whose appended messages still need their fsync.
+fn journal_batch(
+    j: &mut Journal,
+    batch: &[(Vec<Record>, Reply)],
+    touched: &mut Vec<(usize, String)>,
+) -> Vec<Result<(), String>> {
+    let dir = j.dir().display().to_string();
+    batch
+        .iter()
+        .enumerate()
+        .map(|(i, (records, _))| {
+            for r in records {
+                let res = match r {
+                    Record::SessionStart {
+                        session_id,
+                        principal,
+                        case_id,
+                        start,
+                    } => j.start(session_id, principal, case_id, start),
+                    Record::Takeover {
+                        session_id,
+                        last_seq,
+                        ..
+                    } => j.takeover(session_id, *last_seq),
+                    Record::Messages {
+                        session_id,
+                        messages,
+                    } => j.append(session_id, messages).map(|()| {
+                        touched.push((i, session_id.clone()));
+                    }),
+                    Record::SessionEnd { session_id, .. } => {
+                        j.end(session_id);
+                        Ok(())
+                    }
+                    Record::Event { .. } | Record::Registration(_) => Ok(()),
+                };
+                if let Err(e) = res {
+                    tracing::error!(error = %e, journal = %dir, "session journal write failed");
+                    metrics::counter!("librplus_journal_failures_total").increment(1);
+                    return Err(format!("session journal {dir}: {e}"));
+                }
+            }
+            Ok(())
+        })
+        .collect()
 }
 
 const SCHEMA: &str = "
@@ -211,6 +275,13 @@ fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
             principal,
             case_id,
             start,
+        }
+        | Record::Takeover {
+            session_id,
+            principal,
+            case_id,
+            start,
+            ..
         } => {
             c.execute(
                 "INSERT OR IGNORE INTO sessions(session_id, t_ms, principal, case_id, start) \
@@ -268,9 +339,12 @@ fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
 }
 
 impl Audit {
-    /// Opens the database and starts its writer thread.
-    pub fn open(path: &Path) -> Result<Self, AuditError> {
+    /// Opens the database and starts its writer thread; with `journal`, session records also
+    /// go to the shared session journal (journal.rs), durable before the commit is reported.
+    pub fn open(path: &Path, journal: Option<Journal>) -> Result<Self, AuditError> {
         let mut conn = open_db(path)?;
+        let journal_dir = journal.as_ref().map(|j| j.dir().to_path_buf());
+        let mut journal = journal;
         let (tx, rx) = mpsc::channel::<(Vec<Record>, Reply)>();
         let p = path.to_path_buf();
         std::thread::Builder::new()
@@ -287,11 +361,20 @@ impl Audit {
                     }
                     let t = now_ms();
                     let t0 = std::time::Instant::now();
+                    // The journal first (an item it refuses is not logged as accepted), then
+                    // one transaction, then the journal's fsyncs; each item answered after all.
+                    let mut touched = Vec::new();
+                    let mut results = match journal.as_mut() {
+                        Some(j) => journal_batch(j, &batch, &mut touched),
+                        None => vec![Ok(()); batch.len()],
+                    };
                     let result = (|| -> rusqlite::Result<()> {
                         let txn = conn.transaction()?;
-                        for (records, _) in &batch {
-                            for r in records {
-                                write(&txn, r, t)?;
+                        for ((records, _), ok) in batch.iter().zip(&results) {
+                            if ok.is_ok() {
+                                for r in records {
+                                    write(&txn, r, t)?;
+                                }
                             }
                         }
                         txn.commit()
@@ -301,11 +384,20 @@ impl Audit {
                         metrics::counter!("librplus_audit_failures_total").increment(1);
                         format!("audit database {}: {e}", p.display())
                     });
+                    if let Some(j) = journal.as_mut()
+                        && let Err(e) = j.sync(touched.iter().map(|(_, s)| s.as_str()))
+                    {
+                        let e = format!("session journal {}: {e}", j.dir().display());
+                        tracing::error!(error = %e, "session journal fsync failed");
+                        for (i, _) in &touched {
+                            results[*i] = Err(e.clone());
+                        }
+                    }
                     metrics::counter!("librplus_audit_commits_total").increment(1);
                     metrics::histogram!("librplus_audit_commit_seconds")
                         .record(t0.elapsed().as_secs_f64());
-                    for (_, reply) in batch {
-                        let _ = reply.send(result.clone());
+                    for ((_, reply), own) in batch.into_iter().zip(results) {
+                        let _ = reply.send(result.clone().and(own));
                     }
                 }
             })
@@ -313,12 +405,18 @@ impl Audit {
         Ok(Self {
             tx: std::sync::Mutex::new(tx),
             path: path.to_path_buf(),
+            journal: journal_dir,
         })
     }
 
     /// The database file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// The shared session journal's folder, when sessions are journaled.
+    pub fn journal_dir(&self) -> Option<&Path> {
+        self.journal.as_deref()
     }
 
     /// Writes `records` in one transaction; returns once it is committed (durable), or why not.
@@ -665,7 +763,7 @@ mod tests {
     async fn records_are_committed_and_read_back() {
         let dir = tempfile::tempdir().unwrap();
         let db = dir.path().join("audit.db");
-        let a = Audit::open(&db).unwrap();
+        let a = Audit::open(&db, None).unwrap();
         a.write(vec![
             Record::SessionStart {
                 session_id: "s1".into(),

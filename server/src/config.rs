@@ -92,6 +92,14 @@ pub struct ServerConfig {
     /// refusal, committed before the answer is sent; sessions resume from it. None: no log (and
     /// no resume).
     pub audit_db: Option<PathBuf>,
+    /// The session journal (docs/deploy.md, "Replicas"): a folder every replica shares, where
+    /// each streamed session's start and accepted messages are written (durable before the
+    /// answer) so that any replica resumes a session another one served. Needs `audit_db`
+    /// (each replica's own: `{host}` in a path is the host name). None: sessions resume from
+    /// the audit log, on this server only.
+    pub session_journal: Option<PathBuf>,
+    /// Session journal folders untouched this many hours are removed. Default 24.
+    pub session_journal_retention_h: f64,
     /// Where cases uploaded over the API (`CreateCase`) are kept (docs/service.md, "Case
     /// store"); reloaded at start. None: no uploads.
     pub case_store: Option<PathBuf>,
@@ -147,6 +155,8 @@ impl Default for ServerConfig {
             insecure: false,
             auth: None,
             audit_db: None,
+            session_journal: None,
+            session_journal_retention_h: 24.0,
             case_store: None,
             max_case_bytes: 512 << 20,
             max_case_nodes: 1_000_000,
@@ -255,6 +265,19 @@ impl ServerConfig {
                 "client_ca: client certificates (mTLS) need TLS: set tls_cert and tls_key".into(),
             ));
         }
+        if self.session_journal.is_some() && self.audit_db.is_none() {
+            return Err(ConfigError::Field(
+                "session_journal: needs audit_db (each replica keeps its own audit log)".into(),
+            ));
+        }
+        if !(self.session_journal_retention_h.is_finite()
+            && self.session_journal_retention_h >= 0.0)
+        {
+            return Err(ConfigError::Field(format!(
+                "session_journal_retention_h must be finite and ≥ 0, got {}",
+                self.session_journal_retention_h
+            )));
+        }
         if self.discovery_budget_ms == 0 || self.discovery_budget_ms > self.max_discovery_budget_ms
         {
             return Err(ConfigError::Field(format!(
@@ -282,6 +305,17 @@ impl ServerConfig {
             }
         }
         Ok(())
+    }
+
+    /// A configured path with `{host}` replaced by this machine's host name (a pod's name under
+    /// Kubernetes, a container's id under Docker): one file per replica on a shared volume.
+    pub fn per_host(path: &std::path::Path) -> PathBuf {
+        let s = path.to_string_lossy();
+        if s.contains("{host}") {
+            PathBuf::from(s.replace("{host}", &host_name()))
+        } else {
+            path.to_path_buf()
+        }
     }
 
     /// The mesh unit.
@@ -342,6 +376,26 @@ impl ServerConfig {
         } else {
             std::thread::available_parallelism().map_or(1, |n| n.get())
         }
+    }
+}
+
+/// This machine's host name (`/proc/sys/kernel/hostname`, else `$HOSTNAME`, else `localhost`),
+/// reduced to the characters a file name may safely hold.
+pub fn host_name() -> String {
+    let raw = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .unwrap_or_default();
+    let clean: String = raw
+        .trim()
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+        .take(64)
+        .collect();
+    if clean.is_empty() || clean.starts_with('.') {
+        "localhost".into()
+    } else {
+        clean
     }
 }
 

@@ -66,7 +66,7 @@ fn closed_surface(path: &Path) -> Result<librplus::mesh::TriSurface> {
 }
 
 /// Generates the default case into `dir` unless it is there already.
-fn ensure_dataset(o: &DemoOptions) -> Result<()> {
+pub fn ensure_dataset(o: &DemoOptions) -> Result<()> {
     use librplus::phantom::dataset::{GenerateConfig, Preset, generate};
     if complete(&o.data) {
         eprintln!("default case: {} (cached)", o.data.display());

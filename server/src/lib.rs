@@ -18,6 +18,7 @@ pub mod convert;
 pub mod discovery;
 pub mod error;
 pub mod fuzz;
+pub mod journal;
 pub mod metrics_http;
 pub mod registry;
 pub mod service;
@@ -155,12 +156,26 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
         .await;
     let (drain_tx, drain_rx) = watch::channel(false);
+    let journal = config
+        .session_journal
+        .as_deref()
+        .map(|d| {
+            journal::Journal::open(d, &config::host_name(), config.session_journal_retention_h)
+                .with_context(|| format!("session_journal {}", d.display()))
+        })
+        .transpose()?;
     let audit = config
         .audit_db
         .as_deref()
-        .map(audit::Audit::open)
-        .transpose()
-        .context("--audit")?;
+        .map(|p| {
+            let p = ServerConfig::per_host(p);
+            if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("audit_db: creating {}", dir.display()))?;
+            }
+            audit::Audit::open(&p, journal).context("--audit")
+        })
+        .transpose()?;
     let store = config
         .case_store
         .as_deref()

@@ -46,6 +46,10 @@ enum Command {
         /// Leave out the LIBR sessions with in-surgery discovery.
         #[arg(long)]
         no_discovery: bool,
+        /// Only make the default case (into --data) and exit: to serve it from elsewhere, e.g.
+        /// a container (docs/deploy.md).
+        #[arg(long)]
+        only_data: bool,
     },
     /// Read the audit log: every registration, session and refusal (of a case, since a time),
     /// or export a session's points for `librplus discover`.
@@ -80,6 +84,34 @@ enum Command {
         /// A client certificate with this common name (repeatable; default `client`).
         #[arg(long = "client")]
         clients: Vec<String>,
+    },
+    /// Ask a server's health (grpc.health.v1 Check): exit 0 when it is SERVING (every case
+    /// preloaded), 1 otherwise. The image's HEALTHCHECK and the Kubernetes probes; the
+    /// LIBRPLUS_HEALTH_* variables set the options in a container.
+    Health {
+        /// The server (https:// for TLS).
+        #[arg(
+            long,
+            env = "LIBRPLUS_HEALTH_URL",
+            default_value = "http://127.0.0.1:50051"
+        )]
+        url: String,
+        /// TLS: the CA certificate (PEM) the server's certificate chains to.
+        #[arg(long, env = "LIBRPLUS_HEALTH_CA", value_name = "FILE")]
+        ca: Option<PathBuf>,
+        /// TLS: the name the server's certificate carries (default: the URL's host).
+        #[arg(long, env = "LIBRPLUS_HEALTH_DOMAIN")]
+        domain: Option<String>,
+        /// A file holding a bearer token (where the auth file closes health).
+        #[arg(long, env = "LIBRPLUS_HEALTH_TOKEN_FILE", value_name = "FILE")]
+        token_file: Option<PathBuf>,
+        /// Liveness: exit 0 whenever the server answers, NOT_SERVING too (preloading or
+        /// draining is alive).
+        #[arg(long)]
+        alive: bool,
+        /// Longest wait for the answer, seconds.
+        #[arg(long, default_value_t = 3.0)]
+        timeout_s: f64,
     },
     /// Make a new random bearer token: prints the token (give it to the client; it is shown
     /// once) and the auth file entry that holds only its SHA-256.
@@ -164,6 +196,10 @@ struct Args {
     /// it is answered; sessions resume from it.
     #[arg(long, value_name = "FILE")]
     audit: Option<PathBuf>,
+    /// Session journal folder shared by the replicas (needs --audit): any replica resumes a
+    /// session another one served.
+    #[arg(long, value_name = "DIR")]
+    session_journal: Option<PathBuf>,
     /// Case store folder: cases uploaded over the API (CreateCase) are kept there and reloaded
     /// at start.
     #[arg(long, value_name = "DIR")]
@@ -208,6 +244,9 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.audit.is_some() {
         c.audit_db = a.audit.clone();
+    }
+    if a.session_journal.is_some() {
+        c.session_journal = a.session_journal.clone();
     }
     if a.case_store.is_some() {
         c.case_store = a.case_store.clone();
@@ -259,16 +298,20 @@ async fn main() -> Result<()> {
             scenarios,
             json,
             no_discovery,
+            only_data,
         }) => {
             init_tracing_level(false, "warn");
-            return demo::run(demo::DemoOptions {
+            let o = demo::DemoOptions {
                 data: data.unwrap_or_else(demo::default_data_dir),
                 surface,
                 scenarios,
                 json,
                 discovery: !no_discovery,
-            })
-            .await;
+            };
+            if only_data {
+                return tokio::task::spawn_blocking(move || demo::ensure_dataset(&o)).await?;
+            }
+            return demo::run(o).await;
         }
         Some(Command::Audit {
             db,
@@ -302,6 +345,14 @@ async fn main() -> Result<()> {
             cases,
             roles,
         }) => return token(principal, cases, roles),
+        Some(Command::Health {
+            url,
+            ca,
+            domain,
+            token_file,
+            alive,
+            timeout_s,
+        }) => return health(&url, ca, domain, token_file, alive, timeout_s).await,
         Some(Command::Serve(a)) => *a,
         None => cli.serve,
     };
@@ -350,6 +401,75 @@ async fn main() -> Result<()> {
         eprintln!("{left} session(s) were still open after the drain grace");
     }
     Ok(())
+}
+
+/// `librplus-server health`: grpc.health.v1 Check of the whole server.
+async fn health(
+    url: &str,
+    ca: Option<PathBuf>,
+    domain: Option<String>,
+    token_file: Option<PathBuf>,
+    alive: bool,
+    timeout_s: f64,
+) -> Result<()> {
+    use anyhow::Context;
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    if !(timeout_s.is_finite() && timeout_s > 0.0) {
+        anyhow::bail!("--timeout-s must be a positive number of seconds, got {timeout_s}");
+    }
+    let timeout = std::time::Duration::from_secs_f64(timeout_s);
+    let tls = url.starts_with("https://") || ca.is_some();
+    let url = match url.strip_prefix("http://") {
+        Some(rest) if tls => format!("https://{rest}"),
+        _ => url.to_string(),
+    };
+    let mut ep = tonic::transport::Endpoint::from_shared(url.clone())
+        .with_context(|| format!("--url {url:?} is not a URL"))?
+        .connect_timeout(timeout)
+        .timeout(timeout);
+    if tls {
+        let ca = ca.context("--ca: TLS needs the CA certificate the server's chains to")?;
+        let pem = std::fs::read(&ca).with_context(|| format!("--ca {}", ca.display()))?;
+        let mut c = tonic::transport::ClientTlsConfig::new()
+            .ca_certificate(tonic::transport::Certificate::from_pem(pem));
+        if let Some(d) = domain {
+            c = c.domain_name(d);
+        }
+        ep = ep.tls_config(c).context("TLS settings")?;
+    }
+    let ch = ep
+        .connect()
+        .await
+        .with_context(|| format!("{url}: no connection"))?;
+    let mut req = tonic::Request::new(HealthCheckRequest::default());
+    if let Some(f) = token_file {
+        let t =
+            std::fs::read_to_string(&f).with_context(|| format!("--token-file {}", f.display()))?;
+        req.metadata_mut().insert(
+            "authorization",
+            format!("Bearer {}", t.trim())
+                .parse()
+                .context("--token-file: the token must be printable ASCII")?,
+        );
+    }
+    match HealthClient::new(ch).check(req).await {
+        Ok(r) => {
+            let status = r.into_inner().status();
+            if status == ServingStatus::Serving || alive {
+                println!("{}", status.as_str_name());
+                Ok(())
+            } else {
+                anyhow::bail!("{url}: {}", status.as_str_name())
+            }
+        }
+        // An answer that refuses the caller still shows a live server.
+        Err(s) if alive && s.code() != tonic::Code::Unavailable => {
+            println!("answered {:?}", s.code());
+            Ok(())
+        }
+        Err(s) => anyhow::bail!("{url}: {:?}: {}", s.code(), s.message()),
+    }
 }
 
 /// `librplus-server token`: a new token, and its auth file entry (the hash only).

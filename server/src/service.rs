@@ -15,6 +15,7 @@ use librplus::register::{MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
 use pb::lib_r_plus_server::LibRPlus;
 use std::collections::HashMap;
+use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
@@ -72,7 +73,9 @@ impl Shared {
             registry: Default::default(),
             gcn: OnceLock::new(),
             audit: audit.map(Arc::new),
-            boot: format!("{:x}", crate::audit::now_ms()),
+            // Unique across replicas sharing a session journal: the start time and 32 random
+            // bits (two replicas starting in the same millisecond).
+            boot: format!("{:x}{:08x}", crate::audit::now_ms(), boot_nonce()),
             engine,
             sessions: Arc::new(Semaphore::new(config.max_sessions)),
             drain,
@@ -897,18 +900,17 @@ async fn session(
         .to_status());
     };
     let resume = !start.resume_session_id.is_empty();
-    let (mut s, sid) = if resume {
+    let (mut s, sid, recorded_start) = if resume {
         let id = start.resume_session_id.clone();
-        (
-            resume_session(&svc, &who, &id)
-                .await
-                .map_err(|b| b.to_status())?,
-            id,
-        )
+        let (s, recorded) = resume_session(&svc, &who, &id)
+            .await
+            .map_err(|b| b.to_status())?;
+        (s, id, recorded)
     } else {
         (
             start_session(&svc, &who, &start, first.client_seq).map_err(|b| b.to_status())?,
             fresh.to_string(),
+            Vec::new(),
         )
     };
     let sid = sid.as_str();
@@ -924,13 +926,23 @@ async fn session(
     let _in_use = InUse(s.case.clone());
     if resume {
         svc.0
-            .record(vec![Record::Event {
+            .record(vec![
+                // This replica holds the session from here (the journal's next epoch).
+                Record::Takeover {
+                    session_id: sid.to_string(),
+                    principal: who.name.clone(),
+                    case_id: s.case.id.clone(),
+                    start: recorded_start,
+                    last_seq: s.last_seq,
+                },
+                Record::Event {
                 kind: "session_resumed",
                 principal: who.name.clone(),
                 case_id: Some(s.case.id.clone()),
                 session_id: Some(sid.to_string()),
-                detail: serde_json::json!({"points": s.meas.points.len(), "last_client_seq": s.last_seq}),
-            }])
+                detail: serde_json::json!({"points": s.meas.points.len(), "last_client_seq": s.last_seq, "replica": crate::config::host_name()}),
+            },
+            ])
             .await
             .map_err(|b| b.to_status())?;
         tracing::info!(case = %s.case.id, resumed = sid, points = s.meas.points.len(), last_client_seq = s.last_seq, "session resumed");
@@ -1170,7 +1182,11 @@ async fn audit_update(
 
 /// Rebuilds a recorded session: its start and accepted messages, in order, through the same
 /// checks as when they arrived.
-async fn resume_session(svc: &Svc, who: &Principal, id: &str) -> Result<Session, ServiceError> {
+async fn resume_session(
+    svc: &Svc,
+    who: &Principal,
+    id: &str,
+) -> Result<(Session, Vec<u8>), ServiceError> {
     use prost::Message;
     let field = "start.resume_session_id";
     let Some(audit) = &svc.0.audit else {
@@ -1188,10 +1204,15 @@ async fn resume_session(svc: &Svc, who: &Principal, id: &str) -> Result<Session,
         ));
     }
     let path = audit.path().to_path_buf();
+    let journal = audit.journal_dir().map(Path::to_path_buf);
     let key = id.to_string();
-    let rec = tokio::task::spawn_blocking(move || {
-        let c = crate::audit::open_db(&path).map_err(|e| e.to_string())?;
-        crate::audit::read_session(&c, &key).map_err(|e| e.to_string())
+    let rec = tokio::task::spawn_blocking(move || match journal {
+        // Replicas: the shared journal has every replica's sessions.
+        Some(dir) => crate::journal::read(&dir, &key),
+        None => {
+            let c = crate::audit::open_db(&path).map_err(|e| e.to_string())?;
+            crate::audit::read_session(&c, &key).map_err(|e| e.to_string())
+        }
     })
     .await
     .map_err(|e| ServiceError::Internal(format!("reading the session record: {e}")))?
@@ -1230,7 +1251,7 @@ async fn resume_session(svc: &Svc, who: &Principal, id: &str) -> Result<Session,
             ))
         })?;
     }
-    Ok(s)
+    Ok((s, rec.start))
 }
 
 /// Sends one update of a session (numbered, with its points and last client message).
@@ -1629,6 +1650,14 @@ fn accept(
     s.meas.kind.extend(kinds);
     s.meas.feature.extend(feature);
     Ok(Accepted::Points)
+}
+
+/// 32 random bits for the session ids of this run.
+fn boot_nonce() -> u32 {
+    use ring::rand::SecureRandom;
+    let mut b = [0u8; 4];
+    let _ = ring::rand::SystemRandom::new().fill(&mut b);
+    u32::from_le_bytes(b)
 }
 
 #[cfg(test)]

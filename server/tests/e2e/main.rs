@@ -11,6 +11,7 @@ mod cases;
 mod discovery;
 mod interop;
 mod limits;
+mod replicas;
 mod resume;
 mod shutdown;
 mod stream;

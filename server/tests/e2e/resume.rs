@@ -195,15 +195,6 @@ async fn sessions_resume_after_a_lost_stream_and_a_restart() {
     running.shutdown().await;
 }
 
-/// A free loopback port.
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// `kill -9` of the server in the middle of 8 streaming sessions, 20 times (restarted on the
 /// same port and audit log each time); the clients resume (`run_session` with `resume`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
