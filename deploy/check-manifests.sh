@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Offline checks of the deploy files (CI runs it): the renderer's own tests, every overlay
 # rendered and validated with `kubernetes-validate --strict` against Kubernetes 1.37 (no unknown
-# fields, every required one), and the Dockerfile linted with hadolint. The tools come from PyPI
+# fields, every required one), the Dockerfile linted with hadolint, the scripts with shellcheck. The tools come from PyPI
 # (tests/reference/requirements-ci.txt); LIBRPLUS_PYTHON is the interpreter whose environment
 # has them.
 set -euo pipefail
@@ -21,3 +21,5 @@ for overlay in dev prod gpu; do
 done
 "$bin/hadolint" deploy/Dockerfile
 echo "hadolint: deploy/Dockerfile passes (ignored rules are justified in the file)"
+"$bin/shellcheck" -x deploy/*.sh deploy/test/lib.sh deploy/k8s/render.sh .ci/run
+echo "shellcheck: the deploy scripts and .ci/run pass"

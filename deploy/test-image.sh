@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
+# shellcheck source-path=SCRIPTDIR
 # CI's check of the image (docs/deploy.md): runs the container as Kubernetes would (read-only
 # root filesystem, no capabilities, non-root), waits for grpc.health.v1 SERVING, replays the
 # demo's scenarios against it from a client container, and reports the image size and the
 # seconds from `docker run` to SERVING. Build the image first (deploy/build-image.sh).
+# shellcheck source=test/lib.sh
 source "$(dirname "$0")/test/lib.sh"
 
 size=$(docker image inspect "$image" --format '{{.Size}}')

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# shellcheck source-path=SCRIPTDIR
 # Replicas that take over (docs/deploy.md, "Replicas"). Three server containers on one Docker
 # network share a volume (the case, its LIBR basis cache, the session journal; each replica keeps
 # its own audit log there); a client container streams 8 sessions spread over the three
@@ -10,6 +11,7 @@
 #      the others), started, SERVING, under 8 streams.
 # Runs 2 and 3 must complete every session with the reference's last answers and lose no
 # acknowledged registration (deploy/test/check_replicas.py). Figures go to stdout.
+# shellcheck source=test/lib.sh
 source "$(dirname "$0")/test/lib.sh"
 kills="${KILLS:-10}"
 replicas=(r1 r2 r3)
@@ -119,4 +121,5 @@ bad = sum(1 for r in s["results"] for st in r["steps"] if st.get("error")) + s["
 print(json.dumps({"run": "rolling restart", "failed_registrations": bad + s["failed"]}))
 assert bad + s["failed"] == 0
 PY
+echo "memory after the runs: $(docker stats --no-stream --format '{{.Name}} {{.MemUsage}}' "${replicas[@]}" | tr '\n' ';')"
 echo "replica test passed"

@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
+# shellcheck source-path=SCRIPTDIR
 # Sharded dataset generation in containers (docs/deploy.md, "Datasets at scale"): the command of
 # the Kubernetes Indexed Job (`librplus generate --shard i/N`, then once without --shard for the
 # manifest) run as N containers on this machine, for N = 1, 2, 4, into one volume. Every file of
 # the N = 2 and N = 4 datasets must be byte-identical to the N = 1 run's (SHA-256 of each file,
 # the manifest among them); the wall times go to stdout. SHARDS="1 2 4" and GENERATE_ARGS
 # override the defaults.
+# shellcheck source=test/lib.sh
 source "$(dirname "$0")/test/lib.sh"
-read -r -a gen <<<"${GENERATE_ARGS:---preset small --seed 11}"
+read -r -a gen <<<"${GENERATE_ARGS:---preset small --seed 11 --edge-mm 9 --deformations 4}"
 shards="${SHARDS:-1 2 4}"
 
 generate() { # NAME OUT [--shard i/N]

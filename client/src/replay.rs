@@ -136,8 +136,12 @@ pub struct Step {
     /// Newest message it reflects.
     pub client_seq: u64,
     /// SHA-256 (hex) of the protobuf-encoded `Registration`, as the server's audit log keeps
-    /// it: the same answer has the same hash, on any replica.
+    /// it: what the client received, byte for byte.
     pub answer_sha256: String,
+    /// SHA-256 (hex) of the same `Registration` without its stage timings: equal for equal
+    /// results (the transform, displacements, quality, method used, residual), whichever
+    /// replica computed them and however long it took.
+    pub result_sha256: String,
     /// Points accepted so far.
     pub points_total: u32,
     /// TRE over all nodes (None when the registration could not be read: see `error`).
@@ -372,6 +376,7 @@ async fn replay_one(
                 steps.push(Step {
                     client_seq: u.last_client_seq,
                     answer_sha256: sha256_hex(&prost::Message::encode_to_vec(r)),
+                    result_sha256: result_sha256(r),
                     points_total: u.points_total,
                     tre_mm: state.as_ref().ok().map(|(t, d)| score(t, d).tre_mm),
                     quality: quality.clone(),
@@ -733,4 +738,12 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect()
+}
+
+/// SHA-256 (hex) of a registration without its stage timings (the part that differs between two
+/// computations of the same result).
+pub fn result_sha256(r: &pb::Registration) -> String {
+    let mut r = r.clone();
+    r.timings = None;
+    sha256_hex(&prost::Message::encode_to_vec(&r))
 }

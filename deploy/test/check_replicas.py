@@ -6,8 +6,9 @@
 REFERENCE.json and RUN.json: `librplus-client replay --json` of the same scenarios, the first
 without faults. AUDIT_DIR: every replica's audit database (`*.sqlite`). Checks that every session
 of RUN completed, that each one's last answer is the reference's (same SHA-256 of the
-protobuf-encoded Registration), and that every answer the client received (acknowledged) is in
-one replica's audit log (session, client_seq, answer hash). Prints one JSON line of figures.
+protobuf-encoded Registration without its stage timings: `result_sha256`), and that every
+answer the client received (acknowledged) is in one replica's audit log (session, client_seq and
+the hash of the bytes received, `answer_sha256`). Prints one JSON line of figures.
 """
 import glob
 import json
@@ -30,16 +31,16 @@ def main(ref_path, run_path, audit_dir, label):
         if r.get("error") or r.get("status"):
             problems.append(f"{k}: did not complete: {r.get('error') or r.get('status')}")
             continue
-        want = ref_by[k]["steps"][-1]["answer_sha256"]
-        got = r["steps"][-1]["answer_sha256"]
+        want = ref_by[k]["steps"][-1]["result_sha256"]
+        got = r["steps"][-1]["result_sha256"]
         if got != want:
             problems.append(f"{k}: last answer {got[:12]} differs from the reference {want[:12]}")
-        by_seq = {s["client_seq"]: s["answer_sha256"] for s in ref_by[k]["steps"]}
+        by_seq = {s["client_seq"]: s["result_sha256"] for s in ref_by[k]["steps"]}
         for s in r["steps"]:
             acked.add((r["session_id"], s["client_seq"], s["answer_sha256"]))
             if s["client_seq"] in by_seq:
                 compared_steps += 1
-                equal_steps += by_seq[s["client_seq"]] == s["answer_sha256"]
+                equal_steps += by_seq[s["client_seq"]] == s["result_sha256"]
     logged = set()
     dbs = sorted(glob.glob(f"{audit_dir}/*.sqlite"))
     for db in dbs:
@@ -63,7 +64,7 @@ def main(ref_path, run_path, audit_dir, label):
         "audit_logs": len(dbs),
         "last_answer_equal": sum(
             1 for r in run["results"]
-            if r["steps"] and r["steps"][-1]["answer_sha256"] == ref_by[key(r)]["steps"][-1]["answer_sha256"]
+            if r["steps"] and r["steps"][-1]["result_sha256"] == ref_by[key(r)]["steps"][-1]["result_sha256"]
         ),
         "answers_equal_per_client_seq": f"{equal_steps}/{compared_steps}",
     }

@@ -925,6 +925,11 @@ async fn session(
     s.case.sessions.fetch_add(1, Ordering::SeqCst);
     let _in_use = InUse(s.case.clone());
     if resume {
+        let detail = serde_json::json!({
+            "points": s.meas.points.len(),
+            "last_client_seq": s.last_seq,
+            "replica": crate::config::host_name(),
+        });
         svc.0
             .record(vec![
                 // This replica holds the session from here (the journal's next epoch).
@@ -936,12 +941,12 @@ async fn session(
                     last_seq: s.last_seq,
                 },
                 Record::Event {
-                kind: "session_resumed",
-                principal: who.name.clone(),
-                case_id: Some(s.case.id.clone()),
-                session_id: Some(sid.to_string()),
-                detail: serde_json::json!({"points": s.meas.points.len(), "last_client_seq": s.last_seq, "replica": crate::config::host_name()}),
-            },
+                    kind: "session_resumed",
+                    principal: who.name.clone(),
+                    case_id: Some(s.case.id.clone()),
+                    session_id: Some(sid.to_string()),
+                    detail,
+                },
             ])
             .await
             .map_err(|b| b.to_status())?;
