@@ -88,7 +88,7 @@ start=$(date +%s)
 # The classic builder: this machine's Docker client has no buildx, and the Dockerfile needs
 # nothing BuildKit-only (its dependency layer is cached by the classic builder too).
 DOCKER_BUILDKIT=0 docker build -f deploy/Dockerfile -t "$tag" "${args[@]}" . 2>&1 \
-  | grep -v -e "DEPRECATED: The legacy builder" -e "BuildKit is currently disabled" \
+  | grep --line-buffered -v -e "DEPRECATED: The legacy builder" -e "BuildKit is currently disabled" \
       -e "Install the buildx component" -e "https://docs.docker.com/go/buildx/" -e '^ *$'
 size=$(docker image inspect "$tag" --format '{{.Size}}')
 echo "== built $tag in $(( $(date +%s) - start )) s: $(( size / 1000000 )) MB"

@@ -5,7 +5,8 @@
 # manifest) run as N containers on this machine, for N = 1, 2, 4, into one volume. Every file of
 # the N = 2 and N = 4 datasets must be byte-identical to the N = 1 run's (SHA-256 of each file,
 # the manifest among them); the wall times go to stdout. SHARDS="1 2 4" and GENERATE_ARGS
-# override the defaults.
+# override the defaults; SHARD_CPUS=C gives each container C cores (`docker run --cpus`), as a
+# pod's CPU limit would.
 # shellcheck source=test/lib.sh
 source "$(dirname "$0")/test/lib.sh"
 read -r -a gen <<<"${GENERATE_ARGS:---preset small --seed 11 --edge-mm 9 --deformations 4}"
@@ -15,13 +16,25 @@ generate() { # NAME OUT [--shard i/N]
   local name=$1 out=$2
   shift 2
   containers+=("$name")
-  docker run -d --name "$name" --read-only --tmpfs /tmp -v "$vol:/var/lib/librplus" \
+  docker run -d --name "$name" ${SHARD_CPUS:+--cpus "$SHARD_CPUS"} --read-only --tmpfs /tmp \
+    -v "$vol:/var/lib/librplus" \
     --entrypoint librplus "$image" generate "${gen[@]}" --out "$out" "$@" >/dev/null
 }
 wait_ok() {
   local code
   code=$(docker wait "$1")
   [ "$code" = 0 ] || { echo "$1 exited $code:" >&2; docker logs --tail 20 "$1" >&2; return 1; }
+  # The container's own run time (start to exit).
+  python3 - "$1" "$(docker inspect -f '{{.State.StartedAt}} {{.State.FinishedAt}}' "$1")" <<'PY'
+import sys
+from datetime import datetime
+def t(s):
+    s = s.rstrip("Z")
+    head, _, frac = s.partition(".")
+    return datetime.fromisoformat(head).timestamp() + float("0." + (frac or "0"))
+a, b = sys.argv[2].split()
+print(f"  {sys.argv[1]}: {t(b) - t(a):.1f} s")
+PY
   docker rm "$1" >/dev/null
 }
 hashes() {
