@@ -29,6 +29,10 @@ async fn a_replica_takes_over_the_sessions_of_a_killed_one() {
                 &journal_arg,
                 "--max-sessions",
                 "8",
+                // No update cut short by the time budget while other tests load the cores: the
+                // results must not depend on timing.
+                "--time-budget-ms",
+                "10000",
             ]
             .iter()
             .map(|s| s.to_string())

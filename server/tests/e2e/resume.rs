@@ -63,6 +63,8 @@ async fn sessions_resume_after_a_lost_stream_and_a_restart() {
     let db = dir.path().join("audit.db");
     let cfg = ServerConfig {
         audit_db: Some(db.clone()),
+        // Results independent of timing (no update cut short while other tests run).
+        time_budget_ms: 10_000,
         ..config(4)
     };
     let mut running = librplus_server::start(cfg.clone()).await.unwrap();
@@ -212,6 +214,10 @@ async fn kill_nine_loses_nothing_acknowledged() {
         db_arg.as_str(),
         "--max-sessions",
         "8",
+        // No update cut short by the time budget while other tests load the cores: the results
+        // must not depend on timing.
+        "--time-budget-ms",
+        "10000",
     ];
     let proc = std::sync::Arc::new(std::sync::Mutex::new(Some(Proc::start(&args))));
     let url = format!("http://{listen}");
