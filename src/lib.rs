@@ -9,7 +9,8 @@
 //!   wICP, LIBR; [`input`]: the preoperative model from files;
 //! - [`dataset`]: the dataset format and its reader (shared by evaluation, server and clients);
 //!   [`phantom`]: ground truth and the dataset generator (never imported by surgery-time code);
-//! - [`gcn`]: spline convolution, SR-GCN, inference;
+//! - [`gcn`]: spline convolution, SR-GCN, inference; [`v2s`]: the V2S-Net-style volumetric
+//!   baseline (3-D U-Net on a grid), beside it;
 //! - [`pipeline`]: one registration: method, deadlines, wICP → LIBR → LIBR+ → refit;
 //! - [`eval`]: TRE, splits, reports, plots, training orchestration;
 //! - the `librplus` command line and the `librplus-server` crate on top.
@@ -32,6 +33,7 @@ pub mod phantom;
 pub mod pipeline;
 pub mod register;
 pub mod util;
+pub mod v2s;
 
 /// The global allocator the binaries install (`#[global_allocator] static A: GlobalAllocator =
 /// GlobalAllocator;`): graph convolution allocates and frees tens of MB per layer, which glibc's

@@ -5,7 +5,7 @@
 //! test, naming the file and line.
 //!
 //! Bottom to top: `util, assets, mesh → fem → register, input → dataset → phantom`, and
-//! `register → gcn → pipeline → discover → eval → CLI, server`. `register`, `input`, `dataset`,
+//! `register → gcn → v2s → pipeline → discover → eval → CLI, server`. `register`, `input`, `dataset`,
 //! `gcn`, `pipeline`, `discover`, the server and the clients never import `phantom` (what runs in
 //! surgery cannot reach how the ground truth was made); `gcn` (inference) never imports `eval`
 //! (training) or `dataset` (where the truth is read); the server's library never imports the
@@ -34,20 +34,25 @@ fn allowed() -> BTreeMap<&'static str, &'static [&'static str]> {
         ),
         ("gcn", &["util", "assets", "mesh", "fem", "register"][..]),
         (
-            "pipeline",
+            "v2s",
             &["util", "assets", "mesh", "fem", "register", "gcn"][..],
+        ),
+        (
+            "pipeline",
+            &["util", "assets", "mesh", "fem", "register", "gcn", "v2s"][..],
         ),
         (
             "discover",
             &[
-                "util", "assets", "mesh", "fem", "register", "input", "dataset", "gcn", "pipeline",
+                "util", "assets", "mesh", "fem", "register", "input", "dataset", "gcn", "v2s",
+                "pipeline",
             ][..],
         ),
         (
             "eval",
             &[
-                "util", "assets", "mesh", "fem", "register", "input", "dataset", "gcn", "pipeline",
-                "discover",
+                "util", "assets", "mesh", "fem", "register", "input", "dataset", "gcn", "v2s",
+                "pipeline", "discover",
             ][..],
         ),
     ])

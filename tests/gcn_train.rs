@@ -483,6 +483,8 @@ fn experiments_runs_train_with_its_own_settings_and_the_users_options() {
                 "3",
                 "--train-args",
                 train_args,
+                "--v2s-args",
+                "--grid 16 --v2s-width 4 --v2s-depth 2 --epochs 1",
             ])
             .output()
             .unwrap()
@@ -503,6 +505,31 @@ fn experiments_runs_train_with_its_own_settings_and_the_users_options() {
     assert_eq!(model["provenance"]["split"], "random");
     assert_eq!(model["provenance"]["every"], 1);
     assert!(out.join("RESULTS.md").exists() && out.join("results.json").exists());
+    // The V2S run of the split, on the same test scenarios, with its own options.
+    let v2s: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("runs/random-v2s/model.json")).unwrap())
+            .unwrap();
+    assert_eq!(v2s["kind"], "v2s");
+    assert_eq!(v2s["config"]["grid"], 16);
+    assert_eq!(v2s["provenance"]["seed"], 3);
+    let test = |run: &str| -> serde_json::Value {
+        serde_json::from_slice(
+            &std::fs::read(out.join("runs").join(run).join("test.json")).unwrap(),
+        )
+        .unwrap()
+    };
+    let ids = |t: &serde_json::Value| -> Vec<String> {
+        t["results"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["scenario"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(ids(&test("random-ablation6")), ids(&test("random-v2s")));
+    let md = std::fs::read_to_string(out.join("RESULTS.md")).unwrap();
+    assert!(md.contains("wICP, LIBR, V2S and LIBR+ per split"), "{md}");
+    assert!(md.contains("V2S per measurement category"), "{md}");
 }
 
 /// A small SR-GCN with seeded random weights (its correction is arbitrary but fixed).
@@ -1457,4 +1484,255 @@ fn librplus_applies_a_network_only_to_the_physics_it_learned() {
     let c = run(&case_with(&Physics::none(), learned()));
     assert!(!c.applied, "{c:?}");
     assert!(c.skipped.unwrap().contains("this case's LIBR is plain"));
+}
+
+/// V2S's samples on the fixture's first scenarios (scenarios `range`).
+fn v2s_fixture(
+    f: &Fixture,
+    cfg: &librplus::v2s::model::V2sConfig,
+    range: std::ops::Range<usize>,
+) -> (
+    std::collections::BTreeMap<String, tr::v2s::V2sGeometry>,
+    Vec<tr::v2s::V2sSample>,
+) {
+    let dir = dataset();
+    let m = librplus::eval::open(dir).unwrap();
+    let g = f.scenarios[0].1.clone();
+    let geos = tr::v2s::v2s_geometries(dir, &m, std::slice::from_ref(&g), cfg).unwrap();
+    let items: Vec<_> = f.scenarios[range]
+        .iter()
+        .map(|(s, g)| (s, g.as_str()))
+        .collect();
+    let samples = tr::v2s::v2s_samples(&geos, &items, &f.params, &|_, _| {})
+        .unwrap()
+        .into_iter()
+        .map(Option::unwrap)
+        .collect();
+    (geos, samples)
+}
+
+#[test]
+fn the_v2s_target_carries_the_nodes_onto_the_truth_under_wicp() {
+    use librplus::pipeline::{Method, register};
+    let f = fixture();
+    let cfg = librplus::v2s::model::V2sConfig::new()
+        .with_grid(16)
+        .with_depth(2);
+    let (geos, samples) = v2s_fixture(&f, &cfg, 0..3);
+    for (s, (sc, g)) in samples.iter().zip(&f.scenarios) {
+        let vg = &geos[g];
+        // The rigid stage as registration runs it, then the target as a displacement: the TRE
+        // the evaluation computes from the truth is zero.
+        let r = register(&vg.case, &sc.measurements, Method::Rigid, &f.params).unwrap();
+        let u: Vec<f64> = s
+            .target
+            .iter()
+            .map(|x| *x as f64 * librplus::v2s::OUTPUT_UNIT_MM)
+            .collect();
+        let err = node_errors_mm(
+            vg.geo.model.mesh.nodes(),
+            (&r.image_to_physical, &u),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+        );
+        let worst = err.iter().copied().fold(0.0, f64::max);
+        assert!(worst < 1e-4, "{}: {worst} mm (f32 targets)", sc.id);
+        // And the rigid registration alone errs by the target's length.
+        let zero = vec![0.0; u.len()];
+        let e0 = node_errors_mm(
+            vg.geo.model.mesh.nodes(),
+            (&r.image_to_physical, &zero),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+        );
+        for (i, e) in e0.iter().enumerate() {
+            let len = (u[3 * i].powi(2) + u[3 * i + 1].powi(2) + u[3 * i + 2].powi(2)).sqrt();
+            assert!((e - len).abs() < 1e-4, "node {i}: {e} vs {len}");
+        }
+    }
+}
+
+#[test]
+fn v2s_training_fits_what_it_sees_deterministically_and_the_saved_model_registers_the_same() {
+    let _rng = rng_lock();
+    use librplus::pipeline::{Method, Prepared, register};
+    let f = fixture();
+    let cfg = librplus::v2s::model::V2sConfig::new()
+        .with_grid(16)
+        .with_width(4)
+        .with_depth(2);
+    let (geos, s) = v2s_fixture(&f, &cfg, 0..4);
+    let (_, s2) = v2s_fixture(&f, &cfg, 0..4);
+    let opts = tr::v2s::V2sTrainOptions {
+        config: cfg.clone(),
+        epochs: 40,
+        patience: 40,
+        learning_rate: 1e-2,
+        ..Default::default()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |out: &Path| {
+        tr::v2s::train_v2s(
+            &opts,
+            &geos,
+            &s,
+            &s2,
+            out,
+            &serde_json::json!({"test": true}),
+            &|_, _, _, _| {},
+        )
+        .unwrap()
+    };
+    let a = run(&tmp.path().join("a"));
+    // Validation on the training samples: the network learns them better than the rigid answer.
+    assert!(
+        a.best_valid_mm < 0.8 * a.rigid_valid_mm,
+        "best {} vs rigid {}",
+        a.best_valid_mm,
+        a.rigid_valid_mm
+    );
+    let b = run(&tmp.path().join("b"));
+    assert_eq!(a.best_valid_mm, b.best_valid_mm, "not deterministic");
+    // The checkpoint written during training is the returned network: through the pipeline
+    // both register the same, and the node error is the validation figure.
+    let loaded =
+        librplus::v2s::io::load_model(&tmp.path().join("a"), &burn::tensor::Device::flex())
+            .unwrap();
+    assert_eq!(
+        librplus::v2s::io::named_tensors(&loaded.net),
+        librplus::v2s::io::named_tensors(&a.model.net)
+    );
+    let (sc, g) = &f.scenarios[0];
+    let geo = &geos[g].geo;
+    let case = Prepared::new(geo.model.clone(), None, None)
+        .unwrap()
+        .with_v2s(std::sync::Arc::new(loaded))
+        .unwrap();
+    let r = register(&case, &sc.measurements, Method::V2s, &f.params).unwrap();
+    assert_eq!(r.method, Method::V2s);
+    assert!(r.libr.is_none());
+    let err = node_errors_mm(
+        geo.model.mesh.nodes(),
+        (&r.image_to_physical, &r.u),
+        (&sc.truth.image_to_physical, &sc.truth.displacement),
+    );
+    let tre = err.iter().sum::<f64>() / err.len() as f64;
+    let rigid = register(&case, &sc.measurements, Method::Rigid, &f.params).unwrap();
+    assert_eq!(rigid.image_to_physical, r.image_to_physical);
+    let err0 = node_errors_mm(
+        geo.model.mesh.nodes(),
+        (&rigid.image_to_physical, &rigid.u),
+        (&sc.truth.image_to_physical, &sc.truth.displacement),
+    );
+    let tre0 = err0.iter().sum::<f64>() / err0.len() as f64;
+    assert!(
+        tre < tre0,
+        "V2S {tre} mm vs rigid {tre0} mm on a training scenario"
+    );
+    // A case without a V2S network refuses the method by name.
+    let plain = Prepared::new(geo.model.clone(), None, None).unwrap();
+    let e = register(&plain, &sc.measurements, Method::V2s, &f.params).unwrap_err();
+    assert!(matches!(e, PipelineError::NoV2sModel), "{e}");
+}
+
+#[test]
+fn v2s_train_then_evaluate_agree_on_the_held_out_scenarios() {
+    let _rng = rng_lock();
+    let tmp = tempfile::tempdir().unwrap();
+    let model = tmp.path().join("v2s");
+    let report = tmp.path().join("report");
+    let run = |args: &[&str]| {
+        let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).to_string()
+    };
+    let data = dataset().to_str().unwrap();
+    run(&[
+        "train",
+        "--method",
+        "v2s",
+        "--data",
+        data,
+        "--split",
+        "random",
+        "--every",
+        "1",
+        "--epochs",
+        "2",
+        "--grid",
+        "16",
+        "--v2s-width",
+        "4",
+        "--v2s-depth",
+        "2",
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    for f in [
+        "model.json",
+        "weights.safetensors",
+        "training.json",
+        "test.json",
+        "loss.png",
+    ] {
+        assert!(model.join(f).exists(), "{f} missing");
+    }
+    let test: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model.join("test.json")).unwrap()).unwrap();
+    run(&[
+        "evaluate",
+        "--data",
+        data,
+        "--methods",
+        "rigid,v2s",
+        "--v2s-model",
+        model.to_str().unwrap(),
+        "--out",
+        report.to_str().unwrap(),
+    ]);
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report.join("summary.json")).unwrap()).unwrap();
+    let methods = &summary["splits"]["random"]["methods"];
+    let n = test["scenarios"].as_u64().unwrap();
+    assert!(n > 0);
+    assert_eq!(methods["v2s"]["scenarios"].as_u64().unwrap(), n);
+    for (key, method) in [("rigid_tre_mm", "rigid"), ("v2s_tre_mm", "v2s")] {
+        let a = test[key].as_f64().unwrap();
+        let b = methods[method]["tre_mm"].as_f64().unwrap();
+        assert!(
+            (a - b).abs() < 1e-6 * (1.0 + a),
+            "{method}: train {a} vs evaluate {b}"
+        );
+    }
+    // One scenario through `register --method v2s`: the TRE evaluate found for it.
+    let first = &test["results"][0];
+    let id = first["scenario"].as_str().unwrap();
+    let out = run(&[
+        "register",
+        "--data",
+        data,
+        "--scenario",
+        id,
+        "--method",
+        "v2s",
+        "--model",
+        model.to_str().unwrap(),
+        "--json",
+    ]);
+    let r: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let a = r["tre_mm"].as_f64().unwrap();
+    let b = first["v2s"]["tre_mm"].as_f64().unwrap();
+    assert!(
+        (a - b).abs() < 1e-6 * (1.0 + a),
+        "register {a} vs train {b}"
+    );
+    // v2s without a model is refused by name.
+    let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+        .args(["evaluate", "--data", data, "--methods", "v2s", "--out"])
+        .arg(tmp.path().join("r2"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--v2s-model"));
 }

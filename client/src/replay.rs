@@ -21,17 +21,21 @@ pub fn method_name(m: pb::Method) -> &'static str {
         pb::Method::Rigid => "rigid",
         pb::Method::Libr => "libr",
         pb::Method::LibrPlus => "libr_plus",
+        pb::Method::V2s => "v2s",
     }
 }
 
-/// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `default`).
+/// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `v2s`, `default`).
 pub fn parse_method(s: &str) -> Result<pb::Method> {
     Ok(match s.trim() {
         "rigid" => pb::Method::Rigid,
         "libr" => pb::Method::Libr,
         "libr_plus" | "libr+" | "libr-plus" => pb::Method::LibrPlus,
+        "v2s" => pb::Method::V2s,
         "default" => pb::Method::Unspecified,
-        other => bail!("unknown method {other:?}: expected rigid, libr, libr_plus or default"),
+        other => {
+            bail!("unknown method {other:?}: expected rigid, libr, libr_plus, v2s or default")
+        }
     })
 }
 

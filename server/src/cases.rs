@@ -207,25 +207,35 @@ pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, Case
     Ok(out.into_iter().collect())
 }
 
+/// The learned models every case gets, loaded once at start: SR-GCN networks for LIBR+ and the
+/// V2S network for METHOD_V2S.
+#[derive(Debug, Clone, Default)]
+pub struct Learned {
+    /// LIBR+'s network, or an ensemble's members.
+    pub gcn: Option<Vec<Arc<TrainedModel>>>,
+    /// The V2S network.
+    pub v2s: Option<Arc<librplus::v2s::io::V2sModel>>,
+}
+
 /// Loads and prepares one case (correspondence structures and the LIBR basis).
 pub fn load(
     id: &str,
     source: &CaseSource,
     config: &ServerConfig,
     libr: &LibrParams,
-    gcn: Option<&Vec<Arc<TrainedModel>>>,
+    learned: &Learned,
 ) -> Result<Case, CaseError> {
-    load_with_progress(id, source, config, libr, gcn, &|_, _| {})
+    load_with_progress(id, source, config, libr, learned, &|_, _| {})
 }
 
-/// [`load`], telling `progress` each stage ("reading", "labelling", "preparing", "sr-gcn") and
-/// the fraction done.
+/// [`load`], telling `progress` each stage ("reading", "labelling", "preparing", "sr-gcn",
+/// "v2s") and the fraction done.
 pub fn load_with_progress(
     id: &str,
     source: &CaseSource,
     config: &ServerConfig,
     libr: &LibrParams,
-    gcn: Option<&Vec<Arc<TrainedModel>>>,
+    learned: &Learned,
     progress: &dyn Fn(&str, f64),
 ) -> Result<Case, CaseError> {
     progress("reading", 0.0);
@@ -292,9 +302,13 @@ pub fn load_with_progress(
     };
     let mut prepared =
         Prepared::with_physics(model, Some(libr), &physics, Some(&cache)).map_err(prepare)?;
-    if let Some(m) = gcn {
+    if let Some(m) = &learned.gcn {
         progress("sr-gcn", 0.9);
         prepared = prepared.with_models(m.clone()).map_err(prepare)?;
+    }
+    if let Some(m) = &learned.v2s {
+        progress("v2s", 0.95);
+        prepared = prepared.with_v2s(m.clone()).map_err(prepare)?;
     }
     let default_method = config.method()?;
     if default_method == Method::LibrPlus && prepared.librplus.is_none() {

@@ -277,7 +277,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
             }
         }
     }
-    if method != Method::Rigid {
+    if matches!(method, Method::Libr | Method::LibrPlus) {
         let left = ms(deadline.saturating_duration_since(start));
         let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
         if left < need {

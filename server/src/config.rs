@@ -66,14 +66,18 @@ pub struct ServerConfig {
     pub session_idle_timeout_s: f64,
     /// How long shutdown waits for sessions to finish their update and close, s. Default 10.
     pub drain_grace_s: f64,
-    /// Method used when a request leaves it unspecified (`rigid`, `libr`, `librplus`). Default
-    /// `libr`.
+    /// Method used when a request leaves it unspecified (`rigid`, `libr`, `librplus`, `v2s`).
+    /// Default `libr`.
     pub default_method: String,
     /// SR-GCN model directory (`librplus train`'s output, or an ensemble directory) for LIBR+; every case gets it. None:
     /// the model built into the server, when this build has one.
     pub model: Option<PathBuf>,
     /// Whether cases answer LIBR+ at all (false: no model is loaded). Default true.
     pub librplus: bool,
+    /// V2S model directory (`librplus train --method v2s`'s output) for METHOD_V2S, the paper's
+    /// data-driven baseline; every case gets it. None: METHOD_V2S is refused
+    /// (FAILED_PRECONDITION).
+    pub v2s_model: Option<PathBuf>,
     /// Log as JSON lines instead of text.
     pub log_json: bool,
     /// Default wall-clock limit of one in-surgery discovery run, ms (a session may ask for
@@ -148,6 +152,7 @@ impl Default for ServerConfig {
             default_method: "libr".into(),
             model: None,
             librplus: true,
+            v2s_model: None,
             log_json: false,
             discovery_budget_ms: 120_000,
             max_discovery_budget_ms: 600_000,
@@ -338,12 +343,18 @@ impl ServerConfig {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
             "librplus" if self.librplus => Ok(Method::LibrPlus),
+            "v2s" if self.v2s_model.is_some() => Ok(Method::V2s),
             m => Err(ConfigError::Field(format!(
-                "default_method {m:?}: expected rigid, libr{}",
+                "default_method {m:?}: expected rigid, libr{}{}",
                 if self.librplus {
-                    " or librplus"
+                    ", librplus"
                 } else {
                     " (librplus is off)"
+                },
+                if self.v2s_model.is_some() {
+                    ", v2s"
+                } else {
+                    " (v2s needs v2s_model)"
                 }
             ))),
         }

@@ -295,6 +295,7 @@ pub fn method_from_pb(
     m: i32,
     default: librplus::pipeline::Method,
     has_model: bool,
+    has_v2s: bool,
     field: &str,
 ) -> Result<librplus::pipeline::Method, ServiceError> {
     use librplus::pipeline::Method;
@@ -311,9 +312,18 @@ pub fn method_from_pb(
                 "{field}: METHOD_LIBR_PLUS needs an SR-GCN model, and this case has none (use METHOD_LIBR)"
             ),
         )),
+        Ok(pb::Method::V2s) if has_v2s => Ok(Method::V2s),
+        Ok(pb::Method::V2s) => Err(ServiceError::precondition(
+            "CASE",
+            field,
+            "METHOD_V2S needs a case with a V2S model",
+            format!(
+                "{field}: METHOD_V2S needs a V2S model, and this case has none (the server's v2s_model)"
+            ),
+        )),
         Err(_) => Err(ServiceError::field(
             field,
-            format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+)"),
+            format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S)"),
         )),
     }
 }
@@ -326,6 +336,7 @@ pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
         librplus::pipeline::Method::Rigid => pb::Method::Rigid,
         librplus::pipeline::Method::Libr => pb::Method::Libr,
         librplus::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
+        librplus::pipeline::Method::V2s => pb::Method::V2s,
     }
 }
 

@@ -119,10 +119,11 @@ fn pipeline_cause(e: &PipelineError) -> Cause {
             register_cause(r)
         }
         PipelineError::Degenerate { .. } => Cause::Data,
-        PipelineError::NoBasis | PipelineError::NoModel => Cause::Case,
-        PipelineError::Case(_) | PipelineError::Model(_) | PipelineError::NoRefitIterations => {
-            Cause::Server
-        }
+        PipelineError::NoBasis | PipelineError::NoModel | PipelineError::NoV2sModel => Cause::Case,
+        PipelineError::Case(_)
+        | PipelineError::Model(_)
+        | PipelineError::V2s(_)
+        | PipelineError::NoRefitIterations => Cause::Server,
     }
 }
 
@@ -311,6 +312,8 @@ pub fn libr_can_fall_back(e: &PipelineError) -> bool {
         | PipelineError::Refit(_)
         | PipelineError::NoBasis
         | PipelineError::NoModel
+        | PipelineError::NoV2sModel
+        | PipelineError::V2s(_)
         | PipelineError::NoRefitIterations => false,
     }
 }

@@ -65,6 +65,9 @@ pub enum PreloadError {
         /// What failed.
         source: librplus::gcn::GcnError,
     },
+    /// The V2S model could not be loaded (`v2s_model`).
+    #[error("v2s_model: {0}")]
+    V2sModel(librplus::v2s::V2sError),
     /// Every case failed.
     #[error("no case could be loaded ({found} found): {failed:?}")]
     NoCase {
@@ -602,6 +605,24 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, Pre
     Ok(Some(models.into_iter().map(Arc::new).collect()))
 }
 
+/// The V2S network every case gets for METHOD_V2S: the configured directory, if any.
+fn load_v2s(
+    config: &ServerConfig,
+) -> Result<Option<Arc<librplus::v2s::io::V2sModel>>, PreloadError> {
+    let Some(dir) = &config.v2s_model else {
+        return Ok(None);
+    };
+    let m = librplus::v2s::io::load_model_on_device(dir).map_err(PreloadError::V2sModel)?;
+    tracing::info!(
+        model = %dir.display(),
+        grid = m.config.grid,
+        width = m.config.width,
+        depth = m.config.depth,
+        "V2S model loaded: METHOD_V2S available"
+    );
+    Ok(Some(Arc::new(m)))
+}
+
 /// The status of a ready case.
 pub(crate) fn ready_status(c: &Case) -> librplus_proto::v1::CaseStatus {
     librplus_proto::v1::CaseStatus {
@@ -647,8 +668,11 @@ fn preload(shared: &Shared) -> Result<PreloadReport, PreloadError> {
         }
     }
     let libr = LibrParams::default();
-    let gcn = load_gcn(config)?;
-    let _ = shared.gcn.set(gcn.clone());
+    let learned = cases::Learned {
+        gcn: load_gcn(config)?,
+        v2s: load_v2s(config)?,
+    };
+    let _ = shared.learned.set(learned.clone());
     let mut report = PreloadReport {
         cases: Vec::new(),
         failed: Vec::new(),
@@ -656,7 +680,7 @@ fn preload(shared: &Shared) -> Result<PreloadReport, PreloadError> {
     };
     let mut loaded_configured = 0;
     for (k, (id, src)) in found.iter().enumerate() {
-        match cases::load(id, src, config, &libr, gcn.as_ref()) {
+        match cases::load(id, src, config, &libr, &learned) {
             Ok(c) => {
                 tracing::info!(
                     case = %id,

@@ -167,6 +167,10 @@ struct Args {
     /// Load no SR-GCN model (LIBR+ requests get FAILED_PRECONDITION).
     #[arg(long)]
     no_librplus: bool,
+    /// V2S model directory (`librplus train --method v2s`) for METHOD_V2S (default: none, and
+    /// METHOD_V2S requests get FAILED_PRECONDITION).
+    #[arg(long)]
+    v2s_model: Option<PathBuf>,
     /// Log JSON lines.
     #[arg(long)]
     log_json: bool,
@@ -256,6 +260,9 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.no_librplus {
         c.librplus = false;
+    }
+    if a.v2s_model.is_some() {
+        c.v2s_model = a.v2s_model.clone();
     }
     if a.metrics_listen.is_some() {
         c.metrics_listen = a.metrics_listen.clone();

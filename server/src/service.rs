@@ -34,8 +34,8 @@ pub struct Shared {
     pub store: Option<crate::store::Store>,
     /// Uploads received at once (each is held in memory until it is checked and stored).
     pub uploads: Arc<Semaphore>,
-    /// The SR-GCN networks every case gets (set by the preload at start).
-    pub gcn: OnceLock<Option<Vec<Arc<librplus::gcn::io::TrainedModel>>>>,
+    /// The learned models every case gets (set by the preload at start).
+    pub learned: OnceLock<crate::cases::Learned>,
     /// Compute slots.
     pub engine: Engine,
     /// Session admission.
@@ -71,7 +71,7 @@ impl Shared {
             store,
             uploads: Arc::new(Semaphore::new(MAX_UPLOADS)),
             registry: Default::default(),
-            gcn: OnceLock::new(),
+            learned: OnceLock::new(),
             audit: audit.map(Arc::new),
             // Unique across replicas sharing a session journal: the start time and 32 random
             // bits (two replicas starting in the same millisecond).
@@ -402,9 +402,10 @@ impl Svc {
             m,
             case.default_method,
             case.prepared.librplus.is_some(),
+            case.prepared.v2s.is_some(),
             field,
         )?;
-        if method != Method::Rigid && case.prepared.basis.is_none() {
+        if matches!(method, Method::Libr | Method::LibrPlus) && case.prepared.basis.is_none() {
             return Err(ServiceError::precondition(
                 "CASE",
                 field,
@@ -425,6 +426,7 @@ fn summary(c: &Case) -> pb::CaseSummary {
         tet_count: m.num_tets() as u32,
         libr_ready: c.prepared.basis.is_some(),
         libr_plus_ready: c.prepared.librplus.is_some(),
+        v2s_ready: c.prepared.v2s.is_some(),
         default_method: crate::convert::method_to_pb(c.default_method) as i32,
         preload_seconds: c.prepared.seconds,
         basis_from_cache: c.prepared.basis_from_cache,

@@ -271,7 +271,7 @@ pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
             set(stage, fraction);
         };
         let done = std::sync::atomic::AtomicBool::new(false);
-        let gcn = shared.gcn.get().cloned().flatten();
+        let learned = shared.learned.get().cloned().unwrap_or_default();
         let r = std::thread::scope(|scope| {
             scope.spawn(|| {
                 while !done.load(Ordering::Acquire) {
@@ -290,7 +290,7 @@ pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
                 &CaseSource::Stored(Box::new(stored)),
                 &shared.config,
                 &librplus::register::libr::LibrParams::default(),
-                gcn.as_ref(),
+                &learned,
                 &progress,
             );
             done.store(true, Ordering::Release);

@@ -1177,6 +1177,7 @@ fn confirm_once(
         basis: Some(basis.clone()),
         basis_from_cache: false,
         librplus: None,
+        v2s: None,
         physics: physics.clone(),
         seconds: 0.0,
     };

@@ -185,6 +185,11 @@ pub struct RegistrationTimings {
     pub gcn_network_s: f64,
     /// Of which the data-consistency refit.
     pub gcn_refit_s: f64,
+    /// V2S stage: the measured channels on the grid, the network, the interpolation (V2S; 0
+    /// otherwise).
+    pub v2s_s: f64,
+    /// Of which the network and the interpolation to the nodes.
+    pub v2s_network_s: f64,
     /// wICP iterations.
     pub wicp_iterations: usize,
     /// LIBR iterations (0 for rigid).
@@ -209,6 +214,8 @@ impl From<&Registration> for RegistrationTimings {
                 .as_ref()
                 .and_then(|c| c.refit.as_ref())
                 .map_or(0.0, |i| i.total_s),
+            v2s_s: r.v2s.map_or(0.0, |v| v.seconds),
+            v2s_network_s: r.v2s.map_or(0.0, |v| v.network_seconds),
             wicp_iterations: r.rigid.iterations,
             libr_iterations: l.iterations,
         }
@@ -347,6 +354,8 @@ pub fn time_registrations(
             gcn_s: med(|r| r.gcn_s),
             gcn_network_s: med(|r| r.gcn_network_s),
             gcn_refit_s: med(|r| r.gcn_refit_s),
+            v2s_s: med(|r| r.v2s_s),
+            v2s_network_s: med(|r| r.v2s_network_s),
             wicp_iterations: med(|r| r.wicp_iterations as f64).round() as usize,
             libr_iterations: med(|r| r.libr_iterations as f64).round() as usize,
         },

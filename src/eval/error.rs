@@ -39,6 +39,9 @@ pub enum EvalError {
     /// The SR-GCN failed.
     #[error(transparent)]
     Gcn(#[from] GcnError),
+    /// The V2S network failed.
+    #[error(transparent)]
+    V2s(#[from] crate::v2s::V2sError),
     /// A file could not be read or written.
     #[error(transparent)]
     File(#[from] FileError),

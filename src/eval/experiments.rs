@@ -148,6 +148,258 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
     out
 }
 
+/// wICP and V2S over one set of scenarios (a V2S run's `test.json`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct V2sPair {
+    /// wICP (the rigid stage V2S starts from).
+    pub rigid: MethodMeans,
+    /// V2S.
+    pub v2s: MethodMeans,
+    /// Scenarios where both registered.
+    pub scenarios: usize,
+}
+
+/// The figures of one V2S run.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct V2sFigures {
+    /// Over all test scenarios.
+    pub all: V2sPair,
+    /// Per measurement category.
+    pub by_category: BTreeMap<String, V2sPair>,
+    /// Scenarios where a method failed.
+    pub failed: usize,
+}
+
+/// Aggregates a V2S run's `test.json` rows (`category`, `rigid`, `v2s`).
+pub fn v2s_figures(test: &Value) -> V2sFigures {
+    let renamed: Vec<Value> = test["results"]
+        .as_array()
+        .map(Vec::as_slice)
+        .unwrap_or(&[])
+        .iter()
+        .map(|r| {
+            serde_json::json!({"category": r["category"], "libr": r["rigid"], "librplus": r["v2s"]})
+        })
+        .collect();
+    let f = figures(&serde_json::json!({ "results": renamed }));
+    let pair = |p: &Pair| V2sPair {
+        rigid: p.libr,
+        v2s: p.librplus,
+        scenarios: p.scenarios,
+    };
+    V2sFigures {
+        all: pair(&f.all),
+        by_category: f
+            .by_category
+            .iter()
+            .map(|(k, p)| (k.clone(), pair(p)))
+            .collect(),
+        failed: f.failed,
+    }
+}
+
+/// The paper's Table 1 (TRE in mm): per column (Random, Geometry-Deformation, Geometry, 4-V)
+/// wICP, LIBR, V2S, LIBR+.
+const PAPER_TABLE1: [(&str, [f64; 4]); 4] = [
+    ("Random", [13.005, 5.915, 5.037, 3.234]),
+    ("Geometry-Deformation", [13.865, 6.314, 6.548, 3.159]),
+    ("Geometry", [14.254, 6.668, 6.980, 3.365]),
+    ("4-V", [15.352, 6.706, 8.804, 3.702]),
+];
+
+/// The paper's Table S1 V2S column (edge TRE, mm) per measurement category, in
+/// [`CATEGORY_ORDER`]'s order, and for all data.
+const PAPER_S1_V2S: [f64; 5] = [11.640, 11.248, 11.15, 11.05, 10.994];
+
+/// The column of the paper's Table 1 a split belongs to (every `logo:G` to "Geometry").
+fn paper_column(split: &str) -> Option<usize> {
+    match split {
+        "random" => Some(0),
+        "geo-def" => Some(1),
+        s if s.starts_with("logo") => Some(2),
+        "pattern-v" => Some(3),
+        _ => None,
+    }
+}
+
+/// Per method (wICP, LIBR, V2S, LIBR+), our mean TRE in each of the paper's four columns (the
+/// mean over the splits in it; NaN where no run fills it).
+fn columns(main: &[(&RunOutcome, RunFigures)], v2s: &[(&RunOutcome, V2sFigures)]) -> [[f64; 4]; 4] {
+    let mut sum = [[0.0; 4]; 4];
+    let mut n = [[0usize; 4]; 4];
+    let mut add = |m: usize, split: &str, x: f64, count: usize| {
+        if let Some(c) = paper_column(split)
+            && count > 0
+            && x.is_finite()
+        {
+            sum[m][c] += x;
+            n[m][c] += 1;
+        }
+    };
+    for (r, f) in main {
+        add(1, &r.split, f.all.libr.tre_mm, f.all.scenarios);
+        add(3, &r.split, f.all.librplus.tre_mm, f.all.scenarios);
+    }
+    for (r, f) in v2s {
+        add(0, &r.split, f.all.rigid.tre_mm, f.all.scenarios);
+        add(2, &r.split, f.all.v2s.tre_mm, f.all.scenarios);
+    }
+    let mut out = [[f64::NAN; 4]; 4];
+    for m in 0..4 {
+        for c in 0..4 {
+            if n[m][c] > 0 {
+                out[m][c] = sum[m][c] / n[m][c] as f64;
+            }
+        }
+    }
+    out
+}
+
+/// Worst over best of the finite values (NaN with fewer than two).
+fn drop_ratio(v: &[f64]) -> f64 {
+    let f: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if f.len() < 2 {
+        return f64::NAN;
+    }
+    let best = f.iter().copied().fold(f64::INFINITY, f64::min);
+    let worst = f.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    worst / best
+}
+
+/// The four methods against the paper's Table 1, the drop from best to worst column, and V2S
+/// per category (Table S1).
+fn four_methods_markdown(
+    s: &mut String,
+    main: &[(&RunOutcome, RunFigures)],
+    v2s: &[(&RunOutcome, V2sFigures)],
+) {
+    let fmt = |x: f64| {
+        if x.is_finite() {
+            format!("{x:.3}")
+        } else {
+            "–".to_string()
+        }
+    };
+    let _ = writeln!(
+        s,
+        "\n## wICP, LIBR, V2S and LIBR+ per split (the paper's Table 1)\n"
+    );
+    let _ = writeln!(
+        s,
+        "| split | test scenarios | wICP TRE (mm) | LIBR TRE (mm) | V2S TRE (mm) | LIBR+ TRE (mm) |"
+    );
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|");
+    let mut splits: Vec<&str> = main.iter().map(|(r, _)| r.split.as_str()).collect();
+    for (r, _) in v2s {
+        if !splits.contains(&r.split.as_str()) {
+            splits.push(&r.split);
+        }
+    }
+    for split in &splits {
+        let m = main.iter().find(|(r, _)| r.split == *split).map(|x| &x.1);
+        let v = v2s.iter().find(|(r, _)| r.split == *split).map(|x| &x.1);
+        let n = m
+            .map(|f| f.all.scenarios)
+            .or(v.map(|f| f.all.scenarios))
+            .unwrap_or(0);
+        let _ = writeln!(
+            s,
+            "| {split} | {n} | {} | {} | {} | {} |",
+            fmt(v.map_or(f64::NAN, |f| f.all.rigid.tre_mm)),
+            fmt(m.map_or(f64::NAN, |f| f.all.libr.tre_mm)),
+            fmt(v.map_or(f64::NAN, |f| f.all.v2s.tre_mm)),
+            fmt(m.map_or(f64::NAN, |f| f.all.librplus.tre_mm)),
+        );
+    }
+    let ours = columns(main, v2s);
+    let _ = writeln!(
+        s,
+        "\nAgainst the paper's Table 1 (TRE in mm, ours / the paper's; our Geometry column is the \
+         mean of the leave-one-geometry-out splits run):\n"
+    );
+    let _ = writeln!(
+        s,
+        "| method | Random | Geometry-Deformation | Geometry | 4-V | worst / best |"
+    );
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|");
+    let names = ["wICP", "LIBR", "V2S", "LIBR+"];
+    for (m, name) in names.iter().enumerate() {
+        let paper: Vec<f64> = PAPER_TABLE1.iter().map(|(_, v)| v[m]).collect();
+        let _ = write!(s, "| {name} |");
+        for c in 0..4 {
+            let _ = write!(s, " {} / {:.3} |", fmt(ours[m][c]), paper[c]);
+        }
+        let _ = writeln!(
+            s,
+            " {} / {:.3} |",
+            fmt(drop_ratio(&ours[m])),
+            drop_ratio(&paper)
+        );
+    }
+    let (dv, dp) = (drop_ratio(&ours[2]), drop_ratio(&ours[3]));
+    if dv.is_finite() && dp.is_finite() {
+        let _ = writeln!(
+            s,
+            "\nDrop from the best to the worst column: V2S {:.0} % (the paper: 75 %), LIBR+ {:.0} % \
+             (the paper: 17 %) — the paper's claim that the data-driven V2S overfits where LIBR+ \
+             does not is {} on these data.",
+            100.0 * (dv - 1.0),
+            100.0 * (dp - 1.0),
+            if dv > dp {
+                "reproduced"
+            } else {
+                "**not reproduced**"
+            }
+        );
+    }
+    let cats: Vec<String> = CATEGORY_ORDER
+        .iter()
+        .map(|c| c.to_string())
+        .filter(|c| v2s.iter().any(|(_, f)| f.by_category.contains_key(c)))
+        .collect();
+    if !cats.is_empty() {
+        let _ = writeln!(
+            s,
+            "\n## V2S per measurement category (TRE in mm, wICP → V2S; the paper's Table S1 layout)\n"
+        );
+        let _ = write!(s, "| split |");
+        for c in &cats {
+            let _ = write!(s, " {c} |");
+        }
+        let _ = writeln!(s, " surface nodes | interior nodes |");
+        let _ = writeln!(s, "|---|{}---:|---:|", "---:|".repeat(cats.len()));
+        for (r, f) in v2s {
+            let _ = write!(s, "| {} |", r.split);
+            for c in &cats {
+                match f.by_category.get(c) {
+                    Some(p) => {
+                        let _ = write!(s, " {:.2} → {:.2} |", p.rigid.tre_mm, p.v2s.tre_mm);
+                    }
+                    None => s.push_str(" – |"),
+                }
+            }
+            let _ = writeln!(
+                s,
+                " {:.2} → {:.2} | {:.2} → {:.2} |",
+                f.all.rigid.tre_surface_mm,
+                f.all.v2s.tre_surface_mm,
+                f.all.rigid.tre_interior_mm,
+                f.all.v2s.tre_interior_mm
+            );
+        }
+        let _ = write!(s, "| the paper's V2S (edge TRE) |");
+        for c in &cats {
+            match CATEGORY_ORDER.iter().position(|x| x == c) {
+                Some(k) if k < PAPER_S1_V2S.len() => {
+                    let _ = write!(s, " {:.2} |", PAPER_S1_V2S[k]);
+                }
+                _ => s.push_str(" – |"),
+            }
+        }
+        let _ = writeln!(s, " – | – |");
+    }
+}
+
 /// Categories in the paper's order, then any others by name.
 fn ordered_categories(runs: &[(&RunOutcome, RunFigures)]) -> Vec<String> {
     let mut cats: Vec<String> = CATEGORY_ORDER.iter().map(|c| c.to_string()).collect();
@@ -180,12 +432,24 @@ fn ablation_row(setting: u32) -> (&'static str, &'static str, &'static str) {
 const PAPER_TABLE2: [f64; 6] = [4.215, 3.857, 3.985, 3.346, 3.325, 3.234];
 
 /// `RESULTS.md`: `header` (command, data, machine) then the tables. `main` are the full-model
-/// runs, one per split; `ablations` the Table 2 runs (setting 6 included).
-pub fn results_markdown(header: &str, main: &[RunOutcome], ablations: &[RunOutcome]) -> String {
+/// runs, one per split; `ablations` the Table 2 runs (setting 6 included); `v2s` the V2S runs,
+/// one per split (with them, the four methods against the paper's Table 1 and V2S per category
+/// come first).
+pub fn results_markdown(
+    header: &str,
+    main: &[RunOutcome],
+    ablations: &[RunOutcome],
+    v2s: &[RunOutcome],
+) -> String {
     let mut s = String::new();
     s.push_str(header);
     let main_f: Vec<(&RunOutcome, RunFigures)> =
         main.iter().map(|r| (r, figures(&r.test))).collect();
+    let v2s_f: Vec<(&RunOutcome, V2sFigures)> =
+        v2s.iter().map(|r| (r, v2s_figures(&r.test))).collect();
+    if !v2s_f.is_empty() {
+        four_methods_markdown(&mut s, &main_f, &v2s_f);
+    }
     let _ = writeln!(s, "\n## LIBR+ against LIBR, per split\n");
     let _ = writeln!(
         s,
@@ -405,13 +669,13 @@ mod tests {
                 json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(9.0, 8.0, 10.0)}),
             ],
         );
-        let md = results_markdown("# R\n", std::slice::from_ref(&good), &[]);
+        let md = results_markdown("# R\n", std::slice::from_ref(&good), &[], &[]);
         assert!(
             md.contains("| random | 1 | 10.000 | 5.000 | 0.500 | 1 of 1 |"),
             "{md}"
         );
         assert!(md.contains("worst ratio 0.500 — met"), "{md}");
-        let md = results_markdown("# R\n", &[good.clone(), bad], &[]);
+        let md = results_markdown("# R\n", &[good.clone(), bad], &[], &[]);
         assert!(md.contains("worst ratio 0.900 — **not met**"), "{md}");
         assert!(
             md.contains("9.000 / 5.000 mm = 1.800 — **not met**"),
@@ -433,11 +697,81 @@ mod tests {
                 json!({"category": "surface", "libr": tre(10.0, 9.0, 11.0), "librplus": tre(8.0, 7.0, 9.0)}),
             ],
         );
-        let md = results_markdown("", &[good], &[a1, a2]);
+        let md = results_markdown("", &[good], &[a1, a2], &[]);
         assert!(
             md.contains("(2 < 1): 8.000 vs 7.000 mm — **not reproduced**"),
             "{md}"
         );
         assert!(!md.contains("(6 < 5)"), "{md}");
+    }
+
+    fn v2s_run(split: &str, rigid: f64, v2s: f64) -> RunOutcome {
+        RunOutcome {
+            name: format!("{}-v2s", split.replace(':', "-")),
+            split: split.into(),
+            ablation: 0,
+            test: json!({"results": [
+                {"category": "surface", "rigid": tre(rigid, rigid, rigid), "v2s": tre(v2s, v2s - 1.0, v2s + 1.0)},
+                {"category": "surface+1us", "rigid": tre(rigid, rigid, rigid), "v2s": tre(v2s, v2s, v2s)},
+                {"category": "surface", "error": "v2s failed"},
+            ]}),
+        }
+    }
+
+    #[test]
+    fn the_four_methods_table_puts_v2s_beside_the_paper_and_judges_the_drop() {
+        let plus = |split: &str, l: f64, p: f64| {
+            run(
+                split,
+                6,
+                vec![
+                    json!({"category": "surface", "libr": tre(l, l, l), "librplus": tre(p, p, p)}),
+                ],
+            )
+        };
+        let main = [
+            plus("random", 6.0, 3.0),
+            plus("logo:g1", 7.0, 3.3),
+            plus("logo:g2", 8.0, 3.5),
+            plus("pattern-v", 7.0, 3.6),
+        ];
+        let v2s = [
+            v2s_run("random", 13.0, 5.0),
+            v2s_run("logo:g1", 14.0, 7.0),
+            v2s_run("logo:g2", 14.0, 9.0),
+            v2s_run("pattern-v", 15.0, 9.0),
+        ];
+        let f = v2s_figures(&v2s[0].test);
+        assert_eq!((f.all.scenarios, f.failed), (2, 1));
+        assert!((f.all.v2s.tre_surface_mm - 4.5).abs() < 1e-12);
+        let md = results_markdown("", &main, &[], &v2s);
+        assert!(
+            md.contains("| random | 1 | 13.000 | 6.000 | 5.000 | 3.000 |"),
+            "{md}"
+        );
+        // The Geometry column is the mean of the logo splits (7 and 9 → 8); geo-def ran not.
+        assert!(
+            md.contains("| V2S | 5.000 / 5.037 | – / 6.548 | 8.000 / 6.980 | 9.000 / 8.804 | 1.800 / 1.748 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| LIBR+ | 3.000 / 3.234 | – / 3.159 | 3.400 / 3.365 | 3.600 / 3.702 | 1.200 / 1.172 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("V2S 80 % (the paper: 75 %), LIBR+ 20 %"),
+            "{md}"
+        );
+        assert!(md.contains("is reproduced on these data"), "{md}");
+        assert!(
+            md.contains("| random | 13.00 → 5.00 | 13.00 → 5.00 | 13.00 → 4.50 | 13.00 → 5.50 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| the paper's V2S (edge TRE) | 11.64 | 11.25 | – | – |"),
+            "{md}"
+        );
+        // Without V2S runs the report is as before.
+        assert!(!results_markdown("", &main, &[], &[]).contains("V2S"));
     }
 }

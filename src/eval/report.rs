@@ -17,6 +17,7 @@ use crate::gcn::io::TrainedModel;
 use crate::mesh::TetMesh;
 use crate::mesh::io::{DataArray, MeshFile};
 use crate::pipeline::{Method, PipelineParams, Prepared, register};
+use crate::v2s::io::V2sModel;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -268,12 +269,16 @@ type Outcome = (
 /// maps in scenario order, so the sums do not depend on thread scheduling.
 const CHUNK: usize = 32;
 
-/// LIBR+ in an evaluation: a trained SR-GCN applied to every LIBR result, reported as method
-/// `librplus`; optionally only the scenarios a model was not trained on.
+/// Learned models in an evaluation: a trained SR-GCN applied to every LIBR result, reported as
+/// method `librplus`; the V2S network that method `v2s` runs; optionally only the scenarios a
+/// model was not trained on.
 #[derive(Clone, Copy)]
 pub struct LibrPlusEval<'a> {
-    /// The trained model, or an ensemble's members (their corrections averaged).
+    /// The trained model, or an ensemble's members (their corrections averaged); empty: no
+    /// LIBR+.
     pub models: &'a [std::sync::Arc<TrainedModel>],
+    /// The V2S network of method [`Method::V2s`].
+    pub v2s: Option<&'a std::sync::Arc<V2sModel>>,
     /// Only these scenarios (deformation id, index), e.g. the model's test split.
     pub only: Option<&'a std::collections::BTreeSet<(String, usize)>>,
 }
@@ -296,6 +301,15 @@ pub fn evaluate(
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Evaluation, EvalError> {
     let every = every.max(1);
+    let v2s = librplus.and_then(|l| l.v2s);
+    let only = librplus.and_then(|l| l.only);
+    if methods.contains(&Method::V2s) && v2s.is_none() {
+        return Err(EvalError::Parameter(
+            "method v2s needs a V2S model (--v2s-model, or the built-in one)".into(),
+        ));
+    }
+    // LIBR+ runs when SR-GCN models are given.
+    let librplus = librplus.filter(|l| !l.models.is_empty());
     let test_geos = m.test_geometries();
     let defs: Vec<_> = m
         .deformations
@@ -308,9 +322,7 @@ pub fn evaluate(
         .collect();
     let keep = |d: &str, i: usize| {
         (i / CATEGORY_ORDER.len()) % every == 0
-            && librplus
-                .and_then(|l| l.only)
-                .is_none_or(|only| only.contains(&(d.to_string(), i)))
+            && only.is_none_or(|only| only.contains(&(d.to_string(), i)))
     };
     let total: usize = defs
         .iter()
@@ -327,7 +339,10 @@ pub fn evaluate(
         if !prepared.contains_key(&d.geometry) {
             let geo = load_geometry(dir, m, &d.geometry)?;
             let libr = methods.contains(&Method::Libr).then_some(&params.libr);
-            let case = Prepared::with_physics(geo.model.clone(), libr, physics, Some(&cache))?;
+            let mut case = Prepared::with_physics(geo.model.clone(), libr, physics, Some(&cache))?;
+            if let Some(v) = v2s.filter(|_| methods.contains(&Method::V2s)) {
+                case = case.with_v2s(v.clone())?;
+            }
             for &method in methods {
                 maps.push(ErrorMap::new(
                     &d.geometry,

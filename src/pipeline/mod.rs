@@ -15,6 +15,8 @@ use crate::register::physics::{EffectKind, Physics};
 use crate::register::prior::{HELD_SIGMA_MM, RigidPrior};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::{Measurements, PreopModel, RegisterError};
+use crate::v2s::io::V2sModel;
+use crate::v2s::{V2sCase, V2sError};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -49,6 +51,12 @@ pub enum PipelineError {
     /// LIBR+ was asked of a case without an SR-GCN model.
     #[error("the case has no SR-GCN model: LIBR+ needs one (use LIBR)")]
     NoModel,
+    /// V2S was asked of a case without a V2S model.
+    #[error("the case has no V2S model: the v2s method needs one")]
+    NoV2sModel,
+    /// The case's V2S network could not be prepared, or its prediction failed.
+    #[error(transparent)]
+    V2s(V2sError),
     /// The refit was asked with no iterations.
     #[error("refit_iterations is 0")]
     NoRefitIterations,
@@ -68,6 +76,9 @@ pub enum Method {
     /// wICP, LIBR, then the SR-GCN correction (needs a case prepared with a model).
     #[serde(rename = "librplus")]
     LibrPlus,
+    /// wICP, then the V2S network's displacement (the paper's data-driven baseline; needs a case
+    /// prepared with a V2S model, [`Prepared::with_v2s`]).
+    V2s,
 }
 
 impl Method {
@@ -78,6 +89,7 @@ impl Method {
             Method::Rigid => "rigid",
             Method::Libr => "libr",
             Method::LibrPlus => "librplus",
+            Method::V2s => "v2s",
         }
     }
 }
@@ -134,6 +146,8 @@ pub struct Prepared {
     pub basis_from_cache: bool,
     /// The SR-GCN of LIBR+, when the case has one ([`Prepared::with_model`]).
     pub librplus: Option<LibrPlusCase>,
+    /// The V2S network, when the case has one ([`Prepared::with_v2s`]).
+    pub v2s: Option<V2sCase>,
     /// The physics LIBR's model carries (empty: plain LIBR).
     pub physics: Physics,
     /// Preparation time (s).
@@ -187,6 +201,7 @@ impl Prepared {
             basis,
             basis_from_cache,
             librplus: None,
+            v2s: None,
             physics: physics.clone(),
             seconds: crate::util::secs(t0),
         })
@@ -203,6 +218,21 @@ impl Prepared {
         let t0 = Instant::now();
         self.librplus =
             Some(LibrPlusCase::new(models, &self.model.mesh).map_err(PipelineError::Model)?);
+        self.seconds += crate::util::secs(t0);
+        Ok(self)
+    }
+}
+
+impl Prepared {
+    /// Adds a trained V2S network so the case answers [`Method::V2s`] (its grid and the
+    /// preoperative channels are built here, once).
+    pub fn with_v2s(mut self, model: Arc<V2sModel>) -> Result<Self, PipelineError> {
+        let t0 = Instant::now();
+        let m = &self.model;
+        self.v2s = Some(
+            V2sCase::new(model, &m.mesh, (&m.vessel_points, &m.vessel_segments))
+                .map_err(PipelineError::V2s)?,
+        );
         self.seconds += crate::util::secs(t0);
         Ok(self)
     }
@@ -277,6 +307,15 @@ pub fn refit(
     .map_err(PipelineError::Refit)
 }
 
+/// How the V2S stage of a registration went.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct V2sInfo {
+    /// The stage: the measured channels on the grid, the network, the interpolation (s).
+    pub seconds: f64,
+    /// Of which the network and the interpolation to the nodes (s).
+    pub network_seconds: f64,
+}
+
 /// What a registration returns.
 #[derive(Debug, Clone)]
 pub struct Registration {
@@ -292,6 +331,8 @@ pub struct Registration {
     pub libr: Option<LibrInfo>,
     /// The SR-GCN stage, for LIBR+.
     pub correction: Option<CorrectionInfo>,
+    /// The V2S stage, for V2S.
+    pub v2s: Option<V2sInfo>,
     /// Total time (s).
     pub seconds: f64,
 }
@@ -325,6 +366,10 @@ pub fn register(
     validate_measurements(meas).map_err(PipelineError::Rigid)?;
     let n = case.model.mesh.num_nodes();
     let wparams = rigid_params(case, params);
+    let v2s = match method {
+        Method::V2s => Some(case.v2s.as_ref().ok_or(PipelineError::NoV2sModel)?),
+        _ => None,
+    };
     let rigid_params = if method == Method::Initial {
         // No iterations: the start, with its match statistics.
         WicpParams {
@@ -345,6 +390,27 @@ pub fn register(
             rigid,
             libr: None,
             correction: None,
+            v2s: None,
+            seconds: crate::util::secs(t0),
+        });
+    }
+    if let Some(v) = v2s {
+        // V2S reads the points after the rigid stage, as V2S-Net assumes a rigid alignment.
+        let t1 = Instant::now();
+        let (u, network_seconds) = v
+            .displacement(meas, &rigid.image_to_physical)
+            .map_err(PipelineError::V2s)?;
+        return Ok(Registration {
+            method,
+            image_to_physical: rigid.image_to_physical,
+            u,
+            rigid,
+            libr: None,
+            correction: None,
+            v2s: Some(V2sInfo {
+                seconds: crate::util::secs(t1),
+                network_seconds,
+            }),
             seconds: crate::util::secs(t0),
         });
     }
@@ -463,6 +529,7 @@ pub fn register(
         rigid,
         libr: Some(sol.info),
         correction,
+        v2s: None,
         seconds: crate::util::secs(t0),
     })
 }

@@ -84,6 +84,12 @@ async fn bad_unary_input_gets_its_status_and_field() {
         Code::FailedPrecondition,
         None,
     ));
+    cases.push((
+        "V2S without a model",
+        request(&case, pb::Method::V2s, good.clone()),
+        Code::FailedPrecondition,
+        None,
+    ));
     let mut bad_method = request(&case, pb::Method::Libr, good.clone());
     bad_method.method = 17;
     cases.push((

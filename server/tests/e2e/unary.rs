@@ -1,4 +1,4 @@
-//! Unary `Register` over loopback equals the library called directly, for LIBR and for LIBR+.
+//! Unary `Register` over loopback equals the library called directly, for LIBR, LIBR+ and V2S.
 
 use crate::common::*;
 
@@ -137,5 +137,76 @@ async fn librplus_answers_through_the_same_api_as_the_library() {
     assert!((r.residual_rms_mm - refit.rms_mm).abs() < 1e-6, "{r:?}");
     let libr = register(&prepared, &sc.measurements, Method::Libr, &p).unwrap();
     assert_ne!(lib.u, libr.u);
+    assert_eq!(running.shutdown().await, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn v2s_answers_through_the_same_api_as_the_library() {
+    use librplus::v2s::io::{V2sModel, save_model};
+    use librplus::v2s::model::V2sConfig;
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = V2sConfig::new().with_grid(16).with_width(4).with_depth(2);
+    let mut model = V2sModel::untrained(cfg, 7).unwrap();
+    // A non-zero head, so the answer is not the rigid one.
+    let device = burn::tensor::Device::flex();
+    device.seed(3);
+    let dims = model.net.head.weight.dims();
+    model.net.head.weight = burn::module::Param::from_tensor(burn::tensor::Tensor::<5>::random(
+        dims,
+        burn::tensor::Distribution::Normal(0.0, 0.1),
+        &device,
+    ));
+    save_model(
+        tmp.path(),
+        &model.config,
+        &model.net,
+        model.provenance.clone(),
+    )
+    .unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        v2s_model: Some(tmp.path().to_path_buf()),
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut c = client(running.addr).await;
+    let cases = c
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(cases.cases.iter().all(|s| s.v2s_ready), "{cases:?}");
+    let (geo, sc) = scenario("surface+1us");
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let r = c
+        .register(request(
+            &case,
+            pb::Method::V2s,
+            measurements_pb(&sc.measurements),
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.method_used, pb::Method::V2s as i32, "{r:?}");
+    let prepared = Prepared::new(geo.model.clone(), None, None)
+        .unwrap()
+        .with_v2s(std::sync::Arc::new(
+            librplus::v2s::io::load_model_on_device(tmp.path()).unwrap(),
+        ))
+        .unwrap();
+    let p = PipelineParams::default();
+    let lib = register(&prepared, &sc.measurements, Method::V2s, &p).unwrap();
+    let (dt, du) = difference(&r, &lib);
+    assert!(
+        dt < 1e-9 && du < 1e-4,
+        "transform {dt}, displacements {du} mm"
+    );
+    let rigid = register(&prepared, &sc.measurements, Method::Rigid, &p).unwrap();
+    assert_eq!(rigid.image_to_physical, lib.image_to_physical);
+    assert!(
+        lib.u.iter().any(|x| x.abs() > 1e-3),
+        "V2S answered no displacement"
+    );
     assert_eq!(running.shutdown().await, 0);
 }

@@ -151,6 +151,16 @@ pub(crate) struct ExperimentsArgs {
     /// Keep runs whose directory already has test.json (resume an interrupted campaign).
     #[arg(long)]
     pub(crate) resume: bool,
+    /// Leave out the V2S runs (by default every split of the full model also trains and tests
+    /// V2S, `librplus train --method v2s`, for the four-method tables).
+    #[arg(long)]
+    pub(crate) no_v2s: bool,
+    /// More `librplus train --method v2s` options for every V2S run (e.g. "--grid 64").
+    #[arg(long, default_value = "", allow_hyphen_values = true)]
+    pub(crate) v2s_args: String,
+    /// Training time limit per V2S run (minutes; default --minutes).
+    #[arg(long)]
+    pub(crate) v2s_minutes: Option<f64>,
 }
 
 #[derive(Parser)]
@@ -289,6 +299,35 @@ pub(crate) struct TrainArgs {
     /// correction scale fitted again and tested
     #[arg(long)]
     pub(crate) init: Option<PathBuf>,
+    /// What to train: `srgcn` (LIBR+'s residual network) or `v2s` (the paper's data-driven
+    /// baseline, a 3-D U-Net on a grid supervised by the true displacement alone; it uses
+    /// --epochs, --patience, --max-minutes, --seed, --split, --every and the --v2s-* options)
+    #[arg(long, value_enum, default_value_t = TrainMethod::Srgcn)]
+    pub(crate) method: TrainMethod,
+    /// V2S: grid points per axis (the paper: 64; a multiple of 2^--v2s-depth)
+    #[arg(long, default_value_t = 32)]
+    pub(crate) grid: usize,
+    /// V2S: channels at full resolution (doubled at each level down)
+    #[arg(long, default_value_t = 8)]
+    pub(crate) v2s_width: usize,
+    /// V2S: down-sampling steps of the U-Net
+    #[arg(long, default_value_t = 3)]
+    pub(crate) v2s_depth: usize,
+    /// V2S: 3³ convolutions per level on each side of the U
+    #[arg(long, default_value_t = 2)]
+    pub(crate) v2s_convs: usize,
+    /// V2S: initial Adam learning rate (halved when validation stalls)
+    #[arg(long, default_value_t = 1e-3)]
+    pub(crate) v2s_lr: f64,
+}
+
+/// `train --method`.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum TrainMethod {
+    /// SR-GCN, LIBR's learned residual (LIBR+).
+    Srgcn,
+    /// The V2S-Net-style volumetric network.
+    V2s,
 }
 
 /// LIBR options shared by `register` and `evaluate`.
@@ -361,7 +400,7 @@ pub(crate) struct EvaluateArgs {
     #[arg(long)]
     pub(crate) data: PathBuf,
     /// Comma-separated methods: initial (the navigation start, unregistered: the baseline),
-    /// rigid, libr, librplus (--model, or the built-in model).
+    /// rigid, libr, v2s (--v2s-model), librplus (--model, or the built-in model).
     #[arg(long, default_value = "rigid,libr")]
     pub(crate) methods: String,
     /// A trained SR-GCN model directory (from `librplus train`), or an ensemble directory (from
@@ -369,6 +408,10 @@ pub(crate) struct EvaluateArgs {
     /// test scenarios (an ensemble: those every member held out; its split replaces --split).
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
+    /// A V2S model directory (from `librplus train --method v2s`) for method v2s; like --model,
+    /// one trained on this dataset restricts every method to its held-out test scenarios.
+    #[arg(long)]
+    pub(crate) v2s_model: Option<PathBuf>,
     /// Comma-separated splits: all, train, test (the held-out geometry with pattern V).
     #[arg(long, default_value = "all")]
     pub(crate) split: String,
@@ -428,11 +471,13 @@ pub(crate) struct RegisterArgs {
     /// With --preop and a surface file: tet edge length (mm).
     #[arg(long, default_value_t = 7.6)]
     pub(crate) edge_mm: f64,
-    /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
+    /// rigid (wICP), libr (wICP then LIBR), librplus (then the SR-GCN correction) or v2s
+    /// (wICP then the V2S network).
     #[arg(long, default_value = "libr")]
     pub(crate) method: MethodArg,
     /// SR-GCN model directory (from `librplus train`) or ensemble directory (from `librplus
-    /// ensemble`) for --method librplus (default: the built-in model).
+    /// ensemble`) for --method librplus (default: the built-in model); a V2S model directory
+    /// (from `librplus train --method v2s`) for --method v2s.
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
     /// Write the preoperative mesh with the registered `displacement` (image frame) and the
@@ -479,7 +524,8 @@ pub(crate) struct BenchRegisterArgs {
     /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
     #[arg(long, default_value = "libr")]
     pub(crate) method: MethodArg,
-    /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model).
+    /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model);
+    /// V2S model directory for --method v2s.
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
     /// An augmented model (`physics.json`): LIBR's basis carries its effects.
@@ -520,6 +566,8 @@ pub(crate) enum MethodArg {
     Libr,
     /// wICP, LIBR, then the SR-GCN correction (--model, or the built-in model).
     Librplus,
+    /// wICP, then the V2S network's displacement (--v2s-model, or the built-in one).
+    V2s,
 }
 
 #[derive(Subcommand)]

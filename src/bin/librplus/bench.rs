@@ -1,10 +1,9 @@
 //! `librplus bench`: basis (the LIBR preload workload) and register (the whole pipeline, with
 //! the preload printed); `bench gcn` is dispatched in `main`.
 
-use crate::args::{BenchRegisterArgs, Common, MethodArg};
+use crate::args::{BenchRegisterArgs, Common};
 use crate::data::liver_surface;
 use crate::mesh::load_volume;
-use crate::register::shared_models;
 use crate::util::emit;
 use anyhow::{Context, Result, bail};
 use librplus::fem;
@@ -137,7 +136,6 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     use librplus::eval::bench::{
         pick_across_categories, preload_mesh, preload_model, time_registrations,
     };
-    use librplus::pipeline::Method;
     if a.threads == 0 {
         bail!("--threads must be at least 1");
     }
@@ -226,28 +224,9 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     let pre = preload_model(&geo.model, &params.libr, &physics, &cache);
     bar.finish_and_clear();
     let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
-    let method = match a.method {
-        MethodArg::Rigid => Method::Rigid,
-        MethodArg::Libr => Method::Libr,
-        MethodArg::Librplus => Method::LibrPlus,
-    };
-    match (&a.model, method) {
-        (Some(dir), Method::LibrPlus) => {
-            let m = librplus::gcn::io::load_models_on_device(dir)
-                .map_err(|e| anyhow::anyhow!("--model: {e}"))?;
-            case = case
-                .with_models(shared_models(m))
-                .map_err(anyhow::Error::msg)?;
-        }
-        (None, Method::LibrPlus) => {
-            let m = librplus::gcn::io::builtin_models()
-                .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?;
-            case = case
-                .with_models(shared_models(m))
-                .map_err(anyhow::Error::msg)?;
-        }
-        (Some(_), _) => bail!("--model is only used with --method librplus"),
-        (None, _) => {}
+    let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
+    if let Some(l) = learned {
+        case = l.attach(case).map_err(anyhow::Error::msg)?;
     }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(a.threads)
@@ -291,6 +270,8 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
                 "gcn": r.median.gcn_s,
                 "gcn_network": r.median.gcn_network_s,
                 "gcn_refit": r.median.gcn_refit_s,
+                "v2s": r.median.v2s_s,
+                "v2s_network": r.median.v2s_network_s,
             },
             "wicp_iterations_mean": r.wicp_iterations_mean,
             "libr_iterations_mean": r.libr_iterations_mean,
@@ -333,6 +314,12 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         r.median.gcn_network_s,
         r.median.gcn_refit_s
     );
+    if method == librplus::pipeline::Method::V2s {
+        println!(
+            "  V2S stage median (s): {:.4} (measured channels on the grid, then network and interpolation {:.4})",
+            r.median.v2s_s, r.median.v2s_network_s
+        );
+    }
     println!(
         "  iterations (mean): wicp {:.1}, libr {:.1} (converged {}/{}); mean TRE {:.2} mm; per category {:?}",
         r.wicp_iterations_mean,

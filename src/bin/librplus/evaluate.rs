@@ -18,7 +18,10 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             "rigid" => methods.push(Method::Rigid),
             "libr" => methods.push(Method::Libr),
             "librplus" => want_plus = true,
-            other => bail!("--methods: unknown method {other:?} (initial, rigid, libr, librplus)"),
+            "v2s" => methods.push(Method::V2s),
+            other => {
+                bail!("--methods: unknown method {other:?} (initial, rigid, libr, v2s, librplus)")
+            }
         }
     }
     let model = match (&a.model, want_plus) {
@@ -30,6 +33,17 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             librplus::gcn::io::builtin_models()
                 .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
         )),
+        (None, false) => None,
+    };
+    let v2s = match (&a.v2s_model, methods.contains(&Method::V2s)) {
+        (Some(dir), true) => Some(std::sync::Arc::new(
+            librplus::v2s::io::load_model_on_device(dir)
+                .map_err(|e| anyhow::anyhow!("--v2s-model: {e}"))?,
+        )),
+        (None, true) => bail!(
+            "--methods v2s: give --v2s-model DIR (a model from `librplus train --method v2s`)"
+        ),
+        (Some(_), false) => bail!("--v2s-model is used with --methods v2s"),
         (None, false) => None,
     };
     if model.is_some() && !methods.contains(&Method::Libr) {
@@ -44,12 +58,18 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             .as_str()
             .is_none_or(|h| h == m.parameters_hash)
     };
-    let model_test = match &model {
-        Some(members) if members.iter().any(|mm| trained_here(&mm.provenance)) => {
+    // The provenance of every learned model evaluated: SR-GCN members, then V2S.
+    let provenances: Vec<&Value> = model
+        .iter()
+        .flatten()
+        .map(|mm| &mm.provenance)
+        .chain(v2s.iter().map(|v| &v.provenance))
+        .collect();
+    let model_test = match &provenances {
+        ps if ps.iter().any(|p| trained_here(p)) => {
             let mut names = Vec::new();
             let mut common: Option<std::collections::BTreeSet<(String, usize)>> = None;
-            for mm in members.iter().filter(|mm| trained_here(&mm.provenance)) {
-                let p = &mm.provenance;
+            for p in ps.iter().filter(|p| trained_here(p)) {
                 let split = p["split"].as_str().unwrap_or("");
                 let sp = librplus::eval::train::TrainSplit::parse(split)
                     .map_err(|e| anyhow::anyhow!("--model provenance: {e}"))?;
@@ -132,8 +152,9 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         };
-        let plus = model.as_ref().map(|mm| report::LibrPlusEval {
-            models: mm,
+        let plus = (model.is_some() || v2s.is_some()).then(|| report::LibrPlusEval {
+            models: model.as_deref().unwrap_or(&[]),
+            v2s: v2s.as_ref(),
             only: model_test.as_ref().map(|t| &t.1),
         });
         let disc = discover_params

@@ -118,6 +118,55 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
             test,
         });
     }
+    // V2S on every split of the full model (the same test scenarios: same split, seed, every).
+    let mut v2s_outcomes: Vec<RunOutcome> = Vec::new();
+    if !a.no_v2s {
+        let v2s_extra: Vec<String> = a.v2s_args.split_whitespace().map(String::from).collect();
+        let mut v2s_args = TrainOnly::try_parse_from(
+            ["train", "--data", "-", "--out", "-", "--method", "v2s"]
+                .into_iter()
+                .map(String::from)
+                .chain(v2s_extra),
+        )
+        .map_err(|e| anyhow::anyhow!("--v2s-args: {e}"))?
+        .args;
+        v2s_args.data = a.data.clone();
+        v2s_args.every = a.every;
+        v2s_args.seed = a.seed;
+        v2s_args.max_minutes = a.v2s_minutes.unwrap_or(a.minutes);
+        let splits: Vec<String> = plan
+            .iter()
+            .filter(|(_, k)| *k == 6)
+            .map(|(s, _)| s.clone())
+            .collect();
+        for (i, split) in splits.iter().enumerate() {
+            let name = format!("{}-v2s", split.replace(':', "-"));
+            let dir = a.out.join("runs").join(&name);
+            let test_path = dir.join("test.json");
+            if !(a.resume && test_path.exists()) {
+                eprintln!(
+                    "\n[V2S {}/{}] {split} → {}",
+                    i + 1,
+                    splits.len(),
+                    dir.display()
+                );
+                v2s_args.split = split.clone();
+                v2s_args.out = dir.clone();
+                train(&v2s_args).with_context(|| format!("run {name}"))?;
+            }
+            let test: Value = serde_json::from_str(
+                &std::fs::read_to_string(&test_path)
+                    .with_context(|| test_path.display().to_string())?,
+            )
+            .with_context(|| test_path.display().to_string())?;
+            v2s_outcomes.push(RunOutcome {
+                name,
+                split: split.clone(),
+                ablation: 0,
+                test,
+            });
+        }
+    }
     let main: Vec<RunOutcome> = outcomes
         .iter()
         .filter(|r| r.ablation == 6)
@@ -148,8 +197,9 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
     let header = format!(
         "# LIBR+ results\n\nMade by one command (commit `{}`):\n\n```\n{}\n```\n\n\
          - Data: `{}` (preset {}, seed {}, parameters {}); every {}th block of five scenarios.\n\
-         - Each run is `librplus train` with a training limit of {} minutes; its model, \
-         `training.json` and `test.json` are under `runs/`.\n\
+         - Each run is `librplus train` with a training limit of {} minutes (V2S: `librplus \
+         train --method v2s`, {}); its model, `training.json` and `test.json` are under \
+         `runs/`.\n\
          - Machine: {cpu}, {threads} threads. Total wall time {:.0} minutes.\n\
          - TRE: mean distance over mesh nodes between the registered and the true deformed \
          liver (physical frame), averaged over the held-out scenarios.\n",
@@ -161,9 +211,18 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
         m.parameters_hash,
         a.every,
         a.minutes,
+        if a.no_v2s {
+            "not run".to_string()
+        } else {
+            format!(
+                "{} minutes, options `{}`",
+                a.v2s_minutes.unwrap_or(a.minutes),
+                a.v2s_args
+            )
+        },
         t0.elapsed().as_secs_f64() / 60.0
     );
-    let md = results_markdown(&header, &main, &abl);
+    let md = results_markdown(&header, &main, &abl, &v2s_outcomes);
     std::fs::write(a.out.join("RESULTS.md"), &md)?;
     let runs: Vec<Value> = outcomes
         .iter()
@@ -171,6 +230,10 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
             json!({"name": r.name, "split": r.split, "ablation": r.ablation,
                    "figures": librplus::eval::experiments::figures(&r.test)})
         })
+        .chain(v2s_outcomes.iter().map(|r| {
+            json!({"name": r.name, "split": r.split, "method": "v2s",
+                   "figures": librplus::eval::experiments::v2s_figures(&r.test)})
+        }))
         .collect();
     std::fs::write(
         a.out.join("results.json"),

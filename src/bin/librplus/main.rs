@@ -15,6 +15,7 @@ mod fem;
 mod mesh;
 mod register;
 mod train;
+mod train_v2s;
 mod util;
 
 use anyhow::{Context, Result};

@@ -8,32 +8,65 @@ use serde_json::{Value, json};
 use std::path::Path;
 use std::time::Instant;
 
-/// The method of `register` and the model it needs, loaded.
-fn register_method(
-    a: &RegisterArgs,
-) -> Result<(
-    librplus::pipeline::Method,
-    Option<Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>>,
-)> {
+/// The learned model a method needs: SR-GCN networks for LIBR+, a V2S network for V2S.
+pub(crate) enum Learned {
+    /// LIBR+'s network, or an ensemble's members.
+    Gcn(Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>),
+    /// The V2S network.
+    V2s(std::sync::Arc<librplus::v2s::io::V2sModel>),
+}
+
+impl Learned {
+    /// Adds the model to a prepared case.
+    pub(crate) fn attach(
+        self,
+        case: librplus::pipeline::Prepared,
+    ) -> std::result::Result<librplus::pipeline::Prepared, librplus::pipeline::PipelineError> {
+        match self {
+            Learned::Gcn(m) => case.with_models(m),
+            Learned::V2s(m) => case.with_v2s(m),
+        }
+    }
+}
+
+/// The pipeline method of `--method`, and the model it needs (from `model`, else the built-in
+/// SR-GCN for LIBR+).
+pub(crate) fn method_and_model(
+    arg: MethodArg,
+    model: Option<&Path>,
+) -> Result<(librplus::pipeline::Method, Option<Learned>)> {
     use librplus::pipeline::Method;
-    let method = match a.method {
+    let method = match arg {
         MethodArg::Rigid => Method::Rigid,
         MethodArg::Libr => Method::Libr,
         MethodArg::Librplus => Method::LibrPlus,
+        MethodArg::V2s => Method::V2s,
     };
-    let model = match (&a.model, method) {
-        (Some(dir), Method::LibrPlus) => Some(shared_models(
+    let learned = match (model, method) {
+        (Some(dir), Method::LibrPlus) => Some(Learned::Gcn(shared_models(
             librplus::gcn::io::load_models_on_device(dir)
                 .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
-        )),
-        (None, Method::LibrPlus) => Some(shared_models(
+        ))),
+        (None, Method::LibrPlus) => Some(Learned::Gcn(shared_models(
             librplus::gcn::io::builtin_models()
                 .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
-        )),
-        (Some(_), _) => bail!("--model is only used with --method librplus"),
+        ))),
+        (Some(dir), Method::V2s) => Some(Learned::V2s(std::sync::Arc::new(
+            librplus::v2s::io::load_model_on_device(dir)
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+        ))),
+        (None, Method::V2s) => {
+            bail!("--method v2s: give --model DIR (a model from `librplus train --method v2s`)")
+        }
+        (Some(_), _) => bail!("--model is only used with --method librplus or v2s"),
         (None, _) => None,
     };
-    Ok((method, model))
+    Ok((method, learned))
+}
+
+/// The method of `register` and the model it needs, loaded.
+fn register_method(a: &RegisterArgs) -> Result<(librplus::pipeline::Method, Option<Learned>)> {
+    method_and_model(a.method, a.model.as_deref())
 }
 
 fn registration_json(r: &librplus::pipeline::Registration) -> Value {
@@ -73,6 +106,10 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             })),
             "refit_error": c.refit_error,
         })),
+        "v2s": r.v2s.map(|v| json!({
+            "seconds": v.seconds,
+            "network_seconds": v.network_seconds,
+        })),
     })
 }
 
@@ -83,18 +120,18 @@ fn prepare_case(
     method: librplus::pipeline::Method,
     params: &librplus::pipeline::PipelineParams,
     cache: &Path,
-    gcn: Option<Vec<std::sync::Arc<librplus::gcn::io::TrainedModel>>>,
+    learned: Option<Learned>,
     physics: &librplus::register::physics::Physics,
 ) -> std::result::Result<librplus::pipeline::Prepared, librplus::pipeline::PipelineError> {
     use librplus::pipeline::{Method, Prepared};
     let case = Prepared::with_physics(
         preop,
-        (method != Method::Rigid).then_some(&params.libr),
+        matches!(method, Method::Libr | Method::LibrPlus).then_some(&params.libr),
         physics,
         Some(cache),
     )?;
-    match gcn {
-        Some(m) => case.with_models(m),
+    match learned {
+        Some(m) => m.attach(case),
         None => Ok(case),
     }
 }

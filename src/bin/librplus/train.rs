@@ -64,6 +64,9 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
     use librplus::eval::load_scenarios;
     use librplus::eval::train::{self as tr, TrainOptions, TrainSplit};
     use librplus::gcn::model::SrGcnConfig;
+    if a.method == crate::args::TrainMethod::V2s {
+        return crate::train_v2s::train_v2s(a);
+    }
     let t_all = Instant::now();
     let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
     let split = TrainSplit::parse(&a.split).map_err(|e| anyhow::anyhow!("--split: {e}"))?;
@@ -340,6 +343,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             &physics,
             Some(librplus::eval::report::LibrPlusEval {
                 models: std::slice::from_ref(&model),
+                v2s: None,
                 only: Some(&only),
             }),
             None,
@@ -349,7 +353,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             },
         )?;
         bar.finish_and_clear();
-        test_rows(&ev.results)
+        crate::train_v2s::pair_rows(&ev.results, "libr", "librplus")
     };
     let inference_seconds = t_inf.elapsed().as_secs_f64();
     // Aggregate.
@@ -479,31 +483,6 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         o.insert("training".into(), training);
     }
     Ok(summary)
-}
-
-/// The rows of `test.json` from an evaluation of methods `libr` and `librplus`: per scenario its
-/// two TREs, or why it failed.
-fn test_rows(results: &[librplus::eval::report::ScenarioResult]) -> Vec<Value> {
-    let plus: std::collections::BTreeMap<&str, &librplus::eval::report::ScenarioResult> = results
-        .iter()
-        .filter(|r| r.method == "librplus")
-        .map(|r| (r.scenario.as_str(), r))
-        .collect();
-    results
-        .iter()
-        .filter(|r| r.method == "libr")
-        .map(|l| {
-            let p = plus.get(l.scenario.as_str());
-            match (&l.tre, p.and_then(|p| p.tre.as_ref())) {
-                (Some(tl), Some(tp)) => json!({"scenario": l.scenario, "geometry": l.geometry, "category": l.category, "libr": tl, "librplus": tp}),
-                _ => json!({
-                    "scenario": l.scenario,
-                    "category": l.category,
-                    "error": l.error.clone().or_else(|| p.and_then(|p| p.error.clone())).unwrap_or_else(|| "LIBR+ failed".into()),
-                }),
-            }
-        })
-        .collect()
 }
 
 /// The rows of `test.json` for a diagnostic model (`--diagnostic-truth-neighbours`), which

@@ -24,6 +24,7 @@ mod cache;
 mod calibrate;
 mod loss;
 mod samples;
+pub mod v2s;
 
 pub use super::splits::{
     ScenarioRef, SplitSets, TrainSplit, Validation, split_scenarios, validation_deformations,
