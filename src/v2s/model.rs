@@ -21,9 +21,11 @@ use super::{INPUTS, V2sError};
 /// Architecture of the V2S U-Net and its grid.
 #[derive(Config, Debug, PartialEq)]
 pub struct V2sConfig {
-    /// Grid points per axis (the paper: 64; a multiple of `2^depth`). 32 by default: on two CPU
-    /// cores a 64³ network costs 8× as much per step (BENCHMARKS.md).
-    #[config(default = 32)]
+    /// Grid points per axis (the paper: 64; a multiple of `2^depth`). 16 by default, for CPU
+    /// training: on two cores a training step costs 0.03 s at 16³ and 0.21 s at 32³ (7×; 64³
+    /// another 8×), and within the same minutes the 16³ network trains 7× as many epochs, which
+    /// mattered more (BENCHMARKS.md, "V2S").
+    #[config(default = 16)]
     pub grid: usize,
     /// The grid cube's side beyond the preoperative liver's longest bounding-box edge, as a
     /// fraction of it on each side.
@@ -32,8 +34,9 @@ pub struct V2sConfig {
     /// Channels at full resolution (doubled at each level down).
     #[config(default = 8)]
     pub width: usize,
-    /// Down-sampling steps (levels below full resolution).
-    #[config(default = 3)]
+    /// Down-sampling steps (levels below full resolution; the coarsest level has
+    /// `grid / 2^depth` points per axis).
+    #[config(default = 2)]
     pub depth: usize,
     /// 3³ convolutions per level on each side of the U.
     #[config(default = 2)]
@@ -416,8 +419,8 @@ mod tests {
             assert!(matches!(net.forward(x), Err(V2sError::Invalid(_))));
         }
         for bad in [
-            V2sConfig::new().with_grid(20),
-            V2sConfig::new().with_grid(8),
+            V2sConfig::new().with_grid(18),
+            V2sConfig::new().with_grid(4),
             V2sConfig::new().with_width(0),
             V2sConfig::new().with_margin(-1.0),
         ] {

@@ -304,20 +304,21 @@ pub(crate) struct TrainArgs {
     /// --epochs, --patience, --max-minutes, --seed, --split, --every and the --v2s-* options)
     #[arg(long, value_enum, default_value_t = TrainMethod::Srgcn)]
     pub(crate) method: TrainMethod,
-    /// V2S: grid points per axis (the paper: 64; a multiple of 2^--v2s-depth)
-    #[arg(long, default_value_t = 32)]
+    /// V2S: grid points per axis (the paper: 64; a multiple of 2^--v2s-depth; 16 trains 7× as
+    /// many epochs as 32 in the same time on a CPU)
+    #[arg(long, default_value_t = 16)]
     pub(crate) grid: usize,
     /// V2S: channels at full resolution (doubled at each level down)
     #[arg(long, default_value_t = 8)]
     pub(crate) v2s_width: usize,
     /// V2S: down-sampling steps of the U-Net
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 2)]
     pub(crate) v2s_depth: usize,
     /// V2S: 3³ convolutions per level on each side of the U
     #[arg(long, default_value_t = 2)]
     pub(crate) v2s_convs: usize,
-    /// V2S: initial Adam learning rate (halved when validation stalls)
-    #[arg(long, default_value_t = 1e-3)]
+    /// V2S: initial Adam learning rate (annealed by --schedule)
+    #[arg(long, default_value_t = 3e-3)]
     pub(crate) v2s_lr: f64,
 }
 

@@ -225,8 +225,12 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     bar.finish_and_clear();
     let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
     let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
+    // The learned model's preparation for the case (SR-GCN graphs; V2S grid and channels).
+    let mut model_prepare_s = None;
     if let Some(l) = learned {
+        let t = std::time::Instant::now();
         case = l.attach(case).map_err(anyhow::Error::msg)?;
+        model_prepare_s = Some(t.elapsed().as_secs_f64());
     }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(a.threads)
@@ -254,6 +258,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         "method": method.name(),
         "threads": a.threads,
         "preload": preload_json(&pre),
+        "model_prepare_s": model_prepare_s,
         "registrations": {
             "count": r.count,
             "failed": r.failed,
@@ -292,6 +297,16 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         a.threads
     );
     print_preload(&pre);
+    if let Some(t) = model_prepare_s {
+        println!(
+            "{} prepared for the case in {t:.3} s",
+            if method == librplus::pipeline::Method::V2s {
+                "V2S grid and preoperative channels"
+            } else {
+                "SR-GCN graphs"
+            }
+        );
+    }
     println!(
         "registration (s): median {:.4}, p10 {:.4}, p90 {:.4}, p99 {:.4}, mean {:.4}, max {:.4}; failed {}",
         r.total_s.median,

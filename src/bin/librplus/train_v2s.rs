@@ -106,6 +106,10 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
         epochs: a.epochs,
         learning_rate: a.v2s_lr,
         patience: a.patience,
+        schedule: match a.schedule {
+            crate::args::ScheduleArg::Plateau => librplus::eval::train::Schedule::Plateau,
+            crate::args::ScheduleArg::Cosine => librplus::eval::train::Schedule::Cosine,
+        },
         max_minutes: a.max_minutes,
     };
     let bar = indicatif::ProgressBar::new(0).with_style(bar_style("training V2S"));

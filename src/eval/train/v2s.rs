@@ -8,8 +8,9 @@
 //! a prediction is exactly the TRE of the registration it makes. The loss is the mean over nodes
 //! of the Charbonnier distance `√(|e|² + ε²) − ε` (ε = 0.01 output units) between the
 //! interpolated prediction and the target; validation keeps the epoch with the least mean node
-//! error (mm). Adam; the learning rate halves after an epoch that does not improve, and training
-//! stops after `patience` such epochs or at the time limit.
+//! error (mm). Adam; the learning rate anneals on a cosine over the epoch and time budget
+//! ([`super::Schedule::Cosine`], as SR-GCN's default), or halves after an epoch that does not
+//! improve and stops after `patience` such epochs ([`super::Schedule::Plateau`]).
 
 use super::shuffle;
 use crate::dataset::read::{GeometryData, ScenarioData};
@@ -140,8 +141,11 @@ pub struct V2sTrainOptions {
     pub epochs: usize,
     /// Initial learning rate.
     pub learning_rate: f64,
-    /// Epochs without validation improvement before stopping.
+    /// Epochs without validation improvement before stopping (plateau schedule only).
     pub patience: usize,
+    /// How the learning rate changes ([`super::Schedule`]: cosine annealing over the epoch and
+    /// time budget, keeping the best validation epoch; or halving on a stall with early stop).
+    pub schedule: super::Schedule,
     /// Training stops before an epoch that would end past this many minutes.
     pub max_minutes: f64,
 }
@@ -152,8 +156,9 @@ impl Default for V2sTrainOptions {
             config: V2sConfig::new(),
             seed: 1,
             epochs: 30,
-            learning_rate: 1e-3,
+            learning_rate: 3e-3,
             patience: 4,
+            schedule: super::Schedule::Cosine,
             max_minutes: 25.0,
         }
     }
@@ -282,7 +287,15 @@ pub fn train_v2s(
     for epoch in 1..=opts.epochs {
         shuffle(&mut order, opts.seed.wrapping_add(7000 + epoch as u64));
         let mut sum = 0.0;
+        let mut lr_sum = 0.0;
         for (k, &i) in order.iter().enumerate() {
+            if opts.schedule == super::Schedule::Cosine {
+                let steps = (opts.epochs * order.len()).max(1) as f64;
+                let p_steps = ((epoch - 1) * order.len() + k) as f64 / steps;
+                let p_time = t0.elapsed().as_secs_f64() / (60.0 * opts.max_minutes).max(1e-9);
+                lr = opts.schedule.rate(opts.learning_rate, p_steps.max(p_time));
+            }
+            lr_sum += lr;
             let s = &train[i];
             let g = &geos[&s.geometry];
             let y = net.forward(input_tensor(g, s, &device))?;
@@ -305,7 +318,8 @@ pub fn train_v2s(
             epoch,
             train_loss: sum / order.len() as f64,
             valid: v,
-            learning_rate: lr,
+            // The epoch's mean rate.
+            learning_rate: lr_sum / order.len().max(1) as f64,
             seconds: t0.elapsed().as_secs_f64(),
         });
         if v < best {
@@ -315,7 +329,7 @@ pub fn train_v2s(
             let mut prov = provenance.clone();
             prov["checkpoint"] = serde_json::json!({"epoch": epoch, "valid_node_error_mm": v});
             save_model(out, cfg, &best_net, prov)?;
-        } else {
+        } else if opts.schedule == super::Schedule::Plateau {
             stall += 1;
             lr *= 0.5;
             if stall >= opts.patience {
