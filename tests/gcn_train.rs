@@ -1727,10 +1727,33 @@ fn v2s_train_then_evaluate_agree_on_the_held_out_scenarios() {
         (a - b).abs() < 1e-6 * (1.0 + a),
         "register {a} vs train {b}"
     );
-    // v2s without a model is refused by name.
+    // Without --v2s-model: the built-in model, trained on another dataset, so every scenario of
+    // this one is unseen and evaluated.
+    let r2 = tmp.path().join("r2");
+    run(&[
+        "evaluate",
+        "--data",
+        data,
+        "--methods",
+        "v2s",
+        "--out",
+        r2.to_str().unwrap(),
+    ]);
+    let s2: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(r2.join("summary.json")).unwrap()).unwrap();
+    let all = librplus::eval::open(dataset())
+        .unwrap()
+        .deformations
+        .iter()
+        .map(|d| d.scenarios.len() as u64)
+        .sum::<u64>();
+    assert_eq!(s2["splits"]["all"]["methods"]["v2s"]["scenarios"], all);
+    // A V2S model without the method is refused by name.
     let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
-        .args(["evaluate", "--data", data, "--methods", "v2s", "--out"])
-        .arg(tmp.path().join("r2"))
+        .args(["evaluate", "--data", data, "--methods", "libr", "--v2s-model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(tmp.path().join("r3"))
         .output()
         .unwrap();
     assert!(!o.status.success());

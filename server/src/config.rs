@@ -75,9 +75,11 @@ pub struct ServerConfig {
     /// Whether cases answer LIBR+ at all (false: no model is loaded). Default true.
     pub librplus: bool,
     /// V2S model directory (`librplus train --method v2s`'s output) for METHOD_V2S, the paper's
-    /// data-driven baseline; every case gets it. None: METHOD_V2S is refused
-    /// (FAILED_PRECONDITION).
+    /// data-driven baseline; every case gets it. None: the V2S model built into the server.
     pub v2s_model: Option<PathBuf>,
+    /// Whether cases answer METHOD_V2S at all (false: no V2S model is loaded, and METHOD_V2S is
+    /// FAILED_PRECONDITION). Default true.
+    pub v2s: bool,
     /// Log as JSON lines instead of text.
     pub log_json: bool,
     /// Default wall-clock limit of one in-surgery discovery run, ms (a session may ask for
@@ -153,6 +155,7 @@ impl Default for ServerConfig {
             model: None,
             librplus: true,
             v2s_model: None,
+            v2s: true,
             log_json: false,
             discovery_budget_ms: 120_000,
             max_discovery_budget_ms: 600_000,
@@ -343,7 +346,7 @@ impl ServerConfig {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
             "librplus" if self.librplus => Ok(Method::LibrPlus),
-            "v2s" if self.v2s_model.is_some() => Ok(Method::V2s),
+            "v2s" if self.v2s => Ok(Method::V2s),
             m => Err(ConfigError::Field(format!(
                 "default_method {m:?}: expected rigid, libr{}{}",
                 if self.librplus {
@@ -351,11 +354,7 @@ impl ServerConfig {
                 } else {
                     " (librplus is off)"
                 },
-                if self.v2s_model.is_some() {
-                    ", v2s"
-                } else {
-                    " (v2s needs v2s_model)"
-                }
+                if self.v2s { ", v2s" } else { " (v2s is off)" }
             ))),
         }
     }

@@ -318,7 +318,7 @@ pub fn method_from_pb(
             field,
             "METHOD_V2S needs a case with a V2S model",
             format!(
-                "{field}: METHOD_V2S needs a V2S model, and this case has none (the server's v2s_model)"
+                "{field}: METHOD_V2S needs a V2S model, and this server loaded none (v2s is off)"
             ),
         )),
         Err(_) => Err(ServiceError::field(

@@ -196,10 +196,15 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         server: format!("http://{}", running.addr),
         data: o.data.clone(),
         selection: Selection::Spread(o.scenarios),
-        // LIBR and LIBR+ (the built-in SR-GCN) side by side, after the rigid stage alone; then
-        // LIBR with in-surgery discovery (the model augmented when the session's points name an
-        // effect it lacks).
-        methods: vec![pb::Method::Rigid, pb::Method::Libr, pb::Method::LibrPlus],
+        // The paper's four methods side by side: the rigid stage alone, the data-driven V2S (the
+        // built-in network), LIBR and LIBR+ (the built-in SR-GCN); then LIBR with in-surgery
+        // discovery (the model augmented when the session's points name an effect it lacks).
+        methods: vec![
+            pb::Method::Rigid,
+            pb::Method::V2s,
+            pb::Method::Libr,
+            pb::Method::LibrPlus,
+        ],
         discover_with: if o.discovery {
             vec![pb::Method::Libr]
         } else {

@@ -65,7 +65,7 @@ pub enum PreloadError {
         /// What failed.
         source: librplus::gcn::GcnError,
     },
-    /// The V2S model could not be loaded (`v2s_model`).
+    /// The V2S model could not be loaded (`v2s_model`, or the built-in one).
     #[error("v2s_model: {0}")]
     V2sModel(librplus::v2s::V2sError),
     /// Every case failed.
@@ -605,16 +605,21 @@ fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, Pre
     Ok(Some(models.into_iter().map(Arc::new).collect()))
 }
 
-/// The V2S network every case gets for METHOD_V2S: the configured directory, if any.
+/// The V2S network every case gets for METHOD_V2S: the configured directory, else the built-in
+/// one; none when `v2s` is off.
 fn load_v2s(
     config: &ServerConfig,
 ) -> Result<Option<Arc<librplus::v2s::io::V2sModel>>, PreloadError> {
-    let Some(dir) = &config.v2s_model else {
+    if !config.v2s {
         return Ok(None);
-    };
-    let m = librplus::v2s::io::load_model_on_device(dir).map_err(PreloadError::V2sModel)?;
+    }
+    let m = match &config.v2s_model {
+        Some(dir) => librplus::v2s::io::load_model_on_device(dir),
+        None => librplus::v2s::io::builtin_model(),
+    }
+    .map_err(PreloadError::V2sModel)?;
     tracing::info!(
-        model = %dir.display(),
+        model = %config.v2s_model.as_ref().map_or("built-in".into(), |p| p.display().to_string()),
         grid = m.config.grid,
         width = m.config.width,
         depth = m.config.depth,

@@ -167,10 +167,13 @@ struct Args {
     /// Load no SR-GCN model (LIBR+ requests get FAILED_PRECONDITION).
     #[arg(long)]
     no_librplus: bool,
-    /// V2S model directory (`librplus train --method v2s`) for METHOD_V2S (default: none, and
-    /// METHOD_V2S requests get FAILED_PRECONDITION).
+    /// V2S model directory (`librplus train --method v2s`) for METHOD_V2S (default: the
+    /// built-in V2S model).
     #[arg(long)]
     v2s_model: Option<PathBuf>,
+    /// Load no V2S model (METHOD_V2S requests get FAILED_PRECONDITION).
+    #[arg(long)]
+    no_v2s: bool,
     /// Log JSON lines.
     #[arg(long)]
     log_json: bool,
@@ -263,6 +266,9 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.v2s_model.is_some() {
         c.v2s_model = a.v2s_model.clone();
+    }
+    if a.no_v2s {
+        c.v2s = false;
     }
     if a.metrics_listen.is_some() {
         c.metrics_listen = a.metrics_listen.clone();

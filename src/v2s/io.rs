@@ -340,6 +340,32 @@ pub fn load_model(dir: &Path, device: &Device) -> Result<V2sModel, V2sError> {
     model_from_parts(&json, &weights, device, &jpath, &wpath)
 }
 
+/// `model.json` of the V2S model built into this crate (`assets/models/v2s/`).
+const BUILTIN_JSON: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/assets/models/v2s/model.json"
+));
+
+/// Its weights.
+const BUILTIN_WEIGHTS: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/assets/models/v2s/weights.safetensors"
+));
+
+/// The V2S model built into this crate (`assets/models/v2s/`, trained by the command in its
+/// provenance and README), on the compute device; its provenance has `"builtin": true`.
+pub fn builtin_model() -> Result<V2sModel, V2sError> {
+    let mut m = model_from_parts(
+        BUILTIN_JSON,
+        BUILTIN_WEIGHTS,
+        &crate::gcn::device::compute(),
+        Path::new("<built-in>/v2s/model.json"),
+        Path::new("<built-in>/v2s/weights.safetensors"),
+    )?;
+    m.provenance["builtin"] = serde_json::json!(true);
+    Ok(m)
+}
+
 /// Reads a V2S model directory onto the compute device ([`crate::gcn::device::compute`]).
 pub fn load_model_on_device(dir: &Path) -> Result<V2sModel, V2sError> {
     load_model(dir, &crate::gcn::device::compute())
@@ -348,6 +374,21 @@ pub fn load_model_on_device(dir: &Path) -> Result<V2sModel, V2sError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_built_in_model_loads_with_its_provenance() {
+        let m = builtin_model().unwrap();
+        assert_eq!(m.provenance["builtin"], true);
+        assert_eq!(m.provenance["method"], "v2s");
+        assert!(
+            m.provenance["command"]
+                .as_str()
+                .unwrap()
+                .contains("--method v2s")
+        );
+        // Trained: the head is not its zero initialisation.
+        assert!(values(&m.net.head.weight.val()).iter().any(|x| *x != 0.0));
+    }
 
     #[test]
     fn a_saved_model_reads_back_bit_for_bit_and_bad_files_are_refused_by_name() {

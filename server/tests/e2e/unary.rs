@@ -165,6 +165,7 @@ async fn v2s_answers_through_the_same_api_as_the_library() {
     .unwrap();
     let mut running = librplus_server::start(ServerConfig {
         v2s_model: Some(tmp.path().to_path_buf()),
+        v2s: true,
         ..config(2)
     })
     .await

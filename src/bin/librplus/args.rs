@@ -409,8 +409,9 @@ pub(crate) struct EvaluateArgs {
     /// test scenarios (an ensemble: those every member held out; its split replaces --split).
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
-    /// A V2S model directory (from `librplus train --method v2s`) for method v2s; like --model,
-    /// one trained on this dataset restricts every method to its held-out test scenarios.
+    /// A V2S model directory (from `librplus train --method v2s`) for method v2s (default: the
+    /// built-in V2S model); like --model, one trained on this dataset restricts every method to
+    /// its held-out test scenarios.
     #[arg(long)]
     pub(crate) v2s_model: Option<PathBuf>,
     /// Comma-separated splits: all, train, test (the held-out geometry with pattern V).
@@ -478,7 +479,7 @@ pub(crate) struct RegisterArgs {
     pub(crate) method: MethodArg,
     /// SR-GCN model directory (from `librplus train`) or ensemble directory (from `librplus
     /// ensemble`) for --method librplus (default: the built-in model); a V2S model directory
-    /// (from `librplus train --method v2s`) for --method v2s.
+    /// (from `librplus train --method v2s`) for --method v2s (default: the built-in V2S model).
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
     /// Write the preoperative mesh with the registered `displacement` (image frame) and the
@@ -526,7 +527,7 @@ pub(crate) struct BenchRegisterArgs {
     #[arg(long, default_value = "libr")]
     pub(crate) method: MethodArg,
     /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model);
-    /// V2S model directory for --method v2s.
+    /// V2S model directory for --method v2s (default: the built-in V2S model).
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
     /// An augmented model (`physics.json`): LIBR's basis carries its effects.

@@ -40,9 +40,10 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             librplus::v2s::io::load_model_on_device(dir)
                 .map_err(|e| anyhow::anyhow!("--v2s-model: {e}"))?,
         )),
-        (None, true) => bail!(
-            "--methods v2s: give --v2s-model DIR (a model from `librplus train --method v2s`)"
-        ),
+        (None, true) => Some(std::sync::Arc::new(
+            librplus::v2s::io::builtin_model()
+                .map_err(|e| anyhow::anyhow!("built-in V2S model: {e}"))?,
+        )),
         (Some(_), false) => bail!("--v2s-model is used with --methods v2s"),
         (None, false) => None,
     };

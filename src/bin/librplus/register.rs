@@ -55,9 +55,10 @@ pub(crate) fn method_and_model(
             librplus::v2s::io::load_model_on_device(dir)
                 .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
         ))),
-        (None, Method::V2s) => {
-            bail!("--method v2s: give --model DIR (a model from `librplus train --method v2s`)")
-        }
+        (None, Method::V2s) => Some(Learned::V2s(std::sync::Arc::new(
+            librplus::v2s::io::builtin_model()
+                .map_err(|e| anyhow::anyhow!("built-in V2S model: {e}"))?,
+        ))),
         (Some(_), _) => bail!("--model is only used with --method librplus or v2s"),
         (None, _) => None,
     };

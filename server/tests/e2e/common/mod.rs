@@ -94,8 +94,10 @@ pub fn config(max_sessions: usize) -> ServerConfig {
         max_time_budget_ms: 120_000,
         max_points_per_message: 5_000,
         drain_grace_s: 20.0,
-        // No SR-GCN unless a test asks (LIBR+ requests are then FAILED_PRECONDITION).
+        // No SR-GCN and no V2S unless a test asks (LIBR+ and V2S requests are then
+        // FAILED_PRECONDITION).
         librplus: false,
+        v2s: false,
         ..ServerConfig::default()
     }
 }
