@@ -1750,7 +1750,14 @@ fn v2s_train_then_evaluate_agree_on_the_held_out_scenarios() {
     assert_eq!(s2["splits"]["all"]["methods"]["v2s"]["scenarios"], all);
     // A V2S model without the method is refused by name.
     let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
-        .args(["evaluate", "--data", data, "--methods", "libr", "--v2s-model"])
+        .args([
+            "evaluate",
+            "--data",
+            data,
+            "--methods",
+            "libr",
+            "--v2s-model",
+        ])
         .arg(&model)
         .arg("--out")
         .arg(tmp.path().join("r3"))
