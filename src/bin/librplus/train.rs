@@ -33,6 +33,62 @@ pub(crate) fn ensemble(a: &EnsembleArgs) -> Result<()> {
     Ok(())
 }
 
+/// The scenarios of a split's deformations (those `refs` name), by deformation id, and each
+/// deformation's geometry.
+pub(crate) struct SplitScenarios {
+    scen: std::collections::BTreeMap<String, Vec<librplus::eval::ScenarioData>>,
+    geom_of: std::collections::BTreeMap<String, String>,
+}
+
+impl SplitScenarios {
+    /// Reads the scenarios of every deformation of `m` that `refs` name.
+    pub(crate) fn load<'a>(
+        data: &std::path::Path,
+        m: &librplus::dataset::Manifest,
+        refs: impl Iterator<Item = &'a (String, usize)>,
+    ) -> Result<Self> {
+        let needed: std::collections::BTreeSet<&str> = refs.map(|(d, _)| d.as_str()).collect();
+        let mut scen = std::collections::BTreeMap::new();
+        let mut geom_of = std::collections::BTreeMap::new();
+        for d in m
+            .deformations
+            .iter()
+            .filter(|d| needed.contains(d.id.as_str()))
+        {
+            scen.insert(
+                d.id.clone(),
+                librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?,
+            );
+            geom_of.insert(d.id.clone(), d.geometry.clone());
+        }
+        Ok(Self { scen, geom_of })
+    }
+
+    /// The geometries of the deformations read (one per deformation, in deformation order).
+    pub(crate) fn geometries(&self) -> Vec<String> {
+        self.geom_of.values().cloned().collect()
+    }
+
+    /// The scenarios `refs` name, each with its geometry.
+    pub(crate) fn pick(
+        &self,
+        refs: &[(String, usize)],
+    ) -> Vec<(&librplus::eval::ScenarioData, &str)> {
+        refs.iter()
+            .filter_map(|(d, i)| self.scen[d].get(*i).map(|s| (s, self.geom_of[d].as_str())))
+            .collect()
+    }
+}
+
+/// A progress bar's style: `what`, the bar, counts, message, elapsed time and estimate.
+pub(crate) fn bar_style(what: &str) -> indicatif::ProgressStyle {
+    indicatif::ProgressStyle::with_template(&format!(
+        "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}} (eta {{eta}})"
+    ))
+    .expect("valid template")
+    .progress_chars("=> ")
+}
+
 /// The paper's Table 2 settings as configurations: (LIBR input, bipartite, target, sparse loss).
 fn ablation_config(
     mut cfg: librplus::gcn::model::SrGcnConfig,
@@ -61,7 +117,6 @@ fn ablation_config(
 /// Trains and tests one model; returns its test.json (without per-scenario rows) and a
 /// summary of its training.
 pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
-    use librplus::eval::load_scenarios;
     use librplus::eval::train::{self as tr, TrainOptions, TrainSplit};
     use librplus::gcn::model::SrGcnConfig;
     if a.method == crate::args::TrainMethod::V2s {
@@ -145,24 +200,12 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         sets.test.len()
     );
     // Scenarios of every deformation used.
-    let mut needed: std::collections::BTreeSet<&str> = std::collections::BTreeSet::new();
-    for (d, _) in sets.train.iter().chain(&sets.valid).chain(&sets.test) {
-        needed.insert(d.as_str());
-    }
-    let mut scen = std::collections::BTreeMap::new();
-    let mut geom_of = std::collections::BTreeMap::new();
-    for d in m
-        .deformations
-        .iter()
-        .filter(|d| needed.contains(d.id.as_str()))
-    {
-        scen.insert(
-            d.id.clone(),
-            load_scenarios(&a.data, d).map_err(anyhow::Error::msg)?,
-        );
-        geom_of.insert(d.id.clone(), d.geometry.clone());
-    }
-    let geos: Vec<String> = geom_of.values().cloned().collect();
+    let split_scen = SplitScenarios::load(
+        &a.data,
+        &m,
+        sets.train.iter().chain(&sets.valid).chain(&sets.test),
+    )?;
+    let geos = split_scen.geometries();
     let spinner =
         indicatif::ProgressBar::new_spinner().with_message("preparing cases (LIBR bases)");
     spinner.enable_steady_tick(std::time::Duration::from_millis(200));
@@ -174,18 +217,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
     let cases =
         tr::load_cases(&a.data, &m, &geos, &params, &physics).map_err(anyhow::Error::msg)?;
     spinner.finish_and_clear();
-    let pick = |refs: &[(String, usize)]| -> Vec<(&librplus::eval::ScenarioData, &str)> {
-        refs.iter()
-            .filter_map(|(d, i)| scen[d].get(*i).map(|s| (s, geom_of[d].as_str())))
-            .collect()
-    };
-    let bar_style = |what: &str| {
-        indicatif::ProgressStyle::with_template(&format!(
-            "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}} (eta {{eta}})"
-        ))
-        .expect("valid template")
-        .progress_chars("=> ")
-    };
+    let pick = |refs: &[(String, usize)]| split_scen.pick(refs);
     let solve = |items: &[(&librplus::eval::ScenarioData, &str)],
                  what: &str|
      -> Result<Vec<Option<tr::LibrSolution>>> {

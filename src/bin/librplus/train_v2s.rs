@@ -2,6 +2,7 @@
 //! scored by `librplus evaluate`'s own code (methods rigid and v2s on the held-out scenarios).
 
 use crate::args::TrainArgs;
+use crate::train::{SplitScenarios, bar_style};
 use crate::util::{git_commit, shell_command};
 use anyhow::Result;
 use serde_json::{Value, json};
@@ -10,7 +11,6 @@ use std::time::Instant;
 /// Trains and tests one V2S model; returns its test.json (without per-scenario rows) and a
 /// summary of its training.
 pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
-    use librplus::eval::load_scenarios;
     use librplus::eval::train::v2s::{
         V2sTrainOptions, train_v2s as fit, v2s_geometries, v2s_samples,
     };
@@ -40,41 +40,14 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
         sets.test.len(),
         cfg.grid
     );
-    let mut needed = std::collections::BTreeSet::new();
-    for (d, _) in sets.train.iter().chain(&sets.valid) {
-        needed.insert(d.as_str());
-    }
-    let mut scen = std::collections::BTreeMap::new();
-    let mut geom_of = std::collections::BTreeMap::new();
-    for d in m
-        .deformations
-        .iter()
-        .filter(|d| needed.contains(d.id.as_str()))
-    {
-        scen.insert(
-            d.id.clone(),
-            load_scenarios(&a.data, d).map_err(anyhow::Error::msg)?,
-        );
-        geom_of.insert(d.id.clone(), d.geometry.clone());
-    }
-    let geos: Vec<String> = geom_of.values().cloned().collect();
+    let split_scen = SplitScenarios::load(&a.data, &m, sets.train.iter().chain(&sets.valid))?;
+    let geos = split_scen.geometries();
     let spinner = indicatif::ProgressBar::new_spinner()
         .with_message("preparing the grids (signed distance of every liver)");
     spinner.enable_steady_tick(std::time::Duration::from_millis(200));
     let frames = v2s_geometries(&a.data, &m, &geos, &cfg).map_err(anyhow::Error::msg)?;
     spinner.finish_and_clear();
-    let pick = |refs: &[(String, usize)]| -> Vec<(&librplus::eval::ScenarioData, &str)> {
-        refs.iter()
-            .filter_map(|(d, i)| scen[d].get(*i).map(|s| (s, geom_of[d].as_str())))
-            .collect()
-    };
-    let bar_style = |what: &str| {
-        indicatif::ProgressStyle::with_template(&format!(
-            "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}} (eta {{eta}})"
-        ))
-        .expect("valid template")
-        .progress_chars("=> ")
-    };
+    let pick = |refs: &[(String, usize)]| split_scen.pick(refs);
     let samples = |items: &[(&librplus::eval::ScenarioData, &str)], what: &str| {
         let bar = indicatif::ProgressBar::new(items.len() as u64).with_style(bar_style(what));
         let r = v2s_samples(&frames, items, &params, &|d, _| bar.set_position(d as u64));
