@@ -67,16 +67,20 @@ pub struct ConvBlock {
     pub norm: Option<GroupNorm>,
 }
 
+/// `ELU(norm(y))`, or `ELU(y)` without a normalisation.
+fn norm_elu(norm: &Option<GroupNorm>, y: Tensor<5>) -> Tensor<5> {
+    elu(
+        match norm {
+            Some(n) => n.forward(y),
+            None => y,
+        },
+        1.0,
+    )
+}
+
 impl ConvBlock {
     fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        let y = self.conv.forward(x);
-        elu(
-            match &self.norm {
-                Some(n) => n.forward(y),
-                None => y,
-            },
-            1.0,
-        )
+        norm_elu(&self.norm, self.conv.forward(x))
     }
 }
 
@@ -91,14 +95,7 @@ pub struct UpBlock {
 
 impl UpBlock {
     fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        let y = self.conv.forward(x);
-        elu(
-            match &self.norm {
-                Some(n) => n.forward(y),
-                None => y,
-            },
-            1.0,
-        )
+        norm_elu(&self.norm, self.conv.forward(x))
     }
 }
 

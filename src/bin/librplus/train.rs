@@ -389,24 +389,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
     };
     let inference_seconds = t_inf.elapsed().as_secs_f64();
     // Aggregate.
-    let mut by_cat: std::collections::BTreeMap<String, (f64, f64, usize)> = Default::default();
-    let (mut sl, mut sp, mut n) = (0.0, 0.0, 0usize);
-    for r in &rows {
-        if let (Some(l), Some(p)) = (
-            r["libr"]["tre_mm"].as_f64(),
-            r["librplus"]["tre_mm"].as_f64(),
-        ) {
-            sl += l;
-            sp += p;
-            n += 1;
-            let e = by_cat
-                .entry(r["category"].as_str().unwrap_or("?").to_string())
-                .or_default();
-            e.0 += l;
-            e.1 += p;
-            e.2 += 1;
-        }
-    }
+    let (sl, sp, n, by_cat) = crate::train_v2s::pair_sums(&rows, "libr", "librplus");
     let nn = n.max(1) as f64;
     let test = json!({
         "format": 1,

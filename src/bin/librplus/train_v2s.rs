@@ -152,21 +152,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
     bar.finish_and_clear();
     let inference_seconds = t_inf.elapsed().as_secs_f64();
     let rows = pair_rows(&ev.results, "rigid", "v2s");
-    let mut by_cat: std::collections::BTreeMap<String, (f64, f64, usize)> = Default::default();
-    let (mut sr, mut sv, mut n) = (0.0, 0.0, 0usize);
-    for r in &rows {
-        if let (Some(x), Some(y)) = (r["rigid"]["tre_mm"].as_f64(), r["v2s"]["tre_mm"].as_f64()) {
-            sr += x;
-            sv += y;
-            n += 1;
-            let e = by_cat
-                .entry(r["category"].as_str().unwrap_or("?").to_string())
-                .or_default();
-            e.0 += x;
-            e.1 += y;
-            e.2 += 1;
-        }
-    }
+    let (sr, sv, n, by_cat) = pair_sums(&rows, "rigid", "v2s");
     let nn = n.max(1) as f64;
     let test = json!({
         "format": 1,
@@ -249,6 +235,35 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
         o.insert("training".into(), training);
     }
     Ok(summary)
+}
+
+/// Sums of the TREs of methods `a` and `b` over the rows of [`pair_rows`] where both
+/// registered, their count, and the same per category.
+pub(crate) type PairSums = (
+    f64,
+    f64,
+    usize,
+    std::collections::BTreeMap<String, (f64, f64, usize)>,
+);
+
+/// [`PairSums`] of `rows`.
+pub(crate) fn pair_sums(rows: &[Value], a: &str, b: &str) -> PairSums {
+    let mut by_cat: std::collections::BTreeMap<String, (f64, f64, usize)> = Default::default();
+    let (mut sa, mut sb, mut n) = (0.0, 0.0, 0usize);
+    for r in rows {
+        if let (Some(x), Some(y)) = (r[a]["tre_mm"].as_f64(), r[b]["tre_mm"].as_f64()) {
+            sa += x;
+            sb += y;
+            n += 1;
+            let e = by_cat
+                .entry(r["category"].as_str().unwrap_or("?").to_string())
+                .or_default();
+            e.0 += x;
+            e.1 += y;
+            e.2 += 1;
+        }
+    }
+    (sa, sb, n, by_cat)
 }
 
 /// Per scenario the TREs of two methods of an evaluation (keys `a` and `b`), or why it failed.
