@@ -17,7 +17,7 @@ use librplus::mesh::rigid::Rigid;
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::register::libr::{
     LibrBasis, LibrParams, LinearRefit, LoadWidth, RunLimits, fit_step, linearised_refit,
-    mesh_hash, solve, solve_with_limits,
+    mesh_hash, settled, solve, solve_with_limits,
 };
 use librplus::register::{Match, RegisterError};
 use librplus::util::SplitMix64;
@@ -367,6 +367,7 @@ fn exactness(mesh: &TetMesh, basis: &LibrBasis, per: usize, amp: f64) -> (f64, f
         sol.info.rms_history_mm
     );
     assert!(sol.info.converged, "{:?}", sol.info);
+    assert!(sol.info.settled, "a converged fit is settled");
     (err, umax, sol.info.iterations)
 }
 
@@ -872,4 +873,31 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
 fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
     a.iter().zip(b).fold(0.0, |m, (x, y)| m.max((x - y).abs()))
+}
+
+/// `settled` on hand-made histories: a fit whose residual stopped falling while re-matching
+/// makes the nodes cycle is settled; one still improving, one running away, one too short or
+/// with a NaN is not.
+#[test]
+fn settled_tells_a_cycling_fit_from_one_still_falling_or_running_away() {
+    // Falls, then cycles: RMS within 0.3 % over the last three, movements 0.05-0.2 mm.
+    let rms = [4.0, 2.5, 2.0, 1.90, 1.899, 1.901, 1.898, 1.900];
+    let mov = [6.0, 2.0, 0.8, 0.2, 0.15, 0.05, 0.2, 0.1];
+    assert!(settled(&rms, &mov));
+    // Still falling by 5 % in the last three iterations.
+    let falling = [4.0, 2.5, 2.0, 1.9, 1.85, 1.80, 1.75, 1.70];
+    assert!(!settled(&falling, &mov));
+    // Flat residual but the last movement exceeds every earlier one: running away.
+    let mut runaway = mov;
+    runaway[7] = 7.0;
+    assert!(!settled(&rms, &runaway));
+    // Too few iterations to judge, mismatched lengths, NaN.
+    assert!(!settled(&rms[..3], &mov[..3]));
+    assert!(!settled(&rms, &mov[..7]));
+    let mut nan = rms;
+    nan[6] = f64::NAN;
+    assert!(!settled(&nan, &mov));
+    // A small absolute improvement (under 0.01 mm) on a tiny residual counts as flat.
+    let tiny = [0.5, 0.2, 0.1, 0.05, 0.046, 0.045, 0.044, 0.043];
+    assert!(settled(&tiny, &mov));
 }

@@ -220,11 +220,13 @@ fn judge(o: &Outcome<'_>, budget: Duration, params: &PipelineParams) -> (pb::Qua
                 params.libr.max_iterations
             ),
         )
-    } else if let Some(i) = o.libr.filter(|i| !i.converged) {
+    } else if let Some(i) = o.libr.filter(|i| !i.settled) {
+        // Not settled: the objective was still falling, or the model running away, when the
+        // iteration cap came (a fit that cycles around a flat objective is settled, and OK).
         (
             pb::Quality::NotConverged,
             format!(
-                "LIBR ran its {} iterations; the last moved the model by up to {:.2} mm (tolerance {} mm)",
+                "LIBR ran its {} iterations without settling; the last moved the model by up to {:.2} mm (tolerance {} mm)",
                 i.iterations,
                 i.movement_history_mm.last().copied().unwrap_or(f64::NAN),
                 params.libr.tolerance_mm
@@ -434,11 +436,13 @@ mod tests {
         let libr = LibrInfo {
             iterations: 4,
             converged: true,
+            settled: true,
             ..Default::default()
         };
         let full = LibrInfo {
             iterations: params.refit_iterations,
             converged: true,
+            settled: true,
             ..Default::default()
         };
         assert_eq!(
@@ -462,8 +466,19 @@ mod tests {
             judge(&clean(Some(&libr_cut), None), budget, &params).0,
             pb::Quality::Degraded
         );
+        // Settled without converging (nodes cycling around a flat objective) is OK; not
+        // settled is NOT_CONVERGED.
+        let cycling = LibrInfo {
+            converged: false,
+            ..libr.clone()
+        };
+        assert_eq!(
+            judge(&clean(Some(&cycling), None), budget, &params).0,
+            pb::Quality::Ok
+        );
         let unconverged = LibrInfo {
             converged: false,
+            settled: false,
             ..libr
         };
         assert_eq!(

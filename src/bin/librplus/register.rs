@@ -89,6 +89,7 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
         "libr": libr.map(|i| json!({
             "iterations": i.iterations,
             "converged": i.converged,
+            "settled": i.settled,
             "rms_mm": i.rms_mm,
             "matching_s": i.matching_s,
             "assemble_s": i.assemble_s,

@@ -15,6 +15,10 @@ pub struct LibrInfo {
     pub iterations: usize,
     /// True when the largest node movement of the last iteration was below the tolerance.
     pub converged: bool,
+    /// True when the fit has settled: it converged, or its objective stopped falling (see
+    /// [`settled`]: re-matching can make the nodes cycle by more than the tolerance around a
+    /// fit that no longer improves, which is not a failure to converge).
+    pub settled: bool,
     /// True when the iterations stopped early because the next one would have passed the
     /// caller's deadline ([`solve_with_limits`]).
     pub stopped_at_deadline: bool,
@@ -211,6 +215,7 @@ pub fn solve_with_limits(
             }
         }
     }
+    info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
     let mut u = basis.displacement(&alpha);
     if let Some(o) = offset {
         for (x, y) in u.iter_mut().zip(o) {
@@ -224,6 +229,32 @@ pub fn solve_with_limits(
         image_to_physical: t,
         info,
     })
+}
+
+/// Iterations over which [`settled`] judges the objective.
+pub const SETTLE_WINDOW: usize = 3;
+
+/// Whether an iteration that did not converge has nevertheless settled, from its histories (one
+/// value per iteration): the best weighted residual RMS of the last [`SETTLE_WINDOW`] iterations
+/// improves on the best before them by less than 1 % (or 0.01 mm), so the objective has stopped
+/// falling, and none of those iterations moved the model more than the largest movement before
+/// them, so it is not running away. Fewer than `SETTLE_WINDOW + 1` iterations, or a non-finite
+/// value, is not settled.
+pub fn settled(rms_mm: &[f64], movement_mm: &[f64]) -> bool {
+    let n = rms_mm.len();
+    if n <= SETTLE_WINDOW
+        || movement_mm.len() != n
+        || rms_mm.iter().chain(movement_mm).any(|x| !x.is_finite())
+    {
+        return false;
+    }
+    let (early, late) = rms_mm.split_at(n - SETTLE_WINDOW);
+    let best = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
+    let most = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+    let (best_early, best_late) = (best(early), best(late));
+    let falling = best_early - best_late > (0.01 * best_late).max(0.01);
+    let (m_early, m_late) = movement_mm.split_at(n - SETTLE_WINDOW);
+    !falling && most(m_late) <= most(m_early)
 }
 
 /// A row of Φ times α with four accumulators (vectorizes; the same bits whatever the thread
