@@ -26,7 +26,7 @@ pub use messages::{
 };
 pub use replay::{
     ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,
-    result_sha256, sha256_hex,
+    result_sha256, series_name, sha256_hex,
 };
 pub use session::{
     Client, Resume, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_replicas,

@@ -168,6 +168,11 @@ struct ReplayArgs {
     /// Sessions replayed at once.
     #[arg(long, default_value_t = 1)]
     concurrency: usize,
+    /// Write each session's registrations as a ParaView time series into this directory: one
+    /// `.vtu` per update (nodes at their registered positions; `displacement`, `error_mm`) and
+    /// `SCENARIO-METHOD.pvd` (time = acquisition time, s).
+    #[arg(long, value_name = "DIR")]
+    series: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -280,6 +285,7 @@ async fn run(cli: Cli) -> Result<()> {
                 tls: a.common.conn.tls(),
                 concurrency: a.concurrency,
                 resume_attempts: a.common.resume_attempts,
+                series: a.series.clone(),
             };
             let s = replay(&opts).await?;
             print(a.common.json, &s, replay_table)?;

@@ -98,6 +98,9 @@ pub struct ReplayOptions {
     pub concurrency: usize,
     /// Most resumes of one session (with `resume`).
     pub resume_attempts: u32,
+    /// Write every session's registrations as a time series here: one `.vtu` per update and a
+    /// `.pvd` collection per session ([`write_series`]).
+    pub series: Option<PathBuf>,
 }
 
 impl Default for ReplayOptions {
@@ -119,6 +122,7 @@ impl Default for ReplayOptions {
             tls: crate::session::Tls::default(),
             concurrency: 1,
             resume_attempts: crate::session::Resume::default().attempts,
+            series: None,
         }
     }
 }
@@ -199,6 +203,8 @@ pub struct ScenarioResult {
     pub error: Option<String>,
     /// The last discovery report (sessions with discovery).
     pub discovery: Option<DiscoveryRecord>,
+    /// The session's `.pvd` time series (with `series`).
+    pub series: Option<PathBuf>,
 }
 
 /// What a session's discovery run reported last.
@@ -368,6 +374,7 @@ async fn replay_one(
     let mut rejections = Vec::new();
     let mut last: Option<(RegistrationState, String)> = None;
     let mut session_id = String::new();
+    let mut series: Vec<SeriesStep> = Vec::new();
     let outcome = run_session(client, &msgs, cfg, |u, lat| {
         if let Some(l) = lat {
             latencies.record(l);
@@ -377,6 +384,13 @@ async fn replay_one(
             Some(pb::stream_update::Update::Registration(r)) => {
                 let state = registration_state(r, nodes.len());
                 let quality = quality_name(r.quality);
+                if let (Some(_), Ok((t, d))) = (&opts.series, &state) {
+                    series.push(SeriesStep {
+                        client_seq: u.last_client_seq,
+                        image_to_physical: *t,
+                        displacement: d.clone(),
+                    });
+                }
                 steps.push(Step {
                     client_seq: u.last_client_seq,
                     answer_sha256: sha256_hex(&prost::Message::encode_to_vec(r)),
@@ -434,17 +448,31 @@ async fn replay_one(
     if !outcome.end.is_completed() {
         error = Some(outcome.end.describe());
     }
+    let method_label = if discovery.is_some() {
+        format!("{}+discovery", method_name(method))
+    } else {
+        method_name(method).to_string()
+    };
+    let series = match &opts.series {
+        Some(dir) if !series.is_empty() => {
+            let name = series_name(&sc.id, &method_label);
+            match write_series(dir, &name, geo, sc, &series) {
+                Ok(p) => Some(p),
+                Err(e) => {
+                    error = Some(format!("series: {e}"));
+                    None
+                }
+            }
+        }
+        _ => None,
+    };
     ScenarioResult {
         scenario: sc.id.clone(),
         category: sc.category.clone(),
         case_id: case_id.to_string(),
         session_id,
         resumed: outcome.resumed,
-        method: if discovery.is_some() {
-            format!("{}+discovery", method_name(method))
-        } else {
-            method_name(method).to_string()
-        },
+        method: method_label,
         messages: msgs.len(),
         updates: outcome.updates,
         rejections,
@@ -461,7 +489,95 @@ async fn replay_one(
         status,
         error,
         discovery: found,
+        series,
     }
+}
+
+/// One registration of a session, kept for its time series.
+struct SeriesStep {
+    client_seq: u64,
+    image_to_physical: Rigid,
+    displacement: Vec<f64>,
+}
+
+/// A file-name-safe name for a session's series: `SCENARIO-METHOD` with every character outside
+/// `A-Z a-z 0-9 . _ + -` replaced by `_` (a scenario id `g1-L-00/3` becomes `g1-L-00_3`).
+pub fn series_name(scenario: &str, method: &str) -> String {
+    format!("{scenario}-{method}")
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "._+-".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// Writes a session's registrations as a ParaView time series: `DIR/NAME/update-KKKK.vtu`, one
+/// per registration in arrival order, and `DIR/NAME.pvd`, whose time steps are the acquisition
+/// times of the newest message each registration reflects (seconds after the session's first
+/// data message, [`crate::messages::EPOCH_UNIX_S`]). Each `.vtu` is the preoperative
+/// tetrahedral mesh with its nodes at their **registered** positions (physical frame, mm), and
+/// point data `displacement` (the registration's node displacement, image frame, mm: the nodes
+/// are already moved, so do not warp by it again) and `error_mm` (distance from the registered
+/// to the true node position: the dataset's ground truth, which only a replay has). Files are
+/// written atomically; returns the `.pvd`'s path.
+fn write_series(
+    dir: &std::path::Path,
+    name: &str,
+    geo: &GeometryData,
+    sc: &ScenarioData,
+    steps: &[SeriesStep],
+) -> Result<PathBuf, String> {
+    use librplus::mesh::io::{DataArray, MeshFile, PvdEntry, WriteOptions, pvd_collection};
+    let mesh = &geo.model.mesh;
+    let x = mesh.nodes();
+    let place = |t: &Rigid, u: &[f64]| -> Vec<[f64; 3]> {
+        x.iter()
+            .enumerate()
+            .map(|(i, p)| t.apply([0, 1, 2].map(|a| p[a] + u[3 * i + a])))
+            .collect()
+    };
+    let truth = place(&sc.truth.image_to_physical, &sc.truth.displacement);
+    let mut entries = Vec::with_capacity(steps.len());
+    for (k, s) in steps.iter().enumerate() {
+        let nodes = place(&s.image_to_physical, &s.displacement);
+        let error: Vec<f64> = nodes
+            .iter()
+            .zip(&truth)
+            .map(|(p, q)| {
+                ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
+            })
+            .collect();
+        let file = MeshFile {
+            nodes,
+            tets: mesh.tets().to_vec(),
+            point_data: vec![
+                DataArray::new("displacement", 3, s.displacement.clone()),
+                DataArray::new("error_mm", 1, error),
+            ],
+            ..MeshFile::default()
+        };
+        let rel = format!("{name}/update-{:04}.vtu", k + 1);
+        let bytes = librplus::mesh::io::write_bytes(
+            &file,
+            librplus::mesh::io::Format::Vtu,
+            WriteOptions::default(),
+            &dir.join(&rel),
+        )
+        .map_err(|e| e.to_string())?;
+        librplus::util::write_atomic(&dir.join(&rel), &bytes).map_err(|e| e.to_string())?;
+        entries.push(PvdEntry {
+            timestep: (s.client_seq as f64 - 2.0).max(0.0),
+            file: rel,
+        });
+    }
+    let pvd = dir.join(format!("{name}.pvd"));
+    librplus::util::write_atomic(&pvd, pvd_collection(&entries).as_bytes())
+        .map_err(|e| e.to_string())?;
+    Ok(pvd)
 }
 
 /// Replays the selected scenarios with every method (one session each, in lockstep) and scores
@@ -570,6 +686,20 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
             }
             results.push(r);
         }
+    }
+    if opts.series.is_some()
+        && let Some(r) = results.iter().find(|r| {
+            r.error
+                .as_deref()
+                .is_some_and(|e| e.starts_with("series: "))
+        })
+    {
+        bail!(
+            "could not write the time series of {} ({}): {}",
+            r.scenario,
+            r.method,
+            r.error.as_deref().unwrap_or_default()
+        );
     }
     Ok(summarize(
         loaded.scenarios.len(),

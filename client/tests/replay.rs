@@ -488,6 +488,93 @@ async fn replay_scores_every_session_against_a_fake_server() {
     assert!(!m.deformations.is_empty());
 }
 
+/// `replay --series`: one `.vtu` per registration and a `.pvd` per session, read back by the
+/// project's readers (times = acquisition times, nodes at the registered positions, mean
+/// `error_mm` = the step's TRE computed by the scorer) and, when CI provides it, by VTK
+/// (`tests/reference/check_series.py`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replay_writes_each_session_as_a_paraview_time_series() {
+    let (url, _) = serve(100).await;
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("client-series");
+    let _ = std::fs::remove_dir_all(&dir);
+    let opts = ReplayOptions {
+        server: url,
+        data: dataset().to_path_buf(),
+        selection: Selection::Spread(2),
+        methods: vec![pb::Method::Libr],
+        batch: 50,
+        series: Some(dir.clone()),
+        ..Default::default()
+    };
+    let s = librplus_client::replay(&opts).await.unwrap();
+    assert_eq!(s.sessions, 2);
+    let m = librplus::eval::open(dataset()).unwrap();
+    for r in &s.results {
+        let pvd = r.series.as_ref().expect("a series per session");
+        assert_eq!(
+            pvd,
+            &dir.join(format!(
+                "{}.pvd",
+                librplus_client::series_name(&r.scenario, "libr")
+            ))
+        );
+        let entries = io::read_pvd(&std::fs::read(pvd).unwrap(), pvd).unwrap();
+        assert_eq!(entries.len(), r.steps.len());
+        assert!(!entries.is_empty());
+        let geo = librplus::eval::load_geometry(dataset(), &m, &r.case_id).unwrap();
+        let (start, _, _) = scenarios()
+            .into_iter()
+            .find(|x| x.1.id == r.scenario)
+            .unwrap();
+        assert_eq!(start, r.case_id);
+        for (e, step) in entries.iter().zip(&r.steps) {
+            // Message k is acquired k − 2 s after the first data message (seq 2).
+            assert_eq!(e.timestep, step.client_seq as f64 - 2.0);
+            let f = io::read(pvd.parent().unwrap().join(&e.file), Unit::Mm).unwrap();
+            assert_eq!(f.nodes.len(), geo.model.mesh.nodes().len());
+            assert_eq!(f.tets, geo.model.mesh.tets());
+            let err = f.point_array("error_mm").unwrap();
+            let mean = err.values.iter().sum::<f64>() / err.values.len() as f64;
+            let tre = step.tre_mm.unwrap();
+            assert!((mean - tre).abs() < 1e-9 * tre.max(1.0), "{mean} vs {tre}");
+            assert_eq!(f.point_array("displacement").unwrap().components, 3);
+        }
+        match std::env::var_os("LIBRPLUS_CHECK_PYTHON") {
+            Some(py) => {
+                let script = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+                    .join("../tests/reference/check_series.py");
+                let o = std::process::Command::new(py)
+                    .arg(script)
+                    .arg(pvd)
+                    .arg(entries.len().to_string())
+                    .output()
+                    .unwrap();
+                let out = String::from_utf8_lossy(&o.stdout);
+                eprintln!("{out}");
+                assert!(
+                    o.status.success(),
+                    "check_series.py: {}",
+                    String::from_utf8_lossy(&o.stderr)
+                );
+                // VTK's mean error per step equals the scorer's TRE.
+                for (line, step) in out.lines().filter(|l| l.starts_with("step ")).zip(&r.steps) {
+                    let v: f64 = line
+                        .rsplit("mean_error_mm=")
+                        .next()
+                        .unwrap()
+                        .parse()
+                        .unwrap();
+                    let tre = step.tre_mm.unwrap();
+                    assert!((v - tre).abs() < 1e-9 * tre.max(1.0), "{line} vs {tre}");
+                }
+            }
+            None => eprintln!(
+                "SKIPPED client: the VTK check of the series (LIBRPLUS_CHECK_PYTHON not set; .ci/run sets it)"
+            ),
+        }
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn load_counts_requests_and_refusals() {
     // Two sessions at a time, four clients: the others are refused with RESOURCE_EXHAUSTED.

@@ -12,6 +12,7 @@
 //! | `.msh` | Gmsh v1 (`$NOD`/`$ELM`), v2.2 ASCII, v4.1 ASCII; non-contiguous node ids mapped | v2.2 ASCII |
 //! | `.obj` | Wavefront OBJ (`v`, `f` with `v/vt/vn` forms, negative indices, polygons fan-triangulated) | `v`/`f` |
 //! | `.stl` | ASCII and binary STL (vertices welded when bit-identical) | binary or ASCII |
+//! | `.pvd` | ParaView collection (a time series of the files above): [`read_pvd`] | [`pvd_collection`] |
 //!
 //! Units: each reader takes the unit of the file ([`Unit`]); coordinates are scaled to millimetres
 //! on read, and so are point-data arrays that hold lengths (those named `displacement`,
@@ -27,6 +28,8 @@ mod obj;
 mod stl;
 mod vtk_legacy;
 mod vtk_xml;
+
+pub use vtk_xml::{PvdEntry, pvd_collection, read_pvd};
 
 use std::path::{Path, PathBuf};
 

@@ -14,6 +14,7 @@
 //! Writes version 1.0 with `header_type="UInt64"`, little-endian, ascii or base64 binary: Float64
 //! points and data, Int64 connectivity and offsets, UInt8 types.
 
+mod pvd;
 mod write;
 
 use crate::mesh::io::common::{
@@ -24,6 +25,7 @@ use crate::mesh::io::{DataArray, IoError, MeshFile, WriteOptions};
 use base64::Engine as _;
 use base64::alphabet;
 use base64::engine::{DecodePaddingMode, GeneralPurpose, GeneralPurposeConfig};
+pub use pvd::{PvdEntry, pvd_collection, read_pvd};
 use quick_xml::events::{BytesStart, Event};
 use std::io::Read as _;
 use std::path::Path;
