@@ -18,6 +18,7 @@ pub mod convert;
 pub mod discovery;
 pub mod error;
 pub mod fuzz;
+pub mod igtl;
 pub mod journal;
 pub mod metrics_http;
 pub mod registry;

@@ -51,6 +51,12 @@ enum Command {
         #[arg(long)]
         only_data: bool,
     },
+    #[cfg(feature = "igtl")]
+    /// OpenIGTLink bridge for navigation software (3D Slicer's OpenIGTLinkIF, PLUS, ...): each
+    /// connection is a registration session on the gRPC server; POINT (surface points) and
+    /// POLYDATA + TRANSFORM (ultrasound plane points and pose) in; TRANSFORM, target POINT and
+    /// liver POLYDATA out after every registration, STATUS on errors (docs/igtl.md).
+    Igtl(Box<IgtlArgs>),
     /// Read the audit log: every registration, session and refusal (of a case, since a time),
     /// or export a session's points for `librplus discover`.
     Audit {
@@ -286,6 +292,88 @@ fn init_tracing(json: bool) {
     init_tracing_level(json, "info");
 }
 
+/// `librplus-server igtl`.
+#[cfg(feature = "igtl")]
+#[derive(clap::Args, Debug)]
+struct IgtlArgs {
+    /// Address the OpenIGTLink server listens on (18944 is OpenIGTLink's usual port).
+    #[arg(long, default_value = "127.0.0.1:18944")]
+    listen: std::net::SocketAddr,
+    /// The LIBR+ gRPC server.
+    #[arg(long, default_value = "http://127.0.0.1:50051")]
+    server: String,
+    /// The case every session registers.
+    #[arg(long = "case")]
+    case_id: String,
+    /// Method: rigid, libr, libr_plus, v2s, default.
+    #[arg(long, default_value = "default")]
+    method: String,
+    /// The peer's patient frame: ras (3D Slicer) or lps (LIBR+, DICOM).
+    #[arg(long, default_value = "ras")]
+    frame: String,
+    /// Targets sent back where each registration puts them: a 3D Slicer markups file
+    /// (.mrk.json) in the preoperative image's frame.
+    #[arg(long, value_name = "FILE")]
+    targets: Option<PathBuf>,
+    /// Time budget per registration, ms (0: the server's default).
+    #[arg(long, default_value_t = 0)]
+    time_budget_ms: u32,
+    /// Largest OpenIGTLink message body accepted, bytes.
+    #[arg(long, default_value_t = 64 << 20)]
+    max_body: u64,
+    /// Bearer token for the gRPC server.
+    #[arg(long, env = "LIBRPLUS_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// TLS: the CA certificate (PEM) of the gRPC server.
+    #[arg(long, value_name = "FILE")]
+    ca: Option<PathBuf>,
+    /// mTLS: this bridge's certificate (PEM; with --key).
+    #[arg(long, value_name = "FILE")]
+    cert: Option<PathBuf>,
+    /// mTLS: this bridge's private key (PEM).
+    #[arg(long, value_name = "FILE")]
+    key: Option<PathBuf>,
+}
+
+#[cfg(feature = "igtl")]
+async fn igtl(a: IgtlArgs) -> anyhow::Result<()> {
+    use librplus_server::igtl::bridge::{BridgeConfig, Frame, read_targets, run};
+    let frame = match a.frame.to_ascii_lowercase().as_str() {
+        "ras" => Frame::Ras,
+        "lps" => Frame::Lps,
+        other => anyhow::bail!("--frame {other:?}: ras or lps"),
+    };
+    let cfg = BridgeConfig {
+        server: a.server,
+        tls: librplus_client::Tls {
+            ca: a.ca,
+            cert: a.cert,
+            key: a.key,
+            domain: None,
+        },
+        token: a.token,
+        case_id: a.case_id,
+        method: librplus_client::parse_method(&a.method)
+            .map_err(|e| anyhow::anyhow!("--method: {e}"))?,
+        time_budget_ms: a.time_budget_ms,
+        frame,
+        targets: match &a.targets {
+            Some(p) => read_targets(p)?,
+            None => Vec::new(),
+        },
+        max_body: a.max_body,
+    };
+    eprintln!(
+        "OpenIGTLink bridge on {} → {} (case {}, frame {:?}, {} targets)",
+        a.listen,
+        cfg.server,
+        cfg.case_id,
+        cfg.frame,
+        cfg.targets.len()
+    );
+    run(a.listen, cfg).await
+}
+
 fn init_tracing_level(json: bool, level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
@@ -325,6 +413,11 @@ async fn main() -> Result<()> {
                 return tokio::task::spawn_blocking(move || demo::ensure_dataset(&o)).await?;
             }
             return demo::run(o).await;
+        }
+        #[cfg(feature = "igtl")]
+        Some(Command::Igtl(a)) => {
+            init_tracing_level(false, "info");
+            return igtl(*a).await;
         }
         Some(Command::Audit {
             db,

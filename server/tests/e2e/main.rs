@@ -9,6 +9,7 @@ mod auth;
 mod bad_input;
 mod cases;
 mod discovery;
+mod igtl;
 mod interop;
 mod limits;
 mod replicas;

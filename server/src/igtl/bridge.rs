@@ -1,0 +1,801 @@
+//! The OpenIGTLink bridge (`librplus-server igtl`): an OpenIGTLink server for navigation software
+//! that forwards what it receives to a LIBR+ gRPC server as a streamed session and sends each
+//! registration back as OpenIGTLink messages.
+//!
+//! One TCP connection is one registration session (`StreamRegister` on the gRPC server, case and
+//! method fixed by the bridge's options). Received (device names are free unless stated):
+//!
+//! | message | meaning |
+//! | --- | --- |
+//! | `POINT` | surface points (a stylus sweep or a laparoscope frame): one `SurfaceBatch` |
+//! | `TRANSFORM` device *D* | the pose of ultrasound plane *D*: plane (u, v, 0) → physical, mm |
+//! | `POLYDATA` device *D* | the points found in plane *D* (u, v, 0 in the plane's frame, mm; point scalar `kind`: 0 contour, 1 vessel, absent: all contour), sent with the last pose of *D*: one `UltrasoundPlane` |
+//!
+//! Sent after every registration (device names fixed): `TRANSFORM` [`DEVICE_TRANSFORM`] (image →
+//! physical), `POINT` [`DEVICE_TARGETS`] (the targets given with `--targets`, where the
+//! registration puts them) and `POLYDATA` [`DEVICE_LIVER`] (the liver's boundary surface at its
+//! registered position, point vector `displacement`); `STATUS` [`DEVICE_STATUS`] when the
+//! quality is not OK, for a rejected message, and for a malformed or unsupported one (the
+//! connection goes on; only a message whose header cannot be trusted ends it).
+//!
+//! **Frames.** LIBR+ works in LPS; 3D Slicer's world is RAS. With `--frame ras` (the default)
+//! every coordinate received is converted RAS → LPS (x and y negated) and every one sent LPS →
+//! RAS, and the image → physical transform is sent as `F T F` (F = diag(−1, −1, 1)): the
+//! transform to apply in Slicer to the preoperative model loaded there (Slicer converts LPS files
+//! to RAS on loading). A plane pose (plane frame → physical) is converted as `F P`. With
+//! `--frame lps` everything passes unchanged.
+
+use super::wire::{
+    self, AttributeKind, AttributeLocation, CellArray, Decoder, EncodeOptions, Message,
+    PointElement, PolyAttribute, PolyData, Status, Transform, status_code,
+};
+use librplus::mesh::TetMesh;
+use librplus::mesh::locate::TetLocator;
+use librplus::mesh::rigid::Rigid;
+use librplus_client::pb;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::mpsc;
+
+/// Device name of the image → physical `TRANSFORM` sent after each registration.
+pub const DEVICE_TRANSFORM: &str = "LIBR_ImageToPhysical";
+/// Device name of the registered targets' `POINT`.
+pub const DEVICE_TARGETS: &str = "LIBR_Targets";
+/// Device name of the registered liver's `POLYDATA`.
+pub const DEVICE_LIVER: &str = "LIBR_Liver";
+/// Device name of the bridge's `STATUS` messages.
+pub const DEVICE_STATUS: &str = "LIBR_Status";
+
+/// The patient frame the OpenIGTLink peer works in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Frame {
+    /// Right, anterior, superior (3D Slicer's world).
+    Ras,
+    /// Left, posterior, superior (DICOM, ITK, LIBR+).
+    Lps,
+}
+
+impl Frame {
+    /// Converts a point or vector between this frame and LPS (its own inverse).
+    pub fn convert(self, p: [f64; 3]) -> [f64; 3] {
+        match self {
+            Frame::Ras => [-p[0], -p[1], p[2]],
+            Frame::Lps => p,
+        }
+    }
+}
+
+/// A named target in the preoperative image frame (LPS, mm).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Target {
+    /// Its label.
+    pub name: String,
+    /// Position, image frame, LPS, mm.
+    pub image_mm: [f64; 3],
+}
+
+/// What the bridge does.
+#[derive(Debug, Clone)]
+pub struct BridgeConfig {
+    /// The gRPC server's URL.
+    pub server: String,
+    /// Its TLS settings.
+    pub tls: librplus_client::Tls,
+    /// Bearer token for the gRPC server.
+    pub token: Option<String>,
+    /// The case every session registers.
+    pub case_id: String,
+    /// The method asked for.
+    pub method: pb::Method,
+    /// Time budget per registration, ms (0: the server's default).
+    pub time_budget_ms: u32,
+    /// The peer's patient frame.
+    pub frame: Frame,
+    /// Targets to send back where each registration puts them.
+    pub targets: Vec<Target>,
+    /// Largest OpenIGTLink body accepted (bytes).
+    pub max_body: u64,
+}
+
+/// Reads targets from a 3D Slicer markups file (`.mrk.json`, schema 1.0: `markups[].
+/// controlPoints[].{label, position}` with `markups[].coordinateSystem` `LPS` or `RAS`, which
+/// Slicer writes) into the image frame (LPS).
+pub fn read_targets(path: &std::path::Path) -> anyhow::Result<Vec<Target>> {
+    use anyhow::Context;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("--targets {}", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("--targets {}: not JSON", path.display()))?;
+    let bad = |what: String| anyhow::anyhow!("--targets {}: {what}", path.display());
+    let markups = v["markups"]
+        .as_array()
+        .ok_or_else(|| bad("no `markups` array (a 3D Slicer .mrk.json)".into()))?;
+    let mut out = Vec::new();
+    for (m, mk) in markups.iter().enumerate() {
+        let frame = match mk["coordinateSystem"].as_str().unwrap_or("LPS") {
+            "LPS" => Frame::Lps,
+            "RAS" => Frame::Ras,
+            other => {
+                return Err(bad(format!(
+                    "markups[{m}].coordinateSystem {other:?} is neither LPS nor RAS"
+                )));
+            }
+        };
+        for (k, cp) in mk["controlPoints"]
+            .as_array()
+            .map(Vec::as_slice)
+            .unwrap_or_default()
+            .iter()
+            .enumerate()
+        {
+            let field = format!("markups[{m}].controlPoints[{k}]");
+            let p: Vec<f64> = cp["position"]
+                .as_array()
+                .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
+                .unwrap_or_default();
+            if p.len() != 3 || p.iter().any(|x| !x.is_finite()) {
+                return Err(bad(format!("{field}.position is not 3 finite numbers")));
+            }
+            out.push(Target {
+                name: cp["label"]
+                    .as_str()
+                    .map_or_else(|| format!("target-{}", out.len() + 1), str::to_string),
+                image_mm: frame.convert([p[0], p[1], p[2]]),
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// The case as the bridge needs it: nodes, the boundary surface and the targets' embedding.
+struct CaseGeometry {
+    nodes: Vec<[f64; 3]>,
+    /// Boundary nodes (indices into `nodes`) and triangles over them (local indices).
+    surface_nodes: Vec<u32>,
+    surface_triangles: Vec<[u32; 3]>,
+    targets: Vec<Embedded>,
+}
+
+/// A target embedded in the mesh: its name, image position, and the nodes and barycentric
+/// weights of the tet it is in (or nearest to).
+struct Embedded {
+    name: String,
+    image_mm: [f64; 3],
+    nodes: [u32; 4],
+    weights: [f64; 4],
+}
+
+impl CaseGeometry {
+    fn new(d: &pb::DescribeCaseResponse, targets: &[Target]) -> anyhow::Result<Self> {
+        let nodes: Vec<[f64; 3]> = d
+            .nodes_mm
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        let tets: Vec<[u32; 4]> = d
+            .tets
+            .chunks_exact(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect();
+        let mesh = TetMesh::new(nodes.clone(), tets)
+            .map_err(|e| anyhow::anyhow!("the case's mesh from DescribeCase: {e}"))?;
+        let b = mesh
+            .boundary()
+            .map_err(|e| anyhow::anyhow!("the case's boundary surface: {e}"))?;
+        let mut local = vec![u32::MAX; nodes.len()];
+        for (k, &n) in b.nodes.iter().enumerate() {
+            local[n as usize] = k as u32;
+        }
+        let surface_triangles = b
+            .triangles
+            .iter()
+            .map(|t| t.map(|n| local[n as usize]))
+            .collect();
+        let locator = TetLocator::new(&mesh);
+        let targets = targets
+            .iter()
+            .map(|t| {
+                let (tet, w) = locator.weights(t.image_mm).ok_or_else(|| {
+                    anyhow::anyhow!("target {:?}: no tet of the case near it", t.name)
+                })?;
+                Ok(Embedded {
+                    name: t.name.clone(),
+                    image_mm: t.image_mm,
+                    nodes: locator.tet(tet),
+                    weights: w,
+                })
+            })
+            .collect::<anyhow::Result<_>>()?;
+        Ok(Self {
+            nodes,
+            surface_nodes: b.nodes,
+            surface_triangles,
+            targets,
+        })
+    }
+}
+
+/// Runs the bridge on `listener` until the process ends: describes the case once, then serves
+/// every OpenIGTLink connection as its own registration session.
+pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<()> {
+    let client = librplus_client::connect_with(&cfg.server, &cfg.tls).await?;
+    let session_cfg = librplus_client::SessionConfig::new(
+        std::time::Duration::from_secs(60),
+        cfg.token.as_deref(),
+    )?;
+    let mut req = tonic::Request::new(pb::DescribeCaseRequest {
+        case_id: cfg.case_id.clone(),
+        include_mesh: true,
+    });
+    if let Some(t) = &session_cfg.token {
+        req.metadata_mut().insert("authorization", t.clone());
+    }
+    let described = client
+        .clone()
+        .describe_case(req)
+        .await
+        .map_err(|s| anyhow::anyhow!("DescribeCase {:?}: {}", cfg.case_id, s.message()))?
+        .into_inner();
+    let geo = Arc::new(CaseGeometry::new(&described, &cfg.targets)?);
+    let cfg = Arc::new(cfg);
+    let token = session_cfg.token.clone();
+    tracing::info!(
+        listen = %listener.local_addr()?,
+        case = %cfg.case_id,
+        nodes = geo.nodes.len(),
+        targets = geo.targets.len(),
+        "OpenIGTLink bridge ready"
+    );
+    let next_id = AtomicU64::new(1);
+    loop {
+        let (socket, peer) = match listener.accept().await {
+            Ok(x) => x,
+            Err(e) => {
+                tracing::warn!(error = %e, "accept failed");
+                tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        let id = next_id.fetch_add(1, Ordering::Relaxed);
+        let (client, cfg, geo, token) = (client.clone(), cfg.clone(), geo.clone(), token.clone());
+        tokio::spawn(async move {
+            tracing::info!(connection = id, %peer, "OpenIGTLink peer connected");
+            match connection(socket, client, &cfg, &geo, token).await {
+                Ok(()) => tracing::info!(connection = id, "OpenIGTLink peer left"),
+                Err(e) => tracing::warn!(connection = id, error = %e, "connection ended"),
+            }
+        });
+    }
+}
+
+/// An encoded STATUS message (never fails: the texts are cut to their fields' sizes).
+fn status(code: u16, name: &str, message: &str) -> Vec<u8> {
+    let s = Status {
+        code,
+        subcode: 0,
+        error_name: name.chars().take(20).collect(),
+        message: message.replace('\0', " "),
+    };
+    Message::Status(s)
+        .encode(DEVICE_STATUS, &EncodeOptions::default())
+        .unwrap_or_default()
+}
+
+/// The OpenIGTLink status code for a gRPC status code name.
+fn status_code_of(code: &str) -> u16 {
+    match code {
+        "NOT_FOUND" => status_code::NOT_FOUND,
+        "PERMISSION_DENIED" | "UNAUTHENTICATED" => status_code::ACCESS_DENIED,
+        "RESOURCE_EXHAUSTED" => status_code::BUSY,
+        "DEADLINE_EXCEEDED" => status_code::TIME_OUT,
+        "UNAVAILABLE" => status_code::NOT_READY,
+        "INVALID_ARGUMENT" | "FAILED_PRECONDITION" | "OUT_OF_RANGE" => status_code::CONFIG_ERROR,
+        _ => status_code::UNKNOWN_ERROR,
+    }
+}
+
+/// One OpenIGTLink connection: one gRPC session.
+async fn connection(
+    socket: TcpStream,
+    client: librplus_client::Client,
+    cfg: &BridgeConfig,
+    geo: &Arc<CaseGeometry>,
+    token: Option<tonic::metadata::AsciiMetadataValue>,
+) -> anyhow::Result<()> {
+    let (mut rd, mut wr) = socket.into_split();
+    let (out_tx, mut out_rx) = mpsc::channel::<Vec<u8>>(64);
+    let writer = tokio::spawn(async move {
+        while let Some(bytes) = out_rx.recv().await {
+            if wr.write_all(&bytes).await.is_err() {
+                break;
+            }
+        }
+        let _ = wr.shutdown().await;
+    });
+    let (req_tx, req_rx) = mpsc::channel::<pb::StreamRegisterRequest>(64);
+    let start = pb::StreamRegisterRequest {
+        client_seq: 1,
+        msg: Some(pb::stream_register_request::Msg::Start(pb::SessionStart {
+            case_id: cfg.case_id.clone(),
+            method: cfg.method as i32,
+            options: Some(pb::RegisterOptions {
+                time_budget_ms: cfg.time_budget_ms,
+                ..Default::default()
+            }),
+            ..Default::default()
+        })),
+    };
+    req_tx.send(start).await.ok();
+    let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(req_rx));
+    if let Some(t) = &token {
+        req.metadata_mut().insert("authorization", t.clone());
+    }
+    let mut updates = match client.clone().stream_register(req).await {
+        Ok(r) => r.into_inner(),
+        Err(s) => {
+            let code = librplus_client::code_name(s.code());
+            out_tx
+                .send(status(
+                    status_code_of(code),
+                    code,
+                    &format!("the LIBR+ server refused the session: {}", s.message()),
+                ))
+                .await
+                .ok();
+            drop(out_tx);
+            writer.await.ok();
+            anyhow::bail!("StreamRegister refused: {code}: {}", s.message());
+        }
+    };
+    // gRPC answers → OpenIGTLink messages.
+    let answers = {
+        let (out_tx, geo, frame) = (out_tx.clone(), geo.clone(), cfg.frame);
+        tokio::spawn(async move {
+            loop {
+                match updates.message().await {
+                    Ok(Some(u)) => {
+                        for bytes in answer_messages(&u, &geo, frame) {
+                            if out_tx.send(bytes).await.is_err() {
+                                return;
+                            }
+                        }
+                    }
+                    Ok(None) => return,
+                    Err(s) => {
+                        let code = librplus_client::code_name(s.code());
+                        tracing::warn!(code, message = s.message(), "the gRPC session ended");
+                        out_tx
+                            .send(status(
+                                status_code_of(code),
+                                code,
+                                &format!("the LIBR+ session ended: {}", s.message()),
+                            ))
+                            .await
+                            .ok();
+                        return;
+                    }
+                }
+            }
+        })
+    };
+    // OpenIGTLink messages → gRPC requests.
+    let mut decoder = Decoder::with_max_body_size(cfg.max_body);
+    let mut poses: std::collections::HashMap<String, Rigid> = Default::default();
+    let mut seq = 1u64;
+    let mut buf = vec![0u8; 64 * 1024];
+    let result = 'read: loop {
+        let n = match rd.read(&mut buf).await {
+            Ok(0) => break Ok(()),
+            Ok(n) => n,
+            Err(e) => break Err(anyhow::anyhow!("reading the socket: {e}")),
+        };
+        decoder.feed(&buf[..n]);
+        while let Some(next) = decoder.next_message() {
+            match next {
+                Ok((header, msg)) => match request_of(&header, msg, cfg.frame, &mut poses) {
+                    Ok(Some(m)) => {
+                        seq += 1;
+                        let r = pb::StreamRegisterRequest {
+                            client_seq: seq,
+                            msg: Some(m),
+                        };
+                        if req_tx.send(r).await.is_err() {
+                            break 'read Err(anyhow::anyhow!("the gRPC session has ended"));
+                        }
+                    }
+                    Ok(None) => {}
+                    Err((code, why)) => {
+                        tracing::warn!(
+                            device = %header.device_name,
+                            kind = %header.type_name,
+                            "{why}"
+                        );
+                        out_tx.send(status(code, "BAD_MESSAGE", &why)).await.ok();
+                    }
+                },
+                Err(e) => {
+                    let recoverable = e.is_recoverable();
+                    tracing::warn!(error = %e, recoverable, "malformed OpenIGTLink message");
+                    let code = match e {
+                        wire::WireError::BadCrc { .. } => status_code::CHECKSUM_ERROR,
+                        _ => status_code::CONFIG_ERROR,
+                    };
+                    out_tx
+                        .send(status(code, "BAD_MESSAGE", &e.to_string()))
+                        .await
+                        .ok();
+                    if !recoverable {
+                        break 'read Err(anyhow::anyhow!("unrecoverable stream error: {e}"));
+                    }
+                }
+            }
+        }
+    };
+    // Close the gRPC side, let the last answers through, then the socket.
+    drop(req_tx);
+    let _ = tokio::time::timeout(std::time::Duration::from_secs(30), answers).await;
+    drop(out_tx);
+    writer.await.ok();
+    result
+}
+
+/// The gRPC request for one OpenIGTLink message (None: a pose, stored for the next POLYDATA of
+/// its device), or the STATUS code and reason it is refused with.
+fn request_of(
+    header: &wire::Header,
+    msg: Message,
+    frame: Frame,
+    poses: &mut std::collections::HashMap<String, Rigid>,
+) -> Result<Option<pb::stream_register_request::Msg>, (u16, String)> {
+    use pb::stream_register_request::Msg;
+    let acquired_at = Some(acquired_at(header));
+    let device = &header.device_name;
+    match msg {
+        Message::Point(points) => {
+            if points.is_empty() {
+                return Err((status_code::CONFIG_ERROR, "POINT: no points".into()));
+            }
+            Ok(Some(Msg::Surface(pb::SurfaceBatch {
+                acquired_at,
+                xyz_mm: points
+                    .iter()
+                    .flat_map(|p| frame.convert(p.position_mm.map(f64::from)))
+                    .collect(),
+                feature: Vec::new(),
+            })))
+        }
+        Message::Transform(t) => {
+            let pose = rigid_of(&t).map_err(|why| {
+                (
+                    status_code::CONFIG_ERROR,
+                    format!("TRANSFORM {device:?}: {why}"),
+                )
+            })?;
+            // Plane → peer frame, then peer frame → LPS.
+            poses.insert(device.clone(), pose.then(&frame_rigid(frame)));
+            Ok(None)
+        }
+        Message::PolyData(pd) => {
+            let pose = poses.get(device).ok_or_else(|| {
+                (
+                    status_code::CONFIG_ERROR,
+                    format!(
+                        "POLYDATA {device:?}: no TRANSFORM {device:?} (the plane's pose) received before it"
+                    ),
+                )
+            })?;
+            let kind = pd
+                .attributes
+                .iter()
+                .find(|a| a.name == "kind" && a.location == AttributeLocation::Point);
+            if let Some(k) = kind
+                && (k.kind.components() != 1 || k.tuple_count() != pd.points.len())
+            {
+                return Err((
+                    status_code::CONFIG_ERROR,
+                    format!(
+                        "POLYDATA {device:?}: attribute `kind` needs one scalar per point ({} points)",
+                        pd.points.len()
+                    ),
+                ));
+            }
+            let (mut contour, mut vessel) = (Vec::new(), Vec::new());
+            for (i, p) in pd.points.iter().enumerate() {
+                if f64::from(p[2]).abs() > 0.5 {
+                    return Err((
+                        status_code::CONFIG_ERROR,
+                        format!(
+                            "POLYDATA {device:?}: point {i} has w = {} mm: points are (u, v, 0) in the plane's own frame",
+                            p[2]
+                        ),
+                    ));
+                }
+                let uv = [f64::from(p[0]), f64::from(p[1])];
+                let k = kind.map_or(0.0, |k| k.data[i]);
+                if k == 0.0 {
+                    contour.extend(uv);
+                } else if k == 1.0 {
+                    vessel.extend(uv);
+                } else {
+                    return Err((
+                        status_code::CONFIG_ERROR,
+                        format!(
+                            "POLYDATA {device:?}: kind of point {i} is {k}: 0 (contour) or 1 (vessel)"
+                        ),
+                    ));
+                }
+            }
+            Ok(Some(Msg::Ultrasound(pb::UltrasoundPlane {
+                acquired_at,
+                plane_to_physical: Some(librplus_client::rigid_message(pose)),
+                contour_uv_mm: contour,
+                vessel_uv_mm: vessel,
+            })))
+        }
+        Message::Status(_) => Ok(None),
+        Message::Unknown { type_name, .. } => Err((
+            status_code::ILLEGAL_INSTRUCTION,
+            format!(
+                "{type_name:?} messages are not used by LIBR+ (POINT, TRANSFORM and POLYDATA are)"
+            ),
+        )),
+    }
+}
+
+/// The header's timestamp, or now when it is 0 (unused).
+fn acquired_at(h: &wire::Header) -> prost_types::Timestamp {
+    let secs = if h.timestamp == 0 {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64())
+    } else {
+        h.timestamp_secs()
+    };
+    prost_types::Timestamp {
+        seconds: secs.floor() as i64,
+        nanos: ((secs - secs.floor()) * 1e9).round().min(999_999_999.0) as i32,
+    }
+}
+
+/// The frame change as a rigid transform (a rotation by 180° about z for RAS ↔ LPS).
+fn frame_rigid(frame: Frame) -> Rigid {
+    let mut r = Rigid::identity();
+    if frame == Frame::Ras {
+        r.rotation[0][0] = -1.0;
+        r.rotation[1][1] = -1.0;
+    }
+    r
+}
+
+/// A received TRANSFORM as a rigid transform: its rotation re-orthonormalised (the wire's
+/// float32 rounding), refused when it is not a rotation to 1e-3.
+fn rigid_of(t: &Transform) -> Result<Rigid, String> {
+    let m = &t.matrix;
+    let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let (a, b, c) = (col(0), col(1), col(2));
+    let err = [
+        (dot(a, a) - 1.0).abs(),
+        (dot(b, b) - 1.0).abs(),
+        (dot(c, c) - 1.0).abs(),
+        dot(a, b).abs(),
+        dot(a, c).abs(),
+        dot(b, c).abs(),
+    ]
+    .into_iter()
+    .fold(0.0, f64::max);
+    let cross = |a: [f64; 3], b: [f64; 3]| {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    if err.is_nan() || err > 1e-3 || dot(cross(a, b), c) <= 0.0 {
+        return Err(
+            "the rotation part is not a rotation (orthonormal, determinant +1, to 1e-3)".into(),
+        );
+    }
+    let norm = |v: [f64; 3]| {
+        let n = dot(v, v).sqrt();
+        v.map(|x| x / n)
+    };
+    let u = norm(a);
+    let w = norm(cross(u, b));
+    let v = cross(w, u);
+    Ok(Rigid {
+        rotation: [[u[0], v[0], w[0]], [u[1], v[1], w[1]], [u[2], v[2], w[2]]],
+        translation: [m[0][3], m[1][3], m[2][3]],
+    })
+}
+
+/// A rigid transform as an OpenIGTLink TRANSFORM.
+fn transform_of(r: &Rigid) -> Transform {
+    let mut m = Transform::IDENTITY.matrix;
+    for (i, row) in m.iter_mut().take(3).enumerate() {
+        row[..3].copy_from_slice(&r.rotation[i]);
+        row[3] = r.translation[i];
+    }
+    Transform { matrix: m }
+}
+
+/// The OpenIGTLink messages answering one gRPC update.
+fn answer_messages(u: &pb::StreamUpdate, geo: &CaseGeometry, frame: Frame) -> Vec<Vec<u8>> {
+    use pb::stream_update::Update;
+    match &u.update {
+        Some(Update::Registration(r)) => match registration_messages(r, geo, frame) {
+            Ok(v) => v,
+            Err(why) => vec![status(status_code::UNKNOWN_ERROR, "BAD_ANSWER", &why)],
+        },
+        Some(Update::Rejection(r)) => {
+            let detail: Vec<String> = r
+                .violations
+                .iter()
+                .map(|v| format!("{}: {}", v.field, v.description))
+                .collect();
+            vec![status(
+                status_code_of(&r.code),
+                &r.code,
+                &format!(
+                    "message {} rejected: {}{}",
+                    r.client_seq,
+                    r.message,
+                    if detail.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" ({})", detail.join("; "))
+                    }
+                ),
+            )]
+        }
+        _ => Vec::new(),
+    }
+}
+
+/// TRANSFORM, target POINT, liver POLYDATA (and a STATUS when the quality is not OK) for one
+/// registration.
+fn registration_messages(
+    r: &pb::Registration,
+    geo: &CaseGeometry,
+    frame: Frame,
+) -> Result<Vec<Vec<u8>>, String> {
+    let t = match &r.image_to_physical {
+        None => return Err("registration.image_to_physical is unset".into()),
+        Some(t) => librplus_client::rigid_from_message(t)
+            .map_err(|e| format!("registration.image_to_physical.{e}"))?,
+    };
+    let n = geo.nodes.len();
+    let u: Vec<f64> = if r.displacement_mm.len() == 3 * n {
+        r.displacement_mm.iter().map(|&x| f64::from(x)).collect()
+    } else if r.displacement_mm.is_empty() {
+        vec![0.0; 3 * n]
+    } else {
+        return Err(format!(
+            "registration.displacement_mm has {} values for {n} nodes",
+            r.displacement_mm.len()
+        ));
+    };
+    let f = frame_rigid(frame);
+    let placed =
+        |x: [f64; 3], d: [f64; 3]| frame.convert(t.apply([x[0] + d[0], x[1] + d[1], x[2] + d[2]]));
+    let opts = EncodeOptions::default();
+    let enc = |m: Message, device: &str| m.encode(device, &opts).map_err(|e| e.to_string());
+    let mut out = Vec::with_capacity(4);
+    // The quality first when it is not OK; the liver POLYDATA last (it ends an update).
+    if r.quality != pb::Quality::Ok as i32 {
+        let q = pb::Quality::try_from(r.quality).map_or_else(
+            |_| format!("QUALITY_{}", r.quality),
+            |q| q.as_str_name().to_string(),
+        );
+        out.push(status(
+            status_code::OK,
+            q.trim_start_matches("QUALITY_"),
+            &r.quality_reason,
+        ));
+    }
+    // Image (peer frame) → physical (peer frame).
+    out.push(enc(
+        Message::Transform(transform_of(&f.then(&t).then(&f))),
+        DEVICE_TRANSFORM,
+    )?);
+    if !geo.targets.is_empty() {
+        let points = geo
+            .targets
+            .iter()
+            .map(|e| {
+                let mut d = [0.0; 3];
+                for (&node, &w) in e.nodes.iter().zip(&e.weights) {
+                    for (a, da) in d.iter_mut().enumerate() {
+                        *da += w * u[3 * node as usize + a];
+                    }
+                }
+                PointElement {
+                    name: e.name.chars().take(64).collect(),
+                    group: "Target".into(),
+                    rgba: [255, 64, 64, 255],
+                    position_mm: placed(e.image_mm, d).map(|c| c as f32),
+                    diameter_mm: 5.0,
+                    owner: String::new(),
+                }
+            })
+            .collect();
+        out.push(enc(Message::Point(points), DEVICE_TARGETS)?);
+    }
+    let mut points = Vec::with_capacity(geo.surface_nodes.len());
+    let mut displacement = Vec::with_capacity(3 * geo.surface_nodes.len());
+    for &i in &geo.surface_nodes {
+        let i = i as usize;
+        let d = [u[3 * i], u[3 * i + 1], u[3 * i + 2]];
+        points.push(placed(geo.nodes[i], d).map(|c| c as f32));
+        // The node's deformation in the peer's physical frame: F R u.
+        displacement.extend(frame.convert(t.apply_vector(d)).map(|c| c as f32));
+    }
+    let liver = PolyData {
+        points,
+        polygons: CellArray::from_cells(geo.surface_triangles.iter().map(|t| t.to_vec())),
+        attributes: vec![PolyAttribute {
+            name: "displacement".into(),
+            location: AttributeLocation::Point,
+            kind: AttributeKind::Vector,
+            data: displacement,
+        }],
+        ..PolyData::default()
+    };
+    out.push(enc(Message::PolyData(liver), DEVICE_LIVER)?);
+    Ok(out)
+}
+
+/// Binds `addr` and runs [`serve`].
+pub async fn run(addr: SocketAddr, cfg: BridgeConfig) -> anyhow::Result<()> {
+    let listener = TcpListener::bind(addr)
+        .await
+        .map_err(|e| anyhow::anyhow!("--listen {addr}: {e}"))?;
+    serve(listener, cfg).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_convert_and_transforms_round_trip() {
+        assert_eq!(Frame::Ras.convert([1.0, 2.0, 3.0]), [-1.0, -2.0, 3.0]);
+        assert_eq!(Frame::Lps.convert([1.0, 2.0, 3.0]), [1.0, 2.0, 3.0]);
+        // A rotation about an oblique axis, through the wire's float32 and back.
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        let r = Rigid {
+            rotation: [
+                [c, -s, 0.0],
+                [s * 0.6, c * 0.6, -0.8],
+                [s * 0.8, c * 0.8, 0.6],
+            ],
+            translation: [10.0, -20.5, 300.25],
+        };
+        let t = Transform::from_wire(&transform_of(&r).to_wire().unwrap());
+        let back = rigid_of(&t).unwrap();
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((back.rotation[i][j] - r.rotation[i][j]).abs() < 1e-6);
+            }
+            assert!((back.translation[i] - r.translation[i]).abs() < 1e-4);
+        }
+        // Not a rotation: a scaling, a reflection.
+        let mut scaled = transform_of(&r);
+        scaled.matrix[0][0] *= 1.1;
+        assert!(rigid_of(&scaled).is_err());
+        let mut reflected = transform_of(&Rigid::identity());
+        reflected.matrix[2][2] = -1.0;
+        assert!(rigid_of(&reflected).is_err());
+        // F T F in RAS equals T applied to converted points.
+        let f = frame_rigid(Frame::Ras);
+        let p = [3.0, -4.0, 5.0];
+        let a = f.then(&r).then(&f).apply(Frame::Ras.convert(p));
+        let b = Frame::Ras.convert(r.apply(p));
+        for k in 0..3 {
+            assert!((a[k] - b[k]).abs() < 1e-12);
+        }
+    }
+}
