@@ -21,5 +21,5 @@ for overlay in dev prod gpu; do
 done
 "$bin/hadolint" deploy/Dockerfile
 echo "hadolint: deploy/Dockerfile passes (ignored rules are justified in the file)"
-"$bin/shellcheck" -x deploy/*.sh deploy/test/lib.sh deploy/k8s/render.sh .ci/run
+"$bin/shellcheck" -x deploy/*.sh deploy/test/lib.sh deploy/k8s/render.sh .ci/run clients/python/ci.sh
 echo "shellcheck: the deploy scripts and .ci/run pass"

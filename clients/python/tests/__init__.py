@@ -1,0 +1,1 @@
+"""Tests of librplus_client (python -m unittest)."""
