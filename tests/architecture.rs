@@ -107,6 +107,14 @@ fn classify(rel: &str) -> Option<(Rule, Vec<String>)> {
             Some((Rule::Library { layer }, module))
         }
         ["server", "src", "main.rs" | "demo.rs"] => Some((Rule::Binary, vec![])),
+        // The OpenIGTLink bridge is a client of the service (a gRPC session per connection), as
+        // the demo is: it may use the client crate, still not `phantom`.
+        ["server", "src", "igtl", "bridge.rs"] => Some((
+            Rule::Service {
+                may_use_client: true,
+            },
+            vec![],
+        )),
         ["server", "src", ..] => Some((
             Rule::Service {
                 may_use_client: false,

@@ -99,7 +99,7 @@ pub struct ReplayOptions {
     /// Most resumes of one session (with `resume`).
     pub resume_attempts: u32,
     /// Write every session's registrations as a time series here: one `.vtu` per update and a
-    /// `.pvd` collection per session ([`write_series`]).
+    /// `.pvd` collection per session (see `write_series` in this module).
     pub series: Option<PathBuf>,
 }
 
