@@ -284,6 +284,16 @@ fn status(code: u16, name: &str, message: &str) -> Vec<u8> {
         .unwrap_or_default()
 }
 
+/// A gRPC status as an encoded STATUS: its code mapped, its name, `what: message`.
+fn grpc_status(s: &tonic::Status, what: &str) -> Vec<u8> {
+    let code = librplus_client::code_name(s.code());
+    status(
+        status_code_of(code),
+        code,
+        &format!("{what}: {}", s.message()),
+    )
+}
+
 /// The OpenIGTLink status code for a gRPC status code name.
 fn status_code_of(code: &str) -> u16 {
     match code {
@@ -336,18 +346,17 @@ async fn connection(
     let mut updates = match client.clone().stream_register(req).await {
         Ok(r) => r.into_inner(),
         Err(s) => {
-            let code = librplus_client::code_name(s.code());
             out_tx
-                .send(status(
-                    status_code_of(code),
-                    code,
-                    &format!("the LIBR+ server refused the session: {}", s.message()),
-                ))
+                .send(grpc_status(&s, "the LIBR+ server refused the session"))
                 .await
                 .ok();
             drop(out_tx);
             writer.await.ok();
-            anyhow::bail!("StreamRegister refused: {code}: {}", s.message());
+            anyhow::bail!(
+                "StreamRegister refused: {}: {}",
+                librplus_client::code_name(s.code()),
+                s.message()
+            );
         }
     };
     // gRPC answers → OpenIGTLink messages.
@@ -365,14 +374,13 @@ async fn connection(
                     }
                     Ok(None) => return,
                     Err(s) => {
-                        let code = librplus_client::code_name(s.code());
-                        tracing::warn!(code, message = s.message(), "the gRPC session ended");
+                        tracing::warn!(
+                            code = librplus_client::code_name(s.code()),
+                            message = s.message(),
+                            "the gRPC session ended"
+                        );
                         out_tx
-                            .send(status(
-                                status_code_of(code),
-                                code,
-                                &format!("the LIBR+ session ended: {}", s.message()),
-                            ))
+                            .send(grpc_status(&s, "the LIBR+ session ended"))
                             .await
                             .ok();
                         return;
