@@ -136,7 +136,7 @@ struct Common {
     /// reconnect with backoff and go on from what the server recorded (it needs --audit).
     #[arg(long)]
     resume: bool,
-    /// Most resumes of one session (replay, with --resume).
+    /// Most reconnections of one session in a row without an answer (replay, with --resume).
     #[arg(long, default_value_t = 10)]
     resume_attempts: u32,
     /// Longest wait for a stream to open and for each answer, seconds.

@@ -146,9 +146,12 @@ pub struct SessionConfig {
 /// How a client resumes a lost session.
 #[derive(Debug, Clone, Copy)]
 pub struct Resume {
-    /// Most reconnections in one session.
+    /// Most reconnections in a row without an answer in between (a connection that got an
+    /// answer starts the count again, so a long session survives any number of separate
+    /// outages).
     pub attempts: u32,
-    /// The first wait; it doubles on each retry, up to 5 s.
+    /// The first wait; it doubles on each retry in a row, up to 5 s, and starts again after a
+    /// connection that got an answer.
     pub first_backoff: Duration,
 }
 
@@ -318,7 +321,10 @@ where
         pending: None,
         last_send: None,
     };
+    // Reconnections since the last answer.
+    let mut in_a_row: u32 = 0;
     loop {
+        let answered_before = out.answered;
         let first = match &st.session_id {
             None => start.clone(),
             Some(id) => pb::StreamRegisterRequest {
@@ -352,7 +358,10 @@ where
                     out.end = end;
                     return out;
                 };
-                if out.resumed >= r.attempts {
+                if out.answered > answered_before {
+                    in_a_row = 0;
+                }
+                if in_a_row >= r.attempts {
                     out.end = end;
                     return out;
                 }
@@ -364,7 +373,7 @@ where
                 }
                 let wait = r
                     .first_backoff
-                    .saturating_mul(1 << out.resumed.min(6))
+                    .saturating_mul(1 << in_a_row.min(6))
                     .min(Duration::from_secs(5));
                 if cfg.deadline.is_some_and(|d| Instant::now() + wait >= d) {
                     out.end = SessionEnd::Cut;
@@ -372,6 +381,7 @@ where
                 }
                 tokio::time::sleep(wait).await;
                 out.resumed += 1;
+                in_a_row += 1;
             }
         }
     }
