@@ -128,14 +128,19 @@ pub fn median(values: &[f64]) -> f64 {
     quantile(values, 0.5)
 }
 
-/// FNV-1a 64-bit hash of bytes, as 16 hex digits (stable across platforms and runs).
-pub fn fnv1a_hex(bytes: &[u8]) -> String {
+/// FNV-1a 64-bit hash of bytes (stable across platforms and runs).
+pub fn fnv1a(bytes: &[u8]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for &b in bytes {
         h ^= b as u64;
         h = h.wrapping_mul(0x0100_0000_01b3);
     }
-    format!("{h:016x}")
+    h
+}
+
+/// [`fnv1a`] as 16 hex digits.
+pub fn fnv1a_hex(bytes: &[u8]) -> String {
+    format!("{:016x}", fnv1a(bytes))
 }
 
 #[cfg(test)]

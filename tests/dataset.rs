@@ -10,11 +10,17 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn generate(out: &Path, extra: &[&str]) -> serde_json::Value {
+    generate_seed(out, 11, extra)
+}
+
+/// `generate --preset small` with a seed.
+fn generate_seed(out: &Path, seed: u64, extra: &[&str]) -> serde_json::Value {
     let manifest_dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let seed = seed.to_string();
     let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
         .current_dir(&manifest_dir)
         .args([
-            "generate", "--preset", "small", "--seed", "11", "--json", "--out",
+            "generate", "--preset", "small", "--seed", &seed, "--json", "--out",
         ])
         .arg(out)
         .args(extra)
@@ -201,6 +207,19 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
         let f = io::read(&out_vtu, Unit::Mm).unwrap();
         let e = &f.point_array("error_mm").unwrap().values;
         assert!((e.iter().sum::<f64>() / e.len() as f64 - t).abs() < 1e-9 * t.max(1.0));
+        // The built-in error estimate: in the JSON and as the .vtu's `uncertainty_mm`.
+        let est = &v["error_estimate"];
+        let p = est["predicted_tre_mm"].as_f64().unwrap();
+        assert!(p > 0.0 && p.is_finite(), "{est}");
+        assert_eq!(est["level"], 0.9);
+        let b = &f.point_array("uncertainty_mm").unwrap().values;
+        assert_eq!(b.len(), e.len());
+        assert!(b.iter().all(|x| x.is_finite() && *x >= 0.0));
+        let mean_b = b.iter().sum::<f64>() / b.len() as f64;
+        assert!((mean_b - est["node_uncertainty_mean_mm"].as_f64().unwrap()).abs() < 1e-9 * mean_b);
+        eprintln!(
+            "register {method}: predicted TRE {p:.2} mm, mean 90 % node bound {mean_b:.2} mm"
+        );
     }
     for (bad, needle) in [
         ("nope/1", "no deformation"),
@@ -277,6 +296,67 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
     );
     check_plots(&report, &summary);
     check_error_maps(&report, &summary, &m);
+
+    // `calibrate-error` on this dataset, checked on another seed: its in-sample true TRE is
+    // evaluate's (the same registrations), its files read back, and the same dataset is refused
+    // as the check.
+    let held = tmp.path().join("held");
+    generate_seed(&held, 12, &[]);
+    let model = tmp.path().join("em").join("model.json");
+    let cal = |check: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_librplus"))
+            .current_dir(&manifest_dir)
+            .args([
+                "calibrate-error",
+                "--methods",
+                "rigid,libr",
+                "--json",
+                "--data",
+            ])
+            .arg(&a)
+            .arg("--out")
+            .arg(&model)
+            .arg("--check")
+            .arg(check)
+            .output()
+            .unwrap()
+    };
+    let o = cal(&a);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--check is a calibration dataset"));
+    let o = cal(&held);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let rep: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let em = librplus::register::uncertainty::ErrorModel::from_json(
+        &std::fs::read_to_string(&model).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(em.methods.keys().collect::<Vec<_>>(), ["libr", "rigid"]);
+    for method in ["rigid", "libr"] {
+        let c = &rep["calibration"]["checks"][method]["all"];
+        let h = &rep["held_out"]["checks"][method]["all"];
+        assert_eq!(c["registrations"], 30, "{c}");
+        assert_eq!(h["registrations"], 30, "{h}");
+        let want = summary["splits"]["all"]["methods"][method]["tre_mm"]
+            .as_f64()
+            .unwrap();
+        let got = c["true_tre_mm"].as_f64().unwrap();
+        assert!(
+            (got - want).abs() < 1e-9 * want,
+            "{method}: {got} vs evaluate's {want}"
+        );
+        let cover = h["coverage"].as_f64().unwrap();
+        eprintln!(
+            "calibrate-error small, {method}: held-out r {:.2}, MAE {:.2} mm, 90 % bound covers {:.1} %",
+            h["r"].as_f64().unwrap_or(f64::NAN),
+            h["mae_mm"].as_f64().unwrap(),
+            100.0 * cover
+        );
+        // 30 registrations on two coarse livers: a loose sanity band, not the acceptance.
+        assert!((0.6..=1.0).contains(&cover), "{method}: coverage {cover}");
+    }
+    let csv = std::fs::read_to_string(format!("{}.samples.csv", model.display())).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 4 * 30);
 
     // Independent readers (meshio, VTK, numpy) when CI provides them.
     match std::env::var("LIBRPLUS_CHECK_PYTHON") {

@@ -154,6 +154,8 @@ pub struct Step {
     pub points_total: u32,
     /// TRE over all nodes (None when the registration could not be read: see `error`).
     pub tre_mm: Option<f64>,
+    /// The server's predicted mean TRE (its error estimate; None when it sent none).
+    pub predicted_tre_mm: Option<f64>,
     /// Quality name.
     pub quality: String,
     /// Method the server used.
@@ -193,6 +195,8 @@ pub struct ScenarioResult {
     pub tre_initial_mm: f64,
     /// Quality of the final registration.
     pub final_quality: Option<String>,
+    /// The server's predicted mean TRE of the final registration (its error estimate).
+    pub predicted_tre_mm: Option<f64>,
     /// Latencies of this session's answers.
     pub latency_ms: LatencyMs,
     /// How the session ended ("completed", or what went wrong).
@@ -252,6 +256,9 @@ pub struct MethodSummary {
     pub failed: usize,
     /// Registration updates by quality name.
     pub quality: BTreeMap<String, u64>,
+    /// Mean of the server's predicted TRE over the scenarios with a final TRE and a prediction
+    /// (None when the server sent no error estimate), beside `tre_mm` over the same scenarios.
+    pub predicted_tre_mm: Option<(f64, f64)>,
     /// Latency of this method's answers.
     pub latency_ms: LatencyMs,
     /// Mean final TRE per measurement category.
@@ -389,6 +396,16 @@ async fn replay_one(
                         client_seq: u.last_client_seq,
                         image_to_physical: *t,
                         displacement: d.clone(),
+                        uncertainty: r
+                            .error_estimate
+                            .as_ref()
+                            .filter(|e| e.node_uncertainty_mm.len() == nodes.len())
+                            .map(|e| {
+                                e.node_uncertainty_mm
+                                    .iter()
+                                    .map(|&x| f64::from(x))
+                                    .collect()
+                            }),
                     });
                 }
                 steps.push(Step {
@@ -397,6 +414,7 @@ async fn replay_one(
                     result_sha256: result_sha256(r),
                     points_total: u.points_total,
                     tre_mm: state.as_ref().ok().map(|(t, d)| score(t, d).tre_mm),
+                    predicted_tre_mm: r.error_estimate.as_ref().map(|e| e.predicted_tre_mm),
                     quality: quality.clone(),
                     method_used: pb::Method::try_from(r.method_used).map_or_else(
                         |_| format!("UNKNOWN_{}", r.method_used),
@@ -466,6 +484,7 @@ async fn replay_one(
         }
         _ => None,
     };
+    let predicted_tre_mm = steps.last().and_then(|s| s.predicted_tre_mm);
     ScenarioResult {
         scenario: sc.id.clone(),
         category: sc.category.clone(),
@@ -484,6 +503,7 @@ async fn replay_one(
         },
         tre_initial_mm,
         final_quality,
+        predicted_tre_mm,
         latency_ms: latencies.summary(),
         end: outcome.end.describe(),
         status,
@@ -498,6 +518,8 @@ struct SeriesStep {
     client_seq: u64,
     image_to_physical: Rigid,
     displacement: Vec<f64>,
+    /// The error estimate's per-node bound, when the server sent it for every node.
+    uncertainty: Option<Vec<f64>>,
 }
 
 /// A file-name-safe name for a session's series: `SCENARIO-METHOD` with every character outside
@@ -554,10 +576,17 @@ fn write_series(
         let file = MeshFile {
             nodes,
             tets: mesh.tets().to_vec(),
-            point_data: vec![
+            point_data: [
                 DataArray::new("displacement", 3, s.displacement.clone()),
                 DataArray::new("error_mm", 1, error),
-            ],
+            ]
+            .into_iter()
+            .chain(
+                s.uncertainty
+                    .as_ref()
+                    .map(|b| DataArray::new("uncertainty_mm", 1, b.clone())),
+            )
+            .collect(),
             ..MeshFile::default()
         };
         let rel = format!("{name}/update-{:04}.vtu", k + 1);
@@ -760,6 +789,16 @@ fn summarize(
                 *m.discovery.entry(key).or_default() += 1;
             }
         }
+        let both: Vec<(f64, f64)> = mine
+            .iter()
+            .filter_map(|r| Some((r.predicted_tre_mm?, r.tre.as_ref()?.tre_mm)))
+            .collect();
+        if !both.is_empty() {
+            m.predicted_tre_mm = Some((
+                mean(both.iter().map(|b| b.0)),
+                mean(both.iter().map(|b| b.1)),
+            ));
+        }
         let mut cats: BTreeMap<String, Vec<f64>> = BTreeMap::new();
         for r in &mine {
             if let Some(t) = &r.tre {
@@ -847,6 +886,12 @@ pub fn replay_table(s: &ReplaySummary) -> String {
         }
         let q: Vec<String> = m.quality.iter().map(|(k, v)| format!("{k} {v}")).collect();
         let _ = writeln!(o, "  quality: {}", q.join(", "));
+        if let Some((p, t)) = m.predicted_tre_mm {
+            let _ = writeln!(
+                o,
+                "  error estimate: predicted TRE {p:.2} mm, measured {t:.2} mm (mean of the final registrations)"
+            );
+        }
         if !m.discovery.is_empty() {
             let d: Vec<String> = m
                 .discovery

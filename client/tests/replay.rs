@@ -538,6 +538,11 @@ async fn replay_writes_each_session_as_a_paraview_time_series() {
             let tre = step.tre_mm.unwrap();
             assert!((mean - tre).abs() < 1e-9 * tre.max(1.0), "{mean} vs {tre}");
             assert_eq!(f.point_array("displacement").unwrap().components, 3);
+            // The server's error estimate rides along: its node bound, and its predicted TRE
+            // in the step.
+            let b = f.point_array("uncertainty_mm").expect("uncertainty_mm");
+            assert!(b.values.iter().all(|x| x.is_finite() && *x >= 0.0));
+            assert!(step.predicted_tre_mm.is_some_and(|p| p > 0.0));
         }
         match std::env::var_os("LIBRPLUS_CHECK_PYTHON") {
             Some(py) => {

@@ -300,8 +300,9 @@ pub fn load_with_progress(
     } else {
         Physics::none()
     };
-    let mut prepared =
-        Prepared::with_physics(model, Some(libr), &physics, Some(&cache)).map_err(prepare)?;
+    let mut prepared = Prepared::with_physics(model, Some(libr), &physics, Some(&cache))
+        .map_err(prepare)?
+        .with_error_model(librplus::register::uncertainty::builtin());
     if let Some(m) = &learned.gcn {
         progress("sr-gcn", 0.9);
         prepared = prepared.with_models(m.clone()).map_err(prepare)?;

@@ -406,6 +406,18 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         quality_reason: reason,
         effects: crate::service::effects(prepared),
         rigid_ill_posed: reg.rigid.ill_posed,
+        error_estimate: reg.error.as_ref().map(|e| pb::ErrorEstimate {
+            predicted_tre_mm: e.predicted_tre_mm,
+            level: e.level,
+            node_uncertainty_mm: if job.omit_displacements {
+                Vec::new()
+            } else {
+                e.node_bound_mm.iter().map(|&x| x as f32).collect()
+            },
+            coverage_mean_mm: e.features.coverage_mean_mm,
+            surface_covered: e.features.surface_covered,
+            strain_energy_uj: e.features.strain_energy_uj,
+        }),
     })
 }
 

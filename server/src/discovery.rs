@@ -307,7 +307,8 @@ fn done_report(req: &Request, found: &CohortDiscovery, n: usize) -> pb::Discover
 /// LIBR+ applies only where it learned this physics).
 fn build(req: &Request, physics: &Physics) -> Result<Prepared, librplus::pipeline::PipelineError> {
     let case = &req.case.prepared;
-    let mut p = Prepared::with_physics(case.model.clone(), Some(&req.libr), physics, None)?;
+    let mut p = Prepared::with_physics(case.model.clone(), Some(&req.libr), physics, None)?
+        .with_error_model(case.error_model.clone());
     if let Some(l) = &case.librplus {
         p = p.with_models(l.members.iter().map(|m| m.model.clone()).collect())?;
     }

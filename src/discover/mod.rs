@@ -1179,6 +1179,7 @@ fn confirm_once(
         librplus: None,
         v2s: None,
         physics: physics.clone(),
+        error_model: None,
         seconds: 0.0,
     };
     let rows = match linearize(

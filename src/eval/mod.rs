@@ -17,6 +17,7 @@ pub use crate::dataset::read::{
 };
 
 pub mod bench;
+pub mod calibrate_error;
 mod error;
 pub use error::EvalError;
 pub mod experiments;

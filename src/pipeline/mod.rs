@@ -13,6 +13,7 @@ use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
 use crate::register::physics::model::Sites;
 use crate::register::physics::{EffectKind, Physics};
 use crate::register::prior::{HELD_SIGMA_MM, RigidPrior};
+use crate::register::uncertainty::{ErrorEstimate, ErrorFeatures, ErrorModel, FitSummary};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::{Measurements, PreopModel, RegisterError};
 use crate::v2s::io::V2sModel;
@@ -150,6 +151,8 @@ pub struct Prepared {
     pub v2s: Option<V2sCase>,
     /// The physics LIBR's model carries (empty: plain LIBR).
     pub physics: Physics,
+    /// The error model every registration's estimate comes from (None: no estimate).
+    pub error_model: Option<Arc<ErrorModel>>,
     /// Preparation time (s).
     pub seconds: f64,
 }
@@ -203,8 +206,25 @@ impl Prepared {
             librplus: None,
             v2s: None,
             physics: physics.clone(),
+            error_model: None,
             seconds: crate::util::secs(t0),
         })
+    }
+
+    /// Sets the error model of the case's registrations' estimates (None: none).
+    pub fn with_error_model(mut self, model: Option<Arc<ErrorModel>>) -> Self {
+        self.error_model = model;
+        self
+    }
+
+    /// Boundary flag per node (anterior or posterior surface).
+    pub fn boundary(&self) -> Vec<bool> {
+        self.model
+            .anterior
+            .iter()
+            .zip(&self.model.posterior)
+            .map(|(a, p)| *a || *p)
+            .collect()
     }
 
     /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
@@ -333,8 +353,75 @@ pub struct Registration {
     pub correction: Option<CorrectionInfo>,
     /// The V2S stage, for V2S.
     pub v2s: Option<V2sInfo>,
+    /// The error estimate (when the case has an error model calibrated for the method).
+    pub error: Option<ErrorEstimate>,
     /// Total time (s).
     pub seconds: f64,
+}
+
+impl Registration {
+    /// What the error estimate reads of this registration: the fit's residual (LIBR+'s refit,
+    /// else LIBR's, else wICP's), LIBR's strain energy, and the coverage of the answer by the
+    /// measured points ([`crate::register::uncertainty::features`]), with each node's distance
+    /// to the nearest measured point (mm). None without measured points.
+    pub fn error_features(
+        &self,
+        case: &Prepared,
+        boundary: &[bool],
+        meas: &Measurements,
+    ) -> Option<(ErrorFeatures, Vec<f64>)> {
+        let refit = self.correction.as_ref().and_then(|c| c.refit.as_ref());
+        let residual = refit
+            .or(self.libr.as_ref())
+            .map_or(self.rigid.rms_mm, |i| i.rms_mm);
+        crate::register::uncertainty::features(
+            case.model.mesh.nodes(),
+            boundary,
+            &self.u,
+            &self.image_to_physical,
+            meas,
+            FitSummary {
+                residual_rms_mm: residual,
+                rigid_rms_mm: self.rigid.rms_mm,
+                strain_energy_uj: self.libr.as_ref().map_or(0.0, |i| i.strain_energy_uj),
+            },
+        )
+    }
+
+    fn estimated(mut self, case: &Prepared, meas: &Measurements) -> Self {
+        let t0 = Instant::now();
+        self.estimate_error(case, meas);
+        let dt = crate::util::secs(t0);
+        if let Some(e) = &mut self.error {
+            e.seconds = dt;
+        }
+        self.seconds += dt;
+        self
+    }
+
+    /// Fills [`Registration::error`] from the case's error model (left None when the case has
+    /// none, it has no calibration for the method, or the case carries physics effects: the
+    /// model is calibrated on plain LIBR).
+    pub fn estimate_error(&mut self, case: &Prepared, meas: &Measurements) {
+        let Some(model) = &case.error_model else {
+            return;
+        };
+        if !case.physics.effects.is_empty() {
+            // Calibrated on plain LIBR: an augmented model's fit is another estimator.
+            return;
+        }
+        // LIBR+ whose correction was skipped answered with LIBR's result.
+        let answered_by = match (&self.correction, self.method) {
+            (Some(c), Method::LibrPlus) if !c.applied => Method::Libr,
+            (_, m) => m,
+        };
+        if !model.methods.contains_key(answered_by.name()) {
+            return;
+        }
+        if let Some((f, d)) = self.error_features(case, &case.boundary(), meas) {
+            self.error = model.estimate(answered_by.name(), &f, &d);
+        }
+    }
 }
 
 /// The rigid stage's parameters for a case: the pipeline's, with the start trusted to
@@ -391,8 +478,10 @@ pub fn register(
             libr: None,
             correction: None,
             v2s: None,
+            error: None,
             seconds: crate::util::secs(t0),
-        });
+        }
+        .estimated(case, meas));
     }
     if let Some(v) = v2s {
         // V2S reads the points after the rigid stage, as V2S-Net assumes a rigid alignment.
@@ -411,8 +500,10 @@ pub fn register(
                 seconds: crate::util::secs(t1),
                 network_seconds,
             }),
+            error: None,
             seconds: crate::util::secs(t0),
-        });
+        }
+        .estimated(case, meas));
     }
     if let Some(reason) = &rigid.degenerate {
         return Err(PipelineError::Degenerate {
@@ -530,6 +621,8 @@ pub fn register(
         libr: Some(sol.info),
         correction,
         v2s: None,
+        error: None,
         seconds: crate::util::secs(t0),
-    })
+    }
+    .estimated(case, meas))
 }

@@ -18,6 +18,7 @@ mod error;
 pub mod libr;
 pub mod physics;
 pub mod prior;
+pub mod uncertainty;
 pub mod wicp;
 
 pub use error::RegisterError;

@@ -6,7 +6,8 @@ bridge's Rust codec, to check what the bridge sends.
 Usage: igtl_polydata.py MESSAGE.bin EXPECTED.json
 MESSAGE.bin: one whole OpenIGTLink message (58-byte header + body) as the bridge sent it.
 EXPECTED.json: {"device": str, "points": [[x, y, z], ...], "triangles": [[a, b, c], ...],
-"displacement": [[dx, dy, dz], ...]} (float64; compared to 1e-4 mm after float32 decoding).
+"displacement": [[dx, dy, dz], ...], optional "uncertainty_mm": [b, ...]} (float64; compared to
+1e-4 mm after float32 decoding; with "uncertainty_mm", a point scalar of that name must match).
 Checks the header (version 1 or 2, type POLYDATA, body size), the CRC-64 (ECMA-182 polynomial,
 computed bit by bit), the counts and sizes of every section, and the values. Prints a summary;
 exits non-zero on the first disagreement.
@@ -118,9 +119,19 @@ def main():
     worst_d = max(abs(d[i][a] - want["displacement"][i][a]) for i in range(npoints) for a in range(3))
     if worst_d > 1e-4:
         fail(f"displacement differs by up to {worst_d} mm")
+    worst_u = 0.0
+    if "uncertainty_mm" in want:
+        if "uncertainty_mm" not in attrs or attrs["uncertainty_mm"][0] != 0x00:
+            fail("no point scalar attribute 'uncertainty_mm'")
+        b = attrs["uncertainty_mm"][1]
+        if len(b) != npoints or any(len(x) != 1 for x in b):
+            fail("uncertainty_mm: not one value per point")
+        worst_u = max(abs(b[i][0] - want["uncertainty_mm"][i]) for i in range(npoints))
+        if worst_u > 1e-4:
+            fail(f"uncertainty_mm differs by up to {worst_u} mm")
     print(
         f"igtl_polydata: OK: {npoints} points (worst {worst:.2e} mm), {npoly} triangles, "
-        f"attributes {names}, displacement worst {worst_d:.2e} mm"
+        f"attributes {names}, displacement worst {worst_d:.2e} mm, uncertainty worst {worst_u:.2e} mm"
     )
 
 

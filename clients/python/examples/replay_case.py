@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Replays a recorded scenario through a LIBR+ server with librplus_client, as a navigation
 system would: list the cases, open a session, stream the surface points in a few batches, then
-a few tracked ultrasound planes, printing each update's quality, method and figures, and, when
-the dataset's ground truth is at hand, its TRE.
+a few tracked ultrasound planes, printing each update's quality, method and figures, the
+server's predicted TRE (its error estimate) and, when the dataset's ground truth is at hand, the
+true TRE.
 
 Usage (a dataset written by ``librplus generate`` or ``librplus-server demo --only-data``, and a
 server serving it: ``librplus-server serve --cases DIR``)::
@@ -177,7 +178,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 surface = np.load(a.points)
                 features, planes, alignment = None, [], None
             print(f"{'msg':>4} {'kind':<10} {'points':>6} {'quality':<22} {'method':<17} "
-                  f"{'rms mm':>7} {'ms':>7} {'TRE mm':>7}")
+                  f"{'rms mm':>7} {'ms':>7} {'TRE mm':>7} {'pred mm':>7}")
             last: Optional[Registration] = None
             tre = float("nan")
             with client.session(case_id, a.method, initial_alignment=alignment) as s:
@@ -195,9 +196,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     if sc is not None and score:
                         tre = sc.tre_mm(r)
                     tre_text = f"{tre:.2f}" if tre == tre else "-"
+                    # The server's own estimate of its error (None when it sent none).
+                    pred = r.predicted_tre_mm
+                    pred_text = "-" if pred is None else f"{pred:.2f}"
                     print(f"{i + 2:>4} {kind:<10} {r.points_total:>6} {r.quality:<22} "
                           f"{r.method_used:<17} {r.residual_rms_mm:>7.2f} "
-                          f"{r.timings['total_ms']:>7.1f} {tre_text:>7}")
+                          f"{r.timings['total_ms']:>7.1f} {tre_text:>7} {pred_text:>7}")
                     if r.quality_reason:
                         print(f"     {r.quality_reason}")
                     last = r

@@ -219,6 +219,13 @@ class Registration:
             ``rigid_ms``, ``libr_ms``, ..., ``total_ms``, ``libr_iterations``, ...).
         effects: the named effects of the model that answered (empty: plain LIBR).
         rigid_ill_posed: the points could not fix the rigid motion (the start was trusted).
+        predicted_tre_mm: the server's predicted mean TRE over the organ's nodes, mm (None
+            when it sent no error estimate).
+        uncertainty_level: the level of ``node_uncertainty_mm`` (e.g. 0.9; None without an
+            estimate).
+        node_uncertainty_mm: (n,) float64: per node, the registered position is within this
+            distance of the true one with probability ``uncertainty_level``, mm (None without an
+            estimate or with ``omit_displacements``).
         raw: the ``Registration`` protobuf.
         session_id, sequence, last_client_seq, points_total: the carrying ``StreamUpdate``'s
             fields in a session (None for a unary ``register``).
@@ -237,6 +244,9 @@ class Registration:
     effects: List[str]
     rigid_ill_posed: bool
     raw: Any = field(repr=False)
+    predicted_tre_mm: Optional[float] = None
+    uncertainty_level: Optional[float] = None
+    node_uncertainty_mm: Optional[np.ndarray] = field(default=None, repr=False)
     session_id: Optional[str] = None
     sequence: Optional[int] = None
     last_client_seq: Optional[int] = None
@@ -262,8 +272,21 @@ class Registration:
             u = None
         timings = {f.name: getattr(r.timings, f.name) for f in r.timings.DESCRIPTOR.fields}
         extra: Dict[str, Any] = {}
+        if r.HasField("error_estimate"):
+            e = r.error_estimate
+            extra["predicted_tre_mm"] = float(e.predicted_tre_mm)
+            extra["uncertainty_level"] = float(e.level)
+            if len(e.node_uncertainty_mm):
+                if len(e.node_uncertainty_mm) != n:
+                    raise ValueError(
+                        f"registration.error_estimate.node_uncertainty_mm has "
+                        f"{len(e.node_uncertainty_mm)} values for {n} nodes"
+                    )
+                extra["node_uncertainty_mm"] = np.asarray(
+                    e.node_uncertainty_mm, dtype=np.float32
+                ).astype(np.float64)
         if update is not None:
-            extra = dict(
+            extra.update(
                 session_id=update.session_id,
                 sequence=int(update.sequence),
                 last_client_seq=int(update.last_client_seq),

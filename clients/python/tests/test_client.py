@@ -373,6 +373,22 @@ class RegistrationParsingTest(unittest.TestCase):
         with self.assertRaisesRegex(ValueError, "omit_displacements"):
             r.deformed_nodes(X0)
 
+    def test_error_estimate(self) -> None:
+        r = lc.Registration.from_message(registration())
+        self.assertIsNone(r.predicted_tre_mm)
+        self.assertIsNone(r.node_uncertainty_mm)
+        m = registration()
+        m.error_estimate.predicted_tre_mm = 3.5
+        m.error_estimate.level = 0.9
+        m.error_estimate.node_uncertainty_mm.extend([0.5 + i for i in range(NODES)])
+        r = lc.Registration.from_message(m)
+        self.assertEqual(r.predicted_tre_mm, 3.5)
+        self.assertEqual(r.uncertainty_level, 0.9)
+        np.testing.assert_allclose(r.node_uncertainty_mm, [0.5 + i for i in range(NODES)])
+        m.error_estimate.node_uncertainty_mm.append(1.0)
+        with self.assertRaisesRegex(ValueError, "node_uncertainty_mm"):
+            lc.Registration.from_message(m)
+
     def test_wrong_lengths_name_the_field(self) -> None:
         bad = registration()
         del bad.image_to_physical.rotation[8]

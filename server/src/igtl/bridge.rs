@@ -14,7 +14,8 @@
 //! Sent after every registration (device names fixed): `TRANSFORM` [`DEVICE_TRANSFORM`] (image →
 //! physical), `POINT` [`DEVICE_TARGETS`] (the targets given with `--targets`, where the
 //! registration puts them) and `POLYDATA` [`DEVICE_LIVER`] (the liver's boundary surface at its
-//! registered position, point vector `displacement`); `STATUS` [`DEVICE_STATUS`] when the
+//! registered position, point vector `displacement` and, when the server estimates its error, point
+//! scalar `uncertainty_mm`: the node's 90 % error bound); `STATUS` [`DEVICE_STATUS`] when the
 //! quality is not OK, for a rejected message, and for a malformed or unsupported one (the
 //! connection goes on; only a message whose header cannot be trusted ends it).
 //!
@@ -741,15 +742,33 @@ fn registration_messages(
         // The node's deformation in the peer's physical frame: F R u.
         displacement.extend(frame.convert(t.apply_vector(d)).map(|c| c as f32));
     }
+    let mut attributes = vec![PolyAttribute {
+        name: "displacement".into(),
+        location: AttributeLocation::Point,
+        kind: AttributeKind::Vector,
+        data: displacement,
+    }];
+    // The error estimate's per-node bound, when the server sent one for every node.
+    if let Some(e) = r
+        .error_estimate
+        .as_ref()
+        .filter(|e| e.node_uncertainty_mm.len() == n)
+    {
+        attributes.push(PolyAttribute {
+            name: "uncertainty_mm".into(),
+            location: AttributeLocation::Point,
+            kind: AttributeKind::Scalar { components: 1 },
+            data: geo
+                .surface_nodes
+                .iter()
+                .map(|&i| e.node_uncertainty_mm[i as usize])
+                .collect(),
+        });
+    }
     let liver = PolyData {
         points,
         polygons: CellArray::from_cells(geo.surface_triangles.iter().map(|t| t.to_vec())),
-        attributes: vec![PolyAttribute {
-            name: "displacement".into(),
-            location: AttributeLocation::Point,
-            kind: AttributeKind::Vector,
-            data: displacement,
-        }],
+        attributes,
         ..PolyData::default()
     };
     out.push(enc(Message::PolyData(liver), DEVICE_LIVER)?);

@@ -59,6 +59,8 @@ struct Expected {
     targets: Vec<[f64; 3]>,
     surface: Vec<[f64; 3]>,
     displacement: Vec<[f64; 3]>,
+    /// The error estimate's bound at the boundary nodes (as sent, f32).
+    uncertainty: Vec<f32>,
 }
 
 fn expected(
@@ -109,6 +111,16 @@ fn expected(
             .iter()
             .map(|&i| ras(t.apply_vector(ud(i as usize))))
             .collect(),
+        uncertainty: r
+            .error_estimate
+            .as_ref()
+            .map(|e| {
+                surface_nodes
+                    .iter()
+                    .map(|&i| e.node_uncertainty_mm[i as usize])
+                    .collect()
+            })
+            .unwrap_or_default(),
     }
 }
 
@@ -169,6 +181,19 @@ fn check(answer: &[(wire::Header, Message, Vec<u8>)], e: &Expected) -> [f64; 3] 
             .flat_map(|(a, b)| (0..3).map(move |k| f64::from(a[k]) - b[k])),
     );
     assert!(dd <= 1e-4, "displacement differs by {dd} mm");
+    // The server estimates every registration's error: the bound, node for node.
+    assert_eq!(
+        e.uncertainty.len(),
+        e.surface.len(),
+        "no error estimate in the gRPC answer"
+    );
+    let unc = pd
+        .attributes
+        .iter()
+        .find(|a| a.name == "uncertainty_mm")
+        .expect("an uncertainty_mm attribute");
+    assert_eq!(unc.kind, AttributeKind::Scalar { components: 1 });
+    assert_eq!(unc.data, e.uncertainty);
     [dt, dp, ds]
 }
 
@@ -454,6 +479,7 @@ async fn bridge_answers_as_the_grpc_session_and_survives_malformed_messages() {
                 t.map(|n| surface_nodes.binary_search(&n).unwrap() as u32)
             }).collect::<Vec<_>>(),
             "displacement": e.displacement,
+            "uncertainty_mm": e.uncertainty,
         })
         .to_string(),
     )

@@ -59,6 +59,32 @@ async fn unary_register_equals_the_library() {
                 "LIBR deformed nothing"
             );
         }
+        // The error estimate: the built-in model's, as the library computes it.
+        let (e, want) = (
+            r.error_estimate.as_ref().expect("an error estimate"),
+            lib.error.as_ref().expect("the library's estimate"),
+        );
+        assert_eq!(e.node_uncertainty_mm.len(), geo.model.mesh.num_nodes());
+        assert!(e.predicted_tre_mm > 0.0 && (e.level - 0.9).abs() < 1e-12);
+        // The features read the answer the wire rounds to f32 (|Δu| < 1e-4 mm).
+        assert!(
+            (e.predicted_tre_mm - want.predicted_tre_mm).abs() < 1e-3 * want.predicted_tre_mm,
+            "predicted TRE {} vs the library's {}",
+            e.predicted_tre_mm,
+            want.predicted_tre_mm
+        );
+        let worst = e
+            .node_uncertainty_mm
+            .iter()
+            .zip(&want.node_bound_mm)
+            .map(|(&a, &b)| (f64::from(a) - b).abs() / b.max(1.0))
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-3, "node bounds differ by {worst} (relative)");
+        eprintln!(
+            "unary {method:?}: predicted TRE {:.2} mm, mean node bound {:.2} mm",
+            e.predicted_tre_mm,
+            want.node_bound_mm.iter().sum::<f64>() / want.node_bound_mm.len() as f64
+        );
     }
     assert_eq!(running.shutdown().await, 0);
 }

@@ -41,6 +41,10 @@ pub(crate) enum Command {
     Register(RegisterArgs),
     /// Evaluates methods over a dataset split: summary.json, report.md, per-scenario results.
     Evaluate(EvaluateArgs),
+    /// Calibrates the per-registration error estimate (predicted mean TRE and per-node bound) on
+    /// a generated dataset, and checks it on another (`--check`): FILE (the model) and
+    /// FILE.report.md / FILE.report.json.
+    CalibrateError(CalibrateErrorArgs),
     /// Trains SR-GCN (LIBR+) on a dataset split, then tests LIBR and LIBR+ on the held-out
     /// scenarios: MODEL_DIR/model.json + weights.safetensors (+ provenance), training.json, test.json,
     /// loss curves (PNG).
@@ -439,6 +443,44 @@ pub(crate) struct EvaluateArgs {
 }
 
 #[derive(Args)]
+pub(crate) struct CalibrateErrorArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// Calibration dataset (from `librplus generate`; its truth is read); repeatable: the
+    /// model is calibrated on them all.
+    #[arg(long, required = true)]
+    pub(crate) data: Vec<PathBuf>,
+    /// The error model written (JSON, docs/error-estimate.md).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Comma-separated methods calibrated: initial, rigid, libr, librplus.
+    #[arg(long, default_value = "rigid,libr,librplus")]
+    pub(crate) methods: String,
+    /// The SR-GCN model or ensemble directory LIBR+ uses (default: the built-in ensemble, the
+    /// one the service serves).
+    #[arg(long)]
+    pub(crate) model: Option<PathBuf>,
+    /// Use every k-th block of five scenarios of each deformation.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) every: usize,
+    /// Level of the per-node bound the model reports (the fraction of nodes it should cover).
+    #[arg(long, default_value_t = 0.9)]
+    pub(crate) level: f64,
+    /// Ridge penalty of the mean-TRE regression (standardised regressors).
+    #[arg(long, default_value_t = 1.0)]
+    pub(crate) ridge: f64,
+    /// A held-out dataset (another seed; never read for calibration) the model is checked on.
+    #[arg(long)]
+    pub(crate) check: Option<PathBuf>,
+    /// --every for the held-out dataset.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) check_every: usize,
+    /// Print the report as JSON on stdout.
+    #[arg(long)]
+    pub(crate) json: bool,
+}
+
+#[derive(Args)]
 pub(crate) struct RegisterArgs {
     #[command(flatten)]
     pub(crate) libr: LibrOpts,
@@ -482,8 +524,9 @@ pub(crate) struct RegisterArgs {
     /// (from `librplus train --method v2s`) for --method v2s (default: the built-in V2S model).
     #[arg(long)]
     pub(crate) model: Option<PathBuf>,
-    /// Write the preoperative mesh with the registered `displacement` (image frame) and the
-    /// per-node `error_mm` against the ground truth (.vtu).
+    /// Write the preoperative mesh with the registered `displacement` (image frame), the
+    /// per-node `error_mm` against the ground truth (a dataset scenario) and the estimate's
+    /// per-node `uncertainty_mm` (its 90 % bound, without the truth) (.vtu).
     #[arg(long)]
     pub(crate) out: Option<PathBuf>,
     /// Where the LIBR basis is cached (default DATA/cache).

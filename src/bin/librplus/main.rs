@@ -7,6 +7,7 @@ static ALLOCATOR: librplus::GlobalAllocator = librplus::GlobalAllocator;
 
 mod args;
 mod bench;
+mod calibrate_error;
 mod data;
 mod discover;
 mod evaluate;
@@ -123,6 +124,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Register(args) if args.preop.is_some() => register_files(&args),
         Command::Register(args) => register_scenario(&args),
         Command::Evaluate(args) => evaluate(&args),
+        Command::CalibrateError(args) => calibrate_error::calibrate_error(&args),
         Command::Train(args) => train(&args).map(|_| ()),
         Command::Experiments(args) => experiments(&args),
         Command::Ensemble(args) => ensemble(&args),

@@ -112,7 +112,24 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             "seconds": v.seconds,
             "network_seconds": v.network_seconds,
         })),
+        // The per-node bound is in the .vtu (--out), not here.
+        "error_estimate": r.error.as_ref().map(|e| json!({
+            "predicted_tre_mm": e.predicted_tre_mm,
+            "level": e.level,
+            "node_uncertainty_mean_mm": e.node_bound_mm.iter().sum::<f64>() / e.node_bound_mm.len().max(1) as f64,
+            "node_uncertainty_max_mm": e.node_bound_mm.iter().copied().fold(0.0, f64::max),
+            "features": e.features,
+            "seconds": e.seconds,
+        })),
     })
+}
+
+/// The registration's per-node error bound as a point array (`uncertainty_mm`), when it has
+/// an estimate.
+fn uncertainty_array(r: &librplus::pipeline::Registration) -> Option<DataArray> {
+    r.error
+        .as_ref()
+        .map(|e| DataArray::new("uncertainty_mm", 1, e.node_bound_mm.clone()))
 }
 
 /// The case of a `register` run: the LIBR basis unless rigid (cached in `cache`), and the SR-GCN
@@ -131,7 +148,8 @@ fn prepare_case(
         matches!(method, Method::Libr | Method::LibrPlus).then_some(&params.libr),
         physics,
         Some(cache),
-    )?;
+    )?
+    .with_error_model(librplus::register::uncertainty::builtin());
     match learned {
         Some(m) => m.attach(case),
         None => Ok(case),
@@ -223,10 +241,13 @@ pub(crate) fn register_files(a: &RegisterArgs) -> Result<()> {
             .collect();
         let f = librplus::eval::error_map_file(
             &case.model.mesh,
-            vec![
+            [
                 DataArray::new("displacement", 3, r.u.clone()),
                 DataArray::new("position_physical_mm", 3, deformed),
-            ],
+            ]
+            .into_iter()
+            .chain(uncertainty_array(&r))
+            .collect(),
         );
         io::write(out, &f, WriteOptions::default())?;
     }
@@ -336,10 +357,13 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
         );
         let f = librplus::eval::error_map_file(
             &geo.model.mesh,
-            vec![
+            [
                 DataArray::new("displacement", 3, r.u.clone()),
                 DataArray::new("error_mm", 1, err),
-            ],
+            ]
+            .into_iter()
+            .chain(uncertainty_array(&r))
+            .collect(),
         );
         io::write(out, &f, WriteOptions::default())?;
     }

@@ -28,6 +28,9 @@ pub struct LibrInfo {
     pub movement_history_mm: Vec<f64>,
     /// Final weighted residual RMS (mm).
     pub rms_mm: f64,
+    /// Strain energy ½αᵀEα of the fitted deformation Φα (µJ = mN·mm; effect columns carry no
+    /// energy): how hard the fit had to bend the organ.
+    pub strain_energy_uj: f64,
     /// Total time in the matching function (s).
     pub matching_s: f64,
     /// Total time forming the step's rows and normal equations (s).
@@ -216,6 +219,7 @@ pub fn solve_with_limits(
         }
     }
     info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
+    info.strain_energy_uj = basis.strain_energy(&alpha);
     let mut u = basis.displacement(&alpha);
     if let Some(o) = offset {
         for (x, y) in u.iter_mut().zip(o) {

@@ -174,7 +174,8 @@ pub fn direct(
         Some(&LibrParams::default()),
         Some(&dataset().join("cache")),
     )
-    .unwrap();
+    .unwrap()
+    .with_error_model(librplus::register::uncertainty::builtin());
     register(&case, meas, method, &PipelineParams::default()).unwrap()
 }
 

@@ -1,0 +1,165 @@
+//! `librplus calibrate-error`: the per-registration error estimate, calibrated on one generated
+//! dataset and checked on another.
+
+use crate::args::CalibrateErrorArgs;
+use crate::register::shared_models;
+use crate::util::{git_commit, shell_command};
+use anyhow::{Context, Result, bail};
+use librplus::eval::calibrate_error::{Sample, check, collect, fit, markdown, samples_csv};
+use librplus::pipeline::{Method, PipelineParams};
+use serde_json::json;
+use std::path::Path;
+
+fn registrations(
+    what: &str,
+    dir: &Path,
+    methods: &[Method],
+    every: usize,
+    params: &PipelineParams,
+    models: &[std::sync::Arc<librplus::gcn::io::TrainedModel>],
+) -> Result<Vec<Sample>> {
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} {msg} [{bar:30}] {pos}/{len} registrations, {elapsed} (eta {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    let progress = |done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    };
+    let (samples, failed) = collect(dir, methods, every, params, models, &progress)
+        .map_err(|e| anyhow::anyhow!("{what} ({}): {e}", dir.display()))?;
+    bar.finish_and_clear();
+    if failed > 0 {
+        eprintln!("{what}: {failed} registrations failed and are left out");
+    }
+    if samples.is_empty() {
+        bail!("{what} ({}): no registration succeeded", dir.display());
+    }
+    Ok(samples)
+}
+
+pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
+    let mut methods = Vec::new();
+    for x in a.methods.split(',') {
+        methods.push(match x.trim() {
+            "initial" => Method::Initial,
+            "rigid" => Method::Rigid,
+            "libr" => Method::Libr,
+            "librplus" => Method::LibrPlus,
+            other => bail!("--methods: unknown method {other:?} (initial, rigid, libr, librplus)"),
+        });
+    }
+    let models = if methods.contains(&Method::LibrPlus) {
+        shared_models(match &a.model {
+            Some(dir) => librplus::gcn::io::load_models_on_device(dir)
+                .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+            None => librplus::gcn::io::builtin_models()
+                .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
+        })
+    } else {
+        Vec::new()
+    };
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    let mut hashes = Vec::new();
+    for d in &a.data {
+        let m =
+            librplus::eval::open(d).map_err(|e| anyhow::anyhow!("--data {}: {e}", d.display()))?;
+        hashes.push(m.parameters_hash);
+    }
+    if let Some(c) = &a.check {
+        let h = librplus::eval::open(c).map_err(|e| anyhow::anyhow!("--check: {e}"))?;
+        if hashes.contains(&h.parameters_hash) {
+            bail!(
+                "--check is a calibration dataset (same parameters hash as a --data): use another seed"
+            );
+        }
+    }
+    let mut cal = Vec::new();
+    for d in &a.data {
+        cal.extend(registrations(
+            "calibration",
+            d,
+            &methods,
+            a.every,
+            &params,
+            &models,
+        )?);
+    }
+    let names: Vec<String> = a.data.iter().map(|d| d.display().to_string()).collect();
+    let provenance = json!({
+        "data": names,
+        "data_parameters_hash": hashes,
+        "every": a.every,
+        "registrations": cal.len(),
+        "ridge": a.ridge,
+        "sr_gcn": a.model.as_ref().map_or("built-in".to_string(), |p| p.display().to_string()),
+        "command": shell_command(),
+        "commit": git_commit(),
+    });
+    let model = fit(&cal, a.level, a.ridge, provenance).map_err(anyhow::Error::msg)?;
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    }
+    std::fs::write(&a.out, serde_json::to_string_pretty(&model)? + "\n")
+        .with_context(|| a.out.display().to_string())?;
+    let in_sample = check(&model, &cal);
+    let mut md = format!(
+        "# Error estimate: calibration on {} ({} registrations)\n\nIn sample:\n\n{}",
+        names.join(", "),
+        cal.len(),
+        markdown(&in_sample, model.level)
+    );
+    let mut report = json!({
+        "format": 1,
+        "model": a.out.display().to_string(),
+        "calibration": {"data": names, "checks": in_sample},
+    });
+    let mut held = Vec::new();
+    if let Some(c) = &a.check {
+        held = registrations(
+            "held-out check",
+            c,
+            &methods,
+            a.check_every,
+            &params,
+            &models,
+        )?;
+        let out = check(&model, &held);
+        md += &format!(
+            "\nHeld out ({}, {} registrations, never used for calibration):\n\n{}",
+            c.display(),
+            held.len(),
+            markdown(&out, model.level)
+        );
+        report["held_out"] = json!({"data": c.display().to_string(), "checks": out});
+    }
+    let base = a.out.display().to_string();
+    let (md_path, json_path) = (format!("{base}.report.md"), format!("{base}.report.json"));
+    let csv_path = format!("{base}.samples.csv");
+    std::fs::write(
+        &csv_path,
+        samples_csv(&[("calibration", &cal), ("held_out", &held)]),
+    )
+    .with_context(|| csv_path.clone())?;
+    std::fs::write(&md_path, &md).with_context(|| md_path.clone())?;
+    std::fs::write(&json_path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| json_path.clone())?;
+    if a.json {
+        println!("{report}");
+    } else {
+        print!("{md}");
+        println!(
+            "\nwritten: {}, {md_path}, {json_path}, {csv_path}",
+            a.out.display()
+        );
+    }
+    Ok(())
+}
