@@ -332,6 +332,14 @@ impl LibRPlus for Fake {
                         node_count: n,
                         method_used: start.method,
                         quality: pb::Quality::Ok as i32,
+                        // An error estimate whose values the client must pass on: the
+                        // predicted TRE grows with the message, every node's bound is 1.5 mm.
+                        error_estimate: Some(pb::ErrorEstimate {
+                            predicted_tre_mm: 2.0 + m.client_seq as f64,
+                            level: 0.9,
+                            node_uncertainty_mm: vec![1.5; n as usize],
+                            ..Default::default()
+                        }),
                         ..Default::default()
                     })
                 };
@@ -508,6 +516,15 @@ async fn replay_writes_each_session_as_a_paraview_time_series() {
     };
     let s = librplus_client::replay(&opts).await.unwrap();
     assert_eq!(s.sessions, 2);
+    // The summary's predicted TRE: the mean over sessions of their final step's prediction.
+    let want = s
+        .results
+        .iter()
+        .map(|r| 2.0 + r.steps.last().unwrap().client_seq as f64)
+        .sum::<f64>()
+        / 2.0;
+    let (p, _) = s.methods["libr"].predicted_tre_mm.unwrap();
+    assert!((p - want).abs() < 1e-12, "{p} vs {want}");
     let m = librplus::eval::open(dataset()).unwrap();
     for r in &s.results {
         let pvd = r.series.as_ref().expect("a series per session");
@@ -541,8 +558,8 @@ async fn replay_writes_each_session_as_a_paraview_time_series() {
             // The server's error estimate rides along: its node bound, and its predicted TRE
             // in the step.
             let b = f.point_array("uncertainty_mm").expect("uncertainty_mm");
-            assert!(b.values.iter().all(|x| x.is_finite() && *x >= 0.0));
-            assert!(step.predicted_tre_mm.is_some_and(|p| p > 0.0));
+            assert!(b.values.iter().all(|x| *x == 1.5));
+            assert_eq!(step.predicted_tre_mm, Some(2.0 + step.client_seq as f64));
         }
         match std::env::var_os("LIBRPLUS_CHECK_PYTHON") {
             Some(py) => {
