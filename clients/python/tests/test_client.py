@@ -710,10 +710,12 @@ class ExampleTest(WithServer):
                     .reshape(-1, 2)]
             sel = (truth["plane"][6:] == q) & (truth["kind"][6:] > 0)
             np.testing.assert_allclose(np.array(back), scen[sel], atol=1e-9)
-        # Every update carries the truth: its TRE is 0.
+        # Every update carries the truth: its TRE is 0; this fake sends no error estimate, so
+        # the predicted TRE (last column) is "-".
         lines = [ln.split() for ln in text.splitlines() if ln.split() and ln.split()[0].isdigit()]
         self.assertEqual([ln[0] for ln in lines], ["2", "3", "4", "5"], text)
-        self.assertEqual([ln[-1] for ln in lines], ["0.00"] * 4, text)
+        self.assertEqual([ln[-2] for ln in lines], ["0.00"] * 4, text)
+        self.assertEqual([ln[-1] for ln in lines], ["-"] * 4, text)
 
     def test_replay_case_fails_on_a_missing_case(self) -> None:
         example = load_example()
