@@ -60,12 +60,7 @@ pub fn load_geometry(
     let preop = io::read(dir.join(&g.preop), Unit::Mm)?;
     let vessels = io::read(dir.join(&g.vessels), Unit::Mm)?;
     let model = preop_model_from_file(&preop, &vessels)?;
-    let surface = model
-        .anterior
-        .iter()
-        .zip(&model.posterior)
-        .map(|(a, p)| *a || *p)
-        .collect();
+    let surface = model.boundary_flags();
     Ok(GeometryData {
         model,
         surface,

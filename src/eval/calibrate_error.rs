@@ -363,7 +363,7 @@ fn row(ss: &[(&Sample, f64)], model: &MethodErrorModel, level: f64) -> CheckRow 
     let (mut inside, mut nodes, mut bound_sum) = (0usize, 0usize, 0.0);
     for (s, t) in ss {
         for &(rho, e) in &s.nodes {
-            let bound = ((model.node_log(*t, rho as f64) + q).exp() - NODE_EPS_MM).max(0.0);
+            let bound = model.node_bound(*t, rho as f64, q);
             inside += usize::from(e as f64 <= bound);
             nodes += 1;
             bound_sum += bound;

@@ -217,16 +217,6 @@ impl Prepared {
         self
     }
 
-    /// Boundary flag per node (anterior or posterior surface).
-    pub fn boundary(&self) -> Vec<bool> {
-        self.model
-            .anterior
-            .iter()
-            .zip(&self.model.posterior)
-            .map(|(a, p)| *a || *p)
-            .collect()
-    }
-
     /// Adds a trained SR-GCN so the case answers [`Method::LibrPlus`].
     pub fn with_model(self, model: Arc<TrainedModel>) -> Result<Self, PipelineError> {
         self.with_models(vec![model])
@@ -418,7 +408,7 @@ impl Registration {
         if !model.methods.contains_key(answered_by.name()) {
             return;
         }
-        if let Some((f, d)) = self.error_features(case, &case.boundary(), meas) {
+        if let Some((f, d)) = self.error_features(case, &case.model.boundary_flags(), meas) {
             self.error = model.estimate(answered_by.name(), &f, &d);
         }
     }

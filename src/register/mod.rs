@@ -69,6 +69,17 @@ pub struct PreopModel {
     pub vessel_segments: Vec<[u32; 2]>,
 }
 
+impl PreopModel {
+    /// Per node: on the boundary (the anterior or the posterior surface).
+    pub fn boundary_flags(&self) -> Vec<bool> {
+        self.anterior
+            .iter()
+            .zip(&self.posterior)
+            .map(|(a, p)| *a || *p)
+            .collect()
+    }
+}
+
 /// Sparse intraoperative measurements (physical frame, mm).
 #[derive(Debug, Clone, Default)]
 pub struct Measurements {

@@ -334,10 +334,7 @@ impl ErrorModel {
         let size = features.size_mm.max(1e-9);
         let node_bound_mm = node_distance_mm
             .iter()
-            .map(|d| {
-                let x = mm.node_log(t, d / size);
-                ((x + q).exp() - NODE_EPS_MM).max(0.0)
-            })
+            .map(|d| mm.node_bound(t, d / size, q))
             .collect();
         Some(ErrorEstimate {
             predicted_tre_mm: t,
@@ -381,6 +378,12 @@ impl MethodErrorModel {
     pub fn node_log(&self, t: f64, rho: f64) -> f64 {
         let b = &self.node;
         b[0] + b[1] * t.max(1e-6).ln() + b[2] * rho + b[3] * rho * rho
+    }
+
+    /// A node's bound (mm) at predicted TRE `t`, relative distance `rho` and residual quantile
+    /// `q` ([`MethodErrorModel::quantile`]).
+    pub fn node_bound(&self, t: f64, rho: f64, q: f64) -> f64 {
+        ((self.node_log(t, rho) + q).exp() - NODE_EPS_MM).max(0.0)
     }
 
     /// The residual quantile at `level`, interpolated between the stored ones (the nearest end
