@@ -48,7 +48,10 @@ pub fn secs(start: Instant) -> f64 {
 /// Writes `bytes` to `path` atomically: into a temporary file beside it, then renamed over it,
 /// creating the parent directories. The temporary name is unique to this process and call, so
 /// threads or processes writing the same file at once (two tests building the same cached
-/// basis, say) each rename a complete file and none loses its temporary to another.
+/// basis, say, or generation shards sharing a volume) each rename a complete file and none
+/// loses its temporary to another. The process id alone is not unique across containers (each
+/// has its own PID namespace, so every shard may be PID 1): the name carries a random token
+/// drawn once per process from the operating system as well.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
     use std::sync::atomic::{AtomicU64, Ordering};
     static NEXT: AtomicU64 = AtomicU64::new(0);
@@ -66,14 +69,32 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
         })?
         .to_string_lossy();
     let tmp = path.with_file_name(format!(
-        ".{name}.tmp{}-{}",
+        ".{name}.tmp{}-{:016x}-{}",
         std::process::id(),
+        process_token(),
         NEXT.fetch_add(1, Ordering::Relaxed)
     ));
     std::fs::write(&tmp, bytes).map_err(FileError::at("writing", &tmp))?;
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         FileError::new("renaming to", path, e)
+    })
+}
+
+/// A random number fixed for the life of this process (from the standard library's OS-seeded
+/// hash keys), telling its temporary files apart from those of processes in other PID
+/// namespaces that share a directory. Never used for anything that must be reproducible.
+fn process_token() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    static TOKEN: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *TOKEN.get_or_init(|| {
+        let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+        h.write_u64(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64),
+        );
+        h.finish()
     })
 }
 
