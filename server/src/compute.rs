@@ -417,6 +417,12 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
             coverage_mean_mm: e.features.coverage_mean_mm,
             surface_covered: e.features.surface_covered,
             strain_energy_uj: e.features.strain_energy_uj,
+            failure: e.failure_probability.zip(e.failure_threshold_mm).map(
+                |(probability, threshold_mm)| pb::FailureEstimate {
+                    probability,
+                    threshold_mm,
+                },
+            ),
         }),
     })
 }

@@ -11,7 +11,8 @@ use super::{EvalError, load_geometry, load_scenarios, node_errors_mm, open};
 use crate::gcn::io::TrainedModel;
 use crate::pipeline::{Method, PipelineParams, Prepared, register};
 use crate::register::uncertainty::{
-    ErrorFeatures, ErrorModel, FORMAT, MethodErrorModel, NODE_EPS_MM, REGRESSORS, VERSION,
+    ErrorFeatures, ErrorModel, FORMAT, FailureModel, MethodErrorModel, NODE_EPS_MM, REGRESSORS,
+    VERSION, linear, sigmoid,
 };
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -21,6 +22,10 @@ use std::sync::Arc;
 /// Every `NODE_STRIDE`-th node of each registration is kept for the per-node model and its
 /// coverage (about 2,000 of a 9,000-node liver).
 pub const NODE_STRIDE: usize = 4;
+
+/// A method gets a failure part ([`FailureModel`]) only with at least this many calibration
+/// registrations over the threshold.
+pub const MIN_FAILED: usize = 10;
 
 /// Per-node residual quantile levels stored in a model.
 pub const QUANTILE_LEVELS: [f64; 7] = [0.5, 0.68, 0.8, 0.85, 0.9, 0.95, 0.99];
@@ -166,8 +171,92 @@ fn ridge(z: &[Vec<f64>], y: &[f64], lambda: f64) -> Option<Vec<f64>> {
         .then(|| w.iter().copied().collect())
 }
 
-/// The mean-TRE part of a method's model fitted on `samples` (all of one method).
-fn fit_tre(samples: &[&Sample], lambda: f64) -> Option<MethodErrorModel> {
+/// Ridge-penalised logistic regression (Newton's method with step halving, so that the
+/// penalised negative log-likelihood falls at every step; intercept first, not penalised) of
+/// the labels `y` on the rows of `z`.
+fn logistic(z: &[Vec<f64>], y: &[bool], lambda: f64) -> Option<Vec<f64>> {
+    let k = z.first()?.len() + 1;
+    let rate = (y.iter().filter(|b| **b).count() as f64 + 0.5) / (y.len() as f64 + 1.0);
+    // ln(1 + e^x) without overflow.
+    let softplus = |x: f64| x.max(0.0) + (-x.abs()).exp().ln_1p();
+    let objective = |w: &[f64]| {
+        z.iter()
+            .zip(y)
+            .map(|(row, &label)| {
+                let eta = linear(w, row);
+                softplus(eta) - if label { eta } else { 0.0 }
+            })
+            .sum::<f64>()
+            + 0.5 * lambda * w[1..].iter().map(|x| x * x).sum::<f64>()
+    };
+    let mut w = vec![0.0; k];
+    w[0] = (rate / (1.0 - rate)).ln();
+    let mut current = objective(&w);
+    for _ in 0..100 {
+        let mut h = nalgebra::DMatrix::<f64>::zeros(k, k);
+        let mut g = nalgebra::DVector::<f64>::zeros(k);
+        for (row, &label) in z.iter().zip(y) {
+            let p = sigmoid(linear(&w, row));
+            let x: Vec<f64> = std::iter::once(1.0).chain(row.iter().copied()).collect();
+            let d = p - f64::from(u8::from(label));
+            let c = (p * (1.0 - p)).max(1e-12);
+            for i in 0..k {
+                g[i] += d * x[i];
+                for j in 0..k {
+                    h[(i, j)] += c * x[i] * x[j];
+                }
+            }
+        }
+        for i in 1..k {
+            g[i] += lambda * w[i];
+            h[(i, i)] += lambda;
+        }
+        let step = h.cholesky()?.solve(&g);
+        let mut scale = 1.0;
+        let (trial, value) = loop {
+            let trial: Vec<f64> = (0..k).map(|i| w[i] - scale * step[i]).collect();
+            let value = objective(&trial);
+            if value <= current || scale < 1e-9 {
+                break (trial, value);
+            }
+            scale *= 0.5;
+        };
+        let moved = scale * step.amax();
+        if value > current {
+            break;
+        }
+        (w, current) = (trial, value);
+        if moved < 1e-10 {
+            break;
+        }
+    }
+    w.iter().all(|x| x.is_finite()).then_some(w)
+}
+
+/// `ln T` weights fitted by ridge on the rows `z` (of the samples `picked`), and their smearing
+/// factor.
+fn log_law(z: &[Vec<f64>], y: &[f64], picked: &[bool], lambda: f64) -> Option<(Vec<f64>, f64)> {
+    let (zs, ys): (Vec<Vec<f64>>, Vec<f64>) = z
+        .iter()
+        .zip(y)
+        .zip(picked)
+        .filter(|(_, p)| **p)
+        .map(|((r, t), _)| (r.clone(), *t))
+        .unzip();
+    let weights = ridge(&zs, &ys, lambda)?;
+    let smearing = zs
+        .iter()
+        .zip(&ys)
+        .map(|(r, t)| (t - linear(&weights, r)).exp())
+        .sum::<f64>()
+        / ys.len().max(1) as f64;
+    Some((weights, smearing))
+}
+
+/// The mean-TRE part of a method's model fitted on `samples` (all of one method); with a
+/// failure threshold (mm) and at least [`MIN_FAILED`] registrations over it (and enough
+/// under it), the failure part too.
+fn fit_tre(samples: &[&Sample], lambda: f64, failure_mm: Option<f64>) -> Option<MethodErrorModel> {
     let k = REGRESSORS.len();
     let n = samples.len();
     if n < 2 * (k + 1) {
@@ -192,15 +281,30 @@ fn fit_tre(samples: &[&Sample], lambda: f64) -> Option<MethodErrorModel> {
         .map(|j| z.iter().map(|r| r[j]).fold(f64::NEG_INFINITY, f64::max))
         .collect();
     let y: Vec<f64> = samples.iter().map(|s| s.tre_mm.max(1e-3).ln()).collect();
-    let weights = ridge(&z, &y, lambda)?;
-    let fitted =
-        |r: &Vec<f64>| weights[0] + r.iter().zip(&weights[1..]).map(|(a, b)| a * b).sum::<f64>();
-    let smearing = z
+    let failed: Vec<bool> = samples
         .iter()
-        .zip(&y)
-        .map(|(r, t)| (t - fitted(r)).exp())
-        .sum::<f64>()
-        / n as f64;
+        .map(|s| failure_mm.is_some_and(|t| s.tre_mm > t))
+        .collect();
+    let n_failed = failed.iter().filter(|b| **b).count();
+    let (weights, smearing, failure) = match failure_mm {
+        Some(threshold_mm) if n_failed >= MIN_FAILED && n - n_failed >= 2 * (k + 1) => {
+            let ok: Vec<bool> = failed.iter().map(|b| !b).collect();
+            let (weights, smearing) = log_law(&z, &y, &ok, lambda)?;
+            let (fw, fs) = log_law(&z, &y, &failed, lambda)?;
+            let failure = FailureModel {
+                threshold_mm,
+                logistic: logistic(&z, &failed, lambda)?,
+                weights: fw,
+                smearing: fs,
+                failed: n_failed,
+            };
+            (weights, smearing, Some(failure))
+        }
+        _ => {
+            let (weights, smearing) = log_law(&z, &y, &vec![true; n], lambda)?;
+            (weights, smearing, None)
+        }
+    };
     Some(MethodErrorModel {
         mean,
         std,
@@ -211,6 +315,7 @@ fn fit_tre(samples: &[&Sample], lambda: f64) -> Option<MethodErrorModel> {
         node: [0.0; 4],
         node_quantiles: vec![(0.5, 0.0)],
         registrations: n,
+        failure,
     })
 }
 
@@ -220,13 +325,21 @@ const FOLDS: usize = 5;
 /// Fits an error model on calibration samples: per method, the mean-TRE regression, then the
 /// per-node model on the TRE each registration gets from a model fitted without its fold
 /// (5 folds by scenario, so the node bound is calibrated on predictions as uncertain as those on
-/// new data), and its residual quantiles. `lambda`: the ridge penalty (standardised units).
+/// new data), and its residual quantiles. `lambda`: the ridge penalty (standardised units, also
+/// the logistic regression's); `failure_mm`: the TRE over which a registration counts as failed
+/// (None: no failure part).
 pub fn fit(
     samples: &[Sample],
     level: f64,
     lambda: f64,
+    failure_mm: Option<f64>,
     provenance: serde_json::Value,
 ) -> Result<ErrorModel, EvalError> {
+    if let Some(t) = failure_mm.filter(|t| !(t.is_finite() && *t > 0.0)) {
+        return Err(EvalError::Parameter(format!(
+            "--failure-threshold {t} is not a positive number of mm"
+        )));
+    }
     if !(level > 0.0 && level < 1.0) {
         return Err(EvalError::Parameter(format!(
             "--level {level} is not in (0, 1)"
@@ -238,7 +351,7 @@ pub fn fit(
     }
     let mut methods = BTreeMap::new();
     for (name, ss) in by_method {
-        let Some(mut mm) = fit_tre(&ss, lambda) else {
+        let Some(mut mm) = fit_tre(&ss, lambda, failure_mm) else {
             return Err(EvalError::Parameter(format!(
                 "method {name}: {} registrations are too few to calibrate (at least {})",
                 ss.len(),
@@ -250,7 +363,7 @@ pub fn fit(
         let mut t_hat = vec![0.0; ss.len()];
         for f in 0..FOLDS {
             let train: Vec<&Sample> = ss.iter().filter(|s| fold(s) != f).copied().collect();
-            let model = fit_tre(&train, lambda).unwrap_or_else(|| mm.clone());
+            let model = fit_tre(&train, lambda, failure_mm).unwrap_or_else(|| mm.clone());
             for (i, s) in ss.iter().enumerate() {
                 if fold(s) == f {
                     t_hat[i] = model.predict_tre(&s.features);
@@ -324,6 +437,11 @@ pub struct CheckRow {
     pub coverage: f64,
     /// Mean of the node bounds (mm).
     pub mean_bound_mm: f64,
+    /// Registrations over the model's failure threshold (0 without a failure part).
+    pub failures: usize,
+    /// Area under the ROC curve of the failure probability against "failed" (NaN without a
+    /// failure part, or without failed and unfailed registrations both).
+    pub failure_auc: f64,
 }
 
 /// A model's check per method: all categories, then each.
@@ -355,6 +473,34 @@ fn pearson(x: &[f64], y: &[f64]) -> f64 {
     sxy / (sxx * syy).sqrt()
 }
 
+/// Area under the ROC curve of `score` for the `positive` ones (ties count half); NaN without
+/// both kinds.
+fn auc(score: &[f64], positive: &[bool]) -> f64 {
+    let (mut wins, mut pairs) = (0.0, 0usize);
+    for (a, pa) in score.iter().zip(positive) {
+        if !pa {
+            continue;
+        }
+        for (b, pb) in score.iter().zip(positive) {
+            if !pb {
+                pairs += 1;
+                wins += if a > b {
+                    1.0
+                } else if a == b {
+                    0.5
+                } else {
+                    0.0
+                };
+            }
+        }
+    }
+    if pairs == 0 {
+        f64::NAN
+    } else {
+        wins / pairs as f64
+    }
+}
+
 fn row(ss: &[(&Sample, f64)], model: &MethodErrorModel, level: f64) -> CheckRow {
     let pred: Vec<f64> = ss.iter().map(|(_, t)| *t).collect();
     let truth: Vec<f64> = ss.iter().map(|(s, _)| s.tre_mm).collect();
@@ -369,7 +515,20 @@ fn row(ss: &[(&Sample, f64)], model: &MethodErrorModel, level: f64) -> CheckRow 
             bound_sum += bound;
         }
     }
+    let (failures, failure_auc) = match &model.failure {
+        Some(f) => {
+            let failed: Vec<bool> = truth.iter().map(|t| *t > f.threshold_mm).collect();
+            let p: Vec<f64> = ss
+                .iter()
+                .map(|(s, _)| model.failure_probability(&s.features).unwrap_or(0.0))
+                .collect();
+            (failed.iter().filter(|b| **b).count(), auc(&p, &failed))
+        }
+        None => (0, f64::NAN),
+    };
     CheckRow {
+        failures,
+        failure_auc,
         registrations: ss.len(),
         true_tre_mm: truth.iter().sum::<f64>() / n,
         predicted_tre_mm: pred.iter().sum::<f64>() / n,
@@ -455,7 +614,7 @@ pub fn samples_csv(sets: &[(&str, &[Sample])]) -> String {
 /// A Markdown table of a check: one row per method and category (all first).
 pub fn markdown(checks: &BTreeMap<String, MethodCheck>, level: f64) -> String {
     let mut s = format!(
-        "| method | category | registrations | true TRE (mm) | predicted (mm) | r | MAE (mm) | {:.0} % node bound covers | mean bound (mm) |\n|---|---|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| method | category | registrations | true TRE (mm) | predicted (mm) | r | MAE (mm) | {:.0} % node bound covers | mean bound (mm) | failed (AUC of the failure probability) |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
         100.0 * level
     );
     for (name, c) in checks {
@@ -472,14 +631,19 @@ pub fn markdown(checks: &BTreeMap<String, MethodCheck>, level: f64) -> String {
         }
         for (cat, r) in cats {
             s += &format!(
-                "| {name} | {cat} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} % | {:.2} |\n",
+                "| {name} | {cat} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} % | {:.2} | {} |\n",
                 r.registrations,
                 r.true_tre_mm,
                 r.predicted_tre_mm,
                 r.r,
                 r.mae_mm,
                 100.0 * r.coverage,
-                r.mean_bound_mm
+                r.mean_bound_mm,
+                if r.failure_auc.is_finite() {
+                    format!("{} ({:.3})", r.failures, r.failure_auc)
+                } else {
+                    format!("{}", r.failures)
+                }
             );
         }
     }
@@ -554,7 +718,11 @@ mod tests {
                 .collect()
         };
         let train = make(1_000, 400);
-        let model = fit(&train, 0.9, 1e-6, serde_json::Value::Null).unwrap();
+        let model = fit(&train, 0.9, 1e-6, Some(1e6), serde_json::Value::Null).unwrap();
+        assert!(
+            model.methods["libr"].failure.is_none(),
+            "no failures to learn"
+        );
         let text = serde_json::to_string(&model).unwrap();
         let back = ErrorModel::from_json(&text).unwrap();
         // serde_json's parser may round the last bit of a float.
@@ -582,6 +750,93 @@ mod tests {
             (b[1] - 1.0).abs() < 0.05 && (b[2] - 0.8).abs() < 0.1,
             "{b:?}"
         );
+    }
+
+    /// Data with failures (a known law under 20 mm, and the fifth of the registrations with
+    /// the largest rigid residual at 40–80 mm): the failure part separates them on new draws
+    /// (AUC ≈ 1), and the mixture predicts far better than one law fitted to all.
+    #[test]
+    fn the_failure_part_finds_failed_registrations_and_the_mixture_predicts_them() {
+        let law = |f: &ErrorFeatures| {
+            let x = f.regressors();
+            (0.8 + 0.3 * x[2] - 0.1 * x[1] + 0.4 * x[6]).exp()
+        };
+        let make = |seed0: u64, count: usize| -> Vec<Sample> {
+            (0..count)
+                .map(|i| {
+                    let f = features(seed0 + i as u64);
+                    let t = if f.rigid_rms_mm > 4.2 {
+                        40.0 + 4.0 * f.strain_energy_uj
+                    } else {
+                        law(&f)
+                    };
+                    let nodes = (0..10)
+                        .map(|j| {
+                            let rho = 0.08 * j as f32;
+                            (rho, (t * (0.5 + rho as f64 + 0.01 * (i % 7) as f64)) as f32)
+                        })
+                        .collect();
+                    sample("libr", i, f, t, nodes)
+                })
+                .collect()
+        };
+        let train = make(3_000, 600);
+        let with = fit(&train, 0.9, 1.0, Some(20.0), serde_json::Value::Null).unwrap();
+        let without = fit(&train, 0.9, 1.0, None, serde_json::Value::Null).unwrap();
+        let f = with.methods["libr"]
+            .failure
+            .as_ref()
+            .expect("a failure part");
+        assert!((100..140).contains(&f.failed), "failed {}", f.failed);
+        let back = ErrorModel::from_json(&serde_json::to_string(&with).unwrap()).unwrap();
+        assert_eq!(back.version, 2);
+        let held = make(90_000, 300);
+        let (a, b) = (
+            &check(&back, &held)["libr"].all,
+            &check(&without, &held)["libr"].all,
+        );
+        assert!(a.failure_auc > 0.98, "{a:?}");
+        assert!(a.failures > 40 && b.failures == 0 && b.failure_auc.is_nan());
+        assert!(a.mae_mm < 0.5 * b.mae_mm, "mixture {a:?} vs one law {b:?}");
+        assert!(
+            fit(&train, 0.9, 1.0, Some(-1.0), serde_json::Value::Null)
+                .unwrap_err()
+                .to_string()
+                .contains("--failure-threshold")
+        );
+        // The AUC by counting.
+        assert_eq!(auc(&[0.9, 0.8, 0.1, 0.2], &[true, true, false, false]), 1.0);
+        assert_eq!(auc(&[0.1, 0.5, 0.5], &[true, true, false]), 0.25);
+        assert!(auc(&[0.1], &[true]).is_nan());
+    }
+
+    /// The logistic fit reaches the penalised optimum (its gradient, computed here directly,
+    /// vanishes) on separable data with a weak penalty, where the optimum's weights are large
+    /// and undamped Newton steps from the base rate overshoot.
+    #[test]
+    fn logistic_reaches_the_penalised_optimum_on_separable_data() {
+        let z: Vec<Vec<f64>> = (0..400)
+            .map(|i| {
+                let t = -3.0 + 6.0 * i as f64 / 399.0;
+                vec![t, (7.0 * t).sin()]
+            })
+            .collect();
+        let y: Vec<bool> = z.iter().map(|r| r[0] > 2.6).collect();
+        for lambda in [1e-2, 1.0] {
+            let w = logistic(&z, &y, lambda).expect("a fit");
+            let mut g = [0.0, lambda * w[1], lambda * w[2]];
+            for (r, &label) in z.iter().zip(&y) {
+                let d = sigmoid(linear(&w, r)) - f64::from(u8::from(label));
+                g[0] += d;
+                g[1] += d * r[0];
+                g[2] += d * r[1];
+            }
+            assert!(
+                g.iter().all(|x| x.abs() < 1e-6),
+                "λ {lambda}: gradient {g:?}, w {w:?}"
+            );
+            assert!(w[1] > 1.0, "λ {lambda}: {w:?}");
+        }
     }
 
     #[test]
@@ -612,6 +867,7 @@ mod tests {
                 .iter()
                 .collect::<Vec<_>>(),
             1.0,
+            None,
         )
         .unwrap();
         mm.weights.pop();

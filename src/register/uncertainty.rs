@@ -11,6 +11,11 @@
 //! - mean TRE: `ln T̂ = w₀ + Σ w_k z_k`, z the standardised [`ErrorFeatures::regressors`]
 //!   (clamped to the calibration range), fitted by ridge least squares, times the smearing factor
 //!   `mean(exp(residual))` so that T̂ estimates the mean rather than the median;
+//! - failed registrations (model version 2): a few registrations land in a wrong pose (true TRE
+//!   of 20–90 mm where the rest have 2–10) and one log-linear law cannot hold both. A model with
+//!   a [`FailureModel`] gives the probability `p = σ(v₀ + Σ v_k z_k)` (logistic regression) that
+//!   the TRE exceeds its threshold, fits the law above on the registrations under it (T̂_ok) and
+//!   a second one on those over it (T̂_fail), and predicts `T̂ = p·T̂_fail + (1 − p)·T̂_ok`;
 //! - per node: `ln(e_i + ε) = b₀ + b₁ ln T̂ + b₂ ρ_i + b₃ ρ_i²` with ρ_i the node's distance to
 //!   the nearest measured point over the organ's size, and the bound at level p is
 //!   `exp(b·x_i + q_p) − ε`, q_p the p-quantile of the calibration residuals (a split-conformal
@@ -25,8 +30,9 @@ use std::collections::BTreeMap;
 
 /// The model file's `format`.
 pub const FORMAT: &str = "librplus-error-model";
-/// The model file's `version`.
-pub const VERSION: u32 = 1;
+/// The model file's `version` written (2: with [`FailureModel`]s; version 1 files, without,
+/// are read too).
+pub const VERSION: u32 = 2;
 /// A boundary node counts as covered when a measured point lies within this distance (mm).
 pub const COVER_RADIUS_MM: f64 = 10.0;
 /// ε of the per-node model's logarithm (mm): node errors below it are all alike.
@@ -197,6 +203,22 @@ pub fn features(
     Some((f, dist))
 }
 
+/// The failed-registration part of a method's model (see the module documentation).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FailureModel {
+    /// A registration whose true mean TRE exceeds this counts as failed (mm).
+    pub threshold_mm: f64,
+    /// Intercept and weights of the logistic regression of "failed" on the standardised
+    /// regressors.
+    pub logistic: Vec<f64>,
+    /// Intercept and weights of `ln T̂_fail`, fitted on the failed calibration registrations.
+    pub weights: Vec<f64>,
+    /// Smearing factor of `T̂_fail`.
+    pub smearing: f64,
+    /// Failed calibration registrations.
+    pub failed: usize,
+}
+
 /// One method's calibrated estimate.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MethodErrorModel {
@@ -208,10 +230,14 @@ pub struct MethodErrorModel {
     pub z_min: Vec<f64>,
     /// See `z_min`.
     pub z_max: Vec<f64>,
-    /// Intercept and weights of `ln T̂` on the standardised regressors.
+    /// Intercept and weights of `ln T̂` on the standardised regressors (with a `failure` part:
+    /// of `ln T̂_ok`, fitted on the registrations under its threshold).
     pub weights: Vec<f64>,
     /// Smearing factor: mean of `exp(residual)` on the calibration set.
     pub smearing: f64,
+    /// The failed-registration part (version 2; absent: one law for all).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<FailureModel>,
     /// Per-node model `[b₀, b₁, b₂, b₃]` (see the module documentation).
     pub node: [f64; 4],
     /// Per-node residual quantiles: (level, q) pairs, increasing.
@@ -248,6 +274,11 @@ pub struct ErrorEstimate {
     pub level: f64,
     /// Per node: the error stays below this with probability `level` (mm).
     pub node_bound_mm: Vec<f64>,
+    /// Probability that the registration failed: its mean TRE above `failure_threshold_mm`
+    /// (None when the model has no failure part for the method).
+    pub failure_probability: Option<f64>,
+    /// The TRE that counts as failed (mm).
+    pub failure_threshold_mm: Option<f64>,
     /// What the estimate read.
     pub features: ErrorFeatures,
     /// Time to compute it, features included (s; set by the pipeline).
@@ -273,9 +304,9 @@ impl ErrorModel {
     pub fn from_json(text: &str) -> Result<Self, ErrorModelError> {
         let m: ErrorModel =
             serde_json::from_str(text).map_err(|e| ErrorModelError::Parse(e.to_string()))?;
-        if m.format != FORMAT || m.version != VERSION {
+        if m.format != FORMAT || !(1..=VERSION).contains(&m.version) {
             return Err(ErrorModelError::Format(format!(
-                "format {:?} version {} (this build reads {FORMAT:?} version {VERSION})",
+                "format {:?} version {} (this build reads {FORMAT:?} versions 1 to {VERSION})",
                 m.format, m.version
             )));
         }
@@ -316,6 +347,23 @@ impl ErrorModel {
                     k + 1
                 )));
             }
+            if let Some(f) = &mm.failure {
+                let ok = m.version >= 2
+                    && f.logistic.len() == k + 1
+                    && f.weights.len() == k + 1
+                    && f.threshold_mm > 0.0
+                    && f.logistic
+                        .iter()
+                        .chain(&f.weights)
+                        .chain(&[f.smearing, f.threshold_mm])
+                        .all(|x| x.is_finite());
+                if !ok {
+                    return Err(ErrorModelError::Invalid(format!(
+                        "methods.{name}.failure: sizes (logistic, weights: {}), values (finite, threshold_mm > 0) or version (2) wrong",
+                        k + 1
+                    )));
+                }
+            }
         }
         Ok(m)
     }
@@ -340,6 +388,8 @@ impl ErrorModel {
             predicted_tre_mm: t,
             level: self.level,
             node_bound_mm,
+            failure_probability: mm.failure_probability(features),
+            failure_threshold_mm: mm.failure.as_ref().map(|f| f.threshold_mm),
             features: *features,
             seconds: 0.0,
         })
@@ -366,12 +416,21 @@ impl MethodErrorModel {
     /// Predicted mean TRE (mm).
     pub fn predict_tre(&self, f: &ErrorFeatures) -> f64 {
         let z = self.standardise(f);
-        let s = self.weights[0]
-            + z.iter()
-                .zip(&self.weights[1..])
-                .map(|(a, b)| a * b)
-                .sum::<f64>();
-        s.exp() * self.smearing
+        let ok = linear(&self.weights, &z).exp() * self.smearing;
+        match &self.failure {
+            None => ok,
+            Some(fm) => {
+                let p = sigmoid(linear(&fm.logistic, &z));
+                p * linear(&fm.weights, &z).exp() * fm.smearing + (1.0 - p) * ok
+            }
+        }
+    }
+
+    /// Probability that the registration failed (true TRE above the failure part's threshold);
+    /// None without a failure part.
+    pub fn failure_probability(&self, f: &ErrorFeatures) -> Option<f64> {
+        let fm = self.failure.as_ref()?;
+        Some(sigmoid(linear(&fm.logistic, &self.standardise(f))))
     }
 
     /// The per-node model's `ln(e + ε)` at predicted TRE `t` and relative distance `rho`.
@@ -400,6 +459,21 @@ impl MethodErrorModel {
             }
         }
         q[q.len() - 1].1
+    }
+}
+
+/// `w₀ + Σ w_k z_k`.
+pub fn linear(w: &[f64], z: &[f64]) -> f64 {
+    w[0] + z.iter().zip(&w[1..]).map(|(a, b)| a * b).sum::<f64>()
+}
+
+/// The logistic function, without overflow for large |x|.
+pub fn sigmoid(x: f64) -> f64 {
+    if x >= 0.0 {
+        1.0 / (1.0 + (-x).exp())
+    } else {
+        let e = x.exp();
+        e / (1.0 + e)
     }
 }
 
@@ -529,6 +603,7 @@ mod tests {
             node: [0.0, 1.0, 2.0, 0.0],
             node_quantiles: vec![(0.5, 0.0), (0.9, 0.5)],
             registrations: 100,
+            failure: None,
         };
         let model = ErrorModel {
             format: FORMAT.into(),
@@ -563,6 +638,53 @@ mod tests {
         // The quantile between stored levels is interpolated.
         let q = model.methods["libr"].quantile(0.7);
         assert!((q - 0.25).abs() < 1e-12);
+        assert_eq!(e.failure_probability, None);
+
+        // With a failure part: p = σ(0.3 + 0.1·z₁), T̂_fail = exp(ln 30) · 1.5, T̂_ok = 2;
+        // z₁ = ln(1 + 10) (standardisation is the identity here).
+        let mut with = model.clone();
+        let k = REGRESSORS.len();
+        let mut logistic = vec![0.0; k + 1];
+        logistic[0] = 0.3;
+        logistic[1] = 0.1;
+        let mut weights = vec![0.0; k + 1];
+        weights[0] = 30f64.ln();
+        with.version = 2;
+        with.methods.get_mut("libr").unwrap().failure = Some(FailureModel {
+            threshold_mm: 20.0,
+            logistic,
+            weights,
+            smearing: 1.5,
+            failed: 12,
+        });
+        let with = ErrorModel::from_json(&serde_json::to_string(&with).unwrap()).unwrap();
+        let e = with.estimate("libr", &f, &[0.0]).unwrap();
+        let p = 1.0 / (1.0 + (-(0.3 + 0.1 * 11f64.ln())).exp());
+        assert!((e.failure_probability.unwrap() - p).abs() < 1e-12);
+        assert_eq!(e.failure_threshold_mm, Some(20.0));
+        let want = p * 45.0 + (1.0 - p) * 2.0;
+        assert!((e.predicted_tre_mm - want).abs() < 1e-9, "{e:?}");
+        // A failure part in a version 1 file, or of the wrong size, is refused by name.
+        let mut v1 = with.clone();
+        v1.version = 1;
+        let err = ErrorModel::from_json(&serde_json::to_string(&v1).unwrap()).unwrap_err();
+        assert!(err.to_string().contains("methods.libr.failure"), "{err}");
+        let mut short = with.clone();
+        short
+            .methods
+            .get_mut("libr")
+            .unwrap()
+            .failure
+            .as_mut()
+            .unwrap()
+            .logistic
+            .pop();
+        let err = ErrorModel::from_json(&serde_json::to_string(&short).unwrap()).unwrap_err();
+        assert!(err.to_string().contains("methods.libr.failure"), "{err}");
+        // The logistic function stays finite and exact at its ends.
+        assert_eq!(sigmoid(-1000.0), 0.0);
+        assert_eq!(sigmoid(1000.0), 1.0);
+        assert!((sigmoid(0.0) - 0.5).abs() < 1e-15);
     }
 
     #[test]
@@ -573,6 +695,36 @@ mod tests {
                 m.methods.contains_key(method),
                 "no calibration for {method}"
             );
+            // Each has its failure part, and it separates: a registration like the failed
+            // ones (large rigid and final residuals, large strain energy) is more likely failed
+            // than a typical one.
+            let mm = &m.methods[method];
+            assert!(mm.failure.is_some(), "{method}: no failure part");
+            let typical = ErrorFeatures {
+                surface_points: 300,
+                ultrasound_points: 50,
+                residual_rms_mm: 1.0,
+                rigid_rms_mm: 3.0,
+                strain_energy_uj: 50_000.0,
+                mean_displacement_mm: 6.0,
+                coverage_mean_mm: 30.0,
+                surface_covered: 0.3,
+                size_mm: 60.0,
+                far_displacement_mm: 6.0,
+                max_displacement_mm: 40.0,
+                coverage_p90_mm: 50.0,
+            };
+            let failed_like = ErrorFeatures {
+                residual_rms_mm: 8.0,
+                rigid_rms_mm: 10.0,
+                strain_energy_uj: 400_000.0,
+                ..typical
+            };
+            let (p0, p1) = (
+                mm.failure_probability(&typical).unwrap(),
+                mm.failure_probability(&failed_like).unwrap(),
+            );
+            assert!(p0 < 0.1 && p1 > p0, "{method}: {p0} vs {p1}");
         }
     }
 }

@@ -226,6 +226,11 @@ class Registration:
         node_uncertainty_mm: (n,) float64: per node, the registered position is within this
             distance of the true one with probability ``uncertainty_level``, mm (None without an
             estimate or with ``omit_displacements``).
+        failure_probability: the probability that the registration failed, i.e. that its mean
+            TRE exceeds ``failure_threshold_mm`` (a wrong pose; None when the server's error
+            model has no failure part for the method).
+        failure_threshold_mm: the mean TRE that counts as failed, mm (None with
+            ``failure_probability``).
         raw: the ``Registration`` protobuf.
         session_id, sequence, last_client_seq, points_total: the carrying ``StreamUpdate``'s
             fields in a session (None for a unary ``register``).
@@ -247,6 +252,8 @@ class Registration:
     predicted_tre_mm: Optional[float] = None
     uncertainty_level: Optional[float] = None
     node_uncertainty_mm: Optional[np.ndarray] = field(default=None, repr=False)
+    failure_probability: Optional[float] = None
+    failure_threshold_mm: Optional[float] = None
     session_id: Optional[str] = None
     sequence: Optional[int] = None
     last_client_seq: Optional[int] = None
@@ -276,6 +283,9 @@ class Registration:
             e = r.error_estimate
             extra["predicted_tre_mm"] = float(e.predicted_tre_mm)
             extra["uncertainty_level"] = float(e.level)
+            if e.HasField("failure"):
+                extra["failure_probability"] = float(e.failure.probability)
+                extra["failure_threshold_mm"] = float(e.failure.threshold_mm)
             if len(e.node_uncertainty_mm):
                 if len(e.node_uncertainty_mm) != n:
                     raise ValueError(

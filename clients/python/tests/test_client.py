@@ -385,6 +385,12 @@ class RegistrationParsingTest(unittest.TestCase):
         self.assertEqual(r.predicted_tre_mm, 3.5)
         self.assertEqual(r.uncertainty_level, 0.9)
         np.testing.assert_allclose(r.node_uncertainty_mm, [0.5 + i for i in range(NODES)])
+        self.assertIsNone(r.failure_probability)
+        self.assertIsNone(r.failure_threshold_mm)
+        m.error_estimate.failure.probability = 0.25
+        m.error_estimate.failure.threshold_mm = 20.0
+        r = lc.Registration.from_message(m)
+        self.assertEqual((r.failure_probability, r.failure_threshold_mm), (0.25, 20.0))
         m.error_estimate.node_uncertainty_mm.append(1.0)
         with self.assertRaisesRegex(ValueError, "node_uncertainty_mm"):
             lc.Registration.from_message(m)

@@ -80,6 +80,15 @@ async fn unary_register_equals_the_library() {
             .map(|(&a, &b)| (f64::from(a) - b).abs() / b.max(1.0))
             .fold(0.0, f64::max);
         assert!(worst < 1e-3, "node bounds differ by {worst} (relative)");
+        // The failure probability: on the wire when the library has one, equal to it.
+        match (&e.failure, want.failure_probability) {
+            (Some(f), Some(p)) => {
+                assert!((f.probability - p).abs() < 1e-3, "{} vs {p}", f.probability);
+                assert_eq!(Some(f.threshold_mm), want.failure_threshold_mm);
+            }
+            (None, None) => {}
+            (got, p) => panic!("failure estimate {got:?} on the wire, {p:?} in the library"),
+        }
         eprintln!(
             "unary {method:?}: predicted TRE {:.2} mm, mean node bound {:.2} mm",
             e.predicted_tre_mm,

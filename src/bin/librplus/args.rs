@@ -469,6 +469,11 @@ pub(crate) struct CalibrateErrorArgs {
     /// Ridge penalty of the mean-TRE regression (standardised regressors).
     #[arg(long, default_value_t = 1.0)]
     pub(crate) ridge: f64,
+    /// A registration whose true mean TRE exceeds this counts as failed (mm): the model learns
+    /// the probability of a failure and a law for failed registrations beside the law for the
+    /// rest (when at least 10 calibration registrations failed); 0: one law for all.
+    #[arg(long, default_value_t = 20.0, value_name = "MM")]
+    pub(crate) failure_threshold: f64,
     /// A held-out dataset (another seed; never read for calibration) the model is checked on.
     #[arg(long)]
     pub(crate) check: Option<PathBuf>,

@@ -100,11 +100,13 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
         "every": a.every,
         "registrations": cal.len(),
         "ridge": a.ridge,
+        "failure_threshold_mm": a.failure_threshold,
         "sr_gcn": a.model.as_ref().map_or("built-in".to_string(), |p| p.display().to_string()),
         "command": shell_command(),
         "commit": git_commit(),
     });
-    let model = fit(&cal, a.level, a.ridge, provenance).map_err(anyhow::Error::msg)?;
+    let failure = (a.failure_threshold != 0.0).then_some(a.failure_threshold);
+    let model = fit(&cal, a.level, a.ridge, failure, provenance).map_err(anyhow::Error::msg)?;
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
     }

@@ -118,6 +118,8 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             "level": e.level,
             "node_uncertainty_mean_mm": e.node_bound_mm.iter().sum::<f64>() / e.node_bound_mm.len().max(1) as f64,
             "node_uncertainty_max_mm": e.node_bound_mm.iter().copied().fold(0.0, f64::max),
+            "failure_probability": e.failure_probability,
+            "failure_threshold_mm": e.failure_threshold_mm,
             "features": e.features,
             "seconds": e.seconds,
         })),
