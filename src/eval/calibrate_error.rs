@@ -148,23 +148,36 @@ pub fn collect(
     Ok((out, failed))
 }
 
-/// Ridge least squares: weights (intercept first, not penalised) of `y` on the rows of `z`.
-fn ridge(z: &[Vec<f64>], y: &[f64], lambda: f64) -> Option<Vec<f64>> {
+/// `Σ c_r x_r x_rᵀ + λ I'` and `Σ d_r x_r` over the rows r of `z`, x_r = [1, z_r] and
+/// `(c_r, d_r) = cd(r)`; λ on the diagonal except the intercept's. The normal equations of a
+/// ridge fit (c = 1, d = target) and a Newton step of the logistic fit.
+fn normal_equations(
+    z: &[Vec<f64>],
+    lambda: f64,
+    cd: impl Fn(usize) -> (f64, f64),
+) -> Option<(nalgebra::DMatrix<f64>, nalgebra::DVector<f64>)> {
     let k = z.first()?.len() + 1;
     let mut a = nalgebra::DMatrix::<f64>::zeros(k, k);
     let mut b = nalgebra::DVector::<f64>::zeros(k);
-    for (row, &t) in z.iter().zip(y) {
+    for (r, row) in z.iter().enumerate() {
+        let (c, d) = cd(r);
         let x: Vec<f64> = std::iter::once(1.0).chain(row.iter().copied()).collect();
         for i in 0..k {
-            b[i] += x[i] * t;
+            b[i] += d * x[i];
             for j in 0..k {
-                a[(i, j)] += x[i] * x[j];
+                a[(i, j)] += c * x[i] * x[j];
             }
         }
     }
     for i in 1..k {
         a[(i, i)] += lambda;
     }
+    Some((a, b))
+}
+
+/// Ridge least squares: weights (intercept first, not penalised) of `y` on the rows of `z`.
+fn ridge(z: &[Vec<f64>], y: &[f64], lambda: f64) -> Option<Vec<f64>> {
+    let (a, b) = normal_equations(z, lambda, |r| (1.0, y[r]))?;
     let w = a.cholesky()?.solve(&b);
     w.iter()
         .all(|x| x.is_finite())
@@ -193,23 +206,13 @@ fn logistic(z: &[Vec<f64>], y: &[bool], lambda: f64) -> Option<Vec<f64>> {
     w[0] = (rate / (1.0 - rate)).ln();
     let mut current = objective(&w);
     for _ in 0..100 {
-        let mut h = nalgebra::DMatrix::<f64>::zeros(k, k);
-        let mut g = nalgebra::DVector::<f64>::zeros(k);
-        for (row, &label) in z.iter().zip(y) {
-            let p = sigmoid(linear(&w, row));
-            let x: Vec<f64> = std::iter::once(1.0).chain(row.iter().copied()).collect();
-            let d = p - f64::from(u8::from(label));
-            let c = (p * (1.0 - p)).max(1e-12);
-            for i in 0..k {
-                g[i] += d * x[i];
-                for j in 0..k {
-                    h[(i, j)] += c * x[i] * x[j];
-                }
-            }
-        }
+        // Hessian and gradient of the objective.
+        let (h, mut g) = normal_equations(z, lambda, |r| {
+            let p = sigmoid(linear(&w, &z[r]));
+            ((p * (1.0 - p)).max(1e-12), p - f64::from(u8::from(y[r])))
+        })?;
         for i in 1..k {
             g[i] += lambda * w[i];
-            h[(i, i)] += lambda;
         }
         let step = h.cholesky()?.solve(&g);
         let mut scale = 1.0;
