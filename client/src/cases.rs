@@ -215,13 +215,14 @@ pub async fn upload(o: &UploadOptions) -> Result<UploadSummary> {
     Ok(out)
 }
 
-/// Deletes an uploaded case; its version.
+/// Deletes an uploaded case; its version and how many sessions recorded on it can no longer be
+/// resumed.
 pub async fn delete(
     server: &str,
     tls: &Tls,
     token: &Option<String>,
     case_id: &str,
-) -> Result<String> {
+) -> Result<(String, u32)> {
     let mut client = connect_with(server, tls).await?;
     let r = client
         .delete_case(request(
@@ -238,5 +239,6 @@ pub async fn delete(
                 s.message()
             )
         })?;
-    Ok(r.into_inner().version)
+    let r = r.into_inner();
+    Ok((r.version, r.resumable_sessions))
 }

@@ -249,10 +249,16 @@ async fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Delete(a) => {
-            let v =
+            let (v, sessions) =
                 librplus_client::delete(&a.conn.server, &a.conn.tls(), &a.conn.token, &a.case_id)
                     .await?;
             eprintln!("deleted case {} (version {v})", a.case_id);
+            if sessions > 0 {
+                eprintln!(
+                    "{sessions} session(s) recorded on it can no longer be resumed (a resume is \
+                     refused naming the case and its version)"
+                );
+            }
         }
         Command::Replay(a) => {
             if let Some(r) = a.rate

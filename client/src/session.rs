@@ -153,6 +153,10 @@ pub struct Resume {
     /// The first wait; it doubles on each retry in a row, up to 5 s, and starts again after a
     /// connection that got an answer.
     pub first_backoff: Duration,
+    /// Resume also after the session was taken over by another stream (ABORTED, reason
+    /// `SESSION_TAKEN_OVER`: another client resumed it). Off by default: two clients resuming
+    /// each other's session would take it from each other without end.
+    pub take_back: bool,
 }
 
 impl Default for Resume {
@@ -160,6 +164,7 @@ impl Default for Resume {
         Self {
             attempts: 10,
             first_backoff: Duration::from_millis(100),
+            take_back: false,
         }
     }
 }
@@ -279,6 +284,15 @@ fn transient(s: &tonic::Status) -> bool {
     use tonic::Code::*;
     matches!(s.code(), Unavailable | Unknown | Cancelled | Aborted)
         || (s.code() == Internal && s.message().contains("h2"))
+}
+
+/// Whether the stream ended because a newer stream took its session over (a resume of it).
+pub fn taken_over(s: &tonic::Status) -> bool {
+    use tonic_types::StatusExt;
+    s.code() == tonic::Code::Aborted
+        && s.get_error_details()
+            .error_info()
+            .is_some_and(|i| i.reason == "SESSION_TAKEN_OVER")
 }
 
 /// What one connection of a session came to.
@@ -436,7 +450,8 @@ where
         } else {
             SessionEnd::Failed(s.clone())
         };
-        if transient(&s) {
+        let take_back = cfg.resume.is_some_and(|r| r.take_back);
+        if transient(&s) && (take_back || !taken_over(&s)) {
             Attempt::Lost(end)
         } else {
             out.end = end;

@@ -5,8 +5,10 @@
 //! client only after that. The session records let a session resume after a reconnect or a
 //! crash (`SessionStart.resume_session_id`), and `librplus-server audit` reads it all back.
 //!
-//! Format 1 (docs/service.md, "Audit log"): tables `meta` (format), `events`, `sessions`,
-//! `messages` (each accepted StreamRegisterRequest, protobuf-encoded), `registrations`.
+//! Format 2 (docs/service.md, "Audit log"): tables `meta` (format), `events`, `sessions` (with
+//! the version of the case each session started on), `messages` (each accepted
+//! StreamRegisterRequest, protobuf-encoded), `registrations`. A format-1 database (no case
+//! version) is migrated in place when opened; its sessions resume without the version check.
 
 use crate::journal::Journal;
 use rusqlite::{Connection, OptionalExtension, params};
@@ -15,7 +17,7 @@ use std::sync::mpsc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// The audit database format.
-pub const FORMAT: u32 = 1;
+pub const FORMAT: u32 = 2;
 
 /// Why the audit log could not be written or read.
 #[derive(Debug, thiserror::Error)]
@@ -72,6 +74,8 @@ pub enum Record {
         principal: String,
         /// The case.
         case_id: String,
+        /// The case's content version when the session started.
+        case_version: String,
         /// The start message.
         start: Vec<u8>,
     },
@@ -93,10 +97,18 @@ pub enum Record {
         principal: String,
         /// The case.
         case_id: String,
+        /// The case's content version when the session started.
+        case_version: String,
         /// The start message.
         start: Vec<u8>,
         /// The last client_seq recorded before the takeover.
         last_seq: u64,
+    },
+    /// This replica is about to resume a session: with a session journal, its next epoch is
+    /// claimed before the session is read (nothing in the database).
+    Claim {
+        /// The session.
+        session_id: String,
     },
     /// A session ended.
     SessionEnd {
@@ -167,8 +179,9 @@ fn journal_batch(
                         session_id,
                         principal,
                         case_id,
+                        case_version,
                         start,
-                    } => j.start(session_id, principal, case_id, start),
+                    } => j.start(session_id, principal, case_id, case_version, start),
                     Record::Takeover {
                         session_id,
                         last_seq,
@@ -180,6 +193,7 @@ fn journal_batch(
                     } => j.append(session_id, messages).map(|()| {
                         touched.push((i, session_id.clone()));
                     }),
+                    Record::Claim { session_id } => j.claim(session_id),
                     Record::SessionEnd { session_id, .. } => {
                         j.end(session_id);
                         Ok(())
@@ -204,7 +218,8 @@ CREATE TABLE IF NOT EXISTS events(
   case_id TEXT, session_id TEXT, detail TEXT);
 CREATE TABLE IF NOT EXISTS sessions(
   session_id TEXT PRIMARY KEY, t_ms INTEGER NOT NULL, principal TEXT NOT NULL,
-  case_id TEXT NOT NULL, start BLOB NOT NULL, ended_ms INTEGER, outcome TEXT);
+  case_id TEXT NOT NULL, start BLOB NOT NULL, ended_ms INTEGER, outcome TEXT,
+  case_version TEXT);
 CREATE TABLE IF NOT EXISTS messages(
   session_id TEXT NOT NULL, client_seq INTEGER NOT NULL, t_ms INTEGER NOT NULL,
   msg BLOB NOT NULL, PRIMARY KEY(session_id, client_seq));
@@ -245,6 +260,22 @@ pub fn open_db(path: &Path) -> Result<Connection, AuditError> {
             .map_err(sql)?;
         }
         Some(f) if f == FORMAT.to_string() => {}
+        Some(f) if f == "1" => {
+            // Format 1 had no case version: the column is added (NULL for its sessions).
+            let has: bool = c
+                .prepare("SELECT 1 FROM pragma_table_info('sessions') WHERE name = 'case_version'")
+                .and_then(|mut st| st.exists([]))
+                .map_err(sql)?;
+            if !has {
+                c.execute("ALTER TABLE sessions ADD COLUMN case_version TEXT", [])
+                    .map_err(sql)?;
+            }
+            c.execute(
+                "UPDATE meta SET value = ?1 WHERE key = 'format'",
+                [FORMAT.to_string()],
+            )
+            .map_err(sql)?;
+        }
         Some(f) => {
             return Err(AuditError::Format {
                 path: path.to_path_buf(),
@@ -274,31 +305,50 @@ fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
             session_id,
             principal,
             case_id,
+            case_version,
             start,
         }
         | Record::Takeover {
             session_id,
             principal,
             case_id,
+            case_version,
             start,
             ..
         } => {
             c.execute(
-                "INSERT OR IGNORE INTO sessions(session_id, t_ms, principal, case_id, start) \
-                 VALUES(?1, ?2, ?3, ?4, ?5)",
-                params![session_id, t, principal, case_id, start],
+                "INSERT OR IGNORE INTO sessions(session_id, t_ms, principal, case_id, start, \
+                 case_version) VALUES(?1, ?2, ?3, ?4, ?5, ?6)",
+                params![session_id, t, principal, case_id, start, case_version],
             )?;
         }
         Record::Messages {
             session_id,
             messages,
         } => {
+            // A client_seq recorded again with other content is refused (the transaction and
+            // so the answer fail), never replaced or dropped; the same content again is kept once.
             let mut st = c.prepare_cached(
-                "INSERT OR IGNORE INTO messages(session_id, client_seq, t_ms, msg) \
-                 VALUES(?1, ?2, ?3, ?4)",
+                "INSERT INTO messages(session_id, client_seq, t_ms, msg) VALUES(?1, ?2, ?3, ?4) \
+                 ON CONFLICT(session_id, client_seq) DO NOTHING",
+            )?;
+            let mut same = c.prepare_cached(
+                "SELECT msg = ?3 FROM messages WHERE session_id = ?1 AND client_seq = ?2",
             )?;
             for (seq, m) in messages {
-                st.execute(params![session_id, *seq as i64, t, m])?;
+                if st.execute(params![session_id, *seq as i64, t, m])? == 0 {
+                    let equal: bool =
+                        same.query_row(params![session_id, *seq as i64, m], |r| r.get(0))?;
+                    if !equal {
+                        return Err(rusqlite::Error::ToSqlConversionFailure(
+                            format!(
+                                "session {session_id}: client_seq {seq} is recorded with other \
+                                 content; refused"
+                            )
+                            .into(),
+                        ));
+                    }
+                }
             }
         }
         Record::Registration(g) => {
@@ -325,6 +375,7 @@ fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
                 ],
             )?;
         }
+        Record::Claim { .. } => {}
         Record::SessionEnd {
             session_id,
             outcome,
@@ -384,13 +435,24 @@ impl Audit {
                         metrics::counter!("librplus_audit_failures_total").increment(1);
                         format!("audit database {}: {e}", p.display())
                     });
-                    if let Some(j) = journal.as_mut()
-                        && let Err(e) = j.sync(touched.iter().map(|(_, s)| s.as_str()))
-                    {
-                        let e = format!("session journal {}: {e}", j.dir().display());
-                        tracing::error!(error = %e, "session journal fsync failed");
-                        for (i, _) in &touched {
-                            results[*i] = Err(e.clone());
+                    if let Some(j) = journal.as_mut() {
+                        if let Err(e) = j.sync(touched.iter().map(|(_, s)| s.as_str())) {
+                            let e = format!("session journal {}: {e}", j.dir().display());
+                            tracing::error!(error = %e, "session journal fsync failed");
+                            for (i, _) in &touched {
+                                results[*i] = Err(e.clone());
+                            }
+                        }
+                        // Written, but another replica claimed the session meanwhile: its
+                        // takeover may not have read these messages, so they are not answered.
+                        for (i, sid) in &touched {
+                            if results[*i].is_ok() && !j.still_held(sid) {
+                                results[*i] = Err(format!(
+                                    "session journal {}: session {sid} was taken over by \
+                                     another replica",
+                                    j.dir().display()
+                                ));
+                            }
                         }
                     }
                     metrics::counter!("librplus_audit_commits_total").increment(1);
@@ -438,6 +500,8 @@ pub struct SessionRecord {
     pub principal: String,
     /// Its case.
     pub case_id: String,
+    /// The case's content version when it started (None: recorded before versions were).
+    pub case_version: Option<String>,
     /// The start message (protobuf `StreamRegisterRequest`).
     pub start: Vec<u8>,
     /// (client_seq, protobuf `StreamRegisterRequest`), in client_seq order.
@@ -446,11 +510,11 @@ pub struct SessionRecord {
 
 /// Reads one session's record (None: no such session).
 pub fn read_session(c: &Connection, session_id: &str) -> rusqlite::Result<Option<SessionRecord>> {
-    let Some((principal, case_id, start)) = c
+    let Some((principal, case_id, start, case_version)) = c
         .query_row(
-            "SELECT principal, case_id, start FROM sessions WHERE session_id = ?1",
+            "SELECT principal, case_id, start, case_version FROM sessions WHERE session_id = ?1",
             [session_id],
-            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
         )
         .optional()?
     else {
@@ -467,9 +531,27 @@ pub fn read_session(c: &Connection, session_id: &str) -> rusqlite::Result<Option
     Ok(Some(SessionRecord {
         principal,
         case_id,
+        case_version,
         start,
         messages,
     }))
+}
+
+/// Sessions recorded on case `case_id` at version `version` (or before versions were recorded)
+/// since `since_ms`: those a client could still resume.
+pub fn count_sessions(
+    c: &Connection,
+    case_id: &str,
+    version: &str,
+    since_ms: i64,
+) -> rusqlite::Result<u64> {
+    c.query_row(
+        "SELECT COUNT(*) FROM sessions WHERE case_id = ?1 \
+         AND (case_version = ?2 OR case_version IS NULL) AND t_ms >= ?3",
+        params![case_id, version, since_ms],
+        |r| r.get::<_, i64>(0),
+    )
+    .map(|n| n as u64)
 }
 
 /// Reads `--since`: Unix seconds, or a UTC date and time `YYYY-MM-DD[THH:MM[:SS]][Z]`; in ms.
@@ -769,6 +851,7 @@ mod tests {
                 session_id: "s1".into(),
                 principal: "p".into(),
                 case_id: "c".into(),
+                case_version: "v1".into(),
                 start: vec![1, 2, 3],
             },
             Record::Messages {
@@ -803,6 +886,20 @@ mod tests {
         let s = read_session(&c, "s1").unwrap().unwrap();
         assert_eq!((s.principal.as_str(), s.case_id.as_str()), ("p", "c"));
         assert_eq!(s.start, [1, 2, 3]);
+        assert_eq!(s.case_version.as_deref(), Some("v1"));
+        assert_eq!(s.messages, [(2, vec![8]), (3, vec![9])]);
+        // A client_seq again: the same content is kept once, other content is refused.
+        let again = |m: Vec<u8>| Record::Messages {
+            session_id: "s1".into(),
+            messages: vec![(3, m)],
+        };
+        a.write(vec![again(vec![9])]).await.unwrap();
+        let e = a.write(vec![again(vec![7])]).await.unwrap_err();
+        assert!(
+            e.contains("client_seq 3 is recorded with other content"),
+            "{e}"
+        );
+        let s = read_session(&c, "s1").unwrap().unwrap();
         assert_eq!(s.messages, [(2, vec![8]), (3, vec![9])]);
         let n: i64 = c
             .query_row("SELECT COUNT(*) FROM registrations", [], |r| r.get(0))
@@ -816,5 +913,36 @@ mod tests {
         c.execute("UPDATE meta SET value = '9' WHERE key = 'format'", [])
             .unwrap();
         assert!(matches!(open_db(&db), Err(AuditError::Format { .. })));
+    }
+
+    #[test]
+    fn a_format_1_database_is_migrated_and_its_sessions_have_no_version() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("audit.db");
+        {
+            // The format-1 schema as it was.
+            let c = Connection::open(&db).unwrap();
+            c.execute_batch(
+                "CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+                 INSERT INTO meta VALUES('format', '1');
+                 CREATE TABLE sessions(session_id TEXT PRIMARY KEY, t_ms INTEGER NOT NULL,
+                   principal TEXT NOT NULL, case_id TEXT NOT NULL, start BLOB NOT NULL,
+                   ended_ms INTEGER, outcome TEXT);
+                 INSERT INTO sessions VALUES('s1', 0, 'p', 'c', x'01', NULL, NULL);",
+            )
+            .unwrap();
+        }
+        let c = open_db(&db).unwrap();
+        let s = read_session(&c, "s1").unwrap().unwrap();
+        assert_eq!(s.case_version, None);
+        let f: String = c
+            .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
+                r.get(0)
+            })
+            .unwrap();
+        assert_eq!(f, FORMAT.to_string());
+        drop(c);
+        // Opened again: nothing more to do.
+        open_db(&db).unwrap();
     }
 }

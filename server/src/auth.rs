@@ -301,6 +301,12 @@ impl Auth {
         peer_certs: Option<&[tonic::transport::CertificateDer<'static>]>,
     ) -> Result<Arc<Principal>, ServiceError> {
         if let Some(v) = md.get("authorization") {
+            // Two headers are refused: proxies and servers disagree on which one counts.
+            if md.get_all("authorization").iter().nth(1).is_some() {
+                return Err(ServiceError::Unauthenticated(
+                    "authorization: sent more than once; send exactly one \"Bearer TOKEN\"".into(),
+                ));
+            }
             let b = v.as_bytes();
             if b.len() > MAX_HEADER {
                 return Err(ServiceError::Unauthenticated(format!(

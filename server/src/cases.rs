@@ -35,7 +35,8 @@ pub struct Case {
     pub default_method: Method,
     /// Stage-duration estimates (exponential moving averages of what was measured).
     pub estimates: Mutex<Estimates>,
-    /// Its content's version (uploaded cases: the SHA-256 of the upload; else empty).
+    /// Its content's version: uploaded cases the SHA-256 of the upload; others the SHA-256 of
+    /// their mesh and physics (a resumed session must find the content it started on).
     pub version: String,
     /// Streamed sessions using it now (a case in use is not deleted).
     pub sessions: std::sync::atomic::AtomicUsize,
@@ -315,6 +316,11 @@ pub fn load_with_progress(
     if default_method == Method::LibrPlus && prepared.librplus.is_none() {
         return Err(CaseError::NoModel);
     }
+    if version.is_empty() {
+        // A case the server was started with: the SHA-256 of its mesh and physics, so that a
+        // session recorded on other content (the files changed across a restart) is not resumed.
+        version = content_version(&prepared, &physics_path);
+    }
     let n = prepared.model.mesh.num_nodes() as f64;
     Ok(Case {
         id: id.to_string(),
@@ -331,6 +337,28 @@ pub fn load_with_progress(
         version,
         sessions: Default::default(),
     })
+}
+
+/// SHA-256 (hex) of a prepared case's content: node positions, tetrahedra and the
+/// `physics.json` beside it (its bytes, when present).
+fn content_version(prepared: &Prepared, physics_path: &Path) -> String {
+    let mesh = &prepared.model.mesh;
+    let mut bytes = Vec::with_capacity(mesh.num_nodes() * 24 + mesh.num_tets() * 16 + 64);
+    bytes.extend_from_slice(b"librplus-case 1\n");
+    for p in mesh.nodes() {
+        for x in p {
+            bytes.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    for t in mesh.tets() {
+        for i in t {
+            bytes.extend_from_slice(&(*i as u64).to_le_bytes());
+        }
+    }
+    if let Ok(p) = std::fs::read(physics_path) {
+        bytes.extend_from_slice(&p);
+    }
+    crate::auth::hex(&crate::auth::sha256(&bytes))
 }
 
 /// A preoperative model from a mesh file (see [`librplus::input::preop_model_from_mesh`];

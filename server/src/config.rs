@@ -113,6 +113,19 @@ pub struct ServerConfig {
     pub max_case_bytes: usize,
     /// Most nodes of an uploaded mesh. Default 1,000,000.
     pub max_case_nodes: usize,
+    /// Most cases in the case store; an upload beyond is RESOURCE_EXHAUSTED
+    /// `max_stored_cases`. Every stored case stays in memory once READY, so this also bounds
+    /// the memory uploads take. Default 32.
+    pub max_stored_cases: usize,
+    /// Most bytes in the case store (each case's folder: its files and its LIBR basis cache);
+    /// beyond, RESOURCE_EXHAUSTED `max_stored_bytes`. Default 8 GiB.
+    pub max_stored_bytes: u64,
+    /// Most stored cases one principal uploaded (0: `max_stored_cases`); beyond,
+    /// RESOURCE_EXHAUSTED `max_cases_per_principal`. Default 8.
+    pub max_cases_per_principal: usize,
+    /// Most bytes of the stored cases one principal uploaded (0: `max_stored_bytes`); beyond,
+    /// RESOURCE_EXHAUSTED `max_bytes_per_principal`. Default 2 GiB.
+    pub max_bytes_per_principal: u64,
     /// TLS: the server's certificate chain (PEM). With `tls_key`, the server speaks only TLS.
     pub tls_cert: Option<PathBuf>,
     /// TLS: the server's private key (PEM).
@@ -168,6 +181,10 @@ impl Default for ServerConfig {
             case_store: None,
             max_case_bytes: 512 << 20,
             max_case_nodes: 1_000_000,
+            max_stored_cases: 32,
+            max_stored_bytes: 8 << 30,
+            max_cases_per_principal: 8,
+            max_bytes_per_principal: 2 << 30,
             tls_cert: None,
             tls_key: None,
             client_ca: None,
@@ -210,19 +227,25 @@ pub enum ConfigError {
 impl ServerConfig {
     /// Reads a config file (JSON).
     pub fn from_file(path: &std::path::Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let c: Self = serde_json::from_str(&text).map_err(|source| ConfigError::Json {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let c = Self::read_file(path)?;
         c.validate().map_err(|e| ConfigError::InFile {
             path: path.to_path_buf(),
             source: Box::new(e),
         })?;
         Ok(c)
+    }
+
+    /// Reads a config file without checking its values (flags may complete it: the caller
+    /// validates the result).
+    pub fn read_file(path: &std::path::Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        serde_json::from_str(&text).map_err(|source| ConfigError::Json {
+            path: path.to_path_buf(),
+            source,
+        })
     }
 
     /// Checks the values; the message names the field.
@@ -240,6 +263,18 @@ impl ServerConfig {
         }
         self.unit()?;
         self.method()?;
+        if self.max_stored_cases == 0 {
+            return Err(ConfigError::Field(
+                "max_stored_cases must be at least 1 (to take no upload, leave case_store unset)"
+                    .into(),
+            ));
+        }
+        if self.max_stored_bytes == 0 {
+            return Err(ConfigError::Field(
+                "max_stored_bytes must be at least 1 (to take no upload, leave case_store unset)"
+                    .into(),
+            ));
+        }
         for (name, v) in [
             ("max_sessions", self.max_sessions),
             ("max_points_per_message", self.max_points_per_message),

@@ -48,7 +48,7 @@ pub fn rigid_from_pb(r: &pb::Rigid, field: &str) -> Result<Rigid, ServiceError> 
             format!("{field}.translation_mm[{i}]"),
             format!(
                 "{} is not finite or beyond ±{MAX_ABS_MM} mm",
-                r.translation_mm[i]
+                num(r.translation_mm[i])
             ),
         ));
     }
@@ -91,6 +91,16 @@ pub fn rigid_to_pb(r: &Rigid) -> pb::Rigid {
     }
 }
 
+/// A client's number as a message shows it: plain when it reads well, else in scientific
+/// notation (never the 309 digits `{}` prints for 1e308).
+pub fn num(x: f64) -> String {
+    if x == 0.0 || (x.is_finite() && (1e-3..1e7).contains(&x.abs())) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
 /// Points packed 3 per point (`field`), checked: length, finite, within ±10 m.
 pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]>, ServiceError> {
     if v.len() % 3 != 0 {
@@ -120,7 +130,8 @@ pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]
             bad.push((
                 format!("{field}[{i}]"),
                 format!(
-                    "{x} is not finite or beyond ±{MAX_ABS_MM} mm (point {}, axis {})",
+                    "{} is not finite or beyond ±{MAX_ABS_MM} mm (point {}, axis {})",
+                    num(*x),
                     i / 3,
                     ["x", "y", "z"][i % 3]
                 ),
@@ -270,7 +281,7 @@ pub fn plane_points(
         {
             return Err(ServiceError::field(
                 format!("{field}[{i}]"),
-                format!("{} is not finite or beyond ±{MAX_ABS_MM} mm", v[i]),
+                format!("{} is not finite or beyond ±{MAX_ABS_MM} mm", num(v[i])),
             ));
         }
         Ok(v.chunks_exact(2)

@@ -75,6 +75,12 @@ pub enum ServiceError {
     Registration(PipelineError),
     /// A registration task failed inside the server (INTERNAL; logged).
     Internal(String),
+    /// The stream's session was taken over by a newer stream, a resume of the same session
+    /// (ABORTED, ErrorInfo reason [`crate::live::TAKEN_OVER`]): this stream has ended.
+    TakenOver {
+        /// The session.
+        session_id: String,
+    },
 }
 
 impl From<PipelineError> for ServiceError {
@@ -180,7 +186,9 @@ impl ServiceError {
                 (Code::FailedPrecondition, message.clone(), Some(d))
             }
             Self::UnknownCase { field, id, known } => {
-                // The id is bounded by the caller (MAX_CASE_ID); the list to the first 20.
+                // The id echoed is cut to 64 characters (as every echo of a client's string);
+                // the list to the first 20.
+                let id = crate::service::short(id, 64);
                 let mut list = known
                     .iter()
                     .take(20)
@@ -193,7 +201,7 @@ impl ServiceError {
                 d.add_bad_request_violation(field.clone(), format!("no case {id:?}"));
                 d.set_resource_info(
                     "case",
-                    id.clone(),
+                    id.to_string(),
                     "",
                     format!("the cases you may use: {list}"),
                 );
@@ -204,6 +212,7 @@ impl ServiceError {
                 )
             }
             Self::UnknownSession { field, id } => {
+                let id = crate::service::short(id, 64);
                 d.add_bad_request_violation(field.clone(), format!("no session {id:?}"));
                 (
                     Code::NotFound,
@@ -225,6 +234,25 @@ impl ServiceError {
             Self::Deadline(m) => (Code::DeadlineExceeded, m.clone(), None),
             Self::Received { code, message } => (*code, message.clone(), None),
             Self::Internal(m) => (Code::Internal, m.clone(), None),
+            Self::TakenOver { session_id } => {
+                d.set_error_info(
+                    crate::live::TAKEN_OVER,
+                    "librplus.v1",
+                    std::collections::HashMap::from([(
+                        "session_id".to_string(),
+                        session_id.clone(),
+                    )]),
+                );
+                (
+                    Code::Aborted,
+                    format!(
+                        "session {session_id} was taken over by a newer stream (a resume of the \
+                         same session), which holds it now; this stream has ended and sends \
+                         nothing more"
+                    ),
+                    Some(d),
+                )
+            }
             Self::Registration(e) => match pipeline_cause(e) {
                 Cause::Input => {
                     d.add_bad_request_violation("measurements", e.to_string());
@@ -275,9 +303,15 @@ impl ServiceError {
                 description,
                 ..
             } => vec![(subject.clone(), description.clone())],
-            Self::UnknownCase { field, id, .. } => vec![(field.clone(), format!("no case {id:?}"))],
+            Self::UnknownCase { field, id, .. } => vec![(
+                field.clone(),
+                format!("no case {:?}", crate::service::short(id, 64)),
+            )],
             Self::UnknownSession { field, id } => {
-                vec![(field.clone(), format!("no session {id:?}"))]
+                vec![(
+                    field.clone(),
+                    format!("no session {:?}", crate::service::short(id, 64)),
+                )]
             }
             Self::Quota { .. }
             | Self::Unavailable(_)
@@ -286,6 +320,7 @@ impl ServiceError {
             | Self::Deadline(_)
             | Self::Received { .. }
             | Self::Internal(_)
+            | Self::TakenOver { .. }
             | Self::Registration(_) => Vec::new(),
         };
         pb::Rejection {

@@ -4,25 +4,33 @@
 //! replica's own record; the journal is what resuming reads when it is configured.
 //!
 //! Layout: `DIR/<session_id>/<epoch>.log`, epochs numbered from 0 (six digits). The replica
-//! that starts a session creates epoch 0; a replica that resumes it reads every epoch and creates
-//! the next one with create-new semantics (of two replicas resuming at once, one wins and the
-//! other refuses). A replica appends only to its own epoch and checks before each append that
-//! no later epoch exists, so that a replica that lost its client without knowing it yet cannot
-//! add to a session another replica has taken over. Each record reaches the disk (fsync, and the
-//! folder's fsync for a new file) before the client's answer is sent.
+//! that starts a session creates epoch 0. A replica that resumes it first claims the next epoch
+//! (creates its file, create-new: of two replicas resuming at once, one wins and the other
+//! refuses), then reads every epoch, then writes the takeover record into its claimed epoch. A
+//! replica appends only to its own epoch, checks before each append that no later epoch exists,
+//! and after the append's fsync checks again: an append that a takeover may not have read is
+//! never acknowledged (the claim exists before the read, so an append that finds no claim after
+//! its fsync was read by any later takeover). So a replica that lost its client without knowing
+//! it yet cannot add to, or answer for, a session another replica has taken over. Each record
+//! reaches the disk (fsync, and the folder's fsync for a new file) before the client's answer is
+//! sent.
 //!
-//! File format 1: the line `librplus-session-journal 1\n`, then records
+//! File format 2: the line `librplus-session-journal 2\n`, then records
 //! `[u32 payload length, LE][u32 CRC-32 of the payload, LE][payload]`, the payload a kind byte
 //! and its fields:
-//! - `1` start: principal and case id (each a u32 LE length and UTF-8), then the start message
-//!   (protobuf `StreamRegisterRequest`, the rest);
+//! - `1` start: principal, case id and the case's content version (each a u32 LE length and
+//!   UTF-8), then the start message (protobuf `StreamRegisterRequest`, the rest);
 //! - `2` message: client_seq (u64 LE), then the protobuf `StreamRegisterRequest` (the rest);
 //! - `3` takeover (first record of epochs after 0): the last client_seq this epoch continues
 //!   from (u64 LE), then the replica's name (UTF-8, the rest).
 //!
+//! Format 1 (read, not written) is the same without the case version in the start record; such
+//! a session resumes without the version check.
+//!
 //! Reading: a torn record at a file's end (a crash while writing) is ignored (it was never
 //! acknowledged); messages of epoch k above epoch k+1's takeover point are ignored (written by a
-//! replica that had already lost the session).
+//! replica that had already lost the session); an epoch claimed and never taken over (a resume
+//! that crashed or was refused) holds no record and is skipped.
 
 use crate::audit::SessionRecord;
 use std::collections::{BTreeMap, HashMap};
@@ -30,8 +38,10 @@ use std::fs::{File, OpenOptions};
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 
-/// The first line of every journal file.
-const MAGIC: &[u8] = b"librplus-session-journal 1\n";
+/// The first line of every journal file written.
+const MAGIC: &[u8] = b"librplus-session-journal 2\n";
+/// The first line of a format-1 file (read only).
+const MAGIC_1: &[u8] = b"librplus-session-journal 1\n";
 const START: u8 = 1;
 const MESSAGE: u8 = 2;
 const TAKEOVER: u8 = 3;
@@ -61,6 +71,8 @@ pub struct Journal {
     replica: String,
     /// Sessions this replica writes: their open epoch file and its number.
     open: HashMap<String, (File, u32)>,
+    /// Epochs this replica claimed for a resume, not yet taken over.
+    claims: HashMap<String, (File, u32)>,
     /// Session folders untouched this long are removed (sessions end idle long before).
     retention: std::time::Duration,
     last_sweep: std::time::Instant,
@@ -97,6 +109,7 @@ impl Journal {
             dir: dir.to_path_buf(),
             replica: replica.to_string(),
             open: HashMap::new(),
+            claims: HashMap::new(),
             retention: std::time::Duration::from_secs_f64(retention_h.max(0.0) * 3600.0),
             last_sweep: std::time::Instant::now(),
         };
@@ -130,7 +143,9 @@ impl Journal {
         &self.dir
     }
 
-    fn create(&mut self, sid: &str, epoch: u32, first: &[u8]) -> io::Result<()> {
+    /// Creates epoch `epoch`'s file (create-new) holding the magic line and `first`'s record
+    /// (none when empty), durable on return.
+    fn create_file(&self, sid: &str, epoch: u32, first: &[u8]) -> io::Result<File> {
         if !valid_id(sid) {
             return Err(io::Error::other(format!("{sid:?} is not a session id")));
         }
@@ -153,14 +168,31 @@ impl Journal {
                 }
             })?;
         let mut bytes = MAGIC.to_vec();
-        bytes.extend_from_slice(&record(first));
+        if !first.is_empty() {
+            bytes.extend_from_slice(&record(first));
+        }
         f.write_all(&bytes)?;
         f.sync_data()?;
         sync_dir(&folder)?;
         if new_folder {
             sync_dir(&self.dir)?;
         }
+        Ok(f)
+    }
+
+    fn create(&mut self, sid: &str, epoch: u32, first: &[u8]) -> io::Result<()> {
+        let f = self.create_file(sid, epoch, first)?;
         self.open.insert(sid.to_string(), (f, epoch));
+        Ok(())
+    }
+
+    /// Claims the next epoch of a session this replica is about to resume, before it reads the
+    /// session (durable on return): from now no other replica acknowledges a message of it.
+    /// Err (AlreadyExists) when another replica claimed it at the same time.
+    pub fn claim(&mut self, sid: &str) -> io::Result<()> {
+        let epoch = epochs(&self.dir, sid)?.last().map_or(0, |e| e + 1);
+        let f = self.create_file(sid, epoch, &[])?;
+        self.claims.insert(sid.to_string(), (f, epoch));
         Ok(())
     }
 
@@ -170,11 +202,13 @@ impl Journal {
         sid: &str,
         principal: &str,
         case_id: &str,
+        case_version: &str,
         start: &[u8],
     ) -> io::Result<()> {
         let mut p = vec![START];
         put_str(&mut p, principal);
         put_str(&mut p, case_id);
+        put_str(&mut p, case_version);
         p.extend_from_slice(start);
         self.create(sid, 0, &p)
     }
@@ -182,11 +216,32 @@ impl Journal {
     /// This replica takes a session over after `last_seq` (durable on return): the epoch after
     /// the newest one. Err (AlreadyExists) when another replica took it at the same time.
     pub fn takeover(&mut self, sid: &str, last_seq: u64) -> io::Result<()> {
-        let epoch = epochs(&self.dir, sid)?.last().map_or(0, |e| e + 1);
         let mut p = vec![TAKEOVER];
         p.extend_from_slice(&last_seq.to_le_bytes());
         p.extend_from_slice(self.replica.as_bytes());
+        // Into the epoch claimed before the read, when there is one.
+        if let Some((mut f, epoch)) = self.claims.remove(sid) {
+            if epoch_path(&self.dir, sid, epoch + 1).exists() {
+                return Err(io::Error::new(
+                    io::ErrorKind::AlreadyExists,
+                    format!("session {sid} is being resumed by another replica"),
+                ));
+            }
+            f.write_all(&record(&p))?;
+            f.sync_data()?;
+            self.open.insert(sid.to_string(), (f, epoch));
+            return Ok(());
+        }
+        let epoch = epochs(&self.dir, sid)?.last().map_or(0, |e| e + 1);
         self.create(sid, epoch, &p)
+    }
+
+    /// Whether this replica still holds `sid` after its appends reached the disk: no later
+    /// epoch was claimed. An append is acknowledged only when this holds after its fsync.
+    pub fn still_held(&self, sid: &str) -> bool {
+        self.open
+            .get(sid)
+            .is_some_and(|(_, epoch)| !epoch_path(&self.dir, sid, epoch + 1).exists())
     }
 
     /// Appends accepted messages (written, not yet synced: [`Journal::sync`]). Err when this
@@ -228,6 +283,7 @@ impl Journal {
     /// a client whose stream was lost may still resume it elsewhere).
     pub fn end(&mut self, sid: &str) {
         self.open.remove(sid);
+        self.claims.remove(sid);
         if self.last_sweep.elapsed() > std::time::Duration::from_secs(3600) {
             self.last_sweep = std::time::Instant::now();
             let _ = self.sweep();
@@ -257,18 +313,22 @@ fn epochs(dir: &Path, sid: &str) -> io::Result<Vec<u32>> {
     Ok(out)
 }
 
-/// The complete records of one file (a torn tail ignored).
-fn read_records(path: &Path) -> Result<Vec<Vec<u8>>, String> {
+/// The format and complete records of one file (a torn tail ignored).
+fn read_records(path: &Path) -> Result<(u32, Vec<Vec<u8>>), String> {
     let mut bytes = Vec::new();
     File::open(path)
         .and_then(|mut f| f.read_to_end(&mut bytes))
         .map_err(|e| format!("{}: {e}", path.display()))?;
-    let Some(mut rest) = bytes.strip_prefix(MAGIC) else {
-        return Err(format!(
-            "{}: not a session journal of format 1 (first line {:?})",
-            path.display(),
-            String::from_utf8_lossy(&bytes[..bytes.len().min(40)])
-        ));
+    let (format, mut rest) = match (bytes.strip_prefix(MAGIC), bytes.strip_prefix(MAGIC_1)) {
+        (Some(r), _) => (2, r),
+        (None, Some(r)) => (1, r),
+        (None, None) => {
+            return Err(format!(
+                "{}: not a session journal of format 2 or 1 (first line {:?})",
+                path.display(),
+                String::from_utf8_lossy(&bytes[..bytes.len().min(40)])
+            ));
+        }
     };
     let mut out = Vec::new();
     while rest.len() >= 8 {
@@ -284,7 +344,7 @@ fn read_records(path: &Path) -> Result<Vec<Vec<u8>>, String> {
         out.push(payload.to_vec());
         rest = &rest[8 + len..];
     }
-    Ok(out)
+    Ok((format, out))
 }
 
 fn take_str(p: &mut &[u8]) -> Option<String> {
@@ -309,12 +369,13 @@ pub fn read(dir: &Path, sid: &str) -> Result<Option<SessionRecord>, String> {
         return Ok(None);
     }
     let list = epochs(dir, sid).map_err(|e| format!("{}: {e}", dir.join(sid).display()))?;
-    let mut head: Option<(String, String, Vec<u8>)> = None;
+    let mut head: Option<(String, String, Option<String>, Vec<u8>)> = None;
     let mut messages: BTreeMap<u64, Vec<u8>> = BTreeMap::new();
     for epoch in list {
         let path = epoch_path(dir, sid, epoch);
         let broken = |what: &str| format!("{}: {what}", path.display());
-        for (i, rec) in read_records(&path)?.into_iter().enumerate() {
+        let (format, records) = read_records(&path)?;
+        for (i, rec) in records.into_iter().enumerate() {
             let Some((&kind, mut p)) = rec.split_first() else {
                 return Err(broken("an empty record"));
             };
@@ -322,7 +383,11 @@ pub fn read(dir: &Path, sid: &str) -> Result<Option<SessionRecord>, String> {
                 START if epoch == 0 && i == 0 => {
                     let principal = take_str(&mut p).ok_or_else(|| broken("a short start"))?;
                     let case = take_str(&mut p).ok_or_else(|| broken("a short start"))?;
-                    head = Some((principal, case, p.to_vec()));
+                    let version = match format {
+                        1 => None,
+                        _ => Some(take_str(&mut p).ok_or_else(|| broken("a short start"))?),
+                    };
+                    head = Some((principal, case, version, p.to_vec()));
                 }
                 TAKEOVER if epoch > 0 && i == 0 => {
                     let last = take_u64(&mut p).ok_or_else(|| broken("a short takeover"))?;
@@ -337,12 +402,13 @@ pub fn read(dir: &Path, sid: &str) -> Result<Option<SessionRecord>, String> {
             }
         }
     }
-    let Some((principal, case_id, start)) = head else {
+    let Some((principal, case_id, case_version, start)) = head else {
         return Ok(None);
     };
     Ok(Some(SessionRecord {
         principal,
         case_id,
+        case_version,
         start,
         messages: messages.into_iter().collect(),
     }))
@@ -371,12 +437,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut a = Journal::open(dir.path(), "a", 24.0).unwrap();
         let mut b = Journal::open(dir.path(), "b", 24.0).unwrap();
-        a.start("s1-1", "alice", "g1", b"start").unwrap();
+        a.start("s1-1", "alice", "g1", "v1", b"start").unwrap();
         a.append("s1-1", &msgs(1..=3)).unwrap();
         a.sync(["s1-1"]).unwrap();
         let r = read(dir.path(), "s1-1").unwrap().unwrap();
         assert_eq!((r.principal.as_str(), r.case_id.as_str()), ("alice", "g1"));
         assert_eq!(r.start, b"start");
+        assert_eq!(r.case_version.as_deref(), Some("v1"));
         assert_eq!(r.messages, msgs(1..=3));
         // b takes over after message 3; a, not knowing, cannot add message 4.
         b.takeover("s1-1", 3).unwrap();
@@ -403,10 +470,61 @@ mod tests {
     }
 
     #[test]
+    fn a_claim_before_the_read_fences_the_holder_and_a_bare_claim_is_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut a = Journal::open(dir.path(), "a", 24.0).unwrap();
+        let mut b = Journal::open(dir.path(), "b", 24.0).unwrap();
+        a.start("s3-1", "p", "c", "v", b"s").unwrap();
+        a.append("s3-1", &msgs(1..=2)).unwrap();
+        a.sync(["s3-1"]).unwrap();
+        assert!(a.still_held("s3-1"));
+        // b claims epoch 1 before reading: a's message 3, written after the claim, is written
+        // but a finds after its fsync that it no longer holds the session (not answered).
+        b.claim("s3-1").unwrap();
+        assert!(!a.still_held("s3-1"));
+        assert!(a.append("s3-1", &msgs(3..=3)).is_err());
+        // The claimed epoch holds nothing yet: the session reads as before.
+        let r = read(dir.path(), "s3-1").unwrap().unwrap();
+        assert_eq!(r.messages, msgs(1..=2));
+        // A second replica claiming the same epoch at once loses.
+        let mut c = Journal::open(dir.path(), "c", 24.0).unwrap();
+        let e = c.create_file("s3-1", 1, &[]).unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::AlreadyExists);
+        b.takeover("s3-1", 2).unwrap();
+        b.append("s3-1", &[(3, b"b3".to_vec())]).unwrap();
+        b.sync(["s3-1"]).unwrap();
+        assert!(b.still_held("s3-1"));
+        let r = read(dir.path(), "s3-1").unwrap().unwrap();
+        assert_eq!(
+            r.messages,
+            vec![
+                (1, b"m1".to_vec()),
+                (2, b"m2".to_vec()),
+                (3, b"b3".to_vec())
+            ]
+        );
+        // A claim that is never taken over (the resume crashed) is skipped, and the next resume
+        // claims the epoch after it; a claim taken over after a newer claim is refused.
+        c.claim("s3-1").unwrap();
+        assert!(!b.still_held("s3-1"));
+        let r = read(dir.path(), "s3-1").unwrap().unwrap();
+        assert_eq!(r.messages.len(), 3);
+        let mut d = Journal::open(dir.path(), "d", 24.0).unwrap();
+        d.claim("s3-1").unwrap();
+        assert!(epoch_path(dir.path(), "s3-1", 3).exists());
+        let e = c.takeover("s3-1", 3).unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::AlreadyExists);
+        d.takeover("s3-1", 3).unwrap();
+        d.append("s3-1", &msgs(4..=4)).unwrap();
+        let r = read(dir.path(), "s3-1").unwrap().unwrap();
+        assert_eq!(r.messages.len(), 4);
+    }
+
+    #[test]
     fn writes_after_the_takeover_point_and_torn_tails_are_ignored() {
         let dir = tempfile::tempdir().unwrap();
         let mut a = Journal::open(dir.path(), "a", 24.0).unwrap();
-        a.start("s2-7", "p", "c", b"s").unwrap();
+        a.start("s2-7", "p", "c", "v", b"s").unwrap();
         a.append("s2-7", &msgs(1..=2)).unwrap();
         // Replica b took over after message 1 (it had read before message 2 reached the file).
         let mut b = Journal::open(dir.path(), "b", 24.0).unwrap();
@@ -438,6 +556,16 @@ mod tests {
             r.messages,
             vec![(1, b"m1".to_vec()), (2, b"again".to_vec())]
         );
+        // A format-1 file (no case version) is read.
+        let mut p = vec![START];
+        put_str(&mut p, "p");
+        put_str(&mut p, "c");
+        p.extend_from_slice(b"s1");
+        let mut old = MAGIC_1.to_vec();
+        old.extend_from_slice(&record(&p));
+        std::fs::write(&p0, old).unwrap();
+        let r = read(dir.path(), "s2-7").unwrap().unwrap();
+        assert_eq!((r.case_version, r.start), (None, b"s1".to_vec()));
         // Not a journal.
         std::fs::write(&p0, b"hello").unwrap();
         assert!(

@@ -20,6 +20,7 @@ pub mod error;
 pub mod fuzz;
 pub mod igtl;
 pub mod journal;
+pub mod live;
 pub mod metrics_http;
 pub mod registry;
 pub mod service;

@@ -221,7 +221,8 @@ struct Args {
 
 fn config(a: &Args) -> Result<ServerConfig> {
     let mut c = match &a.config {
-        Some(p) => ServerConfig::from_file(p).map_err(anyhow::Error::msg)?,
+        // Checked after the flags are applied: a flag may give what the file leaves out.
+        Some(p) => ServerConfig::read_file(p).map_err(anyhow::Error::msg)?,
         None => ServerConfig::default(),
     };
     if !a.cases.is_empty() {
@@ -283,8 +284,10 @@ fn config(a: &Args) -> Result<ServerConfig> {
         c.cache_dir = a.cache_dir.clone();
     }
     c.log_json |= a.log_json;
-    c.validate()
-        .map_err(|e| anyhow::anyhow!("configuration: {e}"))?;
+    c.validate().map_err(|e| match &a.config {
+        Some(p) => anyhow::anyhow!("configuration ({} and the flags): {e}", p.display()),
+        None => anyhow::anyhow!("configuration: {e}"),
+    })?;
     Ok(c)
 }
 
@@ -321,6 +324,19 @@ struct IgtlArgs {
     /// Largest OpenIGTLink message body accepted, bytes.
     #[arg(long, default_value_t = 64 << 20)]
     max_body: u64,
+    /// Most OpenIGTLink connections served at once (each holds at most one gRPC session);
+    /// more are answered with STATUS 6 (busy) and closed. Keep it below the server's
+    /// max_sessions (default 8) so that the bridge cannot take every session slot.
+    #[arg(long, default_value_t = librplus_server::igtl::bridge::DEFAULT_MAX_SESSIONS)]
+    max_sessions: usize,
+    /// A connection with no session yet (no POINT or POLYDATA received: it holds none) that
+    /// sends no complete message for this long is sent STATUS 7 (time-out) and closed, s.
+    #[arg(long, default_value_t = librplus_server::igtl::bridge::DEFAULT_IDLE_TIMEOUT_S)]
+    idle_timeout_s: f64,
+    /// The same once its session is open, s (the server's own session_idle_timeout_s also
+    /// applies).
+    #[arg(long, default_value_t = librplus_server::igtl::bridge::DEFAULT_SESSION_IDLE_TIMEOUT_S)]
+    session_idle_timeout_s: f64,
     /// Bearer token for the gRPC server.
     #[arg(long, env = "LIBRPLUS_TOKEN", hide_env_values = true)]
     token: Option<String>,
@@ -337,7 +353,7 @@ struct IgtlArgs {
 
 #[cfg(feature = "igtl")]
 async fn igtl(a: IgtlArgs) -> anyhow::Result<()> {
-    use librplus_server::igtl::bridge::{BridgeConfig, Frame, read_targets, run};
+    use librplus_server::igtl::bridge::{BridgeConfig, Frame, read_targets, run, timeout_of};
     let frame = match a.frame.to_ascii_lowercase().as_str() {
         "ras" => Frame::Ras,
         "lps" => Frame::Lps,
@@ -362,14 +378,23 @@ async fn igtl(a: IgtlArgs) -> anyhow::Result<()> {
             None => Vec::new(),
         },
         max_body: a.max_body,
+        max_sessions: match a.max_sessions {
+            0 => anyhow::bail!("--max-sessions 0: at least 1"),
+            n => n,
+        },
+        idle_timeout: timeout_of("--idle-timeout-s", a.idle_timeout_s)?,
+        session_idle_timeout: timeout_of("--session-idle-timeout-s", a.session_idle_timeout_s)?,
     };
     eprintln!(
-        "OpenIGTLink bridge on {} → {} (case {}, frame {:?}, {} targets)",
+        "OpenIGTLink bridge on {} → {} (case {}, frame {:?}, {} targets; at most {} connections, idle timeout {} s, {} s in session)",
         a.listen,
         cfg.server,
         cfg.case_id,
         cfg.frame,
-        cfg.targets.len()
+        cfg.targets.len(),
+        cfg.max_sessions,
+        cfg.idle_timeout.as_secs_f64(),
+        cfg.session_idle_timeout.as_secs_f64()
     );
     run(a.listen, cfg).await
 }
@@ -625,6 +650,24 @@ fn token(principal: String, cases: Vec<String>, roles: Vec<String>) -> Result<()
     Ok(())
 }
 
+/// `s` with control characters (C0, DEL, C1) and the invisible characters that reorder or hide
+/// text (bidirectional overrides and isolates, zero-width marks) escaped as `\u{..}`, and a
+/// backslash doubled, so that a printed line is exactly one line and shows what is stored.
+fn printable(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        let hidden = matches!(c, '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}' | '\u{feff}');
+        if c == '\\' {
+            out.push_str("\\\\");
+        } else if c.is_control() || hidden {
+            out.push_str(&format!("\\u{{{:x}}}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 /// `librplus-server audit`.
 fn audit(
     db: &std::path::Path,
@@ -642,8 +685,9 @@ fn audit(
     if let (Some(id), Some(out)) = (export, out) {
         let e = audit::export_session(&c, &id, &out).map_err(anyhow::Error::msg)?;
         eprintln!(
-            "session {id} (case {}): {} messages, {} surface, {} contour, {} vessel points -> {}",
-            e.case_id,
+            "session {} (case {}): {} messages, {} surface, {} contour, {} vessel points -> {}",
+            printable(&id),
+            printable(&e.case_id),
             e.messages,
             e.surface,
             e.contour,
@@ -681,13 +725,17 @@ fn audit(
                 }
                 _ => r.detail.to_string(),
             };
+            // Case ids, principals and details come from clients: control characters (a
+            // newline that would forge a line, an escape sequence for the terminal) are shown
+            // escaped, as the JSON view does.
             println!(
-                "{}  {:<16} {:<14} {:<18} {:<24} {detail}",
+                "{}  {:<16} {:<14} {:<18} {:<24} {}",
                 r.time,
-                r.kind,
-                r.principal,
-                r.case_id.as_deref().unwrap_or("-"),
-                r.session_id.as_deref().unwrap_or("-"),
+                printable(&r.kind),
+                printable(&r.principal),
+                printable(r.case_id.as_deref().unwrap_or("-")),
+                printable(r.session_id.as_deref().unwrap_or("-")),
+                printable(&detail),
             );
         }
     }

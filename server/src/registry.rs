@@ -4,7 +4,7 @@
 
 use crate::cases::Case;
 use librplus_proto::v1 as pb;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use tokio::sync::watch;
@@ -17,6 +17,7 @@ pub type Ready = Arc<BTreeMap<String, Arc<Case>>>;
 pub struct Registry {
     ready: RwLock<Ready>,
     states: Mutex<BTreeMap<String, watch::Sender<pb::CaseStatus>>>,
+    uploaded: Mutex<BTreeSet<String>>,
     preloaded: AtomicBool,
 }
 
@@ -56,6 +57,24 @@ impl Registry {
         }
     }
 
+    /// Marks a case as uploaded over the API since the start (its status then belongs to an
+    /// upload, also once a failed upload was removed from the store; not to a case the server
+    /// was started with).
+    pub fn set_uploaded(&self, id: &str) {
+        self.uploaded
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(id.to_string());
+    }
+
+    /// Whether a case was uploaded over the API since the start.
+    pub fn is_uploaded(&self, id: &str) -> bool {
+        self.uploaded
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains(id)
+    }
+
     /// A case's state, and a receiver of its changes.
     pub fn watch(&self, id: &str) -> Option<watch::Receiver<pb::CaseStatus>> {
         self.states
@@ -79,6 +98,10 @@ impl Registry {
             *r = Arc::new(m);
             c
         };
+        self.uploaded
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(id);
         if let Some(tx) = self
             .states
             .lock()

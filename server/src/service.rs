@@ -55,6 +55,8 @@ pub struct Shared {
     pub audit: Option<Arc<Audit>>,
     /// This run's prefix of session ids (unique across restarts).
     pub boot: String,
+    /// Which stream holds each live session (one stream per session id).
+    pub live: Arc<crate::live::Live>,
 }
 
 impl Shared {
@@ -83,6 +85,7 @@ impl Shared {
             auth: auth.map(|a| std::sync::RwLock::new(Arc::new(a))),
             anonymous: Principal::anonymous(),
             per_principal: Default::default(),
+            live: Default::default(),
             config,
         }
     }
@@ -158,7 +161,7 @@ pub fn short(s: &str, n: usize) -> std::borrow::Cow<'_, str> {
 }
 
 /// A session's hold on a server slot and on its principal's quota; released on drop.
-struct Admission {
+pub(crate) struct Admission {
     _permit: OwnedSemaphorePermit,
     /// The principal whose quota it holds (None: its quota is the server's).
     principal: Option<String>,
@@ -449,7 +452,10 @@ fn trusted(
     if !(v.is_finite() && v >= 0.0) {
         return Err(ServiceError::field(
             format!("{field}.trusted_alignment_mm"),
-            format!("{v} must be finite and ≥ 0 (mm; 0: fitted freely)"),
+            format!(
+                "{} must be finite and ≥ 0 (mm; 0: fitted freely)",
+                crate::convert::num(v)
+            ),
         ));
     }
     Ok((v > 0.0).then_some(v))
@@ -702,10 +708,12 @@ impl LibRPlus for Svc {
         // The session's slot is taken when its SessionStart arrives (a stream that never
         // starts holds none, and is closed after `session_start_timeout_s`).
         let deadline = grpc_timeout(req.metadata()).map(|d| Instant::now() + d);
+        // The run's prefix, a counter (unique) and 48 random bits (not guessable).
         let sid = format!(
-            "s{}-{:06}",
+            "s{}-{:06}{:015}",
             self.0.boot,
-            self.0.next_session.fetch_add(1, Ordering::Relaxed) + 1
+            self.0.next_session.fetch_add(1, Ordering::Relaxed) + 1,
+            random_u64() % 1_000_000_000_000_000
         );
         let inbound = req.into_inner();
         let (tx, rx) = mpsc::channel(8);
@@ -735,20 +743,30 @@ impl LibRPlus for Svc {
                     Ok(()) => "OK".to_string(),
                     Err(s) => format!("{label}: {}", short(s.message(), 300)),
                 };
-                let record = match started {
-                    Some(session_id) => Record::SessionEnd {
-                        session_id,
-                        outcome: text,
-                    },
-                    None => Record::Event {
-                        kind: "refused",
-                        principal: who.name.clone(),
-                        case_id: None,
-                        session_id: None,
-                        detail: serde_json::json!({"rpc": "StreamRegister", "outcome": text}),
-                    },
-                };
-                let _ = svc.0.record(vec![record]).await;
+                match started {
+                    // Written while the stream holds the session (none after a takeover: the
+                    // session goes on in the newer stream), then the slot is released.
+                    Some((session_id, lease)) => {
+                        let end = vec![Record::SessionEnd {
+                            session_id: session_id.clone(),
+                            outcome: text,
+                        }];
+                        let _ = lease_record(&svc, &lease, &session_id, end).await;
+                        drop(lease);
+                    }
+                    None => {
+                        let _ = svc
+                            .0
+                            .record(vec![Record::Event {
+                                kind: "refused",
+                                principal: who.name.clone(),
+                                case_id: None,
+                                session_id: None,
+                                detail: serde_json::json!({"rpc": "StreamRegister", "outcome": text}),
+                            }])
+                            .await;
+                    }
+                }
                 match outcome {
                     Ok(()) => tracing::info!("session ended"),
                     Err(s) => {
@@ -788,6 +806,7 @@ async fn next(
     deadline: Option<Instant>,
     drain: &mut watch::Receiver<bool>,
     pending: &mut Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
+    lease: Option<(&str, &mut crate::live::Lease)>,
 ) -> Result<Next, Status> {
     let idle_at = tokio::time::Instant::now() + idle;
     let until = match deadline {
@@ -799,9 +818,14 @@ async fn next(
             "the server is shutting down; session ended",
         ));
     }
+    let (sid, taken_over) = match lease {
+        Some((sid, l)) => (sid, futures_taken_over(l)),
+        None => ("", Box::pin(std::future::pending()) as TakenOverFut<'_>),
+    };
     tokio::select! {
         biased;
         _ = drain.wait_for(|d| *d) => Err(Status::unavailable("the server is shutting down; session ended")),
+        _ = taken_over => Err(ServiceError::TakenOver { session_id: sid.to_string() }.to_status()),
         _ = tokio::time::sleep_until(until) => {
             if deadline.is_some_and(|d| Instant::now() >= d) {
                 Err(Status::deadline_exceeded("the call's deadline passed"))
@@ -818,6 +842,28 @@ async fn next(
             Ok(None) => Ok(Next::End),
             Err(s) => Err(Status::new(s.code(), format!("receiving: {}", s.message()))),
         },
+    }
+}
+
+type TakenOverFut<'a> = std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send + 'a>>;
+
+fn futures_taken_over(l: &mut crate::live::Lease) -> TakenOverFut<'_> {
+    Box::pin(l.taken_over())
+}
+
+/// Writes a session's records through its stream's lease: only while the stream holds the
+/// session (TakenOver otherwise), and never while a resume reads them.
+async fn lease_record(
+    svc: &Svc,
+    lease: &crate::live::Lease,
+    sid: &str,
+    records: Vec<Record>,
+) -> Result<(), ServiceError> {
+    match lease.record(svc.0.record(records)).await {
+        Ok(r) => r,
+        Err(crate::live::TakenOver) => Err(ServiceError::TakenOver {
+            session_id: sid.to_string(),
+        }),
     }
 }
 
@@ -856,7 +902,7 @@ enum Accepted {
 }
 
 /// One streamed session. `fresh` is the id of a new session; `started` is set to the session's
-/// id once it has started (and is recorded).
+/// id and this stream's lease on it once it has started (and is recorded).
 async fn session(
     svc: Svc,
     who: Arc<Principal>,
@@ -864,7 +910,7 @@ async fn session(
     tx: &mpsc::Sender<Result<pb::StreamUpdate, Status>>,
     deadline: Option<Instant>,
     fresh: &str,
-    started: &mut Option<String>,
+    started: &mut Option<(String, crate::live::Lease)>,
 ) -> Result<(), Status> {
     let cfg = &svc.0.config;
     let idle = Duration::from_secs_f64(cfg.session_idle_timeout_s);
@@ -872,7 +918,16 @@ async fn session(
     let mut drain = svc.0.drain.clone();
     // The first message must start the session, within `session_start_timeout_s`; a bad start
     // ends it with its status.
-    let first = match next(&mut inbound, start_within, deadline, &mut drain, &mut None).await {
+    let first = match next(
+        &mut inbound,
+        start_within,
+        deadline,
+        &mut drain,
+        &mut None,
+        None,
+    )
+    .await
+    {
         Ok(Next::Msg(m)) => m,
         Ok(Next::End | Next::Discovered(_)) => return Ok(()),
         Err(e)
@@ -902,21 +957,93 @@ async fn session(
         .to_status());
     };
     let resume = !start.resume_session_id.is_empty();
-    let (mut s, sid, recorded_start) = if resume {
+    // The session's slot and quota are taken here; a resume of a session that a stream holds
+    // takes that stream's (live.rs: the newest stream holds the session, the older one ends).
+    let (mut s, sid, lease) = if resume {
         let id = start.resume_session_id.clone();
-        let (s, recorded) = resume_session(&svc, &who, &id)
+        check_session_id(&id).map_err(|b| b.to_status())?;
+        // Nothing of the session is recorded while it is read and taken over.
+        let takeover = svc.0.live.lock(&id).await;
+        let (mut s, mut recorded) = resume_session(&svc, &who, &id)
             .await
             .map_err(|b| b.to_status())?;
-        (s, id, recorded)
+        let admission = match takeover.held() {
+            true => None,
+            false => {
+                let a = svc.admit(&who).await.map_err(|b| b.to_status())?;
+                Some(Box::new(a) as Box<dyn Send>)
+            }
+        };
+        if svc
+            .0
+            .audit
+            .as_ref()
+            .is_some_and(|a| a.journal_dir().is_some())
+        {
+            // Replicas: the session's next epoch is claimed (no other replica answers for it
+            // from now), then read again — what was recorded up to the claim is the session.
+            // A resume refused by the first read claims nothing.
+            svc.0
+                .record(vec![Record::Claim {
+                    session_id: id.clone(),
+                }])
+                .await
+                .map_err(|b| b.to_status())?;
+            (s, recorded) = resume_session(&svc, &who, &id)
+                .await
+                .map_err(|b| b.to_status())?;
+        }
+        let was_live = takeover.held();
+        let lease = takeover.take(admission);
+        let detail = serde_json::json!({
+            "points": s.meas.points.len(),
+            "last_client_seq": s.last_seq,
+            "replica": crate::config::host_name(),
+            "took_over_a_live_stream": was_live,
+        });
+        let records = vec![
+            // This replica holds the session from here (the journal's next epoch).
+            Record::Takeover {
+                session_id: id.clone(),
+                principal: who.name.clone(),
+                case_id: s.case.id.clone(),
+                case_version: s.case.version.clone(),
+                start: recorded,
+                last_seq: s.last_seq,
+            },
+            Record::Event {
+                kind: "session_resumed",
+                principal: who.name.clone(),
+                case_id: Some(s.case.id.clone()),
+                session_id: Some(id.clone()),
+                detail,
+            },
+        ];
+        lease_record(&svc, &lease, &id, records)
+            .await
+            .map_err(|b| b.to_status())?;
+        tracing::info!(case = %s.case.id, resumed = %id, points = s.meas.points.len(), last_client_seq = s.last_seq, took_over = was_live, "session resumed");
+        (s, id, lease)
     } else {
-        (
-            start_session(&svc, &who, &start, first.client_seq).map_err(|b| b.to_status())?,
-            fresh.to_string(),
-            Vec::new(),
-        )
+        let s = start_session(&svc, &who, &start, first.client_seq).map_err(|b| b.to_status())?;
+        let admission = svc.admit(&who).await.map_err(|b| b.to_status())?;
+        let lease = svc.0.live.start(fresh, Box::new(admission));
+        let records = vec![Record::SessionStart {
+            session_id: fresh.to_string(),
+            principal: who.name.clone(),
+            case_id: s.case.id.clone(),
+            case_version: s.case.version.clone(),
+            start: first_bytes.unwrap_or_default(),
+        }];
+        lease_record(&svc, &lease, fresh, records)
+            .await
+            .map_err(|b| b.to_status())?;
+        tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
+        (s, fresh.to_string(), lease)
     };
+    // The caller writes the session's end through the lease (nothing when it was taken over).
+    let (sid, lease) = started.insert((sid, lease));
     let sid = sid.as_str();
-    let _admission = svc.admit(&who).await.map_err(|b| b.to_status())?;
     // The case is in use while the session lasts (DeleteCase waits for none).
     struct InUse(Arc<Case>);
     impl Drop for InUse {
@@ -926,46 +1053,6 @@ async fn session(
     }
     s.case.sessions.fetch_add(1, Ordering::SeqCst);
     let _in_use = InUse(s.case.clone());
-    if resume {
-        let detail = serde_json::json!({
-            "points": s.meas.points.len(),
-            "last_client_seq": s.last_seq,
-            "replica": crate::config::host_name(),
-        });
-        svc.0
-            .record(vec![
-                // This replica holds the session from here (the journal's next epoch).
-                Record::Takeover {
-                    session_id: sid.to_string(),
-                    principal: who.name.clone(),
-                    case_id: s.case.id.clone(),
-                    start: recorded_start,
-                    last_seq: s.last_seq,
-                },
-                Record::Event {
-                    kind: "session_resumed",
-                    principal: who.name.clone(),
-                    case_id: Some(s.case.id.clone()),
-                    session_id: Some(sid.to_string()),
-                    detail,
-                },
-            ])
-            .await
-            .map_err(|b| b.to_status())?;
-        tracing::info!(case = %s.case.id, resumed = sid, points = s.meas.points.len(), last_client_seq = s.last_seq, "session resumed");
-    } else {
-        svc.0
-            .record(vec![Record::SessionStart {
-                session_id: sid.to_string(),
-                principal: who.name.clone(),
-                case_id: s.case.id.clone(),
-                start: first_bytes.unwrap_or_default(),
-            }])
-            .await
-            .map_err(|b| b.to_status())?;
-        tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
-    }
-    *started = Some(sid.to_string());
     let send = |s: &mut Session, update: pb::stream_update::Update, arrival: Instant| {
         s.sequence += 1;
         let out = pb::StreamUpdate {
@@ -985,7 +1072,7 @@ async fn session(
         let arrival = Instant::now();
         let seq = s.last_seq;
         let update = register_session(&svc, &s, arrival, deadline, seq).await;
-        audit_update(&svc, &who, &s, sid, &update)
+        audit_update(&svc, lease, &who, &s, sid, &update)
             .await
             .map_err(|b| b.to_status())?;
         if send(&mut s, update, arrival).await.is_err() {
@@ -993,7 +1080,16 @@ async fn session(
         }
     }
     loop {
-        let m = match next(&mut inbound, idle, deadline, &mut drain, &mut s.pending).await? {
+        let m = match next(
+            &mut inbound,
+            idle,
+            deadline,
+            &mut drain,
+            &mut s.pending,
+            Some((sid, &mut *lease)),
+        )
+        .await?
+        {
             Next::Msg(m) => m,
             Next::End => return finish(&svc, &mut s, deadline, &mut drain, &send).await,
             Next::Discovered(o) => {
@@ -1081,7 +1177,9 @@ async fn session(
             });
         }
         if !records.is_empty() {
-            svc.0.record(records).await.map_err(|b| b.to_status())?;
+            lease_record(&svc, lease, sid, records)
+                .await
+                .map_err(|b| b.to_status())?;
         }
         for r in rejections {
             if send(&mut s, r, arrival).await.is_err() {
@@ -1101,7 +1199,7 @@ async fn session(
         }
         if let Some(seq) = accepted {
             let update = register_session(&svc, &s, arrival, deadline, seq).await;
-            audit_update(&svc, &who, &s, sid, &update)
+            audit_update(&svc, lease, &who, &s, sid, &update)
                 .await
                 .map_err(|b| b.to_status())?;
             if send(&mut s, update, arrival).await.is_err() {
@@ -1158,6 +1256,7 @@ fn audit_record(
 /// for the commit.
 async fn audit_update(
     svc: &Svc,
+    lease: &crate::live::Lease,
     who: &Principal,
     s: &Session,
     sid: &str,
@@ -1184,11 +1283,49 @@ async fn audit_update(
             },
             pb::stream_update::Update::Discovery(_) => return Ok(()),
         };
-    svc.0.record(vec![record]).await
+    lease_record(svc, lease, sid, vec![record]).await
+}
+
+/// How many sessions recorded on case `case_id` at `version` a client could still resume (this
+/// server's audit log; sessions older than the journal's retention are no longer resumable).
+/// None without an audit log (no session resumes) or when it cannot be read.
+pub(crate) async fn resumable_sessions(
+    shared: &Shared,
+    case_id: &str,
+    version: &str,
+) -> Option<u64> {
+    let audit = shared.audit.as_ref()?;
+    let path = audit.path().to_path_buf();
+    let since = match audit.journal_dir() {
+        Some(_) => {
+            crate::audit::now_ms()
+                - (shared.config.session_journal_retention_h * 3.6e6).min(1e15) as i64
+        }
+        None => 0,
+    };
+    let (id, v) = (case_id.to_string(), version.to_string());
+    tokio::task::spawn_blocking(move || {
+        let c = crate::audit::open_db(&path).ok()?;
+        crate::audit::count_sessions(&c, &id, &v, since).ok()
+    })
+    .await
+    .ok()
+    .flatten()
+}
+
+/// A resumed session id is at most 128 bytes (checked before anything is looked up).
+fn check_session_id(id: &str) -> Result<(), ServiceError> {
+    if id.len() > 128 {
+        return Err(ServiceError::field(
+            "start.resume_session_id",
+            format!("is {} bytes long; session ids are at most 128", id.len()),
+        ));
+    }
+    Ok(())
 }
 
 /// Rebuilds a recorded session: its start and accepted messages, in order, through the same
-/// checks as when they arrived.
+/// checks as when they arrived. The case must still have the content the session started on.
 async fn resume_session(
     svc: &Svc,
     who: &Principal,
@@ -1204,12 +1341,7 @@ async fn resume_session(
             format!("{field}: this server keeps no audit log (audit_db), so no session resumes"),
         ));
     };
-    if id.len() > 128 {
-        return Err(ServiceError::field(
-            field,
-            format!("is {} bytes long; session ids are at most 128", id.len()),
-        ));
-    }
+    check_session_id(id)?;
     let path = audit.path().to_path_buf();
     let journal = audit.journal_dir().map(Path::to_path_buf);
     let key = id.to_string();
@@ -1242,7 +1374,39 @@ async fn resume_session(
     let Some(pb::stream_register_request::Msg::Start(start)) = &first.msg else {
         return Err(broken("the first message is not a start".into()));
     };
-    let mut s = start_session(svc, who, start, first.client_seq)?;
+    let mut s = start_session(svc, who, start, first.client_seq).map_err(|e| match e {
+        ServiceError::UnknownCase { .. } => ServiceError::precondition(
+            "CASE",
+            field,
+            format!("the session's case {:?} no longer exists", rec.case_id),
+            format!(
+                "{field}: session {id} was started on case {:?} (version {}), which no longer \
+                 exists; start a new session",
+                short(&rec.case_id, 64),
+                rec.case_version.as_deref().unwrap_or("not recorded")
+            ),
+        ),
+        e => e,
+    })?;
+    if let Some(v) = &rec.case_version
+        && *v != s.case.version
+    {
+        return Err(ServiceError::precondition(
+            "CASE",
+            field,
+            format!(
+                "the session's case {:?} changed since it started (version {v}, now {})",
+                rec.case_id, s.case.version
+            ),
+            format!(
+                "{field}: session {id} was started on case {:?} version {v}; the case now has \
+                 version {} (it was replaced since), so the session's points would be \
+                 registered to another model; start a new session",
+                short(&rec.case_id, 64),
+                s.case.version
+            ),
+        ));
+    }
     for (seq, bytes) in &rec.messages {
         let m = pb::StreamRegisterRequest::decode(&bytes[..])
             .map_err(|e| broken(format!("message {seq}: {e}")))?;
@@ -1661,10 +1825,15 @@ fn accept(
 
 /// 32 random bits for the session ids of this run.
 fn boot_nonce() -> u32 {
+    random_u64() as u32
+}
+
+/// 64 bits from the system's secure random source.
+fn random_u64() -> u64 {
     use ring::rand::SecureRandom;
-    let mut b = [0u8; 4];
+    let mut b = [0u8; 8];
     let _ = ring::rand::SystemRandom::new().fill(&mut b);
-    u32::from_le_bytes(b)
+    u64::from_le_bytes(b)
 }
 
 #[cfg(test)]

@@ -1,5 +1,9 @@
-//! `CreateCase` and `DeleteCase`: an upload received in chunks, checked, stored and preloaded in
-//! the background; a stored case deleted when no session uses it.
+//! `CreateCase` and `DeleteCase`: an upload received in chunks, checked (every check preload
+//! makes short of the LIBR basis, [`store::validate`]), stored within the store's quotas
+//! ([`store::Quotas`]) and preloaded in the background; a stored case deleted when no session
+//! uses it. An upload that passes the checks and still fails to preload is removed from the
+//! store (its FAILED status keeps the reason), so that it is not reloaded at every start and
+//! holds no quota.
 
 use crate::audit::Record;
 use crate::auth::Principal;
@@ -111,6 +115,15 @@ pub async fn create(
     if total_bytes > max as u64 {
         return Err(too_big(total_bytes));
     }
+    // Over a quota: refused before the upload is received (and again, under the store's lock,
+    // when it is stored). A retry of a stored case is no new case.
+    let quotas = store::Quotas::from_config(cfg);
+    let store = shared.store.as_ref().expect("checked");
+    if store.find(&case_id).is_none() {
+        store
+            .check_quota(&who.name, total_bytes, &quotas)
+            .map_err(|e| e.to_service())?;
+    }
     let arrays = !nodes_mm.is_empty() || !tets.is_empty();
     if arrays && !mesh_format.is_empty() {
         return Err(ServiceError::field(
@@ -157,9 +170,12 @@ pub async fn create(
             "no mesh: send CASE_FILE_MESH chunks (with upload.mesh_format) or upload.nodes_mm and upload.tets",
         ));
     }
-    // A case the server was started with keeps its id.
-    let store = shared.store.as_ref().expect("checked");
-    if shared.registry.status(&case_id).is_some() && store.find(&case_id).is_none() {
+    // A case the server was started with keeps its id (an upload that failed and was removed
+    // from the store does not).
+    if shared.registry.status(&case_id).is_some()
+        && !shared.registry.is_uploaded(&case_id)
+        && store.find(&case_id).is_none()
+    {
         return Err(ServiceError::precondition(
             "CASE",
             "upload.case_id",
@@ -193,7 +209,7 @@ pub async fn create(
         let checked = store::check(&upload, max_nodes)?;
         let store = sh.store.as_ref().expect("checked");
         store
-            .put(&upload, &checked, &principal)
+            .put(&upload, &checked, &principal, &quotas)
             .map_err(|e| e.to_service())
     })
     .await
@@ -215,7 +231,8 @@ pub async fn create(
         tracing::info!(case = %case_id, version = %stored.version, nodes = stored.nodes, principal = %who.name, "case uploaded; preloading");
     }
     let status = match shared.registry.status(&case_id) {
-        Some(s) if s.version == stored.version => s,
+        // A new copy in the store is preloaded (also after a failed one of the same content).
+        Some(s) if s.version == stored.version && !created => s,
         _ => preload(shared.clone(), stored.clone()),
     };
     Ok(pb::CreateCaseResponse {
@@ -241,8 +258,11 @@ pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
         seconds: t0.elapsed().as_secs_f64(),
     };
     let first = status("queued", 0.0);
+    shared.registry.set_uploaded(&stored.case_id);
     shared.registry.set(first.clone(), None);
+    let runtime = tokio::runtime::Handle::current();
     tokio::task::spawn_blocking(move || {
+        let principal = stored.principal.clone();
         let id = stored.case_id.clone();
         let version = stored.version.clone();
         let nodes = stored.nodes;
@@ -305,18 +325,49 @@ pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
                 shared.registry.set(s, Some(c));
             }
             Err(e) => {
-                tracing::error!(case = %id, error = %e, "uploaded case failed to preload");
+                // Removed from the store: it would fail again at every start and hold its
+                // quota. Its FAILED status keeps the reason until it is uploaded again.
+                let removed = shared
+                    .store
+                    .as_ref()
+                    .map(|s| s.remove_version(&id, Some(&version)));
+                let error = match removed {
+                    Some(Ok(Some(_))) => format!(
+                        "{e}; the upload was removed from the case store: upload it again once fixed"
+                    ),
+                    Some(Err(r)) => {
+                        tracing::error!(case = %id, error = %r, "could not remove the failed upload from the case store");
+                        e.to_string()
+                    }
+                    _ => e.to_string(),
+                };
+                tracing::error!(case = %id, error = %error, "uploaded case failed to preload");
                 shared.registry.set(
                     pb::CaseStatus {
                         case_id: id.clone(),
-                        version,
+                        version: version.clone(),
                         state: pb::CaseState::Failed as i32,
-                        error: e.to_string(),
+                        error: error.clone(),
                         seconds: t0.elapsed().as_secs_f64(),
                         ..Default::default()
                     },
                     None,
                 );
+                let sh = shared.clone();
+                runtime.spawn(async move {
+                    let r = sh
+                        .record(vec![Record::Event {
+                            kind: "case_failed",
+                            principal,
+                            case_id: Some(id.clone()),
+                            session_id: None,
+                            detail: serde_json::json!({ "version": version, "error": error }),
+                        }])
+                        .await;
+                    if let Err(e) = r {
+                        tracing::error!(case = %id, error = ?e, "could not record the failed preload");
+                    }
+                });
             }
         }
     });
@@ -350,6 +401,25 @@ pub async fn delete(
         ));
     }
     let Some(stored) = store.find(case_id) else {
+        if shared.registry.is_uploaded(case_id) {
+            // An upload that failed to preload, already removed from the store: its FAILED
+            // status is forgotten.
+            shared.registry.remove(case_id);
+            shared
+                .record(vec![Record::Event {
+                    kind: "case_deleted",
+                    principal: who.name.clone(),
+                    case_id: Some(case_id.to_string()),
+                    session_id: None,
+                    detail: serde_json::json!({ "version": status.version, "failed": true }),
+                }])
+                .await?;
+            return Ok(pb::DeleteCaseResponse {
+                case_id: case_id.to_string(),
+                version: status.version,
+                ..Default::default()
+            });
+        }
         return Err(ServiceError::precondition(
             "CASE",
             "case_id",
@@ -402,18 +472,26 @@ pub async fn delete(
         }
         return Err(e);
     }
+    // Sessions recorded on it can no longer be resumed (a resume is refused naming the case).
+    let resumable = crate::service::resumable_sessions(shared, case_id, &stored.version)
+        .await
+        .unwrap_or(0);
     shared
         .record(vec![Record::Event {
             kind: "case_deleted",
             principal: who.name.clone(),
             case_id: Some(case_id.to_string()),
             session_id: None,
-            detail: serde_json::json!({ "version": stored.version }),
+            detail: serde_json::json!({
+                "version": stored.version,
+                "resumable_sessions": resumable,
+            }),
         }])
         .await?;
-    tracing::info!(case = %case_id, principal = %who.name, "case deleted");
+    tracing::info!(case = %case_id, principal = %who.name, resumable_sessions = resumable, "case deleted; its recorded sessions can no longer be resumed");
     Ok(pb::DeleteCaseResponse {
         case_id: case_id.to_string(),
         version: stored.version,
+        resumable_sessions: resumable.min(u32::MAX as u64) as u32,
     })
 }

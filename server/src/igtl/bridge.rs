@@ -2,8 +2,16 @@
 //! that forwards what it receives to a LIBR+ gRPC server as a streamed session and sends each
 //! registration back as OpenIGTLink messages.
 //!
-//! One TCP connection is one registration session (`StreamRegister` on the gRPC server, case and
-//! method fixed by the bridge's options). Received (device names are free unless stated):
+//! One TCP connection is at most one registration session (`StreamRegister` on the gRPC server,
+//! case and method fixed by the bridge's options), opened when the connection's first message
+//! that carries data (`POINT`, or a `POLYDATA` plane) arrives: a connection that sends nothing
+//! holds no server session. **Limits** (so that idle or hostile sockets cannot take the server's
+//! session slots): at most [`BridgeConfig::max_sessions`] connections are served at once (more
+//! are answered with `STATUS` 6, busy, and closed); a connection that sends no complete message
+//! for [`BridgeConfig::idle_timeout`] before its session is open, or for
+//! [`BridgeConfig::session_idle_timeout`] after, is sent `STATUS` 7 (time-out) and closed; when
+//! the gRPC session ends (refused, timed out by the server, the server draining), the connection
+//! is closed after the `STATUS` saying why. Received (device names are free unless stated):
 //!
 //! | message | meaning |
 //! | --- | --- |
@@ -37,9 +45,12 @@ use librplus_client::pb;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::mpsc;
+use tokio::sync::{Semaphore, mpsc};
+use tokio::time::Instant;
+use tracing::Instrument;
 
 /// Device name of the image → physical `TRANSFORM` sent after each registration.
 pub const DEVICE_TRANSFORM: &str = "LIBR_ImageToPhysical";
@@ -99,6 +110,43 @@ pub struct BridgeConfig {
     pub targets: Vec<Target>,
     /// Largest OpenIGTLink body accepted (bytes).
     pub max_body: u64,
+    /// Most OpenIGTLink connections served at once (each holds at most one gRPC session); more
+    /// are answered with `STATUS` 6 (busy) and closed. At least 1; keep it below the server's
+    /// `max_sessions` so that the bridge cannot take every slot (`--max-sessions`, default
+    /// [`DEFAULT_MAX_SESSIONS`]).
+    pub max_sessions: usize,
+    /// A connection with no session yet (no `POINT` or `POLYDATA` received) that sends no
+    /// complete message for this long is sent `STATUS` 7 (time-out) and closed
+    /// (`--idle-timeout-s`, default [`DEFAULT_IDLE_TIMEOUT_S`]).
+    pub idle_timeout: Duration,
+    /// The same once its session is open (`--session-idle-timeout-s`, default
+    /// [`DEFAULT_SESSION_IDLE_TIMEOUT_S`], the server's own `session_idle_timeout_s`).
+    pub session_idle_timeout: Duration,
+}
+
+/// Default of [`BridgeConfig::max_sessions`]: half the server's default `max_sessions` (8).
+pub const DEFAULT_MAX_SESSIONS: usize = 4;
+/// Default of [`BridgeConfig::idle_timeout`], s.
+pub const DEFAULT_IDLE_TIMEOUT_S: f64 = 30.0;
+/// Default of [`BridgeConfig::session_idle_timeout`], s.
+pub const DEFAULT_SESSION_IDLE_TIMEOUT_S: f64 = 600.0;
+
+/// How long the gRPC server has to answer a session's opening.
+const OPEN_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long the peer has to take one message sent to it before its connection is closed.
+const WRITE_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a closing connection waits for the gRPC session's last answers.
+const CLOSE_GRACE: Duration = Duration::from_secs(30);
+/// How often a refused connection is logged at most (the count since is in the line).
+const REFUSAL_LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// A timeout option in seconds as a [`Duration`]: finite and positive, else an error naming
+/// `flag` (for example `--idle-timeout-s`).
+pub fn timeout_of(flag: &str, seconds: f64) -> anyhow::Result<Duration> {
+    if !(seconds.is_finite() && seconds > 0.0) {
+        anyhow::bail!("{flag} {seconds}: a positive number of seconds");
+    }
+    Duration::try_from_secs_f64(seconds).map_err(|e| anyhow::anyhow!("{flag} {seconds}: {e}"))
 }
 
 /// Reads targets from a 3D Slicer markups file (`.mrk.json`, schema 1.0: `markups[].
@@ -220,8 +268,20 @@ impl CaseGeometry {
 }
 
 /// Runs the bridge on `listener` until the process ends: describes the case once, then serves
-/// every OpenIGTLink connection as its own registration session.
+/// every OpenIGTLink connection (at most [`BridgeConfig::max_sessions`] at once) as its own
+/// registration session.
 pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<()> {
+    if cfg.max_sessions == 0 {
+        anyhow::bail!("--max-sessions 0: at least 1 (the most OpenIGTLink connections served)");
+    }
+    for (flag, t) in [
+        ("--idle-timeout-s", cfg.idle_timeout),
+        ("--session-idle-timeout-s", cfg.session_idle_timeout),
+    ] {
+        if t.is_zero() {
+            anyhow::bail!("{flag} 0: a positive number of seconds");
+        }
+    }
     let client = librplus_client::connect_with(&cfg.server, &cfg.tls).await?;
     let session_cfg = librplus_client::SessionConfig::new(
         std::time::Duration::from_secs(60),
@@ -248,9 +308,16 @@ pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<(
         case = %cfg.case_id,
         nodes = geo.nodes.len(),
         targets = geo.targets.len(),
+        max_sessions = cfg.max_sessions,
+        idle_timeout_s = cfg.idle_timeout.as_secs_f64(),
+        session_idle_timeout_s = cfg.session_idle_timeout.as_secs_f64(),
         "OpenIGTLink bridge ready"
     );
-    let next_id = AtomicU64::new(1);
+    let slots = Arc::new(Semaphore::new(cfg.max_sessions));
+    let mut next_id = 1u64;
+    // Refused connections since the last line about them (logged at most every
+    // REFUSAL_LOG_EVERY, so a flood of connections does not flood the log).
+    let (mut refused, mut refusal_logged) = (0u64, None::<Instant>);
     loop {
         let (socket, peer) = match listener.accept().await {
             Ok(x) => x,
@@ -260,15 +327,50 @@ pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<(
                 continue;
             }
         };
-        let id = next_id.fetch_add(1, Ordering::Relaxed);
-        let (client, cfg, geo, token) = (client.clone(), cfg.clone(), geo.clone(), token.clone());
-        tokio::spawn(async move {
-            tracing::info!(connection = id, %peer, "OpenIGTLink peer connected");
-            match connection(socket, client, &cfg, &geo, token).await {
-                Ok(()) => tracing::info!(connection = id, "OpenIGTLink peer left"),
-                Err(e) => tracing::warn!(connection = id, error = %e, "connection ended"),
+        let id = next_id;
+        next_id += 1;
+        let Ok(slot) = slots.clone().try_acquire_owned() else {
+            refused += 1;
+            if refusal_logged.is_none_or(|t| t.elapsed() >= REFUSAL_LOG_EVERY) {
+                tracing::warn!(
+                    connection = id,
+                    %peer,
+                    max_sessions = cfg.max_sessions,
+                    refused,
+                    "OpenIGTLink connection refused: the bridge already serves --max-sessions connections (refused: since the last such line)"
+                );
+                (refused, refusal_logged) = (0, Some(Instant::now()));
             }
-        });
+            let busy = status(
+                status_code::BUSY,
+                "BUSY",
+                &format!(
+                    "the LIBR+ bridge already serves its {} connections (--max-sessions); try again later",
+                    cfg.max_sessions
+                ),
+            );
+            tokio::spawn(async move {
+                let mut socket = socket;
+                let _ = tokio::time::timeout(Duration::from_secs(2), async {
+                    socket.write_all(&busy).await?;
+                    socket.shutdown().await
+                })
+                .await;
+            });
+            continue;
+        };
+        let (client, cfg, geo, token) = (client.clone(), cfg.clone(), geo.clone(), token.clone());
+        tokio::spawn(
+            async move {
+                tracing::info!(%peer, "OpenIGTLink peer connected");
+                match connection(socket, client, &cfg, &geo, token).await {
+                    Ok(()) => tracing::info!("OpenIGTLink peer left"),
+                    Err(e) => tracing::warn!(error = %e, "connection ended"),
+                }
+                drop(slot);
+            }
+            .instrument(tracing::info_span!("igtl", connection = id)),
+        );
     }
 }
 
@@ -308,24 +410,26 @@ fn status_code_of(code: &str) -> u16 {
     }
 }
 
-/// One OpenIGTLink connection: one gRPC session.
-async fn connection(
-    socket: TcpStream,
-    client: librplus_client::Client,
+/// The gRPC side of a connection, opened by its first message that carries data.
+struct Session {
+    /// Requests to the gRPC stream (its SessionStart already sent).
+    requests: mpsc::Sender<pb::StreamRegisterRequest>,
+    /// Forwards the gRPC answers to the peer; ends with the gRPC stream (with the reason when it
+    /// ended with an error).
+    answers: tokio::task::JoinHandle<Option<String>>,
+    /// Whether `answers` has ended (and was awaited).
+    ended: bool,
+}
+
+/// Opens the connection's gRPC session: sends its SessionStart and starts forwarding the
+/// answers to `out_tx`.
+async fn open_session(
+    client: &librplus_client::Client,
     cfg: &BridgeConfig,
     geo: &Arc<CaseGeometry>,
-    token: Option<tonic::metadata::AsciiMetadataValue>,
-) -> anyhow::Result<()> {
-    let (mut rd, mut wr) = socket.into_split();
-    let (out_tx, mut out_rx) = mpsc::channel::<Vec<u8>>(64);
-    let writer = tokio::spawn(async move {
-        while let Some(bytes) = out_rx.recv().await {
-            if wr.write_all(&bytes).await.is_err() {
-                break;
-            }
-        }
-        let _ = wr.shutdown().await;
-    });
+    token: Option<&tonic::metadata::AsciiMetadataValue>,
+    out_tx: &mpsc::Sender<Vec<u8>>,
+) -> Result<Session, tonic::Status> {
     let (req_tx, req_rx) = mpsc::channel::<pb::StreamRegisterRequest>(64);
     let start = pb::StreamRegisterRequest {
         client_seq: 1,
@@ -341,77 +445,222 @@ async fn connection(
     };
     req_tx.send(start).await.ok();
     let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(req_rx));
-    if let Some(t) = &token {
+    if let Some(t) = token {
         req.metadata_mut().insert("authorization", t.clone());
     }
-    let mut updates = match client.clone().stream_register(req).await {
-        Ok(r) => r.into_inner(),
-        Err(s) => {
-            out_tx
-                .send(grpc_status(&s, "the LIBR+ server refused the session"))
-                .await
-                .ok();
-            drop(out_tx);
-            writer.await.ok();
-            anyhow::bail!(
-                "StreamRegister refused: {}: {}",
-                librplus_client::code_name(s.code()),
-                s.message()
-            );
-        }
-    };
+    let mut updates =
+        match tokio::time::timeout(OPEN_TIMEOUT, client.clone().stream_register(req)).await {
+            Ok(r) => r?.into_inner(),
+            Err(_) => {
+                return Err(tonic::Status::deadline_exceeded(format!(
+                    "the LIBR+ server did not answer StreamRegister within {} s",
+                    OPEN_TIMEOUT.as_secs()
+                )));
+            }
+        };
     // gRPC answers → OpenIGTLink messages.
-    let answers = {
-        let (out_tx, geo, frame) = (out_tx.clone(), geo.clone(), cfg.frame);
-        tokio::spawn(async move {
+    let (out_tx, geo, frame) = (out_tx.clone(), geo.clone(), cfg.frame);
+    let answers = tokio::spawn(
+        async move {
             loop {
                 match updates.message().await {
                     Ok(Some(u)) => {
                         for bytes in answer_messages(&u, &geo, frame) {
                             if out_tx.send(bytes).await.is_err() {
-                                return;
+                                return Some("the peer's socket is closed".into());
                             }
                         }
                     }
-                    Ok(None) => return,
+                    Ok(None) => return None,
                     Err(s) => {
-                        tracing::warn!(
-                            code = librplus_client::code_name(s.code()),
-                            message = s.message(),
-                            "the gRPC session ended"
-                        );
+                        let code = librplus_client::code_name(s.code());
+                        tracing::warn!(code, message = s.message(), "the gRPC session ended");
                         out_tx
                             .send(grpc_status(&s, "the LIBR+ session ended"))
                             .await
                             .ok();
-                        return;
+                        return Some(format!("the gRPC session ended: {code}: {}", s.message()));
                     }
                 }
             }
-        })
-    };
+        }
+        .in_current_span(),
+    );
+    Ok(Session {
+        requests: req_tx,
+        answers,
+        ended: false,
+    })
+}
+
+/// What ended a wait of [`connection`]'s loop.
+enum Event {
+    /// The socket read (bytes, or the end of the peer's stream).
+    Read(std::io::Result<usize>),
+    /// No complete message for the idle timeout in force.
+    Idle,
+    /// The writer stopped: the peer did not take a message in time, or the socket failed.
+    WriterEnded(Result<Result<(), String>, tokio::task::JoinError>),
+    /// The gRPC session ended (the reason when it was an error).
+    SessionEnded(Option<String>),
+}
+
+/// One OpenIGTLink connection: at most one gRPC session, opened by its first message that
+/// carries data; closed when it stays silent past its idle timeout or when the gRPC session ends.
+async fn connection(
+    socket: TcpStream,
+    client: librplus_client::Client,
+    cfg: &BridgeConfig,
+    geo: &Arc<CaseGeometry>,
+    token: Option<tonic::metadata::AsciiMetadataValue>,
+) -> anyhow::Result<()> {
+    let (mut rd, mut wr) = socket.into_split();
+    let (out_tx, mut out_rx) = mpsc::channel::<Vec<u8>>(64);
+    let opened = Instant::now();
+    // When the last message to the peer was written, ms after `opened`.
+    let last_sent_ms = Arc::new(AtomicU64::new(0));
+    let sent = last_sent_ms.clone();
+    let mut writer = tokio::spawn(async move {
+        while let Some(bytes) = out_rx.recv().await {
+            match tokio::time::timeout(WRITE_TIMEOUT, wr.write_all(&bytes)).await {
+                Ok(Ok(())) => sent.store(
+                    u64::try_from(opened.elapsed().as_millis()).unwrap_or(u64::MAX),
+                    Ordering::Relaxed,
+                ),
+                Ok(Err(e)) => return Err(format!("writing the socket: {e}")),
+                Err(_) => {
+                    return Err(format!(
+                        "the peer took no message for {} s",
+                        WRITE_TIMEOUT.as_secs()
+                    ));
+                }
+            }
+        }
+        let _ = tokio::time::timeout(Duration::from_secs(2), wr.shutdown()).await;
+        Ok(())
+    });
+    let mut writer_ended = false;
+    let mut session: Option<Session> = None;
     // OpenIGTLink messages → gRPC requests.
     let mut decoder = Decoder::with_max_body_size(cfg.max_body);
     let mut poses: std::collections::HashMap<String, Rigid> = Default::default();
     let mut seq = 1u64;
     let mut buf = vec![0u8; 64 * 1024];
+    // When the last complete message (well-formed or not) arrived: partial bytes do not count,
+    // so a peer trickling a message byte by byte is idle too. The idle timeout runs from it or
+    // from the last message sent to the peer, whichever is later (a registration being computed
+    // is not silence).
+    let mut last_message = opened;
     let result = 'read: loop {
-        let n = match rd.read(&mut buf).await {
-            Ok(0) => break Ok(()),
-            Ok(n) => n,
-            Err(e) => break Err(anyhow::anyhow!("reading the socket: {e}")),
+        let (limit, flag) = if session.is_some() {
+            (cfg.session_idle_timeout, "--session-idle-timeout-s")
+        } else {
+            (cfg.idle_timeout, "--idle-timeout-s")
+        };
+        let last_sent = opened + Duration::from_millis(last_sent_ms.load(Ordering::Relaxed));
+        let event = tokio::select! {
+            r = rd.read(&mut buf) => Event::Read(r),
+            () = tokio::time::sleep_until(last_message.max(last_sent) + limit) => Event::Idle,
+            r = &mut writer, if !writer_ended => Event::WriterEnded(r),
+            r = async {
+                match session.as_mut() {
+                    Some(s) if !s.ended => (&mut s.answers).await.unwrap_or(None),
+                    _ => std::future::pending().await,
+                }
+            } => Event::SessionEnded(r),
+        };
+        let n = match event {
+            Event::Read(Ok(0)) => break Ok(()),
+            Event::Read(Ok(n)) => n,
+            Event::Read(Err(e)) => break Err(anyhow::anyhow!("reading the socket: {e}")),
+            // A message was sent to the peer meanwhile: wait on from it.
+            Event::Idle
+                if Instant::now()
+                    < opened
+                        + Duration::from_millis(last_sent_ms.load(Ordering::Relaxed))
+                        + limit =>
+            {
+                continue;
+            }
+            Event::Idle => {
+                let why = format!(
+                    "no OpenIGTLink message from the peer, nor to it, for {} s ({flag}; {}): connection closed",
+                    limit.as_secs_f64(),
+                    if session.is_some() {
+                        "session open"
+                    } else {
+                        "no POINT or POLYDATA yet, so no session"
+                    }
+                );
+                tracing::warn!("{why}");
+                // Never waits: a peer that does not read gets no STATUS.
+                out_tx
+                    .try_send(status(status_code::TIME_OUT, "IDLE_TIMEOUT", &why))
+                    .ok();
+                break Err(anyhow::anyhow!(why));
+            }
+            Event::WriterEnded(r) => {
+                writer_ended = true;
+                let why = match r {
+                    Ok(Ok(())) => "the writer ended".to_string(),
+                    Ok(Err(why)) => why,
+                    Err(e) => format!("the writer failed: {e}"),
+                };
+                break Err(anyhow::anyhow!("{why}; connection closed"));
+            }
+            Event::SessionEnded(why) => {
+                if let Some(s) = session.as_mut() {
+                    s.ended = true;
+                }
+                break match why {
+                    Some(why) => Err(anyhow::anyhow!("{why}; connection closed")),
+                    None => Err(anyhow::anyhow!(
+                        "the LIBR+ server ended the session; connection closed"
+                    )),
+                };
+            }
         };
         decoder.feed(&buf[..n]);
         while let Some(next) = decoder.next_message() {
+            last_message = Instant::now();
             match next {
                 Ok((header, msg)) => match request_of(&header, msg, cfg.frame, &mut poses) {
                     Ok(Some(m)) => {
+                        if session.is_none() {
+                            match open_session(&client, cfg, geo, token.as_ref(), &out_tx).await {
+                                Ok(s) => {
+                                    tracing::info!(
+                                        kind = %header.type_name,
+                                        device = %header.device_name,
+                                        "first data message: gRPC session opened"
+                                    );
+                                    session = Some(s);
+                                }
+                                Err(s) => {
+                                    out_tx
+                                        .send(grpc_status(
+                                            &s,
+                                            "the LIBR+ server refused the session",
+                                        ))
+                                        .await
+                                        .ok();
+                                    break 'read Err(anyhow::anyhow!(
+                                        "StreamRegister refused: {}: {}",
+                                        librplus_client::code_name(s.code()),
+                                        s.message()
+                                    ));
+                                }
+                            }
+                        }
+                        let Some(s) = session.as_ref() else {
+                            break 'read Err(anyhow::anyhow!("no gRPC session"));
+                        };
                         seq += 1;
                         let r = pb::StreamRegisterRequest {
                             client_seq: seq,
                             msg: Some(m),
                         };
-                        if req_tx.send(r).await.is_err() {
+                        if s.requests.send(r).await.is_err() {
                             break 'read Err(anyhow::anyhow!("the gRPC session has ended"));
                         }
                     }
@@ -444,10 +693,29 @@ async fn connection(
         }
     };
     // Close the gRPC side, let the last answers through, then the socket.
-    drop(req_tx);
-    let _ = tokio::time::timeout(std::time::Duration::from_secs(30), answers).await;
+    if let Some(Session {
+        requests,
+        mut answers,
+        ended,
+    }) = session
+    {
+        drop(requests);
+        if !ended
+            && tokio::time::timeout(CLOSE_GRACE, &mut answers)
+                .await
+                .is_err()
+        {
+            answers.abort();
+        }
+    }
     drop(out_tx);
-    writer.await.ok();
+    if !writer_ended
+        && tokio::time::timeout(WRITE_TIMEOUT, &mut writer)
+            .await
+            .is_err()
+    {
+        writer.abort();
+    }
     result
 }
 
@@ -786,6 +1054,25 @@ pub async fn run(addr: SocketAddr, cfg: BridgeConfig) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn limits_default_below_the_server_and_timeouts_are_checked() {
+        // The bridge alone cannot take every session slot of a server with default settings.
+        let server = crate::config::ServerConfig::default();
+        assert!(DEFAULT_MAX_SESSIONS >= 1 && DEFAULT_MAX_SESSIONS < server.max_sessions);
+        assert_eq!(
+            DEFAULT_SESSION_IDLE_TIMEOUT_S,
+            server.session_idle_timeout_s
+        );
+        assert_eq!(
+            timeout_of("--idle-timeout-s", 1.5).unwrap(),
+            Duration::from_millis(1500)
+        );
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e300] {
+            let e = timeout_of("--idle-timeout-s", bad).unwrap_err().to_string();
+            assert!(e.starts_with("--idle-timeout-s "), "{e}");
+        }
+    }
 
     #[test]
     fn frames_convert_and_transforms_round_trip() {

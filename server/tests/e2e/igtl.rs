@@ -221,6 +221,29 @@ fn point_message(points: &[[f32; 3]], k: usize) -> Vec<u8> {
         .unwrap()
 }
 
+/// The bridge's configuration for `case` on `running` (frame RAS, no targets, 1 MiB bodies, the
+/// default limits).
+fn bridge_config(
+    running: &librplus_server::Running,
+    case: &str,
+    method: pb::Method,
+) -> BridgeConfig {
+    BridgeConfig {
+        server: format!("http://{}", running.addr),
+        tls: Default::default(),
+        token: None,
+        case_id: case.into(),
+        method,
+        time_budget_ms: BUDGET_MS,
+        frame: Frame::Ras,
+        targets: Vec::new(),
+        max_body: 1 << 20,
+        max_sessions: bridge::DEFAULT_MAX_SESSIONS,
+        idle_timeout: Duration::from_secs_f64(bridge::DEFAULT_IDLE_TIMEOUT_S),
+        session_idle_timeout: Duration::from_secs_f64(bridge::DEFAULT_SESSION_IDLE_TIMEOUT_S),
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bridge_answers_as_the_grpc_session_and_survives_malformed_messages() {
     let (running, mut grpc) = server(4).await;
@@ -257,15 +280,8 @@ async fn bridge_answers_as_the_grpc_session_and_survives_malformed_messages() {
     tokio::spawn(bridge::serve(
         listener,
         BridgeConfig {
-            server: format!("http://{}", running.addr),
-            tls: Default::default(),
-            token: None,
-            case_id: case.clone(),
-            method: pb::Method::Libr,
-            time_budget_ms: BUDGET_MS,
-            frame: Frame::Ras,
             targets: targets.clone(),
-            max_body: 1 << 20,
+            ..bridge_config(&running, &case, pb::Method::Libr)
         },
     ));
     let mut igtl = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
@@ -533,4 +549,227 @@ async fn bridge_answers_as_the_grpc_session_and_survives_malformed_messages() {
         got.len()
     );
     assert!(dt <= 1e-4 && dp <= 1e-4, "pyigtl: {dt} {dp}");
+}
+
+/// The next message from the bridge (None: the end of the stream); panics after `within`.
+async fn next_message(s: &mut TcpStream, within: Duration) -> Option<(wire::Header, Message)> {
+    use std::io::ErrorKind;
+    tokio::time::timeout(within, async {
+        let mut raw = vec![0u8; wire::HEADER_SIZE];
+        match s.read_exact(&mut raw).await {
+            Ok(_) => {}
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::UnexpectedEof | ErrorKind::ConnectionReset
+                ) =>
+            {
+                return None;
+            }
+            Err(e) => panic!("reading the bridge: {e}"),
+        }
+        let size = u64::from_be_bytes(raw[42..50].try_into().unwrap()) as usize;
+        let mut body = vec![0u8; size];
+        s.read_exact(&mut body).await.unwrap();
+        raw.extend(body);
+        Some(wire::decode_message(&raw).unwrap())
+    })
+    .await
+    .unwrap_or_else(|_| panic!("nothing from the bridge within {within:?}"))
+}
+
+/// The STATUS the bridge sends before closing a connection, then the end of the stream.
+async fn status_then_end(s: &mut TcpStream, within: Duration, what: &str) -> wire::Status {
+    let (h, m) = next_message(s, within)
+        .await
+        .unwrap_or_else(|| panic!("{what}: closed without a STATUS"));
+    let Message::Status(st) = m else {
+        panic!("{what}: a {} instead of STATUS", h.type_name)
+    };
+    assert_eq!(h.device_name, bridge::DEVICE_STATUS);
+    assert!(
+        next_message(s, Duration::from_secs(10)).await.is_none(),
+        "{what}: still open after its STATUS"
+    );
+    st
+}
+
+/// Idle OpenIGTLink sockets must not take the server's session slots (the bridge used to open
+/// a gRPC session on every TCP connect): eight silent sockets to the bridge on a server of 8
+/// sessions hold none (tenant B still registers over gRPC), one more is over the bridge's cap
+/// and is answered STATUS 6 (busy) and closed, the silent ones are answered STATUS 7 (time-out)
+/// and closed after the idle timeout, and a peer that sends a POINT gets its session and its
+/// answer, and is closed when it falls silent in turn.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_sockets_hold_no_session_and_are_capped_and_timed_out() {
+    const SESSIONS: usize = 8;
+    let idle = Duration::from_secs(3);
+    let (running, mut grpc) = server(SESSIONS).await;
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let (_, sc) = scenario("surface+1us");
+    let m = &sc.measurements;
+    let surface: Vec<[f64; 3]> = (0..m.points.len())
+        .filter(|&i| m.kind[i] == MeasuredKind::Surface)
+        .map(|i| m.points[i])
+        .take(60)
+        .collect();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = listener.local_addr().unwrap().port();
+    // The bridge's cap as large as the server's total (an operator's slip): only opening the
+    // session on the first data message keeps the server's slots free of silent sockets.
+    tokio::spawn(bridge::serve(
+        listener,
+        BridgeConfig {
+            max_sessions: SESSIONS,
+            idle_timeout: idle,
+            session_idle_timeout: idle,
+            ..bridge_config(&running, &case, pb::Method::Rigid)
+        },
+    ));
+    let t0 = std::time::Instant::now();
+    let mut silent = Vec::new();
+    for _ in 0..SESSIONS {
+        silent.push(TcpStream::connect(("127.0.0.1", port)).await.unwrap());
+    }
+    // One more: its STATUS comes once the bridge has taken the eight before it (checked after
+    // tenant B's turn; before the fix no STATUS came to it, and B was refused).
+    let mut over = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+    let over_first = tokio::time::timeout(
+        Duration::from_secs(20),
+        next_message(&mut over, Duration::from_secs(30)),
+    )
+    .await
+    .ok()
+    .flatten();
+
+    // Tenant B, over gRPC, while the eight silent sockets are connected to the bridge.
+    let start = pb::StreamRegisterRequest {
+        client_seq: 1,
+        msg: Some(pb::stream_register_request::Msg::Start(pb::SessionStart {
+            case_id: case.clone(),
+            method: pb::Method::Rigid as i32,
+            options: Some(pb::RegisterOptions {
+                time_budget_ms: BUDGET_MS,
+                ..Default::default()
+            }),
+            ..Default::default()
+        })),
+    };
+    let mut b = open_stream(&mut grpc, start).await.unwrap();
+    let answer = b
+        .send(pb::StreamRegisterRequest {
+            client_seq: 2,
+            msg: Some(pb::stream_register_request::Msg::Surface(
+                pb::SurfaceBatch {
+                    acquired_at: None,
+                    xyz_mm: surface.iter().flatten().copied().collect(),
+                    feature: Vec::new(),
+                },
+            )),
+        })
+        .await
+        .unwrap_or_else(|s| {
+            panic!(
+                "tenant B with {SESSIONS} silent OpenIGTLink sockets open: {:?}: {}",
+                s.code(),
+                s.message()
+            )
+        });
+    assert!(
+        matches!(
+            answer.update,
+            Some(pb::stream_update::Update::Registration(_))
+        ),
+        "tenant B: {answer:?}"
+    );
+    // The silent sockets were still connected while B registered (nothing to read, no end).
+    for (k, s) in silent.iter().enumerate() {
+        let e = s
+            .try_read(&mut [0u8; 1])
+            .expect_err("a silent socket already answered");
+        assert_eq!(
+            e.kind(),
+            std::io::ErrorKind::WouldBlock,
+            "silent socket {k}: {e}"
+        );
+    }
+    eprintln!(
+        "igtl: tenant B registered over gRPC {:.2} s after {SESSIONS} silent sockets connected (server max_sessions {SESSIONS})",
+        t0.elapsed().as_secs_f64()
+    );
+
+    // Over the cap: busy, naming the option; then closed.
+    let Some((h, Message::Status(busy))) = over_first else {
+        panic!(
+            "no STATUS for the connection over the cap (got: {:?})",
+            over_first.as_ref().map(|(h, _)| &h.type_name)
+        )
+    };
+    eprintln!(
+        "igtl: connection {} → STATUS {} {:?}: {}",
+        SESSIONS + 1,
+        busy.code,
+        busy.error_name,
+        busy.message
+    );
+    assert_eq!(h.device_name, bridge::DEVICE_STATUS);
+    assert_eq!(busy.code, status_code::BUSY, "{}", busy.message);
+    assert!(busy.message.contains("--max-sessions"), "{}", busy.message);
+    assert!(
+        next_message(&mut over, Duration::from_secs(10))
+            .await
+            .is_none(),
+        "the connection over the cap is still open after its STATUS"
+    );
+
+    // The silent sockets: time-out, naming the option, after the idle timeout; then closed.
+    for (k, s) in silent.iter_mut().enumerate() {
+        let st = status_then_end(s, idle + Duration::from_secs(30), "a silent socket").await;
+        let after = t0.elapsed();
+        if k == 0 {
+            eprintln!(
+                "igtl: silent socket closed after {:.2} s (idle timeout {:.0} s): STATUS {} {:?}: {}",
+                after.as_secs_f64(),
+                idle.as_secs_f64(),
+                st.code,
+                st.error_name,
+                st.message
+            );
+        }
+        assert_eq!(st.code, status_code::TIME_OUT, "{}", st.message);
+        assert!(st.message.contains("--idle-timeout-s"), "{}", st.message);
+        assert!(after >= idle, "silent socket {k} closed after {after:?}");
+    }
+
+    // A peer that sends data: its session opens and it gets its answer; falling silent, it is
+    // closed in turn (--session-idle-timeout-s).
+    let mut peer = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+    let points: Vec<[f32; 3]> = surface.iter().map(|&p| ras(p).map(|v| v as f32)).collect();
+    peer.write_all(&point_message(&points, 0)).await.unwrap();
+    let answer = read_until(&mut peer, "POLYDATA").await;
+    assert!(
+        answer.iter().any(
+            |(h, _, _)| h.type_name == "TRANSFORM" && h.device_name == bridge::DEVICE_TRANSFORM
+        ),
+        "no TRANSFORM in the answer"
+    );
+    let answered = std::time::Instant::now();
+    let st = status_then_end(
+        &mut peer,
+        idle + Duration::from_secs(30),
+        "a peer gone silent",
+    )
+    .await;
+    assert_eq!(st.code, status_code::TIME_OUT, "{}", st.message);
+    assert!(
+        st.message.contains("--session-idle-timeout-s"),
+        "{}",
+        st.message
+    );
+    assert!(answered.elapsed() >= idle - Duration::from_millis(50));
+    eprintln!(
+        "igtl: a peer silent after its answer closed after {:.2} s: {}",
+        answered.elapsed().as_secs_f64(),
+        st.message
+    );
 }

@@ -14,6 +14,7 @@ mod interop;
 mod limits;
 mod replicas;
 mod resume;
+mod safety;
 mod shutdown;
 mod stream;
 mod tls;

@@ -83,6 +83,7 @@ async fn a_replica_takes_over_the_sessions_of_a_killed_one() {
     cfg.resume = Some(Resume {
         attempts: 40,
         first_backoff: Duration::from_millis(100),
+        take_back: false,
     });
     cfg.replicas = replicas.clone();
     let killer = {

@@ -14,10 +14,13 @@ fn principal(name: &str, token: &str, cases: &[&str], roles: &[&str]) -> String 
     )
 }
 
+/// A request with a bearer token ("": none).
 fn with<T>(msg: T, token: &str) -> tonic::Request<T> {
     let mut r = tonic::Request::new(msg);
-    r.metadata_mut()
-        .insert("authorization", format!("Bearer {token}").parse().unwrap());
+    if !token.is_empty() {
+        r.metadata_mut()
+            .insert("authorization", format!("Bearer {token}").parse().unwrap());
+    }
     r
 }
 
@@ -530,4 +533,341 @@ async fn concurrent_uploads_are_bounded() {
         .unwrap();
     assert!(r.into_inner().created);
     running.shutdown().await;
+}
+
+/// The dataset's first preoperative mesh: its file's bytes and extension, and its nodes (mm, 3 a
+/// node) and tets as arrays.
+fn dataset_mesh() -> (Vec<u8>, String, Vec<f64>, Vec<u32>) {
+    let m = open(dataset()).unwrap();
+    let g = &m.geometries[0];
+    let bytes = std::fs::read(dataset().join(&g.preop)).unwrap();
+    let ext = dataset()
+        .join(&g.preop)
+        .extension()
+        .unwrap()
+        .to_string_lossy()
+        .to_string();
+    let geo = load_geometry(dataset(), &m, &g.id).unwrap();
+    let nodes = geo.model.mesh.nodes().iter().flatten().copied().collect();
+    let tets = geo.model.mesh.tets().iter().flatten().copied().collect();
+    (bytes, ext, nodes, tets)
+}
+
+/// `msgs` with a `physics.json` chunk added.
+fn with_physics(mut msgs: Vec<pb::CreateCaseRequest>, json: &str) -> Vec<pb::CreateCaseRequest> {
+    msgs.push(pb::CreateCaseRequest {
+        part: Some(pb::create_case_request::Part::Chunk(pb::CaseChunk {
+            file: pb::CaseFile::Physics as i32,
+            data: json.as_bytes().to_vec(),
+        })),
+    });
+    msgs
+}
+
+/// A `physics.json` of one pack centred at `c`, `width` mm wide.
+fn pack(c: [f64; 3], width: f64) -> String {
+    format!(
+        r#"{{"format": 1, "effects": [{{"kind": "pack", "parameters": {{"center": [{}, {}, {}], "width_mm": {width}, "force_mn": [0, 0, 200]}}}}]}}"#,
+        c[0], c[1], c[2]
+    )
+}
+
+/// What preload refuses is refused at upload, INVALID_ARGUMENT naming the problem, and nothing
+/// is stored (before: a node in no tetrahedron, a repeated tet, a pack 40 mm off the surface,
+/// `kind: "nonlinear"` and a mesh in the wrong unit were stored with `created` true, then FAILED
+/// at preload or, for the unit, READY and refusing every point). A pack on the surface passes
+/// both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_are_checked_as_preload_checks_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let mut running = librplus_server::start(ServerConfig {
+        case_store: Some(store.clone()),
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut c = client(running.addr).await;
+    let (mesh, ext, nodes, tets) = dataset_mesh();
+    let n = nodes.len() / 3;
+    // The boundary node farthest along +x: a pack there is on the surface; 40 mm further out it
+    // is 40 mm from every node.
+    let far = (0..n)
+        .max_by(|&a, &b| nodes[3 * a].total_cmp(&nodes[3 * b]))
+        .unwrap();
+    let on = [nodes[3 * far], nodes[3 * far + 1], nodes[3 * far + 2]];
+    let off = [on[0] + 40.0, on[1], on[2]];
+
+    let mut unused = nodes.clone();
+    unused.extend_from_slice(&on.map(|x| x + 1.0));
+    let mut repeated = tets.clone();
+    // Tet 0 again, its nodes turned (an even permutation: the same orientation).
+    repeated.extend_from_slice(&[tets[1], tets[2], tets[0], tets[3]]);
+    let metres: Vec<f64> = nodes.iter().map(|x| x * 1000.0).collect();
+    let mut in_metres = file_upload("in-m", &ext, &mesh);
+    if let Some(pb::create_case_request::Part::Upload(u)) = &mut in_metres[0].part {
+        u.mesh_unit = "m".into();
+    }
+    let unused_node = format!("node {n} ");
+    let repeated_tet = format!("tet {} ", tets.len() / 4);
+    let bad: Vec<(&str, Vec<pb::CreateCaseRequest>, Vec<&str>)> = vec![
+        (
+            "a node in no tetrahedron",
+            array_upload("unused", unused, tets.clone()),
+            vec!["upload.nodes_mm", &unused_node, "no tetrahedron"],
+        ),
+        (
+            "a repeated tet",
+            array_upload("repeated", nodes.clone(), repeated),
+            vec!["upload.tets", &repeated_tet, "repeats tet 0"],
+        ),
+        (
+            "a pack 40 mm off the surface",
+            with_physics(file_upload("pack-off", &ext, &mesh), &pack(off, 10.0)),
+            vec!["physics.json", "effects[0].parameters.center", "40.0 mm"],
+        ),
+        (
+            "a nonlinear effect",
+            with_physics(
+                file_upload("nonlinear", &ext, &mesh),
+                r#"{"format": 1, "effects": [{"kind": "nonlinear"}]}"#,
+            ),
+            vec!["physics.json", "effects[0].kind", "nonlinear"],
+        ),
+        (
+            "an unknown kind",
+            with_physics(
+                file_upload("magnetism", &ext, &mesh),
+                r#"{"format": 1, "effects": [{"kind": "magnetism"}]}"#,
+            ),
+            vec!["physics.json", "effects[0].kind", "magnetism"],
+        ),
+        (
+            "a mesh in mm declared m",
+            in_metres,
+            vec!["upload.mesh_unit", "\"m\"", "is its unit mm?"],
+        ),
+        (
+            "nodes_mm in micrometres",
+            array_upload("in-um", metres, tets.clone()),
+            vec!["upload.nodes_mm", "mm"],
+        ),
+    ];
+    for (what, msgs, needles) in bad {
+        let e = create(&mut c, "", msgs)
+            .await
+            .err()
+            .unwrap_or_else(|| panic!("{what}: accepted (and stored)"));
+        eprintln!("{what}: {:?} {}", e.code(), e.message());
+        assert_eq!(e.code(), Code::InvalidArgument, "{what}: {}", e.message());
+        for needle in needles {
+            assert!(
+                e.message().contains(needle),
+                "{what}: {needle:?} not in {:?}",
+                e.message()
+            );
+        }
+        assert!(
+            e.message().len() < 600,
+            "{what}: a long message: {}",
+            e.message()
+        );
+        assert!(
+            e.get_details_bad_request().is_some(),
+            "{what}: no BadRequest"
+        );
+    }
+    assert_eq!(stored(&store), 0, "a refused upload was stored");
+    // A pack on the surface passes both the upload's checks and preload.
+    let r = create(
+        &mut c,
+        "",
+        with_physics(file_upload("pack-on", &ext, &mesh), &pack(on, 10.0)),
+    )
+    .await
+    .unwrap();
+    assert!(r.created);
+    let states = watch(&mut c, "", "pack-on").await;
+    assert_eq!(
+        states.last().unwrap().state(),
+        pb::CaseState::Ready,
+        "{states:?}"
+    );
+    running.shutdown().await;
+}
+
+/// A case folder as a server with older checks wrote it (no `checks`, no `bytes` in
+/// `case.json`): the dataset's mesh under `id`, by `principal`, with `physics` if any.
+fn store_as_before(store: &Path, id: &str, principal: &str, physics: Option<&str>) {
+    let s = librplus_server::store::Store::open(store).unwrap();
+    let dir = s.folder(id);
+    std::fs::create_dir_all(&dir).unwrap();
+    let (mesh, ext, nodes, tets) = dataset_mesh();
+    std::fs::write(dir.join(format!("mesh.{ext}")), &mesh).unwrap();
+    if let Some(p) = physics {
+        std::fs::write(dir.join("mesh.physics.json"), p).unwrap();
+    }
+    let case = serde_json::json!({
+        "format": 1, "case_id": id, "version": "0".repeat(64), "mesh": format!("mesh.{ext}"),
+        "unit": "mm", "principal": principal, "created_ms": 0, "nodes": nodes.len() / 3,
+        "tets": tets.len() / 4, "vessels": false, "physics": physics.is_some(),
+    });
+    std::fs::write(dir.join("case.json"), serde_json::to_vec(&case).unwrap()).unwrap();
+}
+
+/// The case store is bounded: cases and bytes per principal and in total, RESOURCE_EXHAUSTED
+/// naming the quota (QuotaFailure) with nothing stored, room again once a case is deleted; a
+/// stored case preload refuses (stored by a server with weaker checks) is removed at start,
+/// not reloaded at every start, and counts toward no quota (before: every upload stayed, and
+/// a restart reported `cases=29 failed=14`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_case_store_is_bounded_and_keeps_no_failed_case() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let auth = dir.path().join("auth.json");
+    std::fs::write(
+        &auth,
+        format!(
+            r#"{{"format":1,"principals":[{},{},{}]}}"#,
+            principal("admin-a", "manage-a", &["hosp-a/*"], &["manage"]),
+            principal("admin-b", "manage-b", &["hosp-b/*"], &["manage"]),
+            principal("admin-c", "manage-c", &["hosp-c/*"], &["manage"]),
+        ),
+    )
+    .unwrap();
+    // Stored before: one case preload refuses (`nonlinear`), by admin-a.
+    store_as_before(
+        &store,
+        "hosp-a/old",
+        "admin-a",
+        Some(r#"{"format": 1, "effects": [{"kind": "nonlinear"}]}"#),
+    );
+    assert_eq!(stored(&store), 1);
+    let cfg = ServerConfig {
+        case_store: Some(store.clone()),
+        auth: Some(auth),
+        max_stored_cases: 2,
+        max_cases_per_principal: 1,
+        ..config(2)
+    };
+    let mut running = librplus_server::start(cfg.clone()).await.unwrap();
+    let report = running.ready().await.unwrap();
+    // Removed at start (and reported in the log), not loaded and not kept.
+    assert!(
+        report.failed.iter().all(|(id, _)| id != "hosp-a/old"),
+        "{report:?}"
+    );
+    assert_eq!(stored(&store), 0, "the failed stored case is still stored");
+    let mut c = client(running.addr).await;
+    let (mesh, ext, _, _) = dataset_mesh();
+    let quota = |e: tonic::Status, name: &str| {
+        eprintln!("{name}: {:?} {}", e.code(), e.message());
+        assert_eq!(e.code(), Code::ResourceExhausted, "{}", e.message());
+        assert!(e.message().contains(name), "{}", e.message());
+        assert!(e.message().contains("DeleteCase"), "{}", e.message());
+        let q = e.get_details_quota_failure().expect("QuotaFailure");
+        assert_eq!(q.violations[0].subject, name);
+    };
+    // admin-a's failed case holds no quota: one case of admin-a's fits.
+    let a1 = create(&mut c, "manage-a", file_upload("hosp-a/p1", &ext, &mesh))
+        .await
+        .unwrap();
+    assert!(a1.created);
+    let e = create(&mut c, "manage-a", file_upload("hosp-a/p2", &ext, &mesh))
+        .await
+        .unwrap_err();
+    quota(e, "max_cases_per_principal");
+    // A retry of the stored case is no new case.
+    let again = create(&mut c, "manage-a", file_upload("hosp-a/p1", &ext, &mesh))
+        .await
+        .unwrap();
+    assert!(!again.created);
+    create(&mut c, "manage-b", file_upload("hosp-b/p1", &ext, &mesh))
+        .await
+        .unwrap();
+    let e = create(&mut c, "manage-c", file_upload("hosp-c/p1", &ext, &mesh))
+        .await
+        .unwrap_err();
+    quota(e, "max_stored_cases");
+    assert_eq!(stored(&store), 2);
+    // Deleted (once loaded), the room is free again.
+    let states = watch(&mut c, "manage-a", "hosp-a/p1").await;
+    assert_eq!(states.last().unwrap().state(), pb::CaseState::Ready);
+    c.delete_case(with(
+        pb::DeleteCaseRequest {
+            case_id: "hosp-a/p1".into(),
+        },
+        "manage-a",
+    ))
+    .await
+    .unwrap();
+    create(&mut c, "manage-c", file_upload("hosp-c/p1", &ext, &mesh))
+        .await
+        .unwrap();
+    for id in ["hosp-b/p1", "hosp-c/p1"] {
+        let token = if id.starts_with("hosp-b") {
+            "manage-b"
+        } else {
+            "manage-c"
+        };
+        let states = watch(&mut c, token, id).await;
+        assert_eq!(states.last().unwrap().state(), pb::CaseState::Ready);
+    }
+    running.shutdown().await;
+
+    // Bytes: the store holds two cases (files and LIBR bases); a limit below what they hold
+    // and one principal's below one case refuse more.
+    let held: u64 = walk_bytes(&store);
+    let mut running = librplus_server::start(ServerConfig {
+        max_stored_cases: 10,
+        max_cases_per_principal: 10,
+        max_stored_bytes: held + mesh.len() as u64 / 2,
+        ..cfg.clone()
+    })
+    .await
+    .unwrap();
+    let report = running.ready().await.unwrap();
+    let uploaded = report.cases.iter().filter(|c| c.0.starts_with("hosp-"));
+    assert_eq!(uploaded.count(), 2, "{report:?}");
+    let mut c = client(running.addr).await;
+    let e = create(&mut c, "manage-a", file_upload("hosp-a/p2", &ext, &mesh))
+        .await
+        .unwrap_err();
+    quota(e, "max_stored_bytes");
+    running.shutdown().await;
+    let mut running = librplus_server::start(ServerConfig {
+        max_stored_cases: 10,
+        max_cases_per_principal: 10,
+        max_bytes_per_principal: held / 2 + mesh.len() as u64 / 2,
+        ..cfg
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut c = client(running.addr).await;
+    let e = create(&mut c, "manage-b", file_upload("hosp-b/p2", &ext, &mesh))
+        .await
+        .unwrap_err();
+    quota(e, "max_bytes_per_principal");
+    // Another principal with nothing stored is within its own bytes.
+    create(&mut c, "manage-a", file_upload("hosp-a/p2", &ext, &mesh))
+        .await
+        .unwrap();
+    assert_eq!(stored(&store), 3);
+    running.shutdown().await;
+}
+
+/// Bytes of the files under `path`.
+fn walk_bytes(path: &Path) -> u64 {
+    let m = std::fs::symlink_metadata(path).unwrap();
+    if m.is_dir() {
+        std::fs::read_dir(path)
+            .unwrap()
+            .flatten()
+            .map(|e| walk_bytes(&e.path()))
+            .sum()
+    } else {
+        m.len()
+    }
 }

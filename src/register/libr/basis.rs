@@ -324,6 +324,7 @@ impl LibrBasis {
         sites: Sites<'_>,
     ) -> Result<Self, RegisterError> {
         params.validate()?;
+        crate::register::physics::model::check_fits(mesh, sites, physics)?;
         let t0 = Instant::now();
         let nodes = mesh.nodes();
         let n = nodes.len();

@@ -505,6 +505,16 @@ impl Physics {
         let obj = v
             .as_object()
             .ok_or_else(|| RegisterError::Parameter("physics.json: expected an object".into()))?;
+        // A misspelt key would otherwise be ignored silently.
+        if let Some(k) = obj
+            .keys()
+            .find(|k| !matches!(k.as_str(), "format" | "effects"))
+        {
+            let k: String = k.chars().take(64).collect();
+            return Err(RegisterError::Parameter(format!(
+                "{k}: unknown key (physics.json holds \"format\" and \"effects\")"
+            )));
+        }
         match obj.get("format").and_then(|f| f.as_u64()) {
             Some(f) if f == PHYSICS_FORMAT as u64 => {}
             Some(f) => {

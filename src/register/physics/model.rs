@@ -249,20 +249,7 @@ pub fn unit_loads(
         }
         EffectKind::Pack => {
             let (c, w) = (effect.vector("center"), effect.scalar("width_mm"));
-            let mut patch = Vec::new();
-            let mut weights = Vec::new();
-            let mut total = 0.0;
-            for (t, tri) in geom.triangles.iter().enumerate() {
-                if tri
-                    .iter()
-                    .all(|&v| dist2(nodes[v as usize], c) <= 4.0 * w * w)
-                {
-                    let wt = (-0.5 * dist2(geom.tri_center[t], c) / (w * w)).exp();
-                    total += wt * geom.tri_area[t];
-                    patch.push(*tri);
-                    weights.push(wt);
-                }
-            }
+            let (patch, weights, total) = pack_patch(nodes, geom, c, w);
             if patch.is_empty() || total <= 0.0 {
                 return Err(RegisterError::Model(format!(
                     "pack: no boundary face within 2 × width_mm = {:.1} mm of center {c:.1?}",
@@ -288,6 +275,96 @@ pub fn unit_loads(
         }
         _ => Ok((Vec::new(), Vec::new())),
     }
+}
+
+/// The boundary faces a pack at `c`, `w` mm wide, loads (those whose three nodes lie within
+/// `2·w` of `c`), their weights `exp(−½(r/w)²)`, and the weights' area integral.
+fn pack_patch(
+    nodes: &[[f64; 3]],
+    geom: &BoundaryGeometry,
+    c: [f64; 3],
+    w: f64,
+) -> (Vec<[u32; 3]>, Vec<f64>, f64) {
+    let mut patch = Vec::new();
+    let mut weights = Vec::new();
+    let mut total = 0.0;
+    for (t, tri) in geom.triangles.iter().enumerate() {
+        if tri
+            .iter()
+            .all(|&v| dist2(nodes[v as usize], c) <= 4.0 * w * w)
+        {
+            let wt = (-0.5 * dist2(geom.tri_center[t], c) / (w * w)).exp();
+            total += wt * geom.tri_area[t];
+            patch.push(*tri);
+            weights.push(wt);
+        }
+    }
+    (patch, weights, total)
+}
+
+/// Refuses a kind the augmented model does not carry yet (`nonlinear`), naming its field.
+fn refuse_uncarried(physics: &Physics) -> Result<(), RegisterError> {
+    if let Some(i) = physics
+        .effects
+        .iter()
+        .position(|e| e.kind == EffectKind::Nonlinear)
+    {
+        return Err(RegisterError::Parameter(format!(
+            "effects[{i}].kind: the augmented model cannot carry `nonlinear` yet (only the generator makes such data)"
+        )));
+    }
+    Ok(())
+}
+
+/// Checks, before anything is assembled, that the augmented model carries `physics` on `mesh`:
+/// every effect valid, no kind it does not carry (`nonlinear`), every load with boundary faces
+/// to act on (a pack needs a face within 2 × `width_mm` of its center: the error names
+/// `effects[i].parameters.center` and its distance to the surface), and the supports attached
+/// to some node. One pass over the boundary: the server runs it on an upload before storing it,
+/// and [`crate::register::libr::LibrBasis::build_with`] before building, so both refuse the
+/// same physics with the same message.
+pub fn check_fits(
+    mesh: &TetMesh,
+    sites: Sites<'_>,
+    physics: &Physics,
+) -> Result<(), RegisterError> {
+    physics.validate()?;
+    refuse_uncarried(physics)?;
+    if physics.is_empty() {
+        return Ok(());
+    }
+    let geom = BoundaryGeometry::new(mesh)?;
+    let nodes = mesh.nodes();
+    for (i, e) in physics.effects.iter().enumerate() {
+        if e.kind == EffectKind::Pack {
+            let (c, w) = (e.vector("center"), e.scalar("width_mm"));
+            let (patch, _, total) = pack_patch(nodes, &geom, c, w);
+            if patch.is_empty() || total <= 0.0 {
+                let d = geom
+                    .nodes
+                    .iter()
+                    .map(|&v| dist2(nodes[v as usize], c))
+                    .fold(f64::INFINITY, f64::min)
+                    .sqrt();
+                return Err(RegisterError::Parameter(format!(
+                    "effects[{i}].parameters.center: [{:.1}, {:.1}, {:.1}] is {d:.1} mm from the organ's surface (its nearest boundary node); a pack needs a boundary face within 2 × width_mm = {:.1} mm of its center",
+                    c[0],
+                    c[1],
+                    c[2],
+                    2.0 * w
+                )));
+            }
+        } else if e.kind.is_load() {
+            unit_loads(mesh, &geom, e)
+                .map_err(|err| RegisterError::Parameter(format!("effects[{i}]: {err}")))?;
+        }
+    }
+    if physics.has_support() && support_springs(mesh, &geom, sites, physics).is_empty() {
+        return Err(RegisterError::Parameter(
+            "effects: the physics' supports attach to no node (no posterior, falciform or fixation-region nodes)".into(),
+        ));
+    }
+    Ok(())
 }
 
 /// The total load of the physics' load effects at their parameters (mN, node-major).
@@ -334,15 +411,7 @@ impl ModelSolver {
         physics: &Physics,
     ) -> Result<Self, RegisterError> {
         physics.validate()?;
-        if let Some(i) = physics
-            .effects
-            .iter()
-            .position(|e| e.kind == EffectKind::Nonlinear)
-        {
-            return Err(RegisterError::Parameter(format!(
-                "effects[{i}].kind: the augmented model cannot carry `nonlinear` yet (only the generator makes such data)"
-            )));
-        }
+        refuse_uncarried(physics)?;
         let n = mesh.num_nodes();
         if sites.posterior.len() != n || sites.falciform.len() != n {
             return Err(RegisterError::Inconsistent(format!(

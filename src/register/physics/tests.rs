@@ -142,6 +142,8 @@ fn physics_json_round_trips_and_bad_files_name_the_field() {
     assert!(e.starts_with("format:"), "{e}");
     let e = bad(r#"{"format": 1}"#);
     assert!(e.starts_with("effects:"), "{e}");
+    let e = bad(r#"{"format": 1, "effects": [], "efects": [{"kind": "gravity"}]}"#);
+    assert!(e.starts_with("efects: unknown key"), "{e}");
     // The command line's form.
     let (k, v) = Effect::parse_partial("pack:width_mm=12,center=1/2/3").unwrap();
     assert_eq!(k, EffectKind::Pack);
