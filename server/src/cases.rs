@@ -40,9 +40,23 @@ pub struct Case {
     pub version: String,
     /// Streamed sessions using it now (a case in use is not deleted).
     pub sessions: std::sync::atomic::AtomicUsize,
+    /// When a request last used it (ms since the Unix epoch): an uploaded case idle for
+    /// `evict_idle_s` leaves memory.
+    pub last_used: std::sync::atomic::AtomicI64,
 }
 
 impl Case {
+    /// Notes a use (now).
+    pub fn touch(&self) {
+        self.last_used
+            .store(crate::audit::now_ms(), std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Milliseconds since its last use.
+    pub fn idle_ms(&self) -> i64 {
+        crate::audit::now_ms() - self.last_used.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
     /// Current stage-duration estimates.
     pub fn estimates(&self) -> Estimates {
         *self.estimates.lock().unwrap_or_else(|p| p.into_inner())
@@ -336,6 +350,7 @@ pub fn load_with_progress(
         }),
         version,
         sessions: Default::default(),
+        last_used: crate::audit::now_ms().into(),
     })
 }
 

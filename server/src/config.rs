@@ -114,9 +114,13 @@ pub struct ServerConfig {
     /// Most nodes of an uploaded mesh. Default 1,000,000.
     pub max_case_nodes: usize,
     /// Most cases in the case store; an upload beyond is RESOURCE_EXHAUSTED
-    /// `max_stored_cases`. Every stored case stays in memory once READY, so this also bounds
-    /// the memory uploads take. Default 32.
+    /// `max_stored_cases`. This also bounds the memory uploads take (a READY case is in
+    /// memory until it is idle for `evict_idle_s`). Default 32.
     pub max_stored_cases: usize,
+    /// An uploaded case no request used for this long (seconds) and no session holds leaves
+    /// memory (state STORED); the next request loads it again from the store (its basis from
+    /// its cache) and is answered UNAVAILABLE meanwhile. 0: never. Default 21,600 (6 h).
+    pub evict_idle_s: f64,
     /// Most bytes in the case store (each case's folder: its files and its LIBR basis cache);
     /// beyond, RESOURCE_EXHAUSTED `max_stored_bytes`. Default 8 GiB.
     pub max_stored_bytes: u64,
@@ -185,6 +189,7 @@ impl Default for ServerConfig {
             max_stored_bytes: 8 << 30,
             max_cases_per_principal: 8,
             max_bytes_per_principal: 2 << 30,
+            evict_idle_s: 21_600.0,
             tls_cert: None,
             tls_key: None,
             client_ca: None,
@@ -268,6 +273,12 @@ impl ServerConfig {
                 "max_stored_cases must be at least 1 (to take no upload, leave case_store unset)"
                     .into(),
             ));
+        }
+        if !(self.evict_idle_s.is_finite() && self.evict_idle_s >= 0.0) {
+            return Err(ConfigError::Field(format!(
+                "evict_idle_s must be a finite number of seconds ≥ 0 (0: never), got {}",
+                crate::convert::num(self.evict_idle_s)
+            )));
         }
         if self.max_stored_bytes == 0 {
             return Err(ConfigError::Field(

@@ -294,6 +294,9 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
             let report = match report {
                 Ok(Ok(report)) => {
                     shared.registry.set_preloaded();
+                    if shared.store.is_some() && shared.config.evict_idle_s > 0.0 {
+                        tokio::spawn(evict_idle(shared.clone()));
+                    }
                     health.set_service_status("", ServingStatus::Serving).await;
                     health
                         .set_service_status(SERVICE_NAME, ServingStatus::Serving)
@@ -628,6 +631,34 @@ fn load_v2s(
         "V2S model loaded: METHOD_V2S available"
     );
     Ok(Some(Arc::new(m)))
+}
+
+/// Takes uploaded cases out of memory once idle for `evict_idle_s` (no request used them, no
+/// session holds them); they stay in the store, STORED, and load again when asked for.
+async fn evict_idle(shared: Arc<service::Shared>) {
+    let idle_ms = (shared.config.evict_idle_s * 1e3).min(1e15) as i64;
+    let period = Duration::from_secs_f64((shared.config.evict_idle_s / 4.0).clamp(0.05, 60.0));
+    let mut drain = shared.drain.clone();
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(period) => {}
+            _ = drain.wait_for(|d| *d) => return,
+        }
+        let Some(store) = &shared.store else {
+            return;
+        };
+        for (id, c) in shared.registry.ready().iter() {
+            if c.idle_ms() < idle_ms || c.sessions.load(Ordering::SeqCst) > 0 {
+                continue;
+            }
+            // Only an upload, and only the content the store holds (it loads from there).
+            let stored = store.find(id).is_some_and(|s| s.version == c.version);
+            if stored && shared.registry.evict(id, c) {
+                tracing::info!(case = %id, idle_s = c.idle_ms() as f64 / 1e3, "idle uploaded case left memory (STORED; loaded again when asked for)");
+                metrics::counter!("librplus_cases_evicted_total").increment(1);
+            }
+        }
+    }
 }
 
 /// The status of a ready case.

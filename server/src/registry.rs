@@ -18,6 +18,8 @@ pub struct Registry {
     ready: RwLock<Ready>,
     states: Mutex<BTreeMap<String, watch::Sender<pb::CaseStatus>>>,
     uploaded: Mutex<BTreeSet<String>>,
+    /// Uploaded cases evicted from memory (STORED), until they are READY again.
+    evicted: Mutex<BTreeSet<String>>,
     preloaded: AtomicBool,
 }
 
@@ -40,6 +42,12 @@ impl Registry {
     /// Sets a case's state (creating its watch); a READY state with its case makes it served.
     pub fn set(&self, status: pb::CaseStatus, case: Option<Arc<Case>>) {
         let id = status.case_id.clone();
+        if case.is_some() || status.state == pb::CaseState::Failed as i32 {
+            self.evicted
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .remove(&id);
+        }
         if let Some(c) = case {
             let mut r = self.ready.write().unwrap_or_else(|e| e.into_inner());
             let mut m = (**r).clone();
@@ -89,6 +97,65 @@ impl Registry {
         self.watch(id).map(|rx| rx.borrow().clone())
     }
 
+    /// Takes ready case `id` out of memory when it is still `case` and no session uses it: its
+    /// state becomes STORED (the next request loads it again). Whether it was evicted.
+    pub fn evict(&self, id: &str, case: &Arc<Case>) -> bool {
+        {
+            let mut r = self.ready.write().unwrap_or_else(|e| e.into_inner());
+            let current = r.get(id).is_some_and(|c| Arc::ptr_eq(c, case));
+            if !current || case.sessions.load(Ordering::SeqCst) > 0 {
+                return false;
+            }
+            let mut m = (**r).clone();
+            m.remove(id);
+            *r = Arc::new(m);
+        }
+        self.evicted
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(id.to_string());
+        self.set(
+            pb::CaseStatus {
+                case_id: id.to_string(),
+                version: case.version.clone(),
+                state: pb::CaseState::Stored as i32,
+                stage: String::new(),
+                fraction: 0.0,
+                error: String::new(),
+                seconds: 0.0,
+            },
+            None,
+        );
+        true
+    }
+
+    /// Whether `id` was evicted and is not READY again yet.
+    pub fn is_evicted(&self, id: &str) -> bool {
+        self.evicted
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains(id)
+    }
+
+    /// Switches evicted case `id` from STORED to LOADING; true for the one caller that does
+    /// (it starts the load), false when it is not STORED.
+    pub fn begin_reload(&self, id: &str) -> bool {
+        let s = self.states.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(tx) = s.get(id) else {
+            return false;
+        };
+        let mut switched = false;
+        tx.send_if_modified(|st| {
+            if st.state == pb::CaseState::Stored as i32 {
+                st.state = pb::CaseState::Loading as i32;
+                st.stage = "queued".into();
+                switched = true;
+            }
+            switched
+        });
+        switched
+    }
+
     /// Forgets a case (served no more); its watchers see it FAILED "deleted".
     pub fn remove(&self, id: &str) -> Option<Arc<Case>> {
         let case = {
@@ -99,6 +166,10 @@ impl Registry {
             c
         };
         self.uploaded
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(id);
+        self.evicted
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .remove(id);

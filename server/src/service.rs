@@ -363,6 +363,21 @@ impl Svc {
         let cases = self.cases()?;
         match cases.get(id) {
             Some(c) if who.may_use(id) => Ok(c.clone()),
+            // An uploaded case evicted while idle: loaded again, the caller retries.
+            None if who.may_use(id) && self.0.registry.is_evicted(id) => {
+                crate::upload::reload(&self.0, id);
+                let stage = self
+                    .0
+                    .registry
+                    .status(id)
+                    .map(|s| format!("{}, {:.0} %", s.stage, 100.0 * s.fraction))
+                    .unwrap_or_default();
+                Err(ServiceError::Unavailable(format!(
+                    "{field}: case {:?} was idle and left memory; it is being loaded again \
+                     ({stage}); retry in a few seconds, or follow it with WatchCase",
+                    short(id, 64)
+                )))
+            }
             _ => Err(ServiceError::UnknownCase {
                 field: field.to_string(),
                 id: id.to_string(),
@@ -478,13 +493,30 @@ impl LibRPlus for Svc {
         let who = self.caller(&req, "ListCases")?;
         self.allowed(&who, Role::Read, "ListCases", "list cases")?;
         let cases = self.cases().map_err(fail)?;
-        Ok(Response::new(pb::ListCasesResponse {
-            cases: cases
-                .values()
-                .filter(|c| who.may_use(&c.id))
-                .map(|c| summary(c))
-                .collect(),
-        }))
+        let mut out: Vec<pb::CaseSummary> = cases
+            .values()
+            .filter(|c| who.may_use(&c.id))
+            .map(|c| summary(c))
+            .collect();
+        // Uploaded cases out of memory while idle are listed too (loaded when asked for).
+        if let Some(store) = &self.0.store {
+            for st in self.0.registry.all() {
+                if st.state == pb::CaseState::Stored as i32
+                    && who.may_use(&st.case_id)
+                    && let Some(s) = store.find(&st.case_id)
+                {
+                    out.push(pb::CaseSummary {
+                        case_id: st.case_id.clone(),
+                        source: "case store (idle, not in memory: loaded when asked for)".into(),
+                        node_count: s.nodes as u32,
+                        tet_count: s.tets as u32,
+                        ..Default::default()
+                    });
+                }
+            }
+            out.sort_by(|a, b| a.case_id.cmp(&b.case_id));
+        }
+        Ok(Response::new(pb::ListCasesResponse { cases: out }))
     }
 
     async fn describe_case(
@@ -573,6 +605,8 @@ impl LibRPlus for Svc {
         } = req.into_inner();
         let run = async {
             let case = self.case(&case_id, "case_id", &who)?;
+            // A registration is a use (an idle upload leaves memory; describing it is not).
+            case.touch();
             let method = self.check_method(&case, method, "method")?;
             let m = measurements
                 .as_ref()
@@ -1530,6 +1564,7 @@ async fn register_session(
             ..Default::default()
         });
     }
+    s.case.touch();
     let job = Job {
         case: s.case.clone(),
         measurements: s.meas.clone(),

@@ -245,8 +245,32 @@ pub async fn create(
     })
 }
 
-/// Starts preloading a stored case in the background; its first status.
+/// Starts preloading a new upload in the background; its first status. An upload that fails
+/// is removed from the store.
 pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
+    preload_with(shared, stored, true)
+}
+
+/// Loads evicted case `id` again (its state STORED) in the background, when this caller is the
+/// first to ask; a failure leaves it in the store, FAILED with the reason.
+pub fn reload(shared: &Arc<Shared>, id: &str) {
+    if !shared.registry.begin_reload(id) {
+        return;
+    }
+    match shared.store.as_ref().and_then(|s| s.find(id)) {
+        Some(stored) => {
+            tracing::info!(case = %id, "an evicted case is asked for: loading it again");
+            preload_with(shared.clone(), stored, false);
+        }
+        None => {
+            shared.registry.remove(id);
+        }
+    }
+}
+
+/// Starts preloading a stored case in the background; its first status. `remove_on_failure`:
+/// a new upload that fails is removed from the store (a case loaded again is not).
+fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) -> pb::CaseStatus {
     let t0 = Instant::now();
     let status = |stage: &str, fraction: f64| pb::CaseStatus {
         case_id: stored.case_id.clone(),
@@ -330,6 +354,7 @@ pub fn preload(shared: Arc<Shared>, stored: Stored) -> pb::CaseStatus {
                 let removed = shared
                     .store
                     .as_ref()
+                    .filter(|_| remove_on_failure)
                     .map(|s| s.remove_version(&id, Some(&version)));
                 let error = match removed {
                     Some(Ok(Some(_))) => format!(

@@ -405,7 +405,8 @@ class CaseDescription:
 
     Attributes:
         summary: the case's summary (None while an uploaded case is not served yet).
-        state: ``CASE_STATE_READY``, ``CASE_STATE_LOADING`` or ``CASE_STATE_FAILED``
+        state: ``CASE_STATE_READY``, ``CASE_STATE_LOADING``, ``CASE_STATE_FAILED`` or
+            ``CASE_STATE_STORED`` (an idle upload out of memory, loaded again when asked for)
             (``CASE_STATE_UNSPECIFIED`` from a server that does not say).
         nodes: (N, 3) preoperative node positions, image frame, mm.
         tets: (T, 4) node indices of the tetrahedra (int64).

@@ -188,3 +188,121 @@ async fn echoes_and_numbers_are_short_and_session_ids_are_not_guessable() {
     // Beyond the counter (its first 6 digits) the ids differ at random.
     assert_ne!(a[6..], b[6..], "{ids:?}");
 }
+
+/// An uploaded case unused for `evict_idle_s` leaves memory (STORED, still listed) but never while
+/// a session holds it; the next request loads it again (UNAVAILABLE meanwhile) and its answers
+/// are the same as before.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_uploads_leave_memory_and_load_again_when_asked_for() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut running = librplus_server::start(ServerConfig {
+        case_store: Some(dir.path().join("store")),
+        evict_idle_s: 1.0,
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut c = client(running.addr).await;
+    let m = open(dataset()).unwrap();
+    let g = load_geometry(dataset(), &m, &m.deformations[0].geometry).unwrap();
+    let id = "idle/liver";
+    c.create_case(tokio_stream::iter(vec![pb::CreateCaseRequest {
+        part: Some(pb::create_case_request::Part::Upload(pb::CaseUpload {
+            case_id: id.into(),
+            nodes_mm: g.model.mesh.nodes().iter().flatten().copied().collect(),
+            tets: g.model.mesh.tets().iter().flatten().copied().collect(),
+            ..Default::default()
+        })),
+    }]))
+    .await
+    .unwrap();
+    let state = |mut c: LibRPlusClient<Channel>| async move {
+        c.describe_case(pb::DescribeCaseRequest {
+            case_id: id.into(),
+            include_mesh: false,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .status
+        .unwrap()
+        .state()
+    };
+    let c0 = c.clone();
+    let wait_for = |want: pb::CaseState| {
+        let c = c0.clone();
+        async move {
+            for _ in 0..200 {
+                if state(c.clone()).await == want {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            panic!("never {want:?}");
+        }
+    };
+    let ask = |mut c: LibRPlusClient<Channel>| async move {
+        let (_, sc) = scenario("surface+2us");
+        c.register(request(
+            id,
+            pb::Method::Libr,
+            measurements_pb(&sc.measurements),
+        ))
+        .await
+    };
+    // Ask often enough while loading that its eviction never comes.
+    let mut before = None;
+    for _ in 0..100 {
+        match ask(c.clone()).await {
+            Ok(r) => {
+                before = Some(r.into_inner());
+                break;
+            }
+            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+        }
+    }
+    let before = before.expect("the upload became READY");
+    // A session holds it: not evicted, however long it is idle.
+    let (_, sc) = scenario("surface+2us");
+    let (msgs, _) = stream_of(id, &sc, pb::Method::Rigid);
+    let mut s = open_stream(&mut c, msgs[0].clone()).await.unwrap();
+    s.send(msgs[1].clone()).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    assert_eq!(state(c.clone()).await, pb::CaseState::Ready);
+    drop(s);
+    // Idle and no session: out of memory, still listed.
+    wait_for(pb::CaseState::Stored).await;
+    let listed = c
+        .list_cases(pb::ListCasesRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .cases;
+    let e = listed.iter().find(|x| x.case_id == id).expect("listed");
+    assert_eq!(e.node_count as usize, g.model.mesh.num_nodes());
+    assert!(e.source.contains("idle"), "{e:?}");
+    // Asked for: UNAVAILABLE while it loads again, then the same answer as before.
+    let err = ask(c.clone()).await.unwrap_err();
+    eprintln!("asked while evicted: {:?} {}", err.code(), err.message());
+    assert_eq!(err.code(), Code::Unavailable);
+    assert!(err.message().contains("loaded again"), "{err:?}");
+    wait_for(pb::CaseState::Ready).await;
+    let after = ask(c.clone()).await.unwrap().into_inner();
+    let t = |r: &pb::Registration| r.image_to_physical.clone().unwrap().translation_mm;
+    let d = t(&before)
+        .iter()
+        .zip(t(&after))
+        .map(|(a, b)| (a - b).abs())
+        .chain(
+            before
+                .displacement_mm
+                .iter()
+                .zip(&after.displacement_mm)
+                .map(|(a, b)| (a - b).abs() as f64),
+        )
+        .fold(0.0, f64::max);
+    eprintln!("answer after loading again differs by {d:.1e} mm");
+    assert!(d <= 1e-9, "{d}");
+    running.shutdown().await;
+}

@@ -575,8 +575,8 @@ fn pack(c: [f64; 3], width: f64) -> String {
 /// What preload refuses is refused at upload, INVALID_ARGUMENT naming the problem, and nothing
 /// is stored (before: a node in no tetrahedron, a repeated tet, a pack 40 mm off the surface,
 /// `kind: "nonlinear"` and a mesh in the wrong unit were stored with `created` true, then FAILED
-/// at preload or, for the unit, READY and refusing every point). A pack on the surface passes
-/// both.
+/// at preload or, for the unit, READY and refusing every point; a misspelt top-level key of
+/// physics.json was ignored). A pack on the surface passes both.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn uploads_are_checked_as_preload_checks_them() {
     let dir = tempfile::tempdir().unwrap();
@@ -642,6 +642,14 @@ async fn uploads_are_checked_as_preload_checks_them() {
                 r#"{"format": 1, "effects": [{"kind": "magnetism"}]}"#,
             ),
             vec!["physics.json", "effects[0].kind", "magnetism"],
+        ),
+        (
+            "an unknown top-level key in physics.json (a misspelt \"effects\")",
+            with_physics(
+                file_upload("misspelt", &ext, &mesh),
+                r#"{"format": 1, "effects": [], "efects": [{"kind": "gravity"}]}"#,
+            ),
+            vec!["physics.json", "efects", "unknown key"],
         ),
         (
             "a mesh in mm declared m",
