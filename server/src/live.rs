@@ -26,6 +26,10 @@ struct Holder {
     generation: u64,
     /// The server slot and quota the session holds (dropped: released).
     admission: Option<Box<dyn Send>>,
+    /// The holding stream is running (its lease not dropped).
+    alive: bool,
+    /// A resume holds the gate: a holder that ends leaves its slot for it to take.
+    taking: bool,
 }
 
 /// One session's place in [`Live`].
@@ -66,6 +70,7 @@ pub struct Takeover {
     sid: String,
     slot: Arc<Slot>,
     gate: Option<tokio::sync::OwnedMutexGuard<()>>,
+    taken: bool,
 }
 
 /// The session was taken over by a newer stream.
@@ -85,6 +90,8 @@ impl Live {
             holder: Mutex::new(Holder {
                 generation: 1,
                 admission: Some(admission),
+                alive: true,
+                taking: false,
             }),
             changed,
         });
@@ -100,9 +107,7 @@ impl Live {
 
     /// Whether a stream holds session `sid` now.
     pub fn is_live(&self, sid: &str) -> bool {
-        self.map()
-            .get(sid)
-            .is_some_and(|s| s.holder().admission.is_some())
+        self.map().get(sid).is_some_and(|s| s.holder().alive)
     }
 
     /// The session `sid`'s slot, made when it is not live here.
@@ -116,6 +121,8 @@ impl Live {
                     holder: Mutex::new(Holder {
                         generation: 0,
                         admission: None,
+                        alive: false,
+                        taking: false,
                     }),
                     changed,
                 })
@@ -145,11 +152,13 @@ impl Live {
             // nobody held the gate then): take the current one. Once the gate is held and the
             // slot is current, it stays so (`forget` needs the gate free).
             if self.map().get(sid).is_some_and(|s| Arc::ptr_eq(s, &slot)) {
+                slot.holder().taking = true;
                 return Takeover {
                     live: self.clone(),
                     sid: sid.to_string(),
                     slot,
                     gate: Some(gate),
+                    taken: false,
                 };
             }
         }
@@ -157,7 +166,8 @@ impl Live {
 }
 
 impl Takeover {
-    /// Whether a stream holds the session now (its slot and quota pass to the new holder).
+    /// Whether the session holds a slot now (a stream holds it, or held it when this resume
+    /// took the gate): its slot and quota pass to the new holder, which needs none of its own.
     pub fn held(&self) -> bool {
         self.slot.holder().admission.is_some()
     }
@@ -165,14 +175,23 @@ impl Takeover {
     /// The calling stream holds the session from now: the previous holder (if any) is told,
     /// and its slot and quota pass on; `admission` is used when there was none.
     pub fn take(mut self, admission: Option<Box<dyn Send>>) -> Lease {
-        let generation = {
+        let (generation, spare) = {
             let mut h = self.slot.holder();
             h.generation += 1;
-            if h.admission.is_none() {
-                h.admission = admission;
-            }
-            h.generation
+            h.alive = true;
+            h.taking = false;
+            let spare = match h.admission {
+                None => {
+                    h.admission = admission;
+                    None
+                }
+                Some(_) => admission,
+            };
+            (h.generation, spare)
         };
+        // A slot taken for nothing is released (outside the holder's lock).
+        drop(spare);
+        self.taken = true;
         self.slot.changed.send_replace(generation);
         // The gate opens once the new holder is in place.
         self.gate = None;
@@ -188,7 +207,16 @@ impl Takeover {
 
 impl Drop for Takeover {
     fn drop(&mut self) {
-        // A resume that did not take the session leaves no slot behind.
+        // A resume that did not take the session: a slot its holder left meanwhile is released,
+        // and no slot of the map is left behind.
+        let released = if self.taken {
+            None
+        } else {
+            let mut h = self.slot.holder();
+            h.taking = false;
+            if h.alive { None } else { h.admission.take() }
+        };
+        drop(released);
         self.gate = None;
         self.live.forget(&self.sid, &self.slot);
     }
@@ -228,7 +256,9 @@ impl Drop for Lease {
         let released = {
             let mut h = self.slot.holder();
             if h.generation == self.generation {
-                h.admission.take()
+                h.alive = false;
+                // A resume waiting at the gate takes the slot over (or releases it).
+                if h.taking { None } else { h.admission.take() }
             } else {
                 None
             }
@@ -292,6 +322,39 @@ mod tests {
         drop(new);
         assert_eq!(slots.load(Ordering::SeqCst), 0);
         assert!(!live.is_live("s1-1"));
+    }
+
+    #[tokio::test]
+    async fn a_holder_ending_during_a_takeover_leaves_its_slot_to_it() {
+        let live = Arc::new(Live::default());
+        let slots = Arc::new(AtomicUsize::new(0));
+        // Taken: the slot passes on although its holder ended after the resume saw it held.
+        let old = live.start("s1-4", admission(&slots));
+        let t = live.lock("s1-4").await;
+        assert!(t.held());
+        drop(old);
+        assert_eq!(
+            slots.load(Ordering::SeqCst),
+            1,
+            "the slot was released under the resume"
+        );
+        let new = t.take(None);
+        assert!(new.holds());
+        assert_eq!(slots.load(Ordering::SeqCst), 1);
+        // Refused: the slot the ended holder left is released with the resume.
+        let t = live.lock("s1-4").await;
+        drop(new);
+        assert_eq!(slots.load(Ordering::SeqCst), 1);
+        drop(t);
+        assert_eq!(slots.load(Ordering::SeqCst), 0);
+        assert!(!live.is_live("s1-4"));
+        // Refused while the holder runs: it keeps its slot.
+        let old = live.start("s1-4", admission(&slots));
+        drop(live.lock("s1-4").await);
+        assert!(old.holds() && live.is_live("s1-4"));
+        assert_eq!(slots.load(Ordering::SeqCst), 1);
+        drop(old);
+        assert_eq!(slots.load(Ordering::SeqCst), 0);
     }
 
     #[tokio::test]
