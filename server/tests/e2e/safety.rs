@@ -6,6 +6,13 @@
 use crate::common::*;
 use librplus_server::auth::{hex, sha256};
 
+/// The server binary these tests run (`LIBRPLUS_SERVER_BIN`: another build, as `Proc` runs).
+fn server_bin() -> PathBuf {
+    std::env::var_os("LIBRPLUS_SERVER_BIN")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_librplus-server")))
+}
+
 fn list_with(headers: &[&str]) -> tonic::Request<pb::ListCasesRequest> {
     let mut r = tonic::Request::new(pb::ListCasesRequest {});
     for h in headers {
@@ -66,7 +73,7 @@ async fn the_audit_table_escapes_what_clients_sent() {
     // The refusal is recorded without waiting: poll for it.
     let mut out = String::new();
     for _ in 0..50 {
-        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_librplus-server"));
+        let mut cmd = std::process::Command::new(server_bin());
         cmd.arg("audit").arg("--db").arg(&db);
         out = run_cmd(cmd).await;
         if out.contains("forged-line") {
@@ -89,7 +96,7 @@ async fn the_audit_table_escapes_what_clients_sent() {
         "the newline shown escaped"
     );
     // The JSON view keeps the value exactly (escaped by JSON).
-    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_librplus-server"));
+    let mut cmd = std::process::Command::new(server_bin());
     cmd.arg("audit").arg("--db").arg(&db).arg("--json");
     let json = run_cmd(cmd).await;
     let found = json
@@ -121,7 +128,7 @@ async fn flags_complete_a_config_file() {
         .cases;
     assert!(!cases.is_empty());
     // Still refused when neither gives a case, naming the file and the field.
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_librplus-server"))
+    let out = std::process::Command::new(server_bin())
         .args(["--config", &cfg, "--listen", "127.0.0.1:0"])
         .output()
         .unwrap();
