@@ -121,15 +121,7 @@ async fn cases_are_uploaded_checked_stored_preloaded_and_deleted() {
     let mut running = librplus_server::start(cfg.clone()).await.unwrap();
     running.ready().await.unwrap();
     let mut c = client(running.addr).await;
-    let m = open(dataset()).unwrap();
-    let g = &m.geometries[0];
-    let mesh = std::fs::read(dataset().join(&g.preop)).unwrap();
-    let ext = dataset()
-        .join(&g.preop)
-        .extension()
-        .unwrap()
-        .to_string_lossy()
-        .to_string();
+    let (mesh, ext, nodes, tets) = dataset_mesh();
 
     // Upload, progress, READY.
     let t0 = std::time::Instant::now();
@@ -206,25 +198,6 @@ async fn cases_are_uploaded_checked_stored_preloaded_and_deleted() {
     while session.message().await.unwrap().is_some() {}
 
     // Bad uploads: a clear error naming the problem, nothing stored.
-    let (nodes, tets) = {
-        let geo = load_geometry(dataset(), &m, &g.id).unwrap();
-        (
-            geo.model
-                .mesh
-                .nodes()
-                .iter()
-                .flatten()
-                .copied()
-                .collect::<Vec<f64>>(),
-            geo.model
-                .mesh
-                .tets()
-                .iter()
-                .flatten()
-                .copied()
-                .collect::<Vec<u32>>(),
-        )
-    };
     let mut nan = nodes.clone();
     nan[30] = f64::NAN;
     let mut inverted = tets.clone();
