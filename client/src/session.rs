@@ -564,12 +564,13 @@ where
                 on_update(&u, None);
             }
             Bounded::Done(Ok(None)) => return Attempt::Over,
+            // Lost after the last answer (the server killed, the session taken over): resumed
+            // like any lost stream, to end it cleanly; without `resume` it ends here.
+            Bounded::Done(Err(s)) if out.updates > 0 => {
+                return lost_or(s, out, false);
+            }
             Bounded::Done(Err(s)) => {
-                out.end = if out.updates == 0 {
-                    SessionEnd::Refused(s)
-                } else {
-                    SessionEnd::Failed(s)
-                };
+                out.end = SessionEnd::Refused(s);
                 return Attempt::Over;
             }
             Bounded::TimedOut => {
