@@ -183,6 +183,8 @@ struct Outcome<'a> {
     libr: Option<&'a librplus::register::libr::LibrInfo>,
     rigid_converged: bool,
     rigid_iterations: usize,
+    /// Why the pose is ambiguous, when it is.
+    ambiguous_pose: Option<String>,
 }
 
 /// The answer's quality and its reason: the first that applies of degenerate data, a fallback,
@@ -192,6 +194,8 @@ fn judge(o: &Outcome<'_>, budget: Duration, params: &PipelineParams) -> (pb::Qua
         (pb::Quality::Degenerate, format!("degenerate data: {r}"))
     } else if let Some(r) = &o.fallback {
         (pb::Quality::Degenerate, r.clone())
+    } else if let Some(r) = &o.ambiguous_pose {
+        (pb::Quality::AmbiguousPose, r.clone())
     } else if let Some(r) = &o.degraded {
         (pb::Quality::Degraded, r.clone())
     } else if let Some(e) = o.refit_error {
@@ -245,6 +249,10 @@ fn judge(o: &Outcome<'_>, budget: Duration, params: &PipelineParams) -> (pb::Qua
     }
 }
 
+/// How many single registrations' time the pose search takes (measured about six on the paper
+/// liver, 2 cores).
+const POSE_SEARCH_COST: f64 = 6.0;
+
 /// Plans and runs one registration within its budget.
 fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let start = Instant::now();
@@ -293,6 +301,18 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
                 Some(deadline - Duration::from_secs_f64(est.libr_fixed_ms.max(0.0) / 1e3));
         }
     }
+    // The pose search (`librplus::pipeline::pose`) costs about six single registrations: it
+    // runs when the budget left holds that many, otherwise the navigation start alone.
+    let left = ms(deadline.saturating_duration_since(Instant::now()));
+    let one = est.rigid_ms
+        + if matches!(method, Method::Rigid | Method::V2s) {
+            0.0
+        } else {
+            est.libr_fixed_ms + 10.0 * est.libr_iteration_ms
+        };
+    if left < POSE_SEARCH_COST * one {
+        params.pose.start_angles_deg.clear();
+    }
     let mut result = register(prepared, &job.measurements, method, &params);
     let mut fallback: Option<String> = None;
     if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, method)
@@ -331,6 +351,17 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
             libr: reg.libr.as_ref(),
             rigid_converged: reg.rigid.converged,
             rigid_iterations: reg.rigid.iterations,
+            ambiguous_pose: reg.pose.as_ref().filter(|p| p.ambiguous).map(|p| {
+                let s = &p.scores;
+                let mut sorted = s.clone();
+                sorted.sort_by(f64::total_cmp);
+                format!(
+                    "two rigid poses {:.0} mm apart explain the points about equally after the deformable fit (scores {:.2} and {:.2} mm²): the answer is the better one and may be wrong",
+                    p.runner_up_mm.unwrap_or(0.0),
+                    sorted[0],
+                    sorted.get(1).copied().unwrap_or(f64::NAN)
+                )
+            }),
         },
         job.budget,
         &params,
@@ -442,6 +473,7 @@ mod tests {
             libr,
             rigid_converged: true,
             rigid_iterations: 10,
+            ambiguous_pose: None,
         }
     }
 

@@ -332,9 +332,11 @@ pub fn method_from_pb(
                 "{field}: METHOD_V2S needs a V2S model, and this server loaded none (v2s is off)"
             ),
         )),
+        // Whether the case has adaptive LIBR's basis is checked with the case.
+        Ok(pb::Method::Adaptive) => Ok(Method::Adaptive),
         Err(_) => Err(ServiceError::field(
             field,
-            format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S)"),
+            format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S, 5 adaptive)"),
         )),
     }
 }
@@ -348,6 +350,7 @@ pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
         librplus::pipeline::Method::Libr => pb::Method::Libr,
         librplus::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
         librplus::pipeline::Method::V2s => pb::Method::V2s,
+        librplus::pipeline::Method::Adaptive => pb::Method::Adaptive,
     }
 }
 

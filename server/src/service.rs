@@ -423,6 +423,17 @@ impl Svc {
             case.prepared.v2s.is_some(),
             field,
         )?;
+        if method == Method::Adaptive && case.prepared.adaptive.is_none() {
+            return Err(ServiceError::precondition(
+                "CASE",
+                field,
+                format!(
+                    "case {} was prepared without adaptive LIBR's basis (the server's adaptive setting is off)",
+                    case.id
+                ),
+                format!("{field}: case {} has no adaptive LIBR basis", case.id),
+            ));
+        }
         if matches!(method, Method::Libr | Method::LibrPlus) && case.prepared.basis.is_none() {
             return Err(ServiceError::precondition(
                 "CASE",

@@ -1178,6 +1178,7 @@ fn confirm_once(
         basis_from_cache: false,
         librplus: None,
         v2s: None,
+        adaptive: None,
         physics: physics.clone(),
         error_model: None,
         seconds: 0.0,

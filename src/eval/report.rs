@@ -340,6 +340,9 @@ pub fn evaluate(
             let geo = load_geometry(dir, m, &d.geometry)?;
             let libr = methods.contains(&Method::Libr).then_some(&params.libr);
             let mut case = Prepared::with_physics(geo.model.clone(), libr, physics, Some(&cache))?;
+            if methods.contains(&Method::Adaptive) {
+                case = case.with_adaptive(&params.libr, &params.adaptive, Some(&cache))?;
+            }
             if let Some(v) = v2s.filter(|_| methods.contains(&Method::V2s)) {
                 case = case.with_v2s(v.clone())?;
             }

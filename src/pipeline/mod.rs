@@ -9,7 +9,7 @@ use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{
     Correspondence, CorrespondenceParams, validate_measurements,
 };
-use crate::register::libr::{self, LibrBasis, LibrInfo, LibrParams};
+use crate::register::libr::{self, AdaptiveParams, LibrBasis, LibrInfo, LibrParams};
 use crate::register::physics::model::Sites;
 use crate::register::physics::{EffectKind, Physics};
 use crate::register::prior::{HELD_SIGMA_MM, RigidPrior};
@@ -20,6 +20,8 @@ use crate::v2s::io::V2sModel;
 use crate::v2s::{V2sCase, V2sError};
 use std::path::Path;
 use std::sync::Arc;
+
+pub mod pose;
 use std::time::{Duration, Instant};
 
 /// Why a case could not be prepared or a registration did not run, by stage.
@@ -49,6 +51,9 @@ pub enum PipelineError {
     /// LIBR or LIBR+ was asked of a case prepared without a LIBR basis.
     #[error("the case was prepared without a LIBR basis")]
     NoBasis,
+    /// Adaptive LIBR was asked of a case prepared without its basis.
+    #[error("the case was prepared without adaptive LIBR's basis (method adaptive)")]
+    NoAdaptiveBasis,
     /// LIBR+ was asked of a case without an SR-GCN model.
     #[error("the case has no SR-GCN model: LIBR+ needs one (use LIBR)")]
     NoModel,
@@ -80,6 +85,10 @@ pub enum Method {
     /// wICP, then the V2S network's displacement (the paper's data-driven baseline; needs a case
     /// prepared with a V2S model, [`Prepared::with_v2s`]).
     V2s,
+    /// wICP followed by adaptive LIBR: control loads resolved finely where the data are, the
+    /// prior's strength chosen by the data's evidence ([`crate::register::libr::solve_adaptive`];
+    /// needs a case prepared with [`Prepared::with_adaptive`]).
+    Adaptive,
 }
 
 impl Method {
@@ -91,7 +100,22 @@ impl Method {
             Method::Libr => "libr",
             Method::LibrPlus => "librplus",
             Method::V2s => "v2s",
+            Method::Adaptive => "adaptive",
         }
+    }
+
+    /// The method of a name ([`Method::name`]).
+    pub fn from_name(name: &str) -> Option<Self> {
+        [
+            Method::Initial,
+            Method::Rigid,
+            Method::Libr,
+            Method::LibrPlus,
+            Method::V2s,
+            Method::Adaptive,
+        ]
+        .into_iter()
+        .find(|m| m.name() == name)
     }
 }
 
@@ -112,6 +136,11 @@ pub struct PipelineParams {
     /// correction ([`refit`]; 0: none, the network's shape is the answer). Default
     /// [`REFIT_ITERATIONS`].
     pub refit_iterations: usize,
+    /// Adaptive LIBR's basis levels, reach and λ search (its iterations and matching are
+    /// `libr`'s).
+    pub adaptive: AdaptiveParams,
+    /// The rigid stage's extra starts and the choice among the poses they reach ([`pose`]).
+    pub pose: pose::PoseParams,
 }
 
 impl Default for PipelineParams {
@@ -121,6 +150,8 @@ impl Default for PipelineParams {
             libr: LibrParams::default(),
             deadline: None,
             refit_iterations: REFIT_ITERATIONS,
+            adaptive: AdaptiveParams::default(),
+            pose: pose::PoseParams::default(),
         }
     }
 }
@@ -149,6 +180,8 @@ pub struct Prepared {
     pub librplus: Option<LibrPlusCase>,
     /// The V2S network, when the case has one ([`Prepared::with_v2s`]).
     pub v2s: Option<V2sCase>,
+    /// Adaptive LIBR's multi-level basis, when prepared ([`Prepared::with_adaptive`]).
+    pub adaptive: Option<AdaptiveBasis>,
     /// The physics LIBR's model carries (empty: plain LIBR).
     pub physics: Physics,
     /// The error model every registration's estimate comes from (None: no estimate).
@@ -205,6 +238,7 @@ impl Prepared {
             basis_from_cache,
             librplus: None,
             v2s: None,
+            adaptive: None,
             physics: physics.clone(),
             error_model: None,
             seconds: crate::util::secs(t0),
@@ -228,6 +262,61 @@ impl Prepared {
         let t0 = Instant::now();
         self.librplus =
             Some(LibrPlusCase::new(models, &self.model.mesh).map_err(PipelineError::Model)?);
+        self.seconds += crate::util::secs(t0);
+        Ok(self)
+    }
+}
+
+/// Adaptive LIBR's basis of a case: all levels' columns (broadest first) and its parameters.
+pub struct AdaptiveBasis {
+    /// The multi-level basis ([`LibrBasis::build_levels`]), with the case's physics.
+    pub basis: LibrBasis,
+    /// The parameters it was built with.
+    pub params: AdaptiveParams,
+    /// Whether it came from the disk cache.
+    pub from_cache: bool,
+}
+
+impl Prepared {
+    /// Builds (or loads from `cache_dir`) adaptive LIBR's multi-level basis with the case's
+    /// physics, so the case answers [`Method::Adaptive`]. `libr` gives the material and the
+    /// sampling seed.
+    pub fn with_adaptive(
+        mut self,
+        libr: &LibrParams,
+        params: &AdaptiveParams,
+        cache_dir: Option<&Path>,
+    ) -> Result<Self, PipelineError> {
+        params.validate().map_err(PipelineError::Case)?;
+        let t0 = Instant::now();
+        let sites = Sites {
+            posterior: &self.model.posterior,
+            falciform: &self.model.falciform,
+        };
+        let (basis, from_cache) = match cache_dir {
+            Some(dir) => LibrBasis::load_or_build_levels(
+                &self.model.mesh,
+                libr,
+                &params.levels,
+                &self.physics,
+                sites,
+                dir,
+            ),
+            None => LibrBasis::build_levels(
+                &self.model.mesh,
+                libr,
+                &params.levels,
+                &self.physics,
+                sites,
+            )
+            .map(|b| (b, false)),
+        }
+        .map_err(PipelineError::Case)?;
+        self.adaptive = Some(AdaptiveBasis {
+            basis,
+            params: params.clone(),
+            from_cache,
+        });
         self.seconds += crate::util::secs(t0);
         Ok(self)
     }
@@ -335,8 +424,11 @@ pub struct Registration {
     pub image_to_physical: Rigid,
     /// Node displacements (image frame, node-major 3n; zero for rigid).
     pub u: Vec<f64>,
-    /// The rigid stage.
+    /// The rigid stage (from the pose chosen).
     pub rigid: WicpResult,
+    /// How the pose was chosen among the rigid stage's starts (None: one start, or every start
+    /// reached the same pose).
+    pub pose: Option<pose::PoseInfo>,
     /// The LIBR stage, when run.
     pub libr: Option<LibrInfo>,
     /// The SR-GCN stage, for LIBR+.
@@ -457,14 +549,100 @@ pub fn register(
     } else {
         wparams
     };
-    let rigid = wicp(&case.model, &case.correspondence, meas, &rigid_params)
-        .map_err(PipelineError::Rigid)?;
-    if matches!(method, Method::Rigid | Method::Initial) {
+    // The rigid stage: from the navigation start alone for the baseline, else from every start
+    // of the pose search (distinct poses, the navigation start's first).
+    let t_rigid = Instant::now();
+    let candidates = if method == Method::Initial {
+        let r = wicp(&case.model, &case.correspondence, meas, &rigid_params)
+            .map_err(PipelineError::Rigid)?;
+        pose::Candidates {
+            poses: vec![r],
+            starts: 1,
+            distinct: 1,
+        }
+    } else {
+        pose::rigid_candidates(
+            &case.model,
+            &case.correspondence,
+            meas,
+            &rigid_params,
+            &params.pose,
+        )
+        .map_err(PipelineError::Rigid)?
+    };
+    let search_seconds = crate::util::secs(t_rigid);
+    let rigid_scores = |poses: &[WicpResult]| -> Result<Vec<f64>, PipelineError> {
+        poses
+            .iter()
+            .map(|r| {
+                pose::score(
+                    &case.correspondence,
+                    meas,
+                    &rigid_params.correspondence,
+                    None,
+                    &r.image_to_physical,
+                    params.pose.cap_mm,
+                )
+                .map_err(PipelineError::Rigid)
+            })
+            .collect()
+    };
+    if matches!(method, Method::Rigid | Method::Initial | Method::V2s) {
+        // No deformable fit to score the poses by: their rigid scores decide.
+        let (rigid, pose) = if candidates.poses.len() > 1 {
+            let scores = rigid_scores(&candidates.poses)?;
+            let poses: Vec<Rigid> = candidates
+                .poses
+                .iter()
+                .map(|r| r.image_to_physical)
+                .collect();
+            let info = pose::choose(
+                &case.model,
+                &poses,
+                &scores,
+                &vec![0.0; scores.len()],
+                candidates.starts,
+                candidates.distinct,
+                &params.pose,
+            );
+            let mut c = candidates.poses;
+            let info = pose::PoseInfo {
+                rigid_seconds: search_seconds,
+                ..info
+            };
+            (c.swap_remove(info.chosen), Some(info))
+        } else {
+            (candidates.poses.into_iter().next().expect("one pose"), None)
+        };
+        if let Some(v) = v2s {
+            // V2S reads the points after the rigid stage, as V2S-Net assumes a rigid alignment.
+            let t1 = Instant::now();
+            let (u, network_seconds) = v
+                .displacement(meas, &rigid.image_to_physical)
+                .map_err(PipelineError::V2s)?;
+            return Ok(Registration {
+                method,
+                image_to_physical: rigid.image_to_physical,
+                u,
+                rigid,
+                pose,
+                libr: None,
+                correction: None,
+                v2s: Some(V2sInfo {
+                    seconds: crate::util::secs(t1),
+                    network_seconds,
+                }),
+                error: None,
+                seconds: crate::util::secs(t0),
+            }
+            .estimated(case, meas));
+        }
         return Ok(Registration {
             method,
             image_to_physical: rigid.image_to_physical,
             u: vec![0.0; 3 * n],
             rigid,
+            pose,
             libr: None,
             correction: None,
             v2s: None,
@@ -473,34 +651,19 @@ pub fn register(
         }
         .estimated(case, meas));
     }
-    if let Some(v) = v2s {
-        // V2S reads the points after the rigid stage, as V2S-Net assumes a rigid alignment.
-        let t1 = Instant::now();
-        let (u, network_seconds) = v
-            .displacement(meas, &rigid.image_to_physical)
-            .map_err(PipelineError::V2s)?;
-        return Ok(Registration {
-            method,
-            image_to_physical: rigid.image_to_physical,
-            u,
-            rigid,
-            libr: None,
-            correction: None,
-            v2s: Some(V2sInfo {
-                seconds: crate::util::secs(t1),
-                network_seconds,
-            }),
-            error: None,
-            seconds: crate::util::secs(t0),
-        }
-        .estimated(case, meas));
-    }
-    if let Some(reason) = &rigid.degenerate {
+    if let Some(reason) = &candidates.poses[0].degenerate {
         return Err(PipelineError::Degenerate {
             reason: reason.clone(),
         });
     }
-    let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
+    let cparams = &params.libr_correspondence();
+    let corr = &case.correspondence;
+    let rematch = |u: &[f64], t: &Rigid| {
+        let inv = t.inverse();
+        let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
+        corr.match_points(&pts, meas, Some(u), cparams)
+            .map(|(m, _)| m)
+    };
     let gcn = match method {
         Method::LibrPlus => Some(case.librplus.as_ref().ok_or(PipelineError::NoModel)?),
         _ => None,
@@ -513,28 +676,117 @@ pub fn register(
         ),
         (d, _) => d,
     };
-    let cparams = &params.libr_correspondence();
-    let corr = &case.correspondence;
-    let sol = libr::solve_with_limits(
-        &case.model.mesh,
-        basis,
-        &params.libr,
-        &meas.points,
-        &rigid.image_to_physical,
-        libr::RunLimits {
+    // The deformable fit from one rigid pose.
+    let deform = |rigid: &WicpResult| -> Result<libr::LibrSolution, PipelineError> {
+        let run = libr::RunLimits {
             active: Some(corr.active_nodes()),
             deadline: libr_deadline,
             offset: None,
             rigid_prior: rigid.prior.as_ref(),
-        },
-        |u, t| {
-            let inv = t.inverse();
-            let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
-            corr.match_points(&pts, meas, Some(u), cparams)
-                .map(|(m, _)| m)
-        },
-    )
-    .map_err(PipelineError::Libr)?;
+        };
+        if method == Method::Adaptive {
+            let ad = case
+                .adaptive
+                .as_ref()
+                .ok_or(PipelineError::NoAdaptiveBasis)?;
+            libr::solve_adaptive(
+                &case.model.mesh,
+                &ad.basis,
+                ad.params.levels[0].0,
+                &params.libr,
+                &ad.params,
+                &meas.points,
+                &rigid.image_to_physical,
+                run,
+                rematch,
+            )
+        } else {
+            let basis = case.basis.as_ref().ok_or(PipelineError::NoBasis)?;
+            libr::solve_with_limits(
+                &case.model.mesh,
+                basis,
+                &params.libr,
+                &meas.points,
+                &rigid.image_to_physical,
+                run,
+                rematch,
+            )
+        }
+        .map_err(PipelineError::Libr)
+    };
+    // Every candidate pose through the fit, scored on what it leaves; the best wins.
+    let (rigid, sol, pose) = if candidates.poses.len() == 1 {
+        let rigid = candidates.poses.into_iter().next().expect("one pose");
+        let sol = deform(&rigid)?;
+        (rigid, sol, None)
+    } else {
+        use rayon::prelude::*;
+        let fitted: Vec<Result<(libr::LibrSolution, f64), PipelineError>> = candidates
+            .poses
+            .par_iter()
+            .map(|r| {
+                let sol = deform(r)?;
+                let s = pose::score(
+                    corr,
+                    meas,
+                    cparams,
+                    Some(&sol.u),
+                    &sol.image_to_physical,
+                    params.pose.cap_mm,
+                )
+                .map_err(PipelineError::Libr)?;
+                let score = s + sol.info.prior_mm2;
+                Ok((sol, score))
+            })
+            .collect();
+        let mut sols = Vec::new();
+        let mut scores = Vec::new();
+        let mut priors = Vec::new();
+        for (k, f) in fitted.into_iter().enumerate() {
+            match f {
+                Ok((sol, score)) => {
+                    scores.push(score);
+                    priors.push(sol.info.prior_mm2);
+                    sols.push(Some(sol));
+                }
+                // The navigation start's fit failing fails the registration as before; another
+                // start's failure only drops that start.
+                Err(e) if k == 0 => return Err(e),
+                Err(_) => {
+                    scores.push(f64::INFINITY);
+                    priors.push(0.0);
+                    sols.push(None);
+                }
+            }
+        }
+        let poses: Vec<Rigid> = sols
+            .iter()
+            .zip(&candidates.poses)
+            .map(|(s, r)| {
+                s.as_ref()
+                    .map_or(r.image_to_physical, |s| s.image_to_physical)
+            })
+            .collect();
+        let info = pose::choose(
+            &case.model,
+            &poses,
+            &scores,
+            &priors,
+            candidates.starts,
+            candidates.distinct,
+            &params.pose,
+        );
+        let info = pose::PoseInfo {
+            rigid_seconds: search_seconds,
+            ..info
+        };
+        let mut rs = candidates.poses;
+        let rigid = rs.swap_remove(info.chosen);
+        let sol = sols
+            .swap_remove(info.chosen)
+            .expect("the chosen pose was fitted");
+        (rigid, sol, Some(info))
+    };
     let mut u = sol.u;
     let mut image_to_physical = sol.image_to_physical;
     let correction = gcn.map(|g| {
@@ -608,6 +860,7 @@ pub fn register(
         image_to_physical,
         u,
         rigid,
+        pose,
         libr: Some(sol.info),
         correction,
         v2s: None,

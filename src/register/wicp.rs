@@ -129,7 +129,8 @@ pub struct WicpResult {
     /// RMS displacement of the organ's nodes between the start and the result (mm).
     #[serde(default)]
     pub moved_from_start_mm: f64,
-    /// Wall-clock time (s).
+    /// Wall-clock time (s) of this run (in a registration with a pose search, of the chosen
+    /// pose's run; the search's is [`crate::pipeline::pose::PoseInfo::rigid_seconds`]).
     pub seconds: f64,
 }
 

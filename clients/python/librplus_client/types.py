@@ -34,6 +34,7 @@ _METHODS = {
     "libr-plus": pb.METHOD_LIBR_PLUS,
     "librplus": pb.METHOD_LIBR_PLUS,
     "v2s": pb.METHOD_V2S,
+    "adaptive": pb.METHOD_ADAPTIVE,
 }
 
 _FEATURES = {
@@ -206,10 +207,12 @@ class Registration:
         displacement_mm: (n, 3) float64 node displacements u, image frame, mm (float32 on the
             wire); zeros for a rigid answer that sent none; None when the request asked to omit
             them (``omit_displacements``) from a non-rigid answer.
-        quality: ``QUALITY_OK``, ``QUALITY_NOT_CONVERGED``, ``QUALITY_DEGRADED`` or
-            ``QUALITY_DEGENERATE`` (the last: do not navigate with it).
+        quality: ``QUALITY_OK``, ``QUALITY_NOT_CONVERGED``, ``QUALITY_DEGRADED``,
+            ``QUALITY_DEGENERATE`` (do not navigate with it) or ``QUALITY_AMBIGUOUS_POSE`` (two
+            rigid poses explain the points about equally: the answer may be wrong).
         quality_reason: why the quality is not OK (empty when it is).
-        method_used: ``METHOD_RIGID``, ``METHOD_LIBR``, ``METHOD_LIBR_PLUS`` or ``METHOD_V2S``
+        method_used: ``METHOD_RIGID``, ``METHOD_LIBR``, ``METHOD_LIBR_PLUS``, ``METHOD_V2S`` or
+            ``METHOD_ADAPTIVE``
             (may differ from the method asked when the server degraded it).
         residual_rms_mm: RMS distance of the matched points to the registered model, mm.
         points_used: points in the registration.

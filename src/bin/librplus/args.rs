@@ -368,6 +368,40 @@ pub(crate) struct LibrOpts {
     /// to 10 mm and the registration flagged (default 1e-3; 0: never)
     #[arg(long)]
     pub(crate) min_conditioning: Option<f64>,
+    /// Adaptive LIBR: control points of each level of its basis, broadest first, comma-separated
+    /// (default 25,100; changes its cached basis)
+    #[arg(long, value_delimiter = ',', value_name = "K,K,...")]
+    pub(crate) adaptive_levels: Option<Vec<usize>>,
+    /// Adaptive LIBR: a finer level's control load is kept when a matched point lies within this
+    /// many patch widths of it (default 2)
+    #[arg(long)]
+    pub(crate) adaptive_reach: Option<f64>,
+    /// Adaptive LIBR: the range of λ its evidence search covers (default 1e-6,1)
+    #[arg(long, value_delimiter = ',', value_name = "LOW,HIGH")]
+    pub(crate) adaptive_lambda: Option<Vec<f64>>,
+    /// Adaptive LIBR: stiffness annealing, the first iteration's least λ and the factor per
+    /// iteration (default 0.1,0.3; 0,0: none)
+    #[arg(long, value_delimiter = ',', value_name = "START,FACTOR")]
+    pub(crate) adaptive_anneal: Option<Vec<f64>>,
+    /// Adaptive LIBR: the finer levels' deformation costs this many times its strain energy
+    /// (default 1)
+    #[arg(long)]
+    pub(crate) adaptive_fine_penalty: Option<f64>,
+    /// Adaptive LIBR: every level from the first iteration (default: the broadest level alone
+    /// until it settles, then every level)
+    #[arg(long)]
+    pub(crate) adaptive_all_levels_at_once: bool,
+    /// Adaptive LIBR: a finer control load is kept when the matched points near it spread at
+    /// least this many patch widths across their second principal axis (default 0.3)
+    #[arg(long)]
+    pub(crate) adaptive_spread: Option<f64>,
+    /// The rigid stage's extra starts: the navigation start turned by each of these angles
+    /// (degrees) about three axes, both ways (default 15,30,45)
+    #[arg(long, value_delimiter = ',', value_name = "DEG,...")]
+    pub(crate) start_angles: Option<Vec<f64>>,
+    /// The rigid stage starts from the navigation start alone (no pose search)
+    #[arg(long, conflicts_with = "start_angles")]
+    pub(crate) single_start: bool,
 }
 
 impl LibrOpts {
@@ -393,6 +427,40 @@ impl LibrOpts {
         if let Some(c) = self.min_conditioning {
             p.wicp.min_conditioning = c;
         }
+        if let Some(levels) = &self.adaptive_levels {
+            let w = p.libr.load_width;
+            p.adaptive.levels = levels.iter().map(|&k| (k, w)).collect();
+        }
+        if let Some(r) = self.adaptive_reach {
+            p.adaptive.reach = r;
+        }
+        // Two values each; anything else becomes NaN, which the parameters' check refuses
+        // naming the field.
+        let pair = |v: &[f64]| match v {
+            [a, b] => (*a, *b),
+            _ => (f64::NAN, f64::NAN),
+        };
+        if let Some(l) = &self.adaptive_lambda {
+            p.adaptive.lambda_range = pair(l);
+        }
+        if let Some(a) = &self.start_angles {
+            p.pose.start_angles_deg = a.clone();
+        }
+        if self.single_start {
+            p.pose.start_angles_deg.clear();
+        }
+        if let Some(x) = self.adaptive_spread {
+            p.adaptive.spread = x;
+        }
+        if self.adaptive_all_levels_at_once {
+            p.adaptive.coarse_first = false;
+        }
+        if let Some(f) = self.adaptive_fine_penalty {
+            p.adaptive.fine_penalty = f;
+        }
+        if let Some(a) = &self.adaptive_anneal {
+            (p.adaptive.anneal_start, p.adaptive.anneal_factor) = pair(a);
+        }
         p
     }
 }
@@ -405,7 +473,8 @@ pub(crate) struct EvaluateArgs {
     #[arg(long)]
     pub(crate) data: PathBuf,
     /// Comma-separated methods: initial (the navigation start, unregistered: the baseline),
-    /// rigid, libr, v2s (--v2s-model), librplus (--model, or the built-in model).
+    /// rigid, libr, adaptive (adaptive LIBR), v2s (--v2s-model), librplus (--model, or the
+    /// built-in model).
     #[arg(long, default_value = "rigid,libr")]
     pub(crate) methods: String,
     /// A trained SR-GCN model directory (from `librplus train`), or an ensemble directory (from
@@ -618,6 +687,9 @@ pub(crate) enum MethodArg {
     Librplus,
     /// wICP, then the V2S network's displacement (--v2s-model, or the built-in one).
     V2s,
+    /// wICP, then adaptive LIBR (control loads resolved where the data are, the prior's
+    /// strength chosen by the data).
+    Adaptive,
 }
 
 #[derive(Subcommand)]

@@ -225,6 +225,17 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     bar.finish_and_clear();
     let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
     let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
+    if method == librplus::pipeline::Method::Adaptive {
+        let t = std::time::Instant::now();
+        case = case
+            .with_adaptive(&params.libr, &params.adaptive, None)
+            .map_err(anyhow::Error::msg)?;
+        println!(
+            "adaptive LIBR's basis ({} columns) built in {:.2} s",
+            case.adaptive.as_ref().map_or(0, |b| b.basis.columns()),
+            t.elapsed().as_secs_f64()
+        );
+    }
     // The learned model's preparation for the case (SR-GCN graphs; V2S grid and channels).
     let mut model_prepare_s = None;
     if let Some(l) = learned {

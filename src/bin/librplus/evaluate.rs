@@ -19,8 +19,11 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             "libr" => methods.push(Method::Libr),
             "librplus" => want_plus = true,
             "v2s" => methods.push(Method::V2s),
+            "adaptive" => methods.push(Method::Adaptive),
             other => {
-                bail!("--methods: unknown method {other:?} (initial, rigid, libr, v2s, librplus)")
+                bail!(
+                    "--methods: unknown method {other:?} (initial, rigid, libr, adaptive, v2s, librplus)"
+                )
             }
         }
     }

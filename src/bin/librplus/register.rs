@@ -41,6 +41,7 @@ pub(crate) fn method_and_model(
         MethodArg::Libr => Method::Libr,
         MethodArg::Librplus => Method::LibrPlus,
         MethodArg::V2s => Method::V2s,
+        MethodArg::Adaptive => Method::Adaptive,
     };
     let learned = match (model, method) {
         (Some(dir), Method::LibrPlus) => Some(Learned::Gcn(shared_models(
@@ -86,11 +87,17 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             "warnings": r.rigid.warnings,
             "seconds": r.rigid.seconds,
         },
+        "pose": r.pose,
         "libr": libr.map(|i| json!({
             "iterations": i.iterations,
             "converged": i.converged,
             "settled": i.settled,
             "rms_mm": i.rms_mm,
+            "rms_history_mm": i.rms_history_mm,
+            "movement_history_mm": i.movement_history_mm,
+            "regularization": i.regularization,
+            "columns": i.columns,
+            "strain_energy_uj": i.strain_energy_uj,
             "matching_s": i.matching_s,
             "assemble_s": i.assemble_s,
             "solve_s": i.solve_s,
@@ -152,6 +159,11 @@ fn prepare_case(
         Some(cache),
     )?
     .with_error_model(librplus::register::uncertainty::builtin());
+    let case = if method == Method::Adaptive {
+        case.with_adaptive(&params.libr, &params.adaptive, Some(cache))?
+    } else {
+        case
+    };
     match learned {
         Some(m) => m.attach(case),
         None => Ok(case),

@@ -45,8 +45,12 @@ pub struct LibrBasis {
     pub energy: Vec<f64>,
     /// Per column: peak traction (kPa) of the load whose response is the column.
     pub load_scale: Vec<f64>,
-    /// Resolved Gaussian width σ of the traction patches (mm).
+    /// Resolved Gaussian width σ of the traction patches (mm); of the first level in a
+    /// multi-resolution basis ([`LibrBasis::build_levels`]).
     pub load_width_mm: f64,
+    /// Per control point: its patch's width σ (mm) when the basis has several levels of
+    /// resolution ([`LibrBasis::build_levels`]); empty when every patch has `load_width_mm`.
+    pub control_width_mm: Vec<f64>,
     /// Labels of the augmented model's effect columns, which follow the 3K LIBR columns
     /// (`gravity`, `pack.x`, ...); empty for plain LIBR. An effect column is the model's
     /// response to the effect's unit load, scaled to a 1 mm peak like the LIBR columns
@@ -301,6 +305,14 @@ impl LibrBasis {
         self.load_scale.len()
     }
 
+    /// The width σ (mm) of control point `k`'s traction patch.
+    pub fn control_width(&self, k: usize) -> f64 {
+        self.control_width_mm
+            .get(k)
+            .copied()
+            .unwrap_or(self.load_width_mm)
+    }
+
     /// Builds the basis: control points, loads, one factorization, 3K solves (parallel column
     /// blocks), rigid-mode removal, scaling, `E = ΦᵀKΦ`.
     pub fn build(mesh: &TetMesh, params: &LibrParams) -> Result<Self, RegisterError> {
@@ -323,7 +335,42 @@ impl LibrBasis {
         physics: &Physics,
         sites: Sites<'_>,
     ) -> Result<Self, RegisterError> {
+        Self::build_levels(
+            mesh,
+            params,
+            &[(params.control_points, params.load_width)],
+            physics,
+            sites,
+        )
+    }
+
+    /// [`LibrBasis::build_with`] with several levels of resolution: each `(K, width)` level
+    /// samples its own K control points by farthest-point sampling (from the same seed) and
+    /// loads them with patches of its own width; the columns of all levels follow each other in
+    /// the order given (then the effect columns), and `E = ΦᵀKΦ` couples them, so `½αᵀEα` is the
+    /// strain energy of the whole deformation whichever levels express it. `params`'
+    /// `control_points` and `load_width` are not read.
+    pub fn build_levels(
+        mesh: &TetMesh,
+        params: &LibrParams,
+        levels: &[(usize, LoadWidth)],
+        physics: &Physics,
+        sites: Sites<'_>,
+    ) -> Result<Self, RegisterError> {
         params.validate()?;
+        if levels.is_empty() {
+            return Err(RegisterError::Parameter(
+                "a basis needs at least one level of control points".into(),
+            ));
+        }
+        for &(count, width) in levels {
+            LibrParams {
+                control_points: count,
+                load_width: width,
+                ..*params
+            }
+            .validate()?;
+        }
         crate::register::physics::model::check_fits(mesh, sites, physics)?;
         let t0 = Instant::now();
         let nodes = mesh.nodes();
@@ -334,14 +381,16 @@ impl LibrBasis {
                 "mesh has fewer than 3 boundary nodes".into(),
             ));
         }
-        let control =
-            farthest_point_sampling(nodes, &boundary.nodes, params.control_points, params.seed);
-        if control.len() < params.control_points {
-            return Err(RegisterError::Parameter(format!(
-                "control_points = {} but the boundary has only {} distinct nodes",
-                params.control_points,
-                control.len()
-            )));
+        let mut control = Vec::new();
+        for &(count, _) in levels {
+            let level = farthest_point_sampling(nodes, &boundary.nodes, count, params.seed);
+            if level.len() < count {
+                return Err(RegisterError::Parameter(format!(
+                    "control_points = {count} but the boundary has only {} distinct nodes",
+                    level.len()
+                )));
+            }
+            control.extend(level);
         }
         // Area-weighted vertex normals and the boundary area.
         let mut vnormal = vec![[0.0; 3]; n];
@@ -357,10 +406,17 @@ impl LibrBasis {
             }
         }
         let kk = control.len();
-        let width = match params.load_width {
-            LoadWidth::Mm(w) => w,
-            LoadWidth::Spacing(s) => s * (2.0 * area / (3f64.sqrt() * kk as f64)).sqrt(),
-        };
+        let widths: Vec<f64> = levels
+            .iter()
+            .flat_map(|&(count, w)| {
+                let width = match w {
+                    LoadWidth::Mm(w) => w,
+                    LoadWidth::Spacing(s) => s * (2.0 * area / (3f64.sqrt() * count as f64)).sqrt(),
+                };
+                std::iter::repeat_n(width, count)
+            })
+            .collect();
+        let width = widths[0];
         // Effect loads (unit amplitude), after the LIBR columns.
         let mut effect_loads = Vec::new();
         let mut effect_labels = Vec::new();
@@ -393,7 +449,7 @@ impl LibrBasis {
                     nodes[c as usize],
                     nc,
                     axis,
-                    width,
+                    widths[k],
                 );
                 solver.prepare_load(&mut f);
                 for (r, &x) in f.iter().enumerate() {
@@ -477,10 +533,20 @@ impl LibrBasis {
             energy,
             load_scale,
             load_width_mm: width,
+            control_width_mm: if levels.len() > 1 { widths } else { Vec::new() },
             effect_labels,
             physics_hash: physics.hash(),
             mesh_hash: mesh_hash(mesh),
-            params_hash: params.basis_hash(),
+            params_hash: if levels.len() == 1 {
+                LibrParams {
+                    control_points: levels[0].0,
+                    load_width: levels[0].1,
+                    ..*params
+                }
+                .basis_hash()
+            } else {
+                super::levels_hash(params, levels)
+            },
             timings: BasisTimings {
                 loads_s,
                 assemble_s: solver.assemble_s,

@@ -28,6 +28,18 @@ pub fn mesh_hash(mesh: &TetMesh) -> String {
     fnv1a_hex(&bytes)
 }
 
+/// Hash (16 hex digits) of a multi-resolution basis's parameters: what [`LibrParams::basis_hash`]
+/// hashes, with the levels in place of the single control-point count and width.
+pub fn levels_hash(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> String {
+    let key = serde_json::json!({
+        "version": BASIS_VERSION,
+        "levels": levels,
+        "material": params.material,
+        "seed": params.seed,
+    });
+    fnv1a_hex(key.to_string().as_bytes())
+}
+
 impl LibrBasis {
     /// The cache file of a mesh and parameters in `cache_dir`.
     pub fn cache_path(mesh: &TetMesh, params: &LibrParams, cache_dir: &Path) -> PathBuf {
@@ -81,17 +93,55 @@ impl LibrBasis {
         sites: Sites<'_>,
         cache_dir: &Path,
     ) -> Result<(Self, bool), RegisterError> {
+        Self::load_or_build_levels(
+            mesh,
+            params,
+            &[(params.control_points, params.load_width)],
+            physics,
+            sites,
+            cache_dir,
+        )
+    }
+
+    /// [`Self::load_or_build_with`] for a multi-resolution basis ([`Self::build_levels`]),
+    /// cached under the hash of the parameters and the levels (one level: the plain name).
+    pub fn load_or_build_levels(
+        mesh: &TetMesh,
+        params: &LibrParams,
+        levels: &[(usize, LoadWidth)],
+        physics: &Physics,
+        sites: Sites<'_>,
+        cache_dir: &Path,
+    ) -> Result<(Self, bool), RegisterError> {
         params.validate()?;
         physics.validate()?;
-        let path = Self::cache_path_with(mesh, params, physics, cache_dir);
+        let single = levels.len() == 1;
+        let key = if single {
+            LibrParams {
+                control_points: levels[0].0,
+                load_width: levels[0].1,
+                ..*params
+            }
+            .basis_hash()
+        } else {
+            levels_hash(params, levels)
+        };
+        let ph = physics.hash();
+        let suffix = if ph.is_empty() {
+            String::new()
+        } else {
+            format!("_{ph}")
+        };
+        let path = cache_dir.join(format!("libr_basis_{}_{key}{suffix}.npz", mesh_hash(mesh)));
+        let total: usize = levels.iter().map(|l| l.0).sum();
         let t0 = Instant::now();
         if let Ok(bytes) = std::fs::read(&path)
             && let Ok(mut b) = Self::from_npz(&bytes)
             && b.mesh_hash == mesh_hash(mesh)
-            && b.params_hash == params.basis_hash()
+            && b.params_hash == key
             && b.nodes == mesh.num_nodes()
-            && b.control_nodes.len() == params.control_points
-            && b.physics_hash == physics.hash()
+            && b.control_nodes.len() == total
+            && b.physics_hash == ph
         {
             b.timings = BasisTimings {
                 cache_read_s: crate::util::secs(t0),
@@ -100,14 +150,15 @@ impl LibrBasis {
             };
             return Ok((b, true));
         }
-        let b = Self::build_with(mesh, params, physics, sites)?;
+        let b = Self::build_levels(mesh, params, levels, physics, sites)?;
         crate::util::write_atomic(&path, &b.to_npz()?)?;
         Ok((b, false))
     }
 
     /// The basis as `.npz` bytes: `phi` (3n, 3K) f8, `energy` (3K, 3K) f8, `control_nodes` (K)
     /// i8, `load_scale` (3K) f8, `load_width_mm` (1) f8, `version` (1) i8, `mesh_hash` and
-    /// `params_hash` (16 ASCII bytes each, u1).
+    /// `params_hash` (16 ASCII bytes each, u1); a multi-resolution basis adds `control_width_mm`
+    /// (K) f8, an augmented model `effect_labels` (JSON, u1) and `physics_hash` (u1).
     pub fn to_npz(&self) -> Result<Vec<u8>, RegisterError> {
         let m = self.columns();
         let arrays = vec![
@@ -137,6 +188,13 @@ impl LibrBasis {
             )?,
         ];
         let mut arrays = arrays;
+        if !self.control_width_mm.is_empty() {
+            arrays.push(NpyArray::new(
+                "control_width_mm",
+                &[self.control_width_mm.len()],
+                NpyData::F64(self.control_width_mm.clone()),
+            )?);
+        }
         if !self.effect_labels.is_empty() {
             let labels = serde_json::to_string(&self.effect_labels)
                 .map_err(|e| RegisterError::BasisFile(format!("effect_labels: {e}")))?;
@@ -215,6 +273,19 @@ impl LibrBasis {
         } else {
             Vec::new()
         };
+        // Optional (multi-resolution bases): each control point's patch width.
+        let control_width_mm = if arrays.iter().any(|a| a.name == "control_width_mm") {
+            let (shape, w) = f64s("control_width_mm")?;
+            if shape != [control_nodes.len()] || w.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
+                return Err(RegisterError::BasisFile(format!(
+                    "control_width_mm has shape {shape:?} for {} control nodes, or a width that is not finite and > 0",
+                    control_nodes.len()
+                )));
+            }
+            w
+        } else {
+            Vec::new()
+        };
         let physics_hash = if arrays.iter().any(|a| a.name == "physics_hash") {
             text("physics_hash")?
         } else {
@@ -257,6 +328,7 @@ impl LibrBasis {
             energy,
             load_scale,
             load_width_mm: width[0],
+            control_width_mm,
             effect_labels,
             physics_hash,
             mesh_hash: text("mesh_hash")?,

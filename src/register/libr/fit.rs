@@ -68,6 +68,8 @@ pub(super) fn normalize3(a: [f64; 3]) -> [f64; 3] {
 /// and the regularised normal matrix (lower triangle), with what built them.
 pub(super) struct Assembled<'a> {
     pub(super) used: Vec<&'a Match>,
+    /// The targets (image frame) the matches' points are fitted to.
+    pub(super) targets: &'a [[f64; 3]],
     pub(super) wsum: f64,
     pub(super) cen: [f64; 3],
     pub(super) radius: f64,
@@ -80,6 +82,8 @@ pub(super) struct Assembled<'a> {
     /// The frame vector (times √(w/W)) of each row, and its match.
     pub(super) row_frames: Vec<([f64; 3], usize)>,
     pub(super) before: f64,
+    /// Squared residual of the rigid prior's rows at the current pose (0 without a prior).
+    pub(super) prior_rr: f64,
     /// JᵀJ + damping + λ/e·E, lower triangle.
     pub(super) a: Mat<f64>,
     /// Jᵀr.
@@ -92,7 +96,7 @@ pub(super) struct Assembled<'a> {
 pub(super) fn assemble<'a>(
     basis: &LibrBasis,
     matches: &'a [Match],
-    targets_image: &[[f64; 3]],
+    targets_image: &'a [[f64; 3]],
     params: &LibrParams,
     prior: Option<&PriorPairs>,
 ) -> Result<Assembled<'a>, RegisterError> {
@@ -270,6 +274,7 @@ pub(super) fn assemble<'a>(
         Par::Seq,
     );
     let rhs0 = rhs;
+    let mut prior_rr = 0.0;
     // The rigid prior: each pose pair a point-to-point row on the rigid unknowns alone (the
     // prior is on the pose, not the deformation), scaled by √(κ/6).
     if let Some(pr) = prior {
@@ -283,6 +288,7 @@ pub(super) fn assemble<'a>(
                     g[3 + k] = if k == ax { s } else { 0.0 };
                 }
                 let r = s * (target[ax] - q[ax]);
+                prior_rr += r * r;
                 for i in 0..6 {
                     for j in 0..=i {
                         a[(m + i, m + j)] += g[i] * g[j];
@@ -311,6 +317,7 @@ pub(super) fn assemble<'a>(
     let normal_s = crate::util::secs(t1);
     Ok(Assembled {
         used,
+        targets: targets_image,
         wsum,
         cen,
         radius,
@@ -321,6 +328,7 @@ pub(super) fn assemble<'a>(
         rhs: rhs0,
         row_frames,
         before,
+        prior_rr,
         a,
         b,
         rows_s,
@@ -354,6 +362,27 @@ pub fn fit_step_with_prior(
     params: &LibrParams,
     prior: Option<&PriorPairs>,
 ) -> Result<StepResult, RegisterError> {
+    let asm = assemble(basis, matches, targets_image, params, prior)?;
+    let t2 = Instant::now();
+    let mut b = asm.b.clone();
+    let llt = asm.a.llt(Side::Lower).map_err(|e| {
+        RegisterError::IllConditioned(format!(
+            "the normal equations are singular ({e:?}): the {} matches do not determine the basis weights and rigid correction (use λ > 0, or more spread-out matches)",
+            asm.used.len()
+        ))
+    })?;
+    llt.solve_in_place(b.as_mut());
+    finish(basis, &asm, &b, t2)
+}
+
+/// The step's result from the solution `x` (p × 1: α, then the scaled rotation and the
+/// translation) of an assembled system; `t_solve` is when its solve began (for the timings).
+pub(super) fn finish(
+    basis: &LibrBasis,
+    asm: &Assembled<'_>,
+    x: &Mat<f64>,
+    t_solve: Instant,
+) -> Result<StepResult, RegisterError> {
     let Assembled {
         used,
         wsum,
@@ -365,20 +394,12 @@ pub fn fit_step_with_prior(
         jt,
         rhs: rhs0,
         before,
-        a,
-        mut b,
         rows_s,
         normal_s,
         ..
-    } = assemble(basis, matches, targets_image, params, prior)?;
-    let t2 = Instant::now();
-    let llt = a.llt(Side::Lower).map_err(|e| {
-        RegisterError::IllConditioned(format!(
-            "the normal equations are singular ({e:?}): the {} matches do not determine the basis weights and rigid correction (use λ > 0, or more spread-out matches)",
-            used.len()
-        ))
-    })?;
-    llt.solve_in_place(b.as_mut());
+    } = asm;
+    let (wsum, cen, radius, m, p, rows) = (*wsum, *cen, *radius, *m, *p, *rows);
+    let b = x;
     if !(0..p).all(|i| b[(i, 0)].is_finite()) {
         return Err(RegisterError::IllConditioned(
             "the step produced non-finite values (ill-conditioned data)".into(),
@@ -393,7 +414,7 @@ pub fn fit_step_with_prior(
         1.0,
         Par::Seq,
     );
-    let lin = lin - &rhs0;
+    let lin = lin - rhs0;
     let linear_rms_mm = (0..rows).map(|i| lin[(i, 0)].powi(2)).sum::<f64>().sqrt();
     let alpha: Vec<f64> = (0..m).map(|i| b[(i, 0)]).collect();
     let omega = [0, 1, 2].map(|k| b[(m + k, 0)] / radius);
@@ -407,7 +428,7 @@ pub fn fit_step_with_prior(
     };
     // Residual after the step with the exact rotation, over all weighted matches.
     let mut after = 0.0;
-    for mt in &used {
+    for mt in used {
         let mut q = mt.anchor;
         for (k, &v) in mt.nodes.iter().enumerate() {
             if mt.bary[k] == 0.0 {
@@ -419,7 +440,7 @@ pub fn fit_step_with_prior(
                 q[ax] += mt.bary[k] * row.iter().zip(&alpha).map(|(x, y)| x * y).sum::<f64>();
             }
         }
-        let r = sub(rigid_correction.apply(q), targets_image[mt.point]);
+        let r = sub(rigid_correction.apply(q), targets_image_of(asm, mt));
         after += mt.weight / wsum * dot(r, r);
     }
     let strain_energy_uj = basis.strain_energy(&alpha);
@@ -434,9 +455,13 @@ pub fn fit_step_with_prior(
         strain_energy_uj,
         matches_used: used.len(),
         timings: StepTimings {
-            rows_s,
-            normal_s,
-            solve_s: crate::util::secs(t2),
+            rows_s: *rows_s,
+            normal_s: *normal_s,
+            solve_s: crate::util::secs(t_solve),
         },
     })
+}
+
+fn targets_image_of(asm: &Assembled<'_>, mt: &Match) -> [f64; 3] {
+    asm.targets[mt.point]
 }

@@ -37,7 +37,9 @@
 //! matches and Young's modulus: λ = 1 makes one 1 mm mode cost as much as 1 mm RMS misfit.
 //! [`solve`] iterates the step, re-matching through a caller-supplied function, composing the
 //! rigid correction exactly (rotation by `exp(ω)`), until the largest node movement of an
-//! iteration falls below [`LibrParams::tolerance_mm`].
+//! iteration falls below [`LibrParams::tolerance_mm`] or the fit has settled ([`settled`]: its
+//! residual stopped falling and the model is not running away, so further iterations only cycle
+//! the closest-point matches around the fit), at most [`LibrParams::max_iterations`].
 //!
 //! **Cache.** [`LibrBasis::load_or_build`] keeps the basis in `cache_dir` as a NumPy `.npz`
 //! named by the mesh hash and the hash of the basis-relevant parameters; an unreadable,
@@ -45,12 +47,14 @@
 //!
 //! Units: mm, kPa, mN, µJ. Frames: the model and `u` in the image frame; see [`crate::register`].
 
+mod adaptive;
 mod basis;
 mod cache;
 mod fit;
 mod refit;
 mod solve;
 
+pub use adaptive::*;
 pub use basis::*;
 pub use cache::*;
 pub use fit::*;

@@ -39,6 +39,16 @@ pub struct LibrInfo {
     pub solve_s: f64,
     /// Total time (s).
     pub total_s: f64,
+    /// The strain-energy weight λ of the last iteration: LIBR's fixed
+    /// [`LibrParams::regularization`], or what adaptive LIBR chose ([`solve_adaptive`]); 0 when
+    /// not recorded.
+    pub regularization: f64,
+    /// Basis columns the fit used (adaptive LIBR keeps those near the data; 0 when not
+    /// recorded).
+    pub columns: usize,
+    /// The fit's regularisation term at the end, `λ αᵀẼα` (mm², comparable with the mean squared
+    /// misfit; the pose choice adds it to the misfit, [`crate::pipeline::pose`]).
+    pub prior_mm2: f64,
 }
 
 /// The result of [`solve`].
@@ -58,7 +68,8 @@ pub struct LibrSolution {
 /// `rematch(u, image_to_physical)` for matches of the measured points (`measured_physical`,
 /// physical frame) to the current model, maps the measured points into the image frame, takes
 /// one [`fit_step`] and composes its rigid correction, until no node moves more than
-/// `params.tolerance_mm` in an iteration or `params.max_iterations` is reached. `mesh` must be
+/// `params.tolerance_mm` in an iteration, the fit has [`settled`], or `params.max_iterations`
+/// is reached. `mesh` must be
 /// the basis's mesh (its node positions measure the movement).
 pub fn solve(
     mesh: &TetMesh,
@@ -208,6 +219,12 @@ pub fn solve_with_limits(
             info.converged = true;
             break;
         }
+        // Settled: the objective stopped falling and the model is not running away; what is
+        // left is re-matching cycling around the fit (on the paper liver no fit ever reached
+        // the tolerance: every registration ran the 20 iterations).
+        if settled(&info.rms_history_mm, &info.movement_history_mm) {
+            break;
+        }
         // Stop before an iteration that would end past the deadline (the last one's duration
         // predicts the next).
         if let Some(d) = deadline {
@@ -220,6 +237,10 @@ pub fn solve_with_limits(
     }
     info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
     info.strain_energy_uj = basis.strain_energy(&alpha);
+    info.regularization = params.regularization;
+    info.columns = basis.columns();
+    info.prior_mm2 =
+        params.regularization * 2.0 * info.strain_energy_uj / basis.energy_scale().max(1e-300);
     let mut u = basis.displacement(&alpha);
     if let Some(o) = offset {
         for (x, y) in u.iter_mut().zip(o) {

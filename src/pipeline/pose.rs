@@ -1,0 +1,363 @@
+//! A pose that cannot silently go wrong: the rigid stage from several starts across the
+//! navigation start's uncertainty, each distinct pose scored after the deformable fit.
+//!
+//! The navigation system's start is a fit to a few noisy landmarks, off by tens of millimetres
+//! and degrees at worst. wICP from it alone can settle in a wrong basin (a retracted left lobe
+//! matched to the right lobe's surface) with a residual that looks no worse than a deformation's:
+//! the deformable fit then bends the wrong pose into the points. So the rigid stage also starts
+//! from the navigation start turned by [`PoseParams::start_angles_deg`] about each axis through
+//! the measured points' centroid (in parallel). The distinct poses they reach (closer than
+//! [`PoseParams::same_pose_mm`] RMS over the organ's nodes is one pose) are ranked by their rigid
+//! [`score`]; the best [`PoseParams::max_candidates`] (the navigation start's own result always
+//! among them) are each carried through the deformable fit and scored again on what it leaves: the
+//! robust mean squared distance of every measured point to the deformed model (each capped at
+//! [`PoseParams::cap_mm`], unmatched points counting the cap) plus the fit's regularisation term,
+//! in mm² both. The lowest wins. When the runner-up scores within [`PoseParams::ambiguous_ratio`]
+//! of it and the two poses differ by more than [`PoseParams::ambiguous_mm`], the data do not
+//! decide the pose and the registration says so ([`PoseInfo::ambiguous`]).
+
+use crate::mesh::rigid::Rigid;
+use crate::register::correspondence::{Correspondence, CorrespondenceParams};
+use crate::register::prior::RigidPrior;
+use crate::register::wicp::{WicpParams, WicpResult, wicp};
+use crate::register::{Measurements, PreopModel, RegisterError};
+use rayon::prelude::*;
+
+/// Parameters of the multi-start rigid stage and the pose choice.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PoseParams {
+    /// Angles (degrees) the extra starts turn the navigation start by, each about the three
+    /// axes both ways (6 starts per angle); empty: the navigation start alone. Default 15, 30
+    /// and 45 (18 extra starts).
+    pub start_angles_deg: Vec<f64>,
+    /// Poses closer than this (RMS distance over the organ's nodes, mm) are one. Default 10.
+    pub same_pose_mm: f64,
+    /// Most distinct poses carried through the deformable fit. Default 3.
+    pub max_candidates: usize,
+    /// Each measured point's squared distance counts at most `cap_mm²` in the score. Default 10.
+    pub cap_mm: f64,
+    /// The runner-up within this ratio of the best score (and `ambiguous_mm` away) makes the pose
+    /// ambiguous. Default 1.5.
+    pub ambiguous_ratio: f64,
+    /// See `ambiguous_ratio` (mm, RMS over the organ's nodes). Default 10.
+    pub ambiguous_mm: f64,
+    /// The extra starts' wICP runs on at most this many of the points (every k-th, so all
+    /// kinds keep their share), with a looser tolerance; the distinct poses they reach are
+    /// refined on every point from there. Default 200.
+    pub search_points: usize,
+}
+
+impl Default for PoseParams {
+    fn default() -> Self {
+        Self {
+            start_angles_deg: vec![15.0, 30.0, 45.0],
+            same_pose_mm: 10.0,
+            max_candidates: 3,
+            cap_mm: 10.0,
+            ambiguous_ratio: 1.5,
+            ambiguous_mm: 10.0,
+            search_points: 200,
+        }
+    }
+}
+
+impl PoseParams {
+    /// Checks the parameters; the message names the bad field.
+    pub fn validate(&self) -> Result<(), RegisterError> {
+        let bad = |f: &str, v: f64| {
+            Err(RegisterError::Parameter(format!(
+                "pose {f} must be finite and > 0, got {v}"
+            )))
+        };
+        for &a in &self.start_angles_deg {
+            if !(a.is_finite() && a > 0.0 && a < 180.0) {
+                return Err(RegisterError::Parameter(format!(
+                    "pose start_angles_deg must be in (0, 180), got {a}"
+                )));
+            }
+        }
+        for (f, v) in [
+            ("same_pose_mm", self.same_pose_mm),
+            ("cap_mm", self.cap_mm),
+            ("ambiguous_mm", self.ambiguous_mm),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(f, v);
+            }
+        }
+        if !(self.ambiguous_ratio.is_finite() && self.ambiguous_ratio >= 1.0) {
+            return Err(RegisterError::Parameter(format!(
+                "pose ambiguous_ratio must be finite and >= 1, got {}",
+                self.ambiguous_ratio
+            )));
+        }
+        if self.search_points < 3 {
+            return Err(RegisterError::Parameter(format!(
+                "pose search_points must be at least 3, got {}",
+                self.search_points
+            )));
+        }
+        if self.max_candidates == 0 {
+            return Err(RegisterError::Parameter(
+                "pose max_candidates must be at least 1".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// How the pose was chosen.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PoseInfo {
+    /// Rigid starts run (the navigation start and the turned ones).
+    pub starts: usize,
+    /// Distinct poses they reached.
+    pub distinct: usize,
+    /// Scores (mm²) of the candidates carried through the fit, in the order tried (the
+    /// navigation start's first).
+    pub scores: Vec<f64>,
+    /// Of each score, the fit's regularisation term (mm²; the rest is the robust misfit).
+    pub prior_mm2: Vec<f64>,
+    /// Which candidate was chosen (index into `scores`).
+    pub chosen: usize,
+    /// RMS distance over the organ's nodes between the chosen pose and the navigation start's
+    /// own result (mm; 0 when it won).
+    pub moved_from_single_start_mm: f64,
+    /// The runner-up scored within [`PoseParams::ambiguous_ratio`] of the chosen pose and lies
+    /// more than [`PoseParams::ambiguous_mm`] from it: the data do not decide the pose.
+    pub ambiguous: bool,
+    /// The distance (mm, RMS over the nodes) to the runner-up, when there was one.
+    pub runner_up_mm: Option<f64>,
+    /// Wall-clock time of the whole rigid stage, every start included (s).
+    pub rigid_seconds: f64,
+}
+
+/// The robust score of a placement (mm²): the mean over measured points of the squared distance
+/// to its match on the model displaced by `u` (undeformed when None) under `t`, each capped at
+/// `cap²`; points left unmatched or trimmed count `cap²`.
+pub fn score(
+    corr: &Correspondence,
+    meas: &Measurements,
+    cparams: &CorrespondenceParams,
+    u: Option<&[f64]>,
+    t: &Rigid,
+    cap: f64,
+) -> Result<f64, RegisterError> {
+    let inv = t.inverse();
+    let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
+    let (matches, _) = corr.match_points(&pts, meas, u, cparams)?;
+    let zero;
+    let u = match u {
+        Some(u) => u,
+        None => {
+            zero = vec![0.0; 3 * corr.num_nodes()];
+            &zero
+        }
+    };
+    let c2 = cap * cap;
+    let mut sum = 0.0;
+    let mut counted = 0usize;
+    for m in &matches {
+        counted += 1;
+        if m.weight > 0.0 {
+            let q = m.model_point(u);
+            let p = pts[m.point];
+            let d2 = (0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>();
+            sum += d2.min(c2);
+        } else {
+            sum += c2;
+        }
+    }
+    let n = meas.points.len().max(1);
+    sum += (n.saturating_sub(counted)) as f64 * c2;
+    Ok(sum / n as f64)
+}
+
+/// The starts: the navigation start, then it turned by each angle about the x, y and z axes
+/// (both ways) through the measured points' centroid (physical frame).
+pub fn starts(meas: &Measurements, params: &PoseParams) -> Vec<Rigid> {
+    let start = meas.initial_alignment.unwrap_or_default();
+    let n = meas.points.len().max(1) as f64;
+    let mut c = [0.0; 3];
+    for p in &meas.points {
+        for a in 0..3 {
+            c[a] += p[a] / n;
+        }
+    }
+    let mut out = vec![start];
+    for &deg in &params.start_angles_deg {
+        for axis in 0..3 {
+            for sign in [1.0, -1.0] {
+                let mut e = [0.0; 3];
+                e[axis] = 1.0;
+                let rot = Rigid::from_axis_angle(e, sign * deg.to_radians(), [0.0; 3]);
+                let rc = rot.apply_vector(c);
+                let turn = Rigid {
+                    rotation: rot.rotation,
+                    translation: [0, 1, 2].map(|k| c[k] - rc[k]),
+                };
+                out.push(start.then(&turn));
+            }
+        }
+    }
+    out
+}
+
+/// RMS distance over the model's nodes between two poses (mm).
+pub fn pose_gap(model: &PreopModel, a: &Rigid, b: &Rigid) -> f64 {
+    RigidPrior::new(model.mesh.nodes(), *a, 1.0, 1.0).rms_mm(b)
+}
+
+/// The rigid stage from every start ([`starts`]; in parallel), its results reduced to distinct
+/// poses ranked by rigid [`score`], at most `max_candidates`, the navigation start's own result
+/// first. With no extra start (or a
+/// trusted start, whose prior holds every start near it anyway) this is wICP from the
+/// navigation start alone. A start whose wICP fails or is degenerate is left out; the navigation
+/// start's error is returned as it is.
+pub fn rigid_candidates(
+    model: &PreopModel,
+    corr: &Correspondence,
+    meas: &Measurements,
+    wicp_params: &WicpParams,
+    params: &PoseParams,
+) -> Result<Candidates, RegisterError> {
+    params.validate()?;
+    let first = wicp(model, corr, meas, wicp_params)?;
+    if params.start_angles_deg.is_empty()
+        || wicp_params.trusted_alignment_mm.is_some()
+        || first.degenerate.is_some()
+        || first.ill_posed
+    {
+        return Ok(Candidates {
+            poses: vec![first],
+            starts: 1,
+            distinct: 1,
+        });
+    }
+    let extra = starts(meas, params).split_off(1);
+    // The search on a subsample, with a looser tolerance.
+    let step = meas.points.len().div_ceil(params.search_points).max(1);
+    let keep: Vec<usize> = (0..meas.points.len()).step_by(step).collect();
+    let sub = Measurements {
+        points: keep.iter().map(|&i| meas.points[i]).collect(),
+        kind: keep.iter().map(|&i| meas.kind[i]).collect(),
+        feature: if meas.feature.is_empty() {
+            Vec::new()
+        } else {
+            keep.iter().map(|&i| meas.feature[i]).collect()
+        },
+        initial_alignment: meas.initial_alignment,
+    };
+    let search = WicpParams {
+        tolerance_mm: wicp_params.tolerance_mm.max(1e-2),
+        max_iterations: wicp_params.max_iterations.min(60),
+        ..*wicp_params
+    };
+    let reached: Vec<WicpResult> = extra
+        .par_iter()
+        .filter_map(|s| {
+            let m = Measurements {
+                initial_alignment: Some(*s),
+                ..sub.clone()
+            };
+            wicp(model, corr, &m, &search)
+                .ok()
+                .filter(|r| r.degenerate.is_none())
+        })
+        .collect();
+    // Distinct from the navigation start's result and from each other, then refined.
+    let mut distinct_starts: Vec<Rigid> = Vec::new();
+    for r in &reached {
+        let t = r.image_to_physical;
+        let seen = std::iter::once(&first.image_to_physical)
+            .chain(&distinct_starts)
+            .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
+        if !seen {
+            distinct_starts.push(t);
+        }
+    }
+    let others: Vec<WicpResult> = distinct_starts
+        .par_iter()
+        .filter_map(|s| {
+            let m = Measurements {
+                initial_alignment: Some(*s),
+                ..meas.clone()
+            };
+            wicp(model, corr, &m, wicp_params)
+                .ok()
+                .filter(|r| r.degenerate.is_none())
+        })
+        .collect();
+    let cap = params.cap_mm;
+    let cp = &wicp_params.correspondence;
+    let mut scored: Vec<(f64, WicpResult)> = others
+        .into_iter()
+        .filter_map(|r| {
+            score(corr, meas, cp, None, &r.image_to_physical, cap)
+                .ok()
+                .map(|s| (s, r))
+        })
+        .collect();
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut out = vec![first];
+    for (_, r) in scored {
+        let same = out.iter().any(|o| {
+            pose_gap(model, &o.image_to_physical, &r.image_to_physical) < params.same_pose_mm
+        });
+        if !same {
+            out.push(r);
+        }
+    }
+    let distinct = out.len();
+    out.truncate(params.max_candidates);
+    Ok(Candidates {
+        poses: out,
+        starts: 1 + extra.len(),
+        distinct,
+    })
+}
+
+/// What [`rigid_candidates`] found.
+pub struct Candidates {
+    /// Distinct rigid results, at most `max_candidates`, the navigation start's first, then by
+    /// rigid score.
+    pub poses: Vec<WicpResult>,
+    /// Starts run.
+    pub starts: usize,
+    /// Distinct poses reached (before the cut to `max_candidates`).
+    pub distinct: usize,
+}
+
+/// Chooses among scored candidates (score per candidate, in order; the first the navigation
+/// start's): the lowest score, and whether the runner-up makes it ambiguous.
+#[allow(clippy::too_many_arguments)]
+pub fn choose(
+    model: &PreopModel,
+    poses: &[Rigid],
+    scores: &[f64],
+    prior_mm2: &[f64],
+    starts: usize,
+    distinct: usize,
+    params: &PoseParams,
+) -> PoseInfo {
+    let mut order: Vec<usize> = (0..scores.len()).collect();
+    order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]).then(a.cmp(&b)));
+    let chosen = order[0];
+    let runner = order.get(1).copied();
+    let runner_up_mm = runner.map(|r| pose_gap(model, &poses[chosen], &poses[r]));
+    let ambiguous = runner.is_some_and(|r| {
+        scores[r] <= params.ambiguous_ratio * scores[chosen]
+            && runner_up_mm.is_some_and(|d| d > params.ambiguous_mm)
+    });
+    PoseInfo {
+        starts,
+        distinct,
+        scores: scores.to_vec(),
+        prior_mm2: prior_mm2.to_vec(),
+        chosen,
+        moved_from_single_start_mm: pose_gap(model, &poses[0], &poses[chosen]),
+        ambiguous,
+        runner_up_mm,
+        rigid_seconds: 0.0,
+    }
+}

@@ -1,0 +1,578 @@
+//! Adaptive LIBR: surface tractions resolved finely where the data are, with the strength of
+//! the elastic prior chosen per registration by the data's marginal likelihood.
+//!
+//! LIBR fits a fixed basis of 25 broad control loads with a fixed strain-energy weight λ tuned
+//! on one simulator. Off that simulator both are wrong: a tool pushing one spot of a held organ
+//! makes a dent no broad load can express, and a λ tuned for broad loads over- or
+//! under-regularises any other basis. This method changes both:
+//!
+//! - **Resolution where the data are.** The basis has several levels of control loads
+//!   ([`LibrBasis::build_levels`], default 25 broad and 100 fine patches), and its energy matrix
+//!   `E = ΦᵀKΦ` couples them, so `½αᵀEα` is the strain energy of the whole deformation whichever
+//!   level expresses it. At each registration the first (broadest) level is kept whole and a
+//!   finer control load only when a matched point lies within [`AdaptiveParams::reach`] patch
+//!   widths of it: where no point is, a fine load is not determined by the data and the broad
+//!   ones already carry its far field. The fit runs on the kept columns, restricted to the nodes
+//!   that matching reads.
+//! - **The prior's strength from the data.** With the data rows `r = Jθ + ε`, `ε ~ N(0, τ²I)`
+//!   and the prior `α ~ N(0, τ²(λẼ)⁻¹)` (θ = α and the rigid correction, the latter with a flat
+//!   prior), λ maximises the evidence with τ² profiled out,
+//!   `log p(r | λ) = −½ (N − 6) log Q(λ) − ½ log det A(λ) + ½ p log λ + const`, where
+//!   `A(λ) = JᵀJ + λẼ`, `Q(λ) = |r|² − bᵀA⁻¹b` is the minimised regularised misfit, `b = Jᵀr`,
+//!   N the rows and p the regularised columns. It is evaluated on a log grid
+//!   ([`AdaptiveParams::lambda_range`]), one Cholesky factorization per value, every iteration
+//!   (the matches change). Unlike a tuned λ this needs no training data and scales with the
+//!   basis: a richer basis is regularised as much as the data say, not as much as a 25-load
+//!   basis needed on our simulator.
+//!
+//! The iterations are LIBR's ([`super::solve_with_limits`]): re-match on the deformed model, fit,
+//! compose the rigid correction; they stop when the model stops moving
+//! ([`LibrParams::tolerance_mm`]), when the fit has settled ([`super::settled`]), at the
+//! iteration cap, or before a deadline.
+
+use super::*;
+use crate::mesh::TetMesh;
+use crate::mesh::rigid::Rigid;
+use crate::register::Match;
+use faer::linalg::solvers::Solve;
+use faer::{Mat, Side};
+use std::time::Instant;
+
+/// Parameters of adaptive LIBR (the fit's other settings, iterations and matching are
+/// [`LibrParams`]'; its `regularization` is not read).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AdaptiveParams {
+    /// Levels of control loads, broadest first: (count K, patch width). Default 25 and 100
+    /// patches, each 1.25 × its level's spacing wide.
+    pub levels: Vec<(usize, LoadWidth)>,
+    /// A finer level's control load is kept when a matched point lies within `reach` × its
+    /// patch width σ. Default 2.
+    pub reach: f64,
+    /// ... and when those points span a surface: their spread across their second principal
+    /// axis is at least `spread` × σ ([`select_columns`]). Default 0.3.
+    pub spread: f64,
+    /// The evidence is maximised over λ on a log grid from `lambda_range.0` to `lambda_range.1`
+    /// (λ as in [`LibrParams::regularization`], relative to the kept columns' mean energy).
+    /// Default 1e-6 to 1.
+    pub lambda_range: (f64, f64),
+    /// Grid points per decade. Default 2.
+    pub lambda_per_decade: usize,
+    /// Stiffness annealing: iteration k (from 0) uses at least `anneal_start × anneal_factor^k`,
+    /// so the first fits, on closest-point matches to the undeformed model, are smooth and the
+    /// finer detail comes as the matches improve (as in non-rigid ICP). Default 0.1.
+    pub anneal_start: f64,
+    /// See `anneal_start`. Default 0.3.
+    pub anneal_factor: f64,
+    /// The finer levels' deformation costs this many times its strain energy: the prior is
+    /// `λ/ē (αᵀEα + (ρ − 1) α_fᵀE_ffα_f)` with α_f the finer levels' weights and ē the broadest
+    /// level's mean energy, so a broad deformation is regularised as in LIBR and a local one
+    /// more, as its loads are less likely a priori. Default 1.
+    pub fine_penalty: f64,
+    /// Coarse to fine: the first iterations fit the broadest level alone until it settles (at
+    /// most half the iterations), then the finer levels join, kept near the data as matched
+    /// then. Closest-point matches to the undeformed model are poor where the organ moved far,
+    /// and fine loads fitted to them lock the error in. Default true.
+    pub coarse_first: bool,
+}
+
+impl Default for AdaptiveParams {
+    fn default() -> Self {
+        Self {
+            levels: vec![
+                (25, LoadWidth::Spacing(1.25)),
+                (100, LoadWidth::Spacing(1.25)),
+            ],
+            reach: 2.0,
+            spread: 0.3,
+            lambda_range: (1e-3, 1e-3),
+            lambda_per_decade: 2,
+            anneal_start: 0.0,
+            anneal_factor: 0.0,
+            fine_penalty: 1.0,
+            coarse_first: true,
+        }
+    }
+}
+
+impl AdaptiveParams {
+    /// Checks the parameters; the message names the bad field.
+    pub fn validate(&self) -> Result<(), RegisterError> {
+        if self.levels.is_empty() {
+            return Err(RegisterError::Parameter(
+                "levels must hold at least one level of control points".into(),
+            ));
+        }
+        for (i, &(k, w)) in self.levels.iter().enumerate() {
+            LibrParams {
+                control_points: k,
+                load_width: w,
+                ..LibrParams::default()
+            }
+            .validate()
+            .map_err(|e| RegisterError::Parameter(format!("levels[{i}]: {e}")))?;
+        }
+        if !(self.reach.is_finite() && self.reach > 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "reach must be finite and > 0, got {}",
+                self.reach
+            )));
+        }
+        if !(self.spread.is_finite() && self.spread >= 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "spread must be finite and >= 0, got {}",
+                self.spread
+            )));
+        }
+        let (lo, hi) = self.lambda_range;
+        if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && hi >= lo) {
+            return Err(RegisterError::Parameter(format!(
+                "lambda_range must be finite with 0 < low <= high, got ({lo}, {hi})"
+            )));
+        }
+        if !(self.anneal_start.is_finite() && self.anneal_start >= 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "anneal_start must be finite and >= 0, got {}",
+                self.anneal_start
+            )));
+        }
+        if !(self.anneal_factor.is_finite() && (0.0..1.0).contains(&self.anneal_factor)) {
+            return Err(RegisterError::Parameter(format!(
+                "anneal_factor must be in [0, 1), got {}",
+                self.anneal_factor
+            )));
+        }
+        if !(self.fine_penalty.is_finite() && self.fine_penalty >= 1.0) {
+            return Err(RegisterError::Parameter(format!(
+                "fine_penalty must be finite and >= 1, got {}",
+                self.fine_penalty
+            )));
+        }
+        if self.lambda_per_decade == 0 || self.lambda_per_decade > 20 {
+            return Err(RegisterError::Parameter(format!(
+                "lambda_per_decade must be in 1..=20, got {}",
+                self.lambda_per_decade
+            )));
+        }
+        Ok(())
+    }
+
+    /// The λ grid (ascending).
+    pub fn lambda_grid(&self) -> Vec<f64> {
+        let (lo, hi) = self.lambda_range;
+        let steps = ((hi / lo).log10() * self.lambda_per_decade as f64).round() as usize;
+        (0..=steps)
+            .map(|i| lo * 10f64.powf(i as f64 / self.lambda_per_decade as f64))
+            .collect()
+    }
+}
+
+/// The columns of a multi-level basis a registration keeps: every column of the first level's
+/// control points (the first `first_level` of them) and of each finer control point whose patch
+/// the matched points *cover*: within `reach` × its width σ of it they span a surface, the
+/// smaller of their two largest spreads (standard deviations across the principal axes) at
+/// least `spread` × σ. A line of points (an ultrasound plane's contour) or a few stray ones do
+/// not determine a fine load. The effect columns are always kept. Returns column indices,
+/// ascending.
+pub fn select_columns(
+    basis: &LibrBasis,
+    mesh: &TetMesh,
+    first_level: usize,
+    matches: &[Match],
+    reach: f64,
+    spread: f64,
+) -> Vec<usize> {
+    let nodes = mesh.nodes();
+    let anchors: Vec<[f64; 3]> = matches
+        .iter()
+        .filter(|m| m.weight > 0.0)
+        .map(|m| m.anchor)
+        .collect();
+    let mut cols = Vec::new();
+    for (k, &c) in basis.control_nodes.iter().enumerate() {
+        let keep = k < first_level || {
+            let sigma = basis.control_width(k);
+            let r = reach * sigma;
+            let p = nodes[c as usize];
+            let near: Vec<[f64; 3]> = anchors
+                .iter()
+                .copied()
+                .filter(|&a| dist2(a, p) <= r * r)
+                .collect();
+            near.len() >= 6 && second_spread(&near) >= spread * sigma
+        };
+        if keep {
+            cols.extend(3 * k..3 * k + 3);
+        }
+    }
+    cols.extend(basis.libr_columns()..basis.columns());
+    cols
+}
+
+/// The standard deviation of points along their second principal axis (mm).
+fn second_spread(points: &[[f64; 3]]) -> f64 {
+    let n = points.len() as f64;
+    let mut c = [0.0; 3];
+    for p in points {
+        for a in 0..3 {
+            c[a] += p[a] / n;
+        }
+    }
+    let mut cov = nalgebra::Matrix3::<f64>::zeros();
+    for p in points {
+        let d = nalgebra::Vector3::new(p[0] - c[0], p[1] - c[1], p[2] - c[2]);
+        cov += d * d.transpose() / n;
+    }
+    let mut e: Vec<f64> = cov.symmetric_eigenvalues().iter().copied().collect();
+    e.sort_by(f64::total_cmp);
+    e[1].max(0.0).sqrt()
+}
+
+/// The basis restricted to some columns and to the rows of some nodes (`rows[i]` becomes node
+/// `i` of the result): what one registration's fit reads.
+pub fn restrict(basis: &LibrBasis, cols: &[usize], rows: &[u32]) -> LibrBasis {
+    let m = basis.columns();
+    let q = cols.len();
+    let mut phi = vec![0.0; 3 * rows.len() * q];
+    for (i, &v) in rows.iter().enumerate() {
+        for a in 0..3 {
+            let src = &basis.phi[(3 * v as usize + a) * m..(3 * v as usize + a + 1) * m];
+            let dst = &mut phi[(3 * i + a) * q..(3 * i + a + 1) * q];
+            for (d, &j) in dst.iter_mut().zip(cols) {
+                *d = src[j];
+            }
+        }
+    }
+    let mut energy = vec![0.0; q * q];
+    for (i, &a) in cols.iter().enumerate() {
+        for (j, &b) in cols.iter().enumerate() {
+            energy[i * q + j] = basis.energy[a * m + b];
+        }
+    }
+    let libr = basis.libr_columns();
+    let effect_labels: Vec<String> = cols
+        .iter()
+        .filter(|&&j| j >= libr)
+        .map(|&j| basis.effect_labels[j - libr].clone())
+        .collect();
+    let control_nodes: Vec<u32> = cols
+        .iter()
+        .filter(|&&j| j < libr && j % 3 == 0)
+        .map(|&j| basis.control_nodes[j / 3])
+        .collect();
+    LibrBasis {
+        control_nodes,
+        nodes: rows.len(),
+        phi,
+        energy,
+        load_scale: cols.iter().map(|&j| basis.load_scale[j]).collect(),
+        load_width_mm: basis.load_width_mm,
+        control_width_mm: Vec::new(),
+        effect_labels,
+        physics_hash: basis.physics_hash.clone(),
+        mesh_hash: basis.mesh_hash.clone(),
+        params_hash: basis.params_hash.clone(),
+        timings: BasisTimings::default(),
+    }
+}
+
+/// The evidence-maximising λ of an assembled system with no regularisation in it yet: for each λ
+/// of the grid the Cholesky factorization of `A + λ/ē E`, the log evidence (module doc) and the
+/// solution. Returns (λ, solution, log evidence) of the best, or an error when no λ gave a
+/// definite system.
+fn choose_lambda(
+    basis: &LibrBasis,
+    asm: &Assembled<'_>,
+    grid: &[f64],
+    escale: f64,
+) -> Result<(f64, Mat<f64>, f64), RegisterError> {
+    let m = basis.libr_columns();
+    let rows = asm.rows as f64 + if asm.prior_rr > 0.0 { 18.0 } else { 0.0 };
+    let rr = asm.before + asm.prior_rr;
+    let dof = (rows - 6.0).max(1.0);
+    let mut best: Option<(f64, Mat<f64>, f64)> = None;
+    let mut a = asm.a.clone();
+    let q = asm.m;
+    for &lambda in grid {
+        let f = lambda / escale;
+        for i in 0..q {
+            for j in 0..=i {
+                a[(i, j)] = asm.a[(i, j)] + f * basis.energy[i * q + j];
+            }
+        }
+        let Ok(llt) = a.llt(Side::Lower) else {
+            continue;
+        };
+        let mut x = asm.b.clone();
+        llt.solve_in_place(x.as_mut());
+        let fit: f64 = (0..asm.p).map(|i| asm.b[(i, 0)] * x[(i, 0)]).sum();
+        let qmin = (rr - fit).max(1e-12 * rr.max(1e-300));
+        let l = llt.L();
+        let logdet: f64 = (0..asm.p).map(|i| 2.0 * l[(i, i)].ln()).sum();
+        let ev = -0.5 * dof * qmin.ln() - 0.5 * logdet + 0.5 * m as f64 * f.ln();
+        if !ev.is_finite() {
+            continue;
+        }
+        if best.as_ref().is_none_or(|b| ev > b.2) {
+            best = Some((lambda, x, ev));
+        }
+    }
+    best.ok_or_else(|| {
+        RegisterError::IllConditioned(format!(
+            "the normal equations are singular for every λ in [{}, {}]: the {} matches do not determine the fit",
+            grid.first().copied().unwrap_or(0.0),
+            grid.last().copied().unwrap_or(0.0),
+            asm.used.len()
+        ))
+    })
+}
+
+/// One adaptive step on a restricted basis: the system assembled without regularisation, λ by
+/// evidence over `grid` (λ relative to `escale`, or the basis's mean energy when None), the
+/// step's result and the λ chosen.
+pub fn adaptive_step(
+    basis: &LibrBasis,
+    matches: &[Match],
+    targets_image: &[[f64; 3]],
+    params: &LibrParams,
+    grid: &[f64],
+    escale: Option<f64>,
+    prior: Option<&PriorPairs>,
+) -> Result<(StepResult, f64), RegisterError> {
+    let unregularised = LibrParams {
+        regularization: 0.0,
+        ..*params
+    };
+    let asm = assemble(basis, matches, targets_image, &unregularised, prior)?;
+    let t2 = Instant::now();
+    let escale = escale.unwrap_or_else(|| basis.energy_scale());
+    let (lambda, x, _) = choose_lambda(basis, &asm, grid, escale)?;
+    Ok((finish(basis, &asm, &x, t2)?, lambda))
+}
+
+/// Adaptive LIBR (see the module doc): like [`solve_with_limits`] on the multi-level `basis`
+/// (`first_level` = the number of control points of its broadest level), with the columns kept
+/// chosen from the first matching and λ chosen by evidence at every iteration.
+/// [`LibrInfo::regularization`] reports the last λ and [`LibrInfo::columns`] the columns kept.
+#[allow(clippy::too_many_arguments)]
+pub fn solve_adaptive(
+    mesh: &TetMesh,
+    basis: &LibrBasis,
+    first_level: usize,
+    params: &LibrParams,
+    adaptive: &AdaptiveParams,
+    measured_physical: &[[f64; 3]],
+    initial: &Rigid,
+    run: RunLimits<'_>,
+    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
+) -> Result<LibrSolution, RegisterError> {
+    params.validate()?;
+    adaptive.validate()?;
+    if run.offset.is_some() {
+        return Err(RegisterError::Parameter(
+            "adaptive LIBR starts from the undeformed model (no offset)".into(),
+        ));
+    }
+    if mesh.num_nodes() != basis.nodes {
+        return Err(RegisterError::Inconsistent(format!(
+            "mesh has {} nodes, the basis {}",
+            mesh.num_nodes(),
+            basis.nodes
+        )));
+    }
+    if params.max_iterations == 0 {
+        return Err(RegisterError::Parameter(
+            "max_iterations must be at least 1".into(),
+        ));
+    }
+    let all: Vec<u32>;
+    let active = match run.active {
+        Some(a) => {
+            if let Some(v) = a.iter().find(|&&v| v as usize >= basis.nodes) {
+                return Err(RegisterError::Inconsistent(format!(
+                    "active node {v} out of range ({} nodes)",
+                    basis.nodes
+                )));
+            }
+            a
+        }
+        None => {
+            all = (0..basis.nodes as u32).collect();
+            &all
+        }
+    };
+    // The rows the fit reads: the active nodes, and any other node a match reads (added when
+    // one does, and the restricted basis rebuilt).
+    let mut rows: Vec<u32> = active.to_vec();
+    let mut row_of = vec![u32::MAX; basis.nodes];
+    for (i, &v) in rows.iter().enumerate() {
+        row_of[v as usize] = i as u32;
+    }
+    let grid = adaptive.lambda_grid();
+    let t0 = Instant::now();
+    let mut info = LibrInfo::default();
+    let mut t = *initial;
+    let mut u = vec![0.0; 3 * basis.nodes];
+    let mut kept: Option<(Vec<usize>, LibrBasis)> = None;
+    let mut alpha = Vec::new();
+    let mut floor = adaptive.anneal_start;
+    let mut escale = 1.0;
+    // Phase 0 (coarse first): the broadest level alone; phase 1: every level.
+    let mut phase = if adaptive.coarse_first && adaptive.levels.len() > 1 {
+        0
+    } else {
+        1
+    };
+    let mut phase_start = 0;
+    let coarse_cols: Vec<usize> = (0..3 * first_level.min(basis.control_nodes.len()))
+        .chain(basis.libr_columns()..basis.columns())
+        .collect();
+    let mut rebuild = false;
+    for _ in 0..params.max_iterations {
+        let tm = Instant::now();
+        let matches = rematch(&u, &t)?;
+        info.matching_s += crate::util::secs(tm);
+        let before = rows.len();
+        for mt in &matches {
+            for &v in &mt.nodes {
+                if row_of.get(v as usize) == Some(&u32::MAX) {
+                    row_of[v as usize] = rows.len() as u32;
+                    rows.push(v);
+                }
+            }
+        }
+        if kept.is_none() || rows.len() != before || rebuild {
+            let ta = Instant::now();
+            let cols = match (&kept, phase, rebuild) {
+                (_, 0, _) => coarse_cols.clone(),
+                (Some((c, _)), _, false) => c.clone(),
+                _ => select_columns(
+                    basis,
+                    mesh,
+                    first_level,
+                    &matches,
+                    adaptive.reach,
+                    adaptive.spread,
+                ),
+            };
+            rebuild = false;
+            let mut r = restrict(basis, &cols, &rows);
+            // The finer levels' extra cost: E + (ρ − 1) blockdiag(0, E_ff).
+            let q = cols.len();
+            let fine = |j: usize| cols[j] >= 3 * first_level && cols[j] < basis.libr_columns();
+            for i in 0..q {
+                for j in 0..q {
+                    if fine(i) && fine(j) {
+                        r.energy[i * q + j] *= adaptive.fine_penalty;
+                    }
+                }
+            }
+            let coarse = 3 * first_level.min(basis.control_nodes.len());
+            escale = (0..coarse)
+                .map(|i| basis.energy[i * basis.columns() + i])
+                .sum::<f64>()
+                / coarse.max(1) as f64;
+            info.assemble_s += crate::util::secs(ta);
+            kept = Some((cols, r));
+        }
+        let (_, reduced) = kept.as_ref().expect("set above");
+        // The matches on the restricted rows.
+        let mut local = matches;
+        for (k, mt) in local.iter_mut().enumerate() {
+            for v in &mut mt.nodes {
+                let r = row_of.get(*v as usize).copied().unwrap_or(u32::MAX);
+                if r == u32::MAX {
+                    return Err(RegisterError::Inconsistent(format!(
+                        "match {k} reads node {v}, out of range ({} nodes)",
+                        basis.nodes
+                    )));
+                }
+                *v = r;
+            }
+        }
+        let inv = t.inverse();
+        let targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+        let prior = run.rigid_prior.map(|p| PriorPairs {
+            pairs: p.image_pairs(&t),
+            weight: p.weight(),
+        });
+        // The grid above the annealing floor (the floor itself when it is above the grid).
+        let mut g: Vec<f64> = grid.iter().copied().filter(|&l| l >= floor).collect();
+        if g.is_empty() || floor > 0.0 && g[0] > floor * 1.0001 {
+            g.insert(0, floor);
+        }
+        floor *= adaptive.anneal_factor;
+        let (step, lambda) = adaptive_step(
+            reduced,
+            &local,
+            &targets,
+            params,
+            &g,
+            Some(escale),
+            prior.as_ref(),
+        )?;
+        info.assemble_s += step.timings.rows_s + step.timings.normal_s;
+        info.solve_s += step.timings.solve_s;
+        let local_u = reduced.displacement(&step.alpha);
+        let mut moved = 0.0f64;
+        for (i, &v) in rows.iter().enumerate() {
+            let x = mesh.nodes()[v as usize];
+            let k = 3 * v as usize;
+            let old = [0, 1, 2].map(|a| x[a] + u[k + a]);
+            let new = step
+                .rigid_correction
+                .apply([0, 1, 2].map(|a| x[a] + local_u[3 * i + a]));
+            moved = moved.max(dist2(old, new).sqrt());
+            u[k..k + 3].copy_from_slice(&local_u[3 * i..3 * i + 3]);
+        }
+        t = step.rigid_correction.then(&t);
+        alpha = step.alpha;
+        info.iterations += 1;
+        info.rms_history_mm.push(step.rms_mm);
+        info.movement_history_mm.push(moved);
+        info.rms_mm = step.rms_mm;
+        info.regularization = lambda;
+        let calm = moved <= params.tolerance_mm
+            || settled(
+                &info.rms_history_mm[phase_start..],
+                &info.movement_history_mm[phase_start..],
+            );
+        if phase == 0 {
+            if calm || info.iterations >= params.max_iterations / 2 {
+                phase = 1;
+                phase_start = info.iterations;
+                rebuild = true;
+            }
+        } else if calm {
+            info.converged = moved <= params.tolerance_mm;
+            break;
+        }
+        if let Some(d) = run.deadline {
+            let now = Instant::now();
+            if info.iterations < params.max_iterations && now + (now - tm) > d {
+                info.stopped_at_deadline = true;
+                break;
+            }
+        }
+    }
+    info.settled = info.converged
+        || settled(
+            &info.rms_history_mm[phase_start..],
+            &info.movement_history_mm[phase_start..],
+        );
+    let (cols, reduced) = kept.expect("at least one iteration ran");
+    info.prior_mm2 = info.regularization * 2.0 * reduced.strain_energy(&alpha) / escale;
+    info.columns = cols.len();
+    let mut full = vec![0.0; basis.columns()];
+    for (&j, &a) in cols.iter().zip(&alpha) {
+        full[j] = a;
+    }
+    info.strain_energy_uj = basis.strain_energy(&full);
+    let u = basis.displacement(&full);
+    info.total_s = crate::util::secs(t0);
+    Ok(LibrSolution {
+        alpha: full,
+        u,
+        image_to_physical: t,
+        info,
+    })
+}
