@@ -108,8 +108,15 @@ fn the_first_level_is_the_plain_basis_and_energy_couples_the_levels() {
     let (mesh, plain, two) = boxed();
     assert_eq!(two.columns(), 3 * (COARSE + FINE));
     assert_eq!(&two.control_nodes[..COARSE], &plain.control_nodes[..]);
+    // The same loads solved in a wider block: equal to rounding.
     for j in 0..plain.columns() {
-        assert_eq!(column(two, j), column(plain, j), "column {j}");
+        let (a, b) = (column(two, j), column(plain, j));
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-9, "column {j} differs by {worst}");
     }
     // Widths: each level 1.25 × its own spacing √(2A/(√3K)), so the fine one is √(60/12) narrower.
     let (wc, wf) = (two.control_width(0), two.control_width(COARSE));
@@ -126,8 +133,8 @@ fn the_first_level_is_the_plain_basis_and_energy_couples_the_levels() {
     let mut worst = 0.0f64;
     for j in (0..m).step_by(7) {
         let kc = system.apply(&cols[j]);
-        for i in 0..m {
-            let v: f64 = cols[i].iter().zip(&kc).map(|(a, b)| a * b).sum();
+        for (i, ci) in cols.iter().enumerate() {
+            let v: f64 = ci.iter().zip(&kc).map(|(a, b)| a * b).sum();
             worst = worst.max((v - two.energy[i * m + j]).abs());
         }
     }
@@ -135,12 +142,16 @@ fn the_first_level_is_the_plain_basis_and_energy_couples_the_levels() {
         worst <= 1e-10 * diag_max,
         "E differs from ΦᵀKΦ by {worst:e}"
     );
-    // Fine patches are stiffer per mm of peak displacement than broad ones.
+    // A narrow patch costs less strain energy per millimetre of peak displacement than a broad
+    // one (a punch's stiffness grows with its radius): the energy alone does not hold fine
+    // loads back, which is what `fine_penalty` is for.
     let mean_diag = |r: std::ops::Range<usize>| {
         let n = r.len() as f64;
         r.map(|i| two.energy[i * m + i]).sum::<f64>() / n
     };
-    assert!(mean_diag(3 * COARSE..m) > 1.5 * mean_diag(0..3 * COARSE));
+    let (fine, coarse) = (mean_diag(3 * COARSE..m), mean_diag(0..3 * COARSE));
+    println!("mean mode energy: coarse {coarse:.3e}, fine {fine:.3e} µJ per mm²");
+    assert!(fine < coarse, "fine {fine:e} vs coarse {coarse:e}");
 }
 
 #[test]
@@ -197,8 +208,8 @@ fn the_restricted_basis_is_the_full_one_at_the_kept_rows_and_columns() {
 }
 
 /// Draws α from the prior `N(0, τ² (λ/ē E)⁻¹)` and fits noisy point-to-point data of it; returns
-/// the λ the evidence chose.
-fn chosen_lambda(lambda: f64, seed: u64) -> f64 {
+/// the λ the evidence chose and the number of matches.
+fn chosen_lambda(lambda: f64, seed: u64) -> (f64, usize) {
     let (mesh, plain, _) = boxed();
     let m = plain.columns();
     let tau = 0.3;
@@ -215,7 +226,7 @@ fn chosen_lambda(lambda: f64, seed: u64) -> f64 {
         .collect();
     let grid = AdaptiveParams {
         lambda_per_decade: 4,
-        lambda_range: (1e-7, 10.0),
+        lambda_range: (1e-10, 10.0),
         ..AdaptiveParams::default()
     }
     .lambda_grid();
@@ -227,18 +238,20 @@ fn chosen_lambda(lambda: f64, seed: u64) -> f64 {
         matches.len(),
         step.rms_mm
     );
-    chosen
+    (chosen, matches.len())
 }
 
 #[test]
 fn the_evidence_recovers_the_prior_strength_of_synthetic_data() {
+    // The fit's λ weighs the *mean* squared misfit over the N matches, so a prior of precision
+    // λ₀ per point's noise is λ₀ / N in the fit's units.
     for seed in [1, 2] {
-        let weak = chosen_lambda(1e-4, seed);
-        let strong = chosen_lambda(1e-2, seed);
-        for (want, got) in [(1e-4, weak), (1e-2, strong)] {
+        let (weak, n) = chosen_lambda(1e-4, seed);
+        let (strong, _) = chosen_lambda(1e-2, seed);
+        for (want, got) in [(1e-4 / n as f64, weak), (1e-2 / n as f64, strong)] {
             assert!(
                 got / want <= 10.0 && want / got <= 10.0,
-                "λ₀ {want:e}: chose {got:e}"
+                "λ₀/N {want:e}: chose {got:e}"
             );
         }
         assert!(strong > 10.0 * weak, "{weak:e} vs {strong:e}");

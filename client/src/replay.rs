@@ -22,19 +22,24 @@ pub fn method_name(m: pb::Method) -> &'static str {
         pb::Method::Libr => "libr",
         pb::Method::LibrPlus => "libr_plus",
         pb::Method::V2s => "v2s",
+        pb::Method::Adaptive => "adaptive",
     }
 }
 
-/// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `v2s`, `default`).
+/// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `v2s`, `adaptive`,
+/// `default`).
 pub fn parse_method(s: &str) -> Result<pb::Method> {
     Ok(match s.trim() {
         "rigid" => pb::Method::Rigid,
         "libr" => pb::Method::Libr,
         "libr_plus" | "libr+" | "libr-plus" => pb::Method::LibrPlus,
         "v2s" => pb::Method::V2s,
+        "adaptive" => pb::Method::Adaptive,
         "default" => pb::Method::Unspecified,
         other => {
-            bail!("unknown method {other:?}: expected rigid, libr, libr_plus, v2s or default")
+            bail!(
+                "unknown method {other:?}: expected rigid, libr, libr_plus, v2s, adaptive or default"
+            )
         }
     })
 }

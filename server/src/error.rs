@@ -125,7 +125,10 @@ fn pipeline_cause(e: &PipelineError) -> Cause {
             register_cause(r)
         }
         PipelineError::Degenerate { .. } => Cause::Data,
-        PipelineError::NoBasis | PipelineError::NoModel | PipelineError::NoV2sModel => Cause::Case,
+        PipelineError::NoBasis
+        | PipelineError::NoAdaptiveBasis
+        | PipelineError::NoModel
+        | PipelineError::NoV2sModel => Cause::Case,
         PipelineError::Case(_)
         | PipelineError::Model(_)
         | PipelineError::V2s(_)
@@ -346,6 +349,7 @@ pub fn libr_can_fall_back(e: &PipelineError) -> bool {
         | PipelineError::Rigid(_)
         | PipelineError::Refit(_)
         | PipelineError::NoBasis
+        | PipelineError::NoAdaptiveBasis
         | PipelineError::NoModel
         | PipelineError::NoV2sModel
         | PipelineError::V2s(_)

@@ -1,29 +1,35 @@
-//! Adaptive LIBR: surface tractions resolved finely where the data are, with the strength of
-//! the elastic prior chosen per registration by the data's marginal likelihood.
+//! Adaptive LIBR: surface tractions resolved finely where the data are.
 //!
-//! LIBR fits a fixed basis of 25 broad control loads with a fixed strain-energy weight λ tuned
-//! on one simulator. Off that simulator both are wrong: a tool pushing one spot of a held organ
-//! makes a dent no broad load can express, and a λ tuned for broad loads over- or
-//! under-regularises any other basis. This method changes both:
+//! LIBR fits a fixed basis of 25 broad control loads; a tool pushing one spot of a held organ
+//! makes a dent no broad load can express. This method fits a richer basis, and only where the
+//! data can determine it:
 //!
-//! - **Resolution where the data are.** The basis has several levels of control loads
+//! - **Several levels of resolution.** The basis has levels of control loads
 //!   ([`LibrBasis::build_levels`], default 25 broad and 100 fine patches), and its energy matrix
 //!   `E = ΦᵀKΦ` couples them, so `½αᵀEα` is the strain energy of the whole deformation whichever
-//!   level expresses it. At each registration the first (broadest) level is kept whole and a
-//!   finer control load only when a matched point lies within [`AdaptiveParams::reach`] patch
-//!   widths of it: where no point is, a fine load is not determined by the data and the broad
-//!   ones already carry its far field. The fit runs on the kept columns, restricted to the nodes
-//!   that matching reads.
-//! - **The prior's strength from the data.** With the data rows `r = Jθ + ε`, `ε ~ N(0, τ²I)`
-//!   and the prior `α ~ N(0, τ²(λẼ)⁻¹)` (θ = α and the rigid correction, the latter with a flat
-//!   prior), λ maximises the evidence with τ² profiled out,
-//!   `log p(r | λ) = −½ (N − 6) log Q(λ) − ½ log det A(λ) + ½ p log λ + const`, where
-//!   `A(λ) = JᵀJ + λẼ`, `Q(λ) = |r|² − bᵀA⁻¹b` is the minimised regularised misfit, `b = Jᵀr`,
-//!   N the rows and p the regularised columns. It is evaluated on a log grid
-//!   ([`AdaptiveParams::lambda_range`]), one Cholesky factorization per value, every iteration
-//!   (the matches change). Unlike a tuned λ this needs no training data and scales with the
-//!   basis: a richer basis is regularised as much as the data say, not as much as a 25-load
-//!   basis needed on our simulator.
+//!   level expresses it.
+//! - **Fine loads only where the data cover them** ([`select_columns`]): the broadest level is
+//!   kept whole, a finer load only when the matched points near it span a surface (not a line of
+//!   ultrasound contour points). The fit runs on the kept columns, restricted to the nodes that
+//!   matching reads ([`restrict`]).
+//! - **Coarse to fine** ([`AdaptiveParams::coarse_first`]): the broad level alone until it
+//!   settles, then every level on the matches it leaves.
+//! - **λ** is LIBR's, normalised by the broadest level's mean mode energy; a narrow patch costs
+//!   less energy per millimetre than a broad one, so [`AdaptiveParams::fine_penalty`] can make the
+//!   fine part cost more.
+//!
+//! **An evidence search for λ** ([`AdaptiveParams::lambda_range`] with low < high, off by
+//! default): with the data rows `r = Jθ + ε`, `ε ~ N(0, τ²I)` and the prior
+//! `α ~ N(0, τ²(λẼ)⁻¹)` (θ = α and the rigid correction, the latter with a flat prior), λ
+//! maximises `log p(r | λ) = −½ (N − 6) log Q(λ) − ½ log det A(λ) + ½ p log λ + const` (τ²
+//! profiled out), `A(λ) = JᵀJ + λẼ`, `Q(λ) = |r|² − bᵀA⁻¹b`, `b = Jᵀr`, N rows, p regularised
+//! columns, on a log grid, one Cholesky factorization per value, every iteration. On data drawn
+//! from the prior it recovers the prior's strength (`tests/adaptive.rs`); on registrations it
+//! chooses λ far too small, because it counts every matched point as an independent observation
+//! while closest-point misfits are strongly correlated along the surface (the fit's λ weighs the
+//! *mean* squared misfit, so LIBR's 1e-3 over 500 points is a per-point prior precision of 0.5,
+//! far above what independent noise would justify). [`AdaptiveParams::anneal_start`] anneals a
+//! floor on λ over the iterations, as non-rigid ICP anneals its stiffness.
 //!
 //! The iterations are LIBR's ([`super::solve_with_limits`]): re-match on the deformed model, fit,
 //! compose the rigid correction; they stop when the model stops moving
@@ -52,21 +58,22 @@ pub struct AdaptiveParams {
     /// axis is at least `spread` × σ ([`select_columns`]). Default 0.3.
     pub spread: f64,
     /// The evidence is maximised over λ on a log grid from `lambda_range.0` to `lambda_range.1`
-    /// (λ as in [`LibrParams::regularization`], relative to the kept columns' mean energy).
-    /// Default 1e-6 to 1.
+    /// (λ as in [`LibrParams::regularization`], relative to the broadest level's mean mode
+    /// energy); equal ends fix λ. Default 1e-3 to 1e-3 (fixed: see the module doc).
     pub lambda_range: (f64, f64),
     /// Grid points per decade. Default 2.
     pub lambda_per_decade: usize,
     /// Stiffness annealing: iteration k (from 0) uses at least `anneal_start × anneal_factor^k`,
     /// so the first fits, on closest-point matches to the undeformed model, are smooth and the
-    /// finer detail comes as the matches improve (as in non-rigid ICP). Default 0.1.
+    /// finer detail comes as the matches improve (as in non-rigid ICP). Default 0 (none).
     pub anneal_start: f64,
-    /// See `anneal_start`. Default 0.3.
+    /// See `anneal_start`. Default 0.
     pub anneal_factor: f64,
     /// The finer levels' deformation costs this many times its strain energy: the prior is
     /// `λ/ē (αᵀEα + (ρ − 1) α_fᵀE_ffα_f)` with α_f the finer levels' weights and ē the broadest
-    /// level's mean energy, so a broad deformation is regularised as in LIBR and a local one
-    /// more, as its loads are less likely a priori. Default 1.
+    /// level's mean energy, so a broad deformation is regularised as in LIBR and a local one ρ
+    /// times more than its energy says (a narrow patch costs less energy per millimetre than a
+    /// broad one, so the energy alone does not hold fine loads back). Default 1.
     pub fine_penalty: f64,
     /// Coarse to fine: the first iterations fit the broadest level alone until it settles (at
     /// most half the iterations), then the finer levels join, kept near the data as matched
@@ -535,7 +542,7 @@ pub fn solve_adaptive(
             || settled(
                 &info.rms_history_mm[phase_start..],
                 &info.movement_history_mm[phase_start..],
-            );
+            ) && !shrinking(&info.movement_history_mm[phase_start..]);
         if phase == 0 {
             if calm || info.iterations >= params.max_iterations / 2 {
                 phase = 1;

@@ -537,16 +537,7 @@ impl LibrBasis {
             effect_labels,
             physics_hash: physics.hash(),
             mesh_hash: mesh_hash(mesh),
-            params_hash: if levels.len() == 1 {
-                LibrParams {
-                    control_points: levels[0].0,
-                    load_width: levels[0].1,
-                    ..*params
-                }
-                .basis_hash()
-            } else {
-                super::levels_hash(params, levels)
-            },
+            params_hash: super::levels_key(params, levels),
             timings: BasisTimings {
                 loads_s,
                 assemble_s: solver.assemble_s,

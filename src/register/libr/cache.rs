@@ -40,6 +40,20 @@ pub fn levels_hash(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> String
     fnv1a_hex(key.to_string().as_bytes())
 }
 
+/// The parameters hash a basis of `levels` carries: [`LibrParams::basis_hash`] of the one level
+/// (so a one-level basis is LIBR's own), else [`levels_hash`].
+pub fn levels_key(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> String {
+    match levels {
+        [(count, width)] => LibrParams {
+            control_points: *count,
+            load_width: *width,
+            ..*params
+        }
+        .basis_hash(),
+        _ => levels_hash(params, levels),
+    }
+}
+
 impl LibrBasis {
     /// The cache file of a mesh and parameters in `cache_dir`.
     pub fn cache_path(mesh: &TetMesh, params: &LibrParams, cache_dir: &Path) -> PathBuf {
@@ -115,17 +129,7 @@ impl LibrBasis {
     ) -> Result<(Self, bool), RegisterError> {
         params.validate()?;
         physics.validate()?;
-        let single = levels.len() == 1;
-        let key = if single {
-            LibrParams {
-                control_points: levels[0].0,
-                load_width: levels[0].1,
-                ..*params
-            }
-            .basis_hash()
-        } else {
-            levels_hash(params, levels)
-        };
+        let key = levels_key(params, levels);
         let ph = physics.hash();
         let suffix = if ph.is_empty() {
             String::new()

@@ -39,7 +39,8 @@
 //! rigid correction exactly (rotation by `exp(ω)`), until the largest node movement of an
 //! iteration falls below [`LibrParams::tolerance_mm`] or the fit has settled ([`settled`]: its
 //! residual stopped falling and the model is not running away, so further iterations only cycle
-//! the closest-point matches around the fit), at most [`LibrParams::max_iterations`].
+//! the closest-point matches around the fit; not while the movement is still [`shrinking`]
+//! geometrically), at most [`LibrParams::max_iterations`].
 //!
 //! **Cache.** [`LibrBasis::load_or_build`] keeps the basis in `cache_dir` as a NumPy `.npz`
 //! named by the mesh hash and the hash of the basis-relevant parameters; an unreadable,

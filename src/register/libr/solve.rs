@@ -68,8 +68,8 @@ pub struct LibrSolution {
 /// `rematch(u, image_to_physical)` for matches of the measured points (`measured_physical`,
 /// physical frame) to the current model, maps the measured points into the image frame, takes
 /// one [`fit_step`] and composes its rigid correction, until no node moves more than
-/// `params.tolerance_mm` in an iteration, the fit has [`settled`], or `params.max_iterations`
-/// is reached. `mesh` must be
+/// `params.tolerance_mm` in an iteration, the fit has [`settled`] without its movement still
+/// [`shrinking`], or `params.max_iterations` is reached. `mesh` must be
 /// the basis's mesh (its node positions measure the movement).
 pub fn solve(
     mesh: &TetMesh,
@@ -222,7 +222,9 @@ pub fn solve_with_limits(
         // Settled: the objective stopped falling and the model is not running away; what is
         // left is re-matching cycling around the fit (on the paper liver no fit ever reached
         // the tolerance: every registration ran the 20 iterations).
-        if settled(&info.rms_history_mm, &info.movement_history_mm) {
+        if settled(&info.rms_history_mm, &info.movement_history_mm)
+            && !shrinking(&info.movement_history_mm)
+        {
             break;
         }
         // Stop before an iteration that would end past the deadline (the last one's duration
@@ -280,6 +282,15 @@ pub fn settled(rms_mm: &[f64], movement_mm: &[f64]) -> bool {
     let falling = best_early - best_late > (0.01 * best_late).max(0.01);
     let (m_early, m_late) = movement_mm.split_at(n - SETTLE_WINDOW);
     !falling && most(m_late) <= most(m_early)
+}
+
+/// Whether the model's movement is still shrinking geometrically: the last iteration moved it
+/// less than a tenth of what the iteration [`SETTLE_WINDOW`] before did. A fit converging on
+/// exact data settles by the residual long before it reaches the tolerance; one cycling around
+/// its fit moves by about as much every iteration. Fewer iterations than the window: false.
+pub fn shrinking(movement_mm: &[f64]) -> bool {
+    let n = movement_mm.len();
+    n > SETTLE_WINDOW && movement_mm[n - 1] < 0.1 * movement_mm[n - 1 - SETTLE_WINDOW]
 }
 
 /// A row of Φ times α with four accumulators (vectorizes; the same bits whatever the thread
