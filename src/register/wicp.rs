@@ -130,7 +130,7 @@ pub struct WicpResult {
     #[serde(default)]
     pub moved_from_start_mm: f64,
     /// Wall-clock time (s) of this run (in a registration with a pose search, of the chosen
-    /// pose's run; the search's is [`crate::pipeline::pose::PoseInfo::rigid_seconds`]).
+    /// pose's run; the pipeline reports the whole search's separately).
     pub seconds: f64,
 }
 

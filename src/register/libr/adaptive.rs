@@ -379,37 +379,9 @@ pub fn solve_adaptive(
             "adaptive LIBR starts from the undeformed model (no offset)".into(),
         ));
     }
-    if mesh.num_nodes() != basis.nodes {
-        return Err(RegisterError::Inconsistent(format!(
-            "mesh has {} nodes, the basis {}",
-            mesh.num_nodes(),
-            basis.nodes
-        )));
-    }
-    if params.max_iterations == 0 {
-        return Err(RegisterError::Parameter(
-            "max_iterations must be at least 1".into(),
-        ));
-    }
-    let all: Vec<u32>;
-    let active = match run.active {
-        Some(a) => {
-            if let Some(v) = a.iter().find(|&&v| v as usize >= basis.nodes) {
-                return Err(RegisterError::Inconsistent(format!(
-                    "active node {v} out of range ({} nodes)",
-                    basis.nodes
-                )));
-            }
-            a
-        }
-        None => {
-            all = (0..basis.nodes as u32).collect();
-            &all
-        }
-    };
     // The rows the fit reads: the active nodes, and any other node a match reads (added when
     // one does, and the restricted basis rebuilt).
-    let mut rows: Vec<u32> = active.to_vec();
+    let mut rows: Vec<u32> = checked_active(mesh, basis, params, run.active)?;
     let mut row_of = vec![u32::MAX; basis.nodes];
     for (i, &v) in rows.iter().enumerate() {
         row_of[v as usize] = i as u32;

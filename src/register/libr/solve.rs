@@ -47,7 +47,7 @@ pub struct LibrInfo {
     /// recorded).
     pub columns: usize,
     /// The fit's regularisation term at the end, `λ αᵀẼα` (mm², comparable with the mean squared
-    /// misfit; the pose choice adds it to the misfit, [`crate::pipeline::pose`]).
+    /// misfit; the pipeline's pose choice adds it to the misfit).
     pub prior_mm2: f64,
 }
 
@@ -140,32 +140,7 @@ pub fn solve_with_limits(
         }
     }
     params.validate()?;
-    if let Some(v) = active.and_then(|a| a.iter().find(|&&v| v as usize >= basis.nodes)) {
-        return Err(RegisterError::Inconsistent(format!(
-            "active node {v} out of range ({} nodes)",
-            basis.nodes
-        )));
-    }
-    let all: Vec<u32>;
-    let active = match active {
-        Some(a) => a,
-        None => {
-            all = (0..basis.nodes as u32).collect();
-            &all
-        }
-    };
-    if mesh.num_nodes() != basis.nodes {
-        return Err(RegisterError::Inconsistent(format!(
-            "mesh has {} nodes, the basis {}",
-            mesh.num_nodes(),
-            basis.nodes
-        )));
-    }
-    if params.max_iterations == 0 {
-        return Err(RegisterError::Parameter(
-            "max_iterations must be at least 1".into(),
-        ));
-    }
+    let active = &checked_active(mesh, basis, params, active)?[..];
     let t0 = Instant::now();
     let mut info = LibrInfo::default();
     let mut t = *initial;
@@ -256,6 +231,35 @@ pub fn solve_with_limits(
         image_to_physical: t,
         info,
     })
+}
+
+/// What every LIBR iteration checks before it starts (the mesh is the basis's, at least one
+/// iteration, the active nodes in range); returns the active nodes (every node when None).
+pub(super) fn checked_active(
+    mesh: &TetMesh,
+    basis: &LibrBasis,
+    params: &LibrParams,
+    active: Option<&[u32]>,
+) -> Result<Vec<u32>, RegisterError> {
+    if let Some(v) = active.and_then(|a| a.iter().find(|&&v| v as usize >= basis.nodes)) {
+        return Err(RegisterError::Inconsistent(format!(
+            "active node {v} out of range ({} nodes)",
+            basis.nodes
+        )));
+    }
+    if mesh.num_nodes() != basis.nodes {
+        return Err(RegisterError::Inconsistent(format!(
+            "mesh has {} nodes, the basis {}",
+            mesh.num_nodes(),
+            basis.nodes
+        )));
+    }
+    if params.max_iterations == 0 {
+        return Err(RegisterError::Parameter(
+            "max_iterations must be at least 1".into(),
+        ));
+    }
+    Ok(active.map_or_else(|| (0..basis.nodes as u32).collect(), <[u32]>::to_vec))
 }
 
 /// Iterations over which [`settled`] judges the objective.
