@@ -132,6 +132,11 @@ struct Common {
     /// server regularises the rigid motion towards it (an organ held in place).
     #[arg(long, value_name = "MM")]
     trusted_alignment: Option<f64>,
+    /// The organ is held in place and the start trusted: the server trusts the start (to 5 mm
+    /// unless --trusted-alignment says otherwise), skips the pose search and holds the surface
+    /// the points do not come near
+    #[arg(long)]
+    held: bool,
     /// Resume a session whose stream is lost (the server restarted or the network dropped):
     /// reconnect with backoff and go on from what the server recorded (it needs --audit).
     #[arg(long)]
@@ -205,10 +210,13 @@ fn seconds(name: &str, s: f64) -> Result<Duration> {
 }
 
 fn options(c: &Common) -> Option<pb::RegisterOptions> {
-    (c.time_budget_ms.is_some() || c.trusted_alignment.is_some()).then(|| pb::RegisterOptions {
-        time_budget_ms: c.time_budget_ms.unwrap_or(0),
-        omit_displacements: false,
-        trusted_alignment_mm: c.trusted_alignment.unwrap_or(0.0),
+    (c.time_budget_ms.is_some() || c.trusted_alignment.is_some() || c.held).then(|| {
+        pb::RegisterOptions {
+            time_budget_ms: c.time_budget_ms.unwrap_or(0),
+            omit_displacements: false,
+            trusted_alignment_mm: c.trusted_alignment.unwrap_or(0.0),
+            held: c.held,
+        }
     })
 }
 

@@ -29,6 +29,8 @@ pub struct Job {
     pub omit_displacements: bool,
     /// The initial alignment trusted to this uncertainty (mm), when the client says so.
     pub trusted_alignment_mm: Option<f64>,
+    /// The organ is held in place, when the client says so ([`librplus::pipeline::hold`]).
+    pub held: bool,
     /// The session's own model (in-surgery discovery switched it to an augmented one), in place
     /// of the case's.
     pub prepared: Option<Arc<librplus::pipeline::Prepared>>,
@@ -265,6 +267,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let mut degraded: Option<String> = None;
     let mut params = PipelineParams::default();
     params.wicp.trusted_alignment_mm = job.trusted_alignment_mm;
+    params.held = job.held;
     let gcn_ms = prepared
         .librplus
         .as_ref()

@@ -41,6 +41,8 @@ pub struct Request {
     pub measurements: Measurements,
     /// The session's trusted-alignment uncertainty, if any.
     pub trusted_alignment_mm: Option<f64>,
+    /// The session's organ is held ([`librplus::pipeline::hold`]).
+    pub held: bool,
     /// Wall-clock limit.
     pub budget: Duration,
     /// The coarse search grid.
@@ -180,6 +182,7 @@ pub fn params(req: &Request, deadline: Instant) -> DiscoverParams {
         ..PipelineParams::default()
     };
     p.pipeline.wicp.trusted_alignment_mm = req.trusted_alignment_mm;
+    p.pipeline.held = req.held;
     p.deadline = Some(deadline);
     p
 }

@@ -392,14 +392,15 @@ impl Svc {
         field: &str,
     ) -> Result<Duration, ServiceError> {
         let c = &self.0.config;
-        // Every field of the options; `omit_displacements` and `trusted_alignment_mm` are read
-        // by the caller.
+        // Every field of the options; `omit_displacements`, `trusted_alignment_mm` and `held`
+        // are read by the caller.
         let ms = options.map_or(
             0,
             |pb::RegisterOptions {
                  time_budget_ms,
                  omit_displacements: _,
                  trusted_alignment_mm: _,
+                 held: _,
              }| *time_budget_ms,
         );
         if ms > c.max_time_budget_ms {
@@ -640,6 +641,7 @@ impl LibRPlus for Svc {
                 arrival,
                 omit_displacements: options.as_ref().is_some_and(|o| o.omit_displacements),
                 trusted_alignment_mm,
+                held: options.as_ref().is_some_and(|o| o.held),
                 prepared: None,
             };
             let reg = self.0.engine.run(job, Some(&client)).await?;
@@ -919,6 +921,8 @@ struct Session {
     budget: Duration,
     omit: bool,
     trusted_alignment_mm: Option<f64>,
+    /// The client said the organ is held (`RegisterOptions.held`).
+    held: bool,
     meas: Measurements,
     last_seq: u64,
     last_time: Option<(i64, i32)>,
@@ -1587,6 +1591,7 @@ async fn register_session(
         arrival,
         omit_displacements: s.omit,
         trusted_alignment_mm: s.trusted_alignment_mm,
+        held: s.held,
         prepared: s.augmented.clone(),
     };
     match svc.0.engine.run(job, None).await {
@@ -1619,6 +1624,7 @@ fn start_discovery(svc: &Svc, s: &mut Session, seq: u64) -> pb::stream_update::U
         case: s.case.clone(),
         measurements: s.meas.clone(),
         trusted_alignment_mm: s.trusted_alignment_mm,
+        held: s.held,
         budget: plan.budget,
         coarse: svc.0.config.discovery_coarse,
         libr: librplus::register::libr::LibrParams::default(),
@@ -1716,6 +1722,7 @@ fn start_session(
         budget,
         omit: options.as_ref().is_some_and(|o| o.omit_displacements),
         trusted_alignment_mm,
+        held: options.as_ref().is_some_and(|o| o.held),
         meas: Measurements {
             initial_alignment: initial,
             ..Default::default()

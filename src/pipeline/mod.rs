@@ -21,6 +21,7 @@ use crate::v2s::{V2sCase, V2sError};
 use std::path::Path;
 use std::sync::Arc;
 
+pub mod hold;
 pub mod pose;
 use std::time::{Duration, Instant};
 
@@ -141,6 +142,12 @@ pub struct PipelineParams {
     pub adaptive: AdaptiveParams,
     /// The rigid stage's extra starts and the choice among the poses they reach ([`pose`]).
     pub pose: pose::PoseParams,
+    /// The navigation system says the organ is held in place and its start trusted ([`hold`]):
+    /// the start is trusted (no pose search) and the surface the data do not see is held.
+    /// Default false.
+    pub held: bool,
+    /// How a held organ's unseen surface is held.
+    pub hold: hold::HoldParams,
 }
 
 impl Default for PipelineParams {
@@ -152,6 +159,8 @@ impl Default for PipelineParams {
             refit_iterations: REFIT_ITERATIONS,
             adaptive: AdaptiveParams::default(),
             pose: pose::PoseParams::default(),
+            held: false,
+            hold: hold::HoldParams::default(),
         }
     }
 }
@@ -395,6 +404,8 @@ pub fn refit(
             deadline,
             offset: Some(u_start),
             rigid_prior,
+            // The refit keeps the correction's shape where no data are: nothing more to hold.
+            hold: None,
         },
         |u, t| {
             let inv = t.inverse();
@@ -507,14 +518,15 @@ impl Registration {
 }
 
 /// The rigid stage's parameters for a case: the pipeline's, with the start trusted to
-/// [`HELD_SIGMA_MM`] when the case's physics holds the organ (a `fixation` or `ligament` effect)
-/// and no uncertainty was declared.
+/// [`HELD_SIGMA_MM`] when the organ is held ([`PipelineParams::held`], or the case's physics
+/// holds it: a `fixation` or `ligament` effect) and no uncertainty was declared.
 pub fn rigid_params(case: &Prepared, params: &PipelineParams) -> WicpParams {
-    let held = case
-        .physics
-        .effects
-        .iter()
-        .any(|e| matches!(e.kind, EffectKind::Fixation | EffectKind::Ligament));
+    let held = params.held
+        || case
+            .physics
+            .effects
+            .iter()
+            .any(|e| matches!(e.kind, EffectKind::Fixation | EffectKind::Ligament));
     WicpParams {
         trusted_alignment_mm: params
             .wicp
@@ -522,6 +534,22 @@ pub fn rigid_params(case: &Prepared, params: &PipelineParams) -> WicpParams {
             .or(held.then_some(HELD_SIGMA_MM)),
         ..params.wicp
     }
+}
+
+/// The hold of a held organ at `pose` ([`hold::hold`]); None when the organ is not said to be
+/// held.
+fn held_at(
+    case: &Prepared,
+    meas: &Measurements,
+    params: &PipelineParams,
+    pose: &Rigid,
+) -> Result<Option<libr::Hold>, PipelineError> {
+    if !params.held {
+        return Ok(None);
+    }
+    hold::hold(&case.model, meas, pose, &params.hold)
+        .map(Some)
+        .map_err(PipelineError::Libr)
 }
 
 /// Registers measurements to a prepared case.
@@ -678,11 +706,20 @@ pub fn register(
     };
     // The deformable fit from one rigid pose.
     let deform = |rigid: &WicpResult| -> Result<libr::LibrSolution, PipelineError> {
+        let held = held_at(case, meas, params, &rigid.image_to_physical)?;
         let run = libr::RunLimits {
             active: Some(corr.active_nodes()),
             deadline: libr_deadline,
             offset: None,
-            rigid_prior: rigid.prior.as_ref(),
+            // A held organ is anchored by its hold: the fit's rigid correction is then free to
+            // carry the rigid part the free-floating basis leaves out of a dent (a trusted
+            // pose prior against it made the held fits worse than doing nothing).
+            rigid_prior: if held.is_some() {
+                None
+            } else {
+                rigid.prior.as_ref()
+            },
+            hold: held.as_ref(),
         };
         if method == Method::Adaptive {
             let ad = case

@@ -185,6 +185,7 @@ class Client:
         time_budget_ms: int = 0,
         omit_displacements: bool = False,
         trusted_alignment_mm: float = 0.0,
+        held: bool = False,
     ) -> Registration:
         """One registration of a complete measurement set (unary ``Register``).
 
@@ -202,6 +203,9 @@ class Client:
             time_budget_ms: the server's time budget (0: its default).
             omit_displacements: ask for the rigid transform and figures only.
             trusted_alignment_mm: > 0: trust the initial alignment to this RMS uncertainty.
+            held: the organ is held in place and the start trusted (to 5 mm unless
+                ``trusted_alignment_mm`` says otherwise): no pose search, and the surface the
+                points do not come near is held where the start puts it.
 
         Raises:
             RpcError: the server refused the request (INVALID_ARGUMENT naming the field,
@@ -236,6 +240,7 @@ class Client:
                 time_budget_ms=int(time_budget_ms),
                 omit_displacements=bool(omit_displacements),
                 trusted_alignment_mm=float(trusted_alignment_mm),
+                held=bool(held),
             ),
         )
         return Registration.from_message(self._call(self._stub.Register, req))
@@ -249,6 +254,7 @@ class Client:
         time_budget_ms: int = 0,
         omit_displacements: bool = False,
         trusted_alignment_mm: float = 0.0,
+        held: bool = False,
         timeout_s: Optional[float] = None,
     ) -> "Session":
         """Opens a streamed session (``StreamRegister``) and sends its ``SessionStart``.
@@ -269,6 +275,7 @@ class Client:
                 time_budget_ms=int(time_budget_ms),
                 omit_displacements=bool(omit_displacements),
                 trusted_alignment_mm=float(trusted_alignment_mm),
+                held=bool(held),
             ),
         )
         if initial_alignment is not None:

@@ -297,7 +297,8 @@ class RegisterTest(WithServer):
         r = self.client.register("g1", surface, method="rigid", features=["falciform", 0],
                                  contour_points=contour, vessel_points=vessel,
                                  initial_alignment=t, time_budget_ms=500,
-                                 omit_displacements=True, trusted_alignment_mm=3.5)
+                                 omit_displacements=True, trusted_alignment_mm=3.5,
+                                 held=True)
         (req,) = self.fake.register_requests
         m = req.measurements
         self.assertEqual(req.case_id, "g1")
@@ -310,6 +311,7 @@ class RegisterTest(WithServer):
         self.assertEqual(req.options.time_budget_ms, 500)
         self.assertTrue(req.options.omit_displacements)
         self.assertEqual(req.options.trusted_alignment_mm, 3.5)
+        self.assertTrue(req.options.held)
         self.assertEqual(r.points_used, 5)
         self.assertIsNone(r.session_id)
 
@@ -418,7 +420,7 @@ class SessionTest(WithServer):
         vessel = np.array([[0.5, 9.0]])
         before = time.time()
         with self.client.session("g1", "libr_plus", initial_alignment=t, time_budget_ms=300,
-                                 trusted_alignment_mm=2.0) as s:
+                                 trusted_alignment_mm=2.0, held=True) as s:
             r1 = s.add_surface(pts1, features=["none", "falciform", "inferior_ridge", 0, 1])
             r2 = s.add_surface(pts2, acquired_at=before + 1000.25)
             r3 = s.add_ultrasound(pose, contour, vessel)
@@ -433,6 +435,7 @@ class SessionTest(WithServer):
         self.assertEqual(list(st.initial_alignment.rotation), R0.reshape(-1).tolist())
         self.assertEqual(st.options.time_budget_ms, 300)
         self.assertEqual(st.options.trusted_alignment_mm, 2.0)
+        self.assertTrue(st.options.held)
         # Points point-major (x0, y0, z0, x1, ...) whatever the array's memory order.
         self.assertEqual(list(msgs[1].surface.xyz_mm), [float(v) for v in range(15)])
         self.assertEqual(list(msgs[1].surface.feature), [0, 1, 2, 0, 1])

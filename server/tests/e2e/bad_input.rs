@@ -113,6 +113,7 @@ async fn bad_unary_input_gets_its_status_and_field() {
         time_budget_ms: 1_000_000,
         omit_displacements: false,
         trusted_alignment_mm: 0.0,
+        held: false,
     });
     cases.push((
         "budget too large",

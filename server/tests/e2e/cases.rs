@@ -141,23 +141,29 @@ async fn a_case_with_physics_registers_with_its_effects() {
         None,
     )
     .unwrap();
-    for trusted in [0.0, 3.0] {
+    // The held flag (RegisterOptions.held) reaches the pipeline as PipelineParams::held.
+    for (trusted, held) in [(0.0, false), (3.0, false), (0.0, true)] {
         let mut req = request("held", pb::Method::Libr, measurements_pb(&sc.measurements));
         req.options = Some(pb::RegisterOptions {
             trusted_alignment_mm: trusted,
+            held,
             ..Default::default()
         });
         let r = client.register(req).await.unwrap().into_inner();
         let mut params = PipelineParams::default();
         params.wicp.trusted_alignment_mm = (trusted > 0.0).then_some(trusted);
+        params.held = held;
         let lib = register(&lib_case, &sc.measurements, Method::Libr, &params).unwrap();
+        assert_eq!(lib.libr.as_ref().unwrap().held_nodes > 0, held);
         // The fixation holds the organ: the start is trusted (5 mm, or as sent).
         assert_eq!(
             lib.rigid.prior.map(|p| p.sigma_mm),
             Some(if trusted > 0.0 { trusted } else { 5.0 })
         );
         let (dt, du) = difference(&r, &lib);
-        eprintln!("with physics, trusted {trusted} mm: |Δtransform| {dt:.1e}, |Δu| {du:.1e} mm");
+        eprintln!(
+            "with physics, trusted {trusted} mm, held {held}: |Δtransform| {dt:.1e}, |Δu| {du:.1e} mm"
+        );
         assert_eq!(r.effects, ["fixation", "gravity"]);
         assert!(dt < 1e-9, "transform differs by {dt}");
         assert!(du <= 1e-5, "displacements differ by {du} mm");

@@ -364,6 +364,18 @@ pub(crate) struct LibrOpts {
     /// regularised towards it instead of fitted freely (an organ held in place)
     #[arg(long, value_name = "MM")]
     pub(crate) trusted_alignment: Option<f64>,
+    /// The organ is held in place and the navigation start trusted: the start is trusted to
+    /// 5 mm (unless --trusted-alignment says otherwise), no pose search, and the surface no
+    /// measured point comes near is held where the start puts it
+    #[arg(long)]
+    pub(crate) held: bool,
+    /// With --held: a boundary node is held when no measured point lies within this distance
+    /// (mm, default 45)
+    #[arg(long, value_name = "MM")]
+    pub(crate) hold_clearance: Option<f64>,
+    /// With --held: the held nodes' total weight relative to the data's (default 1)
+    #[arg(long)]
+    pub(crate) hold_weight: Option<f64>,
     /// Below this conditioning of the rigid stage's point-to-plane system the start is trusted
     /// to 10 mm and the registration flagged (default 1e-3; 0: never)
     #[arg(long)]
@@ -376,11 +388,12 @@ pub(crate) struct LibrOpts {
     /// many patch widths of it (default 2)
     #[arg(long)]
     pub(crate) adaptive_reach: Option<f64>,
-    /// Adaptive LIBR: the range of λ its evidence search covers (default 1e-6,1)
+    /// Adaptive LIBR: the range of λ its evidence search covers (default 1e-3,1e-3: λ fixed at
+    /// LIBR's; a wider range turns the search on)
     #[arg(long, value_delimiter = ',', value_name = "LOW,HIGH")]
     pub(crate) adaptive_lambda: Option<Vec<f64>>,
     /// Adaptive LIBR: stiffness annealing, the first iteration's least λ and the factor per
-    /// iteration (default 0.1,0.3; 0,0: none)
+    /// iteration (default 0,0: none)
     #[arg(long, value_delimiter = ',', value_name = "START,FACTOR")]
     pub(crate) adaptive_anneal: Option<Vec<f64>>,
     /// Adaptive LIBR: the finer levels' deformation costs this many times its strain energy
@@ -424,6 +437,13 @@ impl LibrOpts {
         }
         p.wicp.surface_only = self.wicp_surface_only;
         p.wicp.trusted_alignment_mm = self.trusted_alignment;
+        p.held = self.held;
+        if let Some(c) = self.hold_clearance {
+            p.hold.clearance_mm = c;
+        }
+        if let Some(w) = self.hold_weight {
+            p.hold.weight = w;
+        }
         if let Some(c) = self.min_conditioning {
             p.wicp.min_conditioning = c;
         }

@@ -97,6 +97,7 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             "movement_history_mm": i.movement_history_mm,
             "regularization": i.regularization,
             "columns": i.columns,
+            "held_nodes": i.held_nodes,
             "strain_energy_uj": i.strain_energy_uj,
             "matching_s": i.matching_s,
             "assemble_s": i.assemble_s,

@@ -382,6 +382,12 @@ pub fn solve_adaptive(
     // The rows the fit reads: the active nodes, and any other node a match reads (added when
     // one does, and the restricted basis rebuilt).
     let mut rows: Vec<u32> = checked_active(mesh, basis, params, run.active)?;
+    if let Some(h) = run.hold {
+        h.validate(basis.nodes)?;
+        rows.extend(&h.nodes);
+        rows.sort_unstable();
+        rows.dedup();
+    }
     let mut row_of = vec![u32::MAX; basis.nodes];
     for (i, &v) in rows.iter().enumerate() {
         row_of[v as usize] = i as u32;
@@ -454,8 +460,14 @@ pub fn solve_adaptive(
             kept = Some((cols, r));
         }
         let (_, reduced) = kept.as_ref().expect("set above");
-        // The matches on the restricted rows.
+        let inv = t.inverse();
+        let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+        // The held pairs join after the columns were chosen (they are not data to resolve).
         let mut local = matches;
+        if let Some(h) = run.hold {
+            h.append(mesh, &mut local, &mut targets, &inv);
+        }
+        // The matches on the restricted rows.
         for (k, mt) in local.iter_mut().enumerate() {
             for v in &mut mt.nodes {
                 let r = row_of.get(*v as usize).copied().unwrap_or(u32::MAX);
@@ -468,8 +480,6 @@ pub fn solve_adaptive(
                 *v = r;
             }
         }
-        let inv = t.inverse();
-        let targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
         let prior = run.rigid_prior.map(|p| PriorPairs {
             pairs: p.image_pairs(&t),
             weight: p.weight(),
@@ -545,6 +555,7 @@ pub fn solve_adaptive(
     for (&j, &a) in cols.iter().zip(&alpha) {
         full[j] = a;
     }
+    info.held_nodes = run.hold.map_or(0, |h| h.nodes.len());
     info.strain_energy_uj = basis.strain_energy(&full);
     let u = basis.displacement(&full);
     info.total_s = crate::util::secs(t0);

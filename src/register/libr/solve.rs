@@ -49,6 +49,8 @@ pub struct LibrInfo {
     /// The fit's regularisation term at the end, `λ αᵀẼα` (mm², comparable with the mean squared
     /// misfit; the pipeline's pose choice adds it to the misfit).
     pub prior_mm2: f64,
+    /// Nodes a soft hold kept in place ([`Hold`]; 0: none).
+    pub held_nodes: usize,
 }
 
 /// The result of [`solve`].
@@ -103,6 +105,81 @@ pub struct RunLimits<'a> {
     /// A prior on the rigid pose (a trusted start, [`crate::register::prior`]): every step's
     /// rigid correction is regularised towards it (None: fitted freely).
     pub rigid_prior: Option<&'a RigidPrior>,
+    /// A soft hold on nodes the data do not see ([`Hold`]; None: none).
+    pub hold: Option<&'a Hold>,
+}
+
+/// A soft hold: nodes that should stay where a trusted pose puts them (an organ held in place,
+/// the surface far from what the camera sees). Every iteration appends one point-to-point pair
+/// per held node, node → its held position mapped into the current image frame, so the held
+/// nodes' total movement (deformation and rigid correction together) is penalised like a
+/// misfit. The pairs share `weight` × the matches' total weight, so the hold neither drowns the
+/// data nor vanishes when there are many points.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Hold {
+    /// The held nodes.
+    pub nodes: Vec<u32>,
+    /// Where each is held (physical frame, mm).
+    pub physical: Vec<[f64; 3]>,
+    /// Total weight of the held pairs relative to the matches' total weight (> 0).
+    pub weight: f64,
+}
+
+impl Hold {
+    /// Checks the hold against a basis of `nodes` nodes; the message names the field.
+    pub fn validate(&self, nodes: usize) -> Result<(), RegisterError> {
+        if self.nodes.len() != self.physical.len() {
+            return Err(RegisterError::Inconsistent(format!(
+                "hold: {} nodes but {} positions",
+                self.nodes.len(),
+                self.physical.len()
+            )));
+        }
+        if let Some(v) = self.nodes.iter().find(|&&v| v as usize >= nodes) {
+            return Err(RegisterError::Inconsistent(format!(
+                "hold: node {v} out of range ({nodes} nodes)"
+            )));
+        }
+        if self.physical.iter().flatten().any(|x| !x.is_finite()) {
+            return Err(RegisterError::Inconsistent(
+                "hold: a held position is not finite".into(),
+            ));
+        }
+        if !(self.weight.is_finite() && self.weight > 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "hold weight must be finite and > 0, got {}",
+                self.weight
+            )));
+        }
+        Ok(())
+    }
+
+    /// Appends the held pairs to `matches` and their targets (image frame of `inv`'s inverse,
+    /// i.e. `inv` maps physical → image) to `targets`.
+    pub fn append(
+        &self,
+        mesh: &TetMesh,
+        matches: &mut Vec<Match>,
+        targets: &mut Vec<[f64; 3]>,
+        inv: &Rigid,
+    ) {
+        if self.nodes.is_empty() {
+            return;
+        }
+        let data: f64 = matches.iter().map(|m| m.weight).sum();
+        let w = self.weight * data.max(1e-12) / self.nodes.len() as f64;
+        for (&v, &p) in self.nodes.iter().zip(&self.physical) {
+            matches.push(Match {
+                point: targets.len(),
+                anchor: mesh.nodes()[v as usize],
+                nodes: [v; 4],
+                bary: [1.0, 0.0, 0.0, 0.0],
+                weight: w,
+                normal: [0.0; 3],
+            });
+            targets.push(inv.apply(p));
+        }
+    }
 }
 
 /// [`solve`], updating between matchings only the displacement of `active` nodes (those
@@ -126,7 +203,11 @@ pub fn solve_with_limits(
         deadline,
         offset,
         rigid_prior,
+        hold,
     } = run;
+    if let Some(h) = hold {
+        h.validate(basis.nodes)?;
+    }
     if let Some(o) = offset {
         if o.len() != 3 * basis.nodes {
             return Err(RegisterError::Inconsistent(format!(
@@ -148,10 +229,13 @@ pub fn solve_with_limits(
     let mut u = offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec);
     for _ in 0..params.max_iterations {
         let tm = Instant::now();
-        let matches = rematch(&u, &t)?;
+        let mut matches = rematch(&u, &t)?;
         info.matching_s += crate::util::secs(tm);
         let inv = t.inverse();
         let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+        if let Some(h) = hold {
+            h.append(mesh, &mut matches, &mut targets, &inv);
+        }
         if let Some(o) = offset {
             // Fit Φα to what the offset leaves.
             offset_targets(&matches, &mut targets, o);
@@ -213,6 +297,7 @@ pub fn solve_with_limits(
         }
     }
     info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
+    info.held_nodes = hold.map_or(0, |h| h.nodes.len());
     info.strain_energy_uj = basis.strain_energy(&alpha);
     info.regularization = params.regularization;
     info.columns = basis.columns();

@@ -1,0 +1,290 @@
+//! A held organ (`PipelineParams::held`, `librplus::pipeline::hold`), checked for the sanity
+//! properties a navigation system relies on when it says the organ is held and its start
+//! trusted: on a held organ pushed by a tool the hold does better than trusting the start
+//! without it (LIBR and adaptive LIBR; whether either beats doing nothing there is printed, not
+//! asserted: not yet); an undeformed held organ stays where it is; an organ that moved rigidly
+//! after all is answered no worse than doing nothing. The hold itself holds exactly the boundary
+//! nodes no measured point comes near.
+//!
+//! Data: `assets/livers/sofa_liver.vtk` meshed with 10 mm tets, labelled and given a vessel tree
+//! by the phantom module. The truth of a held organ is computed here: linear elasticity with the
+//! bare area fixed and an anterior spot pushed 20 mm inwards (cosine taper over 25 mm), an
+//! independent FEM solve with Dirichlet conditions, not LIBR's free-floating basis. Its surface
+//! is measured by `phantom::measure::simulate_focused` with the camera on the tool's spot and
+//! the navigation start the true alignment.
+
+mod common;
+
+use librplus::fem::{Dirichlet, LinearMaterial, StiffnessSystem};
+use librplus::mesh::TetMesh;
+use librplus::mesh::rigid::Rigid;
+use librplus::mesh::tetra::{TetraParams, tetrahedralize};
+use librplus::phantom::measure::{Category, MeasureParams, simulate_focused};
+use librplus::phantom::vessels::{VesselParams, VesselTree};
+use librplus::pipeline::hold::{HoldParams, hold};
+use librplus::pipeline::{Method, PipelineParams, Prepared, register};
+use librplus::register::Measurements;
+use librplus::register::anatomy::{AnatomyLabels, LabelParams, label};
+use librplus::register::libr::{AdaptiveParams, LibrParams};
+use std::sync::OnceLock;
+
+struct Case {
+    mesh: TetMesh,
+    labels: AnatomyLabels,
+    vessels: VesselTree,
+    prepared: Prepared,
+    /// The tool's node.
+    tool: u32,
+    /// The held organ's displacement (image frame).
+    u: Vec<f64>,
+}
+
+fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
+}
+
+fn case() -> &'static Case {
+    static C: OnceLock<Case> = OnceLock::new();
+    C.get_or_init(|| {
+        let surface = common::sofa_liver_surface();
+        let mesh = tetrahedralize(&surface, &TetraParams::with_edge(10.0)).unwrap();
+        let labels = label(&mesh, &LabelParams::default()).unwrap();
+        let vessels = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
+        let model = labels.preop_model(&mesh, &vessels.points, &vessels.segments);
+        let n = mesh.num_nodes();
+        let x = mesh.nodes();
+        let held: Vec<u32> = (0..n as u32)
+            .filter(|&i| labels.bare_area[i as usize])
+            .collect();
+        assert!(held.len() >= 10, "{} bare-area nodes", held.len());
+        let hc = centroid(&held.iter().map(|&i| x[i as usize]).collect::<Vec<_>>());
+        let c = centroid(x);
+        // The tool: the anterior node farthest from the hold, pushed towards the centroid.
+        let tool = labels
+            .nodes_in(librplus::register::anatomy::Region::Anterior)
+            .into_iter()
+            .max_by(|&a, &b| {
+                dist(x[a as usize], hc)
+                    .total_cmp(&dist(x[b as usize], hc))
+                    .then(b.cmp(&a))
+            })
+            .unwrap();
+        let t = x[tool as usize];
+        let len = dist(t, c);
+        let dir = [0, 1, 2].map(|k| (c[k] - t[k]) / len);
+        let mut bc = Dirichlet::new(n);
+        bc.fix_nodes(&held);
+        let boundary = model.boundary_flags();
+        let mut pushed = 0;
+        for (i, &b) in boundary.iter().enumerate() {
+            let r = dist(x[i], t);
+            if b && r <= 40.0 && !labels.bare_area[i] {
+                let f = 0.5 * (1.0 + (std::f64::consts::PI * r / 40.0).cos());
+                bc.prescribe_node(i as u32, dir.map(|d| 40.0 * f * d));
+                pushed += 1;
+            }
+        }
+        assert!(pushed >= 3, "the tool pushes {pushed} nodes");
+        let system = StiffnessSystem::linear(&mesh, &LinearMaterial::default()).unwrap();
+        let u = system.factorize(&bc).unwrap().solve(&vec![0.0; 3 * n]);
+        let prepared = Prepared::new(model, Some(&LibrParams::default()), None)
+            .unwrap()
+            .with_adaptive(&LibrParams::default(), &AdaptiveParams::default(), None)
+            .unwrap();
+        Case {
+            mesh,
+            labels,
+            vessels,
+            prepared,
+            tool,
+            u,
+        }
+    })
+}
+
+fn centroid(p: &[[f64; 3]]) -> [f64; 3] {
+    let n = p.len() as f64;
+    [0, 1, 2].map(|a| p.iter().map(|q| q[a]).sum::<f64>() / n)
+}
+
+/// Surface points of the organ under `u`, the camera on the tool's spot, the navigation start the
+/// true alignment; returns the measurements and the true image → physical transform.
+fn measured(u: &[f64], seed: u64) -> (Measurements, Rigid) {
+    let c = case();
+    let params = MeasureParams {
+        coverage: [0.4, 0.4],
+        max_rotation_deg: 0.0,
+        max_translation_mm: 0.0,
+        trusted_start: true,
+        ..MeasureParams::default()
+    };
+    let sc = simulate_focused(
+        &c.mesh,
+        &c.labels,
+        &c.vessels,
+        u,
+        Category::Surface,
+        &params,
+        Some(c.tool),
+        seed,
+    )
+    .unwrap();
+    (common::scenario_measurements(&sc), sc.image_to_physical)
+}
+
+/// Mean node distance between the registration's organ and the truth (`u` under `truth`).
+fn tre(r: &librplus::pipeline::Registration, u: &[f64], truth: &Rigid) -> f64 {
+    let x = case().mesh.nodes();
+    let n = x.len();
+    (0..n)
+        .map(|i| {
+            let at = |v: &[f64], t: &Rigid| t.apply([0, 1, 2].map(|a| x[i][a] + v[3 * i + a]));
+            dist(at(&r.u, &r.image_to_physical), at(u, truth))
+        })
+        .sum::<f64>()
+        / n as f64
+}
+
+fn held_params() -> PipelineParams {
+    PipelineParams {
+        held: true,
+        ..PipelineParams::default()
+    }
+}
+
+#[test]
+fn the_hold_helps_on_a_held_organ_pushed_by_a_tool() {
+    let c = case();
+    let mut rows = Vec::new();
+    for seed in [1, 2] {
+        let (meas, truth) = measured(&c.u, seed);
+        let held = held_params();
+        let mut trusted = PipelineParams::default();
+        trusted.wicp.trusted_alignment_mm = Some(5.0);
+        let run = |m: Method, p: &PipelineParams| {
+            let r = register(&c.prepared, &meas, m, p).unwrap();
+            (tre(&r, &c.u, &truth), r)
+        };
+        let (e0, _) = run(Method::Initial, &held);
+        let (libr_held, r) = run(Method::Libr, &held);
+        let (libr_trusted, _) = run(Method::Libr, &trusted);
+        let (ad_held, ra) = run(Method::Adaptive, &held);
+        let (ad_trusted, _) = run(Method::Adaptive, &trusted);
+        eprintln!(
+            "seed {seed}: doing nothing {e0:.2} mm; held: LIBR {libr_held:.2}, adaptive {ad_held:.2} ({} nodes held); the start trusted without the hold: LIBR {libr_trusted:.2}, adaptive {ad_trusted:.2}",
+            r.libr.as_ref().unwrap().held_nodes
+        );
+        for reg in [&r, &ra] {
+            assert!(reg.libr.as_ref().unwrap().held_nodes > 0, "nothing held");
+            assert!(
+                reg.pose.is_none(),
+                "a held organ's start is trusted: no pose search"
+            );
+        }
+        rows.push([e0, libr_held, libr_trusted, ad_held, ad_trusted]);
+    }
+    let mean = |k: usize| rows.iter().map(|r| r[k]).sum::<f64>() / rows.len() as f64;
+    let [e0, libr_held, libr_trusted, ad_held, ad_trusted] = [0, 1, 2, 3, 4].map(mean);
+    assert!(e0 > 1.0, "the tool moved the organ by {e0} mm on average");
+    // The hold helps both methods; adaptive LIBR, which can make the dent, beats doing nothing.
+    assert!(
+        libr_held < libr_trusted,
+        "LIBR held {libr_held:.2} mm, trusted alone {libr_trusted:.2}"
+    );
+    assert!(
+        ad_held < ad_trusted,
+        "adaptive held {ad_held:.2} mm, trusted alone {ad_trusted:.2}"
+    );
+    // Not yet true, and said in the output rather than asserted: on this linear dent (40 mm deep,
+    // 40 mm wide, 1.6 mm mean over the organ) neither method makes the dent near the tool, and
+    // both stay above doing nothing (adaptive about 2.0 mm, LIBR about 2.5; on the Neo-Hookean
+    // held organs of pattern H adaptive held is 0.55–0.63 × doing nothing, docs/registration.md).
+    eprintln!(
+        "NOT YET MET (measured, not asserted): better than doing nothing on a linear local dent: adaptive held {ad_held:.2} mm, LIBR held {libr_held:.2}, doing nothing {e0:.2}"
+    );
+}
+
+#[test]
+fn an_undeformed_held_organ_stays_where_it_is() {
+    let c = case();
+    let zero = vec![0.0; c.u.len()];
+    let (meas, truth) = measured(&zero, 3);
+    let r = register(&c.prepared, &meas, Method::Libr, &held_params()).unwrap();
+    let e = tre(&r, &zero, &truth);
+    eprintln!("undeformed, held: the answer moves the organ {e:.2} mm on average (1 mm noise)");
+    assert!(
+        e < 1.0,
+        "an undeformed held organ moved {e:.2} mm on average"
+    );
+}
+
+#[test]
+fn an_organ_that_moved_rigidly_is_answered_no_worse_than_doing_nothing() {
+    let c = case();
+    let zero = vec![0.0; c.u.len()];
+    let (mut meas, truth) = measured(&zero, 4);
+    // The organ moved 4 mm after all; the navigation start still says where it was.
+    let shift = [2.0, -2.0, 2.0 * 2f64.sqrt()];
+    for p in &mut meas.points {
+        for a in 0..3 {
+            p[a] += shift[a];
+        }
+    }
+    let moved = truth.then(&Rigid {
+        rotation: Rigid::identity().rotation,
+        translation: shift,
+    });
+    let nothing = register(&c.prepared, &meas, Method::Initial, &held_params()).unwrap();
+    let r = register(&c.prepared, &meas, Method::Libr, &held_params()).unwrap();
+    let (e0, e1) = (tre(&nothing, &zero, &moved), tre(&r, &zero, &moved));
+    eprintln!("moved 4 mm rigidly, held: doing nothing {e0:.2} mm, held LIBR {e1:.2}");
+    assert!(
+        (e0 - 4.0).abs() < 0.5,
+        "doing nothing is {e0:.2} mm off, not 4"
+    );
+    assert!(e1 <= e0, "held LIBR {e1:.2} mm, doing nothing {e0:.2}");
+}
+
+#[test]
+fn the_hold_is_the_boundary_no_measured_point_comes_near() {
+    let c = case();
+    let (meas, truth) = measured(&c.u, 5);
+    let p = HoldParams::default();
+    let h = hold(&c.prepared.model, &meas, &truth, &p).unwrap();
+    let inv = truth.inverse();
+    let pts: Vec<[f64; 3]> = meas.points.iter().map(|&q| inv.apply(q)).collect();
+    let boundary = c.prepared.model.boundary_flags();
+    let x = c.mesh.nodes();
+    let far = |i: usize| pts.iter().all(|&q| dist(q, x[i]) > p.clearance_mm);
+    let want: Vec<u32> = (0..x.len())
+        .filter(|&i| boundary[i] && far(i))
+        .map(|i| i as u32)
+        .collect();
+    assert_eq!(h.nodes, want);
+    assert!(!want.is_empty() && want.len() < boundary.iter().filter(|&&b| b).count());
+    for (&v, q) in h.nodes.iter().zip(&h.physical) {
+        assert!(dist(truth.apply(x[v as usize]), *q) < 1e-9);
+    }
+    // Bad parameters name the field.
+    for (bad, field) in [
+        (
+            HoldParams {
+                clearance_mm: 0.0,
+                ..p
+            },
+            "clearance_mm",
+        ),
+        (
+            HoldParams {
+                weight: f64::NAN,
+                ..p
+            },
+            "weight",
+        ),
+    ] {
+        let e = hold(&c.prepared.model, &meas, &truth, &bad)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field), "{e}");
+    }
+}
