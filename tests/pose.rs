@@ -19,6 +19,7 @@ use librplus::pipeline::pose::{PoseParams, choose, pose_gap, score, starts};
 use librplus::pipeline::{Method, PipelineParams, Prepared, register};
 use librplus::register::anatomy::{LabelParams, label};
 use librplus::register::correspondence::{Correspondence, CorrespondenceParams};
+use librplus::register::libr::LibrParams;
 use librplus::register::{Measurements, PreopModel};
 use std::sync::OnceLock;
 
@@ -196,4 +197,67 @@ fn starts_that_lead_wicp_astray_are_recovered_by_the_search() {
         astray >= 2,
         "too few starts went astray for the test to mean anything"
     );
+}
+
+#[test]
+fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
+    let l = liver();
+    let case = Prepared::new(l.model.clone(), Some(&LibrParams::default()), None).unwrap();
+    let c = centroid(&l.meas.points);
+    let gate = 2.0;
+    let gated = PipelineParams {
+        pose: PoseParams {
+            search_above_mm2: gate,
+            ..PoseParams::default()
+        },
+        ..PipelineParams::default()
+    };
+    let single = PipelineParams {
+        pose: PoseParams {
+            start_angles_deg: Vec::new(),
+            ..PoseParams::default()
+        },
+        ..PipelineParams::default()
+    };
+    // A good start on noise-free points: its fit scores below the gate, so the answer is the
+    // single start's, bit for bit.
+    let good = register(&case, &l.meas, Method::Libr, &gated).unwrap();
+    let one = register(&case, &l.meas, Method::Libr, &single).unwrap();
+    assert!(good.pose.is_none(), "the search ran from a good start");
+    assert_eq!(good.image_to_physical, one.image_to_physical);
+    assert_eq!(good.u, one.u);
+    // Starts that lead the single start astray: its fit scores above the gate, the search runs
+    // and reaches the truth.
+    let mut astray = 0;
+    for (axis, deg) in [
+        ([0.0, 0.0, 1.0], 90.0),
+        ([0.0, 0.0, 1.0], -90.0),
+        ([1.0, 0.0, 0.0], 90.0),
+        ([0.0, 1.0, 0.0], 90.0),
+    ] {
+        let m = Measurements {
+            initial_alignment: Some(turned(&l.truth, axis, deg, c)),
+            ..l.meas.clone()
+        };
+        let one = register(&case, &m, Method::Libr, &single).unwrap();
+        let err_one = pose_gap(&l.model, &one.image_to_physical, &l.truth);
+        if err_one < 5.0 {
+            continue;
+        }
+        astray += 1;
+        let r = register(&case, &m, Method::Libr, &gated).unwrap();
+        let err = pose_gap(&l.model, &r.image_to_physical, &l.truth);
+        println!(
+            "start {deg}° about {axis:?}: one start {err_one:.1} mm, gated {err:.2} mm ({:?})",
+            r.pose
+                .as_ref()
+                .map(|p| (p.starts, p.distinct, p.scores.clone()))
+        );
+        assert!(
+            r.pose.is_some(),
+            "the gate kept a start {err_one:.1} mm off"
+        );
+        assert!(err < 3.0, "the gated search ended {err} mm from the truth");
+    }
+    assert!(astray >= 1, "no start went astray: the test means nothing");
 }

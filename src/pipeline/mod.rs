@@ -580,7 +580,11 @@ pub fn register(
     // The rigid stage: from the navigation start alone for the baseline, else from every start
     // of the pose search (distinct poses, the navigation start's first).
     let t_rigid = Instant::now();
-    let candidates = if method == Method::Initial {
+    // With a gate on the search, a deformable method first fits from the navigation start alone
+    // and searches only when that fit scores badly.
+    let gated = params.pose.search_above_mm2 > 0.0
+        && !matches!(method, Method::Rigid | Method::Initial | Method::V2s);
+    let candidates = if method == Method::Initial || gated {
         let r = wicp(&case.model, &case.correspondence, meas, &rigid_params)
             .map_err(PipelineError::Rigid)?;
         pose::Candidates {
@@ -598,7 +602,7 @@ pub fn register(
         )
         .map_err(PipelineError::Rigid)?
     };
-    let search_seconds = crate::util::secs(t_rigid);
+    let mut search_seconds = crate::util::secs(t_rigid);
     let rigid_scores = |poses: &[WicpResult]| -> Result<Vec<f64>, PipelineError> {
         poses
             .iter()
@@ -751,28 +755,67 @@ pub fn register(
         }
         .map_err(PipelineError::Libr)
     };
+    let fitted_score = |sol: &libr::LibrSolution| -> Result<f64, PipelineError> {
+        let s = pose::score(
+            corr,
+            meas,
+            cparams,
+            Some(&sol.u),
+            &sol.image_to_physical,
+            params.pose.cap_mm,
+        )
+        .map_err(PipelineError::Libr)?;
+        Ok(s + params.pose.energy_weight * sol.info.prior_mm2)
+    };
+    // The gate: the navigation start's fit, kept when it scores well (or no search can run).
+    let mut candidates = candidates;
+    let mut first_fit: Option<libr::LibrSolution> = None;
+    if gated {
+        let first = candidates.poses[0].clone();
+        let sol = deform(&first)?;
+        if pose::searchable(&first, &rigid_params, &params.pose)
+            && fitted_score(&sol)? > params.pose.search_above_mm2
+        {
+            let t = Instant::now();
+            candidates = pose::rigid_candidates(
+                &case.model,
+                &case.correspondence,
+                meas,
+                &rigid_params,
+                &params.pose,
+            )
+            .map_err(PipelineError::Rigid)?;
+            search_seconds += crate::util::secs(t);
+            // The search's first pose is the same wICP from the navigation start: its fit is
+            // the one just made.
+            if candidates.poses[0].image_to_physical == first.image_to_physical {
+                first_fit = Some(sol);
+            }
+        } else {
+            first_fit = Some(sol);
+            candidates.poses.truncate(1);
+        }
+    }
     // Every candidate pose through the fit, scored on what it leaves; the best wins.
     let (rigid, sol, pose) = if candidates.poses.len() == 1 {
         let rigid = candidates.poses.into_iter().next().expect("one pose");
-        let sol = deform(&rigid)?;
+        let sol = match first_fit {
+            Some(s) => s,
+            None => deform(&rigid)?,
+        };
         (rigid, sol, None)
     } else {
         use rayon::prelude::*;
         let fitted: Vec<Result<(libr::LibrSolution, f64), PipelineError>> = candidates
             .poses
             .par_iter()
-            .map(|r| {
-                let sol = deform(r)?;
-                let s = pose::score(
-                    corr,
-                    meas,
-                    cparams,
-                    Some(&sol.u),
-                    &sol.image_to_physical,
-                    params.pose.cap_mm,
-                )
-                .map_err(PipelineError::Libr)?;
-                let score = s + sol.info.prior_mm2;
+            .enumerate()
+            .map(|(k, r)| {
+                let sol = match (k, &first_fit) {
+                    (0, Some(s)) => s.clone(),
+                    _ => deform(r)?,
+                };
+                let score = fitted_score(&sol)?;
                 Ok((sol, score))
             })
             .collect();

@@ -56,7 +56,7 @@ pub const REGRESSORS: [&str; 12] = [
 pub const FAR_MM: f64 = 20.0;
 
 /// What the estimate reads of one registration (surgery-time quantities only).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ErrorFeatures {
     /// Measured surface points.
     pub surface_points: usize,

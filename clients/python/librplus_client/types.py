@@ -208,8 +208,10 @@ class Registration:
             wire); zeros for a rigid answer that sent none; None when the request asked to omit
             them (``omit_displacements``) from a non-rigid answer.
         quality: ``QUALITY_OK``, ``QUALITY_NOT_CONVERGED``, ``QUALITY_DEGRADED``,
-            ``QUALITY_DEGENERATE`` (do not navigate with it) or ``QUALITY_AMBIGUOUS_POSE`` (two
-            rigid poses explain the points about equally: the answer may be wrong).
+            ``QUALITY_DEGENERATE`` (do not navigate with it), ``QUALITY_AMBIGUOUS_POSE`` (two
+            rigid poses explain the points about equally: the answer may be wrong) or
+            ``QUALITY_LIKELY_FAILED`` (the error estimate gives a high chance that the answer's
+            mean error exceeds its failure threshold: check the alignment).
         quality_reason: why the quality is not OK (empty when it is).
         method_used: ``METHOD_RIGID``, ``METHOD_LIBR``, ``METHOD_LIBR_PLUS``, ``METHOD_V2S`` or
             ``METHOD_ADAPTIVE``

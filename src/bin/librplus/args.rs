@@ -415,6 +415,18 @@ pub(crate) struct LibrOpts {
     /// The rigid stage starts from the navigation start alone (no pose search)
     #[arg(long, conflicts_with = "start_angles")]
     pub(crate) single_start: bool,
+    /// The pose search runs only when the navigation start's own deformable fit scores above
+    /// this (capped mean squared distance plus regularisation, mm²; default 4; 0: always)
+    #[arg(long, value_name = "MM2")]
+    pub(crate) search_above: Option<f64>,
+    /// The deformable fit's regularisation term counts this many times in a pose's score
+    /// (default 1)
+    #[arg(long)]
+    pub(crate) pose_energy_weight: Option<f64>,
+    /// Weight of the misfit along a matched surface relative to across it (0: point-to-plane,
+    /// the default; 1: point-to-point)
+    #[arg(long)]
+    pub(crate) tangential_weight: Option<f64>,
 }
 
 impl LibrOpts {
@@ -438,6 +450,15 @@ impl LibrOpts {
         p.wicp.surface_only = self.wicp_surface_only;
         p.wicp.trusted_alignment_mm = self.trusted_alignment;
         p.held = self.held;
+        if let Some(g) = self.search_above {
+            p.pose.search_above_mm2 = g;
+        }
+        if let Some(w) = self.pose_energy_weight {
+            p.pose.energy_weight = w;
+        }
+        if let Some(w) = self.tangential_weight {
+            p.libr.tangential_weight = w;
+        }
         if let Some(c) = self.hold_clearance {
             p.hold.clearance_mm = c;
         }
