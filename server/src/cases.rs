@@ -326,6 +326,16 @@ pub fn load_with_progress(
         progress("v2s", 0.95);
         prepared = prepared.with_v2s(m.clone()).map_err(prepare)?;
     }
+    if config.adaptive {
+        progress("adaptive basis", 0.97);
+        prepared = prepared
+            .with_adaptive(
+                libr,
+                &librplus::register::libr::AdaptiveParams::default(),
+                Some(&cache),
+            )
+            .map_err(prepare)?;
+    }
     let default_method = config.method()?;
     if default_method == Method::LibrPlus && prepared.librplus.is_none() {
         return Err(CaseError::NoModel);

@@ -80,6 +80,10 @@ pub struct ServerConfig {
     /// Whether cases answer METHOD_V2S at all (false: no V2S model is loaded, and METHOD_V2S is
     /// FAILED_PRECONDITION). Default true.
     pub v2s: bool,
+    /// Whether cases also prepare adaptive LIBR's multi-level basis and answer METHOD_ADAPTIVE
+    /// (its preload then costs about four times LIBR's basis, cached beside it). Default false:
+    /// METHOD_ADAPTIVE is FAILED_PRECONDITION.
+    pub adaptive: bool,
     /// Log as JSON lines instead of text.
     pub log_json: bool,
     /// Default wall-clock limit of one in-surgery discovery run, ms (a session may ask for
@@ -173,6 +177,7 @@ impl Default for ServerConfig {
             librplus: true,
             v2s_model: None,
             v2s: true,
+            adaptive: false,
             log_json: false,
             discovery_budget_ms: 120_000,
             max_discovery_budget_ms: 600_000,

@@ -184,6 +184,8 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         client_ca: Some(tls.ca.clone()),
         // The demo's discovery sessions search the coarse grid (seconds on its 1,800-node livers).
         discovery_coarse: true,
+        // Adaptive LIBR beside LIBR (its multi-level basis is cached with LIBR's).
+        adaptive: true,
         ..ServerConfig::default()
     };
     let mut running = librplus_server::start(config).await?;
@@ -197,13 +199,15 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         data: o.data.clone(),
         selection: Selection::Spread(o.scenarios),
         // The paper's four methods side by side: the rigid stage alone, the data-driven V2S (the
-        // built-in network), LIBR and LIBR+ (the built-in SR-GCN); then LIBR with in-surgery
-        // discovery (the model augmented when the session's points name an effect it lacks).
+        // built-in network), LIBR and LIBR+ (the built-in SR-GCN), and adaptive LIBR (fine
+        // loads where the data are); then LIBR with in-surgery discovery (the model augmented
+        // when the session's points name an effect it lacks).
         methods: vec![
             pb::Method::Rigid,
             pb::Method::V2s,
             pb::Method::Libr,
             pb::Method::LibrPlus,
+            pb::Method::Adaptive,
         ],
         discover_with: if o.discovery {
             vec![pb::Method::Libr]

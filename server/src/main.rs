@@ -180,6 +180,10 @@ struct Args {
     /// Load no V2S model (METHOD_V2S requests get FAILED_PRECONDITION).
     #[arg(long)]
     no_v2s: bool,
+    /// Also prepare adaptive LIBR's multi-level basis for every case, so that METHOD_ADAPTIVE
+    /// is answered (a longer preload).
+    #[arg(long)]
+    adaptive: bool,
     /// Log JSON lines.
     #[arg(long)]
     log_json: bool,
@@ -276,6 +280,9 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.no_v2s {
         c.v2s = false;
+    }
+    if a.adaptive {
+        c.adaptive = true;
     }
     if a.metrics_listen.is_some() {
         c.metrics_listen = a.metrics_listen.clone();

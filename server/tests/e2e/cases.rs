@@ -187,3 +187,54 @@ async fn a_case_with_physics_registers_with_its_effects() {
     );
     assert_eq!(running.shutdown().await, 0);
 }
+
+/// METHOD_ADAPTIVE: refused (FAILED_PRECONDITION naming `method`) by a server that did not
+/// prepare adaptive LIBR's basis; answered, as the library answers it, by one started with
+/// `adaptive` (the same multi-level basis and fit, to f32 rounding).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn adaptive_libr_is_answered_when_the_server_prepares_it() {
+    use librplus::register::libr::AdaptiveParams;
+    let (geo, sc) = scenario("surface+2us");
+    let m = open(dataset()).unwrap();
+    let case = m.deformations[0].geometry.clone();
+    let req = || {
+        request(
+            &case,
+            pb::Method::Adaptive,
+            measurements_pb(&sc.measurements),
+        )
+    };
+    for adaptive in [false, true] {
+        let mut running = librplus_server::start(ServerConfig {
+            adaptive,
+            ..config(2)
+        })
+        .await
+        .unwrap();
+        running.ready().await.unwrap();
+        let mut client = client(running.addr).await;
+        if !adaptive {
+            let e = client.register(req()).await.unwrap_err();
+            assert_eq!(e.code(), Code::FailedPrecondition, "{e:?}");
+            assert!(e.message().contains("method"), "{}", e.message());
+            continue;
+        }
+        let r = client.register(req()).await.unwrap().into_inner();
+        assert_eq!(r.method_used, pb::Method::Adaptive as i32);
+        let lib_case = Prepared::new(geo.model.clone(), Some(&LibrParams::default()), None)
+            .unwrap()
+            .with_adaptive(&LibrParams::default(), &AdaptiveParams::default(), None)
+            .unwrap();
+        let lib = register(
+            &lib_case,
+            &sc.measurements,
+            Method::Adaptive,
+            &PipelineParams::default(),
+        )
+        .unwrap();
+        let (dt, du) = difference(&r, &lib);
+        eprintln!("adaptive over the API: |Δtransform| {dt:.1e}, |Δu| {du:.1e} mm");
+        assert!(dt < 1e-9, "transform differs by {dt}");
+        assert!(du <= 1e-5, "displacements differ by {du} mm");
+    }
+}
