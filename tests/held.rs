@@ -3,8 +3,8 @@
 //! trusted: on a held organ pushed by a tool the hold does better than trusting the start
 //! without it (LIBR and adaptive LIBR; whether either beats doing nothing there is printed, not
 //! asserted: not yet); an undeformed held organ stays where it is; an organ that moved rigidly
-//! after all is answered no worse than doing nothing. The hold itself holds exactly the boundary
-//! nodes no measured point comes near.
+//! after all is answered no worse than doing nothing; LIBR+ leaves a held organ to LIBR. The hold
+//! itself holds exactly the boundary nodes no measured point comes near.
 //!
 //! Data: `assets/livers/sofa_liver.vtk` meshed with 10 mm tets, labelled and given a vessel tree
 //! by the phantom module. The truth of a held organ is computed here: linear elasticity with the
@@ -90,6 +90,14 @@ fn case() -> &'static Case {
         let prepared = Prepared::new(model, Some(&LibrParams::default()), None)
             .unwrap()
             .with_adaptive(&LibrParams::default(), &AdaptiveParams::default(), None)
+            .unwrap()
+            .with_models(
+                librplus::gcn::io::builtin_models()
+                    .unwrap()
+                    .into_iter()
+                    .map(std::sync::Arc::new)
+                    .collect(),
+            )
             .unwrap();
         Case {
             mesh,
@@ -287,4 +295,33 @@ fn the_hold_is_the_boundary_no_measured_point_comes_near() {
             .to_string();
         assert!(e.contains(field), "{e}");
     }
+}
+
+/// LIBR+ leaves a held organ to LIBR: its network learned the residual of free-floating LIBR on
+/// organs that are not held, so the held fit's answer stands (the correction skipped, saying
+/// why), while the same points without the flag are corrected.
+#[test]
+fn librplus_leaves_a_held_organ_to_libr() {
+    let c = case();
+    let (meas, _) = measured(&c.u, 6);
+    let held = held_params();
+    let plus = register(&c.prepared, &meas, Method::LibrPlus, &held).unwrap();
+    let libr = register(&c.prepared, &meas, Method::Libr, &held).unwrap();
+    let corr = plus.correction.as_ref().unwrap();
+    assert!(!corr.applied);
+    let why = corr.skipped.as_deref().unwrap();
+    assert!(why.contains("held"), "{why}");
+    assert_eq!(plus.u, libr.u);
+    assert_eq!(plus.image_to_physical, libr.image_to_physical);
+    let free = register(
+        &c.prepared,
+        &meas,
+        Method::LibrPlus,
+        &PipelineParams::default(),
+    )
+    .unwrap();
+    assert!(
+        free.correction.unwrap().applied,
+        "without the flag LIBR+ corrects"
+    );
 }

@@ -617,8 +617,8 @@ fn correct_one(
     sc: &super::ScenarioData,
     r: &crate::pipeline::Registration,
 ) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), EvalError> {
-    // As the pipeline: a network trained on another LIBR leaves LIBR's answer.
-    if lp.mismatch(&case.physics).is_some() {
+    // As the pipeline: a network trained on another LIBR, or a held organ, leaves LIBR's answer.
+    if crate::pipeline::correction_mismatch(lp, case, params).is_some() {
         return Ok((r.u.clone(), r.image_to_physical));
     }
     let (u, _) = lp.correct(

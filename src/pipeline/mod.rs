@@ -536,6 +536,23 @@ pub fn rigid_params(case: &Prepared, params: &PipelineParams) -> WicpParams {
     }
 }
 
+/// Why LIBR+'s correction is outside what its network learned, so that LIBR's answer stands:
+/// a network trained on a LIBR with other physics ([`LibrPlusCase::mismatch`]), or a held organ
+/// ([`PipelineParams::held`]): the network learned the residual of free-floating LIBR on organs
+/// that are not held, and after the held fit its correction made things worse (pattern H seed
+/// 302: LIBR held 5.26 mm mean TRE, corrected 11.95, doing nothing 6.66).
+pub fn correction_mismatch(
+    g: &LibrPlusCase,
+    case: &Prepared,
+    params: &PipelineParams,
+) -> Option<String> {
+    g.mismatch(&case.physics).or_else(|| {
+        params.held.then(|| {
+            "the organ is held: the SR-GCN learned the residual of LIBR on free organs, not of the held fit".to_string()
+        })
+    })
+}
+
 /// The hold of a held organ at `pose` ([`hold::hold`]); None when the organ is not said to be
 /// held.
 fn held_at(
@@ -875,7 +892,7 @@ pub fn register(
         let late = params
             .deadline
             .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
-        let skipped = if let Some(why) = g.mismatch(&case.physics) {
+        let skipped = if let Some(why) = correction_mismatch(g, case, params) {
             Some(format!("{why}: LIBR's answer"))
         } else if late {
             g.relax_estimate();
