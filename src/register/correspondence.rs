@@ -59,6 +59,11 @@ pub struct CorrespondenceParams {
     pub trim_floor_mm: f64,
     /// Pairs farther than this (mm) are always dropped and counted as far. Default 500.
     pub max_distance_mm: f64,
+    /// A robust kernel instead of the trimming: every pair within `max_distance_mm` is kept,
+    /// weighted by the Cauchy kernel `1 / (1 + (d/c)²)` with `c` half the trimming threshold (a
+    /// pair at the threshold counts a fifth). Default false (trimming).
+    #[serde(default)]
+    pub robust_kernel: bool,
 }
 
 impl Default for CorrespondenceParams {
@@ -72,6 +77,7 @@ impl Default for CorrespondenceParams {
             trim_factor: 3.0,
             trim_floor_mm: 5.0,
             max_distance_mm: 500.0,
+            robust_kernel: false,
         }
     }
 }
@@ -572,10 +578,16 @@ impl Correspondence {
         };
         let mut kept = Vec::with_capacity(candidates.len());
         let mut sum2 = 0.0;
-        for (m, d) in candidates {
+        let c = 0.5 * threshold.max(1e-9);
+        for (mut m, d) in candidates {
             if d > params.max_distance_mm {
                 stats.far += 1;
                 stats.trimmed += 1;
+            } else if params.robust_kernel {
+                m.weight /= 1.0 + (d / c) * (d / c);
+                sum2 += d * d;
+                stats.max_mm = stats.max_mm.max(d);
+                kept.push(m);
             } else if d > threshold {
                 stats.trimmed += 1;
             } else {

@@ -427,6 +427,14 @@ pub(crate) struct LibrOpts {
     /// the default; 1: point-to-point)
     #[arg(long)]
     pub(crate) tangential_weight: Option<f64>,
+    /// Correspondences (the rigid stage's and LIBR's) weighted by a robust (Cauchy) kernel
+    /// instead of trimmed by the median
+    #[arg(long, conflicts_with = "trimmed_libr")]
+    pub(crate) robust_kernel: bool,
+    /// With --held: LIBR's correspondences trimmed by the median as usual instead of weighted
+    /// by the robust kernel
+    #[arg(long)]
+    pub(crate) trimmed_libr: bool,
 }
 
 impl LibrOpts {
@@ -456,6 +464,8 @@ impl LibrOpts {
         if let Some(w) = self.pose_energy_weight {
             p.pose.energy_weight = w;
         }
+        p.wicp.correspondence.robust_kernel = self.robust_kernel;
+        p.hold.trimmed = self.trimmed_libr;
         if let Some(w) = self.tangential_weight {
             p.libr.tangential_weight = w;
         }
