@@ -117,7 +117,7 @@ pub struct LibrParams {
     pub seed: u64,
     /// LIBR's correspondences are weighted by a robust (Cauchy) kernel instead of trimmed by the
     /// median (`CorrespondenceParams::robust_kernel`). Default false; a held organ's fit uses it
-    /// (`pipeline::hold`). On the paper preset (seed 2) it changed LIBR by −0.04 mm (500
+    /// (the held-organ mode). On the paper preset (seed 2) it changed LIBR by −0.04 mm (500
     /// scenarios) and +0.04 mm (every fifth block) but made LIBR+ worse (3.61 → 3.79 mm: its
     /// network learned the trimmed LIBR's residual) and adaptive LIBR slightly (6.61 → 6.65).
     #[serde(default)]
