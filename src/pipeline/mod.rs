@@ -794,13 +794,15 @@ pub fn register(
     let mut candidates = candidates;
     let mut first_fit: Option<libr::LibrSolution> = None;
     if gated {
-        let first = candidates.poses[0].clone();
-        let sol = deform(&first)?;
-        if pose::searchable(&first, &rigid_params, &params.pose)
+        let sol = deform(&candidates.poses[0])?;
+        if pose::searchable(&candidates.poses[0], &rigid_params, &params.pose)
             && fitted_score(&sol)? > params.pose.search_above_mm2
         {
             let t = Instant::now();
-            candidates = pose::rigid_candidates(
+            let first = candidates.poses.swap_remove(0);
+            // The search keeps the navigation start's wICP first: its fit is the one just made.
+            candidates = pose::candidates_from(
+                first,
                 &case.model,
                 &case.correspondence,
                 meas,
@@ -809,15 +811,8 @@ pub fn register(
             )
             .map_err(PipelineError::Rigid)?;
             search_seconds += crate::util::secs(t);
-            // The search's first pose is the same wICP from the navigation start: its fit is
-            // the one just made.
-            if candidates.poses[0].image_to_physical == first.image_to_physical {
-                first_fit = Some(sol);
-            }
-        } else {
-            first_fit = Some(sol);
-            candidates.poses.truncate(1);
         }
+        first_fit = Some(sol);
     }
     // Every candidate pose through the fit, scored on what it leaves; the best wins.
     let (rigid, sol, pose) = if candidates.poses.len() == 1 {

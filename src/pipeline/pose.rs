@@ -257,6 +257,20 @@ pub fn rigid_candidates(
 ) -> Result<Candidates, RegisterError> {
     params.validate()?;
     let first = wicp(model, corr, meas, wicp_params)?;
+    candidates_from(first, model, corr, meas, wicp_params, params)
+}
+
+/// [`rigid_candidates`] from the navigation start's wICP result `first`, already computed (the
+/// gated search has it from the fit it judged).
+pub fn candidates_from(
+    first: WicpResult,
+    model: &PreopModel,
+    corr: &Correspondence,
+    meas: &Measurements,
+    wicp_params: &WicpParams,
+    params: &PoseParams,
+) -> Result<Candidates, RegisterError> {
+    params.validate()?;
     if !searchable(&first, wicp_params, params) {
         return Ok(Candidates {
             poses: vec![first],
