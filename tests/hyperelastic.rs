@@ -4,7 +4,9 @@
 mod common;
 use common::{end_traction, on, symmetry_supports};
 
-use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams, energy_density, pk1};
+use librplus::fem::hyperelastic::{
+    HyperelasticModel, MaterialLaw, NewtonParams, energy_density, pk1,
+};
 use librplus::fem::{Dirichlet, FemError, LameField, LinearMaterial, StiffnessSystem};
 use librplus::mesh::TetMesh;
 use librplus::mesh::procedural::box_mesh;
@@ -67,12 +69,111 @@ fn stress_is_the_derivative_of_the_energy() {
     assert!(energy_density(&inv, l, m).is_none());
 }
 
+/// The laws beside Neo-Hookean, with parameters at the ends of the generator's ranges.
+fn other_laws() -> [MaterialLaw; 4] {
+    [
+        MaterialLaw::MooneyRivlin { i2_share: 0.3 },
+        MaterialLaw::MooneyRivlin { i2_share: 1.0 },
+        MaterialLaw::Demiray { stiffening: 1.5 },
+        MaterialLaw::Demiray { stiffening: 6.0 },
+    ]
+}
+
+#[test]
+fn every_law_is_stress_free_at_rest_and_its_stress_is_the_energy_derivative() {
+    let (l, m) = lame();
+    let f = [[1.1, 0.2, -0.05], [0.1, 0.95, 0.15], [-0.1, 0.05, 1.2]];
+    let id = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    for law in other_laws() {
+        let p = law.pk1(&f, l, m).unwrap();
+        let h = 1e-6;
+        for a in 0..3 {
+            for b in 0..3 {
+                let (mut fp, mut fm) = (f, f);
+                fp[a][b] += h;
+                fm[a][b] -= h;
+                let d = (law.energy_density(&fp, l, m).unwrap()
+                    - law.energy_density(&fm, l, m).unwrap())
+                    / (2.0 * h);
+                assert!(
+                    (d - p[a][b]).abs() < 1e-7 * p[a][b].abs().max(1.0),
+                    "{law:?}: P[{a}][{b}] {d} vs {}",
+                    p[a][b]
+                );
+            }
+        }
+        assert!(
+            law.pk1(&id, l, m)
+                .unwrap()
+                .iter()
+                .flatten()
+                .all(|x| x.abs() < 1e-14)
+        );
+        assert!(law.energy_density(&id, l, m).unwrap().abs() < 1e-15);
+        let inv = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        assert!(law.energy_density(&inv, l, m).is_none() && law.pk1(&inv, l, m).is_none());
+        // The same small-strain limit: at strain ε the stress differs from Neo-Hookean's by
+        // O(ε²), so the relative difference shrinks tenfold when ε does.
+        let rel = |eps: f64| {
+            let fe = [
+                [1.0 + eps, 0.4 * eps, 0.0],
+                [0.0, 1.0 - 0.3 * eps, 0.2 * eps],
+                [0.1 * eps, 0.0, 1.0 + 0.5 * eps],
+            ];
+            let (a, b) = (law.pk1(&fe, l, m).unwrap(), pk1(&fe, l, m).unwrap());
+            let d: f64 = a
+                .iter()
+                .flatten()
+                .zip(b.iter().flatten())
+                .map(|(x, y)| (x - y).powi(2))
+                .sum();
+            let n: f64 = b.iter().flatten().map(|x| x * x).sum();
+            (d / n).sqrt()
+        };
+        let (r1, r2) = (rel(1e-2), rel(1e-3));
+        assert!(r2 < 0.15 * r1 && r2 < 2e-3, "{law:?}: {r1:e} -> {r2:e}");
+    }
+    // Mooney-Rivlin with no second-invariant share is Neo-Hookean.
+    let mr0 = MaterialLaw::MooneyRivlin { i2_share: 0.0 };
+    let (a, b) = (mr0.pk1(&f, l, m).unwrap(), pk1(&f, l, m).unwrap());
+    for (x, y) in a.iter().flatten().zip(b.iter().flatten()) {
+        assert!((x - y).abs() < 1e-12 * y.abs().max(1.0));
+    }
+    // Out-of-range parameters are refused, naming the law's parameter.
+    let mesh = box_mesh([1.0, 1.0, 1.0], [1, 1, 1], 0.0);
+    let e = HyperelasticModel::new(&mesh, LameField::Uniform(l, m))
+        .unwrap()
+        .with_law(MaterialLaw::MooneyRivlin { i2_share: 1.5 })
+        .unwrap_err();
+    assert!(e.to_string().contains("i2_share"), "{e}");
+    assert!(
+        HyperelasticModel::new(&mesh, LameField::Uniform(l, m))
+            .unwrap()
+            .with_law(MaterialLaw::Demiray { stiffening: -1.0 })
+            .is_err()
+    );
+}
+
 #[test]
 fn tangent_and_forces_match_finite_differences() {
     let mesh = box_mesh([2.0, 1.5, 1.0], [3, 2, 2], 0.3);
     let (l, m) = lame();
     let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
-    let u = smooth_field(&mesh);
+    check_tangent(&mesh, &model);
+    for law in other_laws() {
+        eprintln!("{law:?}");
+        check_tangent(
+            &mesh,
+            &HyperelasticModel::new(&mesh, LameField::Uniform(l, m))
+                .unwrap()
+                .with_law(law)
+                .unwrap(),
+        );
+    }
+}
+
+fn check_tangent(mesh: &TetMesh, model: &HyperelasticModel) {
+    let u = smooth_field(mesh);
     let mut rng = SplitMix64::new(3);
     let v: Vec<f64> = (0..u.len()).map(|_| rng.next_f64() - 0.5).collect();
     let f = model.internal_force(&u).unwrap();
@@ -219,6 +320,77 @@ fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
         .map(|(c, _)| c[0])
         .sum();
     assert!((rl - exact).abs() > 0.01 * exact, "linear {rl} vs {exact}");
+}
+
+/// The homogeneous uniaxial state of `law` at stretch `a`: the lateral stretch `b` where the
+/// lateral stress of `diag(a, b, b)` vanishes (bisection), and the axial stress `P₁₁` there.
+fn uniaxial_of(law: MaterialLaw, a: f64, l: f64, m: f64) -> (f64, f64) {
+    let p = |b: f64| {
+        law.pk1(&[[a, 0.0, 0.0], [0.0, b, 0.0], [0.0, 0.0, b]], l, m)
+            .unwrap()
+    };
+    let (mut lo, mut hi) = (0.3, 1.0);
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if p(mid)[1][1] > 0.0 {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    let b = 0.5 * (lo + hi);
+    (b, p(b)[0][0])
+}
+
+#[test]
+fn every_law_solves_a_thirty_percent_stretch_to_its_homogeneous_state() {
+    let (len, w) = (3.0, 1.0);
+    let mesh = box_mesh([len, w, w], [6, 2, 2], 0.2);
+    let (l, m) = lame();
+    let stretch = 1.3;
+    let mut bc = symmetry_supports(&mesh);
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        if on(p[0], len) {
+            bc.prescribe_dof(i as u32, 0, (stretch - 1.0) * len);
+        }
+    }
+    let f = vec![0.0; 3 * mesh.num_nodes()];
+    let (_, p_nh) = uniaxial_of(MaterialLaw::NeoHookean, stretch, l, m);
+    // The semi-analytic state agrees with the closed form for Neo-Hookean.
+    assert!((p_nh - uniaxial_analytic(stretch, l, m).1).abs() < 1e-9 * p_nh);
+    for law in other_laws() {
+        let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m))
+            .unwrap()
+            .with_law(law)
+            .unwrap();
+        let (u, info) = model.solve(&bc, &f, &NewtonParams::default()).unwrap();
+        let (b, p11) = uniaxial_of(law, stretch, l, m);
+        let fint = model.internal_force(&u).unwrap();
+        let mut reaction = 0.0;
+        for (i, p) in mesh.nodes().iter().enumerate() {
+            if on(p[0], len) {
+                reaction += fint[3 * i];
+            }
+            if on(p[1], w) {
+                let b_fem = 1.0 + u[3 * i + 1] / w;
+                assert!(
+                    (b_fem - b).abs() <= 0.01 * (1.0 - b),
+                    "{law:?}: lateral stretch {b_fem} vs {b}"
+                );
+            }
+        }
+        let exact = p11 * w * w;
+        eprintln!(
+            "{law:?}: reaction {reaction:.6} mN vs homogeneous {exact:.6} (Neo-Hookean {p_nh:.6}); {} steps, {} iterations",
+            info.load_steps, info.iterations
+        );
+        assert!((reaction - exact).abs() <= 0.01 * exact);
+        // Another truth: at 30 % stretch it differs from Neo-Hookean by more than 2 %.
+        assert!(
+            (exact - p_nh).abs() > 0.02 * p_nh,
+            "{law:?}: {exact} vs {p_nh}"
+        );
+    }
 }
 
 #[test]

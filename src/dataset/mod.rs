@@ -159,8 +159,36 @@ pub struct DeformationEntry {
     /// also written beside it as `hidden_physics.json`. Absent for the other truths.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub hidden_effects: Option<serde_json::Value>,
+    /// Under `generate --families`: the truth family this deformation's truth was drawn from and
+    /// its parameters. Absent otherwise (the truth is then the default Neo-Hookean one, or
+    /// `--truth`'s).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth_family: Option<TruthFamilyRecord>,
     /// The scenarios.
     pub scenarios: Vec<ScenarioEntry>,
+}
+
+impl DeformationEntry {
+    /// The truth family's name: the recorded one, else `neo-hookean` for the default nonlinear
+    /// truth and `libr` for `--truth libr` data (which record their hidden effects).
+    pub fn family(&self) -> &str {
+        match (&self.truth_family, &self.hidden_effects) {
+            (Some(f), _) => &f.name,
+            (None, Some(_)) => "libr",
+            (None, None) => "neo-hookean",
+        }
+    }
+}
+
+/// The truth family a deformation was drawn from (`deformation.json`'s `truth_family`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TruthFamilyRecord {
+    /// Family name (`neo-hookean`, `mooney-rivlin`, `demiray`, `stiff-vessels`).
+    pub name: String,
+    /// The strain-energy law (`neo-hookean`, `mooney-rivlin`, `demiray`).
+    pub law: String,
+    /// What was drawn (`i2_share`, `stiffening`, `vessel_factor` and `tumour_factor`).
+    pub parameters: serde_json::Value,
 }
 
 /// One sparse-measurement scenario.

@@ -1,5 +1,5 @@
 //! Train/validation/test splits of a dataset's scenarios for SR-GCN training (`random`,
-//! `geo-def`, `logo:G`, `pattern-v`), with a seeded validation set.
+//! `geo-def`, `logo:G`, `pattern-v`, `family:NAME`), with a seeded validation set.
 
 use crate::dataset::Manifest;
 use crate::eval::EvalError;
@@ -19,19 +19,24 @@ pub enum TrainSplit {
     Logo(String),
     /// Train on the training deformations, test on the test geometry (pattern V).
     PatternV,
+    /// Every deformation of one truth family held out (on every liver, the test liver's
+    /// pattern V included); training on the other families' training deformations.
+    Family(String),
 }
 
 impl TrainSplit {
-    /// Parses `random`, `geo-def`, `logo:G`, `pattern-v`.
+    /// Parses `random`, `geo-def`, `logo:G`, `pattern-v`, `family:NAME`.
     pub fn parse(s: &str) -> Result<Self, EvalError> {
         match s {
             "random" => Ok(Self::Random),
             "geo-def" => Ok(Self::GeoDef),
             "pattern-v" => Ok(Self::PatternV),
-            _ => match s.strip_prefix("logo:") {
-                Some(g) if !g.is_empty() => Ok(Self::Logo(g.to_string())),
+            _ => match (s.strip_prefix("logo:"), s.strip_prefix("family:")) {
+                (Some(g), _) if !g.is_empty() => Ok(Self::Logo(g.to_string())),
+                (_, Some(f)) if !f.is_empty() => Ok(Self::Family(f.to_string())),
                 _ => Err(EvalError::Parameter(format!(
-                    "unknown split {s:?}: expected random, geo-def, logo:GEOMETRY or pattern-v"
+                    "unknown split {s:?}: expected random, geo-def, logo:GEOMETRY, pattern-v or \
+                     family:NAME"
                 ))),
             },
         }
@@ -44,6 +49,7 @@ impl TrainSplit {
             Self::GeoDef => "geo-def".into(),
             Self::Logo(g) => format!("logo:{g}"),
             Self::PatternV => "pattern-v".into(),
+            Self::Family(f) => format!("family:{f}"),
         }
     }
 }
@@ -170,6 +176,30 @@ pub fn split_scenarios(
                         (gi == 0 && pi < 2) || (gi == geos.len() - 1 && pi == 2)
                     }
                 };
+                for b in blocks(d) {
+                    if held {
+                        test.extend(b);
+                    } else {
+                        train_blocks.push(b);
+                    }
+                }
+            }
+        }
+        TrainSplit::Family(f) => {
+            let mut names: Vec<&str> = m.deformations.iter().map(|d| d.family()).collect();
+            names.sort();
+            names.dedup();
+            if !names.contains(&f.as_str()) {
+                return Err(EvalError::Data(format!(
+                    "family:{f}: no deformation of truth family {f} (the dataset has {})",
+                    names.join(", ")
+                )));
+            }
+            for d in &m.deformations {
+                let held = d.family() == f;
+                if !held && test_geos.contains(&d.geometry.as_str()) {
+                    continue;
+                }
                 for b in blocks(d) {
                     if held {
                         test.extend(b);

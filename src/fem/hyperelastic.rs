@@ -1,4 +1,9 @@
-//! Compressible Neo-Hookean solid, total Lagrangian, P1 tets: the ground-truth mechanics.
+//! Compressible hyperelastic solids, total Lagrangian, P1 tets: the ground-truth mechanics.
+//!
+//! The default law is the compressible Neo-Hookean solid below; [`MaterialLaw`] adds a
+//! compressible Mooney–Rivlin solid and Demiray's exponentially stiffening solid, both reducing to
+//! the same linear elasticity at small strain (so they differ from Neo-Hookean only where strains
+//! are large: other truths for the same linear model).
 //!
 //! Strain energy density `W(F) = μ/2 (tr FᵀF − 3) − μ ln J + λ/2 (ln J)²` (Bonet & Wood,
 //! "Nonlinear Continuum Mechanics for Finite Element Analysis", §6.4.3), with first Piola–Kirchhoff
@@ -79,6 +84,213 @@ pub fn pk1(f: &M3, lambda: f64, mu: f64) -> Option<M3> {
         }
     }
     Some(p)
+}
+
+/// The strain-energy law of a hyperelastic solid with Lamé parameters `λ, μ` (per tet). Every
+/// law is stress free at `F = I` and has the same small-strain limit (linear elasticity with
+/// `λ, μ`); they differ at large strain. `I₁ = tr C`, `I₂ = ½(I₁² − tr C²)`, `C = FᵀF`, `J = det F`.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "law", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum MaterialLaw {
+    /// `W = μ/2 (I₁ − 3) − μ ln J + λ/2 (ln J)²` (Bonet & Wood §6.4.3).
+    #[default]
+    NeoHookean,
+    /// Compressible Mooney–Rivlin: `W = c₁(I₁ − 3) + c₂(I₂ − 3) − 2(c₁ + 2c₂) ln J + λ'/2 (ln J)²`
+    /// with `c₁ = (1 − s) μ/2`, `c₂ = s μ/2`, `s` = `i2_share` ∈ [0, 1] (0 is Neo-Hookean), and
+    /// `λ' = λ − 4c₂` so that the small-strain limit keeps `λ` (the `I₂` term adds `4c₂` to it).
+    MooneyRivlin {
+        /// The share `s` of the shear modulus carried by the second invariant.
+        i2_share: f64,
+    },
+    /// Demiray's exponential law (soft tissue, stiffening under stretch), written on the
+    /// Neo-Hookean strain measure `Q = I₁ − 3 − 2 ln J` (≥ 0, second order in the strain):
+    /// `W = μ/(2b) (exp(bQ) − 1) + λ/2 (ln J)²`, `b` = `stiffening` > 0. It is Neo-Hookean to
+    /// second order in `Q` and stiffens beyond.
+    Demiray {
+        /// The dimensionless stiffening exponent `b`.
+        stiffening: f64,
+    },
+}
+
+impl MaterialLaw {
+    /// The law's name as the generator records it.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::NeoHookean => "neo-hookean",
+            Self::MooneyRivlin { .. } => "mooney-rivlin",
+            Self::Demiray { .. } => "demiray",
+        }
+    }
+
+    /// Checks the law's parameter, naming it.
+    pub fn validate(&self) -> Result<(), String> {
+        match *self {
+            Self::NeoHookean => Ok(()),
+            Self::MooneyRivlin { i2_share } if !(0.0..=1.0).contains(&i2_share) => Err(format!(
+                "mooney-rivlin i2_share must lie in [0, 1], got {i2_share}"
+            )),
+            Self::Demiray { stiffening } if !(stiffening > 0.0 && stiffening <= 50.0) => Err(
+                format!("demiray stiffening must lie in (0, 50], got {stiffening}"),
+            ),
+            _ => Ok(()),
+        }
+    }
+
+    /// Energy density `W` (kPa) at `F`; `None` if `J ≤ 0`.
+    pub fn energy_density(&self, f: &M3, lambda: f64, mu: f64) -> Option<f64> {
+        match *self {
+            Self::NeoHookean => energy_density(f, lambda, mu),
+            Self::MooneyRivlin { i2_share } => {
+                let j = det3(f);
+                if j <= 0.0 || !j.is_finite() {
+                    return None;
+                }
+                let (c1, c2) = mooney_rivlin_constants(i2_share, mu);
+                let c = right_cauchy_green(f);
+                let i1 = c[0][0] + c[1][1] + c[2][2];
+                let i2 = 0.5 * (i1 * i1 - c.iter().flatten().map(|x| x * x).sum::<f64>());
+                let lj = j.ln();
+                let lambda = lambda - 4.0 * c2;
+                Some(
+                    c1 * (i1 - 3.0) + c2 * (i2 - 3.0) - 2.0 * (c1 + 2.0 * c2) * lj
+                        + 0.5 * lambda * lj * lj,
+                )
+            }
+            Self::Demiray { stiffening: b } => {
+                let j = det3(f);
+                if j <= 0.0 || !j.is_finite() {
+                    return None;
+                }
+                let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
+                let lj = j.ln();
+                let q = i1 - 3.0 - 2.0 * lj;
+                Some(0.5 * mu / b * ((b * q).exp() - 1.0) + 0.5 * lambda * lj * lj)
+            }
+        }
+    }
+
+    /// First Piola–Kirchhoff stress (kPa) at `F`; `None` if `J ≤ 0`.
+    pub fn pk1(&self, f: &M3, lambda: f64, mu: f64) -> Option<M3> {
+        match *self {
+            Self::NeoHookean => pk1(f, lambda, mu),
+            Self::MooneyRivlin { i2_share } => {
+                // P = 2c₁F + 2c₂(I₁F − FC) − 2(c₁ + 2c₂)F⁻ᵀ + λ ln J F⁻ᵀ.
+                let (fit, j) = inv_transpose(f)?;
+                let (c1, c2) = mooney_rivlin_constants(i2_share, mu);
+                let c = right_cauchy_green(f);
+                let i1 = c[0][0] + c[1][1] + c[2][2];
+                let k = (lambda - 4.0 * c2) * j.ln() - 2.0 * (c1 + 2.0 * c2);
+                let mut p = [[0.0; 3]; 3];
+                for a in 0..3 {
+                    for bb in 0..3 {
+                        let fc: f64 = (0..3).map(|m| f[a][m] * c[m][bb]).sum();
+                        p[a][bb] =
+                            2.0 * c1 * f[a][bb] + 2.0 * c2 * (i1 * f[a][bb] - fc) + k * fit[a][bb];
+                    }
+                }
+                Some(p)
+            }
+            Self::Demiray { stiffening: b } => {
+                // P = μ e^{bQ} (F − F⁻ᵀ) + λ ln J F⁻ᵀ.
+                let (fit, j) = inv_transpose(f)?;
+                let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
+                let lj = j.ln();
+                let e = (b * (i1 - 3.0 - 2.0 * lj)).exp();
+                let mut p = [[0.0; 3]; 3];
+                for a in 0..3 {
+                    for bb in 0..3 {
+                        p[a][bb] = mu * e * (f[a][bb] - fit[a][bb]) + lambda * lj * fit[a][bb];
+                    }
+                }
+                Some(p)
+            }
+        }
+    }
+
+    /// The tangent's per-tet coefficients at `F` (see [`TangentTerms`]); `None` if `J ≤ 0`.
+    fn tangent_terms(&self, f: &M3, lambda: f64, mu: f64) -> Option<TangentTerms> {
+        let (fit, j) = inv_transpose(f)?;
+        let lj = j.ln();
+        let mut t = TangentTerms {
+            fit,
+            f: *f,
+            shear: mu,
+            lambda,
+            cross: mu - lambda * lj,
+            ff: 0.0,
+            ff_swapped: 0.0,
+            c: None,
+        };
+        match *self {
+            Self::NeoHookean => {}
+            Self::MooneyRivlin { i2_share } => {
+                let (c1, c2) = mooney_rivlin_constants(i2_share, mu);
+                let c = right_cauchy_green(f);
+                let i1 = c[0][0] + c[1][1] + c[2][2];
+                let lambda = lambda - 4.0 * c2;
+                t.lambda = lambda;
+                t.shear = 2.0 * c1 + 2.0 * c2 * i1;
+                t.cross = 2.0 * (c1 + 2.0 * c2) - lambda * lj;
+                t.ff = 4.0 * c2;
+                t.ff_swapped = -2.0 * c2;
+                let mut b = [[0.0; 3]; 3];
+                for (a, row) in b.iter_mut().enumerate() {
+                    for (bb, x) in row.iter_mut().enumerate() {
+                        *x = (0..3).map(|m| f[a][m] * f[bb][m]).sum();
+                    }
+                }
+                t.c = Some((c, b, -2.0 * c2));
+            }
+            Self::Demiray { stiffening: b } => {
+                // ∂P/∂F = μe (I⊗I + F⁻ᵀ⊙F⁻ᵀ) + 2μbe (F − F⁻ᵀ)⊗(F − F⁻ᵀ) + the ln J terms:
+                // the `ff` term on φ = (F − F⁻ᵀ)g.
+                let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
+                let e = (b * (i1 - 3.0 - 2.0 * lj)).exp();
+                t.shear = mu * e;
+                t.cross = mu * e - lambda * lj;
+                t.ff = 2.0 * mu * b * e;
+                for a in 0..3 {
+                    for bb in 0..3 {
+                        t.f[a][bb] = f[a][bb] - fit[a][bb];
+                    }
+                }
+            }
+        }
+        Some(t)
+    }
+}
+
+/// `c₁, c₂` of the Mooney–Rivlin law with shear modulus `μ = 2(c₁ + c₂)` and `c₂ = s μ/2`.
+fn mooney_rivlin_constants(share: f64, mu: f64) -> (f64, f64) {
+    ((1.0 - share) * 0.5 * mu, share * 0.5 * mu)
+}
+
+/// `C = FᵀF`.
+fn right_cauchy_green(f: &M3) -> M3 {
+    let mut c = [[0.0; 3]; 3];
+    for (a, row) in c.iter_mut().enumerate() {
+        for (b, x) in row.iter_mut().enumerate() {
+            *x = (0..3).map(|m| f[m][a] * f[m][b]).sum();
+        }
+    }
+    c
+}
+
+/// The consistent tangent of every law, written for the node block `(p, q)` of a tet with
+/// reference gradients `g_p, g_q`, `h = F⁻ᵀg` and `φ = Fg` (Demiray: `φ = (F − F⁻ᵀ)g`):
+/// `K_ab/V = shear (g_p·g_q) δ_ab + λ h_p,a h_q,b + cross h_p,b h_q,a + ff φ_p,a φ_q,b
+/// + ff_swapped φ_q,a φ_p,b + k₂ ((g_p·C g_q) δ_ab + B_ab (g_p·g_q))` with `B = FFᵀ`.
+#[derive(Debug, Clone, Copy)]
+struct TangentTerms {
+    fit: M3,
+    f: M3,
+    shear: f64,
+    lambda: f64,
+    cross: f64,
+    ff: f64,
+    ff_swapped: f64,
+    /// `C`, `B` and `k₂` (Mooney–Rivlin only).
+    c: Option<(M3, M3, f64)>,
 }
 
 /// Parameters of the Newton solver with load stepping.
@@ -174,6 +386,7 @@ pub struct HyperelasticModel {
     lame: LameField,
     system: StiffnessSystem,
     contacts: Vec<ContactSpring>,
+    law: MaterialLaw,
 }
 
 impl HyperelasticModel {
@@ -195,7 +408,25 @@ impl HyperelasticModel {
             lame,
             system,
             contacts: Vec::new(),
+            law: MaterialLaw::NeoHookean,
         })
+    }
+
+    /// The same model with another strain-energy law (Neo-Hookean by default); refuses a law
+    /// whose parameter is out of range.
+    pub fn with_law(mut self, law: MaterialLaw) -> Result<Self, FemError> {
+        law.validate()
+            .map_err(|message| FemError::InvalidParameter {
+                field: "material law",
+                message,
+            })?;
+        self.law = law;
+        Ok(self)
+    }
+
+    /// The strain-energy law.
+    pub fn law(&self) -> MaterialLaw {
+        self.law
     }
 
     /// Adds linear node springs (e.g. posterior support).
@@ -320,7 +551,8 @@ impl HyperelasticModel {
             .into_par_iter()
             .map(|t| {
                 let (l, m) = self.lame_at(t);
-                energy_density(&self.deformation_gradient(t, u), l, m)
+                self.law
+                    .energy_density(&self.deformation_gradient(t, u), l, m)
                     .map(|w| w * self.reference[t].v0)
             })
             .collect();
@@ -336,7 +568,7 @@ impl HyperelasticModel {
             .into_par_iter()
             .map(|t| {
                 let (l, m) = self.lame_at(t);
-                let p = pk1(&self.deformation_gradient(t, u), l, m)?;
+                let p = self.law.pk1(&self.deformation_gradient(t, u), l, m)?;
                 let RefTet { g, v0 } = self.reference[t];
                 let mut f = [[0.0; 3]; 4];
                 for i in 0..4 {
@@ -363,6 +595,9 @@ impl HyperelasticModel {
     /// Tangent stiffness values (mN/mm) on the model's pattern, springs included; `None` if any
     /// element is inverted.
     pub fn tangent_values(&self, u: &[f64]) -> Option<Vec<f64>> {
+        if self.law != MaterialLaw::NeoHookean {
+            return self.law_tangent_values(u);
+        }
         // Per tet: spatial gradients h = F⁻ᵀ g and the coefficient μ − λ ln J.
         let kin: Vec<Option<([[f64; 3]; 4], f64)>> = (0..self.tets.len())
             .into_par_iter()
@@ -395,6 +630,57 @@ impl HyperelasticModel {
                 }
             }
             Some(k)
+        });
+        self.system.add_spring_values(&mut values);
+        self.add_contact_values(u, &mut values);
+        Some(values)
+    }
+
+    /// [`Self::tangent_values`] for any law, from its [`TangentTerms`].
+    fn law_tangent_values(&self, u: &[f64]) -> Option<Vec<f64>> {
+        let terms: Vec<Option<TangentTerms>> = (0..self.tets.len())
+            .into_par_iter()
+            .map(|t| {
+                let (l, m) = self.lame_at(t);
+                self.law
+                    .tangent_terms(&self.deformation_gradient(t, u), l, m)
+            })
+            .collect();
+        if terms.iter().any(|k| k.is_none()) {
+            return None;
+        }
+        let apply = |m: &M3, g: &[f64; 3]| -> [f64; 3] {
+            [0, 1, 2].map(|a| m[a][0] * g[0] + m[a][1] * g[1] + m[a][2] * g[2])
+        };
+        let mut values = assemble_blocks(self.system.pattern(), &self.tets, |t, p, q| {
+            let tt = terms[t].as_ref()?;
+            let RefTet { g, v0 } = self.reference[t];
+            let (gp, gq) = (&g[p], &g[q]);
+            let gg = gp[0] * gq[0] + gp[1] * gq[1] + gp[2] * gq[2];
+            let (hp, hq) = (apply(&tt.fit, gp), apply(&tt.fit, gq));
+            let (fp, fq) = (apply(&tt.f, gp), apply(&tt.f, gq));
+            let mut k = [[0.0; 3]; 3];
+            for a in 0..3 {
+                for b in 0..3 {
+                    let diag = if a == b { tt.shear * gg } else { 0.0 };
+                    k[a][b] = diag
+                        + tt.lambda * hp[a] * hq[b]
+                        + tt.cross * hp[b] * hq[a]
+                        + tt.ff * fp[a] * fq[b]
+                        + tt.ff_swapped * fq[a] * fp[b];
+                }
+            }
+            if let Some((c, bm, k2)) = &tt.c {
+                let cgq = apply(c, gq);
+                let gcg = gp[0] * cgq[0] + gp[1] * cgq[1] + gp[2] * cgq[2];
+                for a in 0..3 {
+                    for b in 0..3 {
+                        let diag = if a == b { gcg } else { 0.0 };
+                        k[a][b] += k2 * (diag + bm[a][b] * gg);
+                    }
+                }
+            }
+            Some(k.map(|r| r.map(|x| x * v0)))
         });
         self.system.add_spring_values(&mut values);
         self.add_contact_values(u, &mut values);

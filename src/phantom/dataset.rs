@@ -10,6 +10,7 @@
 //! converge is recorded in the manifest's `failed` list and redrawn with the next seed, never
 //! written as ground truth.
 
+use super::family::TruthFamily;
 use super::hidden::{HiddenEffectSpec, libr_truth};
 use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate_focused};
 use super::patterns::{Pattern, PatternParams, load_case};
@@ -17,6 +18,7 @@ use super::shape::{ShapeVariantParams, variant};
 use super::tissue::{Tissue, TissueParams};
 use super::truth::{
     GroundTruth, LoadParts, magnitude_stats, mean_distance, solve_linear, solve_truth,
+    solve_truth_law,
 };
 use super::vessels::{VesselParams, VesselTree};
 use super::{PhantomError, derive};
@@ -95,6 +97,11 @@ pub struct GenerateConfig {
     /// out of the parameters (and their hash) when empty.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub hidden_effects: Vec<HiddenEffectSpec>,
+    /// Truth families the deformations cycle through in the plan's order (`--families`,
+    /// [`super::family`]); empty for the default Neo-Hookean truth. Left out of the parameters
+    /// (and their hash) when empty, so datasets made before the option existed keep their hash.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub families: Vec<TruthFamily>,
     /// Preset it started from.
     pub preset: Preset,
     /// Master seed.
@@ -146,6 +153,7 @@ impl GenerateConfig {
         let base = Self {
             truth: TruthModel::Nonlinear,
             hidden_effects: Vec::new(),
+            families: Vec::new(),
             preset,
             seed,
             sources,
@@ -205,6 +213,8 @@ struct DeformationPlan {
     geometry: usize,
     pattern: Pattern,
     seed: u64,
+    /// The truth family (`--families`), if any.
+    family: Option<TruthFamily>,
 }
 
 /// A built geometry: mesh, labels, vessels, tissue.
@@ -240,11 +250,14 @@ fn plan(config: &GenerateConfig) -> (Vec<GeometryPlan>, Vec<DeformationPlan>) {
         };
         for p in patterns {
             for i in 0..config.deformations_per_pattern {
+                let family = (!config.families.is_empty())
+                    .then(|| config.families[deformations.len() % config.families.len()]);
                 deformations.push(DeformationPlan {
                     id: format!("{}-{p:?}-{i:02}", geo.id),
                     geometry: g,
                     pattern: p,
                     seed: derive(config.seed, &[2, g as u64, p as u64, i as u64]),
+                    family,
                 });
             }
         }
@@ -524,6 +537,12 @@ pub fn generate(
         ));
     }
     config.measure.validate()?;
+    if !config.families.is_empty() && config.truth != TruthModel::Nonlinear {
+        return Err(PhantomError::Parameter(
+            "families: truth families are nonlinear truths; they cannot be combined with --truth"
+                .into(),
+        ));
+    }
     if !config.hidden_effects.is_empty() && config.truth != TruthModel::Libr {
         return Err(PhantomError::Parameter(
             "hidden effects need the libr truth (--truth libr): they are added to LIBR's own physics"
@@ -686,6 +705,7 @@ fn make_deformation(
             derive(d.seed, &[6, attempt as u64])
         };
         let case = load_case(&b.mesh, &b.labels, d.pattern, &config.patterns, seed)?;
+        let family = d.family.map(|f| f.draw(&b.tissue, derive(seed, &[8])));
         let solved = if config.truth == TruthModel::Libr {
             libr_truth(
                 &b.mesh,
@@ -719,7 +739,17 @@ fn make_deformation(
                     info: Default::default(),
                     active_contacts: case.contacts.len(),
                 }),
-                _ => solve_truth(&b.mesh, &b.lame, &case, &config.newton).map_err(Into::into),
+                _ => match &family {
+                    Some(f) => solve_truth_law(
+                        &b.mesh,
+                        f.lame.as_ref().unwrap_or(&b.lame),
+                        f.law,
+                        &case,
+                        &config.newton,
+                    ),
+                    None => solve_truth(&b.mesh, &b.lame, &case, &config.newton),
+                }
+                .map_err(Into::into),
             };
             truth.map(|truth| Solved {
                 truth,
@@ -841,6 +871,7 @@ fn make_deformation(
             relative_residual: truth.info.relative_residual,
             active_contacts: [truth.active_contacts, contacts],
             hidden_effects,
+            truth_family: family.map(|f| f.record),
             scenarios: entries,
         };
         // Written last: its presence marks the deformation complete.

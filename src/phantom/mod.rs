@@ -5,6 +5,7 @@
 //! surgery cannot see how the ground truth was made.
 
 pub mod dataset;
+pub mod family;
 pub mod hidden;
 pub mod measure;
 pub mod patterns;

@@ -14,7 +14,7 @@
 
 use super::PhantomError;
 use super::patterns::LoadCase;
-use crate::fem::hyperelastic::{HyperelasticModel, NewtonInfo, NewtonParams};
+use crate::fem::hyperelastic::{HyperelasticModel, MaterialLaw, NewtonInfo, NewtonParams};
 use crate::fem::{Dirichlet, FemError, LameField, LinearMaterial, NodeSpring, StiffnessSystem};
 use crate::mesh::TetMesh;
 use crate::register::anatomy::{AnatomyLabels, Region};
@@ -106,7 +106,28 @@ pub fn solve_nonlinear(
     unilateral: bool,
     newton: &NewtonParams,
 ) -> Result<GroundTruth, FemError> {
-    let mut model = HyperelasticModel::new(mesh, lame.clone())?;
+    solve_nonlinear_law(
+        mesh,
+        lame,
+        MaterialLaw::NeoHookean,
+        case,
+        parts,
+        unilateral,
+        newton,
+    )
+}
+
+/// [`solve_nonlinear`] with another strain-energy law.
+pub fn solve_nonlinear_law(
+    mesh: &TetMesh,
+    lame: &LameField,
+    law: MaterialLaw,
+    case: &LoadCase,
+    parts: LoadParts,
+    unilateral: bool,
+    newton: &NewtonParams,
+) -> Result<GroundTruth, FemError> {
+    let mut model = HyperelasticModel::new(mesh, lame.clone())?.with_law(law)?;
     model.add_springs(&case.springs)?;
     if unilateral {
         model.add_contacts(&case.contacts)?;
@@ -132,6 +153,18 @@ pub fn solve_truth(
     newton: &NewtonParams,
 ) -> Result<GroundTruth, FemError> {
     solve_nonlinear(mesh, lame, case, LoadParts::ALL, true, newton)
+}
+
+/// The ground truth of a load case made with another strain-energy law (a truth family,
+/// [`super::family`]).
+pub fn solve_truth_law(
+    mesh: &TetMesh,
+    lame: &LameField,
+    law: MaterialLaw,
+    case: &LoadCase,
+    newton: &NewtonParams,
+) -> Result<GroundTruth, FemError> {
+    solve_nonlinear_law(mesh, lame, law, case, LoadParts::ALL, true, newton)
 }
 
 /// Linear elasticity with `lame` under the case's loads (the selected parts) and supports, the bed

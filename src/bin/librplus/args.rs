@@ -815,6 +815,11 @@ pub(crate) struct GenerateArgs {
     /// deformation (docs/hidden-effects.md).
     #[arg(long = "hidden-effect", value_name = "KIND[:key=value,...]")]
     pub(crate) hidden_effect: Vec<String>,
+    /// Truth families the deformations cycle through (nonlinear truth only): `all` or a
+    /// comma-separated list of neo-hookean, mooney-rivlin, demiray, stiff-vessels; recorded per
+    /// deformation as `truth_family`, so `--split family:NAME` can hold one out of training.
+    #[arg(long, value_name = "all|NAME,...")]
+    pub(crate) families: Option<String>,
     /// The five scenarios of each block (one per category) share the surface patch, noise,
     /// misalignment and landmarks and differ only in their ultrasound planes, so the categories
     /// are compared on the same draws (off by default: every scenario is drawn on its own).

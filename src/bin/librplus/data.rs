@@ -265,6 +265,13 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
                 .map_err(|e| anyhow::anyhow!("--hidden-effect: {e}"))
         })
         .collect::<Result<_>>()?;
+    if let Some(f) = &a.families {
+        if !matches!(a.truth, TruthArg::Nonlinear) {
+            bail!("--families needs the nonlinear truth: the families are other nonlinear solids");
+        }
+        config.families = librplus::phantom::family::TruthFamily::parse_list(f)
+            .map_err(|e| anyhow::anyhow!("--families: {e}"))?;
+    }
     if let Some(s) = a.scenarios {
         if s == 0 {
             bail!("--scenarios must be at least 1");
