@@ -184,6 +184,59 @@ fn splits_are_disjoint_and_hold_out_what_they_name() {
     assert!(TrainSplit::parse("logo:").is_err());
 }
 
+#[test]
+fn the_family_split_holds_one_truth_family_out_of_training_on_every_liver() {
+    let mut m = librplus::eval::open(dataset()).unwrap();
+    // Without families recorded every deformation is of the default family.
+    assert!(m.deformations.iter().all(|d| d.family() == "neo-hookean"));
+    let e = tr::split_scenarios(
+        &m,
+        &TrainSplit::parse("family:demiray").unwrap(),
+        3,
+        1,
+        tr::Validation::Deformations,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("no deformation of truth family demiray") && e.contains("neo-hookean"),
+        "{e}"
+    );
+    // Every other deformation (and so one on each liver) is made Demiray.
+    for (k, d) in m.deformations.iter_mut().enumerate() {
+        if k % 2 == 1 || d.pattern == "V" {
+            d.truth_family = Some(librplus::dataset::TruthFamilyRecord {
+                name: "demiray".into(),
+                law: "demiray".into(),
+                parameters: serde_json::json!({"stiffening": 2.0}),
+            });
+        }
+    }
+    let split = TrainSplit::parse("family:demiray").unwrap();
+    assert_eq!(split.name(), "family:demiray");
+    let s = tr::split_scenarios(&m, &split, 3, 1, tr::Validation::Deformations).unwrap();
+    let family_of = |d: &str| m.deformations.iter().find(|x| x.id == d).unwrap().family();
+    let test_geo = m.test_geometries();
+    assert!(s.test.iter().all(|(d, _)| family_of(d) == "demiray"));
+    assert!(s.train.iter().chain(&s.valid).all(
+        |(d, _)| family_of(d) != "demiray" && !test_geo.contains(&geometry_of(&m, d).as_str())
+    ));
+    // Every scenario of the family is tested, the test liver's pattern V included.
+    let n_family: usize = m
+        .deformations
+        .iter()
+        .filter(|d| d.family() == "demiray")
+        .map(|d| d.scenarios.len())
+        .sum();
+    assert_eq!(s.test.len(), n_family);
+    assert!(
+        s.test
+            .iter()
+            .any(|(d, _)| test_geo.contains(&geometry_of(&m, d).as_str()))
+    );
+    assert!(TrainSplit::parse("family:").is_err());
+}
+
 /// The geometry of deformation `d` of `m`.
 fn geometry_of(m: &librplus::dataset::Manifest, d: &str) -> String {
     m.deformations
@@ -552,6 +605,7 @@ fn untrained_model(seed: u64) -> (SrGcnConfig, librplus::gcn::io::TrainedModel) 
         net: cfg.init(&dev).unwrap(),
         config: cfg.clone(),
         provenance: serde_json::json!({}),
+        abstain: None,
     };
     (cfg, model)
 }
@@ -577,6 +631,97 @@ fn sample_of(
         &libr.image_to_physical,
         truth,
     )
+}
+
+#[test]
+fn librplus_abstains_with_libr_s_answer_when_its_rule_says_the_input_is_outside() {
+    let _rng = rng_lock();
+    use librplus::gcn::abstain::{ABSTAIN_FORMAT, AbstainRule};
+    use librplus::pipeline::{Method, Prepared, register};
+    use std::sync::Arc;
+    let f = fixture();
+    let (sc, g) = &f.scenarios[0];
+    let gc = &f.cases[g];
+    let meas = &sc.measurements;
+    // Two networks seeded differently: an ensemble whose members disagree.
+    let with_rule = |rule: Option<AbstainRule>| {
+        let rule = rule.map(Arc::new);
+        let members: Vec<_> = [5, 6]
+            .into_iter()
+            .map(|seed| {
+                let (_, mut m) = untrained_model(seed);
+                m.abstain = rule.clone();
+                Arc::new(m)
+            })
+            .collect();
+        Prepared::new(
+            gc.geo.model.clone(),
+            Some(&f.params.libr),
+            Some(&dataset().join("cache")),
+        )
+        .unwrap()
+        .with_models(members)
+        .unwrap()
+    };
+    let rule = |spread_ratio: f64, libr_rms_mm: f64| AbstainRule {
+        format: ABSTAIN_FORMAT,
+        spread_ratio: Some(spread_ratio),
+        libr_rms_mm: Some(libr_rms_mm),
+        alpha: 0.1,
+        provenance: serde_json::Value::Null,
+    };
+    let free = with_rule(None);
+    let libr = register(&free, meas, Method::Libr, &f.params).unwrap();
+    let plus = register(&free, meas, Method::LibrPlus, &f.params).unwrap();
+    let c = plus.correction.as_ref().unwrap();
+    assert!(c.applied && !c.abstained, "{c:?}");
+    let sig = c.signals.unwrap();
+    let ratio = sig.spread_ratio.unwrap();
+    eprintln!("signals {sig:?}");
+    // The signals are what they say: LIBR's residual, and the spread over the correction.
+    assert_eq!(sig.libr_rms_mm, libr.libr.as_ref().unwrap().rms_mm);
+    assert!((ratio - sig.spread_mm.unwrap() / sig.correction_rms_mm).abs() < 1e-12);
+    assert!(ratio > 0.0 && sig.refit_shift_mm.is_some());
+    // A rule both signals pass changes nothing, bit for bit.
+    let loose = register(
+        &with_rule(Some(rule(2.0 * ratio, 2.0 * sig.libr_rms_mm))),
+        meas,
+        Method::LibrPlus,
+        &f.params,
+    )
+    .unwrap();
+    assert_eq!(loose.u, plus.u);
+    assert!(loose.correction.as_ref().unwrap().applied);
+    // Either signal over its limit: LIBR's answer exactly, the reason naming the signal.
+    for (r, names) in [
+        (
+            rule(0.5 * ratio, 2.0 * sig.libr_rms_mm),
+            "ensemble disagrees",
+        ),
+        (
+            rule(2.0 * ratio, 0.5 * sig.libr_rms_mm),
+            "LIBR misses the points",
+        ),
+    ] {
+        let case = with_rule(Some(r));
+        let out = register(&case, meas, Method::LibrPlus, &f.params).unwrap();
+        let c = out.correction.as_ref().unwrap();
+        assert!(c.abstained && !c.applied && c.refit.is_none(), "{c:?}");
+        let why = c.skipped.as_deref().unwrap();
+        assert!(
+            why.contains("outside what the SR-GCN learned") && why.contains(names),
+            "{why}"
+        );
+        assert_eq!(out.u, libr.u);
+        assert_eq!(out.image_to_physical, libr.image_to_physical);
+        // Abstention off: the correction applies as without a rule.
+        let off = PipelineParams {
+            abstain: false,
+            ..f.params.clone()
+        };
+        let forced = register(&case, meas, Method::LibrPlus, &off).unwrap();
+        assert_eq!(forced.u, plus.u);
+    }
 }
 
 #[test]
@@ -774,6 +919,11 @@ fn the_built_in_model_loads_and_corrects_a_registration() {
         );
         assert_eq!(model.provenance["builtin"], true);
         assert!(model.provenance["member"].is_string());
+        // Every member carries the same abstention rule, calibrated on in-family data.
+        let rule = model.abstain.as_deref().expect("the built-in abstain.json");
+        assert_eq!(Some(rule), models[0].abstain.as_deref());
+        assert!(rule.spread_ratio.is_some() && rule.libr_rms_mm.is_some());
+        assert!(rule.provenance["registrations"].as_u64().unwrap_or(0) >= 100);
     }
     // It prepares for a mesh it never saw (the small preset's coarser liver) and lowers LIBR's
     // TRE over the fixture's scenarios (an untrained network would not: see
@@ -959,6 +1109,7 @@ fn the_refit_scale_fit_scores_what_the_pipeline_answers() {
             },
             net: model.net.clone(),
             provenance: serde_json::json!({}),
+            abstain: None,
         };
         let case = Prepared::new(gc.geo.model.clone(), Some(&f.params.libr), None)
             .unwrap()

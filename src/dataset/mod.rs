@@ -183,7 +183,8 @@ impl DeformationEntry {
 /// The truth family a deformation was drawn from (`deformation.json`'s `truth_family`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TruthFamilyRecord {
-    /// Family name (`neo-hookean`, `mooney-rivlin`, `demiray`, `stiff-vessels`).
+    /// Family name (`neo-hookean`, `mooney-rivlin`, `demiray`, `stiff-vessels`, `sparse-sensor`,
+    /// `dense-sensor`).
     pub name: String,
     /// The strain-energy law (`neo-hookean`, `mooney-rivlin`, `demiray`).
     pub law: String,

@@ -142,6 +142,8 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
                 error: tre.is_none().then(|| "LIBR failed".to_string()),
                 tre,
                 seconds: 0.0,
+                outside: None,
+                abstained: false,
             });
         }
     }

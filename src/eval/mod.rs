@@ -16,6 +16,7 @@ pub use crate::dataset::read::{
     load_scenario_planes, load_scenarios, open,
 };
 
+pub mod abstain;
 pub mod bench;
 pub mod calibrate_error;
 mod error;

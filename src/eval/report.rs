@@ -73,6 +73,12 @@ pub struct ScenarioResult {
     pub error: Option<String>,
     /// Registration time (s).
     pub seconds: f64,
+    /// LIBR+ only: what the registration showed of being outside what the network learned.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub outside: Option<crate::pipeline::OutsideSignals>,
+    /// LIBR+ only: it abstained (the answer is LIBR's; [`crate::gcn::abstain`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub abstained: bool,
 }
 
 /// Aggregate of one method.
@@ -90,6 +96,8 @@ pub struct MethodSummary {
     pub scenarios: usize,
     /// Scenarios that failed (error).
     pub failed: usize,
+    /// LIBR+: registrations where it abstained and answered LIBR's result.
+    pub abstained: usize,
     /// Median registration time (s).
     pub seconds_median: f64,
     /// Per category: mean TRE and count.
@@ -418,9 +426,11 @@ pub fn evaluate(
                                     tre: None,
                                     error: None,
                                     seconds: r.seconds + t.elapsed().as_secs_f64(),
+                                    outside: None,
+                                    abstained: false,
                                 };
                                 match corrected {
-                                    Ok((u, transform)) => {
+                                    Ok((u, transform, outside, abstained)) => {
                                         let err = node_errors_mm(
                                             geo.model.mesh.nodes(),
                                             (&transform, &u),
@@ -430,6 +440,8 @@ pub fn evaluate(
                                         (
                                             Some(ScenarioResult {
                                                 tre: Some(t),
+                                                outside,
+                                                abstained,
                                                 ..base
                                             }),
                                             Some(err),
@@ -534,6 +546,8 @@ fn scored(
         tre: None,
         error: None,
         seconds: 0.0,
+        outside: None,
+        abstained: false,
     };
     match r {
         Ok(r) => {
@@ -607,42 +621,53 @@ fn discover_physics(
     }
 }
 
-/// LIBR+ node displacements and image → physical transform for one scenario from its LIBR
-/// registration: the SR-GCN correction, then the data-consistency refit unless
-/// `params.refit_iterations` is 0.
+/// LIBR+ node displacements, image → physical transform and outside signals for one scenario
+/// from its LIBR registration, as the pipeline's LIBR+ stage ([`crate::pipeline::correct_libr`]).
 fn correct_one(
     lp: &LibrPlusCase,
     case: &Prepared,
     params: &PipelineParams,
     sc: &super::ScenarioData,
     r: &crate::pipeline::Registration,
-) -> Result<(Vec<f64>, crate::mesh::rigid::Rigid), EvalError> {
-    // As the pipeline: a network trained on another LIBR, or a held organ, leaves LIBR's answer.
-    if crate::pipeline::correction_mismatch(lp, case, params).is_some() {
-        return Ok((r.u.clone(), r.image_to_physical));
-    }
-    let (u, _) = lp.correct(
-        &case.model.mesh,
-        &case.correspondence,
-        &crate::eval::train::final_cparams(params),
-        &sc.measurements,
-        &r.u,
-        &r.image_to_physical,
-    )?;
-    if params.refit_iterations == 0 {
-        return Ok((u, r.image_to_physical));
-    }
-    let s = crate::pipeline::refit(
+) -> Result<
+    (
+        Vec<f64>,
+        crate::mesh::rigid::Rigid,
+        Option<crate::pipeline::OutsideSignals>,
+        bool,
+    ),
+    EvalError,
+> {
+    let libr = r
+        .libr
+        .as_ref()
+        .ok_or_else(|| EvalError::Internal("a LIBR registration without its LIBR stage".into()))?;
+    let params = PipelineParams {
+        deadline: None,
+        ..params.clone()
+    };
+    let out = crate::pipeline::correct_libr(
+        lp,
         case,
         &sc.measurements,
-        params,
-        &u,
+        &params,
+        &r.u,
         &r.image_to_physical,
-        None,
+        libr,
         r.rigid.prior.as_ref(),
-    )
-    .map_err(|e| EvalError::within("refit", e))?;
-    Ok((s.u, s.image_to_physical))
+    );
+    // A network that failed is an error of the evaluation, not LIBR's answer.
+    if let Some(e) = &out.info.skipped
+        && e.starts_with("SR-GCN correction failed")
+    {
+        return Err(EvalError::Internal(e.clone()));
+    }
+    Ok((
+        out.u,
+        out.image_to_physical,
+        out.info.signals,
+        out.info.abstained,
+    ))
 }
 
 /// Aggregates results per method.
@@ -654,6 +679,7 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
         match &r.tre {
             Some(t) => {
                 s.scenarios += 1;
+                s.abstained += usize::from(r.abstained);
                 s.tre_mm += t.tre_mm;
                 s.tre_surface_mm += t.tre_surface_mm;
                 s.tre_interior_mm += t.tre_interior_mm;
@@ -812,6 +838,8 @@ mod tests {
             }),
             error: None,
             seconds: 0.1,
+            outside: None,
+            abstained: false,
         }
     }
 

@@ -73,6 +73,16 @@ impl LibrPlusCase {
         &self.members[0].model
     }
 
+    /// When LIBR+ abstains ([`crate::gcn::abstain`]): the networks' rule, when every member
+    /// carries the same one; None (never) otherwise.
+    pub fn abstain_rule(&self) -> Option<&crate::gcn::abstain::AbstainRule> {
+        let first = self.members[0].model.abstain.as_deref()?;
+        self.members
+            .iter()
+            .all(|m| m.model.abstain.as_deref() == Some(first))
+            .then_some(first)
+    }
+
     /// Expected time of one correction (s): a decaying maximum of the last ones (a slower
     /// correction raises it at once, faster ones lower it by a tenth of the gap each), so a
     /// deadline plan built on it errs towards answering with LIBR rather than late.
@@ -126,9 +136,10 @@ impl LibrPlusCase {
         meas: &Measurements,
         u: &[f64],
         transform: &Rigid,
-    ) -> Result<(Vec<f64>, f64), GcnError> {
+    ) -> Result<Corrected, GcnError> {
         let mut network_s = 0.0;
         let mut sum = vec![0.0; u.len()];
+        let mut outs: Vec<Vec<f64>> = Vec::new();
         // Members whose configurations build the same sample share it.
         let mut built: Option<(usize, SampleData)> = None;
         for (k, m) in self.members.iter().enumerate() {
@@ -162,17 +173,60 @@ impl LibrPlusCase {
             for (s, x) in sum.iter_mut().zip(&out) {
                 *s += x;
             }
+            if self.members.len() > 1 {
+                outs.push(out);
+            }
         }
         let n = self.members.len() as f64;
         let gate = deformation_gate(u);
-        for (s, &x) in sum.iter_mut().zip(u) {
+        for s in sum.iter_mut() {
             *s /= n;
-            if gate < 1.0 {
+        }
+        // The members' disagreement: RMS over nodes of each member's distance from the mean.
+        let spread_mm = (!outs.is_empty()).then(|| {
+            let nodes = (u.len() / 3).max(1) as f64;
+            let ss: f64 = outs
+                .iter()
+                .flat_map(|o| o.iter().zip(&sum).map(|(a, b)| (a - b) * (a - b)))
+                .sum();
+            gate * (ss / (nodes * outs.len() as f64)).sqrt()
+        });
+        let correction_rms_mm = {
+            let nodes = (u.len() / 3).max(1) as f64;
+            gate * (sum
+                .iter()
+                .zip(u)
+                .map(|(a, b)| (a - b) * (a - b))
+                .sum::<f64>()
+                / nodes)
+                .sqrt()
+        };
+        if gate < 1.0 {
+            for (s, &x) in sum.iter_mut().zip(u) {
                 *s = x + gate * (*s - x);
             }
         }
-        Ok((sum, network_s))
+        Ok(Corrected {
+            u: sum,
+            network_seconds: network_s,
+            spread_mm,
+            correction_rms_mm,
+        })
     }
+}
+
+/// What [`LibrPlusCase::correct`] returns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Corrected {
+    /// The LIBR+ displacement (image frame, node-major).
+    pub u: Vec<f64>,
+    /// The networks' share of the time (s).
+    pub network_seconds: f64,
+    /// An ensemble's disagreement: the RMS over nodes and members of a member's correction's
+    /// distance from the members' mean (mm, gated as the correction is); `None` for one network.
+    pub spread_mm: Option<f64>,
+    /// RMS over nodes of the applied correction (mm).
+    pub correction_rms_mm: f64,
 }
 
 /// Why networks do not apply to a LIBR carrying `physics`, if they do not: a network learns the

@@ -290,6 +290,9 @@ pub struct TrainedModel {
     pub net: SrGcn,
     /// Its provenance.
     pub provenance: serde_json::Value,
+    /// When LIBR+ with this network (or its ensemble) abstains: the directory's `abstain.json`
+    /// ([`super::abstain`]); None: never.
+    pub abstain: Option<std::sync::Arc<super::abstain::AbstainRule>>,
 }
 
 impl TrainedModel {
@@ -306,6 +309,7 @@ impl TrainedModel {
             config,
             net,
             provenance: serde_json::json!({"untrained": true, "seed": seed}),
+            abstain: None,
         })
     }
 }
@@ -345,6 +349,12 @@ pub fn load_model_on_device(dir: &Path) -> Result<TrainedModel, GcnError> {
 const BUILTIN_ENSEMBLE: &str = include_str!(concat!(
     env!("CARGO_MANIFEST_DIR"),
     "/assets/models/default/ensemble.json"
+));
+
+/// `abstain.json` of the built-in model: when LIBR+ abstains ([`super::abstain`]).
+const BUILTIN_ABSTAIN: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/assets/models/default/abstain.json"
 ));
 
 /// The members of the built-in ensemble: name, `model.json`, weights (in `ensemble.json`'s order;
@@ -389,6 +399,10 @@ pub fn builtin_models() -> Result<Vec<TrainedModel>, GcnError> {
             file.members
         )));
     }
+    let abstain = std::sync::Arc::new(
+        super::abstain::AbstainRule::parse(BUILTIN_ABSTAIN)
+            .map_err(|e| GcnError::ModelFile(format!("<built-in>/{e}")))?,
+    );
     BUILTIN_MEMBERS
         .iter()
         .map(|(name, json, weights)| {
@@ -401,6 +415,7 @@ pub fn builtin_models() -> Result<Vec<TrainedModel>, GcnError> {
             )?;
             m.provenance["builtin"] = serde_json::json!(true);
             m.provenance["member"] = serde_json::json!(name);
+            m.abstain = Some(abstain.clone());
             Ok(m)
         })
         .collect()
@@ -560,17 +575,24 @@ fn read_ensemble(dir: &Path) -> Result<Option<EnsembleFile>, GcnError> {
 
 /// Reads a model directory, or an ensemble directory (`ensemble.json` and its member model
 /// directories), onto the compute device ([`super::device::compute`]): the networks LIBR+ runs, one for a model directory.
+/// The directory's `abstain.json`, if any, goes with every network ([`TrainedModel::abstain`]).
 pub fn load_models_on_device(dir: &Path) -> Result<Vec<TrainedModel>, GcnError> {
-    let Some(file) = read_ensemble(dir)? else {
-        return Ok(vec![load_model_on_device(dir)?]);
+    let abstain = super::abstain::AbstainRule::read(dir)?.map(std::sync::Arc::new);
+    let mut models = match read_ensemble(dir)? {
+        None => vec![load_model_on_device(dir)?],
+        Some(file) => file
+            .members
+            .iter()
+            .map(|m| {
+                load_model_on_device(&dir.join(m))
+                    .map_err(|e| GcnError::ModelFile(format!("ensemble member {m}: {e}")))
+            })
+            .collect::<Result<_, _>>()?,
     };
-    file.members
-        .iter()
-        .map(|m| {
-            load_model_on_device(&dir.join(m))
-                .map_err(|e| GcnError::ModelFile(format!("ensemble member {m}: {e}")))
-        })
-        .collect()
+    for m in &mut models {
+        m.abstain = abstain.clone();
+    }
+    Ok(models)
 }
 
 /// Reads a model directory.
@@ -759,6 +781,7 @@ fn model_from_parts(
         config: file.config,
         net,
         provenance: file.provenance,
+        abstain: None,
     })
 }
 

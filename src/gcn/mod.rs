@@ -4,6 +4,7 @@
 //! owns graph-index validation: every index handed to burn's `select`/`select_assign` has been
 //! checked here first, so a bad graph is an error, never a panic or a silent out-of-bounds read.
 
+pub mod abstain;
 pub mod bench;
 pub mod coarsen;
 pub mod device;

@@ -781,15 +781,18 @@ fn make_deformation(
         let (mean, max) = magnitude_stats(u);
         // A held organ is measured where it is: no misalignment, the navigation start the true
         // alignment, the camera on the tool's spot.
+        let base_measure = d
+            .family
+            .map_or(config.measure, |f| f.measure(&config.measure));
         let measure = if case.held {
             MeasureParams {
                 max_rotation_deg: 0.0,
                 max_translation_mm: 0.0,
                 trusted_start: true,
-                ..config.measure
+                ..base_measure
             }
         } else {
-            config.measure
+            base_measure
         };
         let scenarios: Vec<Scenario> = (0..config.scenarios)
             .into_par_iter()

@@ -16,8 +16,16 @@
 //!   stiffening as measured on liver in indentation).
 //! - `stiff-vessels`: Neo-Hookean with another stiffness map: the vessel tree a further
 //!   3–8 × stiffer than drawn (calcified or fibrotic portal tracts) and tumours 2–4 × stiffer.
+//!
+//! Two families keep the default truth and change the sensor instead (what a navigation
+//! system other than the generator's measures):
+//! - `sparse-sensor`: surface points 8 mm apart with 2 mm noise over 10–35 % of the anterior
+//!   surface, ultrasound contours 1 mm noisy (a coarse tracked stylus or a noisy stereo camera).
+//! - `dense-sensor`: surface points 3 mm apart with 0.5 mm noise over 30–80 % (a laser or
+//!   structured-light scanner).
 
 use super::PhantomError;
+use super::measure::MeasureParams;
 use super::tissue::{Tissue, TissueKind};
 use crate::fem::hyperelastic::MaterialLaw;
 use crate::fem::{LameField, LinearMaterial};
@@ -35,6 +43,10 @@ pub enum TruthFamily {
     Demiray,
     /// Neo-Hookean with a much stiffer vessel tree and stiffer tumours.
     StiffVessels,
+    /// The default truth, measured sparser and noisier over less of the surface.
+    SparseSensor,
+    /// The default truth, measured denser and less noisy over more of the surface.
+    DenseSensor,
 }
 
 /// One deformation's draw from a family: the law, the Lamé field to use instead of the
@@ -51,20 +63,45 @@ pub struct FamilyDraw {
 
 impl TruthFamily {
     /// Every family, in the order `--families all` cycles through them.
-    pub const ALL: [TruthFamily; 4] = [
+    pub const ALL: [TruthFamily; 6] = [
         TruthFamily::NeoHookean,
         TruthFamily::MooneyRivlin,
         TruthFamily::Demiray,
         TruthFamily::StiffVessels,
+        TruthFamily::SparseSensor,
+        TruthFamily::DenseSensor,
     ];
 
-    /// The family's name (`neo-hookean`, `mooney-rivlin`, `demiray`, `stiff-vessels`).
+    /// The family's name (`neo-hookean`, `mooney-rivlin`, `demiray`, `stiff-vessels`,
+    /// `sparse-sensor`, `dense-sensor`).
     pub fn name(self) -> &'static str {
         match self {
             Self::NeoHookean => "neo-hookean",
             Self::MooneyRivlin => "mooney-rivlin",
             Self::Demiray => "demiray",
             Self::StiffVessels => "stiff-vessels",
+            Self::SparseSensor => "sparse-sensor",
+            Self::DenseSensor => "dense-sensor",
+        }
+    }
+
+    /// The measurement settings of this family's scenarios, from the dataset's.
+    pub fn measure(self, base: &MeasureParams) -> MeasureParams {
+        match self {
+            Self::SparseSensor => MeasureParams {
+                coverage: [0.10, 0.35],
+                surface_spacing_mm: 8.0,
+                surface_noise_mm: 2.0,
+                us_noise_mm: 1.0,
+                ..*base
+            },
+            Self::DenseSensor => MeasureParams {
+                coverage: [0.30, 0.80],
+                surface_spacing_mm: 3.0,
+                surface_noise_mm: 0.5,
+                ..*base
+            },
+            _ => *base,
         }
     }
 
@@ -100,6 +137,19 @@ impl TruthFamily {
         let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
         let (law, lame, parameters) = match self {
             Self::NeoHookean => (MaterialLaw::NeoHookean, None, serde_json::json!({})),
+            Self::SparseSensor | Self::DenseSensor => {
+                let m = self.measure(&MeasureParams::default());
+                (
+                    MaterialLaw::NeoHookean,
+                    None,
+                    serde_json::json!({
+                        "coverage": m.coverage,
+                        "surface_spacing_mm": m.surface_spacing_mm,
+                        "surface_noise_mm": m.surface_noise_mm,
+                        "us_noise_mm": m.us_noise_mm,
+                    }),
+                )
+            }
             Self::MooneyRivlin => {
                 let s = uniform(0.3, 0.8);
                 (

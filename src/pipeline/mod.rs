@@ -3,6 +3,7 @@
 //! every iteration. A [`Prepared`] case (correspondence structures and the LIBR basis) is built once
 //! before surgery; [`register`] then answers one set of measurements.
 
+use crate::gcn::abstain::AbstainSignals;
 use crate::gcn::infer::LibrPlusCase;
 use crate::gcn::io::TrainedModel;
 use crate::mesh::rigid::Rigid;
@@ -148,6 +149,9 @@ pub struct PipelineParams {
     pub held: bool,
     /// How a held organ's unseen surface is held.
     pub hold: hold::HoldParams,
+    /// LIBR+ abstains, answering LIBR's result flagged, when a registration lies outside what
+    /// its networks learned (their `abstain.json`, [`crate::gcn::abstain`]). Default true.
+    pub abstain: bool,
 }
 
 impl Default for PipelineParams {
@@ -161,6 +165,7 @@ impl Default for PipelineParams {
             pose: pose::PoseParams::default(),
             held: false,
             hold: hold::HoldParams::default(),
+            abstain: true,
         }
     }
 }
@@ -367,6 +372,12 @@ pub struct CorrectionInfo {
     pub refit: Option<LibrInfo>,
     /// Why the refit failed, when it did (the answer is then the network's shape).
     pub refit_error: Option<String>,
+    /// What the registration shows of being outside what the network learned (when the
+    /// correction ran).
+    pub signals: Option<OutsideSignals>,
+    /// The registration was outside what the network learned ([`crate::gcn::abstain`]): the
+    /// answer is LIBR's, `skipped` says why.
+    pub abstained: bool,
 }
 
 /// LIBR+'s data-consistency refit: LIBR started from the SR-GCN's corrected shape `u_start`
@@ -421,6 +432,188 @@ pub fn refit(
         },
     )
     .map_err(PipelineError::Refit)
+}
+
+/// LIBR+'s stage on LIBR's answer `(u, transform)`: the SR-GCN correction (unless
+/// [`correction_mismatch`] or the deadline leaves LIBR's answer), then the data-consistency
+/// [`refit`], with the signals of being outside what the network learned
+/// ([`OutsideSignals`]). Shared by [`register`] and the evaluation of cached LIBR runs.
+#[allow(clippy::too_many_arguments)]
+pub fn correct_libr(
+    g: &LibrPlusCase,
+    case: &Prepared,
+    meas: &Measurements,
+    params: &PipelineParams,
+    u: &[f64],
+    transform: &Rigid,
+    libr_info: &LibrInfo,
+    rigid_prior: Option<&RigidPrior>,
+) -> CorrectionOutcome {
+    let t1 = Instant::now();
+    let cparams = &params.libr_correspondence();
+    let late = params
+        .deadline
+        .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
+    let mut out_u = u.to_vec();
+    let mut out_t = *transform;
+    let mut network_seconds = 0.0;
+    let mut signals = None;
+    let mut abstained = false;
+    let skipped = if let Some(why) = correction_mismatch(g, case, params) {
+        Some(format!("{why}: LIBR's answer"))
+    } else if late {
+        g.relax_estimate();
+        Some(format!(
+            "no time left for the SR-GCN correction (about {:.0} ms): LIBR's answer",
+            1e3 * g.expected_seconds()
+        ))
+    } else {
+        match g.correct(
+            &case.model.mesh,
+            &case.correspondence,
+            cparams,
+            meas,
+            u,
+            transform,
+        ) {
+            Ok(c) => {
+                network_seconds = c.network_seconds;
+                let spread_ratio = c
+                    .spread_mm
+                    .filter(|_| c.correction_rms_mm > 1e-9)
+                    .map(|s| s / c.correction_rms_mm);
+                signals = Some(OutsideSignals {
+                    spread_mm: c.spread_mm,
+                    spread_ratio,
+                    correction_rms_mm: c.correction_rms_mm,
+                    libr_displacement_mm: rms_mm(u),
+                    libr_rms_mm: libr_info.rms_mm,
+                    refit_rms_mm: None,
+                    refit_shift_mm: None,
+                });
+                let why = g.abstain_rule().filter(|_| params.abstain).and_then(|r| {
+                    r.outside(&AbstainSignals {
+                        spread_ratio,
+                        libr_rms_mm: libr_info.rms_mm,
+                    })
+                });
+                match why {
+                    Some(why) => {
+                        abstained = true;
+                        Some(format!("{why}: LIBR's answer"))
+                    }
+                    None => {
+                        out_u = c.u;
+                        None
+                    }
+                }
+            }
+            Err(e) => Some(format!("SR-GCN correction failed ({e}): LIBR's answer")),
+        }
+    };
+    // The refit, when the correction applied and asked for (it fails only on data LIBR itself
+    // fitted, so a failure keeps the network's shape).
+    let (refit_info, refit_error) = if skipped.is_none() && params.refit_iterations > 0 {
+        match refit(
+            case,
+            meas,
+            params,
+            &out_u,
+            &out_t,
+            params.deadline,
+            rigid_prior,
+        ) {
+            Ok(r) => {
+                if let Some(sig) = signals.as_mut() {
+                    sig.refit_rms_mm = Some(r.info.rms_mm);
+                    sig.refit_shift_mm = Some(node_shift_mm(
+                        case.model.mesh.nodes(),
+                        (&out_t, &out_u),
+                        (&r.image_to_physical, &r.u),
+                    ));
+                }
+                out_u = r.u;
+                out_t = r.image_to_physical;
+                (Some(r.info), None)
+            }
+            Err(e) => (None, Some(e.to_string())),
+        }
+    } else {
+        (None, None)
+    };
+    let seconds = crate::util::secs(t1);
+    if skipped.is_none() || abstained {
+        g.record_seconds(seconds);
+    }
+    CorrectionOutcome {
+        u: out_u,
+        image_to_physical: out_t,
+        info: CorrectionInfo {
+            applied: skipped.is_none(),
+            skipped,
+            seconds,
+            network_seconds,
+            refit: refit_info,
+            refit_error,
+            signals,
+            abstained,
+        },
+    }
+}
+
+/// RMS over nodes of a node-major displacement (mm).
+fn rms_mm(u: &[f64]) -> f64 {
+    let n = (u.len() / 3).max(1) as f64;
+    (u.iter().map(|x| x * x).sum::<f64>() / n).sqrt()
+}
+
+/// RMS over nodes of the distance between two placements `T(X + u)` of the same nodes (mm).
+fn node_shift_mm(nodes: &[[f64; 3]], a: (&Rigid, &[f64]), b: (&Rigid, &[f64])) -> f64 {
+    let place = |t: &Rigid, u: &[f64], i: usize, x: &[f64; 3]| {
+        t.apply([x[0] + u[3 * i], x[1] + u[3 * i + 1], x[2] + u[3 * i + 2]])
+    };
+    let ss: f64 = nodes
+        .iter()
+        .enumerate()
+        .map(|(i, x)| {
+            let (p, q) = (place(a.0, a.1, i, x), place(b.0, b.1, i, x));
+            (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)
+        })
+        .sum();
+    (ss / nodes.len().max(1) as f64).sqrt()
+}
+
+/// What [`correct_libr`] returns: LIBR+'s answer (LIBR's when the correction did not apply) and
+/// how the stage went.
+#[derive(Debug, Clone)]
+pub struct CorrectionOutcome {
+    /// Node displacements (image frame, node-major).
+    pub u: Vec<f64>,
+    /// Image → physical transform.
+    pub image_to_physical: Rigid,
+    /// How the stage went.
+    pub info: CorrectionInfo,
+}
+
+/// What a LIBR+ registration shows of being outside what its network learned, all computed
+/// from the registration itself (no truth): the ensemble's disagreement, the correction's size
+/// against LIBR's displacement, and how far the data pushed the corrected shape back.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct OutsideSignals {
+    /// The ensemble members' disagreement ([`crate::gcn::infer::Corrected::spread_mm`]).
+    pub spread_mm: Option<f64>,
+    /// `spread_mm` over `correction_rms_mm` (None for one network or no correction).
+    pub spread_ratio: Option<f64>,
+    /// RMS over nodes of the network's correction (mm).
+    pub correction_rms_mm: f64,
+    /// RMS over nodes of LIBR's displacement (mm).
+    pub libr_displacement_mm: f64,
+    /// LIBR's final weighted residual RMS (mm).
+    pub libr_rms_mm: f64,
+    /// The refit's final weighted residual RMS (mm), when it ran.
+    pub refit_rms_mm: Option<f64>,
+    /// RMS over nodes of how far the refit moved the corrected shape (mm), when it ran.
+    pub refit_shift_mm: Option<f64>,
 }
 
 /// How the V2S stage of a registration went.
@@ -888,70 +1081,19 @@ pub fn register(
     let mut u = sol.u;
     let mut image_to_physical = sol.image_to_physical;
     let correction = gcn.map(|g| {
-        let t1 = Instant::now();
-        let mut network_seconds = 0.0;
-        let late = params
-            .deadline
-            .is_some_and(|d| Instant::now() + Duration::from_secs_f64(g.expected_seconds()) > d);
-        let skipped = if let Some(why) = correction_mismatch(g, case, params) {
-            Some(format!("{why}: LIBR's answer"))
-        } else if late {
-            g.relax_estimate();
-            Some(format!(
-                "no time left for the SR-GCN correction (about {:.0} ms): LIBR's answer",
-                1e3 * g.expected_seconds()
-            ))
-        } else {
-            match g.correct(
-                &case.model.mesh,
-                corr,
-                cparams,
-                meas,
-                &u,
-                &sol.image_to_physical,
-            ) {
-                Ok((v, s)) => {
-                    u = v;
-                    network_seconds = s;
-                    None
-                }
-                Err(e) => Some(format!("SR-GCN correction failed ({e}): LIBR's answer")),
-            }
-        };
-        // The refit, when the correction applied and asked for (it fails only on data LIBR
-        // itself fitted, so a failure keeps the network's shape).
-        let (refit_info, refit_error) = if skipped.is_none() && params.refit_iterations > 0 {
-            match refit(
-                case,
-                meas,
-                params,
-                &u,
-                &image_to_physical,
-                params.deadline,
-                rigid.prior.as_ref(),
-            ) {
-                Ok(r) => {
-                    u = r.u;
-                    image_to_physical = r.image_to_physical;
-                    (Some(r.info), None)
-                }
-                Err(e) => (None, Some(e.to_string())),
-            }
-        } else {
-            (None, None)
-        };
-        let seconds = crate::util::secs(t1);
-        if skipped.is_none() {
-            g.record_seconds(seconds);
-        }
-        CorrectionInfo {
-            applied: skipped.is_none(),
-            skipped,
-            seconds,
-            network_seconds,
-            refit: refit_info,
-            refit_error,
-        }
+        let out = correct_libr(
+            g,
+            case,
+            meas,
+            params,
+            &u,
+            &image_to_physical,
+            &sol.info,
+            rigid.prior.as_ref(),
+        );
+        u = out.u;
+        image_to_physical = out.image_to_physical;
+        out.info
     });
     Ok(Registration {
         method,

@@ -45,6 +45,9 @@ pub(crate) enum Command {
     /// a generated dataset, and checks it on another (`--check`): FILE (the model) and
     /// FILE.report.md / FILE.report.json.
     CalibrateError(CalibrateErrorArgs),
+    /// Sets when LIBR+ abstains (answers LIBR's result, flagged) from its signals on in-family
+    /// data (a fresh seed of the networks' generator): DIR/abstain.json beside the networks.
+    CalibrateAbstain(CalibrateAbstainArgs),
     /// Trains SR-GCN (LIBR+) on a dataset split, then tests LIBR and LIBR+ on the held-out
     /// scenarios: MODEL_DIR/model.json + weights.safetensors (+ provenance), training.json, test.json,
     /// loss curves (PNG).
@@ -369,6 +372,10 @@ pub(crate) struct LibrOpts {
     /// measured point comes near is held where the start puts it
     #[arg(long)]
     pub(crate) held: bool,
+    /// LIBR+ never abstains: it corrects even registrations outside what its networks learned
+    /// (their abstain.json; by default such a registration answers LIBR's result, flagged)
+    #[arg(long)]
+    pub(crate) no_abstain: bool,
     /// With --held: a boundary node is held when no measured point lies within this distance
     /// (mm, default 45)
     #[arg(long, value_name = "MM")]
@@ -458,6 +465,7 @@ impl LibrOpts {
         p.wicp.surface_only = self.wicp_surface_only;
         p.wicp.trusted_alignment_mm = self.trusted_alignment;
         p.held = self.held;
+        p.abstain = !self.no_abstain;
         if let Some(g) = self.search_above {
             p.pose.search_above_mm2 = g;
         }
@@ -603,6 +611,28 @@ pub(crate) struct CalibrateErrorArgs {
     /// Print the report as JSON on stdout.
     #[arg(long)]
     pub(crate) json: bool,
+}
+
+#[derive(Args)]
+pub(crate) struct CalibrateAbstainArgs {
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
+    /// In-family dataset(s) (from `librplus generate` with the networks' generator and preset,
+    /// a seed they never saw; the truth is not read); repeatable.
+    #[arg(long, required = true)]
+    pub(crate) data: Vec<PathBuf>,
+    /// The SR-GCN model or ensemble directory (default: the built-in ensemble).
+    #[arg(long)]
+    pub(crate) model: Option<PathBuf>,
+    /// Where abstain.json is written (a directory; default: --model's).
+    #[arg(long)]
+    pub(crate) out: Option<PathBuf>,
+    /// The in-family abstention rate the thresholds are set for (their bound).
+    #[arg(long, default_value_t = 0.05)]
+    pub(crate) alpha: f64,
+    /// Use every k-th block of five scenarios of each deformation.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) every: usize,
 }
 
 #[derive(Args)]
@@ -816,7 +846,8 @@ pub(crate) struct GenerateArgs {
     #[arg(long = "hidden-effect", value_name = "KIND[:key=value,...]")]
     pub(crate) hidden_effect: Vec<String>,
     /// Truth families the deformations cycle through (nonlinear truth only): `all` or a
-    /// comma-separated list of neo-hookean, mooney-rivlin, demiray, stiff-vessels; recorded per
+    /// comma-separated list of neo-hookean, mooney-rivlin, demiray, stiff-vessels, sparse-sensor,
+    /// dense-sensor (docs/dataset-and-models.md); recorded per
     /// deformation as `truth_family`, so `--split family:NAME` can hold one out of training.
     #[arg(long, value_name = "all|NAME,...")]
     pub(crate) families: Option<String>,

@@ -1,7 +1,7 @@
 //! `librplus calibrate-error`: the per-registration error estimate, calibrated on one generated
 //! dataset and checked on another.
 
-use crate::args::CalibrateErrorArgs;
+use crate::args::{CalibrateAbstainArgs, CalibrateErrorArgs};
 use crate::register::shared_models;
 use crate::util::{git_commit, shell_command};
 use anyhow::{Context, Result, bail};
@@ -9,6 +9,19 @@ use librplus::eval::calibrate_error::{Sample, check, collect, fit, markdown, sam
 use librplus::pipeline::{Method, PipelineParams};
 use serde_json::json;
 use std::path::Path;
+
+/// The registration progress bar of calibration runs.
+fn registration_bar(what: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} {msg} [{bar:30}] {pos}/{len} registrations, {elapsed} (eta {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
 
 fn registrations(
     what: &str,
@@ -18,14 +31,7 @@ fn registrations(
     params: &PipelineParams,
     models: &[std::sync::Arc<librplus::gcn::io::TrainedModel>],
 ) -> Result<Vec<Sample>> {
-    let bar = indicatif::ProgressBar::new(0).with_style(
-        indicatif::ProgressStyle::with_template(
-            "{spinner} {msg} [{bar:30}] {pos}/{len} registrations, {elapsed} (eta {eta})",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    bar.set_message(what.to_string());
+    let bar = registration_bar(what);
     let progress = |done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
@@ -163,5 +169,88 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
             a.out.display()
         );
     }
+    Ok(())
+}
+
+/// `librplus calibrate-abstain`: LIBR+'s outside signals on in-family data, the rule at
+/// `--alpha`, written as `abstain.json` ([`librplus::gcn::abstain`]).
+pub(crate) fn calibrate_abstain(a: &CalibrateAbstainArgs) -> Result<()> {
+    let models = shared_models(match &a.model {
+        Some(dir) => librplus::gcn::io::load_models_on_device(dir)
+            .map_err(|e| anyhow::anyhow!("--model: {e}"))?,
+        None => librplus::gcn::io::builtin_models()
+            .map_err(|e| anyhow::anyhow!("built-in model: {e}"))?,
+    });
+    let out = match (&a.out, &a.model) {
+        (Some(o), _) => o.clone(),
+        (None, Some(m)) => m.clone(),
+        (None, None) => bail!("--out: needed with the built-in model (where abstain.json goes)"),
+    };
+    if !(a.alpha > 0.0 && a.alpha < 1.0) {
+        bail!("--alpha must lie in (0, 1), got {}", a.alpha);
+    }
+    let params = a.libr.params();
+    params
+        .libr
+        .validate()
+        .map_err(|e| anyhow::anyhow!("LIBR options: {e}"))?;
+    let mut signals = Vec::new();
+    let mut hashes = Vec::new();
+    for d in &a.data {
+        let m =
+            librplus::eval::open(d).map_err(|e| anyhow::anyhow!("--data {}: {e}", d.display()))?;
+        hashes.push(m.parameters_hash);
+        let bar = registration_bar("LIBR+ without abstention");
+        let progress = |done: usize, total: usize| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        };
+        let (s, left) = librplus::eval::abstain::collect(d, a.every, &params, &models, &progress)
+            .map_err(|e| anyhow::anyhow!("--data {}: {e}", d.display()))?;
+        bar.finish_and_clear();
+        if left > 0 {
+            eprintln!(
+                "{}: {left} registrations failed or did not correct and are left out",
+                d.display()
+            );
+        }
+        signals.extend(s);
+    }
+    let mut rule = librplus::gcn::abstain::AbstainRule::calibrate(&signals, a.alpha)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let abstaining = signals.iter().filter(|s| rule.outside(s).is_some()).count();
+    let names: Vec<String> = a.data.iter().map(|d| d.display().to_string()).collect();
+    rule.provenance = json!({
+        "data": names,
+        "data_parameters_hash": hashes,
+        "every": a.every,
+        "registrations": signals.len(),
+        "abstaining_on_calibration": abstaining,
+        "sr_gcn": a.model.as_ref().map_or("built-in".to_string(), |p| p.display().to_string()),
+        "command": shell_command(),
+        "commit": git_commit(),
+    });
+    std::fs::create_dir_all(&out).with_context(|| format!("--out {}", out.display()))?;
+    rule.write(&out).map_err(|e| anyhow::anyhow!("{e}"))?;
+    println!(
+        "{} registrations: abstain when {}{}; {} of them ({:.1} %) would abstain (bound {:.0} %)",
+        signals.len(),
+        rule.spread_ratio
+            .map(|t| format!(
+                "the ensemble disagrees by more than {:.0} % of its correction, or ",
+                100.0 * t
+            ))
+            .unwrap_or_default(),
+        rule.libr_rms_mm
+            .map(|t| format!("LIBR's residual exceeds {t:.2} mm RMS"))
+            .unwrap_or_default(),
+        abstaining,
+        100.0 * abstaining as f64 / signals.len().max(1) as f64,
+        100.0 * a.alpha
+    );
+    println!(
+        "written: {}",
+        out.join(librplus::gcn::abstain::ABSTAIN_FILE).display()
+    );
     Ok(())
 }

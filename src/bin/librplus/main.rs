@@ -125,6 +125,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Register(args) => register_scenario(&args),
         Command::Evaluate(args) => evaluate(&args),
         Command::CalibrateError(args) => calibrate_error::calibrate_error(&args),
+        Command::CalibrateAbstain(args) => calibrate_error::calibrate_abstain(&args),
         Command::Train(args) => train(&args).map(|_| ()),
         Command::Experiments(args) => experiments(&args),
         Command::Ensemble(args) => ensemble(&args),

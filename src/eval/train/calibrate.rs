@@ -55,6 +55,7 @@ pub fn fit_refit_scale(
         },
         net: model.net.clone(),
         provenance: serde_json::Value::Null,
+        abstain: None,
     };
     let plain = crate::gcn::device::compute();
     let mut graphs = BTreeMap::new();

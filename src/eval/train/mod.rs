@@ -523,6 +523,7 @@ pub fn train(
             config,
             net: best_net,
             provenance: provenance.clone(),
+            abstain: None,
         },
         log,
         scaled_valid_mm,
