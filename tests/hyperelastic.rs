@@ -286,23 +286,8 @@ fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
     }
     let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
     let f = vec![0.0; 3 * mesh.num_nodes()];
-    let (u, info) = model.solve(&bc, &f, &NewtonParams::default()).unwrap();
     let (b, p11) = uniaxial_analytic(stretch, l, m);
-    // Lateral stretch from the free faces, reaction from the internal forces on the loaded face.
-    let fint = model.internal_force(&u).unwrap();
-    let mut reaction = 0.0;
-    for (i, p) in mesh.nodes().iter().enumerate() {
-        if on(p[0], len) {
-            reaction += fint[3 * i];
-        }
-        if on(p[1], w) {
-            let b_fem = 1.0 + u[3 * i + 1] / w;
-            assert!(
-                (b_fem - b).abs() <= 0.01 * (1.0 - b),
-                "lateral stretch {b_fem} vs {b}"
-            );
-        }
-    }
+    let (reaction, info) = stretched(&model, &mesh, &bc, [len, w], b, "Neo-Hookean");
     let exact = p11 * w * w;
     eprintln!(
         "30% stretch: reaction {reaction:.6} mN vs analytic {exact:.6} (b = {b:.6}); {} steps, {} iterations",
@@ -320,6 +305,36 @@ fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
         .map(|(c, _)| c[0])
         .sum();
     assert!((rl - exact).abs() > 0.01 * exact, "linear {rl} vs {exact}");
+}
+
+/// Solves the stretched bar (length and width `size`, no body load) and returns the reaction on
+/// its loaded face (from the internal forces) and the solver's statistics, after checking the
+/// lateral stretch of its free face against `b`.
+fn stretched(
+    model: &HyperelasticModel,
+    mesh: &TetMesh,
+    bc: &Dirichlet,
+    [len, w]: [f64; 2],
+    b: f64,
+    what: &str,
+) -> (f64, librplus::fem::hyperelastic::NewtonInfo) {
+    let f = vec![0.0; 3 * mesh.num_nodes()];
+    let (u, info) = model.solve(bc, &f, &NewtonParams::default()).unwrap();
+    let fint = model.internal_force(&u).unwrap();
+    let mut reaction = 0.0;
+    for (i, p) in mesh.nodes().iter().enumerate() {
+        if on(p[0], len) {
+            reaction += fint[3 * i];
+        }
+        if on(p[1], w) {
+            let b_fem = 1.0 + u[3 * i + 1] / w;
+            assert!(
+                (b_fem - b).abs() <= 0.01 * (1.0 - b),
+                "{what}: lateral stretch {b_fem} vs {b}"
+            );
+        }
+    }
+    (reaction, info)
 }
 
 /// The homogeneous uniaxial state of `law` at stretch `a`: the lateral stretch `b` where the
@@ -354,7 +369,6 @@ fn every_law_solves_a_thirty_percent_stretch_to_its_homogeneous_state() {
             bc.prescribe_dof(i as u32, 0, (stretch - 1.0) * len);
         }
     }
-    let f = vec![0.0; 3 * mesh.num_nodes()];
     let (_, p_nh) = uniaxial_of(MaterialLaw::NeoHookean, stretch, l, m);
     // The semi-analytic state agrees with the closed form for Neo-Hookean.
     assert!((p_nh - uniaxial_analytic(stretch, l, m).1).abs() < 1e-9 * p_nh);
@@ -363,22 +377,8 @@ fn every_law_solves_a_thirty_percent_stretch_to_its_homogeneous_state() {
             .unwrap()
             .with_law(law)
             .unwrap();
-        let (u, info) = model.solve(&bc, &f, &NewtonParams::default()).unwrap();
         let (b, p11) = uniaxial_of(law, stretch, l, m);
-        let fint = model.internal_force(&u).unwrap();
-        let mut reaction = 0.0;
-        for (i, p) in mesh.nodes().iter().enumerate() {
-            if on(p[0], len) {
-                reaction += fint[3 * i];
-            }
-            if on(p[1], w) {
-                let b_fem = 1.0 + u[3 * i + 1] / w;
-                assert!(
-                    (b_fem - b).abs() <= 0.01 * (1.0 - b),
-                    "{law:?}: lateral stretch {b_fem} vs {b}"
-                );
-            }
-        }
+        let (reaction, info) = stretched(&model, &mesh, &bc, [len, w], b, &format!("{law:?}"));
         let exact = p11 * w * w;
         eprintln!(
             "{law:?}: reaction {reaction:.6} mN vs homogeneous {exact:.6} (Neo-Hookean {p_nh:.6}); {} steps, {} iterations",

@@ -7,14 +7,13 @@
 //! TRE, and how often the per-node bound covers the true node error.
 
 use super::report::CATEGORY_ORDER;
-use super::{EvalError, load_geometry, load_scenarios, node_errors_mm, open};
+use super::{EvalError, node_errors_mm};
 use crate::gcn::io::TrainedModel;
 use crate::pipeline::{Method, PipelineParams, Prepared, register};
 use crate::register::uncertainty::{
     ErrorFeatures, ErrorModel, FORMAT, FailureModel, MethodErrorModel, NODE_EPS_MM, REGRESSORS,
     VERSION, linear, sigmoid,
 };
-use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
@@ -69,26 +68,15 @@ pub fn collect(
             "the error estimate is calibrated for initial, rigid, libr and librplus".into(),
         ));
     }
-    let m = open(dir)?;
-    let every = every.max(1);
-    let block = CATEGORY_ORDER.len();
-    let keep = |i: usize| (i / block) % every == 0;
-    let total: usize = m
-        .deformations
-        .iter()
-        .map(|d| (0..d.scenarios.len()).filter(|&i| keep(i)).count() * methods.len())
-        .sum();
-    let done = std::sync::atomic::AtomicUsize::new(0);
     let cache = dir.join("cache");
     let needs_basis = methods
         .iter()
         .any(|m| matches!(m, Method::Libr | Method::LibrPlus));
-    let mut prepared: BTreeMap<String, (Prepared, Vec<bool>)> = BTreeMap::new();
-    let mut out = Vec::new();
-    let mut failed = 0;
-    for d in &m.deformations {
-        if !prepared.contains_key(&d.geometry) {
-            let geo = load_geometry(dir, &m, &d.geometry)?;
+    let results = super::over_kept_scenarios(
+        dir,
+        every,
+        methods.len(),
+        |geo| {
             let mut case = Prepared::new(
                 geo.model.clone(),
                 needs_basis.then_some(&params.libr),
@@ -97,54 +85,43 @@ pub fn collect(
             if methods.contains(&Method::LibrPlus) {
                 case = case.with_models(models.to_vec())?;
             }
-            prepared.insert(d.geometry.clone(), (case, geo.surface));
-        }
-        let (case, boundary) = &prepared[&d.geometry];
-        let scenarios = load_scenarios(dir, d)?;
-        let picked: Vec<_> = scenarios
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| keep(*i))
-            .map(|(_, s)| s)
-            .collect();
-        let nodes = case.model.mesh.nodes();
-        let results: Vec<Option<Sample>> = picked
-            .par_iter()
-            .flat_map_iter(|sc| methods.iter().map(move |&method| (sc, method)))
-            .map(|(sc, method)| {
-                let r = register(case, &sc.measurements, method, params);
-                let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
-                progress(k, total);
-                let r = r.ok()?;
-                let (features, dist) = r.error_features(case, boundary, &sc.measurements)?;
-                let err = node_errors_mm(
-                    nodes,
-                    (&r.image_to_physical, &r.u),
-                    (&sc.truth.image_to_physical, &sc.truth.displacement),
-                );
-                let tre_mm = err.iter().sum::<f64>() / err.len() as f64;
-                let size = features.size_mm.max(1e-9);
-                let kept = (0..nodes.len())
-                    .step_by(NODE_STRIDE)
-                    .map(|i| ((dist[i] / size) as f32, err[i] as f32))
-                    .collect();
-                Some(Sample {
-                    method: method.name().to_string(),
-                    scenario: sc.id.clone(),
-                    category: sc.category.clone(),
-                    features,
-                    tre_mm,
-                    nodes: kept,
+            Ok((case, geo.surface.clone()))
+        },
+        |(case, boundary), sc, tick| {
+            let nodes = case.model.mesh.nodes();
+            methods
+                .iter()
+                .map(|&method| {
+                    let r = register(case, &sc.measurements, method, params);
+                    tick();
+                    let r = r.ok()?;
+                    let (features, dist) = r.error_features(case, boundary, &sc.measurements)?;
+                    let err = node_errors_mm(
+                        nodes,
+                        (&r.image_to_physical, &r.u),
+                        (&sc.truth.image_to_physical, &sc.truth.displacement),
+                    );
+                    let tre_mm = err.iter().sum::<f64>() / err.len() as f64;
+                    let size = features.size_mm.max(1e-9);
+                    let kept = (0..nodes.len())
+                        .step_by(NODE_STRIDE)
+                        .map(|i| ((dist[i] / size) as f32, err[i] as f32))
+                        .collect();
+                    Some(Sample {
+                        method: method.name().to_string(),
+                        scenario: sc.id.clone(),
+                        category: sc.category.clone(),
+                        features,
+                        tre_mm,
+                        nodes: kept,
+                    })
                 })
-            })
-            .collect();
-        for r in results {
-            match r {
-                Some(s) => out.push(s),
-                None => failed += 1,
-            }
-        }
-    }
+                .collect()
+        },
+        progress,
+    )?;
+    let failed = results.iter().filter(|s| s.is_none()).count();
+    let out: Vec<Sample> = results.into_iter().flatten().collect();
     Ok((out, failed))
 }
 

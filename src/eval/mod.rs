@@ -16,6 +16,55 @@ pub use crate::dataset::read::{
     load_scenario_planes, load_scenarios, open,
 };
 
+/// Runs `run` on every kept scenario of the dataset in `dir` (every `every`-th block of five
+/// scenarios of each deformation, as `evaluate` keeps them; in parallel within a deformation),
+/// each geometry prepared once by `prepare`, and returns what it gives in dataset order.
+/// `per_scenario` registrations are counted per scenario in `progress(done, total)`; `run`
+/// calls its `tick` once per registration.
+pub(crate) fn over_kept_scenarios<C: Sync, T: Send>(
+    dir: &std::path::Path,
+    every: usize,
+    per_scenario: usize,
+    prepare: impl Fn(&GeometryData) -> Result<C, EvalError>,
+    run: impl Fn(&C, &ScenarioData, &(dyn Fn() + Sync)) -> Vec<T> + Sync,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Vec<T>, EvalError> {
+    use rayon::prelude::*;
+    let m = open(dir)?;
+    let every = every.max(1);
+    let block = report::CATEGORY_ORDER.len();
+    let keep = |i: usize| (i / block) % every == 0;
+    let total: usize = m
+        .deformations
+        .iter()
+        .map(|d| (0..d.scenarios.len()).filter(|&i| keep(i)).count() * per_scenario)
+        .sum();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let tick = || {
+        let k = done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+        progress(k, total);
+    };
+    let mut prepared: std::collections::BTreeMap<String, C> = Default::default();
+    let mut out = Vec::new();
+    for d in &m.deformations {
+        if !prepared.contains_key(&d.geometry) {
+            let geo = load_geometry(dir, &m, &d.geometry)?;
+            prepared.insert(d.geometry.clone(), prepare(&geo)?);
+        }
+        let case = &prepared[&d.geometry];
+        let scenarios = load_scenarios(dir, d)?;
+        let picked: Vec<_> = scenarios
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| keep(*i))
+            .map(|(_, s)| s)
+            .collect();
+        let results: Vec<Vec<T>> = picked.par_iter().map(|sc| run(case, sc, &tick)).collect();
+        out.extend(results.into_iter().flatten());
+    }
+    Ok(out)
+}
+
 pub mod abstain;
 pub mod bench;
 pub mod calibrate_error;
