@@ -137,6 +137,7 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
             out.push(ScenarioResult {
                 scenario: r["scenario"].as_str().unwrap_or("?").to_string(),
                 geometry: r["geometry"].as_str().unwrap_or("?").to_string(),
+                family: r["family"].as_str().unwrap_or("neo-hookean").to_string(),
                 category: r["category"].as_str().unwrap_or("?").to_string(),
                 method: method.to_string(),
                 error: tre.is_none().then(|| "LIBR failed".to_string()),

@@ -63,6 +63,8 @@ pub struct ScenarioResult {
     pub scenario: String,
     /// Geometry id of the deformation.
     pub geometry: String,
+    /// The deformation's truth family ([`crate::dataset::DeformationEntry::family`]).
+    pub family: String,
     /// Category.
     pub category: String,
     /// Method.
@@ -107,6 +109,9 @@ pub struct MethodSummary {
     /// Per deformation pattern (`L`, `R`, `W`, `V`, ... from the deformation id): mean TRE and
     /// count.
     pub by_pattern: BTreeMap<String, CategorySummary>,
+    /// Per truth family (`generate --families`; `neo-hookean` for data without): mean TRE and
+    /// count.
+    pub by_family: BTreeMap<String, CategorySummary>,
 }
 
 /// The deformation pattern of a scenario id `GEOMETRY-PATTERN-NN/INDEX` (`g1-L-00/5` → `L`);
@@ -421,6 +426,7 @@ pub fn evaluate(
                                 let base = ScenarioResult {
                                     scenario: sc.id.clone(),
                                     geometry: d.geometry.clone(),
+                                    family: d.family().to_string(),
                                     category: sc.category.clone(),
                                     method: "librplus".into(),
                                     tre: None,
@@ -458,7 +464,7 @@ pub fn evaluate(
                             }
                             _ => (None, None),
                         };
-                        let (a, b) = scored(geo, sc, &d.geometry, method.name(), r);
+                        let (a, b) = scored(geo, sc, (&d.geometry, d.family()), method.name(), r);
                         (a, b, pr, pe)
                     })
                     .collect();
@@ -508,7 +514,7 @@ pub fn evaluate(
                 .par_iter()
                 .map(|sc| {
                     let r = register(case_d, &sc.measurements, Method::Libr, params);
-                    scored(geo, sc, &d.geometry, DISCOVERED_METHOD, r)
+                    scored(geo, sc, (&d.geometry, d.family()), DISCOVERED_METHOD, r)
                 })
                 .collect();
             for (res, err) in results {
@@ -534,13 +540,14 @@ pub fn evaluate(
 fn scored(
     geo: &super::GeometryData,
     sc: &super::ScenarioData,
-    geometry: &str,
+    (geometry, family): (&str, &str),
     method: &str,
     r: Result<crate::pipeline::Registration, crate::pipeline::PipelineError>,
 ) -> (ScenarioResult, Option<Vec<f64>>) {
     let base = ScenarioResult {
         scenario: sc.id.clone(),
         geometry: geometry.to_string(),
+        family: family.to_string(),
         category: sc.category.clone(),
         method: method.into(),
         tre: None,
@@ -693,6 +700,9 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
                 let p = s.by_pattern.entry(pattern_of(&r.scenario)).or_default();
                 p.scenarios += 1;
                 p.tre_mm += t.tre_mm;
+                let f = s.by_family.entry(r.family.clone()).or_default();
+                f.scenarios += 1;
+                f.tre_mm += t.tre_mm;
                 times.entry(r.method.clone()).or_default().push(r.seconds);
             }
             None => s.failed += 1,
@@ -709,6 +719,7 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
             .values_mut()
             .chain(s.by_geometry.values_mut())
             .chain(s.by_pattern.values_mut())
+            .chain(s.by_family.values_mut())
         {
             c.tre_mm /= c.scenarios.max(1) as f64;
         }
@@ -772,36 +783,51 @@ pub fn markdown(splits: &BTreeMap<String, BTreeMap<String, MethodSummary>>) -> S
     s
 }
 
-/// The split's TRE per deformation pattern, and LIBR with discovered physics against plain
-/// LIBR per pattern when both were evaluated (`evaluate --discover`).
-fn pattern_table(methods: &BTreeMap<String, MethodSummary>) -> String {
-    let mut patterns: Vec<String> = methods
+/// A table of the split's TRE per group (`groups` of a method's summary) under `title`; empty
+/// when there are fewer than two groups.
+fn group_table(
+    methods: &BTreeMap<String, MethodSummary>,
+    title: &str,
+    groups: fn(&MethodSummary) -> &BTreeMap<String, CategorySummary>,
+) -> (String, Vec<String>) {
+    let mut names: Vec<String> = methods
         .values()
-        .flat_map(|v| v.by_pattern.keys().cloned())
+        .flat_map(|v| groups(v).keys().cloned())
         .collect();
-    patterns.sort();
-    patterns.dedup();
-    if patterns.len() < 2 {
-        return String::new();
+    names.sort();
+    names.dedup();
+    if names.len() < 2 {
+        return (String::new(), names);
     }
-    let mut s = String::from("\nBy deformation pattern:\n\n| method |");
-    for p in &patterns {
+    let mut s = format!("\n{title}:\n\n| method |");
+    for p in &names {
         s.push_str(&format!(" {p} |"));
     }
     s.push_str("\n| --- |");
-    for _ in &patterns {
+    for _ in &names {
         s.push_str(" --- |");
     }
     s.push('\n');
     for (m, v) in methods {
         s.push_str(&format!("| {m} |"));
-        for p in &patterns {
-            match v.by_pattern.get(p) {
+        for p in &names {
+            match groups(v).get(p) {
                 Some(x) => s.push_str(&format!(" {:.2} ({}) |", x.tre_mm, x.scenarios)),
                 None => s.push_str(" – |"),
             }
         }
         s.push('\n');
+    }
+    (s, names)
+}
+
+/// The split's TRE per deformation pattern and per truth family, and LIBR with discovered
+/// physics against plain LIBR per pattern when both were evaluated (`evaluate --discover`).
+fn pattern_table(methods: &BTreeMap<String, MethodSummary>) -> String {
+    let (mut s, patterns) = group_table(methods, "By deformation pattern", |v| &v.by_pattern);
+    s.push_str(&group_table(methods, "By truth family", |v| &v.by_family).0);
+    if patterns.len() < 2 {
+        return s;
     }
     if let (Some(plain), Some(found)) = (methods.get("libr"), methods.get("libr-discovered")) {
         let change: Vec<String> = patterns
@@ -827,6 +853,7 @@ mod tests {
         ScenarioResult {
             scenario: scenario.into(),
             geometry: scenario[..2].into(),
+            family: "neo-hookean".into(),
             category: "surface".into(),
             method: method.into(),
             tre: Some(crate::eval::Tre {

@@ -115,6 +115,8 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
                 "total_s": i.total_s,
             })),
             "refit_error": c.refit_error,
+            "abstained": c.abstained,
+            "outside": c.signals,
         })),
         "v2s": r.v2s.map(|v| json!({
             "seconds": v.seconds,
