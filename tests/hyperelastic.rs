@@ -272,11 +272,11 @@ fn uniaxial_analytic(a: f64, l: f64, m: f64) -> (f64, f64) {
     (b, m * (a - 1.0 / a) + l * (a * b * b).ln() / a)
 }
 
-#[test]
-fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
+/// A 3 × 1 × 1 bar on symmetry supports, its end face pulled to 30 % stretch: the mesh, the
+/// supports, its length and width, and the stretch.
+fn thirty_percent_stretch() -> (TetMesh, Dirichlet, [f64; 2], f64) {
     let (len, w) = (3.0, 1.0);
     let mesh = box_mesh([len, w, w], [6, 2, 2], 0.2);
-    let (l, m) = lame();
     let stretch = 1.3;
     let mut bc = symmetry_supports(&mesh);
     for (i, p) in mesh.nodes().iter().enumerate() {
@@ -284,6 +284,13 @@ fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
             bc.prescribe_dof(i as u32, 0, (stretch - 1.0) * len);
         }
     }
+    (mesh, bc, [len, w], stretch)
+}
+
+#[test]
+fn uniaxial_stretch_of_thirty_percent_matches_analytic() {
+    let (mesh, bc, [len, w], stretch) = thirty_percent_stretch();
+    let (l, m) = lame();
     let model = HyperelasticModel::new(&mesh, LameField::Uniform(l, m)).unwrap();
     let f = vec![0.0; 3 * mesh.num_nodes()];
     let (b, p11) = uniaxial_analytic(stretch, l, m);
@@ -359,16 +366,8 @@ fn uniaxial_of(law: MaterialLaw, a: f64, l: f64, m: f64) -> (f64, f64) {
 
 #[test]
 fn every_law_solves_a_thirty_percent_stretch_to_its_homogeneous_state() {
-    let (len, w) = (3.0, 1.0);
-    let mesh = box_mesh([len, w, w], [6, 2, 2], 0.2);
+    let (mesh, bc, [len, w], stretch) = thirty_percent_stretch();
     let (l, m) = lame();
-    let stretch = 1.3;
-    let mut bc = symmetry_supports(&mesh);
-    for (i, p) in mesh.nodes().iter().enumerate() {
-        if on(p[0], len) {
-            bc.prescribe_dof(i as u32, 0, (stretch - 1.0) * len);
-        }
-    }
     let (_, p_nh) = uniaxial_of(MaterialLaw::NeoHookean, stretch, l, m);
     // The semi-analytic state agrees with the closed form for Neo-Hookean.
     assert!((p_nh - uniaxial_analytic(stretch, l, m).1).abs() < 1e-9 * p_nh);
