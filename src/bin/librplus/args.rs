@@ -133,7 +133,8 @@ pub(crate) struct ExperimentsArgs {
     /// Output directory: one model directory per run under `runs/`, and the reports.
     #[arg(long)]
     pub(crate) out: PathBuf,
-    /// Splits, comma-separated: random, geo-def, logo (every geometry), logo:G, pattern-v.
+    /// Splits, comma-separated: random, geo-def, logo (every geometry), logo:G, pattern-v,
+    /// family (every truth family held out in turn; `generate --families`), family:NAME.
     #[arg(long, default_value = "random,geo-def,logo,pattern-v")]
     pub(crate) splits: String,
     /// Table 2 settings to run on `--ablation-split` (comma-separated, 1-6; empty: none).

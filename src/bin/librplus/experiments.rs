@@ -27,6 +27,19 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
     for s in a.splits.split(',').map(str::trim).filter(|s| !s.is_empty()) {
         if s == "logo" {
             plan.extend(train_geos.iter().map(|g| (format!("logo:{g}"), 6)));
+        } else if s == "family" {
+            // Every truth family held out in turn (`generate --families`).
+            let mut families: Vec<&str> = m.deformations.iter().map(|d| d.family()).collect();
+            families.sort();
+            families.dedup();
+            if families.len() < 2 {
+                bail!(
+                    "--splits family: the dataset has one truth family ({}); generate it with \
+                     --families",
+                    families.join(", ")
+                );
+            }
+            plan.extend(families.iter().map(|f| (format!("family:{f}"), 6)));
         } else {
             librplus::eval::train::TrainSplit::parse(s)
                 .map_err(|e| anyhow::anyhow!("--splits: {e}"))?;
