@@ -257,6 +257,7 @@ pub fn rigid_candidates(
 ) -> Result<Candidates, RegisterError> {
     params.validate()?;
     let first = wicp(model, corr, meas, wicp_params)?;
+    // `candidates_from` checks the parameters again: cheap, and it is public on its own.
     candidates_from(first, model, corr, meas, wicp_params, params)
 }
 
