@@ -357,6 +357,32 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
     }
     let csv = std::fs::read_to_string(format!("{}.samples.csv", model.display())).unwrap();
     assert_eq!(csv.lines().count(), 1 + 4 * 30);
+    // `--existing`: the written model checked on the held-out seed alone gives the calibration
+    // run's held-out figures, and writes no model.
+    let again = tmp.path().join("em").join("again");
+    let o = Command::new(env!("CARGO_BIN_EXE_librplus"))
+        .current_dir(&manifest_dir)
+        .args(["calibrate-error", "--methods", "rigid,libr", "--json"])
+        .arg("--existing")
+        .arg(&model)
+        .arg("--data")
+        .arg(&held)
+        .arg("--out")
+        .arg(&again)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let re: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        re["held_out"]["checks"], rep["held_out"]["checks"],
+        "--existing disagrees with the calibration run's held-out check"
+    );
+    assert!(!again.exists(), "--existing wrote a model");
+    assert!(
+        std::fs::read_to_string(format!("{}.report.md", again.display()))
+            .unwrap()
+            .contains("checked on")
+    );
 
     // Independent readers (meshio, VTK, numpy) when CI provides them.
     match std::env::var("LIBRPLUS_CHECK_PYTHON") {

@@ -609,6 +609,11 @@ pub(crate) struct CalibrateErrorArgs {
     /// --every for the held-out dataset.
     #[arg(long, default_value_t = 1)]
     pub(crate) check_every: usize,
+    /// Check this error model (e.g. `assets/models/error/model.json`) on every --data instead
+    /// of calibrating one: --out then names the report (OUT.report.md, .report.json,
+    /// .samples.csv) and no model is written.
+    #[arg(long, value_name = "MODEL_JSON", conflicts_with = "check")]
+    pub(crate) existing: Option<PathBuf>,
     /// Print the report as JSON on stdout.
     #[arg(long)]
     pub(crate) json: bool,

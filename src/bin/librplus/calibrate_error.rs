@@ -88,6 +88,9 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
             );
         }
     }
+    if let Some(existing) = &a.existing {
+        return check_existing(a, existing, &methods, &params, &models);
+    }
     let mut cal = Vec::new();
     for d in &a.data {
         cal.extend(registrations(
@@ -168,6 +171,57 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
             "\nwritten: {}, {md_path}, {json_path}, {csv_path}",
             a.out.display()
         );
+    }
+    Ok(())
+}
+
+/// `calibrate-error --existing`: an error model checked on new data (every --data), nothing
+/// calibrated.
+fn check_existing(
+    a: &CalibrateErrorArgs,
+    existing: &Path,
+    methods: &[Method],
+    params: &PipelineParams,
+    models: &[std::sync::Arc<librplus::gcn::io::TrainedModel>],
+) -> Result<()> {
+    let text = std::fs::read_to_string(existing)
+        .with_context(|| format!("--existing {}", existing.display()))?;
+    let model = librplus::register::uncertainty::ErrorModel::from_json(&text)
+        .map_err(|e| anyhow::anyhow!("--existing {}: {e}", existing.display()))?;
+    let mut samples = Vec::new();
+    for d in &a.data {
+        samples.extend(registrations("check", d, methods, a.every, params, models)?);
+    }
+    let names: Vec<String> = a.data.iter().map(|d| d.display().to_string()).collect();
+    let out = check(&model, &samples);
+    let md = format!(
+        "# Error estimate {} checked on {} ({} registrations)\n\n{}",
+        existing.display(),
+        names.join(", "),
+        samples.len(),
+        markdown(&out, model.level)
+    );
+    let report = json!({
+        "format": 1,
+        "model": existing.display().to_string(),
+        "held_out": {"data": names, "checks": out},
+    });
+    let base = a.out.display().to_string();
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    }
+    let (md_path, json_path) = (format!("{base}.report.md"), format!("{base}.report.json"));
+    let csv_path = format!("{base}.samples.csv");
+    std::fs::write(&csv_path, samples_csv(&[("held_out", &samples)]))
+        .with_context(|| csv_path.clone())?;
+    std::fs::write(&md_path, &md).with_context(|| md_path.clone())?;
+    std::fs::write(&json_path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| json_path.clone())?;
+    if a.json {
+        println!("{report}");
+    } else {
+        print!("{md}");
+        println!("\nwritten: {md_path}, {json_path}, {csv_path}");
     }
     Ok(())
 }
