@@ -373,10 +373,22 @@ fn small_dataset_is_deterministic_resumable_shardable_and_reads_back() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let re: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(
-        re["held_out"]["checks"], rep["held_out"]["checks"],
-        "--existing disagrees with the calibration run's held-out check"
-    );
+    // To rounding: the model is read back from its JSON, and the registrations' last bits may
+    // differ between runs.
+    for method in ["rigid", "libr"] {
+        let (a, b) = (
+            &re["held_out"]["checks"][method]["all"],
+            &rep["held_out"]["checks"][method]["all"],
+        );
+        assert_eq!(a["registrations"], b["registrations"]);
+        for key in ["true_tre_mm", "predicted_tre_mm", "r", "mae_mm", "coverage"] {
+            let (x, y) = (a[key].as_f64().unwrap(), b[key].as_f64().unwrap());
+            assert!(
+                (x - y).abs() <= 1e-9 * y.abs().max(1.0),
+                "--existing {method} {key}: {x} vs the calibration run's {y}"
+            );
+        }
+    }
     assert!(!again.exists(), "--existing wrote a model");
     assert!(
         std::fs::read_to_string(format!("{}.report.md", again.display()))

@@ -5,7 +5,7 @@
 //! LIBR+ (ratio to LIBR per split, worst split against best, every category better).
 
 use super::Tre;
-use super::report::{CATEGORY_ORDER, ScenarioResult};
+use super::report::{CATEGORY_ORDER, ScenarioResult, pattern_of};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -63,6 +63,8 @@ pub struct RunFigures {
     pub all: Pair,
     /// Per measurement category.
     pub by_category: BTreeMap<String, Pair>,
+    /// Per deformation pattern (`L`, `R`, `W`, `V`, ... from the scenario id).
+    pub by_pattern: BTreeMap<String, Pair>,
     /// Scenarios where LIBR failed (no LIBR+ either).
     pub failed: usize,
 }
@@ -109,6 +111,7 @@ pub fn figures(test: &Value) -> RunFigures {
     }
     let mut all = Acc::default();
     let mut cats: BTreeMap<String, Acc> = BTreeMap::new();
+    let mut patterns: BTreeMap<String, Acc> = BTreeMap::new();
     let mut failed = 0;
     for r in test["results"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
         match (tre_of(&r["libr"]), tre_of(&r["librplus"])) {
@@ -117,13 +120,18 @@ pub fn figures(test: &Value) -> RunFigures {
                 cats.entry(r["category"].as_str().unwrap_or("?").to_string())
                     .or_default()
                     .add(&l, &p);
+                if let Some(id) = r["scenario"].as_str() {
+                    patterns.entry(pattern_of(id)).or_default().add(&l, &p);
+                }
             }
             _ => failed += 1,
         }
     }
+    let pairs = |m: &BTreeMap<String, Acc>| m.iter().map(|(k, a)| (k.clone(), a.pair())).collect();
     RunFigures {
         all: all.pair(),
-        by_category: cats.iter().map(|(k, a)| (k.clone(), a.pair())).collect(),
+        by_category: pairs(&cats),
+        by_pattern: pairs(&patterns),
         failed,
     }
 }
@@ -434,6 +442,39 @@ fn ablation_row(setting: u32) -> (&'static str, &'static str, &'static str) {
 /// The paper's Table 2 TRE (mm) of each setting, for comparison.
 const PAPER_TABLE2: [f64; 6] = [4.215, 3.857, 3.985, 3.346, 3.325, 3.234];
 
+/// LIBR+ / LIBR per deformation pattern and split (scenarios in brackets): the table that shows
+/// whether a held-out family or liver is corrected on every pattern, not only on average.
+fn pattern_table(s: &mut String, main_f: &[(&RunOutcome, RunFigures)]) {
+    let patterns: std::collections::BTreeSet<&String> = main_f
+        .iter()
+        .flat_map(|(_, f)| f.by_pattern.keys())
+        .collect();
+    if patterns.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        s,
+        "\n## LIBR+ / LIBR per deformation pattern (test scenarios in brackets)\n"
+    );
+    let _ = write!(s, "| split |");
+    for p in &patterns {
+        let _ = write!(s, " {p} |");
+    }
+    let _ = writeln!(s, "\n|---|{}", "---:|".repeat(patterns.len()));
+    for (r, f) in main_f {
+        let _ = write!(s, "| {} |", r.split);
+        for p in &patterns {
+            match f.by_pattern.get(*p) {
+                Some(x) => {
+                    let _ = write!(s, " {:.3} ({}) |", x.ratio(), x.scenarios);
+                }
+                None => s.push_str(" – |"),
+            }
+        }
+        s.push('\n');
+    }
+}
+
 /// `RESULTS.md`: `header` (command, data, machine) then the tables. `main` are the full-model
 /// runs, one per split; `ablations` the Table 2 runs (setting 6 included); `v2s` the V2S runs,
 /// one per split (with them, the four methods against the paper's Table 1 and V2S per category
@@ -482,6 +523,7 @@ pub fn results_markdown(
             f.by_category.len()
         );
     }
+    pattern_table(&mut s, &main_f);
     // Acceptance checks.
     let ratios: Vec<f64> = main_f
         .iter()
@@ -502,7 +544,7 @@ pub fn results_markdown(
                 .values()
                 .all(|p| p.librplus.tre_mm < p.libr.tre_mm)
         });
-        let _ = writeln!(s, "\nAcceptance checks (issue 6):\n");
+        let _ = writeln!(s, "\nChecks against the paper's claims:\n");
         let _ = writeln!(
             s,
             "- LIBR+ ≤ 0.6 × LIBR on every split: worst ratio {worst_ratio:.3} — {}",
@@ -638,10 +680,10 @@ mod tests {
     #[test]
     fn figures_average_rows_and_skip_failures() {
         let t = json!({"results": [
-            {"category": "surface", "libr": tre(6.0, 5.0, 7.0), "librplus": tre(3.0, 2.0, 4.0)},
-            {"category": "surface", "libr": tre(4.0, 3.0, 5.0), "librplus": tre(5.0, 4.0, 6.0)},
-            {"category": "surface+1us", "libr": tre(2.0, 1.0, 3.0), "librplus": tre(1.0, 0.5, 1.5)},
-            {"category": "surface", "error": "LIBR failed"},
+            {"scenario": "g1-L-00/0", "category": "surface", "libr": tre(6.0, 5.0, 7.0), "librplus": tre(3.0, 2.0, 4.0)},
+            {"scenario": "g2-R-01/0", "category": "surface", "libr": tre(4.0, 3.0, 5.0), "librplus": tre(5.0, 4.0, 6.0)},
+            {"scenario": "g1-L-00/1", "category": "surface+1us", "libr": tre(2.0, 1.0, 3.0), "librplus": tre(1.0, 0.5, 1.5)},
+            {"scenario": "g1-L-00/5", "category": "surface", "error": "LIBR failed"},
         ]});
         let f = figures(&t);
         assert_eq!(f.failed, 1);
@@ -654,6 +696,23 @@ mod tests {
         assert_eq!(s.scenarios, 2);
         assert!((s.libr.tre_mm - 5.0).abs() < 1e-12 && (s.librplus.tre_mm - 4.0).abs() < 1e-12);
         assert_eq!(scenario_results(&t).len(), 8);
+        // Per pattern: L holds rows 1 and 3 (the failed one left out), R row 2.
+        let (l, r) = (f.by_pattern["L"], f.by_pattern["R"]);
+        assert_eq!((l.scenarios, r.scenarios), (2, 1));
+        assert!((l.ratio() - 4.0 / 8.0).abs() < 1e-12 && (r.ratio() - 1.25).abs() < 1e-12);
+        let md = results_markdown(
+            "# R\n",
+            &[RunOutcome {
+                name: "family-x".into(),
+                split: "family:x".into(),
+                ablation: 6,
+                test: t,
+            }],
+            &[],
+            &[],
+        );
+        assert!(md.contains("| split | L | R |"), "{md}");
+        assert!(md.contains("| family:x | 0.500 (2) | 1.250 (1) |"), "{md}");
     }
 
     #[test]
