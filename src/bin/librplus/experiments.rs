@@ -209,7 +209,7 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let header = format!(
         "# LIBR+ results\n\nMade by one command (commit `{}`):\n\n```\n{}\n```\n\n\
-         - Data: `{}` (preset {}, seed {}, parameters {}); every {}th block of five scenarios.\n\
+         - Data: `{}` (preset {}, seed {}, parameters {}); {} of five scenarios.\n\
          - Each run is `librplus train` with a training limit of {} minutes (V2S: `librplus \
          train --method v2s`, {}); its model, `training.json` and `test.json` are under \
          `runs/`.\n\
@@ -222,7 +222,7 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
         m.preset,
         m.seed,
         m.parameters_hash,
-        a.every,
+        every_block(a.every),
         a.minutes,
         if a.no_v2s {
             "not run".to_string()
@@ -255,4 +255,46 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
     println!("{md}");
     eprintln!("wrote {}", a.out.join("RESULTS.md").display());
     Ok(())
+}
+
+/// "every block", "every 2nd block", "every 8th block", ...
+fn every_block(k: usize) -> String {
+    let suffix = match (k % 10, k % 100) {
+        (_, 11..=13) => "th",
+        (1, _) => "st",
+        (2, _) => "nd",
+        (3, _) => "rd",
+        _ => "th",
+    };
+    if k <= 1 {
+        "every block".into()
+    } else {
+        format!("every {k}{suffix} block")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn every_block_reads_as_english() {
+        let got: Vec<String> = [1, 2, 3, 4, 8, 11, 12, 21, 22, 113]
+            .into_iter()
+            .map(super::every_block)
+            .collect();
+        assert_eq!(
+            got,
+            [
+                "every block",
+                "every 2nd block",
+                "every 3rd block",
+                "every 4th block",
+                "every 8th block",
+                "every 11th block",
+                "every 12th block",
+                "every 21st block",
+                "every 22nd block",
+                "every 113th block"
+            ]
+        );
+    }
 }
