@@ -152,25 +152,35 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
         );
         report["held_out"] = json!({"data": c.display().to_string(), "checks": out});
     }
+    let csv = samples_csv(&[("calibration", &cal), ("held_out", &held)]);
+    write_report(a, &md, &report, &csv, Some(&a.out))
+}
+
+/// Writes `OUT.report.md`, `OUT.report.json` and `OUT.samples.csv` beside `--out`, then prints
+/// the report (JSON with `--json`) and what was written (`model` first when one was).
+fn write_report(
+    a: &CalibrateErrorArgs,
+    md: &str,
+    report: &serde_json::Value,
+    csv: &str,
+    model: Option<&Path>,
+) -> Result<()> {
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    }
     let base = a.out.display().to_string();
     let (md_path, json_path) = (format!("{base}.report.md"), format!("{base}.report.json"));
     let csv_path = format!("{base}.samples.csv");
-    std::fs::write(
-        &csv_path,
-        samples_csv(&[("calibration", &cal), ("held_out", &held)]),
-    )
-    .with_context(|| csv_path.clone())?;
-    std::fs::write(&md_path, &md).with_context(|| md_path.clone())?;
-    std::fs::write(&json_path, serde_json::to_string_pretty(&report)? + "\n")
+    std::fs::write(&csv_path, csv).with_context(|| csv_path.clone())?;
+    std::fs::write(&md_path, md).with_context(|| md_path.clone())?;
+    std::fs::write(&json_path, serde_json::to_string_pretty(report)? + "\n")
         .with_context(|| json_path.clone())?;
     if a.json {
         println!("{report}");
     } else {
         print!("{md}");
-        println!(
-            "\nwritten: {}, {md_path}, {json_path}, {csv_path}",
-            a.out.display()
-        );
+        let model = model.map_or(String::new(), |m| format!("{}, ", m.display()));
+        println!("\nwritten: {model}{md_path}, {json_path}, {csv_path}");
     }
     Ok(())
 }
@@ -206,24 +216,13 @@ fn check_existing(
         "model": existing.display().to_string(),
         "held_out": {"data": names, "checks": out},
     });
-    let base = a.out.display().to_string();
-    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
-    }
-    let (md_path, json_path) = (format!("{base}.report.md"), format!("{base}.report.json"));
-    let csv_path = format!("{base}.samples.csv");
-    std::fs::write(&csv_path, samples_csv(&[("held_out", &samples)]))
-        .with_context(|| csv_path.clone())?;
-    std::fs::write(&md_path, &md).with_context(|| md_path.clone())?;
-    std::fs::write(&json_path, serde_json::to_string_pretty(&report)? + "\n")
-        .with_context(|| json_path.clone())?;
-    if a.json {
-        println!("{report}");
-    } else {
-        print!("{md}");
-        println!("\nwritten: {md_path}, {json_path}, {csv_path}");
-    }
-    Ok(())
+    write_report(
+        a,
+        &md,
+        &report,
+        &samples_csv(&[("held_out", &samples)]),
+        None,
+    )
 }
 
 /// `librplus calibrate-abstain`: LIBR+'s outside signals on in-family data, the rule at

@@ -25,6 +25,10 @@
 //! not carry a load's net force by itself: a fixation patch or the falciform line carrying a
 //! surgeon's push would let the linear model swing through metres (measured: 80–3000 mm mean
 //! displacement under the generator's base load before this rule).
+//!
+//! [`forward_with`] with [`Carry::Supports`] is the other way, as in the body: the supports
+//! carry the effects' net load (gravity as its weight alone, a tool, a pressure), the base load
+//! is still balanced by inertia relief, and the rigid part of the result is removed.
 
 use super::{Effect, EffectKind, Physics};
 use crate::fem::{
@@ -206,9 +210,25 @@ pub fn unit_loads(
     geom: &BoundaryGeometry,
     effect: &Effect,
 ) -> Result<(Vec<Vec<f64>>, Vec<f64>), RegisterError> {
+    unit_loads_with(mesh, geom, effect, true)
+}
+
+/// [`unit_loads`], with gravity's dependent-surface reaction (`reaction`) or as its body force
+/// alone (what supports carry under [`Carry::Supports`]).
+fn unit_loads_with(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    effect: &Effect,
+    reaction: bool,
+) -> Result<(Vec<Vec<f64>>, Vec<f64>), RegisterError> {
     let n = mesh.num_nodes();
     let nodes = mesh.nodes();
     match effect.kind {
+        EffectKind::Gravity if !reaction => {
+            let mut f = vec![0.0; 3 * n];
+            loads::add_body_force(&mut f, mesh, effect.direction("direction"));
+            Ok((vec![f], vec![effect.scalar("magnitude")]))
+        }
         EffectKind::Gravity => {
             let g = effect.direction("direction");
             let mut f = vec![0.0; 3 * n];
@@ -373,9 +393,19 @@ pub fn effect_load(
     geom: &BoundaryGeometry,
     physics: &Physics,
 ) -> Result<Vec<f64>, RegisterError> {
+    effect_load_with(mesh, geom, physics, true)
+}
+
+/// [`effect_load`], with gravity's dependent-surface reaction or without ([`unit_loads_with`]).
+fn effect_load_with(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    physics: &Physics,
+    reaction: bool,
+) -> Result<Vec<f64>, RegisterError> {
     let mut f = vec![0.0; 3 * mesh.num_nodes()];
     for e in &physics.effects {
-        let (cols, amps) = unit_loads(mesh, geom, e)?;
+        let (cols, amps) = unit_loads_with(mesh, geom, e, reaction)?;
         for (c, a) in cols.iter().zip(&amps) {
             for (x, y) in f.iter_mut().zip(c) {
                 *x += a * y;
@@ -511,6 +541,48 @@ impl ModelSolver {
         let u = self.solve_prepared(fm);
         (0..f.len()).map(|r| u[(r, 0)]).collect()
     }
+
+    /// The displacement (mm, node-major, its rigid part kept) of a supported organ under
+    /// `base` balanced by inertia relief plus `carried` applied as it is: the supports' springs
+    /// carry `carried`'s net force and moment ([`Carry::Supports`]). A free-floating model
+    /// (no support) cannot carry a net load: an error.
+    pub fn solve_carried(&self, base: &[f64], carried: &[f64]) -> Result<Vec<f64>, RegisterError> {
+        if self.free {
+            return Err(RegisterError::Parameter(
+                "physics: a load carried by supports needs a support (bed-support, fixation or ligament)".into(),
+            ));
+        }
+        let dofs = 3 * self.nodes.len();
+        if base.len() != dofs || carried.len() != dofs {
+            return Err(RegisterError::Inconsistent(format!(
+                "loads of {} and {} entries for {dofs} dofs",
+                base.len(),
+                carried.len()
+            )));
+        }
+        let mut f = base.to_vec();
+        self.prepare_load(&mut f);
+        for (x, y) in f.iter_mut().zip(carried) {
+            *x += y;
+        }
+        let u = self
+            .fact
+            .solve_many_homogeneous(MatRef::from_column_major_slice(&f, dofs, 1));
+        Ok((0..dofs).map(|r| u[(r, 0)]).collect())
+    }
+}
+
+/// What carries the loads of [`forward_with`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Carry {
+    /// Every load balanced by inertia relief, as LIBR's basis ([`forward`]).
+    Relief,
+    /// The physics' supports carry the effects' loads, as in the body: the effects' loads are
+    /// applied unbalanced (gravity as its body force alone, without the dependent-surface
+    /// reaction), the base load is balanced by inertia relief as LIBR's own loads are, and the
+    /// mass-weighted rigid part of the result (the organ moving on its supports) is removed.
+    /// Needs a support.
+    Supports,
 }
 
 /// The augmented model's displacement under `base_load` plus the physics' own loads: what the
@@ -535,4 +607,26 @@ pub fn forward(
         *x += y;
     }
     Ok(ModelSolver::new(mesh, material, sites, physics)?.solve(&f))
+}
+
+/// [`forward`] with the effects' loads carried as `carry` says: [`Carry::Relief`] is
+/// [`forward`] itself; [`Carry::Supports`] lets the physics' supports carry them
+/// ([`ModelSolver::solve_carried`]) and removes the rigid part of the result.
+pub fn forward_with(
+    mesh: &TetMesh,
+    material: &LinearMaterial,
+    sites: Sites<'_>,
+    physics: &Physics,
+    base_load: &[f64],
+    carry: Carry,
+) -> Result<Vec<f64>, RegisterError> {
+    if carry == Carry::Relief {
+        return forward(mesh, material, sites, physics, base_load);
+    }
+    let geom = BoundaryGeometry::new(mesh)?;
+    let carried = effect_load_with(mesh, &geom, physics, false)?;
+    let solver = ModelSolver::new(mesh, material, sites, physics)?;
+    let mut u = solver.solve_carried(base_load, &carried)?;
+    solver.relief.remove_rigid(&solver.nodes, &mut u);
+    Ok(u)
 }

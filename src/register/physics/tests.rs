@@ -511,3 +511,138 @@ fn augmented_basis_columns_are_the_effect_responses() {
         "{e}"
     );
 }
+
+/// Bed support and gravity on the block, gravity pulling towards the bed (+y, the posterior face).
+fn bed_and_gravity() -> Physics {
+    Physics {
+        effects: vec![
+            Effect::new(EffectKind::BedSupport, &[("stiffness", &[0.08])]).unwrap(),
+            Effect::new(
+                EffectKind::Gravity,
+                &[("direction", &[0.0, 1.0, 0.0]), ("magnitude", &[0.0104])],
+            )
+            .unwrap(),
+        ],
+    }
+}
+
+#[test]
+fn carried_loads_are_balanced_by_the_supports_reactions_not_by_inertia_relief() {
+    let mesh = block();
+    let (post, falc) = flags(&mesh);
+    let sites = Sites {
+        posterior: &post,
+        falciform: &falc,
+    };
+    let material = LinearMaterial::default();
+    let physics = bed_and_gravity();
+    let n = mesh.num_nodes();
+    // The weight, built here from the body force alone: 0.0104 mN/mm³ along +y.
+    let mut f = vec![0.0; 3 * n];
+    loads::add_body_force(&mut f, &mesh, [0.0, 0.0104, 0.0]);
+    let solver = ModelSolver::new(&mesh, &material, sites, &physics).unwrap();
+    let u = solver.solve_carried(&vec![0.0; 3 * n], &f).unwrap();
+    // The springs' reactions r = −S u at their nodes.
+    let geom = BoundaryGeometry::new(&mesh).unwrap();
+    let mut r = vec![0.0; 3 * n];
+    for s in support_springs(&mesh, &geom, sites, &physics) {
+        let v = s.node as usize;
+        for i in 0..3 {
+            for j in 0..3 {
+                r[3 * v + i] -= s.stiffness[i][j] * u[3 * v + j];
+            }
+        }
+    }
+    // Net force and moment: the reactions carry the whole weight.
+    let (mut fs, mut rs, mut mf, mut mr) = ([0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]);
+    for (v, p) in mesh.nodes().iter().enumerate() {
+        let fv = [f[3 * v], f[3 * v + 1], f[3 * v + 2]];
+        let rv = [r[3 * v], r[3 * v + 1], r[3 * v + 2]];
+        let (a, b) = (
+            crate::mesh::vec3::cross(*p, fv),
+            crate::mesh::vec3::cross(*p, rv),
+        );
+        for k in 0..3 {
+            fs[k] += fv[k];
+            rs[k] += rv[k];
+            mf[k] += a[k];
+            mr[k] += b[k];
+        }
+    }
+    let weight = fs[1];
+    assert!(weight > 0.0);
+    for k in 0..3 {
+        assert!(
+            (fs[k] + rs[k]).abs() < 1e-8 * weight,
+            "force {k}: {fs:?} vs {rs:?}"
+        );
+        assert!(
+            (mf[k] + mr[k]).abs() < 1e-6 * weight * 60.0,
+            "moment {k}: {mf:?} vs {mr:?}"
+        );
+    }
+    // The elastic body is in equilibrium under the load and the reactions alone: K u = f + r at
+    // every node (no inertia-relief body force left over).
+    let ku = crate::fem::StiffnessSystem::linear(&mesh, &material)
+        .unwrap()
+        .apply(&u);
+    let res: Vec<f64> = ku
+        .iter()
+        .zip(&f)
+        .zip(&r)
+        .map(|((k, f), r)| k - f - r)
+        .collect();
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    assert!(
+        norm(&res) < 1e-10 * norm(&r),
+        "K u − f − r: {:.2e} against |r| {:.2e}",
+        norm(&res),
+        norm(&r)
+    );
+}
+
+#[test]
+fn carry_relief_is_forward_and_carry_supports_differs_and_needs_a_support() {
+    let mesh = block();
+    let (post, falc) = flags(&mesh);
+    let sites = Sites {
+        posterior: &post,
+        falciform: &falc,
+    };
+    let material = LinearMaterial::default();
+    let physics = bed_and_gravity();
+    let n = mesh.num_nodes();
+    let base = vec![0.0; 3 * n];
+    let relief = forward(&mesh, &material, sites, &physics, &base).unwrap();
+    assert_eq!(
+        forward_with(&mesh, &material, sites, &physics, &base, Carry::Relief).unwrap(),
+        relief
+    );
+    let carried = forward_with(&mesh, &material, sites, &physics, &base, Carry::Supports).unwrap();
+    // Its rigid part is removed: the mass-weighted mean displacement is zero.
+    let mass = crate::register::libr::lumped_volumes(&mesh);
+    let total: f64 = mass.iter().sum();
+    for k in 0..3 {
+        let mean: f64 = (0..n).map(|v| mass[v] * carried[3 * v + k]).sum::<f64>() / total;
+        assert!(mean.abs() < 1e-9, "rigid part left along {k}: {mean}");
+    }
+    // The weight pressed into the bed deforms the organ otherwise than a weight resting on its
+    // own lower surface.
+    let rms = |u: &[f64]| (u.iter().map(|x| x * x).sum::<f64>() / n as f64).sqrt();
+    let d: Vec<f64> = carried.iter().zip(&relief).map(|(a, b)| a - b).collect();
+    eprintln!(
+        "bed + gravity: carried {:.3} mm RMS, relief {:.3} mm RMS, difference {:.3} mm",
+        rms(&carried),
+        rms(&relief),
+        rms(&d)
+    );
+    assert!(rms(&d) > 0.1 * rms(&relief), "carried ≈ relief");
+    // A load with nothing to carry it is refused, naming what is missing.
+    let free = Physics {
+        effects: vec![physics.effects[1].clone()],
+    };
+    let e = forward_with(&mesh, &material, sites, &free, &base, Carry::Supports)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("needs a support"), "{e}");
+}
