@@ -777,6 +777,8 @@ fn libr_truth_with_a_hidden_effect_changes_the_truth_and_no_other_draw() {
         mh.parameters["hidden_effects"],
         serde_json::json!([{"kind": "gravity", "given": {}}])
     );
+    assert_eq!(mh.parameters["hidden_carry"], "supports");
+    assert!(mp.parameters.get("hidden_carry").is_none());
     assert_eq!(mp.deformations.len(), 3);
     assert_eq!(mp.deformations.len(), mh.deformations.len());
     let gt = |dir: &Path, file: &str| -> Vec<f64> {
@@ -802,8 +804,13 @@ fn libr_truth_with_a_hidden_effect_changes_the_truth_and_no_other_draw() {
                 .join("hidden_physics.json"),
         )
         .unwrap();
-        assert_eq!(physics.kinds(), ["gravity"]);
-        assert_eq!(dh.hidden_effects, Some(physics.to_value(&[])));
+        // A lone load is carried by a carrier bed, recorded with its role.
+        assert_eq!(physics.kinds(), ["gravity", "bed-support"]);
+        let roles = serde_json::json!([{"role": "hidden"}, {"role": "carrier"}]);
+        assert_eq!(
+            dh.hidden_effects,
+            Some(physics.to_value(roles.as_array().unwrap()))
+        );
         let m = physics.effects[0].scalar("magnitude");
         assert!((0.8 * 0.0104..=1.2 * 0.0104).contains(&m), "{m}");
         // The truths differ by exactly the gap the hidden run reports (its LIBR-alone solve is
@@ -930,6 +937,82 @@ fn libr_truth_with_a_hidden_effect_changes_the_truth_and_no_other_draw() {
             .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
         assert!(err <= 1e-9 * scale, "{}: {err} mm off forward", d.id);
     }
+}
+
+/// The oracle's detectability is recorded for every deformation that hides an effect, by the
+/// naming rule itself (statistic above its threshold, gain above its minimum, BIC falling): a
+/// pressure at full insufflation (1.6 kPa) is seen in every deformation, the same pressure at
+/// 0.02 kPa (the same direction draw) in none, and in each deformation the strong one's statistic
+/// is the larger. A resumed run keeps what is recorded; `--no-detectability` and a dataset with
+/// nothing hidden record none.
+#[test]
+fn oracle_detectability_follows_the_effects_size_and_the_naming_rule() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (strong, weak, skip) = (
+        tmp.path().join("strong"),
+        tmp.path().join("weak"),
+        tmp.path().join("skip"),
+    );
+    let run = |dir: &Path, effect: &str, extra: &[&str]| {
+        let mut args = vec!["--truth", "libr", "--hidden-effect", effect];
+        args.extend_from_slice(extra);
+        generate(dir, &args)
+    };
+    let out = run(&strong, "pressure:magnitude_kpa=1.6", &[]);
+    assert_eq!(out["detectability"]["computed"], 3, "{out}");
+    run(&weak, "pressure:magnitude_kpa=0.02", &[]);
+    let (ms, mw) = (
+        read_manifest(&strong).unwrap(),
+        read_manifest(&weak).unwrap(),
+    );
+    for (ds, dw) in ms.deformations.iter().zip(&mw.deformations) {
+        let (s, w) = (
+            ds.detectability.as_ref().expect("recorded"),
+            dw.detectability.as_ref().expect("recorded"),
+        );
+        eprintln!(
+            "{}: 1.6 kPa z {:.2} gain {:.3} ΔBIC {:.0}; 0.02 kPa z {:.2} gain {:.3} ΔBIC {:.0}",
+            ds.id, s.statistic, s.gain, s.delta_bic, w.statistic, w.gain, w.delta_bic
+        );
+        for d in [s, w] {
+            assert_eq!(
+                d.detectable,
+                d.statistic > d.threshold && d.gain > d.min_gain && d.delta_bic < 0.0
+            );
+            assert_eq!((d.threshold, d.min_gain), (3.0, 0.05));
+            assert!(d.sweeps >= 2 && d.rows > 50, "{d:?}");
+        }
+        assert!(s.detectable, "{}: full insufflation is seen", ds.id);
+        assert!(!w.detectable, "{}: 0.02 kPa is not", dw.id);
+        assert!(s.statistic > w.statistic && s.gain > w.gain);
+        // The entry beside the deformation holds the same.
+        let text = std::fs::read_to_string(
+            strong
+                .join("deformations")
+                .join(&ds.id)
+                .join("deformation.json"),
+        )
+        .unwrap();
+        let entry: librplus::dataset::DeformationEntry = serde_json::from_str(&text).unwrap();
+        assert_eq!(entry.detectability.as_ref(), Some(s));
+    }
+    // Resumed: nothing computed again, everything kept.
+    let again = run(&strong, "pressure:magnitude_kpa=1.6", &[]);
+    assert_eq!(again["detectability"]["computed"], 0);
+    assert_eq!(again["detectability"]["kept"], 3);
+    assert_eq!(
+        read_manifest(&strong).unwrap().deformations,
+        ms.deformations
+    );
+    let none = run(&skip, "pressure", &["--no-detectability"]);
+    assert!(none.get("detectability").is_none());
+    assert!(
+        read_manifest(&skip)
+            .unwrap()
+            .deformations
+            .iter()
+            .all(|d| d.detectability.is_none() && d.hidden_effects.is_some())
+    );
 }
 
 /// `--hidden-effect` errors name what is wrong before anything is written: an unknown kind

@@ -119,6 +119,36 @@ pub struct TumourEntry {
     pub stiffness_factor: f64,
 }
 
+/// Whether the discovery workflow's own held-out test can see a deformation's hidden effects
+/// when told everything (`deformation.json`'s `detectability`, written by `generate` for
+/// `--truth libr` data with hidden effects): the true effects with their true shapes (their
+/// amplitudes fitted) against plain LIBR, on the deformation's scenarios registered from their
+/// true poses, by the same paired test of held-out misfits and the same rule that names an
+/// effect. An effect the oracle cannot see, no method can be asked to name.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Detectability {
+    /// Wilcoxon signed-rank z over the sweep × block units of the held-out misfit the true
+    /// model removes (positive: it fits the held-out data better).
+    pub statistic: f64,
+    /// The z the workflow needs to name an effect.
+    pub threshold: f64,
+    /// Fraction of plain LIBR's held-out misfit (mean square) the true model removes.
+    pub gain: f64,
+    /// The fraction the workflow needs.
+    pub min_gain: f64,
+    /// Change of the Bayesian information criterion (negative favours the true model).
+    pub delta_bic: f64,
+    /// Whether every part of the rule holds: `statistic > threshold`, `gain > min_gain` and
+    /// `delta_bic < 0`.
+    pub detectable: bool,
+    /// Held-out RMS misfit (mm) of plain LIBR and of the true model, on the points both matched.
+    pub heldout_rms_mm: [f64; 2],
+    /// Sweeps the test used (a sweep either model cannot register is left out of both).
+    pub sweeps: usize,
+    /// Rows.
+    pub rows: usize,
+}
+
 /// One ground-truth deformation and its scenarios.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DeformationEntry {
@@ -159,6 +189,11 @@ pub struct DeformationEntry {
     /// also written beside it as `hidden_physics.json`. Absent for the other truths.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub hidden_effects: Option<serde_json::Value>,
+    /// Under `generate --truth libr` with hidden effects: whether the workflow's own test sees
+    /// them when told the truth ([`Detectability`]). Absent otherwise, and where generation
+    /// was told not to compute it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub detectability: Option<Detectability>,
     /// Under `generate --families`: the truth family this deformation's truth was drawn from and
     /// its parameters. Absent otherwise (the truth is then the default Neo-Hookean one, or
     /// `--truth`'s).

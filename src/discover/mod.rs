@@ -31,6 +31,7 @@
 pub mod cv;
 pub mod maps;
 pub mod noise;
+pub mod oracle;
 pub mod prior;
 pub mod rows;
 pub mod search;

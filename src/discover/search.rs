@@ -14,7 +14,7 @@ use super::rows::CohortRows;
 use crate::mesh::TetMesh;
 use crate::mesh::vec3::{cross, dist2, dot, unit};
 use crate::register::libr::{LibrBasis, LibrParams, farthest_point_sampling};
-use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites, unit_loads};
+use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites};
 use crate::register::physics::{Effect, EffectKind, Physics};
 use nalgebra::DMatrix;
 
@@ -78,6 +78,20 @@ pub fn basis_amplitude_prior(
     out
 }
 
+/// The parameters an effect of `kind` adds to a model, for the information criterion: a load's
+/// fitted amplitudes plus its searched shape (a direction, 2; a pack's centre and width, 4), a
+/// support's stiffness (with a fixation's site, 3), an inclusion's site and ratio (4).
+pub fn parameter_count(kind: EffectKind) -> usize {
+    let amplitudes = kind.amplitude().map_or(0, |(_, k)| k);
+    match kind {
+        EffectKind::Pack => amplitudes + 4,
+        EffectKind::Gravity | EffectKind::Pressure => amplitudes + 2,
+        EffectKind::Fixation => 3,
+        EffectKind::Inclusion => 4,
+        _ => 1,
+    }
+}
+
 /// One evaluated candidate.
 #[derive(Debug, Clone)]
 pub struct Candidate {
@@ -124,7 +138,7 @@ pub fn evaluate_load(
     cur: &Current,
     effect: &Effect,
 ) -> Result<Option<Candidate>, DiscoverError> {
-    let (loads, _) = unit_loads(ctx.mesh, ctx.geom, effect)?;
+    let (loads, _) = cur.solver.effect_unit_loads(ctx.mesh, ctx.geom, effect)?;
     let m = cur.basis.columns();
     let k = loads.len();
     let q = m + k;
@@ -134,7 +148,7 @@ pub fn evaluate_load(
     let mut responses = Vec::with_capacity(k);
     let mut scales = Vec::with_capacity(k);
     for l in &loads {
-        let u = cur.solver.solve(l);
+        let u = cur.solver.solve_effect(l);
         let peak = u
             .chunks_exact(3)
             .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
@@ -181,12 +195,7 @@ pub fn evaluate_load(
         .map(|j| (var * score.inverse[(m + j, m + j)]).sqrt() * scales[j])
         .collect();
     let name = effect.kind.amplitude().map_or("", |(n, _)| n);
-    // Shape parameters searched: a direction (2), or a centre and a width (4).
-    let shape_params = if effect.kind == EffectKind::Pack {
-        4
-    } else {
-        2
-    };
+    let parameters = parameter_count(effect.kind);
     let Some(effect) = with_amplitudes(effect, amp) else {
         return Ok(None);
     };
@@ -198,7 +207,7 @@ pub fn evaluate_load(
     Ok(Some(Candidate {
         effect,
         score,
-        parameters: k + shape_params,
+        parameters,
         amplitude_sd,
         columns: Some((new_cols, prior)),
         basis: None,
@@ -258,15 +267,10 @@ pub fn evaluate_rebuilt(
     ) else {
         return Ok(None);
     };
-    let parameters = match effect.kind {
-        EffectKind::Fixation => 3,
-        EffectKind::Inclusion => 4,
-        _ => 1,
-    };
     Ok(Some(Candidate {
         effect: effect.clone(),
         score,
-        parameters,
+        parameters: parameter_count(effect.kind),
         amplitude_sd: Vec::new(),
         columns: None,
         basis: Some(basis),

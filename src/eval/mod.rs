@@ -68,6 +68,7 @@ pub(crate) fn over_kept_scenarios<C: Sync, T: Send>(
 pub mod abstain;
 pub mod bench;
 pub mod calibrate_error;
+pub mod detectability;
 mod error;
 pub use error::EvalError;
 pub mod experiments;

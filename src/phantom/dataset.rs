@@ -549,7 +549,11 @@ pub fn generate(
                 .into(),
         ));
     }
-    let parameters = serde_json::to_value(config)?;
+    let mut parameters = serde_json::to_value(config)?;
+    if !config.hidden_effects.is_empty() {
+        // How the hidden effects' loads are carried: part of what the data are.
+        parameters["hidden_carry"] = serde_json::json!(super::hidden::HIDDEN_CARRY);
+    }
     let hash = fnv1a_hex(parameters.to_string().as_bytes());
     // A directory holding another dataset is refused rather than mixed.
     if let Ok(old) = crate::dataset::read_manifest(dir)
@@ -682,8 +686,8 @@ struct Solved {
     /// without the hidden effects).
     linear: Vec<f64>,
     description: String,
-    /// The hidden effects (`--truth libr` only).
-    hidden: Option<crate::register::physics::Physics>,
+    /// The truth's effects and what each is there for (`--truth libr` only).
+    hidden: Option<(crate::register::physics::Physics, Vec<super::hidden::Role>)>,
     /// Bed contacts in the truth.
     contacts: usize,
 }
@@ -725,7 +729,7 @@ fn make_deformation(
                 // What LIBR's own model gives under the same load: the gap is the hidden effects'.
                 linear: t.libr,
                 description: format!("{}; {}", case.description, t.note),
-                hidden: Some(t.physics),
+                hidden: Some((t.physics, t.roles)),
                 contacts: 0,
             })
         } else {
@@ -850,7 +854,8 @@ fn make_deformation(
             &dir.join(format!("{base}/scenarios.npz")),
             &scenarios_npz(&b.mesh, u, &scenarios)?,
         )?;
-        let hidden_effects = hidden.map(|p| p.to_value(&[]));
+        let hidden_effects =
+            hidden.map(|(p, roles)| p.to_value(&super::hidden::role_values(&roles)));
         if let Some(v) = &hidden_effects {
             crate::util::write_atomic(
                 &dir.join(format!("{base}/hidden_physics.json")),
@@ -874,6 +879,7 @@ fn make_deformation(
             relative_residual: truth.info.relative_residual,
             active_contacts: [truth.active_contacts, contacts],
             hidden_effects,
+            detectability: None,
             truth_family: family.map(|f| f.record),
             scenarios: entries,
         };

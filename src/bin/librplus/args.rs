@@ -851,6 +851,11 @@ pub(crate) struct GenerateArgs {
     /// deformation (docs/hidden-effects.md).
     #[arg(long = "hidden-effect", value_name = "KIND[:key=value,...]")]
     pub(crate) hidden_effect: Vec<String>,
+    /// With --hidden-effect: do not record each deformation's oracle detectability (whether the
+    /// discovery workflow's own test sees the hidden effects when told the truth; it registers
+    /// every scenario twice). Recorded by default, after generation, when not sharded.
+    #[arg(long)]
+    pub(crate) no_detectability: bool,
     /// Truth families the deformations cycle through (nonlinear truth only): `all` or a
     /// comma-separated list of neo-hookean, mooney-rivlin, demiray, stiff-vessels, sparse-sensor,
     /// dense-sensor (docs/dataset-and-models.md); recorded per

@@ -6,6 +6,7 @@ use crate::util::emit;
 use anyhow::{Context, Result, bail};
 use librplus::mesh::io::Unit;
 use librplus::mesh::{TetMesh, TriSurface};
+use librplus::phantom::dataset::GenerateConfig;
 use serde_json::{Value, json};
 use std::path::Path;
 use std::time::Instant;
@@ -302,7 +303,11 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
     };
     let result = librplus::phantom::dataset::generate(&config, &surfaces, &a.out, shard, &progress);
     bar.finish_and_clear();
-    let report = result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))?;
+    let mut report = result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))?;
+    let detect = record_detectability(a, &config, shard, report.manifest.as_ref())?;
+    if detect.is_some() {
+        report.manifest = Some(librplus::dataset::read_manifest(&a.out)?);
+    }
     let m = report.manifest.as_ref().expect("manifest written");
     let per_pattern: serde_json::Map<String, Value> = ["L", "R", "W", "V", "X"]
         .iter()
@@ -339,6 +344,17 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
         "seconds_per_deformation_median": if report.seconds.is_empty() { 0.0 } else { librplus::util::median(&report.seconds) },
         "total_s": t0.elapsed().as_secs_f64(),
     });
+    let mut out = out;
+    if let Some(d) = &detect {
+        out["detectability"] = json!({
+            "computed": d.computed,
+            "detectable": d.detectable,
+            "kept": d.kept,
+            "errors": d.errors,
+            "detectable_of_all": m.deformations.iter().filter(|e| e.detectability.as_ref().is_some_and(|x| x.detectable)).count(),
+            "recorded_of_all": m.deformations.iter().filter(|e| e.detectability.is_some()).count(),
+        });
+    }
     emit(a.common.json, &out);
     if !report.errors.is_empty() {
         bail!(
@@ -348,4 +364,45 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// With hidden effects (and not `--no-detectability`, not sharded, the dataset complete):
+/// records each deformation's oracle detectability, with a progress bar.
+fn record_detectability(
+    a: &GenerateArgs,
+    config: &GenerateConfig,
+    shard: (usize, usize),
+    manifest: Option<&librplus::dataset::Manifest>,
+) -> Result<Option<librplus::eval::detectability::DetectabilityReport>> {
+    if config.hidden_effects.is_empty() || a.no_detectability {
+        return Ok(None);
+    }
+    if shard.1 > 1 || !manifest.is_some_and(|m| m.complete) {
+        eprintln!(
+            "detectability: not recorded (a sharded or incomplete dataset); run `generate` again \
+             with the same options and no --shard once every shard is done"
+        );
+        return Ok(None);
+    }
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} detectability {msg} [{bar:30}] {pos}/{len} deformations, {elapsed} (eta {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let progress = |done: usize, total: usize, id: &str| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+        bar.set_message(id.to_string());
+    };
+    let params = librplus::discover::DiscoverParams {
+        seed: config.seed,
+        ..Default::default()
+    };
+    let r = librplus::eval::detectability::record(&a.out, &params, &progress)
+        .map_err(|e| anyhow::anyhow!("{}: detectability: {e}", a.out.display()))?;
+    bar.finish_and_clear();
+    Ok(Some(r))
 }

@@ -33,7 +33,9 @@ use crate::mesh::spatial::TriangleBvh;
 use crate::mesh::vec3::{cross, dist2, unit};
 use crate::mesh::{TetMesh, TriSurface};
 use crate::register::anatomy::{AnatomyLabels, Region};
-use crate::register::physics::model::BoundaryGeometry;
+#[cfg(doc)]
+use crate::register::physics::model::Carry;
+use crate::register::physics::model::{BoundaryGeometry, forward_supported_parts};
 use crate::register::physics::{Effect, EffectKind, Physics};
 use crate::util::SplitMix64;
 use std::collections::BTreeMap;
@@ -339,6 +341,107 @@ pub fn draw_physics(
     Ok(Physics { effects })
 }
 
+/// What an effect of a generated truth is there for, recorded as its `"role"` in
+/// `hidden_physics.json`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// Asked for with `--hidden-effect`: what a discovery is to name.
+    Hidden,
+    /// A bed support added to carry hidden loads when no support is hidden (in the body something
+    /// always carries a load's net force). Naming it is right, not required.
+    Carrier,
+    /// The organ's weight added for hidden supports to carry when no load is hidden (a support
+    /// shows only by what it carries). Naming it is right, not required.
+    Carried,
+}
+
+impl Role {
+    /// `hidden`, `carrier`, `carried`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Hidden => "hidden",
+            Role::Carrier => "carrier",
+            Role::Carried => "carried",
+        }
+    }
+}
+
+/// Per effect `{"role": NAME}`, for [`Physics::to_value`]'s extras.
+pub fn role_values(roles: &[Role]) -> Vec<serde_json::Value> {
+    roles
+        .iter()
+        .map(|r| serde_json::json!({"role": r.name()}))
+        .collect()
+}
+
+/// How a hidden-effect truth carries its loads, recorded in the dataset's parameters as
+/// `hidden_carry`: the supports carry the effects' net load ([`Carry::Supports`]).
+pub const HIDDEN_CARRY: &str = "supports";
+
+/// Index of the carrier bed's random stream under a draw's seed (`derive(seed, [8, 1000])`).
+pub const CARRIER_STREAM: u64 = 1000;
+
+/// Index of the carried weight's random stream under a draw's seed (`derive(seed, [8, 1001])`).
+pub const CARRIED_STREAM: u64 = 1001;
+
+/// Largest peak displacement (mm, rigid part removed) the hidden loads may add to a truth:
+/// beyond it their amplitudes are scaled down to it (and recorded so). Intraoperative liver
+/// deformations reach a few centimetres; a linear model carried by a small patch could
+/// otherwise swing through tens of centimetres.
+pub const EFFECT_PEAK_CAP_MM: f64 = 30.0;
+
+/// The effects of a truth with what carries their loads: a carrier bed when no support is
+/// hidden, the organ's weight when no load is (an inclusion alone gets both: a stiffer region
+/// shows only in how the loaded organ deforms), each from its own stream, so the hidden
+/// effects' draws are unchanged.
+fn with_carriers(
+    hidden: Physics,
+    mesh: &TetMesh,
+    labels: &AnatomyLabels,
+    seed: u64,
+) -> Result<(Physics, Vec<Role>), PhantomError> {
+    let mut roles = vec![Role::Hidden; hidden.effects.len()];
+    let mut physics = hidden;
+    if physics.is_empty() {
+        return Ok((physics, roles));
+    }
+    let loads = physics.effects.iter().any(|e| e.kind.is_load());
+    let supports = physics.has_support();
+    let ctx = Context {
+        mesh,
+        labels,
+        geom: BoundaryGeometry::new(mesh).map_err(PhantomError::Model)?,
+    };
+    let mut add = |kind: EffectKind, stream: u64, role: Role| -> Result<(), PhantomError> {
+        let spec = HiddenEffectSpec {
+            kind,
+            given: BTreeMap::new(),
+        };
+        let e = draw_effect(&ctx, &spec, derive(seed, &[HIDDEN_EFFECT_STREAM, stream]))?;
+        physics.effects.push(e);
+        roles.push(role);
+        Ok(())
+    };
+    if !supports {
+        add(EffectKind::BedSupport, CARRIER_STREAM, Role::Carrier)?;
+    }
+    if !loads {
+        add(EffectKind::Gravity, CARRIED_STREAM, Role::Carried)?;
+    }
+    Ok((physics, roles))
+}
+
+/// The physics with its load effects' amplitudes multiplied by `s`.
+fn scale_loads(physics: &mut Physics, s: f64) {
+    for e in physics.effects.iter_mut().filter(|e| e.kind.is_load()) {
+        if let Some((name, _)) = e.kind.amplitude()
+            && let Some(v) = e.parameters.get_mut(name)
+        {
+            v.iter_mut().for_each(|x| *x *= s);
+        }
+    }
+}
+
 /// A `--truth libr` ground truth.
 #[derive(Debug, Clone)]
 pub struct LibrTruth {
@@ -347,8 +450,11 @@ pub struct LibrTruth {
     /// LIBR's physics alone under the same base load: what LIBR itself would predict with the
     /// true load (equal to `displacement` when nothing is hidden).
     pub libr: Vec<f64>,
-    /// The hidden effects with their drawn parameters.
+    /// The truth's effects with their drawn parameters: the hidden ones, then a carrier or a
+    /// carried weight ([`Role`]).
     pub physics: Physics,
+    /// What each effect of `physics` is there for.
+    pub roles: Vec<Role>,
     /// What the truth left out or replaced, for the deformation's description.
     pub note: String,
 }
@@ -357,6 +463,14 @@ pub struct LibrTruth {
 /// [`libr_base_load`] (broad tractions of LIBR's own kind drawn from the case's seed), the
 /// material the homogeneous `material`, the supports' sites the labels' ([`LibrSites`]), and
 /// the hidden effects [`draw_physics`]`(specs, mesh, labels, seed)`.
+///
+/// The hidden effects' loads are carried by the supports as in the body ([`Carry::Supports`]:
+/// gravity as the organ's weight, a pack or a pressure pushing it against what holds it), a
+/// carrier bed added when no support is hidden and the organ's weight when no load is
+/// ([`Role`]; a lone inclusion gets both); the base load is balanced by inertia relief as LIBR's
+/// own loads are, and the rigid part is removed. When the loads' part peaks above
+/// [`EFFECT_PEAK_CAP_MM`] their amplitudes are scaled down to it, and the recorded physics is the
+/// scaled one.
 pub fn libr_truth(
     mesh: &TetMesh,
     labels: &AnatomyLabels,
@@ -367,17 +481,37 @@ pub fn libr_truth(
     seed: u64,
 ) -> Result<LibrTruth, PhantomError> {
     let (base, replaced) = libr_base_load(mesh, case, params.load_scale)?;
-    let physics = draw_physics(specs, mesh, labels, seed)?;
+    let hidden = draw_physics(specs, mesh, labels, seed)?;
+    let (mut physics, roles) = with_carriers(hidden, mesh, labels, seed)?;
     let sites = LibrSites::new(labels);
     let libr = solve_libr(mesh, material, &sites, &Physics::none(), &base)?;
-    let displacement = if physics.is_empty() {
-        libr.clone()
-    } else {
-        solve_libr(mesh, material, &sites, &physics, &base)?
-    };
     let mut note = "truth libr: LIBR's free-floating linear homogeneous model under loads of its \
                     own kind (no gravity, bed or bare-area support)"
         .to_string();
+    let displacement = if physics.is_empty() {
+        libr.clone()
+    } else if physics.has_support() {
+        let [b, e] = forward_supported_parts(mesh, material, sites.sites(), &physics, &base)
+            .map_err(PhantomError::Model)?;
+        let peak = e
+            .chunks_exact(3)
+            .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+            .fold(0.0f64, f64::max);
+        let s = if peak > EFFECT_PEAK_CAP_MM {
+            EFFECT_PEAK_CAP_MM / peak
+        } else {
+            1.0
+        };
+        if s < 1.0 {
+            scale_loads(&mut physics, s);
+            note.push_str(&format!(
+                "; the hidden loads scaled by {s:.3} to a {EFFECT_PEAK_CAP_MM} mm peak (drawn: {peak:.1} mm)"
+            ));
+        }
+        b.iter().zip(&e).map(|(x, y)| x + s * y).collect()
+    } else {
+        solve_libr(mesh, material, &sites, &physics, &base)?
+    };
     if !replaced.is_empty() {
         note.push_str("; ");
         note.push_str(&replaced);
@@ -386,6 +520,7 @@ pub fn libr_truth(
         displacement,
         libr,
         physics,
+        roles,
         note,
     })
 }

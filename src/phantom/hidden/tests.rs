@@ -1,5 +1,6 @@
 use super::*;
 use crate::mesh::vec3::dot;
+use crate::register::physics::model::{Carry, forward_with};
 
 #[test]
 fn turned_directions_keep_their_angle() {
@@ -217,8 +218,76 @@ fn libr_truth_is_forward_on_the_surface_load() {
 
     let g = libr_truth(mesh, labels, &material, &w, &params, &[spec("gravity")], 3).unwrap();
     assert_eq!(g.libr, t.libr, "LIBR alone does not see the hidden effect");
-    let with = forward(mesh, &material, sites.sites(), &g.physics, &base).unwrap();
-    assert_eq!(g.displacement, with);
+    // A lone load is carried by a carrier bed; the truth is the supported forward model.
+    assert_eq!(g.physics.kinds(), ["gravity", "bed-support"]);
+    assert_eq!(g.roles, [Role::Hidden, Role::Carrier]);
+    let with = forward_with(
+        mesh,
+        &material,
+        sites.sites(),
+        &g.physics,
+        &base,
+        Carry::Supports,
+    )
+    .unwrap();
+    let d = super::super::truth::mean_distance(&g.displacement, &with);
+    assert!(d < 1e-9, "truth vs forward_with: {d} mm");
     let gap = super::super::truth::mean_distance(&g.displacement, &g.libr);
     assert!(gap > 0.01, "a hidden gravity changes the truth: {gap}");
+}
+
+/// The truth's effects carry their loads: a lone support gets the organ's weight (its own
+/// stream: the support's draw is that of the support alone), a lone load a carrier bed, a lone
+/// inclusion both, a support and a load nothing more; the loads' part never peaks above the cap, and when scaled
+/// to it the recorded physics reproduces the truth.
+#[test]
+fn hidden_loads_are_carried_and_capped() {
+    use super::super::patterns::{Pattern, load_case};
+    let (mesh, labels) = liver();
+    let params = PatternParams::default();
+    let material = LinearMaterial::default();
+    let sites = LibrSites::new(labels);
+    let w = load_case(mesh, labels, Pattern::W, &params, 5).unwrap();
+    let (base, _) = libr_base_load(mesh, &w, params.load_scale).unwrap();
+    let truth = |specs: &[HiddenEffectSpec]| {
+        libr_truth(mesh, labels, &material, &w, &params, specs, 5).unwrap()
+    };
+    let fixation = truth(&[spec("fixation")]);
+    assert_eq!(fixation.physics.kinds(), ["fixation", "gravity"]);
+    assert_eq!(fixation.roles, [Role::Hidden, Role::Carried]);
+    let alone = draw_physics(&[spec("fixation")], mesh, labels, 5).unwrap();
+    assert_eq!(fixation.physics.effects[0], alone.effects[0]);
+    let both = truth(&[spec("bed-support"), spec("pressure")]);
+    assert_eq!(both.physics.kinds(), ["bed-support", "pressure"]);
+    assert_eq!(both.roles, [Role::Hidden, Role::Hidden]);
+    let inclusion = truth(&[spec("inclusion")]);
+    assert_eq!(
+        inclusion.physics.kinds(),
+        ["inclusion", "bed-support", "gravity"]
+    );
+    assert_eq!(
+        inclusion.roles,
+        [Role::Hidden, Role::Carrier, Role::Carried]
+    );
+    for t in [&fixation, &both, &inclusion] {
+        let [b, e] =
+            forward_supported_parts(mesh, &material, sites.sites(), &t.physics, &base).unwrap();
+        let peak = e
+            .chunks_exact(3)
+            .map(|c| norm([c[0], c[1], c[2]]))
+            .fold(0.0f64, f64::max);
+        assert!(peak <= EFFECT_PEAK_CAP_MM * (1.0 + 1e-9), "{peak} mm");
+        let sum: Vec<f64> = b.iter().zip(&e).map(|(x, y)| x + y).collect();
+        let d = super::super::truth::mean_distance(&t.displacement, &sum);
+        assert!(
+            d < 1e-9,
+            "the recorded physics reproduces the truth: {d} mm"
+        );
+        assert_eq!(
+            t.note.contains("scaled by"),
+            peak > EFFECT_PEAK_CAP_MM * (1.0 - 1e-9),
+            "{}",
+            t.note
+        );
+    }
 }

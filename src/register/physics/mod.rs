@@ -550,11 +550,16 @@ impl Physics {
     }
 
     /// Hash (16 hex digits) of the physics (kinds and parameter bits, in order); empty for none.
+    /// A physics whose supports carry its loads (a support and a load effect together) is marked
+    /// so, so a basis built before loads were carried so is not mistaken for one now.
     pub fn hash(&self) -> String {
         if self.is_empty() {
             return String::new();
         }
         let mut bytes = Vec::new();
+        if self.has_support() && self.effects.iter().any(|e| e.kind.is_load()) {
+            bytes.extend_from_slice(b"carried\0");
+        }
         for e in &self.effects {
             bytes.extend_from_slice(e.kind.name().as_bytes());
             for (k, v) in &e.parameters {

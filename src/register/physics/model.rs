@@ -17,18 +17,21 @@
 //! - `inclusion`: Young's modulus × `stiffness_ratio` in tets whose centroid is within
 //!   `radius_mm` of `center` (ν unchanged).
 //!
-//! Every load is replaced by its self-equilibrated part (inertia relief), as LIBR's basis: the
-//! organ's surroundings hold what pushes it. Free-floating (no support): solved under a
-//! statically determinate 3-2-1 support, and the rigid part is removed, exactly as LIBR's basis.
-//! Supported: the springs add the stiffness that holds the organ where they act; no constraint
-//! is added and the rigid part is kept (it is the organ moving on its supports). A support does
-//! not carry a load's net force by itself: a fixation patch or the falciform line carrying a
-//! surgeon's push would let the linear model swing through metres (measured: 80–3000 mm mean
-//! displacement under the generator's base load before this rule).
+//! LIBR's own loads (the control loads, and the base load of a generated truth) are replaced by
+//! their self-equilibrated part (inertia relief), as LIBR's basis: the organ's surroundings hold
+//! what pushes it. Free-floating (no support): solved under a statically determinate 3-2-1
+//! support, and the rigid part is removed, exactly as LIBR's basis. Supported: the springs add
+//! the stiffness that holds the organ where they act; no constraint is added and the rigid part
+//! is kept (it is the organ moving on its supports). The supports do not carry LIBR's loads'
+//! net force: a fixation patch or the falciform line carrying a surgeon's push would let the
+//! linear model swing through metres (measured: 80–3000 mm mean displacement under the
+//! generator's base load before this rule).
 //!
-//! [`forward_with`] with [`Carry::Supports`] is the other way, as in the body: the supports
-//! carry the effects' net load (gravity as its weight alone, a tool, a pressure), the base load
-//! is still balanced by inertia relief, and the rigid part of the result is removed.
+//! The effects' loads are carried as in the body ([`Carry::Supports`]): on a supported model
+//! the supports carry their net force and moment (gravity as its weight alone, a pack, a
+//! pressure), in the augmented basis ([`ModelSolver::solve_effect`]) and in the generator's
+//! truth ([`forward_with`]) alike. A free-floating model cannot carry a net load: there gravity
+//! rests on its dependent surface and inertia relief balances the rest ([`forward`]).
 
 use super::{Effect, EffectKind, Physics};
 use crate::fem::{
@@ -214,8 +217,8 @@ pub fn unit_loads(
 }
 
 /// [`unit_loads`], with gravity's dependent-surface reaction (`reaction`) or as its body force
-/// alone (what supports carry under [`Carry::Supports`]).
-fn unit_loads_with(
+/// alone (what supports carry under [`Carry::Supports`]; see [`ModelSolver::effect_unit_loads`]).
+pub fn unit_loads_with(
     mesh: &TetMesh,
     geom: &BoundaryGeometry,
     effect: &Effect,
@@ -499,6 +502,40 @@ impl ModelSolver {
         self.free
     }
 
+    /// The unit loads of a load effect as this model carries them ([`unit_loads_with`]): on a
+    /// supported model the supports carry the effect's net load, so gravity is its body force
+    /// alone; on a free-floating one gravity rests on its dependent surface (the reaction) and
+    /// inertia relief balances the rest.
+    pub fn effect_unit_loads(
+        &self,
+        mesh: &TetMesh,
+        geom: &BoundaryGeometry,
+        effect: &Effect,
+    ) -> Result<(Vec<Vec<f64>>, Vec<f64>), RegisterError> {
+        unit_loads_with(mesh, geom, effect, self.free)
+    }
+
+    /// The response (mm, node-major, rigid part removed) to an effect's load from
+    /// [`Self::effect_unit_loads`], as a column of the augmented basis: on a supported model the
+    /// load is applied as it is and the supports carry its net force and moment
+    /// ([`Carry::Supports`]); on a free-floating one it is [`Self::solve`] (inertia relief).
+    pub fn solve_effect(&self, f: &[f64]) -> Vec<f64> {
+        if self.free {
+            return self.solve(f);
+        }
+        let u = self
+            .fact
+            .solve_many_homogeneous(MatRef::from_column_major_slice(f, f.len(), 1));
+        let mut u: Vec<f64> = (0..f.len()).map(|r| u[(r, 0)]).collect();
+        self.relief.remove_rigid(&self.nodes, &mut u);
+        u
+    }
+
+    /// Removes the mass-weighted rigid part of a displacement (mm, node-major).
+    pub fn remove_rigid(&self, u: &mut [f64]) {
+        self.relief.remove_rigid(&self.nodes, u);
+    }
+
     /// The assembled stiffness (with the support springs).
     pub fn system(&self) -> &StiffnessSystem {
         &self.system
@@ -607,6 +644,28 @@ pub fn forward(
         *x += y;
     }
     Ok(ModelSolver::new(mesh, material, sites, physics)?.solve(&f))
+}
+
+/// [`forward_with`]`(…, Carry::Supports)` in its two parts, each with its rigid part removed:
+/// the response to `base_load` (balanced by inertia relief) and the response to the effects'
+/// loads (carried by the supports). Their sum is the whole; the hidden-effect generator scales
+/// the second to cap the effects' peak displacement.
+pub fn forward_supported_parts(
+    mesh: &TetMesh,
+    material: &LinearMaterial,
+    sites: Sites<'_>,
+    physics: &Physics,
+    base_load: &[f64],
+) -> Result<[Vec<f64>; 2], RegisterError> {
+    let geom = BoundaryGeometry::new(mesh)?;
+    let carried = effect_load_with(mesh, &geom, physics, false)?;
+    let solver = ModelSolver::new(mesh, material, sites, physics)?;
+    let zero = vec![0.0; carried.len()];
+    let mut base = solver.solve_carried(base_load, &zero)?;
+    let mut effects = solver.solve_carried(&zero, &carried)?;
+    solver.relief.remove_rigid(&solver.nodes, &mut base);
+    solver.relief.remove_rigid(&solver.nodes, &mut effects);
+    Ok([base, effects])
 }
 
 /// [`forward`] with the effects' loads carried as `carry` says: [`Carry::Relief`] is

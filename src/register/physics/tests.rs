@@ -646,3 +646,59 @@ fn carry_relief_is_forward_and_carry_supports_differs_and_needs_a_support() {
         .to_string();
     assert!(e.contains("needs a support"), "{e}");
 }
+
+/// A supported augmented basis carries its load columns as the truth does: the gravity column,
+/// scaled to the effect's magnitude, is [`forward_with`]`(Carry::Supports)` (both with their
+/// rigid part removed: the organ's motion on its supports is the registration's pose), and
+/// [`forward_supported_parts`] adds up to it; the physics' hash marks loads carried so.
+#[test]
+fn supported_basis_columns_are_the_carried_responses() {
+    let mesh = block();
+    let (post, falc) = flags(&mesh);
+    let sites = Sites {
+        posterior: &post,
+        falciform: &falc,
+    };
+    let params = LibrParams {
+        control_points: 6,
+        ..LibrParams::default()
+    };
+    let physics = bed_and_gravity();
+    let n = mesh.num_nodes();
+    let aug = LibrBasis::build_with(&mesh, &params, &physics, sites).unwrap();
+    assert_eq!(aug.effect_labels, vec!["gravity".to_string()]);
+    let (m, j) = (aug.columns(), aug.columns() - 1);
+    let col: Vec<f64> = (0..3 * n)
+        .map(|r| 0.0104 * aug.phi[r * m + j] / aug.load_scale[j])
+        .collect();
+    // The effect column's mass-weighted mean displacement is zero (no rigid translation).
+    let mass = crate::register::libr::lumped_volumes(&mesh);
+    let total: f64 = mass.iter().sum();
+    for k in 0..3 {
+        let mean: f64 = (0..n).map(|v| mass[v] * col[3 * v + k]).sum::<f64>() / total;
+        assert!(mean.abs() < 1e-9, "rigid part left along {k}: {mean}");
+    }
+    let base = vec![0.0; 3 * n];
+    let want = forward_with(
+        &mesh,
+        &params.material,
+        sites,
+        &physics,
+        &base,
+        Carry::Supports,
+    )
+    .unwrap();
+    let d = rel_diff(&col, &want);
+    assert!(d < 1e-8, "carried column vs forward_with: {d}");
+    let [b, e] = forward_supported_parts(&mesh, &params.material, sites, &physics, &base).unwrap();
+    assert!(
+        b.iter().all(|x| x.abs() < 1e-12),
+        "no base load, no base part"
+    );
+    assert!(rel_diff(&e, &want) < 1e-10);
+    let alone = Physics {
+        effects: vec![physics.effects[0].clone()],
+    };
+    assert_ne!(physics.hash(), alone.hash());
+    assert_eq!(alone.hash().len(), 16);
+}
