@@ -69,6 +69,7 @@ pub mod abstain;
 pub mod bench;
 pub mod calibrate_error;
 pub mod detectability;
+pub mod discover_score;
 mod error;
 pub use error::EvalError;
 pub mod experiments;

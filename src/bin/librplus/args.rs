@@ -63,6 +63,26 @@ pub(crate) enum Command {
     /// LIBR's model and the data disagree, names the missing effect, adds it and shows the gap
     /// shrink: OUT/discover.json, OUT/report.md, OUT/COHORT/physics.json.
     Discover(DiscoverArgs),
+    /// Scores `discover` runs against the truth of hidden-effect datasets (`generate --truth
+    /// libr --hidden-effect ...`): per hidden kind and oracle detectability, how often the right
+    /// kind was named, and the confusion matrix of hidden against named: OUT.json and OUT.md.
+    DiscoverScore(DiscoverScoreArgs),
+}
+
+#[derive(Args)]
+pub(crate) struct DiscoverScoreArgs {
+    /// A dataset directory; repeatable, each paired with the --report at the same place.
+    #[arg(long, required = true)]
+    pub(crate) data: Vec<PathBuf>,
+    /// The `discover --out` directory of the dataset at the same place (its discover.json).
+    #[arg(long, required = true)]
+    pub(crate) report: Vec<PathBuf>,
+    /// Output path without extension: OUT.json (the score, format 1) and OUT.md.
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Print the score's JSON on stdout instead of the Markdown tables.
+    #[arg(long)]
+    pub(crate) json: bool,
 }
 
 #[derive(Args)]

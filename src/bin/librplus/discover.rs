@@ -535,3 +535,42 @@ fn report_md(doc: &Value) -> String {
     }
     s
 }
+
+/// `librplus discover-score`: every `discover` report against its dataset's truth.
+pub(crate) fn discover_score(a: &crate::args::DiscoverScoreArgs) -> Result<()> {
+    use librplus::eval::discover_score::{DiscoverScore, add_run, markdown, truths};
+    if a.data.len() != a.report.len() {
+        bail!(
+            "--data is given {} times and --report {} times: each dataset needs its report",
+            a.data.len(),
+            a.report.len()
+        );
+    }
+    let mut score = DiscoverScore::default();
+    for (data, report) in a.data.iter().zip(&a.report) {
+        let m = librplus::dataset::read_manifest(data)
+            .with_context(|| format!("--data {}", data.display()))?;
+        let path = report.join("discover.json");
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("--report {}: reading discover.json", report.display()))?;
+        let run: Value =
+            serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+        add_run(&mut score, &data.display().to_string(), &truths(&m), &run)
+            .map_err(anyhow::Error::msg)?;
+    }
+    let md = markdown(&score);
+    let json_path = a.out.with_extension("json");
+    let md_path = a.out.with_extension("md");
+    let mut text = serde_json::to_string_pretty(&score)?;
+    text.push('\n');
+    librplus::util::write_atomic(&json_path, text.as_bytes())
+        .with_context(|| format!("--out {}", json_path.display()))?;
+    librplus::util::write_atomic(&md_path, md.as_bytes())
+        .with_context(|| format!("--out {}", md_path.display()))?;
+    if a.json {
+        println!("{}", serde_json::to_string(&score)?);
+    } else {
+        print!("{md}");
+    }
+    Ok(())
+}

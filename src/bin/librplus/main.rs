@@ -130,6 +130,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Experiments(args) => experiments(&args),
         Command::Ensemble(args) => ensemble(&args),
         Command::Discover(args) => discover::discover(&args),
+        Command::DiscoverScore(args) => discover::discover_score(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,
