@@ -530,23 +530,13 @@ pub fn discover_cohort(
         // Screen: every kind searched on the current linearization; shape parameters by the
         // full fit (maximum likelihood).
         let mut screened: Vec<(Candidate, Vec<Candidate>, usize)> = Vec::new();
-        for (i, kind) in kinds.iter().enumerate() {
-            progress(&format!("round {round}: searching {kind}"), i, kinds.len());
-            in_time(params, &format!("searching {kind} (round {round})"))?;
-            let family = search_family(&ctx, &cur, *kind, &params.grid)?;
-            let Some(top) = family
-                .iter()
-                .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
-                .cloned()
-            else {
-                continue;
-            };
+        let mut consider = |top: Candidate, family: Vec<Candidate>| {
             let (z, t, gain) = paired(&cur.score, &top.score);
             let delta_bic = bic_change(&cur.score, &top.score, top.parameters);
             records.push(CandidateRecord {
                 round,
-                kind: kind.name().into(),
-                effect: top.effect.describe(),
+                kind: top.kinds(),
+                effect: top.describe(),
                 heldout_rms_mm: top.score.heldout_mse.sqrt(),
                 gain,
                 rank_z: z,
@@ -561,6 +551,42 @@ pub fn discover_cohort(
                 let at = records.len() - 1;
                 screened.push((top, family, at));
             }
+        };
+        let mut supports = Vec::new();
+        for (i, kind) in kinds.iter().enumerate() {
+            progress(&format!("round {round}: searching {kind}"), i, kinds.len());
+            in_time(params, &format!("searching {kind} (round {round})"))?;
+            let family = search_family(&ctx, &cur, *kind, &params.grid)?;
+            let Some(top) = family
+                .iter()
+                .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
+                .cloned()
+            else {
+                continue;
+            };
+            if kind.is_support() {
+                supports.push(top.clone());
+            }
+            consider(top, family);
+        }
+        // A load and what carries it are one signature: with neither in the model yet, each
+        // support's best is searched again with every load kind carried by it.
+        let loads: Vec<EffectKind> = kinds.iter().copied().filter(|k| k.is_load()).collect();
+        if !cur.physics.has_support() && !cur.physics.effects.iter().any(|e| e.kind.is_load()) {
+            for s in &supports {
+                progress(
+                    &format!("round {round}: pairs with {}", s.effect.kind),
+                    0,
+                    1,
+                );
+                in_time(
+                    params,
+                    &format!("pairs with {} (round {round})", s.effect.kind),
+                )?;
+                for (top, family) in pair_candidates(&ctx, &cur, s, &loads, &params.grid)? {
+                    consider(top, family);
+                }
+            }
         }
         // Confirm the most promising on their own linearization: each sweep registered again
         // with the augmented model, its misfit linearized at the new correspondences, and the
@@ -570,14 +596,10 @@ pub fn discover_cohort(
         screened.truncate(params.confirmations.max(1));
         let mut best: Option<(Confirmed, Candidate, Vec<Candidate>, f64, f64, f64)> = None;
         for (top, family, _) in screened {
-            progress(
-                &format!("round {round}: confirming {}", top.effect.kind),
-                0,
-                1,
-            );
+            progress(&format!("round {round}: confirming {}", top.kinds()), 0, 1);
             in_time(
                 params,
-                &format!("confirming {} (round {round})", top.effect.kind),
+                &format!("confirming {} (round {round})", top.kinds()),
             )?;
             let Some(conf) = confirm(&ctx, &prepared, sweeps, params, &cur, &top, progress)? else {
                 continue;
@@ -596,10 +618,14 @@ pub fn discover_cohort(
             if let Some(e) = conf.refitted.as_ref() {
                 effect = e.clone();
             }
+            let described = match &top.partner {
+                Some(p) => format!("{} + {}", p.describe(), effect.describe()),
+                None => effect.describe(),
+            };
             records.push(CandidateRecord {
                 round,
-                kind: top.effect.kind.name().into(),
-                effect: effect.describe(),
+                kind: top.kinds(),
+                effect: described,
                 heldout_rms_mm: conf.compared.1.heldout_mse.sqrt(),
                 gain,
                 rank_z: z,
@@ -627,6 +653,16 @@ pub fn discover_cohort(
             "round": round,
             "candidates_tried": family.len(),
         });
+        if let Some(p) = &top.partner {
+            // Named together: the support that carries the load, with the same evidence.
+            let mut with = evidence.clone();
+            with["named_with"] = serde_json::json!(effect.kind.name());
+            named.push(NamedEffect {
+                effect: p.clone(),
+                uncertainty: serde_json::json!({}),
+                evidence: with,
+            });
+        }
         named.push(NamedEffect {
             effect,
             uncertainty,
@@ -977,6 +1013,62 @@ fn search_family(
     Ok(out)
 }
 
+/// The pairs of a support candidate `support` (from [`search::evaluate_rebuilt`]) and each load
+/// kind of `loads` carried by it: the load's family searched on top of the supported model, its
+/// best returned as a candidate with the support as its partner, scored against the current
+/// model (both columns' parameters counted).
+fn pair_candidates(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    support: &Candidate,
+    loads: &[EffectKind],
+    grid: &SearchGrid,
+) -> Result<Vec<(Candidate, Vec<Candidate>)>, DiscoverError> {
+    let Some(basis) = support.basis.clone() else {
+        return Ok(Vec::new());
+    };
+    let physics = with_effect(&cur.physics, &support.effect);
+    let solver = std::sync::Arc::new(ModelSolver::new(
+        ctx.mesh,
+        &ctx.libr.material,
+        ctx.sites,
+        &physics,
+    )?);
+    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+    let supported = Current {
+        physics,
+        basis,
+        solver,
+        a,
+        prior,
+        amplitude: support
+            .amplitude
+            .clone()
+            .unwrap_or_else(|| cur.amplitude.clone()),
+        score: support.score.clone(),
+    };
+    let mut out = Vec::new();
+    for &kind in loads {
+        let family = search_family(ctx, &supported, kind, grid)?;
+        let Some(best) = family
+            .iter()
+            .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
+            .cloned()
+        else {
+            continue;
+        };
+        let top = Candidate {
+            partner: Some(support.effect.clone()),
+            parameters: best.parameters + support.parameters,
+            columns: None,
+            basis: None,
+            ..best
+        };
+        out.push((top, family));
+    }
+    Ok(out)
+}
+
 /// The spread of the shape parameters among the family's candidates the data cannot tell apart
 /// from the best (paired t below 2 against it), plus the amplitudes' standard deviations.
 fn shape_uncertainty(top: &Candidate, family: &[Candidate]) -> serde_json::Value {
@@ -1093,6 +1185,10 @@ fn confirm(
     let Some(first) = confirm_once(ctx, prepared, sweeps, params, cur, top, progress)? else {
         return Ok(None);
     };
+    if top.partner.is_some() {
+        // A pair's load was searched on top of its support: confirmed as found.
+        return Ok(Some(first));
+    }
     let (a, _) = basis_design(&first.rows, &cur.basis, ctx.libr.regularization);
     let Some(score) = cross_validate(
         &first.rows,
@@ -1161,7 +1257,10 @@ fn confirm_once(
     top: &Candidate,
     progress: &(dyn Fn(&str, usize, usize) + Sync),
 ) -> Result<Option<Confirmed>, DiscoverError> {
-    let physics = with_effect(&cur.physics, &top.effect);
+    let physics = match &top.partner {
+        Some(p) => with_effect(&with_effect(&cur.physics, p), &top.effect),
+        None => with_effect(&cur.physics, &top.effect),
+    };
     let basis = match &top.basis {
         Some(b) => b.clone(),
         None => match crate::register::libr::LibrBasis::build_with(

@@ -97,6 +97,9 @@ pub fn parameter_count(kind: EffectKind) -> usize {
 pub struct Candidate {
     /// The effect with its parameters (amplitudes from the full fit).
     pub effect: Effect,
+    /// A support evaluated with it (a load carried by it: a pair, [`super::pair_candidates`]);
+    /// `None` for a single effect.
+    pub partner: Option<Effect>,
     /// Cross-validated score of current + this effect.
     pub score: CvScore,
     /// Extra parameters (amplitudes + searched shape parameters), for the information criterion.
@@ -109,6 +112,24 @@ pub struct Candidate {
     pub basis: Option<LibrBasis>,
     /// The amplitude prior of the candidate's design.
     pub amplitude: Option<AmplitudePrior>,
+}
+
+impl Candidate {
+    /// Kinds, `+`-joined (the partner first).
+    pub fn kinds(&self) -> String {
+        match &self.partner {
+            Some(p) => format!("{}+{}", p.kind.name(), self.effect.kind.name()),
+            None => self.effect.kind.name().to_string(),
+        }
+    }
+
+    /// The effects, described (the partner first).
+    pub fn describe(&self) -> String {
+        match &self.partner {
+            Some(p) => format!("{} + {}", p.describe(), self.effect.describe()),
+            None => self.effect.describe(),
+        }
+    }
 }
 
 /// The design of a basis over the rows: row values and the prior `λ E / ē`.
@@ -206,6 +227,7 @@ pub fn evaluate_load(
     let new_cols = a.columns(m, k).into_owned();
     Ok(Some(Candidate {
         effect,
+        partner: None,
         score,
         parameters,
         amplitude_sd,
@@ -269,6 +291,7 @@ pub fn evaluate_rebuilt(
     };
     Ok(Some(Candidate {
         effect: effect.clone(),
+        partner: None,
         score,
         parameters: parameter_count(effect.kind),
         amplitude_sd: Vec::new(),

@@ -197,6 +197,64 @@ fn hidden_pressure_is_named_with_its_direction_and_magnitude() {
     assert!(d.heldout_after_mm < 0.5 * d.heldout_before_mm);
 }
 
+/// The organ's weight pressed into its bed (the bed carries it, as the generator's truths): both
+/// named, the bed with the weight (as a pair, or one after the other), gravity's direction
+/// within 15°, and the held-out misfit more than halved.
+#[test]
+fn gravity_carried_by_a_bed_is_named_with_its_bed() {
+    use crate::register::physics::model::{Carry, forward_with};
+    let (mesh, model) = organ();
+    let sites = Sites {
+        posterior: &model.posterior,
+        falciform: &model.falciform,
+    };
+    let g = crate::mesh::vec3::unit([0.2, 1.0, -0.2]);
+    let truth = Physics {
+        effects: vec![
+            Effect::new(EffectKind::BedSupport, &[("stiffness", &[0.07])]).unwrap(),
+            Effect::new(
+                EffectKind::Gravity,
+                &[("direction", &g), ("magnitude", &[0.0104])],
+            )
+            .unwrap(),
+        ],
+    };
+    let base = broad_load(&mesh, &model, 1, 0.5);
+    let p = params();
+    let u = forward_with(
+        &mesh,
+        &p.pipeline.libr.material,
+        sites,
+        &truth,
+        &base,
+        Carry::Supports,
+    )
+    .unwrap();
+    let peak = u
+        .chunks_exact(3)
+        .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
+        .fold(0.0, f64::max);
+    assert!(peak > 3.0 && peak < 60.0, "peak displacement {peak} mm");
+    let cohort = sweeps(&mesh, &model, &u, 4, 0.05, 3);
+    let d = discover_cohort(&model, &cohort, &p, None, &quiet).unwrap();
+    eprintln!("{}", serde_json::to_string_pretty(&d).unwrap());
+    let kinds: Vec<EffectKind> = d.effects.iter().map(|n| n.effect.kind).collect();
+    assert!(
+        kinds.contains(&EffectKind::Gravity) && kinds.contains(&EffectKind::BedSupport),
+        "{kinds:?}: {:?}",
+        d.candidates
+    );
+    let e = &d
+        .effects
+        .iter()
+        .find(|n| n.effect.kind == EffectKind::Gravity)
+        .unwrap()
+        .effect;
+    let angle = search::angle_deg(e.direction("direction"), g);
+    assert!(angle < 15.0, "direction off by {angle}°");
+    assert!(d.heldout_after_mm < 0.5 * d.heldout_before_mm);
+}
+
 /// Nothing hidden (the truth is a load LIBR's own basis holds): no missing effect.
 #[test]
 fn nothing_hidden_names_nothing() {
