@@ -557,11 +557,7 @@ pub fn discover_cohort(
             progress(&format!("round {round}: searching {kind}"), i, kinds.len());
             in_time(params, &format!("searching {kind} (round {round})"))?;
             let family = search_family(&ctx, &cur, *kind, &params.grid)?;
-            let Some(top) = family
-                .iter()
-                .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
-                .cloned()
-            else {
+            let Some(top) = search::best_fit(&family) else {
                 continue;
             };
             if kind.is_support() {
@@ -1050,11 +1046,7 @@ fn pair_candidates(
     let mut out = Vec::new();
     for &kind in loads {
         let family = search_family(ctx, &supported, kind, grid)?;
-        let Some(best) = family
-            .iter()
-            .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
-            .cloned()
-        else {
+        let Some(best) = search::best_fit(&family) else {
             continue;
         };
         let top = Candidate {
@@ -1214,17 +1206,14 @@ fn confirm(
         ..*ctx
     };
     let family = search_family(&ctx2, &there, top.effect.kind, &params.grid)?;
-    let Some(top2) = family
-        .iter()
-        .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
-    else {
+    let Some(top2) = search::best_fit(&family) else {
         return Ok(Some(first));
     };
     if same_shape(&top2.effect, &top.effect) {
         return Ok(Some(first));
     }
     // A rebuilt candidate's basis was built for the plain rows' search; it is the same basis.
-    let Some(second) = confirm_once(ctx, prepared, sweeps, params, cur, top2, progress)? else {
+    let Some(second) = confirm_once(ctx, prepared, sweeps, params, cur, &top2, progress)? else {
         return Ok(Some(first));
     };
     let gain = |c: &Confirmed| paired(&c.compared.0, &c.compared.1).2;

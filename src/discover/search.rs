@@ -132,6 +132,15 @@ impl Candidate {
     }
 }
 
+/// The candidate of a family that fits the data best (least full-fit misfit: maximum
+/// likelihood for its shape parameters).
+pub fn best_fit(family: &[Candidate]) -> Option<Candidate> {
+    family
+        .iter()
+        .min_by(|a, b| a.score.full_rss.total_cmp(&b.score.full_rss))
+        .cloned()
+}
+
 /// The design of a basis over the rows: row values and the prior `λ E / ē`.
 pub fn basis_design(
     rows: &CohortRows,
