@@ -1009,6 +1009,19 @@ fn search_family(
     Ok(out)
 }
 
+/// The factorized model of `physics` on the case (for load columns on top of it).
+fn solver_for(
+    ctx: &SearchContext<'_>,
+    physics: &Physics,
+) -> Result<std::sync::Arc<ModelSolver>, DiscoverError> {
+    Ok(std::sync::Arc::new(ModelSolver::new(
+        ctx.mesh,
+        &ctx.libr.material,
+        ctx.sites,
+        physics,
+    )?))
+}
+
 /// The pairs of a support candidate `support` (from [`search::evaluate_rebuilt`]) and each load
 /// kind of `loads` carried by it: the load's family searched on top of the supported model, its
 /// best returned as a candidate with the support as its partner, scored against the current
@@ -1024,12 +1037,7 @@ fn pair_candidates(
         return Ok(Vec::new());
     };
     let physics = with_effect(&cur.physics, &support.effect);
-    let solver = std::sync::Arc::new(ModelSolver::new(
-        ctx.mesh,
-        &ctx.libr.material,
-        ctx.sites,
-        &physics,
-    )?);
+    let solver = solver_for(ctx, &physics)?;
     let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
     let supported = Current {
         physics,
@@ -1340,12 +1348,7 @@ fn confirm_once(
     } else {
         None
     };
-    let solver = std::sync::Arc::new(ModelSolver::new(
-        ctx.mesh,
-        &ctx.libr.material,
-        ctx.sites,
-        &physics,
-    )?);
+    let solver = solver_for(ctx, &physics)?;
     Ok(Some(Confirmed {
         physics: physics.clone(),
         current: Current {
