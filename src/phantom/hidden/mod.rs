@@ -490,7 +490,8 @@ pub fn libr_truth(
         .to_string();
     let displacement = if physics.is_empty() {
         libr.clone()
-    } else if physics.has_support() {
+    } else {
+        // Non-empty physics always holds a support here ([`with_carriers`]).
         let [b, e] = forward_supported_parts(mesh, material, sites.sites(), &physics, &base)
             .map_err(PhantomError::Model)?;
         let peak = e
@@ -509,8 +510,6 @@ pub fn libr_truth(
             ));
         }
         b.iter().zip(&e).map(|(x, y)| x + s * y).collect()
-    } else {
-        solve_libr(mesh, material, &sites, &physics, &base)?
     };
     if !replaced.is_empty() {
         note.push_str("; ");
