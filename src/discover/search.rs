@@ -97,7 +97,7 @@ pub fn parameter_count(kind: EffectKind) -> usize {
 pub struct Candidate {
     /// The effect with its parameters (amplitudes from the full fit).
     pub effect: Effect,
-    /// A support evaluated with it (a load carried by it: a pair, [`super::pair_candidates`]);
+    /// A support evaluated with it (a load carried by it: a pair, `pair_candidates` in the discover module);
     /// `None` for a single effect.
     pub partner: Option<Effect>,
     /// Cross-validated score of current + this effect.
