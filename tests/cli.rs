@@ -347,7 +347,10 @@ fn discover_never_reads_the_hidden_effect_record_and_register_carries_its_physic
     let first = run("a");
     assert_eq!(first["format"], 1);
     let c = &first["cohorts"][0];
-    assert!(["effects", "none", "unexplained"].contains(&c["verdict"].as_str().unwrap()));
+    assert!(
+        ["effects", "none", "refine-loads", "unexplained"]
+            .contains(&c["verdict"].as_str().unwrap())
+    );
     for k in ["before", "after"] {
         assert!(c["heldout_misfit_mm"][k].as_f64().unwrap().is_finite());
         assert!(c["tre_mm"][k].as_f64().unwrap().is_finite());

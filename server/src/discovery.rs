@@ -269,6 +269,7 @@ fn done_report(req: &Request, found: &CohortDiscovery, n: usize) -> pb::Discover
         Verdict::Effects => "effects",
         Verdict::None => "none",
         Verdict::Unexplained => "unexplained",
+        Verdict::RefineLoads => "refine-loads",
     };
     let message = match found.verdict {
         Verdict::Effects => String::new(),
@@ -279,6 +280,10 @@ fn done_report(req: &Request, found: &CohortDiscovery, n: usize) -> pb::Discover
         Verdict::Unexplained => format!(
             "the points disagree with the model beyond noise (held-out misfit {:.2} mm, noise floor {:.2} mm) but no effect in the library explains it; the model is unchanged",
             found.heldout_before_mm, found.noise_floor_mm
+        ),
+        Verdict::RefineLoads => format!(
+            "the points ask for richer surface loads than the model's prior allows (held-out misfit {:.2} mm at its λ, {:.2} mm with a weaker prior) and no physical effect adds to them; the model is unchanged",
+            found.heldout_at_lambda_mm, found.heldout_before_mm
         ),
     };
     pb::DiscoveryReport {

@@ -23,8 +23,11 @@
 //!    beats the current model on the held-out blocks significantly (a paired comparison over
 //!    the sweep × block units: Wilcoxon signed-rank z above [`DiscoverParams::z_threshold`]), by a practical margin
 //!    ([`DiscoverParams::min_gain`]) and by the Bayesian information criterion; then the next is
-//!    tried on top (forward selection). Verdicts: named effects, no missing effect, or an
-//!    unexplained discrepancy (real, but no candidate explains it).
+//!    tried on top (forward selection). Every model is compared at its own cross-validated
+//!    prior weight ([`cv::PRIOR_SCALES`], reaching below LIBR's λ). Verdicts: named effects;
+//!    `refine-loads` (LIBR's loads under a weaker prior than λ explain the misfit, nothing
+//!    physical adds to them); no missing effect; or an unexplained discrepancy (real, but no
+//!    candidate explains it).
 //! 4. **Add**: the named effects are a [`Physics`] (`physics.json`) that `register --physics`
 //!    carries.
 
@@ -230,6 +233,11 @@ pub enum Verdict {
     None,
     /// Real discrepancy, no candidate explains it.
     Unexplained,
+    /// Richer surface loads explain the misfit (LIBR's loads under a weaker strain-energy prior
+    /// than registration's λ) and no physical kind adds to them: the load model is too stiff
+    /// here, no physical effect is missing.
+    #[serde(rename = "refine-loads")]
+    RefineLoads,
 }
 
 /// A named effect with its evidence.
@@ -316,6 +324,12 @@ pub struct CohortDiscovery {
     pub null_max_mm: f64,
     /// Whether the data disagree with plain LIBR beyond noise.
     pub beyond_noise: bool,
+    /// Held-out RMS misfit (mm) of plain LIBR at registration's own λ (the prior weight 1; the
+    /// comparisons use each model's cross-validated weight, [`cv::PRIOR_SCALES`]).
+    pub heldout_at_lambda_mm: f64,
+    /// Whether plain LIBR under a weaker prior than λ lowers that held-out misfit by the naming
+    /// rule's z and gain: the data ask for richer surface loads than registration allows.
+    pub richer_loads: bool,
     /// Spatial blocks.
     pub regions: Vec<RegionMisfit>,
     /// Every candidate scored.
@@ -509,6 +523,34 @@ pub fn discover_cohort(
     let mut cur_rows = rows.clone();
     let mut records = Vec::new();
     let mut named: Vec<NamedEffect> = Vec::new();
+    // Richer loads: does plain LIBR under a weaker prior than registration's λ explain more?
+    let at_lambda = cv::cross_validate_at(
+        &rows,
+        &Design {
+            a: &base_a,
+            prior: &base_prior,
+            amplitude: &AmplitudePrior::none(base_a.ncols()),
+        },
+        1.0,
+    );
+    let mut richer_loads = false;
+    if let Some(l) = at_lambda.as_ref().filter(|_| base_score.prior_scale < 1.0) {
+        let (z, t, gain) = paired(l, &base_score);
+        richer_loads = z > params.z_threshold && gain > params.min_gain;
+        records.push(CandidateRecord {
+            round: 0,
+            kind: "refine-loads".into(),
+            effect: format!("LIBR's loads at {} × λ (against λ)", base_score.prior_scale),
+            heldout_rms_mm: before_rms,
+            gain,
+            rank_z: z,
+            t,
+            delta_bic: f64::NAN,
+            relinearized: false,
+            significant: richer_loads,
+        });
+    }
+    let heldout_at_lambda_mm = at_lambda.map_or(before_rms, |l| l.heldout_mse.sqrt());
     for round in 0..params.max_effects {
         let kinds: Vec<EffectKind> = params
             .kinds
@@ -590,7 +632,7 @@ pub fn discover_cohort(
         // the correspondences plain LIBR converged to; rows linearized there understate it).
         screened.sort_by(|a, b| records[b.2].gain.total_cmp(&records[a.2].gain));
         screened.truncate(params.confirmations.max(1));
-        let mut best: Option<(Confirmed, Candidate, Vec<Candidate>, f64, f64, f64)> = None;
+        let mut passing: Vec<(Confirmed, Candidate, Vec<Candidate>, f64, f64, f64)> = Vec::new();
         for (top, family, _) in screened {
             progress(&format!("round {round}: confirming {}", top.kinds()), 0, 1);
             in_time(
@@ -630,10 +672,11 @@ pub fn discover_cohort(
                 relinearized: true,
                 significant,
             });
-            if significant && best.as_ref().is_none_or(|b| gain > b.4) {
-                best = Some((conf, top, family, z, gain, delta_bic));
+            if significant {
+                passing.push((conf, top, family, z, gain, delta_bic));
             }
         }
+        let best = passing.into_iter().max_by(|a, b| a.4.total_cmp(&b.4));
         let Some((conf, top, family, z, gain, delta_bic)) = best else {
             break;
         };
@@ -699,6 +742,8 @@ pub fn discover_cohort(
     let regions = region_table(&rows, model, &before_s, &after_s);
     let verdict = if !named.is_empty() {
         Verdict::Effects
+    } else if richer_loads {
+        Verdict::RefineLoads
     } else if beyond_noise {
         Verdict::Unexplained
     } else {
@@ -715,6 +760,8 @@ pub fn discover_cohort(
         noise_floor_mm,
         null_max_mm,
         beyond_noise,
+        heldout_at_lambda_mm,
+        richer_loads,
         regions,
         candidates: records,
         rows: rows.rows.len(),
@@ -1337,7 +1384,7 @@ fn confirm_once(
                 let amp: Vec<f64> = (0..k)
                     .map(|i| score.coef[j + i] * basis.load_scale[j + i])
                     .collect();
-                let Some(e) = search::with_amplitudes(e, amp) else {
+                let Some(e) = search::with_amplitudes(e, amp, &physics) else {
                     return Ok(None);
                 };
                 out = Some(e);

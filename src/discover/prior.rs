@@ -12,6 +12,9 @@
 //! | `pressure` | `magnitude_kpa` 1.4 ± 0.6 kPa | faces within 90° of anterior (−y) | pneumoperitoneum 7–14 mmHg (0.93–1.87 kPa) |
 //! | `pack` | force along the inward normal 5000 ± 3000 mN, across it 0 ± 2500 mN | – | swabs and retractors push a few newtons (2–8 N) |
 //!
+//! Gravity carried only by local supports (a fixation patch, the falciform ligament; no bed) may
+//! be a share of the weight, down to 10 % of ρg: the neighbouring organs carry the rest.
+//!
 //! The frame is the product's (LPS: anterior −y). The patient lies supine or on the side during
 //! liver surgery, never prone, so the organ's weight points posteriorly within 90°, and the
 //! insufflated space is anterior.
@@ -45,11 +48,36 @@ pub fn plausible_amplitude(kind: EffectKind) -> Option<(f64, f64)> {
     }
 }
 
+/// The smallest share of the organ's weight a local support (a fixation patch, the falciform
+/// ligament) carries when no bed does: the neighbouring organs carry the rest, up to 90 %.
+pub const LOCAL_WEIGHT_SHARE: f64 = 0.1;
+
 /// Whether a load effect's fitted amplitude is of a plausible size (always for other kinds).
 pub fn amplitude_plausible(effect: &Effect) -> bool {
-    let Some((lo, hi)) = plausible_amplitude(effect.kind) else {
+    amplitude_plausible_on(effect, &crate::register::physics::Physics::none())
+}
+
+/// [`amplitude_plausible`] for a load carried by the supports of `physics`: where only local
+/// supports (fixation, ligament) carry it, the weight they carry may be a share of the organ's
+/// weight down to [`LOCAL_WEIGHT_SHARE`] of its lower physical value.
+pub fn amplitude_plausible_on(
+    effect: &Effect,
+    physics: &crate::register::physics::Physics,
+) -> bool {
+    let Some((mut lo, hi)) = plausible_amplitude(effect.kind) else {
         return true;
     };
+    let local_only = physics
+        .effects
+        .iter()
+        .any(|e| matches!(e.kind, EffectKind::Fixation | EffectKind::Ligament))
+        && !physics
+            .effects
+            .iter()
+            .any(|e| e.kind == EffectKind::BedSupport);
+    if effect.kind == EffectKind::Gravity && local_only {
+        lo = LOCAL_WEIGHT_SHARE * 0.8 * GRAVITY_MAGNITUDE;
+    }
     let Some((name, _)) = effect.kind.amplitude() else {
         return true;
     };

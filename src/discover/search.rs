@@ -226,7 +226,7 @@ pub fn evaluate_load(
         .collect();
     let name = effect.kind.amplitude().map_or("", |(n, _)| n);
     let parameters = parameter_count(effect.kind);
-    let Some(effect) = with_amplitudes(effect, amp) else {
+    let Some(effect) = with_amplitudes(effect, amp, &cur.physics) else {
         return Ok(None);
     };
     let amplitude_sd = vec![(
@@ -247,13 +247,14 @@ pub fn evaluate_load(
 }
 
 /// A load effect with its fitted amplitudes (in its parameter's unit), or `None` when they are
-/// outside the kind's valid or physically plausible range ([`super::prior`]): a negative weight or
-/// a force of tons is not that effect.
-pub fn with_amplitudes(effect: &Effect, amp: Vec<f64>) -> Option<Effect> {
+/// outside the kind's valid or physically plausible range ([`super::prior`]) for a load carried
+/// by `carried_by`'s supports: a negative weight or a force of tons is not that effect.
+pub fn with_amplitudes(effect: &Effect, amp: Vec<f64>, carried_by: &Physics) -> Option<Effect> {
     let (name, _) = effect.kind.amplitude()?;
     let mut e = effect.clone();
     e.parameters.insert(name.to_string(), amp);
-    (e.validate("candidate").is_ok() && super::prior::amplitude_plausible(&e)).then_some(e)
+    (e.validate("candidate").is_ok() && super::prior::amplitude_plausible_on(&e, carried_by))
+        .then_some(e)
 }
 
 /// Evaluates a stiffness effect (support or inclusion) by rebuilding the basis with it.

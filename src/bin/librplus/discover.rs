@@ -415,6 +415,8 @@ fn cohort_json(id: &str, f: &CohortDiscovery, physics: Value, tre: Option<(f64, 
         "noise_floor_mm": f.noise_floor_mm,
         "null_max_mm": f.null_max_mm,
         "beyond_noise": f.beyond_noise,
+        "heldout_at_lambda_mm": f.heldout_at_lambda_mm,
+        "richer_loads": f.richer_loads,
         "sweeps": f.sweeps,
         "rows": f.rows,
         "regions": f.regions,
@@ -451,7 +453,7 @@ fn summary_json(entries: &[Value]) -> Value {
     };
     json!({
         "cohorts": entries.len(),
-        "verdicts": {"effects": count("effects"), "none": count("none"), "unexplained": count("unexplained")},
+        "verdicts": {"effects": count("effects"), "none": count("none"), "refine-loads": count("refine-loads"), "unexplained": count("unexplained")},
         "named": named,
         "heldout_misfit_mm": {"before": mean(["heldout_misfit_mm", "before"]), "after": mean(["heldout_misfit_mm", "after"])},
         "tre_mm": {"before": mean(["tre_mm", "before"]), "after": mean(["tre_mm", "after"])},
@@ -463,10 +465,11 @@ fn report_md(doc: &Value) -> String {
     let sum = &doc["summary"];
     let _ = writeln!(
         s,
-        "{} cohorts: {} with named effects, {} with no missing effect, {} unexplained. Mean held-out misfit {:.2} → {:.2} mm; mean TRE {:.2} → {:.2} mm.\n",
+        "{} cohorts: {} with named effects, {} with no missing effect, {} where finer surface loads explain the misfit, {} unexplained. Mean held-out misfit {:.2} → {:.2} mm; mean TRE {:.2} → {:.2} mm.\n",
         sum["cohorts"],
         sum["verdicts"]["effects"],
         sum["verdicts"]["none"],
+        sum["verdicts"]["refine-loads"],
         sum["verdicts"]["unexplained"],
         sum["heldout_misfit_mm"]["before"]
             .as_f64()
