@@ -505,3 +505,72 @@ fn walk(dir: &std::path::Path) -> Vec<PathBuf> {
     }
     out
 }
+
+/// `discover-study` by one command (the control left out to keep it short): a dataset per kind
+/// and scale, each discovered and scored;
+/// study.json holds one point per dataset whose counts add up, the two curves are PNGs, a second
+/// run reuses every step, and bad options are refused with the option named.
+#[test]
+fn discover_study_makes_its_curves_by_one_command() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("study");
+    let o = out.display().to_string();
+    let args = [
+        "discover-study",
+        "--out",
+        &o,
+        "--seed",
+        "41",
+        "--kinds",
+        "gravity",
+        "--scales",
+        "1",
+        "--geometries",
+        "1",
+        "--deformations",
+        "1",
+        "--scenarios",
+        "3",
+        "--no-control",
+        "--json",
+    ];
+    let v = json(&args);
+    assert_eq!(v["format"], 1);
+    let points = v["points"].as_array().unwrap();
+    assert_eq!(points.len(), 1, "gravity at scale 1: {v}");
+    let cohorts: u64 = points.iter().map(|p| p["cohorts"].as_u64().unwrap()).sum();
+    assert_eq!(
+        cohorts as usize,
+        v["score"]["cohorts"].as_array().unwrap().len()
+    );
+    for p in points {
+        let (n, d) = (
+            p["cohorts"].as_u64().unwrap(),
+            p["detectable"].as_u64().unwrap(),
+        );
+        assert!(n > 0 && d <= n && p["right"].as_u64().unwrap() <= n, "{p}");
+    }
+    assert_eq!(v["kinds"][0]["kind"], "gravity");
+    for f in [
+        "study.md",
+        "named.png",
+        "detectable.png",
+        "data/gravity-x1/manifest.json",
+    ] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    // Every step's output exists: the second run only scores, and scores the same.
+    let report = out.join("reports/gravity-x1/discover.json");
+    let written = std::fs::metadata(&report).unwrap().modified().unwrap();
+    assert_eq!(json(&args)["points"], v["points"]);
+    assert_eq!(
+        std::fs::metadata(&report).unwrap().modified().unwrap(),
+        written
+    );
+    for (bad, field) in [("--scales", "0"), ("--kinds", "nonsense")] {
+        let mut a: Vec<&str> = vec!["discover-study", "--out", &o];
+        a.extend([bad, field]);
+        let (ok, _, err) = librplus(&a);
+        assert!(!ok && err.contains(bad), "{err}");
+    }
+}

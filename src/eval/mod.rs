@@ -70,6 +70,7 @@ pub mod bench;
 pub mod calibrate_error;
 pub mod detectability;
 pub mod discover_score;
+pub mod discover_study;
 mod error;
 pub use error::EvalError;
 pub mod experiments;

@@ -67,6 +67,45 @@ pub(crate) enum Command {
     /// libr --hidden-effect ...`): per hidden kind and oracle detectability, how often the right
     /// kind was named, and the confusion matrix of hidden against named: OUT.json and OUT.md.
     DiscoverScore(DiscoverScoreArgs),
+    /// Detectability curves: for each kind and amplitude scale, generates a hidden-effect dataset
+    /// (and one with nothing hidden), runs `discover` on it and scores it: OUT/study.json,
+    /// OUT/study.md (with the confusion matrix), OUT/named.png and OUT/detectable.png.
+    DiscoverStudy(DiscoverStudyArgs),
+}
+
+#[derive(Args)]
+pub(crate) struct DiscoverStudyArgs {
+    /// Output directory (datasets under data/, discover reports under reports/; both are kept,
+    /// and a step whose output exists is not run again).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// Dataset preset (`small` or `paper`).
+    #[arg(long, default_value = "small")]
+    pub(crate) preset: String,
+    /// Seed of every dataset (use one not used in development).
+    #[arg(long, default_value_t = 9001)]
+    pub(crate) seed: u64,
+    /// Kinds, comma-separated (default: every kind the generator makes).
+    #[arg(long)]
+    pub(crate) kinds: Option<String>,
+    /// Amplitude scales, comma-separated (`--hidden-effect KIND:scale=F`).
+    #[arg(long, default_value = "0.25,0.5,1,2")]
+    pub(crate) scales: String,
+    /// Geometries per dataset.
+    #[arg(long, default_value_t = 2)]
+    pub(crate) geometries: usize,
+    /// Deformations (cohorts) per geometry.
+    #[arg(long, default_value_t = 3)]
+    pub(crate) deformations: usize,
+    /// Scenarios (sweeps) per cohort.
+    #[arg(long, default_value_t = 10)]
+    pub(crate) scenarios: usize,
+    /// Skip the dataset with nothing hidden (the negative control).
+    #[arg(long)]
+    pub(crate) no_control: bool,
+    /// Print the study's JSON on stdout instead of the Markdown tables.
+    #[arg(long)]
+    pub(crate) json: bool,
 }
 
 #[derive(Args)]

@@ -15,6 +15,7 @@ mod experiments;
 mod fem;
 mod mesh;
 mod register;
+mod study;
 mod train;
 mod train_v2s;
 mod util;
@@ -131,6 +132,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Ensemble(args) => ensemble(&args),
         Command::Discover(args) => discover::discover(&args),
         Command::DiscoverScore(args) => discover::discover_score(&args),
+        Command::DiscoverStudy(args) => study::discover_study(&args),
         Command::Phantom(PhantomCmd::Effect {
             surface,
             edge_mm,

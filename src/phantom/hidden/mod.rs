@@ -57,6 +57,32 @@ pub struct HiddenEffectSpec {
     pub kind: EffectKind,
     /// Parameters fixed on the command line, each checked against the kind's valid range.
     pub given: BTreeMap<String, Vec<f64>>,
+    /// Multiplies the effect's amplitude, drawn or given ([`scale_amplitude`]; `scale=F` on the
+    /// command line, in (0, 10]); 1 by default. For detectability studies.
+    pub scale: f64,
+}
+
+/// Largest `scale` of a hidden effect.
+pub const MAX_SCALE: f64 = 10.0;
+
+/// The effect with its amplitude multiplied by `s`: a load's `magnitude`, `magnitude_kpa` or
+/// `force_mn`, a support's `stiffness`, an inclusion's excess stiffness (`stiffness_ratio` − 1).
+pub fn scale_amplitude(effect: &mut Effect, s: f64) {
+    let (name, excess) = match effect.kind {
+        EffectKind::Gravity => ("magnitude", false),
+        EffectKind::Pressure => ("magnitude_kpa", false),
+        EffectKind::Pack => ("force_mn", false),
+        EffectKind::BedSupport | EffectKind::Fixation | EffectKind::Ligament => {
+            ("stiffness", false)
+        }
+        EffectKind::Inclusion => ("stiffness_ratio", true),
+        EffectKind::Nonlinear => return,
+    };
+    if let Some(v) = effect.parameters.get_mut(name) {
+        for x in v.iter_mut() {
+            *x = if excess { 1.0 + s * (*x - 1.0) } else { s * *x };
+        }
+    }
 }
 
 impl HiddenEffectSpec {
@@ -64,7 +90,28 @@ impl HiddenEffectSpec {
     /// the known ones), an unknown or out-of-range parameter (by name), and `nonlinear`, which
     /// the generator cannot make yet.
     pub fn parse(text: &str) -> Result<Self, PhantomError> {
-        let (kind, given) = Effect::parse_partial(text).map_err(PhantomError::Model)?;
+        // `scale=F` is the generator's, not the effect's: taken out before the effect's own.
+        let (head, rest) = text.split_once(':').unwrap_or((text, ""));
+        let mut scale = 1.0;
+        let mut kept = Vec::new();
+        for item in rest.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            match item.split_once('=') {
+                Some(("scale", v)) => {
+                    scale = v.trim().parse::<f64>().ok().filter(|x| *x > 0.0 && *x <= MAX_SCALE).ok_or_else(|| {
+                        PhantomError::Parameter(format!(
+                            "hidden effect {text:?}: scale: {v:?} is not a number in (0, {MAX_SCALE}]"
+                        ))
+                    })?;
+                }
+                _ => kept.push(item),
+            }
+        }
+        let effect_text = if kept.is_empty() {
+            head.to_string()
+        } else {
+            format!("{head}:{}", kept.join(","))
+        };
+        let (kind, given) = Effect::parse_partial(&effect_text).map_err(PhantomError::Model)?;
         if kind == EffectKind::Nonlinear {
             return Err(PhantomError::Parameter(format!(
                 "hidden effect {text:?}: `nonlinear` is not generated yet: the augmented model \
@@ -80,13 +127,18 @@ impl HiddenEffectSpec {
             spec.check(&field, v)
                 .map_err(|e| PhantomError::Parameter(e.to_string()))?;
         }
-        Ok(Self { kind, given })
+        Ok(Self { kind, given, scale })
     }
 
-    /// `{"kind", "given": {name: number or [x, y, z]}}`, as the dataset's parameters record it.
+    /// `{"kind", "given": {name: number or [x, y, z]}}`, as the dataset's parameters record it,
+    /// with `"scale"` where it is not 1.
     pub fn to_value(&self) -> serde_json::Value {
         let given = crate::register::physics::parameters_json(&self.given);
-        serde_json::json!({"kind": self.kind.name(), "given": given})
+        let mut v = serde_json::json!({"kind": self.kind.name(), "given": given});
+        if self.scale != 1.0 {
+            v["scale"] = serde_json::json!(self.scale);
+        }
+        v
     }
 }
 
@@ -302,10 +354,13 @@ fn draw_effect(
     for (k, v) in &spec.given {
         parameters.insert(k.clone(), v.clone());
     }
-    let effect = Effect {
+    let mut effect = Effect {
         kind: spec.kind,
         parameters,
     };
+    if spec.scale != 1.0 {
+        scale_amplitude(&mut effect, spec.scale);
+    }
     effect
         .validate(&format!("hidden effect {}", spec.kind))
         .map_err(PhantomError::Model)?;
@@ -416,6 +471,7 @@ fn with_carriers(
         let spec = HiddenEffectSpec {
             kind,
             given: BTreeMap::new(),
+            scale: 1.0,
         };
         let e = draw_effect(&ctx, &spec, derive(seed, &[HIDDEN_EFFECT_STREAM, stream]))?;
         physics.effects.push(e);

@@ -43,6 +43,51 @@ fn specs_parse_check_ranges_and_refuse_nonlinear() {
     assert!(e.contains("direction"), "{e}");
 }
 
+/// `scale=F` multiplies each kind's amplitude and nothing else (the same draws otherwise); it is
+/// recorded with the spec, and a bad value is an error naming `scale`.
+#[test]
+fn scale_multiplies_the_amplitude_and_nothing_else() {
+    let (mesh, labels) = liver();
+    let amplitude = |k: EffectKind| match k {
+        EffectKind::Gravity => "magnitude",
+        EffectKind::Pressure => "magnitude_kpa",
+        EffectKind::Pack => "force_mn",
+        EffectKind::Inclusion => "stiffness_ratio",
+        _ => "stiffness",
+    };
+    for k in KINDS {
+        let one = draw_physics(&[spec(k.name())], mesh, labels, 3).unwrap();
+        let half = spec(&format!("{}:scale=0.5", k.name()));
+        assert_eq!(half.scale, 0.5);
+        assert_eq!(half.to_value()["scale"], 0.5);
+        let half = draw_physics(&[half], mesh, labels, 3).unwrap();
+        let (a, b) = (&one.effects[0], &half.effects[0]);
+        let name = amplitude(k);
+        for (key, v) in &a.parameters {
+            let w = &b.parameters[key];
+            if key == name {
+                for (x, y) in v.iter().zip(w) {
+                    let want = if k == EffectKind::Inclusion {
+                        1.0 + 0.5 * (x - 1.0)
+                    } else {
+                        0.5 * x
+                    };
+                    assert!((y - want).abs() <= 1e-12 * want.abs().max(1.0), "{k} {key}");
+                }
+            } else {
+                assert_eq!(v, w, "{k} {key}");
+            }
+        }
+    }
+    for bad in ["gravity:scale=0", "gravity:scale=11", "gravity:scale=x"] {
+        let e = HiddenEffectSpec::parse(bad).unwrap_err().to_string();
+        assert!(e.contains("scale"), "{e}");
+    }
+    let s = spec("gravity:magnitude=0.01,scale=2");
+    assert_eq!(s.given["magnitude"], vec![0.01]);
+    assert_eq!(s.scale, 2.0);
+}
+
 /// The built-in liver at 14 mm (the small preset's edge), labelled; built once.
 fn liver() -> &'static (TetMesh, AnatomyLabels) {
     static LIVER: std::sync::OnceLock<(TetMesh, AnatomyLabels)> = std::sync::OnceLock::new();
