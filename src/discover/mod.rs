@@ -367,6 +367,46 @@ pub fn discover_cohort(
     progress: &(dyn Fn(&str, usize, usize) + Sync),
 ) -> Result<CohortDiscovery, DiscoverError> {
     let t0 = Instant::now();
+    let found = find(model, sweeps, params, cache_dir, progress)?;
+    let t2 = Instant::now();
+    let named = name(model, sweeps, params, &found, progress)?;
+    let name_s = crate::util::secs(t2);
+    Ok(show(model, sweeps, found, named, name_s, t0))
+}
+
+/// What the find stage leaves for naming: the plain model's registrations, rows and
+/// cross-validated score, the noise floor, and whether the data disagree beyond noise.
+struct Found {
+    prepared: Prepared,
+    plain: Vec<crate::pipeline::Registration>,
+    rows: CohortRows,
+    geom: BoundaryGeometry,
+    basis: crate::register::libr::LibrBasis,
+    a: nalgebra::DMatrix<f64>,
+    prior: nalgebra::DMatrix<f64>,
+    base_score: CvScore,
+    noise_floor_mm: f64,
+    noise_var: f64,
+    null_max_mm: f64,
+    beyond_noise: bool,
+    heldout_at_lambda_mm: f64,
+    richer_loads: bool,
+    /// The `refine-loads` record, where LIBR's loads cross-validate best under a weaker prior.
+    refine_record: Option<CandidateRecord>,
+    register_s: f64,
+    find_s: f64,
+}
+
+/// Steps 1 and 2: registers every sweep with plain LIBR, linearizes, cross-validates plain LIBR,
+/// estimates the noise floor and the bootstrap null, and asks whether richer loads explain more.
+fn find(
+    model: &PreopModel,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+    cache_dir: Option<&Path>,
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+) -> Result<Found, DiscoverError> {
+    let t0 = Instant::now();
     if sweeps.is_empty() {
         return Err(DiscoverError::Input(
             "cohort: no scenarios (a cohort needs at least 2 sweeps of one deformed state)".into(),
@@ -429,10 +469,6 @@ pub fn discover_cohort(
     };
     // Base model.
     let geom = BoundaryGeometry::new(&model.mesh)?;
-    let sites = Sites {
-        posterior: &model.posterior,
-        falciform: &model.falciform,
-    };
     let libr = &params.pipeline.libr;
     let basis = prepared
         .basis
@@ -501,35 +537,14 @@ pub fn discover_cohort(
     let beyond_noise = before_rms > null_max_mm && before_rms > 1.25 * noise_floor_mm;
     let find_s = crate::util::secs(t1);
     in_time(params, "testing the misfit against noise")?;
-    // 3. Name: forward selection.
-    let t2 = Instant::now();
-    let solver = std::sync::Arc::new(ModelSolver::new(
-        &model.mesh,
-        &libr.material,
-        sites,
-        &Physics::none(),
-    )?);
-    let (base_a, base_prior) = (a.clone(), prior.clone());
-    let mut cur = Current {
-        physics: Physics::none(),
-        basis,
-        solver,
-        a,
-        prior,
-        amplitude: no_amplitude,
-        score: base_score.clone(),
-    };
-    // The rows the current model is linearized at: its own registrations' correspondences.
-    let mut cur_rows = rows.clone();
     let mut records = Vec::new();
-    let mut named: Vec<NamedEffect> = Vec::new();
     // Richer loads: does plain LIBR under a weaker prior than registration's λ explain more?
     let at_lambda = cv::cross_validate_at(
         &rows,
         &Design {
-            a: &base_a,
-            prior: &base_prior,
-            amplitude: &AmplitudePrior::none(base_a.ncols()),
+            a: &a,
+            prior: &prior,
+            amplitude: &AmplitudePrior::none(a.ncols()),
         },
         1.0,
     );
@@ -551,6 +566,71 @@ pub fn discover_cohort(
         });
     }
     let heldout_at_lambda_mm = at_lambda.map_or(before_rms, |l| l.heldout_mse.sqrt());
+    Ok(Found {
+        prepared,
+        plain,
+        rows,
+        geom,
+        basis,
+        a,
+        prior,
+        base_score,
+        noise_floor_mm,
+        noise_var,
+        null_max_mm,
+        beyond_noise,
+        heldout_at_lambda_mm,
+        richer_loads,
+        refine_record: records.pop(),
+        register_s,
+        find_s,
+    })
+}
+
+/// What naming leaves: the final model, its linearization, every candidate's record and the
+/// named effects.
+struct Named {
+    cur: Current,
+    cur_rows: CohortRows,
+    records: Vec<CandidateRecord>,
+    named: Vec<NamedEffect>,
+}
+
+/// Step 3, forward selection: each round searches every kind (and support × load pairs) on the
+/// current model, confirms the most promising on their own linearization, and names the best
+/// that passes the rule.
+fn name(
+    model: &PreopModel,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+    found: &Found,
+    progress: &(dyn Fn(&str, usize, usize) + Sync),
+) -> Result<Named, DiscoverError> {
+    let libr = &params.pipeline.libr;
+    let sites = Sites {
+        posterior: &model.posterior,
+        falciform: &model.falciform,
+    };
+    let (prepared, geom, noise_var) = (&found.prepared, &found.geom, found.noise_var);
+    let solver = std::sync::Arc::new(ModelSolver::new(
+        &model.mesh,
+        &libr.material,
+        sites,
+        &Physics::none(),
+    )?);
+    let mut cur = Current {
+        physics: Physics::none(),
+        basis: found.basis.clone(),
+        solver,
+        a: found.a.clone(),
+        prior: found.prior.clone(),
+        amplitude: AmplitudePrior::none(found.a.ncols()),
+        score: found.base_score.clone(),
+    };
+    // The rows the current model is linearized at: its own registrations' correspondences.
+    let mut cur_rows = found.rows.clone();
+    let mut records: Vec<CandidateRecord> = found.refine_record.iter().cloned().collect();
+    let mut named: Vec<NamedEffect> = Vec::new();
     for round in 0..params.max_effects {
         let kinds: Vec<EffectKind> = params
             .kinds
@@ -566,7 +646,7 @@ pub fn discover_cohort(
             sites,
             libr,
             rows: &cur_rows,
-            geom: &geom,
+            geom,
             noise_var,
         };
         // Screen: every kind searched on the current linearization; shape parameters by the
@@ -639,7 +719,7 @@ pub fn discover_cohort(
                 params,
                 &format!("confirming {} (round {round})", top.kinds()),
             )?;
-            let Some(conf) = confirm(&ctx, &prepared, sweeps, params, &cur, &top, progress)? else {
+            let Some(conf) = confirm(&ctx, prepared, sweeps, params, &cur, &top, progress)? else {
                 continue;
             };
             let (z, t, gain) = paired(&conf.compared.0, &conf.compared.1);
@@ -710,7 +790,44 @@ pub fn discover_cohort(
         cur_rows = conf.rows;
         cur = conf.current;
     }
-    let name_s = crate::util::secs(t2);
+    Ok(Named {
+        cur,
+        cur_rows,
+        records,
+        named,
+    })
+}
+
+/// Step 4: before and after per block, and the verdict.
+fn show(
+    model: &PreopModel,
+    sweeps: &[Sweep],
+    found: Found,
+    named: Named,
+    name_s: f64,
+    t0: Instant,
+) -> CohortDiscovery {
+    let Found {
+        plain,
+        rows,
+        a: base_a,
+        prior: base_prior,
+        base_score,
+        noise_floor_mm,
+        null_max_mm,
+        beyond_noise,
+        heldout_at_lambda_mm,
+        richer_loads,
+        register_s,
+        find_s,
+        ..
+    } = found;
+    let Named {
+        cur,
+        cur_rows,
+        records,
+        named,
+    } = named;
     // Regions: per block, before and after.
     // Before and after on the points both the plain and the final linearization matched.
     let (before_s, after_s) = if named.is_empty() {
@@ -749,7 +866,7 @@ pub fn discover_cohort(
     } else {
         Verdict::None
     };
-    Ok(CohortDiscovery {
+    CohortDiscovery {
         verdict,
         effects: named,
         physics: cur.physics.clone(),
@@ -773,7 +890,7 @@ pub fn discover_cohort(
             name_s,
             total_s: crate::util::secs(t0),
         },
-    })
+    }
 }
 
 /// Registers every sweep with `prepared`'s model (wICP, then LIBR with the physics it carries)
