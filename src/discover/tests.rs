@@ -119,6 +119,19 @@ fn params() -> DiscoverParams {
 
 fn quiet(_: &str, _: usize, _: usize) {}
 
+/// The named model removes most of the misfit: against LIBR at registration's λ, and against
+/// LIBR at its own best prior weight (which absorbs part of a smooth effect), more than half the
+/// mean-square held-out misfit.
+fn explains_most(d: &CohortDiscovery) {
+    assert!(d.heldout_after_mm < 0.5 * d.heldout_at_lambda_mm);
+    assert!(
+        d.heldout_after_mm < 0.7 * d.heldout_before_mm,
+        "{} vs {}",
+        d.heldout_after_mm,
+        d.heldout_before_mm
+    );
+}
+
 /// Discovery on 4 nearly noise-free sweeps (σ = 0.05 mm) of the truth `effect` on top of a
 /// LIBR-scale load: checks the truth moves the organ by a few millimetres to `peak_max`, that
 /// an effect is named, and returns the named effect of the same kind with the discovery.
@@ -169,15 +182,7 @@ fn hidden_gravity_is_named_with_its_direction_and_magnitude() {
     assert!(angle < 10.0, "direction off by {angle}°");
     let m = e.scalar("magnitude");
     assert!((m / 0.006 - 1.0).abs() < 0.2, "magnitude {m}");
-    // Against LIBR at registration's λ, and against LIBR at its own best prior weight (which
-    // absorbs part of a smooth effect): more than half the mean-square misfit removed.
-    assert!(d.heldout_after_mm < 0.5 * d.heldout_at_lambda_mm);
-    assert!(
-        d.heldout_after_mm < 0.7 * d.heldout_before_mm,
-        "{} vs {}",
-        d.heldout_after_mm,
-        d.heldout_before_mm
-    );
+    explains_most(&d);
     assert!(
         d.heldout_after_mm < 3.0 * d.noise_floor_mm,
         "{} vs floor {}",
@@ -202,15 +207,7 @@ fn hidden_pressure_is_named_with_its_direction_and_magnitude() {
     assert!(angle < 10.0, "direction off by {angle}°");
     let m = e.scalar("magnitude_kpa");
     assert!((m / 0.6 - 1.0).abs() < 0.2, "magnitude {m}");
-    // Against LIBR at registration's λ, and against LIBR at its own best prior weight (which
-    // absorbs part of a smooth effect): more than half the mean-square misfit removed.
-    assert!(d.heldout_after_mm < 0.5 * d.heldout_at_lambda_mm);
-    assert!(
-        d.heldout_after_mm < 0.7 * d.heldout_before_mm,
-        "{} vs {}",
-        d.heldout_after_mm,
-        d.heldout_before_mm
-    );
+    explains_most(&d);
 }
 
 /// The organ's weight pressed into its bed (the bed carries it, as the generator's truths): both
@@ -268,15 +265,7 @@ fn gravity_carried_by_a_bed_is_named_with_its_bed() {
         .effect;
     let angle = search::angle_deg(e.direction("direction"), g);
     assert!(angle < 15.0, "direction off by {angle}°");
-    // Against LIBR at registration's λ, and against LIBR at its own best prior weight (which
-    // absorbs part of a smooth effect): more than half the mean-square misfit removed.
-    assert!(d.heldout_after_mm < 0.5 * d.heldout_at_lambda_mm);
-    assert!(
-        d.heldout_after_mm < 0.7 * d.heldout_before_mm,
-        "{} vs {}",
-        d.heldout_after_mm,
-        d.heldout_before_mm
-    );
+    explains_most(&d);
 }
 
 /// Nothing hidden (the truth is a load LIBR's own basis holds): no missing effect.
