@@ -1,6 +1,6 @@
 //! Material parameters for linear elasticity (units: kPa).
 
-use super::solver::FemError;
+use super::error::FemError;
 
 /// Isotropic linear-elastic material. Defaults are liver-like: E = 5 kPa, ν = 0.45.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]

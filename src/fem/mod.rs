@@ -10,6 +10,7 @@
 pub mod assembly;
 pub mod basis_bench;
 pub mod element;
+mod error;
 pub mod hyperelastic;
 pub mod loads;
 mod material;

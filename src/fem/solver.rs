@@ -27,115 +27,7 @@ pub enum Ordering {
     Amd,
 }
 
-/// Why one Newton solve of a load step failed (the load step is then halved).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum NewtonFailure {
-    /// An element is inverted (J ≤ 0) in the state the step starts from or its tangent.
-    #[error("an element is inverted ({0})")]
-    Inverted(&'static str),
-    /// The tangent stiffness is not positive definite.
-    #[error(
-        "tangent stiffness not positive definite at node {node}, axis {axis}: a structural instability under this load, or too little support"
-    )]
-    Unstable {
-        /// Node of the first bad pivot.
-        node: usize,
-        /// Axis of that pivot.
-        axis: usize,
-    },
-    /// The tangent could not be factorised for another reason.
-    #[error("tangent factorisation failed: {0}")]
-    Factorisation(Box<FemError>),
-    /// No step length lowered the energy or the residual.
-    #[error("line search failed at iteration {iteration}")]
-    LineSearch {
-        /// Newton iteration.
-        iteration: usize,
-    },
-    /// The residual stayed above the tolerance.
-    #[error(
-        "no convergence in {iterations} iterations (relative residual {relative_residual:.2e})"
-    )]
-    NoConvergence {
-        /// Iterations run.
-        iterations: usize,
-        /// Final relative residual.
-        relative_residual: f64,
-    },
-}
-
-/// Errors from building or solving an elastic system; each says how to fix the input.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum FemError {
-    /// A parameter is out of range.
-    #[error("invalid parameter {field}: {message}")]
-    InvalidParameter {
-        /// The parameter's name.
-        field: &'static str,
-        /// What is wrong.
-        message: String,
-    },
-    /// A tet has (numerically) zero volume, so its stiffness is undefined.
-    #[error(
-        "tet {tet} is degenerate (volume {volume:e} mm³, below 1e-10 × its longest edge cubed); fix or remove it before solving"
-    )]
-    DegenerateTet {
-        /// Tet index.
-        tet: usize,
-        /// Its signed volume (mm³).
-        volume: f64,
-    },
-    /// The constrained stiffness is not positive definite: rigid motion is not prevented.
-    #[error(
-        "stiffness matrix is not positive definite after constraints ({free} free dofs; first bad pivot at node {node}, axis {axis}): the constraints and springs do not prevent rigid motion of every part of the mesh"
-    )]
-    NotPositiveDefinite {
-        /// Free dofs.
-        free: usize,
-        /// Node of the first non-positive pivot (the part that can still move rigidly).
-        node: usize,
-        /// Axis (0, 1, 2) of that pivot.
-        axis: usize,
-    },
-    /// A face-connected part of the mesh has no constrained dof and no spring: it can move freely.
-    #[error(
-        "mesh part {part} ({tets} tets, containing node {node}) has no constrained dof and no spring, so it can move rigidly; fix some of its nodes or add springs"
-    )]
-    FloatingPart {
-        /// Part index (face-connected component).
-        part: usize,
-        /// Number of tets in it.
-        tets: usize,
-        /// One of its nodes.
-        node: usize,
-    },
-    /// A node belongs to no tetrahedron and is not constrained: its stiffness is zero.
-    #[error(
-        "node {node} belongs to no tetrahedron and is not constrained (remove unused nodes, e.g. TetMesh::remove_unused_nodes, or fix them)"
-    )]
-    UnusedNode {
-        /// Node index.
-        node: usize,
-    },
-    /// A nonlinear solve did not converge even with the smallest load step.
-    #[error(
-        "nonlinear solve did not converge: reached {load_fraction:.4} of the load after {iterations} Newton iterations ({reason})"
-    )]
-    NotConverged {
-        /// Fraction of the load reached (last converged step).
-        load_fraction: f64,
-        /// Newton iterations spent.
-        iterations: usize,
-        /// Why the last step failed.
-        reason: NewtonFailure,
-    },
-    /// Every dof is constrained: nothing to solve.
-    #[error("every degree of freedom is constrained; nothing to solve")]
-    NothingFree,
-    /// The factorization failed for another reason (e.g. out of memory).
-    #[error("sparse factorization failed: {0}")]
-    Factorization(String),
-}
+pub use super::error::{FemError, NewtonFailure};
 
 /// A linear spring from a node to its rest position: force `−K·u` with `K` a 3×3 SPD matrix (mN/mm).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -804,6 +696,14 @@ impl FactorizedSystem {
     }
 }
 
+/// The parallel degree of the numeric Cholesky factorization, whatever the thread count (a
+/// single thread runs the same splits one after the other, to the same bits).
+pub const FACTOR_PAR_DEGREE: usize = 2;
+
+/// Right-hand sides solved together in one sequential sweep of the factor by
+/// `CholeskyFactor::solve_in_place`; blocks run in parallel.
+pub const SOLVE_BLOCK_COLS: usize = 16;
+
 /// A sparse Cholesky factor `P K Pᵀ = L Lᵀ`: the symbolic part (ordering, elimination tree,
 /// supernodes) is shared by `Arc` so it can be reused for new values with the same pattern.
 #[derive(Debug, Clone)]
@@ -818,7 +718,9 @@ impl CholeskyFactor {
         symbolic: Arc<SymbolicCholesky<usize>>,
         a: faer::sparse::SparseColMatRef<'_, usize, f64>,
     ) -> Result<Self, faer::sparse::linalg::LltError> {
-        let par = faer::get_global_parallelism();
+        // A fixed degree, not the pool's thread count: faer splits its sums by the degree, so
+        // the last bits depend on it, and results must not depend on the thread count.
+        let par = Par::rayon(FACTOR_PAR_DEGREE);
         let mut values = vec![0.0; symbolic.len_val()];
         let mut mem = MemBuffer::try_new(
             symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()),
@@ -841,30 +743,26 @@ impl CholeskyFactor {
         &self.symbolic
     }
 
-    /// Solves `K X = B` in place (one column per right-hand side), in parallel over columns
-    /// blocks when there are many.
+    /// Solves `K X = B` in place (one column per right-hand side). Many columns are solved in
+    /// parallel in blocks of `SOLVE_BLOCK_COLS` (16), each block sequentially: the blocks are the
+    /// same whatever the thread count, so the answer is the same to the last bit.
     pub fn solve_in_place(&self, rhs: MatMut<'_, f64>) {
-        let threads = rayon::current_num_threads();
-        if threads > 1 && rhs.ncols() >= 2 * threads {
-            // Independent column blocks, one sequential solve per thread: no synchronisation
-            // inside the supernodal sweeps, which scale poorly on few cores.
-            self.solve_split(rhs, threads);
-        } else {
-            self.solve_block(rhs, faer::get_global_parallelism());
-        }
+        let blocks = rhs.ncols().div_ceil(SOLVE_BLOCK_COLS);
+        self.solve_blocks(rhs, blocks);
     }
 
-    fn solve_split(&self, rhs: MatMut<'_, f64>, parts: usize) {
-        if parts <= 1 || rhs.ncols() < 2 {
+    /// Solves `blocks` consecutive blocks of `SOLVE_BLOCK_COLS` (16) columns (the last may be
+    /// narrower), halving the range in parallel.
+    fn solve_blocks(&self, rhs: MatMut<'_, f64>, blocks: usize) {
+        if blocks <= 1 {
             self.solve_block(rhs, Par::Seq);
             return;
         }
-        let left = parts / 2;
-        let split = rhs.ncols() * left / parts;
-        let (a, b) = rhs.split_at_col_mut(split);
+        let left = blocks / 2;
+        let (a, b) = rhs.split_at_col_mut(left * SOLVE_BLOCK_COLS);
         rayon::join(
-            || self.solve_split(a, left),
-            || self.solve_split(b, parts - left),
+            || self.solve_blocks(a, left),
+            || self.solve_blocks(b, blocks - left),
         );
     }
 
