@@ -11,6 +11,7 @@
 //! version) is migrated in place when opened; its sessions resume without the version check.
 
 use crate::journal::Journal;
+pub use crate::journal::SessionRecord;
 use rusqlite::{Connection, OptionalExtension, params};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -491,21 +492,6 @@ impl Audit {
             .map_err(|_| AuditError::Stopped.to_string())?;
         rx.await.map_err(|_| AuditError::Stopped.to_string())?
     }
-}
-
-/// A recorded session: its principal, case, start message and accepted messages in order.
-#[derive(Debug, Clone)]
-pub struct SessionRecord {
-    /// Who started it.
-    pub principal: String,
-    /// Its case.
-    pub case_id: String,
-    /// The case's content version when it started (None: recorded before versions were).
-    pub case_version: Option<String>,
-    /// The start message (protobuf `StreamRegisterRequest`).
-    pub start: Vec<u8>,
-    /// (client_seq, protobuf `StreamRegisterRequest`), in client_seq order.
-    pub messages: Vec<(u64, Vec<u8>)>,
 }
 
 /// Reads one session's record (None: no such session).

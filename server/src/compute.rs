@@ -471,7 +471,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         }),
         quality: quality as i32,
         quality_reason: reason,
-        effects: crate::service::effects(prepared),
+        effects: crate::convert::effects(prepared),
         rigid_ill_posed: reg.rigid.ill_posed,
         error_estimate: reg.error.as_ref().map(|e| pb::ErrorEstimate {
             predicted_tre_mm: e.predicted_tre_mm,

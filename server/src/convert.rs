@@ -124,16 +124,18 @@ pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]
             )],
         ));
     }
+    // A bad coordinate is named by its point: `measurements.points[17]` for a NaN anywhere in
+    // `measurements.xyz_mm[51..54]`.
+    let points = field.strip_suffix(".xyz_mm").unwrap_or(field);
     let mut bad = Vec::new();
     for (i, x) in v.iter().enumerate() {
         if !(x.is_finite() && x.abs() <= MAX_ABS_MM) {
             bad.push((
-                format!("{field}[{i}]"),
+                format!("{points}.points[{}]", i / 3),
                 format!(
-                    "{} is not finite or beyond ±{MAX_ABS_MM} mm (point {}, axis {})",
+                    "{} = {} is not finite or beyond ±{MAX_ABS_MM} mm ({field}[{i}])",
+                    ["x", "y", "z"][i % 3],
                     num(*x),
-                    i / 3,
-                    ["x", "y", "z"][i % 3]
                 ),
             ));
             if bad.len() == 10 {
@@ -352,6 +354,11 @@ pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
         librplus::pipeline::Method::V2s => pb::Method::V2s,
         librplus::pipeline::Method::Adaptive => pb::Method::Adaptive,
     }
+}
+
+/// The named effects a model carries.
+pub fn effects(p: &librplus::pipeline::Prepared) -> Vec<String> {
+    p.physics.kinds().into_iter().map(str::to_string).collect()
 }
 
 #[cfg(test)]

@@ -8,6 +8,18 @@ use librplus_proto::v1 as pb;
 use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
+/// The `google.rpc.ErrorInfo` reason of the ABORTED status that ends a stream whose session was
+/// taken over by a newer stream.
+pub const TAKEN_OVER: &str = "SESSION_TAKEN_OVER";
+
+/// At most `n` characters of `s` (what is logged or echoed of a client's string).
+pub fn short(s: &str, n: usize) -> std::borrow::Cow<'_, str> {
+    match s.char_indices().nth(n) {
+        None => s.into(),
+        Some((i, _)) => format!("{}… ({} bytes)", &s[..i], s.len()).into(),
+    }
+}
+
 /// A request the server did not answer with a registration.
 #[derive(Debug)]
 pub enum ServiceError {
@@ -76,7 +88,7 @@ pub enum ServiceError {
     /// A registration task failed inside the server (INTERNAL; logged).
     Internal(String),
     /// The stream's session was taken over by a newer stream, a resume of the same session
-    /// (ABORTED, ErrorInfo reason [`crate::live::TAKEN_OVER`]): this stream has ended.
+    /// (ABORTED, ErrorInfo reason [`TAKEN_OVER`]): this stream has ended.
     TakenOver {
         /// The session.
         session_id: String,
@@ -191,7 +203,7 @@ impl ServiceError {
             Self::UnknownCase { field, id, known } => {
                 // The id echoed is cut to 64 characters (as every echo of a client's string);
                 // the list to the first 20.
-                let id = crate::service::short(id, 64);
+                let id = short(id, 64);
                 let mut list = known
                     .iter()
                     .take(20)
@@ -215,7 +227,7 @@ impl ServiceError {
                 )
             }
             Self::UnknownSession { field, id } => {
-                let id = crate::service::short(id, 64);
+                let id = short(id, 64);
                 d.add_bad_request_violation(field.clone(), format!("no session {id:?}"));
                 (
                     Code::NotFound,
@@ -239,7 +251,7 @@ impl ServiceError {
             Self::Internal(m) => (Code::Internal, m.clone(), None),
             Self::TakenOver { session_id } => {
                 d.set_error_info(
-                    crate::live::TAKEN_OVER,
+                    TAKEN_OVER,
                     "librplus.v1",
                     std::collections::HashMap::from([(
                         "session_id".to_string(),
@@ -306,15 +318,11 @@ impl ServiceError {
                 description,
                 ..
             } => vec![(subject.clone(), description.clone())],
-            Self::UnknownCase { field, id, .. } => vec![(
-                field.clone(),
-                format!("no case {:?}", crate::service::short(id, 64)),
-            )],
+            Self::UnknownCase { field, id, .. } => {
+                vec![(field.clone(), format!("no case {:?}", short(id, 64)))]
+            }
             Self::UnknownSession { field, id } => {
-                vec![(
-                    field.clone(),
-                    format!("no session {:?}", crate::service::short(id, 64)),
-                )]
+                vec![(field.clone(), format!("no session {:?}", short(id, 64)))]
             }
             Self::Quota { .. }
             | Self::Unavailable(_)

@@ -46,7 +46,7 @@ pub fn requests(data: &[u8]) {
     match kind % 7 {
         0 => {
             if let Ok(r) = pb::RegisterRequest::decode(rest) {
-                let _ = crate::service::short(&r.case_id, 64);
+                let _ = crate::error::short(&r.case_id, 64);
                 if let Some(m) = &r.measurements
                     && let Ok(meas) = measurements_from_pb(m, "measurements", MAX_POINTS)
                 {

@@ -32,7 +32,6 @@
 //! replica that had already lost the session); an epoch claimed and never taken over (a resume
 //! that crashed or was refused) holds no record and is skipped.
 
-use crate::audit::SessionRecord;
 use std::collections::{BTreeMap, HashMap};
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read, Write};
@@ -361,6 +360,21 @@ fn take_u64(p: &mut &[u8]) -> Option<u64> {
     let v = u64::from_le_bytes(p.get(0..8)?.try_into().ok()?);
     *p = &p[8..];
     Some(v)
+}
+
+/// A recorded session: its principal, case, start message and accepted messages in order.
+#[derive(Debug, Clone)]
+pub struct SessionRecord {
+    /// Who started it.
+    pub principal: String,
+    /// Its case.
+    pub case_id: String,
+    /// The case's content version when it started (None: recorded before versions were).
+    pub case_version: Option<String>,
+    /// The start message (protobuf `StreamRegisterRequest`).
+    pub start: Vec<u8>,
+    /// (client_seq, protobuf `StreamRegisterRequest`), in client_seq order.
+    pub messages: Vec<(u64, Vec<u8>)>,
 }
 
 /// Reads a session's record from the shared folder (None: no such session).

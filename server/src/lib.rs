@@ -9,6 +9,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod access;
 pub mod audit;
 pub mod auth;
 pub mod cases;
@@ -22,18 +23,21 @@ pub mod igtl;
 pub mod journal;
 pub mod live;
 pub mod metrics_http;
+pub mod preload;
 pub mod registry;
 pub mod service;
+pub(crate) mod session;
+pub mod shared;
 pub mod store;
 pub mod upload;
 
 use anyhow::Context;
-use cases::Case;
 use config::ServerConfig;
 use librplus::gcn::io::{TrainedModel, builtin_models, load_models_on_device};
 use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
-use service::{Shared, Svc};
+use service::Svc;
+use shared::Shared;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -635,7 +639,7 @@ fn load_v2s(
 
 /// Takes uploaded cases out of memory once idle for `evict_idle_s` (no request used them, no
 /// session holds them); they stay in the store, STORED, and load again when asked for.
-async fn evict_idle(shared: Arc<service::Shared>) {
+async fn evict_idle(shared: Arc<Shared>) {
     let idle_ms = (shared.config.evict_idle_s * 1e3).min(1e15) as i64;
     let period = Duration::from_secs_f64((shared.config.evict_idle_s / 4.0).clamp(0.05, 60.0));
     let mut drain = shared.drain.clone();
@@ -658,19 +662,6 @@ async fn evict_idle(shared: Arc<service::Shared>) {
                 metrics::counter!("librplus_cases_evicted_total").increment(1);
             }
         }
-    }
-}
-
-/// The status of a ready case.
-pub(crate) fn ready_status(c: &Case) -> librplus_proto::v1::CaseStatus {
-    librplus_proto::v1::CaseStatus {
-        case_id: c.id.clone(),
-        version: c.version.clone(),
-        state: librplus_proto::v1::CaseState::Ready as i32,
-        stage: String::new(),
-        fraction: 1.0,
-        error: String::new(),
-        seconds: c.prepared.seconds,
     }
 }
 
@@ -734,7 +725,9 @@ fn preload(shared: &Shared) -> Result<PreloadReport, PreloadError> {
                     c.prepared.basis_from_cache,
                 ));
                 let c = Arc::new(c);
-                shared.registry.set(ready_status(&c), Some(c));
+                shared
+                    .registry
+                    .set(crate::registry::ready_status(&c), Some(c));
                 loaded_configured += usize::from(k < configured);
             }
             Err(e) => {

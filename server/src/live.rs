@@ -16,9 +16,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use tokio::sync::watch;
 
-/// The `google.rpc.ErrorInfo` reason of the ABORTED status that ends a stream whose session was
-/// taken over by a newer stream.
-pub const TAKEN_OVER: &str = "SESSION_TAKEN_OVER";
+pub use crate::error::TAKEN_OVER;
 
 /// What the stream holding a session holds.
 struct Holder {

@@ -197,3 +197,16 @@ impl Registry {
             .collect()
     }
 }
+
+/// The status of a ready case.
+pub(crate) fn ready_status(c: &Case) -> pb::CaseStatus {
+    pb::CaseStatus {
+        case_id: c.id.clone(),
+        version: c.version.clone(),
+        state: pb::CaseState::Ready as i32,
+        stage: String::new(),
+        fraction: 1.0,
+        error: String::new(),
+        seconds: c.prepared.seconds,
+    }
+}

@@ -10,7 +10,7 @@ import grpc
 
 class FieldViolation(NamedTuple):
     """A problem with one field of a request: the field as a path of proto field names (e.g.
-    ``surface.xyz_mm[7]``) and what is wrong with it."""
+    ``surface.points[7]``) and what is wrong with it."""
 
     field: str
     description: str

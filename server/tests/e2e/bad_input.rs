@@ -9,13 +9,15 @@ async fn bad_unary_input_gets_its_status_and_field() {
     let case = open(dataset()).unwrap().deformations[0].geometry.clone();
     let good = measurements_pb(&sc.measurements);
     let mut cases: Vec<(&str, pb::RegisterRequest, Code, Option<&str>)> = Vec::new();
+    // A NaN in point 17's y: the field path names the point.
+    assert!(good.xyz_mm.len() >= 3 * 18, "the scenario has 18 points");
     let mut nan = good.clone();
-    nan.xyz_mm[4] = f64::NAN;
+    nan.xyz_mm[3 * 17 + 1] = f64::NAN;
     cases.push((
         "NaN",
         request(&case, pb::Method::Libr, nan),
         Code::InvalidArgument,
-        Some("measurements.xyz_mm[4]"),
+        Some("measurements.points[17]"),
     ));
     let empty = pb::Measurements {
         xyz_mm: vec![],
@@ -228,7 +230,7 @@ async fn bad_stream_input_is_rejected_and_the_session_goes_on() {
     let r = reject(s.send(nan).await.unwrap());
     assert_eq!(
         (r.code.as_str(), r.violations[0].field.as_str()),
-        ("INVALID_ARGUMENT", "surface.xyz_mm[2]")
+        ("INVALID_ARGUMENT", "surface.points[0]")
     );
     // A frame acquired before the previous one.
     let mut late = with_seq(first.clone());

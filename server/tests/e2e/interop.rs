@@ -90,7 +90,7 @@ async fn python_grpcio_client_and_grpcurl() {
     );
     assert_eq!(out["method_used"], "METHOD_LIBR");
     assert_eq!(out["rejection"]["code"], "INVALID_ARGUMENT");
-    assert_eq!(out["rejection"]["fields"][0], "surface.xyz_mm[0]");
+    assert_eq!(out["rejection"]["fields"][0], "surface.points[0]");
     assert_eq!(out["after_rejection"], "registration");
     assert_eq!(out["trailing_updates"], 0);
 
