@@ -1,4 +1,4 @@
-//! The layers of `../shared/DESIGN.md`, kept by a test (as rust-analyzer's tidy tests and
+//! The layers of `docs/architecture.md`, kept by a test (as rust-analyzer's tidy tests and
 //! ArchUnit do): every source file is parsed (`syn`), every path it names through `crate::`,
 //! `super::`, `librplus::` or `librplus_client::` — in `use` items, expressions, types and macro
 //! bodies — is resolved to the module it reaches, and an edge against the order below fails the
@@ -9,7 +9,8 @@
 //! `gcn`, `pipeline`, `discover`, the server and the clients never import `phantom` (what runs in
 //! surgery cannot reach how the ground truth was made); `gcn` (inference) never imports `eval`
 //! (training) or `dataset` (where the truth is read); the server's library never imports the
-//! client crate (its `demo`, part of the binary, replays through it).
+//! client crate (its `demo`, part of the binary, replays through it); the OpenIGTLink codec
+//! (`igtl/`) imports no crate of the workspace, so it builds and tests alone.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -69,6 +70,8 @@ enum Rule {
     Service { may_use_client: bool },
     /// A binary (the command line, the server's `main` and its demo): anything.
     Binary,
+    /// A crate that stands alone (the OpenIGTLink codec): no crate of the workspace.
+    Standalone,
 }
 
 /// One forbidden edge: `file:line: from → to (path)`.
@@ -121,6 +124,7 @@ fn classify(rel: &str) -> Option<(Rule, Vec<String>)> {
             },
             vec![],
         )),
+        ["igtl", "src", ..] => Some((Rule::Standalone, vec![])),
         ["client", "src", ..] => Some((
             Rule::Service {
                 may_use_client: true,
@@ -137,16 +141,30 @@ struct Paths {
     inline: Vec<String>,
     /// (line, inline modules, segments).
     found: Vec<(usize, usize, Vec<String>)>,
+    /// The lines of `found` inside a `mod tests` (test code), by index into `found`.
+    in_tests: Vec<bool>,
 }
 
 impl Paths {
     fn push(&mut self, line: usize, segments: Vec<String>) {
         let interesting = matches!(
             segments.first().map(String::as_str),
-            Some("crate" | "super" | "librplus" | "librplus_client")
+            Some(
+                "crate"
+                    | "super"
+                    | "librplus"
+                    | "librplus_client"
+                    | "librplus_server"
+                    | "librplus_proto"
+            )
         );
         if interesting {
             self.found.push((line, self.inline.len(), segments));
+            self.in_tests.push(
+                self.inline
+                    .iter()
+                    .any(|m| m == "tests" || m.ends_with("_tests")),
+            );
         }
     }
 
@@ -249,6 +267,7 @@ fn violations(rel: &str, text: &str) -> Result<Vec<Violation>, String> {
     let mut paths = Paths {
         inline: Vec::new(),
         found: Vec::new(),
+        in_tests: Vec::new(),
     };
     paths.visit_file(&file);
     let allowed = allowed();
@@ -266,6 +285,11 @@ fn violations(rel: &str, text: &str) -> Result<Vec<Violation>, String> {
         };
         match &rule {
             Rule::Binary => {}
+            Rule::Standalone => {
+                if segments[0].starts_with("librplus") {
+                    out.push(edge(&segments[0]));
+                }
+            }
             Rule::Service { may_use_client } => match segments[0].as_str() {
                 "librplus" if segments.get(1).is_some_and(|m| m == "phantom") => {
                     out.push(edge("librplus::phantom"))
@@ -339,7 +363,7 @@ fn sources(root: &Path, dir: &str, out: &mut Vec<PathBuf>) {
 fn every_import_follows_the_layers() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut files = Vec::new();
-    for dir in ["src", "server/src", "client/src"] {
+    for dir in ["src", "server/src", "client/src", "igtl/src"] {
         sources(root, dir, &mut files);
     }
     files.sort();
@@ -402,4 +426,391 @@ fn a_planted_back_edge_fails_with_its_file_and_line() {
     assert!(violations("server/src/demo.rs", server).unwrap().is_empty());
     // The client may use its own crate name but not the phantom.
     assert_eq!(violations("client/src/replay.rs", server).unwrap().len(), 1);
+    // The OpenIGTLink codec stands alone: any crate of the workspace is a violation.
+    let codec = "use std::io::Read;\nfn f() { let _ = librplus_proto::v1::Point::default(); }\n";
+    let v = violations("igtl/src/point.rs", codec).unwrap();
+    assert_eq!(
+        v.iter()
+            .map(|v| (v.line, v.to.as_str()))
+            .collect::<Vec<_>>(),
+        [(2, "librplus_proto")]
+    );
+}
+
+// ---- Circles inside a module, and the server crate's own order ----------------------------
+
+/// The crates whose module graphs are checked for circles: (source folder, crate roots). The
+/// library's binary (`src/bin/librplus`) is a crate of its own.
+const CRATES: &[(&str, &[&str])] = &[
+    ("src", &["lib.rs"]),
+    ("src/bin/librplus", &["main.rs"]),
+    ("server/src", &["lib.rs", "main.rs"]),
+    ("client/src", &["lib.rs", "main.rs"]),
+    ("igtl/src", &["lib.rs"]),
+];
+
+/// The server library's modules, bottom to top: a module may use the ones before it, never one
+/// after it (docs/architecture.md, "The service"). `lib.rs` (the crate root) and the binary
+/// (`main.rs`, `demo.rs`) sit above them all.
+const SERVER_ORDER: &[&str] = &[
+    "error",
+    "convert",
+    "config",
+    "auth",
+    "journal",
+    "audit",
+    "store",
+    "cases",
+    "registry",
+    "live",
+    "metrics_http",
+    "compute",
+    "discovery",
+    "shared",
+    "preload",
+    "access",
+    "upload",
+    "session",
+    "service",
+    "fuzz",
+    "igtl",
+];
+
+/// One use of another module inside a crate: `file:line`, from the file's module to the module
+/// the path reaches (both as module paths from the crate root).
+#[derive(Debug, Clone)]
+struct ModEdge {
+    file: String,
+    line: usize,
+    from: Vec<String>,
+    to: Vec<String>,
+}
+
+/// The module path of a file inside its crate's folder (`a/b.rs` → `[a, b]`, `a/mod.rs` → `[a]`),
+/// or None for a crate root.
+fn module_of(rel_in_crate: &str, roots: &[&str]) -> Option<Vec<String>> {
+    if roots.contains(&rel_in_crate) {
+        return None;
+    }
+    let mut parts: Vec<String> = rel_in_crate
+        .trim_end_matches(".rs")
+        .split('/')
+        .map(str::to_string)
+        .collect();
+    if parts.last().is_some_and(|l| l == "mod") {
+        parts.pop();
+    }
+    Some(parts)
+}
+
+/// The module-to-module uses of the crate in `dir` (test code left out): every `crate::` and
+/// `super::` path, resolved to the deepest module of the crate it names.
+fn module_edges(
+    root: &Path,
+    dir: &str,
+    roots: &[&str],
+    files: &[(String, String)],
+) -> Vec<ModEdge> {
+    let prefix = format!("{dir}/");
+    let in_crate: Vec<(String, Vec<String>, &str)> = files
+        .iter()
+        .filter_map(|(rel, text)| {
+            let inner = rel.strip_prefix(&prefix)?;
+            // Files of a nested binary crate (src/bin) are not modules of the library.
+            if dir == "src" && inner.starts_with("bin/") {
+                return None;
+            }
+            let module = module_of(inner, roots).unwrap_or_default();
+            // Test files (`tests.rs`, `*_tests.rs`) are test code, as `mod tests` is.
+            if module
+                .last()
+                .is_some_and(|m| m == "tests" || m.ends_with("_tests"))
+            {
+                return None;
+            }
+            Some((rel.clone(), module, text.as_str()))
+        })
+        .collect();
+    let _ = root;
+    let modules: std::collections::BTreeSet<Vec<String>> =
+        in_crate.iter().map(|(_, m, _)| m.clone()).collect();
+    // The deepest known module a path from the crate root names.
+    let deepest = |segs: &[String]| -> Vec<String> {
+        (0..=segs.len())
+            .rev()
+            .map(|k| segs[..k].to_vec())
+            .find(|c| modules.contains(c))
+            .unwrap_or_default()
+    };
+    let mut out = Vec::new();
+    for (rel, module, text) in &in_crate {
+        let Ok(file) = syn::parse_file(text) else {
+            continue;
+        };
+        let mut paths = Paths {
+            inline: Vec::new(),
+            found: Vec::new(),
+            in_tests: Vec::new(),
+        };
+        paths.visit_file(&file);
+        for ((line, depth, segments), test) in paths.found.iter().zip(&paths.in_tests) {
+            if *test {
+                continue;
+            }
+            let absolute: Vec<String> = match segments[0].as_str() {
+                "crate" => segments[1..].to_vec(),
+                "super" => {
+                    let ups = segments.iter().take_while(|s| *s == "super").count();
+                    if ups <= *depth {
+                        continue; // inside this file
+                    }
+                    let climb = ups - depth;
+                    if climb > module.len() {
+                        continue;
+                    }
+                    let mut p = module[..module.len() - climb].to_vec();
+                    p.extend(segments[ups..].iter().cloned());
+                    p
+                }
+                _ => continue,
+            };
+            let to = deepest(&absolute);
+            if &to != module {
+                out.push(ModEdge {
+                    file: rel.clone(),
+                    line: *line,
+                    from: module.clone(),
+                    to,
+                });
+            }
+        }
+    }
+    out
+}
+
+/// Circles between sibling modules: for each pair of modules with a common parent, the use
+/// lifted to the two children of that parent (a child using its parent's items, or a parent its
+/// children, is no edge). Each circle: the children in order, with one use for each step.
+fn circles(edges: &[ModEdge]) -> Vec<String> {
+    use std::collections::{BTreeMap, BTreeSet};
+    // parent → child → (child it uses → first use).
+    let mut graph: BTreeMap<Vec<String>, BTreeMap<String, BTreeMap<String, String>>> =
+        BTreeMap::new();
+    for e in edges {
+        let common = e.from.iter().zip(&e.to).take_while(|(a, b)| a == b).count();
+        if common >= e.from.len() || common >= e.to.len() {
+            continue;
+        }
+        let parent = e.from[..common].to_vec();
+        graph
+            .entry(parent)
+            .or_default()
+            .entry(e.from[common].clone())
+            .or_default()
+            .entry(e.to[common].clone())
+            .or_insert_with(|| format!("{}:{}", e.file, e.line));
+    }
+    let mut out = Vec::new();
+    for (parent, g) in &graph {
+        // A circle exists where a child reaches itself; report each strongly connected set once.
+        let reach = |from: &str| -> BTreeSet<String> {
+            let mut seen = BTreeSet::new();
+            let mut stack = vec![from.to_string()];
+            while let Some(n) = stack.pop() {
+                for m in g
+                    .get(&n)
+                    .map(|x| x.keys().cloned().collect::<Vec<_>>())
+                    .unwrap_or_default()
+                {
+                    if seen.insert(m.clone()) {
+                        stack.push(m);
+                    }
+                }
+            }
+            seen
+        };
+        let mut done = BTreeSet::new();
+        for child in g.keys() {
+            if done.contains(child) || !reach(child).contains(child) {
+                continue;
+            }
+            // The shortest way back to `child` (breadth first), named by its uses.
+            let mut prev: BTreeMap<String, String> = BTreeMap::new();
+            let mut queue = std::collections::VecDeque::from([child.clone()]);
+            'search: while let Some(n) = queue.pop_front() {
+                for m in g
+                    .get(&n)
+                    .map(|x| x.keys().cloned().collect::<Vec<_>>())
+                    .unwrap_or_default()
+                {
+                    if m == *child {
+                        prev.insert(m, n);
+                        break 'search;
+                    }
+                    if !prev.contains_key(&m) {
+                        prev.insert(m.clone(), n.clone());
+                        queue.push_back(m);
+                    }
+                }
+            }
+            let mut cycle = vec![child.clone()];
+            let mut at = prev[child].clone();
+            while at != *child {
+                cycle.push(at.clone());
+                at = prev[&at].clone();
+            }
+            cycle.reverse();
+            let scope = if parent.is_empty() {
+                "the crate root".to_string()
+            } else {
+                format!("module `{}`", parent.join("::"))
+            };
+            let steps: Vec<String> = (0..cycle.len())
+                .map(|i| {
+                    let (a, b) = (&cycle[i], &cycle[(i + 1) % cycle.len()]);
+                    format!("{a} → {b} ({})", g[a][b])
+                })
+                .collect();
+            for c in &cycle {
+                done.insert(c.clone());
+            }
+            out.push(format!("a circle inside {scope}: {}", steps.join(", ")));
+        }
+    }
+    out
+}
+
+/// Uses inside the server's library against [`SERVER_ORDER`] (a lower module using a higher
+/// one), and modules missing from the order.
+fn server_back_edges(edges: &[ModEdge]) -> Vec<String> {
+    let rank = |m: &str| SERVER_ORDER.iter().position(|x| *x == m);
+    let mut out = Vec::new();
+    for e in edges {
+        let (Some(from), Some(to)) = (e.from.first(), e.to.first()) else {
+            continue; // the crate root uses anything
+        };
+        if from == to || from == "main" || from == "demo" {
+            continue;
+        }
+        match (rank(from), rank(to)) {
+            (Some(a), Some(b)) if a < b => out.push(format!(
+                "{}:{}: `{from}` must not use `{to}`, which sits above it in the server's order",
+                e.file, e.line
+            )),
+            (None, _) => out.push(format!(
+                "{}: module `{from}` has no place in SERVER_ORDER (tests/architecture.rs)",
+                e.file
+            )),
+            (_, None) if to != "main" && to != "demo" => out.push(format!(
+                "{}: module `{to}` has no place in SERVER_ORDER (tests/architecture.rs)",
+                e.file
+            )),
+            _ => {}
+        }
+    }
+    out.sort();
+    out.dedup();
+    out
+}
+
+/// Every source file of the crates in [`CRATES`], as (path from the repository root, text).
+fn crate_files(root: &Path) -> Vec<(String, String)> {
+    let mut files = Vec::new();
+    for (dir, _) in CRATES {
+        if *dir == "src/bin/librplus" {
+            continue; // listed under `src`
+        }
+        sources(root, dir, &mut files);
+    }
+    files.sort();
+    files.dedup();
+    files
+        .into_iter()
+        .map(|rel| {
+            let rel = rel.to_string_lossy().to_string();
+            let text = std::fs::read_to_string(root.join(&rel)).unwrap();
+            (rel, text)
+        })
+        .collect()
+}
+
+#[test]
+fn no_circles_inside_modules_and_the_server_keeps_its_order() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let files = crate_files(root);
+    assert!(files.len() > 100, "found only {} source files", files.len());
+    let mut bad = Vec::new();
+    for (dir, roots) in CRATES {
+        let edges = module_edges(root, dir, roots, &files);
+        bad.extend(circles(&edges));
+        if *dir == "server/src" {
+            bad.extend(server_back_edges(&edges));
+        }
+    }
+    assert!(
+        bad.is_empty(),
+        "{} problem(s) with the module structure:\n{}",
+        bad.len(),
+        bad.join("\n")
+    );
+}
+
+#[test]
+fn a_planted_circle_and_a_planted_back_edge_are_found_with_file_and_line() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let f = |rel: &str, text: &str| (rel.to_string(), text.to_string());
+    // Two siblings of `mesh` using each other: once through `crate::`, once through `super::`.
+    let files = vec![
+        f("src/mesh/mod.rs", "pub mod a;\npub mod b;\n"),
+        f("src/mesh/a.rs", "use crate::mesh::b::B;\npub struct A;\n"),
+        f(
+            "src/mesh/b.rs",
+            "pub struct B;\n\nfn f() -> super::a::A {\n    super::a::A\n}\n",
+        ),
+        // Test code does not count.
+        f(
+            "src/fem/x.rs",
+            "pub struct X;\n#[cfg(test)]\nmod tests {\n    use crate::fem::y::Y;\n}\n",
+        ),
+        f("src/fem/y.rs", "use super::x::X;\npub struct Y;\n"),
+    ];
+    let edges = module_edges(root, "src", &["lib.rs"], &files);
+    let c = circles(&edges);
+    assert_eq!(c.len(), 1, "{c:?}");
+    assert!(
+        c[0].contains("inside module `mesh`")
+            && c[0].contains("a → b (src/mesh/a.rs:1)")
+            && c[0].contains("b → a (src/mesh/b.rs:3)"),
+        "{}",
+        c[0]
+    );
+    // The server: `error` (bottom) using `service` (top) is a back edge, named with its line.
+    let files = vec![
+        f(
+            "server/src/error.rs",
+            "pub struct E;\n\nfn g() {\n    crate::service::short(\"x\", 3);\n}\n",
+        ),
+        f(
+            "server/src/service.rs",
+            "use crate::error::E;\npub fn short() {}\n",
+        ),
+    ];
+    let edges = module_edges(root, "server/src", &["lib.rs", "main.rs"], &files);
+    let back = server_back_edges(&edges);
+    assert_eq!(back.len(), 1, "{back:?}");
+    assert!(
+        back[0].starts_with("server/src/error.rs:4: `error` must not use `service`"),
+        "{}",
+        back[0]
+    );
+    // A circle inside the server is a circle too.
+    let files = vec![
+        f("server/src/upload.rs", "use crate::service::Svc;\n"),
+        f(
+            "server/src/service.rs",
+            "fn h() { crate::upload::create(); }\n",
+        ),
+    ];
+    let edges = module_edges(root, "server/src", &["lib.rs", "main.rs"], &files);
+    assert_eq!(circles(&edges).len(), 1);
 }

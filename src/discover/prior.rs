@@ -102,7 +102,7 @@ pub fn direction_cone(kind: EffectKind) -> Option<([f64; 3], f64)> {
 /// Whether `d` lies in the kind's direction cone.
 pub fn direction_plausible(kind: EffectKind, d: [f64; 3]) -> bool {
     direction_cone(kind).is_none_or(|(axis, max)| {
-        super::search::angle_deg(crate::mesh::vec3::unit(d), axis) <= max + 1e-9
+        crate::mesh::vec3::angle_deg(crate::mesh::vec3::unit(d), axis) <= max + 1e-9
     })
 }
 

@@ -12,7 +12,7 @@ use super::cv::{AmplitudePrior, CvScore, Design, cross_validate};
 use super::prior::{amplitude_prior, coefficient_prior};
 use super::rows::CohortRows;
 use crate::mesh::TetMesh;
-use crate::mesh::vec3::{cross, dist2, dot, unit};
+use crate::mesh::vec3::{cross, dist2, unit};
 use crate::register::libr::{LibrBasis, LibrParams, farthest_point_sampling};
 use crate::register::physics::model::{BoundaryGeometry, ModelSolver, Sites};
 use crate::register::physics::{Effect, EffectKind, Physics};
@@ -340,9 +340,7 @@ pub fn neighbours(d: [f64; 3], angle: f64) -> Vec<[f64; 3]> {
 }
 
 /// Angle between two unit vectors (degrees).
-pub fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
-    dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
-}
+pub use crate::mesh::vec3::angle_deg;
 
 /// Boundary sites for centred effects: farthest-point samples of the boundary nodes.
 pub fn boundary_sites(mesh: &TetMesh, geom: &BoundaryGeometry, count: usize) -> Vec<[f64; 3]> {

@@ -15,6 +15,7 @@ pub mod spatial;
 mod surface;
 mod tet_mesh;
 pub mod tetra;
+pub(crate) mod union_find;
 pub(crate) mod vec3;
 
 pub use surface::{SurfaceError, SurfaceStats, TriSurface};

@@ -1,7 +1,8 @@
 //! Triangle surfaces: areas, normals, enclosed volume, closedness, orientation, genus, components.
 
 use super::io::MeshFile;
-use super::tet_mesh::{UnionFind, bounding_box};
+use super::union_find::UnionFind;
+use super::vec3::bounding_box;
 use super::vec3::{add, cross, dot, norm, scale, sub};
 
 /// A triangle surface in millimetres (vertices may include ones no triangle uses).

@@ -54,6 +54,12 @@ pub fn unit(a: [f64; 3]) -> [f64; 3] {
     if l > 0.0 { a.map(|x| x / l) } else { [0.0; 3] }
 }
 
+/// Angle between two unit vectors (degrees).
+#[inline]
+pub fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+    dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
 /// Signed volume of the tetrahedron (p0, p1, p2, p3): `det[p1−p0, p2−p0, p3−p0] / 6`.
 #[inline]
 pub fn tet_signed_volume(p: &[[f64; 3]; 4]) -> f64 {
@@ -61,4 +67,17 @@ pub fn tet_signed_volume(p: &[[f64; 3]; 4]) -> f64 {
     let b = sub(p[2], p[0]);
     let c = sub(p[3], p[0]);
     dot(a, cross(b, c)) / 6.0
+}
+
+/// Axis-aligned bounding box of points; `([inf; 3], [-inf; 3])` for none.
+pub fn bounding_box(points: &[[f64; 3]]) -> ([f64; 3], [f64; 3]) {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    (lo, hi)
 }

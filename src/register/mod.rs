@@ -14,6 +14,7 @@
 
 pub mod anatomy;
 pub mod correspondence;
+pub mod equilibrium;
 mod error;
 pub mod libr;
 pub mod physics;

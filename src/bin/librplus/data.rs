@@ -1,32 +1,15 @@
 //! `librplus generate` and `librplus phantom effect`, and the liver surfaces they read.
 
 use crate::args::{Common, GenerateArgs, PresetArg, TruthArg};
-use crate::mesh::read_file;
+use crate::mesh::read_surface;
 use crate::util::emit;
 use anyhow::{Context, Result, bail};
+use librplus::mesh::TriSurface;
 use librplus::mesh::io::Unit;
-use librplus::mesh::{TetMesh, TriSurface};
 use librplus::phantom::dataset::GenerateConfig;
 use serde_json::{Value, json};
 use std::path::Path;
 use std::time::Instant;
-
-/// Reads a surface file's triangles, or a tet mesh file's outward boundary, as a surface.
-pub(crate) fn read_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
-    let file = read_file(path, unit)?;
-    let triangles = if !file.triangles.is_empty() {
-        file.triangles.clone()
-    } else if !file.tets.is_empty() {
-        let mut m = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
-        m.orient_positive();
-        m.boundary()
-            .with_context(|| path.display().to_string())?
-            .triangles
-    } else {
-        bail!("{}: has no triangles or tetrahedra to mesh", path.display());
-    };
-    TriSurface::new(file.nodes, triangles).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
-}
 
 /// Reads a closed surface for meshing: its triangles (or a tet mesh's boundary), the largest
 /// connected piece, oriented outward.

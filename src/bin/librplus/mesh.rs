@@ -1,7 +1,6 @@
 //! `librplus mesh`: info, convert, tetra; and reading mesh files (a volume mesh for the FEM).
 
 use crate::args::Common;
-use crate::data::read_surface;
 use crate::util::emit;
 use anyhow::{Context, Result, bail};
 use librplus::mesh::io::{self, MeshFile, Unit, WriteOptions};
@@ -11,6 +10,23 @@ use std::path::Path;
 
 pub(crate) fn read_file(path: &Path, unit: Unit) -> Result<MeshFile> {
     Ok(io::read(path, unit)?)
+}
+
+/// Reads a surface file's triangles, or a tet mesh file's outward boundary, as a surface.
+pub(crate) fn read_surface(path: &Path, unit: Unit) -> Result<TriSurface> {
+    let file = read_file(path, unit)?;
+    let triangles = if !file.triangles.is_empty() {
+        file.triangles.clone()
+    } else if !file.tets.is_empty() {
+        let mut m = TetMesh::from_file(&file).with_context(|| path.display().to_string())?;
+        m.orient_positive();
+        m.boundary()
+            .with_context(|| path.display().to_string())?
+            .triangles
+    } else {
+        bail!("{}: has no triangles or tetrahedra to mesh", path.display());
+    };
+    TriSurface::new(file.nodes, triangles).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
 /// A volume mesh prepared for FEM, with what was changed on the way.

@@ -1,6 +1,7 @@
 //! `librplus train` (one SR-GCN model, trained and tested) and `librplus ensemble`.
 
 use crate::args::{EnsembleArgs, ScheduleArg, TrainArgs};
+use crate::util::bar_style;
 use crate::util::{git_commit, shell_command};
 use anyhow::{Result, bail};
 use serde_json::{Value, json};
@@ -31,62 +32,6 @@ pub(crate) fn ensemble(a: &EnsembleArgs) -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// The scenarios of a split's deformations (those `refs` name), by deformation id, and each
-/// deformation's geometry.
-pub(crate) struct SplitScenarios {
-    scen: std::collections::BTreeMap<String, Vec<librplus::eval::ScenarioData>>,
-    geom_of: std::collections::BTreeMap<String, String>,
-}
-
-impl SplitScenarios {
-    /// Reads the scenarios of every deformation of `m` that `refs` name.
-    pub(crate) fn load<'a>(
-        data: &std::path::Path,
-        m: &librplus::dataset::Manifest,
-        refs: impl Iterator<Item = &'a (String, usize)>,
-    ) -> Result<Self> {
-        let needed: std::collections::BTreeSet<&str> = refs.map(|(d, _)| d.as_str()).collect();
-        let mut scen = std::collections::BTreeMap::new();
-        let mut geom_of = std::collections::BTreeMap::new();
-        for d in m
-            .deformations
-            .iter()
-            .filter(|d| needed.contains(d.id.as_str()))
-        {
-            scen.insert(
-                d.id.clone(),
-                librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?,
-            );
-            geom_of.insert(d.id.clone(), d.geometry.clone());
-        }
-        Ok(Self { scen, geom_of })
-    }
-
-    /// The geometries of the deformations read (one per deformation, in deformation order).
-    pub(crate) fn geometries(&self) -> Vec<String> {
-        self.geom_of.values().cloned().collect()
-    }
-
-    /// The scenarios `refs` name, each with its geometry.
-    pub(crate) fn pick(
-        &self,
-        refs: &[(String, usize)],
-    ) -> Vec<(&librplus::eval::ScenarioData, &str)> {
-        refs.iter()
-            .filter_map(|(d, i)| self.scen[d].get(*i).map(|s| (s, self.geom_of[d].as_str())))
-            .collect()
-    }
-}
-
-/// A progress bar's style: `what`, the bar, counts, message, elapsed time and estimate.
-pub(crate) fn bar_style(what: &str) -> indicatif::ProgressStyle {
-    indicatif::ProgressStyle::with_template(&format!(
-        "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}} (eta {{eta}})"
-    ))
-    .expect("valid template")
-    .progress_chars("=> ")
 }
 
 /// The paper's Table 2 settings as configurations: (LIBR input, bipartite, target, sparse loss).
@@ -200,7 +145,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         sets.test.len()
     );
     // Scenarios of every deformation used.
-    let split_scen = SplitScenarios::load(
+    let split_scen = crate::util::SplitScenarios::load(
         &a.data,
         &m,
         sets.train.iter().chain(&sets.valid).chain(&sets.test),

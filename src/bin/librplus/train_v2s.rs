@@ -2,7 +2,7 @@
 //! scored by `librplus evaluate`'s own code (methods rigid and v2s on the held-out scenarios).
 
 use crate::args::TrainArgs;
-use crate::train::{SplitScenarios, bar_style};
+use crate::util::{SplitScenarios, bar_style};
 use crate::util::{git_commit, shell_command};
 use anyhow::Result;
 use serde_json::{Value, json};

@@ -62,3 +62,59 @@ pub(crate) fn shell_command() -> String {
         .collect::<Vec<_>>()
         .join(" ")
 }
+
+/// The scenarios of a split's deformations (those `refs` name), by deformation id, and each
+/// deformation's geometry.
+pub(crate) struct SplitScenarios {
+    scen: std::collections::BTreeMap<String, Vec<librplus::eval::ScenarioData>>,
+    geom_of: std::collections::BTreeMap<String, String>,
+}
+
+impl SplitScenarios {
+    /// Reads the scenarios of every deformation of `m` that `refs` name.
+    pub(crate) fn load<'a>(
+        data: &std::path::Path,
+        m: &librplus::dataset::Manifest,
+        refs: impl Iterator<Item = &'a (String, usize)>,
+    ) -> anyhow::Result<Self> {
+        let needed: std::collections::BTreeSet<&str> = refs.map(|(d, _)| d.as_str()).collect();
+        let mut scen = std::collections::BTreeMap::new();
+        let mut geom_of = std::collections::BTreeMap::new();
+        for d in m
+            .deformations
+            .iter()
+            .filter(|d| needed.contains(d.id.as_str()))
+        {
+            scen.insert(
+                d.id.clone(),
+                librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?,
+            );
+            geom_of.insert(d.id.clone(), d.geometry.clone());
+        }
+        Ok(Self { scen, geom_of })
+    }
+
+    /// The geometries of the deformations read (one per deformation, in deformation order).
+    pub(crate) fn geometries(&self) -> Vec<String> {
+        self.geom_of.values().cloned().collect()
+    }
+
+    /// The scenarios `refs` name, each with its geometry.
+    pub(crate) fn pick(
+        &self,
+        refs: &[(String, usize)],
+    ) -> Vec<(&librplus::eval::ScenarioData, &str)> {
+        refs.iter()
+            .filter_map(|(d, i)| self.scen[d].get(*i).map(|s| (s, self.geom_of[d].as_str())))
+            .collect()
+    }
+}
+
+/// A progress bar's style: `what`, the bar, counts, message, elapsed time and estimate.
+pub(crate) fn bar_style(what: &str) -> indicatif::ProgressStyle {
+    indicatif::ProgressStyle::with_template(&format!(
+        "{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{msg}} {{elapsed}} (eta {{eta}})"
+    ))
+    .expect("valid template")
+    .progress_chars("=> ")
+}

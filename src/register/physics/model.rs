@@ -40,7 +40,7 @@ use crate::fem::{
 use crate::mesh::TetMesh;
 use crate::mesh::vec3::{cross, dist2, dot, sub, unit};
 use crate::register::RegisterError;
-use crate::register::libr::{RigidModes, lumped_volumes, support_321};
+use crate::register::equilibrium::{RigidModes, lumped_volumes, support_321};
 use faer::{Mat, MatRef};
 
 /// Anatomical sites the supports attach to (per node flags, as in [`crate::register::PreopModel`]).
