@@ -281,9 +281,16 @@ pub fn plane_points(
             .iter()
             .position(|x| !(x.is_finite() && x.abs() <= MAX_ABS_MM))
         {
+            // Named by its point, as for 3-D points: `ultrasound.contour_points[2]` for a bad
+            // `ultrasound.contour_uv_mm[5]`.
+            let points = field.replace("_uv_mm", "_points");
             return Err(ServiceError::field(
-                format!("{field}[{i}]"),
-                format!("{} is not finite or beyond ±{MAX_ABS_MM} mm", num(v[i])),
+                format!("{points}[{}]", i / 2),
+                format!(
+                    "{} = {} is not finite or beyond ±{MAX_ABS_MM} mm ({field}[{i}])",
+                    ["u", "v"][i % 2],
+                    num(v[i])
+                ),
             ));
         }
         Ok(v.chunks_exact(2)
@@ -364,6 +371,38 @@ pub fn effects(p: &librplus::pipeline::Prepared) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A bad coordinate is named by its point, with the axis and the flat index in the text.
+    #[test]
+    fn a_bad_coordinate_names_its_point() {
+        let mut v = vec![1.0; 3 * 20];
+        v[3 * 17 + 1] = f64::NAN;
+        let r = points3(&v, "measurements.xyz_mm", 100)
+            .unwrap_err()
+            .to_rejection(0);
+        assert_eq!(r.violations[0].field, "measurements.points[17]");
+        let text = &r.violations[0].description;
+        assert!(
+            text.starts_with("y = NaN") && text.contains("measurements.xyz_mm[52]"),
+            "{text}"
+        );
+        let mut p = pb::UltrasoundPlane {
+            plane_to_physical: Some(rigid_to_pb(&Rigid::identity())),
+            contour_uv_mm: vec![0.0; 8],
+            ..Default::default()
+        };
+        p.contour_uv_mm[5] = f64::INFINITY;
+        let r = plane_points(&p, 100).unwrap_err().to_rejection(0);
+        assert_eq!(r.violations[0].field, "ultrasound.contour_points[2]");
+        assert!(
+            r.violations[0].description.starts_with("v = inf")
+                && r.violations[0]
+                    .description
+                    .contains("ultrasound.contour_uv_mm[5]"),
+            "{}",
+            r.violations[0].description
+        );
+    }
 
     #[test]
     fn rigid_transforms_round_trip_and_non_rotations_are_refused() {

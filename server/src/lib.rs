@@ -129,7 +129,7 @@ const SERVICE_NAME: &str = "librplus.v1.LibRPlus";
 
 /// Binds, serves, and starts preloading. Returns once the port is bound.
 pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
-    config.validate().map_err(anyhow::Error::msg)?;
+    config.validate()?;
     let prom = prometheus();
     let listener = tokio::net::TcpListener::bind(&config.listen)
         .await

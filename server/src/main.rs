@@ -226,7 +226,7 @@ struct Args {
 fn config(a: &Args) -> Result<ServerConfig> {
     let mut c = match &a.config {
         // Checked after the flags are applied: a flag may give what the file leaves out.
-        Some(p) => ServerConfig::read_file(p).map_err(anyhow::Error::msg)?,
+        Some(p) => ServerConfig::read_file(p)?,
         None => ServerConfig::default(),
     };
     if !a.cases.is_empty() {

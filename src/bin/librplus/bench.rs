@@ -162,7 +162,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         let bar = spinner("LIBR basis: cold build, then warm load");
         let p = preload_mesh(&mesh, &params.libr, &cache);
         bar.finish_and_clear();
-        let p = p.map_err(anyhow::Error::msg)?;
+        let p = p?;
         if a.common.json {
             println!(
                 "{}",
@@ -188,7 +188,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
             dir
         }
     };
-    let m = librplus::eval::open(&data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(&data)?;
     let geometry = match &a.geometry {
         Some(g) => g.clone(),
         None => m
@@ -201,7 +201,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("--geometry {geometry:?}: {e}"))?;
     let mut scenarios = Vec::new();
     for d in m.deformations.iter().filter(|d| d.geometry == geometry) {
-        scenarios.extend(librplus::eval::load_scenarios(&data, d).map_err(anyhow::Error::msg)?);
+        scenarios.extend(librplus::eval::load_scenarios(&data, d)?);
     }
     let cats: Vec<&str> = scenarios.iter().map(|s| s.category.as_str()).collect();
     let picked: Vec<&librplus::eval::ScenarioData> = pick_across_categories(&cats, a.scenarios)
@@ -223,13 +223,11 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     };
     let pre = preload_model(&geo.model, &params.libr, &physics, &cache);
     bar.finish_and_clear();
-    let (pre, mut case) = pre.map_err(anyhow::Error::msg)?;
+    let (pre, mut case) = pre?;
     let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
     if method == librplus::pipeline::Method::Adaptive {
         let t = std::time::Instant::now();
-        case = case
-            .with_adaptive(&params.libr, &params.adaptive, None)
-            .map_err(anyhow::Error::msg)?;
+        case = case.with_adaptive(&params.libr, &params.adaptive, None)?;
         println!(
             "adaptive LIBR's basis ({} columns) built in {:.2} s",
             case.adaptive.as_ref().map_or(0, |b| b.basis.columns()),
@@ -240,7 +238,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     let mut model_prepare_s = None;
     if let Some(l) = learned {
         let t = std::time::Instant::now();
-        case = l.attach(case).map_err(anyhow::Error::msg)?;
+        case = l.attach(case)?;
         model_prepare_s = Some(t.elapsed().as_secs_f64());
     }
     let pool = rayon::ThreadPoolBuilder::new()
@@ -261,7 +259,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         )
     });
     bar.finish_and_clear();
-    let r = r.map_err(anyhow::Error::msg)?;
+    let r = r?;
     let out = json!({
         "data": data.display().to_string(),
         "data_generated": a.data.is_none(),

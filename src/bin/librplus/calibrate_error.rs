@@ -115,7 +115,7 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
         "commit": git_commit(),
     });
     let failure = (a.failure_threshold != 0.0).then_some(a.failure_threshold);
-    let model = fit(&cal, a.level, a.ridge, failure, provenance).map_err(anyhow::Error::msg)?;
+    let model = fit(&cal, a.level, a.ridge, failure, provenance)?;
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
     }

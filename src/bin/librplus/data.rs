@@ -61,17 +61,17 @@ pub(crate) fn phantom_effect(
         &librplus::mesh::tetra::TetraParams::with_edge(edge_mm),
     )
     .with_context(|| source.clone())?;
-    let labels = label(&mesh, &LabelParams::default()).map_err(anyhow::Error::msg)?;
-    let tree = VesselTree::grow(&mesh, &VesselParams::default()).map_err(anyhow::Error::msg)?;
+    let labels = label(&mesh, &LabelParams::default())?;
+    let tree = VesselTree::grow(&mesh, &VesselParams::default())?;
     let tp = TissueParams::default();
     let pp = PatternParams::default();
     let bar = indicatif::ProgressBar::new(4 * seeds).with_message("ground truth and breakdowns");
     let mut rows = Vec::new();
     for seed in first_seed..first_seed + seeds {
-        let tissue = Tissue::build(&mesh, &tree, &tp, seed).map_err(anyhow::Error::msg)?;
+        let tissue = Tissue::build(&mesh, &tree, &tp, seed)?;
         let lame = tissue.lame_field();
         for pattern in [Pattern::L, Pattern::R, Pattern::W, Pattern::V, Pattern::X] {
-            let case = load_case(&mesh, &labels, pattern, &pp, seed).map_err(anyhow::Error::msg)?;
+            let case = load_case(&mesh, &labels, pattern, &pp, seed)?;
             let b = breakdown(
                 &mesh,
                 &lame,

@@ -24,7 +24,7 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
         .data
         .as_ref()
         .context("--data DIR or --preop MESH --scenarios DIR")?;
-    let m = librplus::eval::open(data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(data)?;
     let cohorts: Vec<&librplus::dataset::DeformationEntry> = if a.cohort.is_empty() {
         m.deformations.iter().collect()
     } else {
@@ -58,9 +58,8 @@ pub(crate) fn discover(a: &DiscoverArgs) -> Result<()> {
     let mut entries = Vec::new();
     for d in &cohorts {
         bar.set_message(d.id.clone());
-        let geo =
-            librplus::eval::load_geometry(data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
-        let mut scenarios = librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?;
+        let geo = librplus::eval::load_geometry(data, &m, &d.geometry)?;
+        let mut scenarios = librplus::eval::load_scenarios(data, d)?;
         if a.max_sweeps > 0 {
             scenarios.truncate(a.max_sweeps);
         }
@@ -214,8 +213,7 @@ fn discover_files(
         .context("--preop needs --scenarios DIR")?;
     let file = librplus::mesh::io::read(preop, a.unit)
         .with_context(|| format!("--preop {}", preop.display()))?;
-    let model = librplus::input::preop_model_from_mesh(preop, &file, a.unit, a.edge_mm)
-        .map_err(anyhow::Error::msg)?;
+    let model = librplus::input::preop_model_from_mesh(preop, &file, a.unit, a.edge_mm)?;
     let mut entries: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("--scenarios {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -362,8 +360,7 @@ fn write_figures(
                 found.regions.iter().map(|r| r.after_mm).collect(),
             ),
         ],
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     librplus::util::write_atomic(&dir.join("misfit_by_region.png"), &png)?;
     let mut kinds: Vec<String> = found.candidates.iter().map(|c| c.kind.clone()).collect();
     kinds.sort();
@@ -398,8 +395,7 @@ fn write_figures(
         "share of held-out misfit removed",
         &kinds,
         &series,
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     librplus::util::write_atomic(&dir.join("candidates.png"), &png)?;
     Ok(())
 }

@@ -9,7 +9,7 @@ use serde_json::{Value, json};
 pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
     use librplus::eval::report::{self, Split};
     use librplus::pipeline::Method;
-    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(&a.data)?;
     let mut want_plus = false;
     let mut methods = Vec::new();
     for x in a.methods.split(',') {
@@ -168,7 +168,7 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             &a.data, &m, split, &methods, a.every, &params, &physics, plus, disc, &progress,
         );
         bar.finish_and_clear();
-        let ev = results.map_err(anyhow::Error::msg)?;
+        let ev = results?;
         let mut split_plots = Vec::new();
         for (file, png) in [
             (
@@ -194,7 +194,7 @@ pub(crate) fn evaluate(a: &EvaluateArgs) -> Result<()> {
             }
             let mesh = &ev.meshes[&map.geometry];
             let file = format!("error_maps/{name}/{}_{}.vtu", map.geometry, map.method);
-            let f = map.to_file(mesh).map_err(anyhow::Error::msg)?;
+            let f = map.to_file(mesh)?;
             io::write(a.out.join(&file), &f, WriteOptions::default())?;
             let mean = map.mean_mm();
             split_maps.push(json!({

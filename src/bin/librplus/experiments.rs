@@ -12,7 +12,7 @@ use std::time::Instant;
 pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
     use librplus::eval::experiments::{RunOutcome, results_markdown, scenario_results};
     let t0 = Instant::now();
-    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(&a.data)?;
     let test_geos = m.test_geometries();
     let mut train_geos: Vec<String> = m
         .deformations
@@ -121,8 +121,7 @@ pub(crate) fn experiments(a: &ExperimentsArgs) -> Result<()> {
                 .with_context(|| test_path.display().to_string())?,
         )
         .with_context(|| test_path.display().to_string())?;
-        let png = librplus::eval::plot::tre_by_category_png(split, &scenario_results(&test))
-            .map_err(anyhow::Error::msg)?;
+        let png = librplus::eval::plot::tre_by_category_png(split, &scenario_results(&test))?;
         std::fs::write(a.out.join(format!("tre_by_category_{name}.png")), png)?;
         outcomes.push(RunOutcome {
             name,

@@ -243,9 +243,9 @@ pub(crate) fn register_files(a: &RegisterArgs) -> Result<()> {
     let physics = read_physics(a)?;
     let case = prepare_case(model_pre, method, &params, &cache, model, &physics);
     bar.finish_and_clear();
-    let case = case.map_err(anyhow::Error::msg)?;
+    let case = case?;
     let prepare_s = t0.elapsed().as_secs_f64();
-    let r = register(&case, &meas, method, &params).map_err(anyhow::Error::msg)?;
+    let r = register(&case, &meas, method, &params)?;
     if let Some(out) = &a.out {
         let nodes = case.model.mesh.nodes();
         let deformed: Vec<f64> = nodes
@@ -292,7 +292,7 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
     use librplus::pipeline::register;
     let data = a.data.as_ref().context("--data")?;
     let scenario = a.scenario.as_deref().context("--scenario")?;
-    let m = librplus::eval::open(data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(data)?;
     let (def_id, index) = scenario.rsplit_once('/').with_context(|| {
         format!(
             "--scenario {:?}: expected DEFORMATION/INDEX, e.g. g1-L-00/3",
@@ -326,8 +326,8 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
             d.scenarios.len()
         );
     }
-    let geo = librplus::eval::load_geometry(data, &m, &d.geometry).map_err(anyhow::Error::msg)?;
-    let scenarios = librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?;
+    let geo = librplus::eval::load_geometry(data, &m, &d.geometry)?;
+    let scenarios = librplus::eval::load_scenarios(data, d)?;
     let sc = &scenarios[index];
     let (method, model) = register_method(a)?;
     let params = a.libr.params();
@@ -342,9 +342,9 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
     let physics = read_physics(a)?;
     let case = prepare_case(geo.model.clone(), method, &params, &cache, model, &physics);
     bar.finish_and_clear();
-    let case = case.map_err(anyhow::Error::msg)?;
+    let case = case?;
     let prepare_s = t0.elapsed().as_secs_f64();
-    let r = register(&case, &sc.measurements, method, &params).map_err(anyhow::Error::msg)?;
+    let r = register(&case, &sc.measurements, method, &params)?;
     let nodes = geo.model.mesh.nodes();
     let t = librplus::eval::tre(
         nodes,

@@ -242,8 +242,7 @@ fn write_outputs(
                 None => series.push((p.kind.clone(), vec![(p.scale, value(p))])),
             }
         }
-        let png = librplus::eval::plot::line_chart_png(title, "amplitude scale", y, &series)
-            .map_err(anyhow::Error::msg)?;
+        let png = librplus::eval::plot::line_chart_png(title, "amplitude scale", y, &series)?;
         librplus::util::write_atomic(&a.out.join(file), &png)?;
     }
     if a.json {

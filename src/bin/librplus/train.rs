@@ -13,9 +13,8 @@ pub(crate) fn ensemble(a: &EnsembleArgs) -> Result<()> {
         &a.out,
         &a.models,
         json!({ "command": command.join(" ") }),
-    )
-    .map_err(anyhow::Error::msg)?;
-    let models = librplus::gcn::io::load_models_on_device(&a.out).map_err(anyhow::Error::msg)?;
+    )?;
+    let models = librplus::gcn::io::load_models_on_device(&a.out)?;
     println!("{}: ensemble of {} networks", a.out.display(), names.len());
     for (name, m) in names.iter().zip(&models) {
         let p = &m.provenance;
@@ -68,7 +67,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         return crate::train_v2s::train_v2s(a);
     }
     let t_all = Instant::now();
-    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(&a.data)?;
     let split = TrainSplit::parse(&a.split).map_err(|e| anyhow::anyhow!("--split: {e}"))?;
     let base = SrGcnConfig::new()
         .with_misfit_input(a.misfit_input)
@@ -135,8 +134,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             ScheduleArg::Cosine => tr::Schedule::Cosine,
         },
     };
-    let sets = tr::split_scenarios(&m, &split, a.seed, a.every, a.validation.get())
-        .map_err(anyhow::Error::msg)?;
+    let sets = tr::split_scenarios(&m, &split, a.seed, a.every, a.validation.get())?;
     eprintln!(
         "split {}: {} training, {} validation, {} test scenarios",
         split.name(),
@@ -159,8 +157,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         Some(p) => librplus::register::physics::Physics::read(p)
             .map_err(|e| anyhow::anyhow!("--physics: {e}"))?,
     };
-    let cases =
-        tr::load_cases(&a.data, &m, &geos, &params, &physics).map_err(anyhow::Error::msg)?;
+    let cases = tr::load_cases(&a.data, &m, &geos, &params, &physics)?;
     spinner.finish_and_clear();
     let pick = |refs: &[(String, usize)]| split_scen.pick(refs);
     let solve = |items: &[(&librplus::eval::ScenarioData, &str)],
@@ -188,8 +185,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             .map(|((s, g), o)| (*s, *g, o))
             .collect();
         Ok(
-            tr::build_samples(&cfg, &cases, &z, &params, true, refit_loss)
-                .map_err(anyhow::Error::msg)?
+            tr::build_samples(&cfg, &cases, &z, &params, true, refit_loss)?
                 .into_iter()
                 .flatten()
                 .collect(),
@@ -243,8 +239,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         &a.out,
         &provenance,
         &progress,
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     bar.finish_and_clear();
     for l in &report.log {
         eprintln!(
@@ -281,8 +276,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
             .map(|((s, g), o)| (*s, *g, o))
             .collect();
         let grid = tr::refit_scale_grid();
-        let (scale, errs) = tr::fit_refit_scale(&report.model, &cases, &z, &params, &grid)
-            .map_err(anyhow::Error::msg)?;
+        let (scale, errs) = tr::fit_refit_scale(&report.model, &cases, &z, &params, &grid)?;
         spinner.finish_and_clear();
         let k = grid.iter().position(|&g| g == scale).unwrap_or(0);
         eprintln!(
@@ -380,8 +374,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
         "test_librplus_tre_mm": sp / nn,
         "train_seconds": report.seconds,
     });
-    librplus::gcn::io::save_model(&a.out, &model.config, &model.net, prov)
-        .map_err(anyhow::Error::msg)?;
+    librplus::gcn::io::save_model(&a.out, &model.config, &model.net, prov)?;
     // Loss curves.
     let series =
         |stage: u32, f: &dyn Fn(&librplus::eval::train::EpochLog) -> f64| -> Vec<(f64, f64)> {
@@ -404,8 +397,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
                 series(2, &|_| report.libr_valid_mm),
             ),
         ],
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     std::fs::write(a.out.join("loss_stage2.png"), png)?;
     if cfg.bipartite {
         let png = librplus::eval::plot::line_chart_png(
@@ -416,8 +408,7 @@ pub(crate) fn train(a: &TrainArgs) -> Result<Value> {
                 ("training".into(), series(1, &|l| l.train_loss)),
                 ("validation".into(), series(1, &|l| l.valid)),
             ],
-        )
-        .map_err(anyhow::Error::msg)?;
+        )?;
         std::fs::write(a.out.join("loss_stage1.png"), png)?;
     }
     println!(

@@ -17,7 +17,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
     use librplus::eval::train::{TrainSplit, split_scenarios};
     use librplus::v2s::model::V2sConfig;
     let t_all = Instant::now();
-    let m = librplus::eval::open(&a.data).map_err(anyhow::Error::msg)?;
+    let m = librplus::eval::open(&a.data)?;
     let split = TrainSplit::parse(&a.split).map_err(|e| anyhow::anyhow!("--split: {e}"))?;
     let cfg = V2sConfig::new()
         .with_grid(a.grid)
@@ -30,8 +30,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
         anyhow::bail!("--physics and --init are SR-GCN options; V2S has no physics prior");
     }
     let params = a.libr.params();
-    let sets = split_scenarios(&m, &split, a.seed, a.every, a.validation.get())
-        .map_err(anyhow::Error::msg)?;
+    let sets = split_scenarios(&m, &split, a.seed, a.every, a.validation.get())?;
     eprintln!(
         "V2S, split {}: {} training, {} validation, {} test scenarios; grid {}³",
         split.name(),
@@ -45,7 +44,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
     let spinner = indicatif::ProgressBar::new_spinner()
         .with_message("preparing the grids (signed distance of every liver)");
     spinner.enable_steady_tick(std::time::Duration::from_millis(200));
-    let frames = v2s_geometries(&a.data, &m, &geos, &cfg).map_err(anyhow::Error::msg)?;
+    let frames = v2s_geometries(&a.data, &m, &geos, &cfg)?;
     spinner.finish_and_clear();
     let pick = |refs: &[(String, usize)]| split_scen.pick(refs);
     let samples = |items: &[(&librplus::eval::ScenarioData, &str)], what: &str| {
@@ -108,8 +107,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
         &a.out,
         &provenance,
         &progress,
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     bar.finish_and_clear();
     for l in &report.log {
         eprintln!(
@@ -194,8 +192,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
         "test_v2s_tre_mm": sv / nn,
         "train_seconds": report.seconds,
     });
-    librplus::v2s::io::save_model(&a.out, &model.config, &model.net, prov)
-        .map_err(anyhow::Error::msg)?;
+    librplus::v2s::io::save_model(&a.out, &model.config, &model.net, prov)?;
     let series = |f: &dyn Fn(&librplus::eval::train::EpochLog) -> f64| -> Vec<(f64, f64)> {
         report.log.iter().map(|l| (l.epoch as f64, f(l))).collect()
     };
@@ -211,8 +208,7 @@ pub(crate) fn train_v2s(a: &TrainArgs) -> Result<Value> {
                 series(&|_| report.rigid_valid_mm),
             ),
         ],
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     std::fs::write(a.out.join("loss.png"), png)?;
     println!(
         "V2S, split {}: test wICP {:.3} mm, V2S {:.3} mm over {n} scenarios; training {:.0} s",

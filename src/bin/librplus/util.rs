@@ -85,10 +85,7 @@ impl SplitScenarios {
             .iter()
             .filter(|d| needed.contains(d.id.as_str()))
         {
-            scen.insert(
-                d.id.clone(),
-                librplus::eval::load_scenarios(data, d).map_err(anyhow::Error::msg)?,
-            );
+            scen.insert(d.id.clone(), librplus::eval::load_scenarios(data, d)?);
             geom_of.insert(d.id.clone(), d.geometry.clone());
         }
         Ok(Self { scen, geom_of })
