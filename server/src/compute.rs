@@ -279,14 +279,66 @@ fn judge(o: &Outcome<'_>, budget: Duration, params: &PipelineParams) -> (pb::Qua
 /// on the paper liver, 2 cores; up to eight on a 1,800-node liver, whose fixed costs weigh more).
 const POSE_SEARCH_COST: f64 = 8.0;
 
+/// What a registration was planned to be within its budget.
+struct Plan {
+    /// The method it runs (LIBR+ → LIBR → rigid when the budget cannot hold more).
+    method: Method,
+    /// Why it runs less than was asked for.
+    degraded: Option<String>,
+    params: PipelineParams,
+    /// Time spent waiting for a compute slot (ms).
+    queue_ms: f64,
+}
+
 /// Plans and runs one registration within its budget.
 fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
-    let start = Instant::now();
-    let case = &job.case;
-    let prepared = job.prepared.as_deref().unwrap_or(&case.prepared);
+    let prepared = job.prepared.as_deref().unwrap_or(&job.case.prepared);
+    let mut plan = plan(&job, prepared, Instant::now());
+    let mut result = register(prepared, &job.measurements, plan.method, &plan.params);
+    let mut fallback: Option<String> = None;
+    if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, plan.method)
+        && libr_can_fall_back(e)
+    {
+        // The data stopped LIBR (too few, degenerate or clustered points): the rigid result,
+        // flagged, is still the best available answer. Any other error is the server's and is
+        // reported as such.
+        fallback = Some(format!("LIBR could not run: {e}; rigid result"));
+        plan.method = Method::Rigid;
+        result = register(prepared, &job.measurements, plan.method, &plan.params);
+    }
+    let reg = result?;
+    job.case.observe(
+        reg.rigid.seconds * 1e3,
+        reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
+    );
+    if let Some(c) = reg.correction.as_ref().filter(|c| !c.applied) {
+        plan.method = Method::Libr;
+        plan.degraded.get_or_insert_with(|| {
+            c.skipped
+                .clone()
+                .unwrap_or_else(|| "SR-GCN correction skipped".into())
+        });
+    }
+    let (quality, reason) = judge(
+        &outcome(&reg, fallback, plan.degraded.take()),
+        job.budget,
+        &plan.params,
+    );
+    let total_ms = ms(job.arrival.elapsed());
+    let (quality, reason) = late(&job, &reg, &plan, quality, reason, total_ms);
+    record_stages(&reg, &plan, quality, total_ms);
+    Ok(answer(
+        &job, prepared, &reg, &plan, quality, reason, total_ms,
+    ))
+}
+
+/// The method and parameters that fit the time left: LIBR+ only when the SR-GCN fits, LIBR
+/// when two iterations fit, else the rigid result; the pose search only when about
+/// [`POSE_SEARCH_COST`] registrations fit.
+fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> Plan {
     let queue_ms = ms(start - job.arrival);
     let deadline = job.arrival + job.budget;
-    let est = case.estimates();
+    let est = job.case.estimates();
     let mut method = job.method;
     let mut degraded: Option<String> = None;
     let mut params = PipelineParams::default();
@@ -296,8 +348,8 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         .librplus
         .as_ref()
         .map_or(0.0, |g| 1e3 * g.expected_seconds());
+    let left = ms(deadline.saturating_duration_since(start));
     if method == Method::LibrPlus {
-        let left = ms(deadline.saturating_duration_since(start));
         let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + gcn_ms;
         if left < need {
             method = Method::Libr;
@@ -315,7 +367,6 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         }
     }
     if matches!(method, Method::Libr | Method::LibrPlus) {
-        let left = ms(deadline.saturating_duration_since(start));
         let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
         if left < need {
             method = Method::Rigid;
@@ -340,111 +391,124 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     if left < POSE_SEARCH_COST * one {
         params.pose.start_angles_deg.clear();
     }
-    let mut result = register(prepared, &job.measurements, method, &params);
-    let mut fallback: Option<String> = None;
-    if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, method)
-        && libr_can_fall_back(e)
-    {
-        // The data stopped LIBR (too few, degenerate or clustered points): the rigid result,
-        // flagged, is still the best available answer. Any other error is the server's and is
-        // reported as such.
-        fallback = Some(format!("LIBR could not run: {e}; rigid result"));
-        method = Method::Rigid;
-        result = register(prepared, &job.measurements, method, &params);
+    Plan {
+        method,
+        degraded,
+        params,
+        queue_ms,
     }
-    let reg = result?;
-    let rigid_ms = reg.rigid.seconds * 1e3;
-    let libr_ms = reg.libr.as_ref().map(|i| i.total_s * 1e3);
-    case.observe(
-        rigid_ms,
-        reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
-    );
+}
+
+/// What the quality judgement reads of a registration.
+fn outcome(
+    reg: &librplus::pipeline::Registration,
+    fallback: Option<String>,
+    degraded: Option<String>,
+) -> Outcome<'_> {
     let gcn = reg.correction.as_ref();
-    if let Some(c) = gcn.filter(|c| !c.applied) {
-        method = Method::Libr;
-        degraded.get_or_insert_with(|| {
-            c.skipped
-                .clone()
-                .unwrap_or_else(|| "SR-GCN correction skipped".into())
-        });
-    }
-    let (quality, reason) = judge(
-        &Outcome {
-            degenerate: reg.rigid.degenerate.as_deref(),
-            fallback,
-            degraded,
-            refit_error: gcn.and_then(|c| c.refit_error.as_deref()),
-            refit: gcn.and_then(|c| c.refit.as_ref()),
-            libr: reg.libr.as_ref(),
-            rigid_converged: reg.rigid.converged,
-            rigid_iterations: reg.rigid.iterations,
-            likely_failed: likely_failed(reg.error.as_ref()),
-            ambiguous_pose: reg.pose.as_ref().filter(|p| p.ambiguous).map(|p| {
-                let s = &p.scores;
-                let mut sorted = s.clone();
-                sorted.sort_by(f64::total_cmp);
-                format!(
-                    "two rigid poses {:.0} mm apart explain the points about equally after the deformable fit (scores {:.2} and {:.2} mm²): the answer is the better one and may be wrong",
-                    p.runner_up_mm.unwrap_or(0.0),
-                    sorted[0],
-                    sorted.get(1).copied().unwrap_or(f64::NAN)
-                )
-            }),
-        },
-        job.budget,
-        &params,
-    );
-    let total_ms = ms(job.arrival.elapsed());
-    // Finding 7.6: an answer later than its budget says so (the plan above keeps to it when
-    // the estimates hold; a slow machine, a huge request or a tiny budget may not).
-    let (quality, reason) = match quality {
-        pb::Quality::Ok | pb::Quality::NotConverged | pb::Quality::Degraded
-            if total_ms > ms(job.budget) =>
-        {
-            (
-                pb::Quality::Degraded,
-                format!(
-                    "over its time budget: answered in {total_ms:.0} ms of {:.0} ms ({} points; \
-                 {queue_ms:.0} ms waiting, rigid stage {rigid_ms:.0} ms){}",
-                    ms(job.budget),
-                    job.measurements.points.len(),
-                    if reason.is_empty() {
-                        String::new()
-                    } else {
-                        format!("; {reason}")
-                    }
-                ),
+    Outcome {
+        degenerate: reg.rigid.degenerate.as_deref(),
+        fallback,
+        degraded,
+        refit_error: gcn.and_then(|c| c.refit_error.as_deref()),
+        refit: gcn.and_then(|c| c.refit.as_ref()),
+        libr: reg.libr.as_ref(),
+        rigid_converged: reg.rigid.converged,
+        rigid_iterations: reg.rigid.iterations,
+        likely_failed: likely_failed(reg.error.as_ref()),
+        ambiguous_pose: reg.pose.as_ref().filter(|p| p.ambiguous).map(|p| {
+            let mut sorted = p.scores.clone();
+            sorted.sort_by(f64::total_cmp);
+            format!(
+                "two rigid poses {:.0} mm apart explain the points about equally after the deformable fit (scores {:.2} and {:.2} mm²): the answer is the better one and may be wrong",
+                p.runner_up_mm.unwrap_or(0.0),
+                sorted[0],
+                sorted.get(1).copied().unwrap_or(f64::NAN)
             )
-        }
+        }),
+    }
+}
+
+/// An answer later than its budget says so (the plan keeps to it when the estimates hold; a
+/// slow machine, a huge request or a tiny budget may not).
+fn late(
+    job: &Job,
+    reg: &librplus::pipeline::Registration,
+    plan: &Plan,
+    quality: pb::Quality,
+    reason: String,
+    total_ms: f64,
+) -> (pb::Quality, String) {
+    let budget_ms = ms(job.budget);
+    if total_ms <= budget_ms {
+        return (quality, reason);
+    }
+    match quality {
+        pb::Quality::Ok | pb::Quality::NotConverged | pb::Quality::Degraded => (
+            pb::Quality::Degraded,
+            format!(
+                "over its time budget: answered in {total_ms:.0} ms of {budget_ms:.0} ms ({} points; \
+                 {:.0} ms waiting, rigid stage {:.0} ms){}",
+                job.measurements.points.len(),
+                plan.queue_ms,
+                reg.rigid.seconds * 1e3,
+                if reason.is_empty() {
+                    String::new()
+                } else {
+                    format!("; {reason}")
+                }
+            ),
+        ),
         // An ambiguous pose or a likely failure stays flagged as such, and says it was late too.
-        pb::Quality::AmbiguousPose | pb::Quality::LikelyFailed if total_ms > ms(job.budget) => (
+        pb::Quality::AmbiguousPose | pb::Quality::LikelyFailed => (
             quality,
             format!(
-                "{reason}; over its time budget too: answered in {total_ms:.0} ms of {:.0} ms",
-                ms(job.budget)
+                "{reason}; over its time budget too: answered in {total_ms:.0} ms of {budget_ms:.0} ms"
             ),
         ),
         _ => (quality, reason),
-    };
+    }
+}
+
+/// Stage timings and the registration count, as metrics.
+fn record_stages(
+    reg: &librplus::pipeline::Registration,
+    plan: &Plan,
+    quality: pb::Quality,
+    total_ms: f64,
+) {
     let stage = |name: &'static str, v: f64| {
         metrics::histogram!("librplus_stage_seconds", "stage" => name).record(v / 1e3);
     };
-    stage("queue", queue_ms);
-    stage("rigid", rigid_ms);
-    if let Some(l) = libr_ms {
-        stage("libr", l);
+    stage("queue", plan.queue_ms);
+    stage("rigid", reg.rigid.seconds * 1e3);
+    if let Some(l) = &reg.libr {
+        stage("libr", l.total_s * 1e3);
     }
-    if let Some(c) = gcn {
+    if let Some(c) = &reg.correction {
         stage("gcn", c.seconds * 1e3);
         if let Some(r) = &c.refit {
             stage("refit", r.total_s * 1e3);
         }
     }
     stage("total", total_ms);
-    metrics::counter!("librplus_registrations_total", "method" => method.name(), "quality" => quality.as_str_name()).increment(1);
+    metrics::counter!("librplus_registrations_total", "method" => plan.method.name(), "quality" => quality.as_str_name()).increment(1);
+}
+
+/// The reply to a registration.
+fn answer(
+    job: &Job,
+    prepared: &librplus::pipeline::Prepared,
+    reg: &librplus::pipeline::Registration,
+    plan: &Plan,
+    quality: pb::Quality,
+    reason: String,
+    total_ms: f64,
+) -> pb::Registration {
+    let gcn = reg.correction.as_ref();
     let info = reg.libr.as_ref();
     let refit = gcn.and_then(|c| c.refit.as_ref());
-    Ok(pb::Registration {
+    pb::Registration {
         image_to_physical: Some(rigid_to_pb(&reg.image_to_physical)),
         displacement_mm: if job.omit_displacements {
             Vec::new()
@@ -452,14 +516,14 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
             reg.u.iter().map(|&x| x as f32).collect()
         },
         node_count: prepared.model.mesh.num_nodes() as u32,
-        method_used: method_to_pb(method) as i32,
+        method_used: method_to_pb(plan.method) as i32,
         residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
         points_used: job.measurements.points.len() as u32,
         points_matched: reg.rigid.matched as u32,
         timings: Some(pb::StageTimings {
-            queue_ms,
-            rigid_ms,
-            libr_ms: libr_ms.unwrap_or(0.0),
+            queue_ms: plan.queue_ms,
+            rigid_ms: reg.rigid.seconds * 1e3,
+            libr_ms: info.map_or(0.0, |i| i.total_s * 1e3),
             libr_matching_ms: info.map_or(0.0, |i| i.matching_s * 1e3),
             libr_assemble_ms: info.map_or(0.0, |i| i.assemble_s * 1e3),
             libr_solve_ms: info.map_or(0.0, |i| i.solve_s * 1e3),
@@ -473,25 +537,36 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         quality_reason: reason,
         effects: crate::convert::effects(prepared),
         rigid_ill_posed: reg.rigid.ill_posed,
-        error_estimate: reg.error.as_ref().map(|e| pb::ErrorEstimate {
-            predicted_tre_mm: e.predicted_tre_mm,
-            level: e.level,
-            node_uncertainty_mm: if job.omit_displacements {
-                Vec::new()
-            } else {
-                e.node_bound_mm.iter().map(|&x| x as f32).collect()
+        error_estimate: reg
+            .error
+            .as_ref()
+            .map(|e| error_estimate(e, job.omit_displacements)),
+    }
+}
+
+/// The reply's error estimate (the per-node bound left out with the displacements).
+fn error_estimate(
+    e: &librplus::register::uncertainty::ErrorEstimate,
+    omit: bool,
+) -> pb::ErrorEstimate {
+    pb::ErrorEstimate {
+        predicted_tre_mm: e.predicted_tre_mm,
+        level: e.level,
+        node_uncertainty_mm: if omit {
+            Vec::new()
+        } else {
+            e.node_bound_mm.iter().map(|&x| x as f32).collect()
+        },
+        coverage_mean_mm: e.features.coverage_mean_mm,
+        surface_covered: e.features.surface_covered,
+        strain_energy_uj: e.features.strain_energy_uj,
+        failure: e.failure_probability.zip(e.failure_threshold_mm).map(
+            |(probability, threshold_mm)| pb::FailureEstimate {
+                probability,
+                threshold_mm,
             },
-            coverage_mean_mm: e.features.coverage_mean_mm,
-            surface_covered: e.features.surface_covered,
-            strain_energy_uj: e.features.strain_energy_uj,
-            failure: e.failure_probability.zip(e.failure_threshold_mm).map(
-                |(probability, threshold_mm)| pb::FailureEstimate {
-                    probability,
-                    threshold_mm,
-                },
-            ),
-        }),
-    })
+        ),
+    }
 }
 
 #[cfg(test)]
