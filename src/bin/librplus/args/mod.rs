@@ -5,6 +5,11 @@ use librplus::fem;
 use librplus::mesh::io::Unit;
 use std::path::PathBuf;
 
+mod libr;
+mod train;
+pub(crate) use libr::LibrOpts;
+pub(crate) use train::TrainArgs;
+
 #[derive(Parser)]
 #[command(
     name = "librplus",
@@ -126,8 +131,6 @@ pub(crate) struct DiscoverScoreArgs {
 
 #[derive(Args)]
 pub(crate) struct DiscoverArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
     /// Dataset directory (from `librplus generate`).
     #[arg(long, required_unless_present = "preop")]
     pub(crate) data: Option<PathBuf>,
@@ -172,6 +175,9 @@ pub(crate) struct DiscoverArgs {
     /// Print the discover.json object on stdout instead of text.
     #[arg(long)]
     pub(crate) json: bool,
+    // Last: `--help` shows these under their own heading, after the command's own options.
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
 }
 
 #[derive(Args)]
@@ -236,159 +242,6 @@ pub(crate) struct TrainOnly {
     pub(crate) args: TrainArgs,
 }
 
-#[derive(Args)]
-pub(crate) struct TrainArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
-    /// Dataset directory (from `librplus generate`).
-    #[arg(long)]
-    pub(crate) data: PathBuf,
-    /// An augmented model (`physics.json`) for every geometry: the network learns the residual
-    /// of LIBR with these effects (its inputs and the refit use it), and LIBR+ applies it only to
-    /// a LIBR with the same physics (recorded as `physics_hash` in the provenance)
-    #[arg(long, value_name = "FILE")]
-    pub(crate) physics: Option<PathBuf>,
-    /// random, geo-def, logo:GEOMETRY or pattern-v.
-    #[arg(long, default_value = "pattern-v")]
-    pub(crate) split: String,
-    /// Model directory to write.
-    #[arg(long)]
-    pub(crate) out: PathBuf,
-    /// Use every k-th block of five scenarios (train and test).
-    #[arg(long, default_value_t = 2)]
-    pub(crate) every: usize,
-    /// Seed (split, initialisation, sample order).
-    #[arg(long, default_value_t = 1)]
-    pub(crate) seed: u64,
-    /// Stage-2 epochs at most.
-    #[arg(long, default_value_t = 12)]
-    pub(crate) epochs: usize,
-    /// Stage-1 (bipartite branch) epochs.
-    #[arg(long, default_value_t = 2)]
-    pub(crate) epochs_bipartite: usize,
-    /// Initial Adam learning rate.
-    #[arg(long, default_value_t = 2e-3)]
-    pub(crate) lr: f64,
-    /// Feature width.
-    #[arg(long, default_value_t = 32)]
-    pub(crate) width: usize,
-    /// Convoluters per branch (N_c; the mesh branch's at full resolution).
-    #[arg(long, default_value_t = 1)]
-    pub(crate) convs: usize,
-    /// Spline kernel size per dimension.
-    #[arg(long, default_value_t = 3)]
-    pub(crate) kernel_size: usize,
-    /// Level the mesh branch runs at: 0 the full mesh (as the paper), 1 the first cluster level
-    /// (inputs pooled, the correction interpolated back to every node).
-    #[arg(long, default_value_t = 1)]
-    pub(crate) resolution: usize,
-    /// Coarse levels of the mesh branch's U-Net below `--resolution` (0: single resolution).
-    #[arg(long, default_value_t = 2)]
-    pub(crate) levels: usize,
-    /// Nodes per cluster from one U-Net level to the next.
-    #[arg(long, default_value_t = 8)]
-    pub(crate) pool_ratio: usize,
-    /// Clusters of the first cluster level whatever the mesh's resolution, so coarse and fine
-    /// meshes give the network the same graphs (0: `1/pool_ratio` of the nodes).
-    #[arg(long, default_value_t = 1024)]
-    pub(crate) clusters: usize,
-    /// Spline convolutions per coarse level on the way down.
-    #[arg(long, default_value_t = 3)]
-    pub(crate) coarse_convs: usize,
-    /// Nearest LIBR-deformed vertices per measured point (N_top).
-    #[arg(long, default_value_t = 4)]
-    pub(crate) n_top: usize,
-    /// Weight λ of the sparse-measurement loss.
-    #[arg(long)]
-    pub(crate) sparse_weight: Option<f64>,
-    /// The paper's Table 2 setting 1-6 (inputs and losses; 6 = the full model).
-    #[arg(long, default_value_t = 6)]
-    pub(crate) ablation: u32,
-    /// Add the measured-misfit input channels to the mesh branch (not in the paper).
-    #[arg(long)]
-    pub(crate) misfit_input: bool,
-    /// Add the surface input channels to the mesh branch: a boundary flag and the outward
-    /// normal of each node, from the preoperative mesh (not in the paper)
-    #[arg(long)]
-    pub(crate) surface_input: bool,
-    /// Add the loads LIBR's displacement implies (K·u of the preoperative mesh's linear
-    /// stiffness, 3 channels) to the mesh branch (not in the paper)
-    #[arg(long)]
-    pub(crate) load_input: bool,
-    /// DIAGNOSTIC, not a registration setting: link each measured point to its nearest
-    /// ground-truth vertices, as the LIBR+ paper did (a leak: surgery has no ground truth). The
-    /// training and test figures then show what that leak buys; the model cannot register.
-    #[arg(long)]
-    pub(crate) diagnostic_truth_neighbours: bool,
-    /// Plain convolutions in the mesh branch instead of residual blocks (as format-2 models).
-    #[arg(long)]
-    pub(crate) no_residual: bool,
-    /// Stage 2 stops before an epoch that would end past this many minutes.
-    #[arg(long, default_value_t = 25.0)]
-    pub(crate) max_minutes: f64,
-    /// Stage 2 stops after this many epochs in a row without a better validation error (the
-    /// learning rate halves at each; plateau schedule only)
-    #[arg(long, default_value_t = 3)]
-    pub(crate) patience: usize,
-    /// Stage-2 learning-rate schedule: `cosine` anneals it from `--lr` to 0 over `--epochs` or
-    /// `--max-minutes`, whichever ends first, and keeps the best epoch; `plateau` (before
-    /// session 10) halves it when validation stalls and stops after `--patience` stalls
-    #[arg(long, value_enum, default_value_t = ScheduleArg::Cosine)]
-    pub(crate) schedule: ScheduleArg,
-    /// Train on the raw correction instead of through LIBR+'s refit (by default, with the refit
-    /// on and a residual target, the node loss scores what the refit, linearised at each
-    /// scenario's LIBR solution, makes of the correction)
-    #[arg(long)]
-    pub(crate) no_refit_loss: bool,
-    /// Validate and keep an exponential moving average of the stage-2 weights over this many
-    /// epochs instead of the weights themselves (0: off)
-    #[arg(long, default_value_t = 0.0)]
-    pub(crate) average_epochs: f64,
-    /// L2 penalty on the mesh branch's weights (stage 2), added to the gradients before Adam
-    /// (0: none)
-    #[arg(long, default_value_t = 0.0)]
-    pub(crate) weight_decay: f64,
-    /// Jitter the normalised position inputs (preoperative and LIBR-deformed coordinates,
-    /// bipartite features) of every training step by a random affine map of this strength
-    /// (rotation, shear, scaling and translation up to about this fraction of the liver's RMS
-    /// radius; 0: none). Validation and inference are never jittered
-    #[arg(long, default_value_t = 0.0)]
-    pub(crate) position_jitter: f64,
-    /// What validation (early stopping, the correction scale) holds out of the training
-    /// scenarios: `deformations` (about one in ten whole deformations; on the random split a
-    /// tenth of the blocks) or `geometry` (one whole training liver, judging generalisation to
-    /// a new shape as the leave-one-geometry-out and pattern-V tests do; needs 3 training
-    /// livers)
-    #[arg(long, value_enum, default_value_t = ValidationArg::Deformations)]
-    pub(crate) validation: ValidationArg,
-    /// Start from this model's weights and network (its model.json replaces the network
-    /// options); with `--epochs 0 --epochs-bipartite 0` the model is only validated, its
-    /// correction scale fitted again and tested
-    #[arg(long)]
-    pub(crate) init: Option<PathBuf>,
-    /// What to train: `srgcn` (LIBR+'s residual network) or `v2s` (the paper's data-driven
-    /// baseline, a 3-D U-Net on a grid supervised by the true displacement alone; it uses
-    /// --epochs, --patience, --max-minutes, --seed, --split, --every and the --v2s-* options)
-    #[arg(long, value_enum, default_value_t = TrainMethod::Srgcn)]
-    pub(crate) method: TrainMethod,
-    /// V2S: grid points per axis (the paper: 64; a multiple of 2^--v2s-depth; 16 trains 7× as
-    /// many epochs as 32 in the same time on a CPU)
-    #[arg(long, default_value_t = 16)]
-    pub(crate) grid: usize,
-    /// V2S: channels at full resolution (doubled at each level down)
-    #[arg(long, default_value_t = 8)]
-    pub(crate) v2s_width: usize,
-    /// V2S: down-sampling steps of the U-Net
-    #[arg(long, default_value_t = 2)]
-    pub(crate) v2s_depth: usize,
-    /// V2S: 3³ convolutions per level on each side of the U
-    #[arg(long, default_value_t = 2)]
-    pub(crate) v2s_convs: usize,
-    /// V2S: initial Adam learning rate (annealed by --schedule)
-    #[arg(long, default_value_t = 3e-3)]
-    pub(crate) v2s_lr: f64,
-}
-
 /// `train --method`.
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub(crate) enum TrainMethod {
@@ -398,196 +251,8 @@ pub(crate) enum TrainMethod {
     V2s,
 }
 
-/// LIBR options shared by `register` and `evaluate`.
-#[derive(Args, Clone)]
-pub(crate) struct LibrOpts {
-    /// LIBR strain-energy regularization λ (dimensionless; default 1e-3).
-    #[arg(long)]
-    pub(crate) lambda: Option<f64>,
-    /// Most LIBR iterations (default 20).
-    #[arg(long)]
-    pub(crate) iterations: Option<usize>,
-    /// LIBR control points (default 25; changes the cached basis).
-    #[arg(long)]
-    pub(crate) control_points: Option<usize>,
-    /// Width σ of each control point's load, as a multiple of the control-point spacing
-    /// (default 1.25; changes the cached basis).
-    #[arg(long)]
-    pub(crate) load_width: Option<f64>,
-    /// LIBR+ only: most LIBR iterations of the data-consistency refit after the SR-GCN
-    /// correction (default 5; 0: none)
-    #[arg(long)]
-    pub(crate) refit_iterations: Option<usize>,
-    /// The rigid stage (wICP) registers the anterior-surface points alone, as Clements et al.
-    /// and the LIBR+ paper's wICP baseline do; ultrasound points are then used by LIBR only
-    #[arg(long)]
-    pub(crate) wicp_surface_only: bool,
-    /// The navigation system's initial alignment is trusted to this uncertainty (mm, RMS
-    /// displacement over the organ): the rigid motion of wICP, LIBR and the refit is
-    /// regularised towards it instead of fitted freely (an organ held in place)
-    #[arg(long, value_name = "MM")]
-    pub(crate) trusted_alignment: Option<f64>,
-    /// The organ is held in place and the navigation start trusted: the start is trusted to
-    /// 5 mm (unless --trusted-alignment says otherwise), no pose search, and the surface no
-    /// measured point comes near is held where the start puts it
-    #[arg(long)]
-    pub(crate) held: bool,
-    /// LIBR+ never abstains: it corrects even registrations outside what its networks learned
-    /// (their abstain.json; by default such a registration answers LIBR's result, flagged)
-    #[arg(long)]
-    pub(crate) no_abstain: bool,
-    /// With --held: a boundary node is held when no measured point lies within this distance
-    /// (mm, default 45)
-    #[arg(long, value_name = "MM")]
-    pub(crate) hold_clearance: Option<f64>,
-    /// With --held: the held nodes' total weight relative to the data's (default 1)
-    #[arg(long)]
-    pub(crate) hold_weight: Option<f64>,
-    /// Below this conditioning of the rigid stage's point-to-plane system the start is trusted
-    /// to 10 mm and the registration flagged (default 1e-3; 0: never)
-    #[arg(long)]
-    pub(crate) min_conditioning: Option<f64>,
-    /// Adaptive LIBR: control points of each level of its basis, broadest first, comma-separated
-    /// (default 25,100; changes its cached basis)
-    #[arg(long, value_delimiter = ',', value_name = "K,K,...")]
-    pub(crate) adaptive_levels: Option<Vec<usize>>,
-    /// Adaptive LIBR: a finer level's control load is kept when a matched point lies within this
-    /// many patch widths of it (default 2)
-    #[arg(long)]
-    pub(crate) adaptive_reach: Option<f64>,
-    /// Adaptive LIBR: the range of λ its evidence search covers (default 1e-3,1e-3: λ fixed at
-    /// LIBR's; a wider range turns the search on)
-    #[arg(long, value_delimiter = ',', value_name = "LOW,HIGH")]
-    pub(crate) adaptive_lambda: Option<Vec<f64>>,
-    /// Adaptive LIBR: stiffness annealing, the first iteration's least λ and the factor per
-    /// iteration (default 0,0: none)
-    #[arg(long, value_delimiter = ',', value_name = "START,FACTOR")]
-    pub(crate) adaptive_anneal: Option<Vec<f64>>,
-    /// Adaptive LIBR: the finer levels' deformation costs this many times its strain energy
-    /// (default 1)
-    #[arg(long)]
-    pub(crate) adaptive_fine_penalty: Option<f64>,
-    /// Adaptive LIBR: every level from the first iteration (default: the broadest level alone
-    /// until it settles, then every level)
-    #[arg(long)]
-    pub(crate) adaptive_all_levels_at_once: bool,
-    /// Adaptive LIBR: a finer control load is kept when the matched points near it spread at
-    /// least this many patch widths across their second principal axis (default 0.3)
-    #[arg(long)]
-    pub(crate) adaptive_spread: Option<f64>,
-    /// The rigid stage's extra starts: the navigation start turned by each of these angles
-    /// (degrees) about three axes, both ways (default 15,30,45)
-    #[arg(long, value_delimiter = ',', value_name = "DEG,...")]
-    pub(crate) start_angles: Option<Vec<f64>>,
-    /// The rigid stage starts from the navigation start alone (no pose search)
-    #[arg(long, conflicts_with = "start_angles")]
-    pub(crate) single_start: bool,
-    /// The pose search runs only when the navigation start's own deformable fit scores above
-    /// this (capped mean squared distance plus regularisation, mm²; default 4; 0: always)
-    #[arg(long, value_name = "MM2")]
-    pub(crate) search_above: Option<f64>,
-    /// The deformable fit's regularisation term counts this many times in a pose's score
-    /// (default 1)
-    #[arg(long)]
-    pub(crate) pose_energy_weight: Option<f64>,
-    /// Weight of the misfit along a matched surface relative to across it (0: point-to-plane,
-    /// the default; 1: point-to-point)
-    #[arg(long)]
-    pub(crate) tangential_weight: Option<f64>,
-    /// Correspondences (the rigid stage's and LIBR's) weighted by a robust (Cauchy) kernel
-    /// instead of trimmed by the median
-    #[arg(long, conflicts_with = "trimmed_libr")]
-    pub(crate) robust_kernel: bool,
-    /// With --held: LIBR's correspondences trimmed by the median as usual instead of weighted
-    /// by the robust kernel
-    #[arg(long)]
-    pub(crate) trimmed_libr: bool,
-}
-
-impl LibrOpts {
-    pub(crate) fn params(&self) -> librplus::pipeline::PipelineParams {
-        let mut p = librplus::pipeline::PipelineParams::default();
-        if let Some(l) = self.lambda {
-            p.libr.regularization = l;
-        }
-        if let Some(i) = self.iterations {
-            p.libr.max_iterations = i;
-        }
-        if let Some(k) = self.control_points {
-            p.libr.control_points = k;
-        }
-        if let Some(w) = self.load_width {
-            p.libr.load_width = librplus::register::libr::LoadWidth::Spacing(w);
-        }
-        if let Some(k) = self.refit_iterations {
-            p.refit_iterations = k;
-        }
-        p.wicp.surface_only = self.wicp_surface_only;
-        p.wicp.trusted_alignment_mm = self.trusted_alignment;
-        p.held = self.held;
-        p.abstain = !self.no_abstain;
-        if let Some(g) = self.search_above {
-            p.pose.search_above_mm2 = g;
-        }
-        if let Some(w) = self.pose_energy_weight {
-            p.pose.energy_weight = w;
-        }
-        p.wicp.correspondence.robust_kernel = self.robust_kernel;
-        p.hold.trimmed = self.trimmed_libr;
-        if let Some(w) = self.tangential_weight {
-            p.libr.tangential_weight = w;
-        }
-        if let Some(c) = self.hold_clearance {
-            p.hold.clearance_mm = c;
-        }
-        if let Some(w) = self.hold_weight {
-            p.hold.weight = w;
-        }
-        if let Some(c) = self.min_conditioning {
-            p.wicp.min_conditioning = c;
-        }
-        if let Some(levels) = &self.adaptive_levels {
-            let w = p.libr.load_width;
-            p.adaptive.levels = levels.iter().map(|&k| (k, w)).collect();
-        }
-        if let Some(r) = self.adaptive_reach {
-            p.adaptive.reach = r;
-        }
-        // Two values each; anything else becomes NaN, which the parameters' check refuses
-        // naming the field.
-        let pair = |v: &[f64]| match v {
-            [a, b] => (*a, *b),
-            _ => (f64::NAN, f64::NAN),
-        };
-        if let Some(l) = &self.adaptive_lambda {
-            p.adaptive.lambda_range = pair(l);
-        }
-        if let Some(a) = &self.start_angles {
-            p.pose.start_angles_deg = a.clone();
-        }
-        if self.single_start {
-            p.pose.start_angles_deg.clear();
-        }
-        if let Some(x) = self.adaptive_spread {
-            p.adaptive.spread = x;
-        }
-        if self.adaptive_all_levels_at_once {
-            p.adaptive.coarse_first = false;
-        }
-        if let Some(f) = self.adaptive_fine_penalty {
-            p.adaptive.fine_penalty = f;
-        }
-        if let Some(a) = &self.adaptive_anneal {
-            (p.adaptive.anneal_start, p.adaptive.anneal_factor) = pair(a);
-        }
-        p
-    }
-}
-
 #[derive(Args)]
 pub(crate) struct EvaluateArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
     /// Dataset directory.
     #[arg(long)]
     pub(crate) data: PathBuf,
@@ -628,12 +293,13 @@ pub(crate) struct EvaluateArgs {
     /// Print summary.json on stdout.
     #[arg(long)]
     pub(crate) json: bool,
+    // Last: `--help` shows these under their own heading, after the command's own options.
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
 }
 
 #[derive(Args)]
 pub(crate) struct CalibrateErrorArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
     /// Calibration dataset (from `librplus generate`; its truth is read); repeatable: the
     /// model is calibrated on them all.
     #[arg(long, required = true)]
@@ -676,12 +342,13 @@ pub(crate) struct CalibrateErrorArgs {
     /// Print the report as JSON on stdout.
     #[arg(long)]
     pub(crate) json: bool,
+    // Last: `--help` shows these under their own heading, after the command's own options.
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
 }
 
 #[derive(Args)]
 pub(crate) struct CalibrateAbstainArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
     /// In-family dataset(s) (from `librplus generate` with the networks' generator and preset,
     /// a seed they never saw; the truth is not read); repeatable.
     #[arg(long, required = true)]
@@ -698,12 +365,13 @@ pub(crate) struct CalibrateAbstainArgs {
     /// Use every k-th block of five scenarios of each deformation.
     #[arg(long, default_value_t = 1)]
     pub(crate) every: usize,
+    // Last: `--help` shows these under their own heading, after the command's own options.
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
 }
 
 #[derive(Args)]
 pub(crate) struct RegisterArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
     /// Dataset directory (from `librplus generate`), with --scenario.
     #[arg(long, requires = "scenario", required_unless_present = "preop")]
     pub(crate) data: Option<PathBuf>,
@@ -759,12 +427,13 @@ pub(crate) struct RegisterArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub(crate) json: bool,
+    // Last: `--help` shows these under their own heading, after the command's own options.
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
 }
 
 #[derive(Args)]
 pub(crate) struct BenchRegisterArgs {
-    #[command(flatten)]
-    pub(crate) libr: LibrOpts,
     /// Dataset directory (from `librplus generate`). Default: the `small` preset (seed 1)
     /// generated from --surface into a temporary directory, so the benchmark runs anywhere.
     #[arg(long)]
@@ -798,6 +467,9 @@ pub(crate) struct BenchRegisterArgs {
     pub(crate) physics: Option<PathBuf>,
     #[command(flatten)]
     pub(crate) common: Common,
+    // Last: `--help` shows these under their own heading, after the command's own options.
+    #[command(flatten)]
+    pub(crate) libr: LibrOpts,
 }
 
 /// `train --validation`.
