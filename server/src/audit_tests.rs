@@ -1,0 +1,124 @@
+//! Tests of the audit log (`audit.rs`).
+
+use super::*;
+
+#[test]
+fn times_parse_and_print_in_utc() {
+    assert_eq!(parse_since("0").unwrap(), 0);
+    assert_eq!(parse_since("1970-01-02").unwrap(), 86_400_000);
+    // 2026-11-26T17:00:00Z (`date -u -d 2026-11-26T17:00:00 +%s` = 1795712400).
+    assert_eq!(
+        parse_since("2026-11-26T17:00:00Z").unwrap(),
+        1_795_712_400_000
+    );
+    assert_eq!(format_ms(1_795_712_400_123), "2026-11-26T17:00:00.123Z");
+    assert_eq!(format_ms(951_782_400_000), "2000-02-29T00:00:00.000Z");
+    assert_eq!(parse_since("2000-02-29T00:00").unwrap(), 951_782_400_000);
+    assert!(parse_since("yesterday").unwrap_err().contains("--since"));
+    assert!(parse_since("2026-13-01").is_err());
+}
+
+#[tokio::test]
+async fn records_are_committed_and_read_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("audit.db");
+    let a = Audit::open(&db, None).unwrap();
+    a.write(vec![
+        Record::SessionStart {
+            session_id: "s1".into(),
+            principal: "p".into(),
+            case_id: "c".into(),
+            case_version: "v1".into(),
+            start: vec![1, 2, 3],
+        },
+        Record::Messages {
+            session_id: "s1".into(),
+            messages: vec![(3, vec![9]), (2, vec![8])],
+        },
+    ])
+    .await
+    .unwrap();
+    // Concurrent writers are committed together and each told so.
+    let mut tasks = Vec::new();
+    let a = std::sync::Arc::new(a);
+    for i in 0..50u64 {
+        let a = a.clone();
+        tasks.push(tokio::spawn(async move {
+            a.write(vec![Record::Registration(Box::new(RegistrationRecord {
+                principal: "p".into(),
+                case_id: "c".into(),
+                session_id: Some("s1".into()),
+                client_seq: i,
+                answer_sha256: format!("{i}"),
+                ..Default::default()
+            }))])
+            .await
+        }));
+    }
+    for t in tasks {
+        t.await.unwrap().unwrap();
+    }
+    // Another connection (as `librplus-server audit` or a restarted server) sees it all.
+    let c = open_db(&db).unwrap();
+    let s = read_session(&c, "s1").unwrap().unwrap();
+    assert_eq!((s.principal.as_str(), s.case_id.as_str()), ("p", "c"));
+    assert_eq!(s.start, [1, 2, 3]);
+    assert_eq!(s.case_version.as_deref(), Some("v1"));
+    assert_eq!(s.messages, [(2, vec![8]), (3, vec![9])]);
+    // A client_seq again: the same content is kept once, other content is refused.
+    let again = |m: Vec<u8>| Record::Messages {
+        session_id: "s1".into(),
+        messages: vec![(3, m)],
+    };
+    a.write(vec![again(vec![9])]).await.unwrap();
+    let e = a.write(vec![again(vec![7])]).await.unwrap_err();
+    assert!(
+        e.contains("client_seq 3 is recorded with other content"),
+        "{e}"
+    );
+    let s = read_session(&c, "s1").unwrap().unwrap();
+    assert_eq!(s.messages, [(2, vec![8]), (3, vec![9])]);
+    let n: i64 = c
+        .query_row("SELECT COUNT(*) FROM registrations", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(n, 50);
+    assert!(read_session(&c, "s2").unwrap().is_none());
+    let rows = rows(&c, Some("c"), None).unwrap();
+    assert_eq!(rows.iter().filter(|r| r.kind == "registration").count(), 50);
+    assert_eq!(rows.iter().filter(|r| r.kind == "session_start").count(), 1);
+    // Another format is refused.
+    c.execute("UPDATE meta SET value = '9' WHERE key = 'format'", [])
+        .unwrap();
+    assert!(matches!(open_db(&db), Err(AuditError::Format { .. })));
+}
+
+#[test]
+fn a_format_1_database_is_migrated_and_its_sessions_have_no_version() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("audit.db");
+    {
+        // The format-1 schema as it was.
+        let c = Connection::open(&db).unwrap();
+        c.execute_batch(
+            "CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+             INSERT INTO meta VALUES('format', '1');
+             CREATE TABLE sessions(session_id TEXT PRIMARY KEY, t_ms INTEGER NOT NULL,
+               principal TEXT NOT NULL, case_id TEXT NOT NULL, start BLOB NOT NULL,
+               ended_ms INTEGER, outcome TEXT);
+             INSERT INTO sessions VALUES('s1', 0, 'p', 'c', x'01', NULL, NULL);",
+        )
+        .unwrap();
+    }
+    let c = open_db(&db).unwrap();
+    let s = read_session(&c, "s1").unwrap().unwrap();
+    assert_eq!(s.case_version, None);
+    let f: String = c
+        .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
+            r.get(0)
+        })
+        .unwrap();
+    assert_eq!(f, FORMAT.to_string());
+    drop(c);
+    // Opened again: nothing more to do.
+    open_db(&db).unwrap();
+}
