@@ -1,24 +1,29 @@
 #!/usr/bin/env bash
 # Builds the LIBR+ image from deploy/Dockerfile (docs/deploy.md).
 #
-#   deploy/build-image.sh [--gpu] [--tag NAME:TAG]
+#   deploy/build-image.sh [--gpu] [--tag NAME:TAG] [--prebuilt DIR]
 #
 # Where no container registry can be reached, the Debian base the Dockerfile names
 # (debian:trixie-slim) is first made locally from Debian's packages: debootstrap (minbase) into a
 # folder, trimmed as Debian's own slim images are (no docs, man pages or locales), then
 # `docker import`ed under that name. Where the base exists already (pulled, or made before) it is
 # used as it is. `--gpu` builds the training image: cargo feature `librplus/gpu` and the Vulkan
-# loader (`libvulkan1`), tagged `librplus:VERSION-gpu`.
+# loader (`libvulkan1`), tagged `librplus:VERSION-gpu`. `--prebuilt DIR` skips the build stage:
+# the run stage of the same Dockerfile takes `librplus`, `librplus-server` and `librplus-client`
+# from DIR (release binaries built on this host, as CI does: docs/deploy.md); where they do not
+# run inside the image (a host newer than Debian trixie), the in-Docker build is used instead.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 gpu=0
 tag=""
+prebuilt=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --gpu) gpu=1 ;;
     --tag) tag="$2"; shift ;;
-    -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
+    --prebuilt) prebuilt="$2"; shift ;;
+    -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
     *) echo "build-image.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
   esac
   shift
@@ -83,12 +88,42 @@ if [ "$gpu" = 1 ]; then
 else
   tag="${tag:-librplus:$version}"
 fi
-echo "== docker build -f deploy/Dockerfile -t $tag (commit $commit)"
-start=$(date +%s)
 # The classic builder: this machine's Docker client has no buildx, and the Dockerfile needs
 # nothing BuildKit-only (its dependency layer is cached by the classic builder too).
-DOCKER_BUILDKIT=0 docker build -f deploy/Dockerfile -t "$tag" "${args[@]}" . 2>&1 \
-  | grep --line-buffered -v -e "DEPRECATED: The legacy builder" -e "BuildKit is currently disabled" \
-      -e "Install the buildx component" -e "https://docs.docker.com/go/buildx/" -e '^ *$'
+build() {
+  DOCKER_BUILDKIT=0 docker build -t "$tag" "${args[@]}" "$@" 2>&1 \
+    | grep --line-buffered -v -e "DEPRECATED: The legacy builder" -e "BuildKit is currently disabled" \
+        -e "Install the buildx component" -e "https://docs.docker.com/go/buildx/" -e '^ *$'
+}
+start=$(date +%s)
+built=0
+if [ -n "$prebuilt" ]; then
+  [ "$gpu" = 0 ] || { echo "build-image.sh: --prebuilt makes the CPU image only" >&2; exit 2; }
+  echo "== docker build: the run stage of deploy/Dockerfile over the binaries in $prebuilt (commit $commit)"
+  rm -rf deploy/prebuilt
+  mkdir -p deploy/prebuilt
+  for b in librplus librplus-server librplus-client; do
+    [ -x "$prebuilt/$b" ] || { echo "build-image.sh: no executable $prebuilt/$b" >&2; exit 1; }
+    cp "$prebuilt/$b" deploy/prebuilt/
+  done
+  # One source for the run stage: the Dockerfile without its build stage, the binaries copied in.
+  awk '/^# ---- build/ {skip = 1} /^# ---- run/ {skip = 0} !skip' deploy/Dockerfile \
+    | sed 's|^COPY --from=build /out/ /usr/local/bin/$|COPY deploy/prebuilt/ /usr/local/bin/|' \
+    >deploy/prebuilt/Dockerfile
+  grep -q '^COPY deploy/prebuilt/ /usr/local/bin/$' deploy/prebuilt/Dockerfile \
+    || { echo "build-image.sh: deploy/Dockerfile has no 'COPY --from=build /out/ /usr/local/bin/'" >&2; exit 1; }
+  build -f deploy/prebuilt/Dockerfile .
+  rm -rf deploy/prebuilt
+  if docker run --rm --entrypoint librplus-server "$tag" --version >/dev/null 2>&1 \
+     && docker run --rm --entrypoint librplus "$tag" --version >/dev/null 2>&1; then
+    built=1
+  else
+    echo "== the binaries from $prebuilt do not run in $base (built against a newer C library?): building inside Docker"
+  fi
+fi
+if [ "$built" = 0 ]; then
+  echo "== docker build -f deploy/Dockerfile -t $tag (commit $commit)"
+  build -f deploy/Dockerfile .
+fi
 size=$(docker image inspect "$tag" --format '{{.Size}}')
 echo "== built $tag in $(( $(date +%s) - start )) s: $(( size / 1000000 )) MB"
