@@ -75,66 +75,11 @@ impl Engine {
         job: Job,
         bounded: Option<&str>,
     ) -> Result<pb::Registration, ServiceError> {
-        struct Client<'a>(&'a Engine, String);
-        impl Drop for Client<'_> {
-            fn drop(&mut self) {
-                let mut m = self.0.by_client.lock().unwrap_or_else(|e| e.into_inner());
-                if let Some(n) = m.get_mut(&self.1) {
-                    *n -= 1;
-                    if *n == 0 {
-                        m.remove(&self.1);
-                    }
-                }
-            }
-        }
         let _client = match bounded {
             None => None,
-            Some(key) => {
-                let mut m = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
-                let n = m.entry(key.to_string()).or_insert(0);
-                if *n >= self.per_client() {
-                    metrics::counter!("librplus_refused_total", "reason" => "client_queue")
-                        .increment(1);
-                    return Err(ServiceError::Quota {
-                        message: format!(
-                            "this client already has {n} registrations in the server (limit {} \
-                             per client); retry when one is answered",
-                            self.per_client()
-                        ),
-                        subject: "client_queue",
-                        description: format!(
-                            "at most {} unary registrations per client wait or run at once",
-                            self.per_client()
-                        ),
-                    });
-                }
-                *n += 1;
-                drop(m);
-                Some(Client(self, key.to_string()))
-            }
+            Some(key) => Some(self.admit_client(key)?),
         };
-        let waiting = self.queued.fetch_add(1, Ordering::SeqCst);
-        struct Dec<'a>(&'a AtomicUsize);
-        impl Drop for Dec<'_> {
-            fn drop(&mut self) {
-                self.0.fetch_sub(1, Ordering::SeqCst);
-            }
-        }
-        let dec = Dec(&self.queued);
-        if bounded.is_some() && waiting >= self.max_queued {
-            metrics::counter!("librplus_refused_total", "reason" => "queue").increment(1);
-            return Err(ServiceError::Quota {
-                message: format!(
-                    "{waiting} registrations are already waiting for a compute slot (limit {}); retry later",
-                    self.max_queued
-                ),
-                subject: "queue",
-                description: format!(
-                    "at most {} unary registrations wait for a compute slot; retry later",
-                    self.max_queued
-                ),
-            });
-        }
+        let dec = self.admit_queue(bounded.is_some())?;
         // A unary request first takes one of the unary slots, so that no more of them than
         // those wait ahead of a session's update.
         let unary =
@@ -168,6 +113,76 @@ impl Engine {
                 ))
             }
         }
+    }
+
+    /// Counts a unary registration against its client (`key`), refusing it when the client
+    /// already has [`Engine::per_client`] in the server; the count is released on drop.
+    fn admit_client(&self, key: &str) -> Result<ClientHold<'_>, ServiceError> {
+        let mut m = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
+        let n = m.entry(key.to_string()).or_insert(0);
+        if *n >= self.per_client() {
+            metrics::counter!("librplus_refused_total", "reason" => "client_queue").increment(1);
+            return Err(ServiceError::Quota {
+                message: format!(
+                    "this client already has {n} registrations in the server (limit {} \
+                     per client); retry when one is answered",
+                    self.per_client()
+                ),
+                subject: "client_queue",
+                description: format!(
+                    "at most {} unary registrations per client wait or run at once",
+                    self.per_client()
+                ),
+            });
+        }
+        *n += 1;
+        Ok(ClientHold(self, key.to_string()))
+    }
+
+    /// Counts a job as waiting for a compute slot (until the hold drops), refusing a unary one
+    /// (`bounded`) when `max_queued` already wait.
+    fn admit_queue(&self, bounded: bool) -> Result<QueueHold<'_>, ServiceError> {
+        let waiting = self.queued.fetch_add(1, Ordering::SeqCst);
+        let hold = QueueHold(&self.queued);
+        if bounded && waiting >= self.max_queued {
+            metrics::counter!("librplus_refused_total", "reason" => "queue").increment(1);
+            return Err(ServiceError::Quota {
+                message: format!(
+                    "{waiting} registrations are already waiting for a compute slot (limit {}); retry later",
+                    self.max_queued
+                ),
+                subject: "queue",
+                description: format!(
+                    "at most {} unary registrations wait for a compute slot; retry later",
+                    self.max_queued
+                ),
+            });
+        }
+        Ok(hold)
+    }
+}
+
+/// A unary registration counted against its client ([`Engine::admit_client`]).
+struct ClientHold<'a>(&'a Engine, String);
+
+impl Drop for ClientHold<'_> {
+    fn drop(&mut self) {
+        let mut m = self.0.by_client.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(n) = m.get_mut(&self.1) {
+            *n -= 1;
+            if *n == 0 {
+                m.remove(&self.1);
+            }
+        }
+    }
+}
+
+/// A job counted as waiting for a compute slot ([`Engine::admit_queue`]).
+struct QueueHold<'a>(&'a AtomicUsize);
+
+impl Drop for QueueHold<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
     }
 }
 

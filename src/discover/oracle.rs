@@ -12,10 +12,11 @@
 //! [`super::discover_cohort`] names an effect.
 
 use super::cv::{AmplitudePrior, Design, cross_validate};
+use super::linearize::{common_rows, linearize, subset};
+use super::rows::CohortRows;
 use super::search::{SearchContext, basis_amplitude_prior, basis_design, parameter_count};
-use super::{
-    DiscoverError, DiscoverParams, Sweep, bic_change, common_rows, linearize, paired, subset,
-};
+use super::stats::{bic_change, paired};
+use super::{DiscoverError, DiscoverParams, Sweep};
 use crate::dataset::Detectability;
 use crate::pipeline::Prepared;
 use crate::register::physics::Physics;
@@ -46,7 +47,6 @@ pub fn detectability(
             sweeps.len()
         )));
     }
-    let quiet = |_: &str, _: usize, _: usize| {};
     let libr = &params.pipeline.libr;
     let prepare = |physics: &Physics, what: &str| {
         Prepared::with_physics(model.clone(), Some(libr), physics, cache_dir).map_err(|e| match e {
@@ -61,35 +61,7 @@ pub fn detectability(
     };
     let plain = prepare(known, "known")?;
     let augmented = prepare(truth, "truth")?;
-    // A sweep either model cannot register is left out of both (and the blocks drawn again).
-    let mut active: Vec<Sweep> = sweeps.to_vec();
-    let (rows0, rows1) = loop {
-        if active.len() < 2 {
-            return Err(DiscoverError::Underdetermined(format!(
-                "only {} of {} sweeps register with both models",
-                active.len(),
-                sweeps.len()
-            )));
-        }
-        let failed = match linearize(&plain, &active, params, None, &quiet) {
-            Ok((_, _, r0)) => {
-                match linearize(&augmented, &active, params, Some(&r0.centers), &quiet) {
-                    Ok((_, _, r1)) => break (r0, r1),
-                    Err(DiscoverError::Scenario { scenario, .. }) => scenario,
-                    Err(e) => return Err(e),
-                }
-            }
-            Err(DiscoverError::Scenario { scenario, .. }) => scenario,
-            Err(e) => return Err(e),
-        };
-        let before = active.len();
-        active.retain(|s| s.id != failed);
-        if active.len() == before {
-            return Err(DiscoverError::Input(format!(
-                "sweep {failed}: could not be registered"
-            )));
-        }
-    };
+    let (active, rows0, rows1) = linearize_both(&plain, &augmented, sweeps, params)?;
     let (b0, b1) = match (&plain.basis, &augmented.basis) {
         (Some(b0), Some(b1)) => (b0, b1),
         _ => return Err(DiscoverError::Input("the case has no LIBR basis".into())),
@@ -179,4 +151,44 @@ pub fn detectability(
         sweeps: active.len(),
         rows: r0.rows.len(),
     })
+}
+
+/// Both models' linearizations of the cohort, on the same blocks (the plain model's). A sweep
+/// either model cannot register is left out of both (and the blocks drawn again); the sweeps
+/// kept are returned with the rows.
+fn linearize_both(
+    plain: &Prepared,
+    augmented: &Prepared,
+    sweeps: &[Sweep],
+    params: &DiscoverParams,
+) -> Result<(Vec<Sweep>, CohortRows, CohortRows), DiscoverError> {
+    let quiet = |_: &str, _: usize, _: usize| {};
+    let mut active: Vec<Sweep> = sweeps.to_vec();
+    loop {
+        if active.len() < 2 {
+            return Err(DiscoverError::Underdetermined(format!(
+                "only {} of {} sweeps register with both models",
+                active.len(),
+                sweeps.len()
+            )));
+        }
+        let failed = match linearize(plain, &active, params, None, &quiet) {
+            Ok((_, _, r0)) => {
+                match linearize(augmented, &active, params, Some(&r0.centers), &quiet) {
+                    Ok((_, _, r1)) => return Ok((active, r0, r1)),
+                    Err(DiscoverError::Scenario { scenario, .. }) => scenario,
+                    Err(e) => return Err(e),
+                }
+            }
+            Err(DiscoverError::Scenario { scenario, .. }) => scenario,
+            Err(e) => return Err(e),
+        };
+        let before = active.len();
+        active.retain(|s| s.id != failed);
+        if active.len() == before {
+            return Err(DiscoverError::Input(format!(
+                "sweep {failed}: could not be registered"
+            )));
+        }
+    }
 }

@@ -2,11 +2,14 @@
 //! box-shaped organ, sweeps of its anterior and side faces under a known rigid pose, noise of a
 //! known σ. The larger tests on phantom livers are in `tests/discover.rs`.
 
+use super::stats::signed_rank_z;
 use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
+use crate::register::MeasuredKind;
 use crate::register::anatomy::{LabelParams, label};
 use crate::register::libr::{LibrParams, control_traction};
+use crate::register::physics::model::Sites;
 use crate::register::physics::model::forward;
 use crate::util::SplitMix64;
 

@@ -1,7 +1,7 @@
 //! Train/validation/test splits of a dataset's scenarios for SR-GCN training (`random`,
 //! `geo-def`, `logo:G`, `pattern-v`, `family:NAME`), with a seeded validation set.
 
-use crate::dataset::Manifest;
+use crate::dataset::{DeformationEntry, Manifest};
 use crate::eval::EvalError;
 use crate::util::SplitMix64;
 
@@ -110,127 +110,14 @@ pub fn split_scenarios(
     every: usize,
     validation: Validation,
 ) -> Result<SplitSets, EvalError> {
-    let every = every.max(1);
-    let test_geos = m.test_geometries();
-    let train_defs: Vec<_> = m
-        .deformations
-        .iter()
-        .filter(|d| !test_geos.contains(&d.geometry.as_str()))
-        .collect();
-    let mut geos: Vec<&str> = train_defs.iter().map(|d| d.geometry.as_str()).collect();
-    geos.dedup();
-    let mut pats: Vec<&str> = train_defs.iter().map(|d| d.pattern.as_str()).collect();
-    pats.sort();
-    pats.dedup();
-    let blocks = |d: &crate::dataset::DeformationEntry| -> Vec<Vec<ScenarioRef>> {
-        (0..d.scenarios.len().div_ceil(BLOCK))
-            .filter(|b| b % every == 0)
-            .map(|b| {
-                (b * BLOCK..((b + 1) * BLOCK).min(d.scenarios.len()))
-                    .map(|i| (d.id.clone(), i))
-                    .collect()
-            })
-            .collect()
-    };
+    let (test, mut train_blocks) = Splitting::new(m, every.max(1)).assign(split, seed)?;
+    shuffle(&mut train_blocks, seed ^ 0xA11D);
     let geometry_of: std::collections::HashMap<&str, &str> = m
         .deformations
         .iter()
         .map(|d| (d.id.as_str(), d.geometry.as_str()))
         .collect();
-    let mut train_blocks = Vec::new();
-    let mut test = Vec::new();
-    match split {
-        TrainSplit::Random => {
-            let mut all: Vec<Vec<ScenarioRef>> =
-                train_defs.iter().flat_map(|d| blocks(d)).collect();
-            shuffle(&mut all, seed ^ 0x5EED);
-            let n_test = (all.len() / 5).max(1).min(all.len().saturating_sub(2));
-            for (i, b) in all.into_iter().enumerate() {
-                if i < n_test {
-                    test.extend(b);
-                } else {
-                    train_blocks.push(b);
-                }
-            }
-        }
-        TrainSplit::GeoDef | TrainSplit::Logo(_) => {
-            if let TrainSplit::Logo(g) = split
-                && !geos.contains(&g.as_str())
-            {
-                return Err(EvalError::Data(format!(
-                    "logo:{g}: no training geometry {g} (have {})",
-                    geos.join(", ")
-                )));
-            }
-            if matches!(split, TrainSplit::GeoDef) && (geos.len() < 2 || pats.len() < 3) {
-                return Err(EvalError::Data(
-                    "geo-def needs at least 2 geometries and 3 patterns".into(),
-                ));
-            }
-            for d in &train_defs {
-                let held = match split {
-                    TrainSplit::Logo(g) => &d.geometry == g,
-                    _ => {
-                        let gi = geos.iter().position(|g| *g == d.geometry).unwrap_or(0);
-                        let pi = pats.iter().position(|p| *p == d.pattern).unwrap_or(0);
-                        (gi == 0 && pi < 2) || (gi == geos.len() - 1 && pi == 2)
-                    }
-                };
-                for b in blocks(d) {
-                    if held {
-                        test.extend(b);
-                    } else {
-                        train_blocks.push(b);
-                    }
-                }
-            }
-        }
-        TrainSplit::Family(f) => {
-            let mut names: Vec<&str> = m.deformations.iter().map(|d| d.family()).collect();
-            names.sort();
-            names.dedup();
-            if !names.contains(&f.as_str()) {
-                return Err(EvalError::Data(format!(
-                    "family:{f}: no deformation of truth family {f} (the dataset has {})",
-                    names.join(", ")
-                )));
-            }
-            for d in &m.deformations {
-                let held = d.family() == f;
-                if !held && test_geos.contains(&d.geometry.as_str()) {
-                    continue;
-                }
-                for b in blocks(d) {
-                    if held {
-                        test.extend(b);
-                    } else {
-                        train_blocks.push(b);
-                    }
-                }
-            }
-        }
-        TrainSplit::PatternV => {
-            if test_geos.is_empty() {
-                return Err(EvalError::Data(
-                    "pattern-v: the dataset has no test geometry".into(),
-                ));
-            }
-            for d in &m.deformations {
-                for b in blocks(d) {
-                    if test_geos.contains(&d.geometry.as_str()) {
-                        test.extend(b);
-                    } else {
-                        train_blocks.push(b);
-                    }
-                }
-            }
-        }
-    }
-    shuffle(&mut train_blocks, seed ^ 0xA11D);
-    let mut sets = SplitSets {
-        test,
-        ..Default::default()
-    };
+    let first_of = |b: &[ScenarioRef]| b.first().map(|r| r.0.clone());
     // Validation is like the test: where the test holds out whole deformations, validation is
     // whole training deformations (about one in ten, at least one, chosen by the seed), so early
     // stopping and the learning-rate schedule judge generalisation to unseen deformations, not
@@ -242,36 +129,16 @@ pub fn split_scenarios(
     defs.sort();
     defs.dedup();
     let held_out_valid = !matches!(split, TrainSplit::Random) && defs.len() >= 3;
-    if validation == Validation::Geometry {
-        // The livers left for training, in manifest order, one drawn by the seed.
-        let mut livers: Vec<&str> = Vec::new();
-        for b in &train_blocks {
-            if let Some(g) = b.first().and_then(|r| geometry_of.get(r.0.as_str())) {
-                if !livers.contains(g) {
-                    livers.push(g);
-                }
-            }
-        }
-        livers.sort();
-        if livers.len() < 3 {
-            return Err(EvalError::Data(format!(
-                "validation by geometry needs at least 3 training livers, split {} leaves {}",
-                split.name(),
-                livers.len()
-            )));
-        }
-        let mut rng = SplitMix64::new(seed ^ 0x6E0);
-        let held = livers[(rng.next_u64() % livers.len() as u64) as usize];
-        for b in train_blocks {
-            if b.first()
-                .and_then(|r| geometry_of.get(r.0.as_str()))
-                .is_some_and(|g| *g == held)
-            {
-                sets.valid.extend(b);
-            } else {
-                sets.train.extend(b);
-            }
-        }
+    let valid: Vec<bool> = if validation == Validation::Geometry {
+        let held = validation_geometry(&train_blocks, &geometry_of, split, seed)?;
+        train_blocks
+            .iter()
+            .map(|b| {
+                first_of(b)
+                    .and_then(|d| geometry_of.get(d.as_str()).copied())
+                    .is_some_and(|g| g == held)
+            })
+            .collect()
     } else if held_out_valid {
         // Drawn without replacement.
         let mut rng = SplitMix64::new(seed ^ 0xDEF0);
@@ -281,23 +148,25 @@ pub fn split_scenarios(
             let k = (rng.next_u64() % pool.len() as u64) as usize;
             held.push(pool.remove(k).to_string());
         }
-        for b in train_blocks {
-            if b.first().is_some_and(|r| held.contains(&r.0)) {
-                sets.valid.extend(b);
-            } else {
-                sets.train.extend(b);
-            }
-        }
+        train_blocks
+            .iter()
+            .map(|b| first_of(b).is_some_and(|d| held.contains(&d)))
+            .collect()
     } else {
         let n_valid = (train_blocks.len() / 10)
             .max(1)
             .min(train_blocks.len().saturating_sub(1));
-        for (i, b) in train_blocks.into_iter().enumerate() {
-            if i < n_valid {
-                sets.valid.extend(b);
-            } else {
-                sets.train.extend(b);
-            }
+        (0..train_blocks.len()).map(|i| i < n_valid).collect()
+    };
+    let mut sets = SplitSets {
+        test,
+        ..Default::default()
+    };
+    for (b, v) in train_blocks.into_iter().zip(valid) {
+        if v {
+            sets.valid.extend(b);
+        } else {
+            sets.train.extend(b);
         }
     }
     sets.train.sort();
@@ -310,6 +179,192 @@ pub fn split_scenarios(
         )));
     }
     Ok(sets)
+}
+
+/// The training liver validation holds out: the livers left for training (sorted), one drawn
+/// by the seed; at least three are needed.
+fn validation_geometry<'a>(
+    train_blocks: &[Vec<ScenarioRef>],
+    geometry_of: &std::collections::HashMap<&str, &'a str>,
+    split: &TrainSplit,
+    seed: u64,
+) -> Result<&'a str, EvalError> {
+    let mut livers: Vec<&str> = Vec::new();
+    for b in train_blocks {
+        if let Some(g) = b.first().and_then(|r| geometry_of.get(r.0.as_str())) {
+            if !livers.contains(g) {
+                livers.push(g);
+            }
+        }
+    }
+    livers.sort();
+    if livers.len() < 3 {
+        return Err(EvalError::Data(format!(
+            "validation by geometry needs at least 3 training livers, split {} leaves {}",
+            split.name(),
+            livers.len()
+        )));
+    }
+    let mut rng = SplitMix64::new(seed ^ 0x6E0);
+    Ok(livers[(rng.next_u64() % livers.len() as u64) as usize])
+}
+
+/// The test set and the training blocks of a split, before validation is drawn.
+struct Splitting<'a> {
+    m: &'a Manifest,
+    every: usize,
+    test_geos: Vec<&'a str>,
+    /// The training geometries' deformations.
+    train_defs: Vec<&'a DeformationEntry>,
+}
+
+/// The test scenarios and the training blocks.
+type Assigned = (Vec<ScenarioRef>, Vec<Vec<ScenarioRef>>);
+
+impl<'a> Splitting<'a> {
+    fn new(m: &'a Manifest, every: usize) -> Self {
+        let test_geos = m.test_geometries();
+        let train_defs = m
+            .deformations
+            .iter()
+            .filter(|d| !test_geos.contains(&d.geometry.as_str()))
+            .collect();
+        Self {
+            m,
+            every,
+            test_geos,
+            train_defs,
+        }
+    }
+
+    /// Every `every`-th block of consecutive scenarios of a deformation.
+    fn blocks(&self, d: &DeformationEntry) -> Vec<Vec<ScenarioRef>> {
+        (0..d.scenarios.len().div_ceil(BLOCK))
+            .filter(|b| b % self.every == 0)
+            .map(|b| {
+                (b * BLOCK..((b + 1) * BLOCK).min(d.scenarios.len()))
+                    .map(|i| (d.id.clone(), i))
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Each deformation of `defs`, whole: to the test where `held`, else to training.
+    fn by_deformation<'d>(
+        &self,
+        defs: impl IntoIterator<Item = &'d DeformationEntry>,
+        held: impl Fn(&DeformationEntry) -> bool,
+    ) -> Assigned {
+        let (mut test, mut train_blocks) = (Vec::new(), Vec::new());
+        for d in defs {
+            let h = held(d);
+            for b in self.blocks(d) {
+                if h {
+                    test.extend(b);
+                } else {
+                    train_blocks.push(b);
+                }
+            }
+        }
+        (test, train_blocks)
+    }
+
+    fn assign(&self, split: &TrainSplit, seed: u64) -> Result<Assigned, EvalError> {
+        match split {
+            TrainSplit::Random => Ok(self.random(seed)),
+            TrainSplit::GeoDef | TrainSplit::Logo(_) => self.geometry_pattern(split),
+            TrainSplit::Family(f) => self.family(f),
+            TrainSplit::PatternV => {
+                if self.test_geos.is_empty() {
+                    return Err(EvalError::Data(
+                        "pattern-v: the dataset has no test geometry".into(),
+                    ));
+                }
+                let test_geos = &self.test_geos;
+                Ok(self.by_deformation(&self.m.deformations, |d| {
+                    test_geos.contains(&d.geometry.as_str())
+                }))
+            }
+        }
+    }
+
+    /// `random`: the training deformations' blocks shuffled by the seed, a fifth to the test.
+    fn random(&self, seed: u64) -> Assigned {
+        let mut all: Vec<Vec<ScenarioRef>> = self
+            .train_defs
+            .iter()
+            .flat_map(|d| self.blocks(d))
+            .collect();
+        shuffle(&mut all, seed ^ 0x5EED);
+        let n_test = (all.len() / 5).max(1).min(all.len().saturating_sub(2));
+        let (mut test, mut train_blocks) = (Vec::new(), Vec::new());
+        for (i, b) in all.into_iter().enumerate() {
+            if i < n_test {
+                test.extend(b);
+            } else {
+                train_blocks.push(b);
+            }
+        }
+        (test, train_blocks)
+    }
+
+    /// `geo-def` (the first geometry's first two patterns and the last geometry's third held
+    /// out) and `logo:G` (every deformation of geometry G held out).
+    fn geometry_pattern(&self, split: &TrainSplit) -> Result<Assigned, EvalError> {
+        let mut geos: Vec<&str> = self
+            .train_defs
+            .iter()
+            .map(|d| d.geometry.as_str())
+            .collect();
+        geos.dedup();
+        let mut pats: Vec<&str> = self.train_defs.iter().map(|d| d.pattern.as_str()).collect();
+        pats.sort();
+        pats.dedup();
+        if let TrainSplit::Logo(g) = split
+            && !geos.contains(&g.as_str())
+        {
+            return Err(EvalError::Data(format!(
+                "logo:{g}: no training geometry {g} (have {})",
+                geos.join(", ")
+            )));
+        }
+        if matches!(split, TrainSplit::GeoDef) && (geos.len() < 2 || pats.len() < 3) {
+            return Err(EvalError::Data(
+                "geo-def needs at least 2 geometries and 3 patterns".into(),
+            ));
+        }
+        Ok(
+            self.by_deformation(self.train_defs.iter().copied(), |d| match split {
+                TrainSplit::Logo(g) => &d.geometry == g,
+                _ => {
+                    let gi = geos.iter().position(|g| *g == d.geometry).unwrap_or(0);
+                    let pi = pats.iter().position(|p| *p == d.pattern).unwrap_or(0);
+                    (gi == 0 && pi < 2) || (gi == geos.len() - 1 && pi == 2)
+                }
+            }),
+        )
+    }
+
+    /// `family:F`: every deformation of truth family F held out; the other families'
+    /// deformations of the test geometries left out.
+    fn family(&self, f: &str) -> Result<Assigned, EvalError> {
+        let mut names: Vec<&str> = self.m.deformations.iter().map(|d| d.family()).collect();
+        names.sort();
+        names.dedup();
+        if !names.contains(&f) {
+            return Err(EvalError::Data(format!(
+                "family:{f}: no deformation of truth family {f} (the dataset has {})",
+                names.join(", ")
+            )));
+        }
+        let test_geos = &self.test_geos;
+        let defs = self
+            .m
+            .deformations
+            .iter()
+            .filter(|d| d.family() == f || !test_geos.contains(&d.geometry.as_str()));
+        Ok(self.by_deformation(defs, |d| d.family() == f))
+    }
 }
 
 /// How many of `n` training deformations validate on held-out-deformation splits: about one in

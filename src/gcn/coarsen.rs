@@ -123,6 +123,39 @@ pub fn coarsen_to(graph: &Graph, positions: &[[f64; 3]], m: usize) -> Result<Coa
     check_edges(n, &graph.targets, &graph.sources)?;
     let m = m.min(n);
     let seeds = farthest_points(positions, m);
+    let assign = nearest_seeds(graph, positions, &seeds);
+    let centroids = centroids(positions, &assign, m);
+    let mut pairs: Vec<(usize, usize)> = graph
+        .targets
+        .iter()
+        .zip(&graph.sources)
+        .map(|(&t, &s)| (assign[t], assign[s]))
+        .filter(|(a, b)| a != b)
+        .flat_map(|(a, b)| [(a, b), (b, a)])
+        .collect();
+    pairs.sort_unstable();
+    pairs.dedup();
+    let (targets, sources): (Vec<usize>, Vec<usize>) = pairs.into_iter().unzip();
+    let flat: Vec<f64> = centroids.iter().flatten().copied().collect();
+    let pseudo = cartesian_pseudo(&flat, 3, &targets, &sources)?;
+    Ok(Coarsening {
+        graph: Graph {
+            num_nodes: m,
+            targets,
+            sources,
+            pseudo,
+        },
+        assign,
+        seeds,
+        positions: centroids,
+    })
+}
+
+/// Each node's cluster: the seed nearest along the graph (multi-source Dijkstra over edge
+/// lengths), or in space for a node in a component without a seed.
+fn nearest_seeds(graph: &Graph, positions: &[[f64; 3]], seeds: &[usize]) -> Vec<usize> {
+    let n = graph.num_nodes;
+    let m = seeds.len();
     // Adjacency (CSR over targets; the mesh graph holds both directions).
     let mut start = vec![0usize; n + 1];
     for &t in &graph.targets {
@@ -174,44 +207,23 @@ pub fn coarsen_to(graph: &Graph, positions: &[[f64; 3]], m: usize) -> Result<Coa
             assign[i] = best;
         }
     }
+    assign
+}
+
+/// The mean position of each of the `m` clusters (the origin for an empty one).
+fn centroids(positions: &[[f64; 3]], assign: &[usize], m: usize) -> Vec<[f64; 3]> {
     let mut sum = vec![[0.0; 3]; m];
     let mut count = vec![0usize; m];
-    for i in 0..n {
-        let c = assign[i];
+    for (i, &c) in assign.iter().enumerate() {
         count[c] += 1;
         for k in 0..3 {
             sum[c][k] += positions[i][k];
         }
     }
-    let centroids: Vec<[f64; 3]> = sum
-        .iter()
+    sum.iter()
         .zip(&count)
         .map(|(s, &k)| s.map(|x| x / k.max(1) as f64))
-        .collect();
-    let mut pairs: Vec<(usize, usize)> = graph
-        .targets
-        .iter()
-        .zip(&graph.sources)
-        .map(|(&t, &s)| (assign[t], assign[s]))
-        .filter(|(a, b)| a != b)
-        .flat_map(|(a, b)| [(a, b), (b, a)])
-        .collect();
-    pairs.sort_unstable();
-    pairs.dedup();
-    let (targets, sources): (Vec<usize>, Vec<usize>) = pairs.into_iter().unzip();
-    let flat: Vec<f64> = centroids.iter().flatten().copied().collect();
-    let pseudo = cartesian_pseudo(&flat, 3, &targets, &sources)?;
-    Ok(Coarsening {
-        graph: Graph {
-            num_nodes: m,
-            targets,
-            sources,
-            pseudo,
-        },
-        assign,
-        seeds,
-        positions: centroids,
-    })
+        .collect()
 }
 
 impl Coarsening {

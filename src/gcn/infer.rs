@@ -137,8 +137,23 @@ impl LibrPlusCase {
         u: &[f64],
         transform: &Rigid,
     ) -> Result<Corrected, GcnError> {
+        let (outs, network_seconds) =
+            self.member_corrections(mesh, correspondence, cparams, meas, u, transform)?;
+        Ok(ensemble_mean(outs, u, network_seconds))
+    }
+
+    /// Each member's corrected displacement, in order, and the networks' time (s).
+    #[allow(clippy::too_many_arguments)]
+    fn member_corrections(
+        &self,
+        mesh: &TetMesh,
+        correspondence: &Correspondence,
+        cparams: &CorrespondenceParams,
+        meas: &Measurements,
+        u: &[f64],
+        transform: &Rigid,
+    ) -> Result<(Vec<Vec<f64>>, f64), GcnError> {
         let mut network_s = 0.0;
-        let mut sum = vec![0.0; u.len()];
         let mut outs: Vec<Vec<f64>> = Vec::new();
         // Members whose configurations build the same sample share it.
         let mut built: Option<(usize, SampleData)> = None;
@@ -170,48 +185,53 @@ impl LibrPlusCase {
                     format!("ensemble member {}: its correction is not finite", k + 1)
                 }));
             }
-            for (s, x) in sum.iter_mut().zip(&out) {
-                *s += x;
-            }
-            if self.members.len() > 1 {
-                outs.push(out);
-            }
+            outs.push(out);
         }
-        let n = self.members.len() as f64;
-        let gate = deformation_gate(u);
-        for s in sum.iter_mut() {
-            *s /= n;
+        Ok((outs, network_s))
+    }
+}
+
+/// The ensemble's answer from its members' corrected displacements `outs` of LIBR's `u`: their
+/// mean, damped by [`deformation_gate`], with the members' disagreement (RMS over nodes of each
+/// member's distance from the mean; None for one member) and the correction's RMS over nodes.
+fn ensemble_mean(outs: Vec<Vec<f64>>, u: &[f64], network_seconds: f64) -> Corrected {
+    let mut sum = vec![0.0; u.len()];
+    for out in &outs {
+        for (s, x) in sum.iter_mut().zip(out) {
+            *s += x;
         }
-        // The members' disagreement: RMS over nodes of each member's distance from the mean.
-        let spread_mm = (!outs.is_empty()).then(|| {
-            let nodes = (u.len() / 3).max(1) as f64;
-            let ss: f64 = outs
-                .iter()
-                .flat_map(|o| o.iter().zip(&sum).map(|(a, b)| (a - b) * (a - b)))
-                .sum();
-            gate * (ss / (nodes * outs.len() as f64)).sqrt()
-        });
-        let correction_rms_mm = {
-            let nodes = (u.len() / 3).max(1) as f64;
-            gate * (sum
-                .iter()
-                .zip(u)
-                .map(|(a, b)| (a - b) * (a - b))
-                .sum::<f64>()
-                / nodes)
-                .sqrt()
-        };
-        if gate < 1.0 {
-            for (s, &x) in sum.iter_mut().zip(u) {
-                *s = x + gate * (*s - x);
-            }
+    }
+    let n = outs.len() as f64;
+    let gate = deformation_gate(u);
+    for s in sum.iter_mut() {
+        *s /= n;
+    }
+    let nodes = (u.len() / 3).max(1) as f64;
+    let spread_mm = (outs.len() > 1).then(|| {
+        let ss: f64 = outs
+            .iter()
+            .flat_map(|o| o.iter().zip(&sum).map(|(a, b)| (a - b) * (a - b)))
+            .sum();
+        gate * (ss / (nodes * outs.len() as f64)).sqrt()
+    });
+    let correction_rms_mm = gate
+        * (sum
+            .iter()
+            .zip(u)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            / nodes)
+            .sqrt();
+    if gate < 1.0 {
+        for (s, &x) in sum.iter_mut().zip(u) {
+            *s = x + gate * (*s - x);
         }
-        Ok(Corrected {
-            u: sum,
-            network_seconds: network_s,
-            spread_mm,
-            correction_rms_mm,
-        })
+    }
+    Corrected {
+        u: sum,
+        network_seconds,
+        spread_mm,
+        correction_rms_mm,
     }
 }
 

@@ -639,7 +639,7 @@ pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, GcnError> {
     let mpath = dir.join("model.json");
     let text = std::fs::read_to_string(&mpath)
         .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
-    let mut head: serde_json::Value = serde_json::from_str(&text)
+    let head: serde_json::Value = serde_json::from_str(&text)
         .map_err(|e| GcnError::ModelFile(format!("{}: {e}", mpath.display())))?;
     let format = head.get("format").and_then(|f| f.as_u64());
     if format == Some(MODEL_FORMAT as u64) {
@@ -661,24 +661,62 @@ pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, GcnError> {
     let new_path = dir.join(WEIGHTS_FILE);
     let new_bytes = encode(&tensors)
         .map_err(|e| GcnError::ModelFile(format!("{}: {e}", new_path.display())))?;
-    let same = |a: &[NamedTensor], b: &[NamedTensor]| {
-        a.len() == b.len()
-            && a.iter().all(|(name, dims, vals)| {
-                b.iter().any(|(n, d, v)| {
-                    n == name
-                        && d == dims
-                        && v.len() == vals.len()
-                        && v.iter().zip(vals).all(|(x, y)| x.to_bits() == y.to_bits())
-                })
-            })
-    };
-    if !same(&decode(&new_bytes)?, &tensors) {
+    if !same_tensors(&decode(&new_bytes)?, &tensors) {
         return Err(GcnError::ModelFile(format!(
             "{}: does not read back as {}",
             new_path.display(),
             old_path.display()
         )));
     }
+    let json = converted_head(head, format, &old_name)?;
+    crate::util::write_atomic(&new_path, &new_bytes)?;
+    crate::util::write_atomic(&mpath, json.as_bytes())?;
+    let restore = |e: GcnError| {
+        // Put the old model.json back: the old weights file is still there.
+        let _ = crate::util::write_atomic(&mpath, text.as_bytes());
+        let _ = std::fs::remove_file(&new_path);
+        e
+    };
+    let new = load_model(dir, &device).map_err(restore)?;
+    let config = |m: &TrainedModel| {
+        serde_json::to_value(&m.config).map_err(|e| GcnError::ModelFile(e.to_string()))
+    };
+    if !same_tensors(&named_tensors(&new.net), &named_tensors(&old.net))
+        || config(&new).map_err(restore)? != config(&old).map_err(restore)?
+    {
+        return Err(restore(GcnError::ModelFile(format!(
+            "{}: the converted model differs from the old one",
+            dir.display()
+        ))));
+    }
+    if old_name != WEIGHTS_FILE {
+        std::fs::remove_file(&old_path)
+            .map_err(|e| GcnError::ModelFile(format!("{}: {e}", old_path.display())))?;
+    }
+    Ok(Some(tensors.iter().map(|t| t.2.len()).sum()))
+}
+
+/// Whether two sets of named tensors hold the same names, shapes and f32 values bit for bit.
+fn same_tensors(a: &[NamedTensor], b: &[NamedTensor]) -> bool {
+    a.len() == b.len()
+        && a.iter().all(|(name, dims, vals)| {
+            b.iter().any(|(n, d, v)| {
+                n == name
+                    && d == dims
+                    && v.len() == vals.len()
+                    && v.iter().zip(vals).all(|(x, y)| x.to_bits() == y.to_bits())
+            })
+        })
+}
+
+/// The `model.json` of a converted model directory (format `format`, weights `old_name`
+/// before): format 4, the new weights file, `converted_from` in the provenance; a format-2
+/// configuration gains the `residual: false`, `resolution: 0` it was read with.
+fn converted_head(
+    mut head: serde_json::Value,
+    format: u64,
+    old_name: &str,
+) -> Result<String, GcnError> {
     if format == 2 {
         if let Some(c) = head["config"].as_object_mut() {
             c.insert("residual".into(), false.into());
@@ -697,38 +735,13 @@ pub fn convert_model_dir(dir: &Path) -> Result<Option<usize>, GcnError> {
         weights: &'a str,
         provenance: &'a serde_json::Value,
     }
-    let json = serde_json::to_string_pretty(&Head {
+    serde_json::to_string_pretty(&Head {
         format: MODEL_FORMAT,
         config: &head["config"],
         weights: WEIGHTS_FILE,
         provenance: &head["provenance"],
     })
-    .map_err(|e| GcnError::ModelFile(e.to_string()))?;
-    crate::util::write_atomic(&new_path, &new_bytes)?;
-    crate::util::write_atomic(&mpath, json.as_bytes())?;
-    let restore = |e: GcnError| {
-        // Put the old model.json back: the old weights file is still there.
-        let _ = crate::util::write_atomic(&mpath, text.as_bytes());
-        let _ = std::fs::remove_file(&new_path);
-        e
-    };
-    let new = load_model(dir, &device).map_err(restore)?;
-    let config = |m: &TrainedModel| {
-        serde_json::to_value(&m.config).map_err(|e| GcnError::ModelFile(e.to_string()))
-    };
-    if !same(&named_tensors(&new.net), &named_tensors(&old.net))
-        || config(&new).map_err(restore)? != config(&old).map_err(restore)?
-    {
-        return Err(restore(GcnError::ModelFile(format!(
-            "{}: the converted model differs from the old one",
-            dir.display()
-        ))));
-    }
-    if old_name != WEIGHTS_FILE {
-        std::fs::remove_file(&old_path)
-            .map_err(|e| GcnError::ModelFile(format!("{}: {e}", old_path.display())))?;
-    }
-    Ok(Some(tensors.iter().map(|t| t.2.len()).sum()))
+    .map_err(|e| GcnError::ModelFile(e.to_string()))
 }
 
 /// A model from the text of its `model.json` and the bytes of its weights (paths for messages).

@@ -391,6 +391,45 @@ impl SrGcn {
         graphs: &MeshGraphs,
         bipartite: Option<(&BipartiteInput, &BipartiteOutput)>,
     ) -> Result<Tensor<2>, GcnError> {
+        let r = self.resolution;
+        let (graph, below) = self.graphs_at(graphs)?;
+        let features = if r > 0 {
+            start_op(&graphs.to_start)?.apply(features)?
+        } else {
+            features
+        };
+        let mut x = elu(self.mesh.encoder.forward(features, graph)?, 1.0);
+        for (l, conv) in self.mesh.convs.iter().enumerate() {
+            if let Some((input, out)) = bipartite {
+                let xb = input.to_mesh.apply(out.features[l].clone())?;
+                x = if r == 0 {
+                    x.clone() + input.mask.clone() * (xb - x) * 0.5
+                } else {
+                    // The node rule averaged over each cluster (x constant on it):
+                    // x + ½(mean(m ⊙ x̃_b) − mean(m) ⊙ x).
+                    let to = start_op(&graphs.to_start)?;
+                    let pb = to.apply(xb)?;
+                    let pm = to.apply(input.mask.clone())?;
+                    x.clone() + (pb - pm * x) * 0.5
+                };
+            }
+            x = self.block(conv, x, graph)?;
+        }
+        let x = self.unet(x, graph, below)?;
+        let y = self.mesh.decode(x, graph)?;
+        if r > 0 {
+            start_op(&graphs.from_start)?.apply(y)
+        } else {
+            Ok(y)
+        }
+    }
+
+    /// The graph the network runs on (the mesh's at resolution 0, else level r's) and the
+    /// coarse levels below it; an error when `graphs` were built for another network.
+    fn graphs_at<'g>(
+        &self,
+        graphs: &'g MeshGraphs,
+    ) -> Result<(&'g SplineGraph, &'g [CoarseLevel]), GcnError> {
         let m = &self.mesh;
         let r = self.resolution;
         let levels = m.up.len();
@@ -406,42 +445,27 @@ impl SrGcn {
                 graphs.start
             )));
         }
-        let (graph, below) = if r == 0 {
-            let fine = graphs
-                .fine
-                .as_ref()
-                .ok_or_else(|| GcnError::Invalid("graphs lack the full-resolution graph".into()))?;
-            (fine, &graphs.levels[..])
-        } else {
-            (&graphs.levels[r - 1].graph, &graphs.levels[r..])
-        };
-        fn op(o: &Option<SparseOp>) -> Result<&SparseOp, GcnError> {
-            o.as_ref()
-                .ok_or_else(|| GcnError::Invalid("graphs lack the start operators".into()))
+        if r > 0 {
+            return Ok((&graphs.levels[r - 1].graph, &graphs.levels[r..]));
         }
-        let features = if r > 0 {
-            op(&graphs.to_start)?.apply(features)?
-        } else {
-            features
-        };
+        let fine = graphs
+            .fine
+            .as_ref()
+            .ok_or_else(|| GcnError::Invalid("graphs lack the full-resolution graph".into()))?;
+        Ok((fine, &graphs.levels[..]))
+    }
+
+    /// The U-Net below the start graph: pooled level by level through the down blocks, then
+    /// unpooled back, each level's skip concatenated on the way up.
+    fn unet(
+        &self,
+        mut x: Tensor<2>,
+        graph: &SplineGraph,
+        below: &[CoarseLevel],
+    ) -> Result<Tensor<2>, GcnError> {
+        let m = &self.mesh;
+        let levels = m.up.len();
         let per_level = m.down.len().checked_div(levels).unwrap_or(0);
-        let mut x = elu(m.encoder.forward(features, graph)?, 1.0);
-        for (l, conv) in m.convs.iter().enumerate() {
-            if let Some((input, out)) = bipartite {
-                let xb = input.to_mesh.apply(out.features[l].clone())?;
-                if r == 0 {
-                    x = x.clone() + input.mask.clone() * (xb - x) * 0.5;
-                } else {
-                    // The node rule averaged over each cluster (x constant on it):
-                    // x + ½(mean(m ⊙ x̃_b) − mean(m) ⊙ x).
-                    let to = op(&graphs.to_start)?;
-                    let pb = to.apply(xb)?;
-                    let pm = to.apply(input.mask.clone())?;
-                    x = x.clone() + (pb - pm * x) * 0.5;
-                }
-            }
-            x = self.block(conv, x, graph)?;
-        }
         let mut skips = Vec::with_capacity(m.down.len());
         for (l, level) in below.iter().take(levels).enumerate() {
             let pooled = level.pool.apply(x.clone())?;
@@ -463,11 +487,12 @@ impl SrGcn {
             );
             x = if self.residual { up_x + y } else { y };
         }
-        let y = m.decode(x, graph)?;
-        if r > 0 {
-            op(&graphs.from_start)?.apply(y)
-        } else {
-            Ok(y)
-        }
+        Ok(x)
     }
+}
+
+/// The start operators of graphs built for a network at a coarse resolution.
+fn start_op(o: &Option<SparseOp>) -> Result<&SparseOp, GcnError> {
+    o.as_ref()
+        .ok_or_else(|| GcnError::Invalid("graphs lack the start operators".into()))
 }

@@ -31,7 +31,7 @@
 
 use super::PhantomError;
 use crate::fem::{ContactSpring, Dirichlet, NodeSpring, loads};
-use crate::mesh::{TetMesh, TriSurface};
+use crate::mesh::{BoundarySurface, TetMesh, TriSurface};
 use crate::register::anatomy::{AnatomyLabels, Region};
 use crate::util::SplitMix64;
 
@@ -236,9 +236,9 @@ pub fn load_case(
             params.load_scale
         )));
     }
-    let mut rng = SplitMix64::new(seed ^ (pattern as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let mut uniform = |lo: f64, hi: f64| lo + (hi - lo) * rng.next_f64();
-    let ls = params.load_scale;
+    let mut draw = Draw(SplitMix64::new(
+        seed ^ (pattern as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+    ));
     let (lo, hi) = mesh.bounding_box();
     let x_f = {
         let f = AnatomyLabels::nodes_where(&labels.falciform);
@@ -248,11 +248,80 @@ pub fn load_case(
             f.iter().map(|&i| nodes[i as usize][0]).sum::<f64>() / f.len() as f64
         }
     };
-    let centroid_z = 0.5 * (lo[2] + hi[2]);
-    // Supports.
+    let scene = Scene {
+        mesh,
+        labels,
+        params,
+        nodes,
+        normals: &normals,
+        boundary: &boundary,
+        x_f,
+        centroid_z: 0.5 * (lo[2] + hi[2]),
+        lo,
+        hi,
+        ls: params.load_scale,
+        n,
+    };
+    let (mut springs, mut contacts) = supports(labels, params, &normals, &area)?;
+    let mut out = Applied {
+        load: vec![0.0; 3 * n],
+        gravity: vec![0.0; 3 * n],
+        dirichlet: Dirichlet::new(n),
+    };
+    let mut focus = None;
+    let d = &mut draw;
+    let description = match pattern {
+        Pattern::H => {
+            // Held at the hilum (the visceral surface just right of the falciform plane at 45 %
+            // of the height) and the bare area; no other support, no gravity.
+            springs.clear();
+            contacts.clear();
+            let (description, v) = scene.held(d, &mut out)?;
+            focus = Some(v);
+            description
+        }
+        Pattern::L => scene.left_lobe_retraction(d, &mut out)?,
+        Pattern::R => scene.right_lobe_pack(d, &mut out)?,
+        Pattern::W => scene.insufflation(d, &mut out),
+        Pattern::X => scene.augmentation(d, &mut out)?,
+        Pattern::V => scene.posterior_packing(d, &mut out),
+    };
+    let Applied {
+        mut load,
+        gravity,
+        dirichlet,
+    } = out;
+    // `load` holds the surface part so far.
+    let surface_load = load.clone();
+    for (l, g) in load.iter_mut().zip(&gravity) {
+        *l += g;
+    }
+    Ok(LoadCase {
+        gravity,
+        surface: surface_load,
+        pattern,
+        seed,
+        dirichlet,
+        springs,
+        contacts,
+        load,
+        description,
+        held: pattern == Pattern::H,
+        focus,
+    })
+}
+
+/// The supports every pattern but H keeps: the bare area's springs, and the posterior surface
+/// on the bed (contact springs along the normal, a fraction of them attached).
+fn supports(
+    labels: &AnatomyLabels,
+    params: &PatternParams,
+    normals: &[[f64; 3]],
+    area: &[f64],
+) -> Result<(Vec<NodeSpring>, Vec<ContactSpring>), PhantomError> {
     let mut springs = Vec::new();
     let mut contacts = Vec::new();
-    for i in 0..n {
+    for i in 0..area.len() {
         if labels.bare_area[i] {
             springs.push(NodeSpring::isotropic(
                 i as u32,
@@ -276,290 +345,443 @@ pub fn load_case(
             "the mesh has no bare-area nodes to support it".into(),
         ));
     }
-    let mut load = vec![0.0; 3 * n];
-    let mut gravity = vec![0.0; 3 * n];
-    let mut dirichlet = Dirichlet::new(n);
-    let pick =
-        |cands: &[u32], r: f64| cands[((r * cands.len() as f64) as usize).min(cands.len() - 1)];
-    let mut focus = None;
-    let description = match pattern {
-        Pattern::H => {
-            // Held at the hilum (the visceral surface just right of the falciform plane at 45 %
-            // of the height) and the bare area; no other support, no gravity.
-            springs.clear();
-            contacts.clear();
-            let width = hi[0] - lo[0];
-            let q = [x_f - 0.08 * width, hi[1], lo[2] + 0.45 * (hi[2] - lo[2])];
-            let visceral: Vec<u32> = labels
-                .nodes_in(Region::Posterior)
-                .into_iter()
-                .filter(|&i| !labels.bare_area[i as usize])
-                .collect();
-            let hilum = visceral
-                .iter()
-                .copied()
-                .min_by(|&a, &b| {
-                    dist(nodes[a as usize], q)
-                        .total_cmp(&dist(nodes[b as usize], q))
-                        .then(a.cmp(&b))
-                })
-                .ok_or_else(|| {
-                    PhantomError::Geometry("no visceral (posterior) surface to hold".into())
-                })?;
-            let h = nodes[hilum as usize];
-            let held_radius = uniform(20.0, 30.0);
-            let mut held = 0;
-            for &v in &boundary.nodes {
-                if dist(nodes[v as usize], h) <= held_radius || labels.bare_area[v as usize] {
-                    dirichlet.prescribe_node(v, [0.0; 3]);
-                    held += 1;
-                }
+    Ok((springs, contacts))
+}
+
+/// The random draws of a load case, in order.
+struct Draw(SplitMix64);
+
+impl Draw {
+    /// Uniform in `[lo, hi)`.
+    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.0.next_f64()
+    }
+}
+
+/// What the patterns apply: surface loads, gravity and prescribed displacements.
+struct Applied {
+    load: Vec<f64>,
+    gravity: Vec<f64>,
+    dirichlet: Dirichlet,
+}
+
+/// The element `r` ∈ [0, 1) of the way through `cands` (not empty).
+fn pick(cands: &[u32], r: f64) -> u32 {
+    cands[((r * cands.len() as f64) as usize).min(cands.len() - 1)]
+}
+
+/// A labelled liver as the patterns read it.
+#[derive(Clone, Copy)]
+struct Scene<'a> {
+    mesh: &'a TetMesh,
+    labels: &'a AnatomyLabels,
+    params: &'a PatternParams,
+    nodes: &'a [[f64; 3]],
+    normals: &'a [[f64; 3]],
+    boundary: &'a BoundarySurface,
+    /// The falciform plane's x (the mid-plane of the box without a falciform ligament).
+    x_f: f64,
+    centroid_z: f64,
+    lo: [f64; 3],
+    hi: [f64; 3],
+    /// The load scale.
+    ls: f64,
+    n: usize,
+}
+
+impl Scene<'_> {
+    /// Pattern H: held at the hilum and the bare area, a tool pushing the anterior surface; returns the description and the tool's node.
+    fn held(&self, d: &mut Draw, out: &mut Applied) -> Result<(String, u32), PhantomError> {
+        let Scene {
+            labels,
+            nodes,
+            normals,
+            boundary,
+            x_f,
+            lo,
+            hi,
+            ls,
+            ..
+        } = *self;
+        let width = hi[0] - lo[0];
+        let q = [x_f - 0.08 * width, hi[1], lo[2] + 0.45 * (hi[2] - lo[2])];
+        let visceral: Vec<u32> = labels
+            .nodes_in(Region::Posterior)
+            .into_iter()
+            .filter(|&i| !labels.bare_area[i as usize])
+            .collect();
+        let hilum = visceral
+            .iter()
+            .copied()
+            .min_by(|&a, &b| {
+                dist(nodes[a as usize], q)
+                    .total_cmp(&dist(nodes[b as usize], q))
+                    .then(a.cmp(&b))
+            })
+            .ok_or_else(|| {
+                PhantomError::Geometry("no visceral (posterior) surface to hold".into())
+            })?;
+        let h = nodes[hilum as usize];
+        let held_radius = d.uniform(20.0, 30.0);
+        let mut held = 0;
+        for &v in &boundary.nodes {
+            if dist(nodes[v as usize], h) <= held_radius || labels.bare_area[v as usize] {
+                out.dirichlet.prescribe_node(v, [0.0; 3]);
+                held += 1;
             }
-            // The tool: an anterior node at least 60 mm from the hilum, pushed roughly inwards.
-            let cands: Vec<u32> = labels
+        }
+        // The tool: an anterior node at least 60 mm from the hilum, pushed roughly inwards.
+        let cands: Vec<u32> = labels
+            .nodes_in(Region::Anterior)
+            .into_iter()
+            .filter(|&i| dist(nodes[i as usize], h) >= 60.0)
+            .collect();
+        if cands.is_empty() {
+            return Err(PhantomError::Geometry(
+                "no anterior surface 60 mm from the hilum for the tool".into(),
+            ));
+        }
+        let v = pick(&cands, d.uniform(0.0, 1.0));
+        let c = nodes[v as usize];
+        let tip = d.uniform(20.0, 30.0);
+        let depth = ls * d.uniform(30.0, 60.0);
+        let turn = [
+            d.uniform(-1.0, 1.0),
+            d.uniform(-1.0, 1.0),
+            d.uniform(-1.0, 1.0),
+        ];
+        let dir = unit([0, 1, 2].map(|a| -normals[v as usize][a] + 0.4 * turn[a]));
+        let mut pushed = 0;
+        for &w in &boundary.nodes {
+            let r = dist(nodes[w as usize], c);
+            if r <= tip && out.dirichlet.get(3 * w as usize).is_none() {
+                let f = 0.5 * (1.0 + (std::f64::consts::PI * r / tip).cos());
+                out.dirichlet.prescribe_node(w, dir.map(|d| d * depth * f));
+                pushed += 1;
+            }
+        }
+        let description = format!(
+            "held at the hilum and bare area: {held} nodes (within {held_radius:.1} mm of {h:.1?}, or bare area) fixed; tool pushes {pushed} nodes within {tip:.1} mm of {c:.1?} by up to {depth:.1} mm along {dir:.2?} (cosine taper); no gravity, no bed"
+        );
+        Ok((description, v))
+    }
+
+    /// Pattern L: table tilt and a retractor turning the left lobe up about a hinge.
+    fn left_lobe_retraction(
+        &self,
+        d: &mut Draw,
+        out: &mut Applied,
+    ) -> Result<String, PhantomError> {
+        let Scene {
+            mesh,
+            labels,
+            nodes,
+            boundary,
+            x_f,
+            centroid_z,
+            ls,
+            params,
+            n,
+            ..
+        } = *self;
+        let (rt, lat) = (d.uniform(10.0, 30.0), d.uniform(-15.0, 15.0));
+        loads::add_body_force(
+            &mut out.gravity,
+            mesh,
+            tilted_gravity(params.gravity, rt, lat),
+        );
+        let ridge: Vec<u32> = AnatomyLabels::nodes_where(&labels.inferior_ridge)
+            .into_iter()
+            .filter(|&i| nodes[i as usize][0] > x_f)
+            .collect();
+        let cands = if ridge.is_empty() {
+            labels
                 .nodes_in(Region::Anterior)
                 .into_iter()
-                .filter(|&i| dist(nodes[i as usize], h) >= 60.0)
-                .collect();
-            if cands.is_empty() {
-                return Err(PhantomError::Geometry(
-                    "no anterior surface 60 mm from the hilum for the tool".into(),
-                ));
-            }
-            let v = pick(&cands, uniform(0.0, 1.0));
-            let c = nodes[v as usize];
-            let tip = uniform(20.0, 30.0);
-            let depth = ls * uniform(30.0, 60.0);
-            let turn = [uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)];
-            let dir = unit([0, 1, 2].map(|a| -normals[v as usize][a] + 0.4 * turn[a]));
-            let mut pushed = 0;
-            for &w in &boundary.nodes {
-                let r = dist(nodes[w as usize], c);
-                if r <= tip && dirichlet.get(3 * w as usize).is_none() {
-                    let f = 0.5 * (1.0 + (std::f64::consts::PI * r / tip).cos());
-                    dirichlet.prescribe_node(w, dir.map(|d| d * depth * f));
-                    pushed += 1;
-                }
-            }
-            focus = Some(v);
-            format!(
-                "held at the hilum and bare area: {held} nodes (within {held_radius:.1} mm of {h:.1?}, or bare area) fixed; tool pushes {pushed} nodes within {tip:.1} mm of {c:.1?} by up to {depth:.1} mm along {dir:.2?} (cosine taper); no gravity, no bed"
-            )
+                .filter(|&i| nodes[i as usize][0] > x_f && nodes[i as usize][2] < centroid_z)
+                .collect()
+        } else {
+            ridge
+        };
+        if cands.is_empty() {
+            return Err(PhantomError::Geometry(
+                "no left-lobe surface to retract".into(),
+            ));
         }
-        Pattern::L => {
-            let (rt, lat) = (uniform(10.0, 30.0), uniform(-15.0, 15.0));
-            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
-            let ridge: Vec<u32> = AnatomyLabels::nodes_where(&labels.inferior_ridge)
-                .into_iter()
-                .filter(|&i| nodes[i as usize][0] > x_f)
-                .collect();
-            let cands = if ridge.is_empty() {
-                labels
-                    .nodes_in(Region::Anterior)
-                    .into_iter()
-                    .filter(|&i| nodes[i as usize][0] > x_f && nodes[i as usize][2] < centroid_z)
-                    .collect()
-            } else {
-                ridge
-            };
-            if cands.is_empty() {
-                return Err(PhantomError::Geometry(
-                    "no left-lobe surface to retract".into(),
-                ));
+        let c = nodes[pick(&cands, d.uniform(0.0, 1.0)) as usize];
+        let radius = d.uniform(30.0, 50.0);
+        // The blade turns the lobe up about a hinge along its superior attachment: an axis
+        // roughly along x through the top of the left lobe above the grip point.
+        let top = (0..n)
+            .filter(|&i| nodes[i][0] > x_f)
+            .map(|i| nodes[i][2])
+            .fold(f64::NEG_INFINITY, f64::max);
+        let hinge = [c[0], c[1] + d.uniform(0.0, 20.0), top];
+        let axis = unit([1.0, d.uniform(-0.3, 0.3), d.uniform(-0.3, 0.3)]);
+        let angle = -(ls * d.uniform(30.0, 55.0)).to_radians();
+        let turn = rotation(axis, angle);
+        let mut count = 0;
+        let mut lift = 0.0f64;
+        for &v in &boundary.nodes {
+            let p = nodes[v as usize];
+            if dist(p, c) <= radius {
+                let r = [p[0] - hinge[0], p[1] - hinge[1], p[2] - hinge[2]];
+                let q = [0, 1, 2]
+                    .map(|a| hinge[a] + turn[a][0] * r[0] + turn[a][1] * r[1] + turn[a][2] * r[2]);
+                let u = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+                lift = lift.max(dist(q, p));
+                out.dirichlet.prescribe_node(v, u);
+                count += 1;
             }
-            let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
-            let radius = uniform(30.0, 50.0);
-            // The blade turns the lobe up about a hinge along its superior attachment: an axis
-            // roughly along x through the top of the left lobe above the grip point.
-            let top = (0..n)
-                .filter(|&i| nodes[i][0] > x_f)
-                .map(|i| nodes[i][2])
-                .fold(f64::NEG_INFINITY, f64::max);
-            let hinge = [c[0], c[1] + uniform(0.0, 20.0), top];
-            let axis = unit([1.0, uniform(-0.3, 0.3), uniform(-0.3, 0.3)]);
-            let angle = -(ls * uniform(30.0, 55.0)).to_radians();
-            let turn = rotation(axis, angle);
-            let mut count = 0;
-            let mut lift = 0.0f64;
-            for &v in &boundary.nodes {
-                let p = nodes[v as usize];
-                if dist(p, c) <= radius {
-                    let r = [p[0] - hinge[0], p[1] - hinge[1], p[2] - hinge[2]];
-                    let q = [0, 1, 2].map(|a| {
-                        hinge[a] + turn[a][0] * r[0] + turn[a][1] * r[1] + turn[a][2] * r[2]
-                    });
-                    let u = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
-                    lift = lift.max(dist(q, p));
-                    dirichlet.prescribe_node(v, u);
-                    count += 1;
-                }
-            }
-            format!(
-                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; retractor grips {count} nodes within {radius:.1} mm of {c:.1?} and turns them {:.0}° about a hinge through {hinge:.1?} along {axis:.2?} (lift up to {lift:.1} mm)",
-                -angle.to_degrees()
-            )
         }
-        Pattern::R => {
-            let (rt, lat) = (uniform(10.0, 30.0), uniform(-15.0, 15.0));
-            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
-            let cands: Vec<u32> = labels
-                .nodes_in(Region::Posterior)
-                .into_iter()
-                .filter(|&i| nodes[i as usize][0] < x_f && nodes[i as usize][2] < centroid_z)
-                .collect();
-            if cands.is_empty() {
-                return Err(PhantomError::Geometry(
-                    "no right-lobe posterior-inferior surface to pack".into(),
-                ));
-            }
-            let c = nodes[pick(&cands, uniform(0.0, 1.0)) as usize];
-            // A pack of total force F (mN) pressing over a soft-edged patch.
-            let sigma = uniform(15.0, 25.0);
-            let force = ls * uniform(4500.0, 9000.0);
-            let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(0.2, 0.8)]);
-            let (patch, peak) =
-                gaussian_patch(&mut load, nodes, &boundary.triangles, c, sigma, dir, force)?;
-            format!(
-                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; pack at {c:.1?} (σ {sigma:.1} mm, {patch} triangles) pushes {:.1} N along {dir:.2?} (peak traction {peak:.2} kPa)",
-                force / 1000.0,
-            )
+        Ok(format!(
+            "table tilt {rt:.0}° head-up, {lat:.0}° lateral; retractor grips {count} nodes within {radius:.1} mm of {c:.1?} and turns them {:.0}° about a hinge through {hinge:.1?} along {axis:.2?} (lift up to {lift:.1} mm)",
+            -angle.to_degrees()
+        ))
+    }
+
+    /// Pattern R: table tilt and a pack under the right lobe, posterior-inferior.
+    fn right_lobe_pack(&self, d: &mut Draw, out: &mut Applied) -> Result<String, PhantomError> {
+        let Scene {
+            mesh,
+            labels,
+            nodes,
+            boundary,
+            x_f,
+            centroid_z,
+            ls,
+            params,
+            ..
+        } = *self;
+        let (rt, lat) = (d.uniform(10.0, 30.0), d.uniform(-15.0, 15.0));
+        loads::add_body_force(
+            &mut out.gravity,
+            mesh,
+            tilted_gravity(params.gravity, rt, lat),
+        );
+        let cands: Vec<u32> = labels
+            .nodes_in(Region::Posterior)
+            .into_iter()
+            .filter(|&i| nodes[i as usize][0] < x_f && nodes[i as usize][2] < centroid_z)
+            .collect();
+        if cands.is_empty() {
+            return Err(PhantomError::Geometry(
+                "no right-lobe posterior-inferior surface to pack".into(),
+            ));
         }
-        Pattern::W => {
-            let (rt, lat) = (uniform(20.0, 35.0), uniform(-20.0, 20.0));
-            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
-            let p = ls * uniform(0.1, 0.3);
-            let anterior: Vec<[u32; 3]> = boundary
-                .triangles
-                .iter()
-                .copied()
-                .filter(|t| {
-                    t.iter()
-                        .all(|&v| labels.region[v as usize] == Region::Anterior)
-                })
-                .collect();
-            loads::add_pressure(&mut load, nodes, &anterior, p);
-            format!(
-                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; insufflation pressure {p:.2} kPa on {} anterior triangles",
-                anterior.len()
-            )
+        let c = nodes[pick(&cands, d.uniform(0.0, 1.0)) as usize];
+        // A pack of total force F (mN) pressing over a soft-edged patch.
+        let sigma = d.uniform(15.0, 25.0);
+        let force = ls * d.uniform(4500.0, 9000.0);
+        let dir = unit([d.uniform(-0.2, 0.2), -1.0, d.uniform(0.2, 0.8)]);
+        let (patch, peak) = gaussian_patch(
+            &mut out.load,
+            nodes,
+            &boundary.triangles,
+            c,
+            sigma,
+            dir,
+            force,
+        )?;
+        Ok(format!(
+            "table tilt {rt:.0}° head-up, {lat:.0}° lateral; pack at {c:.1?} (σ {sigma:.1} mm, {patch} triangles) pushes {:.1} N along {dir:.2?} (peak traction {peak:.2} kPa)",
+            force / 1000.0,
+        ))
+    }
+
+    /// Pattern W: table tilt and insufflation pressure on the anterior surface.
+    fn insufflation(&self, d: &mut Draw, out: &mut Applied) -> String {
+        let Scene {
+            mesh,
+            labels,
+            nodes,
+            boundary,
+            ls,
+            params,
+            ..
+        } = *self;
+        let (rt, lat) = (d.uniform(20.0, 35.0), d.uniform(-20.0, 20.0));
+        loads::add_body_force(
+            &mut out.gravity,
+            mesh,
+            tilted_gravity(params.gravity, rt, lat),
+        );
+        let p = ls * d.uniform(0.1, 0.3);
+        let anterior: Vec<[u32; 3]> = boundary
+            .triangles
+            .iter()
+            .copied()
+            .filter(|t| {
+                t.iter()
+                    .all(|&v| labels.region[v as usize] == Region::Anterior)
+            })
+            .collect();
+        loads::add_pressure(&mut out.load, nodes, &anterior, p);
+        format!(
+            "table tilt {rt:.0}° head-up, {lat:.0}° lateral; insufflation pressure {p:.2} kPa on {} anterior triangles",
+            anterior.len()
+        )
+    }
+
+    /// Pattern X (training augmentation): a random tilt, and random packs or a pressure on a random cap.
+    fn augmentation(&self, d: &mut Draw, out: &mut Applied) -> Result<String, PhantomError> {
+        // Training augmentation, not a surgical scene: a random table tilt and, on half the
+        // draws, one to three soft-edged packs anywhere off the bare area, each pushing
+        // roughly inwards (the inward normal at its centre turned by a random offset,
+        // typically 20–30°, at most ~65°: the push always has an inward component); on the
+        // other half a broad pressure on a random cap of the surface (the 15–50 % of the
+        // surface off the bare area farthest along a random direction).
+        let (rt, lat) = (d.uniform(0.0, 35.0), d.uniform(-20.0, 20.0));
+        let g = tilted_gravity(self.params.gravity, rt, lat);
+        loads::add_body_force(&mut out.gravity, self.mesh, g);
+        let cands: Vec<u32> = self
+            .boundary
+            .nodes
+            .iter()
+            .copied()
+            .filter(|&v| !self.labels.bare_area[v as usize])
+            .collect();
+        if cands.is_empty() {
+            return Err(PhantomError::Geometry(
+                "no surface off the bare area to load".into(),
+            ));
         }
-        Pattern::X => {
-            // Training augmentation, not a surgical scene: a random table tilt and, on half the
-            // draws, one to three soft-edged packs anywhere off the bare area, each pushing
-            // roughly inwards (the inward normal at its centre turned by a random offset,
-            // typically 20–30°, at most ~65°: the push always has an inward component); on the
-            // other half a broad pressure on a random cap of the surface (the 15–50 % of the
-            // surface off the bare area farthest along a random direction).
-            let (rt, lat) = (uniform(0.0, 35.0), uniform(-20.0, 20.0));
-            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
-            let cands: Vec<u32> = boundary
-                .nodes
-                .iter()
-                .copied()
-                .filter(|&v| !labels.bare_area[v as usize])
-                .collect();
-            if cands.is_empty() {
-                return Err(PhantomError::Geometry(
-                    "no surface off the bare area to load".into(),
-                ));
-            }
-            let loads_text = if uniform(0.0, 1.0) < 0.5 {
-                let packs = 1 + (uniform(0.0, 3.0) as usize).min(2);
-                let mut parts = Vec::new();
-                for _ in 0..packs {
-                    let v = pick(&cands, uniform(0.0, 1.0)) as usize;
-                    let c = nodes[v];
-                    let sigma = uniform(12.0, 45.0);
-                    let force = ls * uniform(3000.0, 9000.0) / (packs as f64).sqrt();
-                    let turn = [uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)];
-                    let dir = unit([0, 1, 2].map(|a| -normals[v][a] + 0.6 * turn[a]));
-                    let (patch, peak) = gaussian_patch(
-                        &mut load,
-                        nodes,
-                        &boundary.triangles,
-                        c,
-                        sigma,
-                        dir,
-                        force,
-                    )?;
-                    parts.push(format!(
-                        "{:.1} N at {c:.1?} along {dir:.2?} (σ {sigma:.1} mm, {patch} triangles, peak {peak:.2} kPa)",
-                        force / 1000.0
-                    ));
-                }
-                format!("random packs: {}", parts.join("; "))
-            } else {
-                let m = unit([uniform(-1.0, 1.0), uniform(-1.0, 1.0), uniform(-1.0, 1.0)]);
-                let along = |v: u32| {
-                    let p = nodes[v as usize];
-                    p[0] * m[0] + p[1] * m[1] + p[2] * m[2]
-                };
-                let mut proj: Vec<f64> = cands.iter().map(|&v| along(v)).collect();
-                proj.sort_by(f64::total_cmp);
-                let fraction = uniform(0.15, 0.5);
-                let cut = proj[((1.0 - fraction) * proj.len() as f64) as usize % proj.len()];
-                let cap: Vec<[u32; 3]> = boundary
-                    .triangles
-                    .iter()
-                    .copied()
-                    .filter(|t| {
-                        t.iter()
-                            .all(|&v| !labels.bare_area[v as usize] && along(v) >= cut)
-                    })
-                    .collect();
-                if cap.is_empty() {
-                    return Err(PhantomError::Geometry(
-                        "the random cap has no triangles".into(),
-                    ));
-                }
-                let p = ls * uniform(0.2, 1.2);
-                loads::add_pressure(&mut load, nodes, &cap, p);
-                format!(
-                    "pressure {p:.2} kPa on {} triangles, the {:.0} % of the surface farthest along {m:.2?}",
-                    cap.len(),
-                    100.0 * fraction
-                )
-            };
-            format!("table tilt {rt:.0}° head-up, {lat:.0}° lateral; {loads_text}")
-        }
-        Pattern::V => {
-            let (rt, lat) = (uniform(0.0, 5.0), uniform(-5.0, 5.0));
-            loads::add_body_force(&mut gravity, mesh, tilted_gravity(params.gravity, rt, lat));
-            let cy = 0.5 * (lo[1] + hi[1]);
-            let p = ls * uniform(0.8, 1.4);
-            let dir = unit([uniform(-0.2, 0.2), -1.0, uniform(-0.2, 0.4)]);
-            let count = push_patch(
-                &mut load,
+        let loads_text = if d.uniform(0.0, 1.0) < 0.5 {
+            self.random_packs(d, out, &cands)?
+        } else {
+            self.random_cap(d, out, &cands)?
+        };
+        Ok(format!(
+            "table tilt {rt:.0}° head-up, {lat:.0}° lateral; {loads_text}"
+        ))
+    }
+
+    /// One to three soft-edged packs centred on `cands`, each pushing roughly inwards.
+    fn random_packs(
+        &self,
+        d: &mut Draw,
+        out: &mut Applied,
+        cands: &[u32],
+    ) -> Result<String, PhantomError> {
+        let Scene {
+            nodes,
+            normals,
+            boundary,
+            ls,
+            ..
+        } = *self;
+        let packs = 1 + (d.uniform(0.0, 3.0) as usize).min(2);
+        let mut parts = Vec::new();
+        for _ in 0..packs {
+            let v = pick(cands, d.uniform(0.0, 1.0)) as usize;
+            let c = nodes[v];
+            let sigma = d.uniform(12.0, 45.0);
+            let force = ls * d.uniform(3000.0, 9000.0) / (packs as f64).sqrt();
+            let turn = [
+                d.uniform(-1.0, 1.0),
+                d.uniform(-1.0, 1.0),
+                d.uniform(-1.0, 1.0),
+            ];
+            let dir = unit([0, 1, 2].map(|a| -normals[v][a] + 0.6 * turn[a]));
+            let (patch, peak) = gaussian_patch(
+                &mut out.load,
                 nodes,
                 &boundary.triangles,
-                dir.map(|d| d * p),
-                |v| {
-                    labels.region[v] == Region::Posterior
-                        && !labels.bare_area[v]
-                        && nodes[v][1] > cy
-                },
-            );
-            format!(
-                "table tilt {rt:.0}° head-up, {lat:.0}° lateral; posterior packing {p:.2} kPa along {dir:.2?} on {count} triangles"
-            )
+                c,
+                sigma,
+                dir,
+                force,
+            )?;
+            parts.push(format!(
+                "{:.1} N at {c:.1?} along {dir:.2?} (σ {sigma:.1} mm, {patch} triangles, peak {peak:.2} kPa)",
+                force / 1000.0
+            ));
         }
-    };
-    // `load` holds the surface part so far.
-    let surface_load = load.clone();
-    for (l, g) in load.iter_mut().zip(&gravity) {
-        *l += g;
+        Ok(format!("random packs: {}", parts.join("; ")))
     }
-    Ok(LoadCase {
-        gravity,
-        surface: surface_load,
-        pattern,
-        seed,
-        dirichlet,
-        springs,
-        contacts,
-        load,
-        description,
-        held: pattern == Pattern::H,
-        focus,
-    })
+
+    /// A pressure on the cap of the surface off the bare area farthest along a random
+    /// direction (15–50 % of `cands`).
+    fn random_cap(
+        &self,
+        d: &mut Draw,
+        out: &mut Applied,
+        cands: &[u32],
+    ) -> Result<String, PhantomError> {
+        let Scene {
+            labels,
+            nodes,
+            boundary,
+            ls,
+            ..
+        } = *self;
+        let m = unit([
+            d.uniform(-1.0, 1.0),
+            d.uniform(-1.0, 1.0),
+            d.uniform(-1.0, 1.0),
+        ]);
+        let along = |v: u32| {
+            let p = nodes[v as usize];
+            p[0] * m[0] + p[1] * m[1] + p[2] * m[2]
+        };
+        let mut proj: Vec<f64> = cands.iter().map(|&v| along(v)).collect();
+        proj.sort_by(f64::total_cmp);
+        let fraction = d.uniform(0.15, 0.5);
+        let cut = proj[((1.0 - fraction) * proj.len() as f64) as usize % proj.len()];
+        let cap: Vec<[u32; 3]> = boundary
+            .triangles
+            .iter()
+            .copied()
+            .filter(|t| {
+                t.iter()
+                    .all(|&v| !labels.bare_area[v as usize] && along(v) >= cut)
+            })
+            .collect();
+        if cap.is_empty() {
+            return Err(PhantomError::Geometry(
+                "the random cap has no triangles".into(),
+            ));
+        }
+        let p = ls * d.uniform(0.2, 1.2);
+        loads::add_pressure(&mut out.load, nodes, &cap, p);
+        Ok(format!(
+            "pressure {p:.2} kPa on {} triangles, the {:.0} % of the surface farthest along {m:.2?}",
+            cap.len(),
+            100.0 * fraction
+        ))
+    }
+
+    /// Pattern V: a slight tilt and packing behind the posterior surface.
+    fn posterior_packing(&self, d: &mut Draw, out: &mut Applied) -> String {
+        let Scene {
+            mesh,
+            labels,
+            nodes,
+            boundary,
+            lo,
+            hi,
+            ls,
+            params,
+            ..
+        } = *self;
+        let (rt, lat) = (d.uniform(0.0, 5.0), d.uniform(-5.0, 5.0));
+        loads::add_body_force(
+            &mut out.gravity,
+            mesh,
+            tilted_gravity(params.gravity, rt, lat),
+        );
+        let cy = 0.5 * (lo[1] + hi[1]);
+        let p = ls * d.uniform(0.8, 1.4);
+        let dir = unit([d.uniform(-0.2, 0.2), -1.0, d.uniform(-0.2, 0.4)]);
+        let count = push_patch(
+            &mut out.load,
+            nodes,
+            &boundary.triangles,
+            dir.map(|d| d * p),
+            |v| labels.region[v] == Region::Posterior && !labels.bare_area[v] && nodes[v][1] > cy,
+        );
+        format!(
+            "table tilt {rt:.0}° head-up, {lat:.0}° lateral; posterior packing {p:.2} kPa along {dir:.2?} on {count} triangles"
+        )
+    }
 }

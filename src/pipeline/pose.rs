@@ -281,18 +281,7 @@ pub fn candidates_from(
     }
     let extra = starts(meas, params).split_off(1);
     // The search on a subsample, with a looser tolerance.
-    let step = meas.points.len().div_ceil(params.search_points).max(1);
-    let keep: Vec<usize> = (0..meas.points.len()).step_by(step).collect();
-    let sub = Measurements {
-        points: keep.iter().map(|&i| meas.points[i]).collect(),
-        kind: keep.iter().map(|&i| meas.kind[i]).collect(),
-        feature: if meas.feature.is_empty() {
-            Vec::new()
-        } else {
-            keep.iter().map(|&i| meas.feature[i]).collect()
-        },
-        initial_alignment: meas.initial_alignment,
-    };
+    let sub = subsample(meas, params.search_points);
     let search = WicpParams {
         tolerance_mm: wicp_params.tolerance_mm.max(1e-2),
         max_iterations: wicp_params.max_iterations.min(60),
@@ -311,16 +300,7 @@ pub fn candidates_from(
         })
         .collect();
     // Distinct from the navigation start's result and from each other, then refined.
-    let mut distinct_starts: Vec<Rigid> = Vec::new();
-    for r in &reached {
-        let t = r.image_to_physical;
-        let seen = std::iter::once(&first.image_to_physical)
-            .chain(&distinct_starts)
-            .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
-        if !seen {
-            distinct_starts.push(t);
-        }
-    }
+    let distinct_starts = distinct_poses(model, &first.image_to_physical, &reached, params);
     let others: Vec<WicpResult> = distinct_starts
         .par_iter()
         .filter_map(|s| {
@@ -360,6 +340,34 @@ pub fn candidates_from(
         starts: 1 + extra.len(),
         distinct,
     })
+}
+
+/// Every `len / n`-th measured point (rounded up), at least one step: the search's subsample.
+fn subsample(meas: &Measurements, n: usize) -> Measurements {
+    let step = meas.points.len().div_ceil(n).max(1);
+    let keep: Vec<usize> = (0..meas.points.len()).step_by(step).collect();
+    meas.subset(&keep)
+}
+
+/// The poses `reached` that differ from `first` and from each other by `same_pose_mm` or more,
+/// in order.
+fn distinct_poses(
+    model: &PreopModel,
+    first: &Rigid,
+    reached: &[WicpResult],
+    params: &PoseParams,
+) -> Vec<Rigid> {
+    let mut distinct: Vec<Rigid> = Vec::new();
+    for r in reached {
+        let t = r.image_to_physical;
+        let seen = std::iter::once(first)
+            .chain(&distinct)
+            .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
+        if !seen {
+            distinct.push(t);
+        }
+    }
+    distinct
 }
 
 /// What [`rigid_candidates`] found.

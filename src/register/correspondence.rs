@@ -241,49 +241,109 @@ pub fn validate_measurements(meas: &Measurements) -> Result<(), RegisterError> {
     Ok(())
 }
 
+/// Checks a preoperative model before its target sets are built: a mesh, one flag per node in
+/// every flag set, finite vessel points and segments within them.
+fn check_model(model: &PreopModel) -> Result<(), RegisterError> {
+    let mesh = &model.mesh;
+    let n = mesh.num_nodes();
+    if n == 0 || mesh.num_tets() == 0 {
+        return Err(RegisterError::Model(
+            "preoperative model: the mesh is empty".into(),
+        ));
+    }
+    for (name, len) in [
+        ("anterior", model.anterior.len()),
+        ("posterior", model.posterior.len()),
+        ("falciform", model.falciform.len()),
+        ("inferior_ridge", model.inferior_ridge.len()),
+    ] {
+        if len != n {
+            return Err(RegisterError::Model(format!(
+                "preoperative model: {name} has {len} entries, the mesh has {n} nodes"
+            )));
+        }
+    }
+    if let Some(i) = model
+        .vessel_points
+        .iter()
+        .position(|p| p.iter().any(|c| !c.is_finite()))
+    {
+        return Err(RegisterError::Model(format!(
+            "preoperative model: vessel point {i} is not finite"
+        )));
+    }
+    if let Some((k, s)) = model
+        .vessel_segments
+        .iter()
+        .enumerate()
+        .find(|(_, s)| s.iter().any(|&i| i as usize >= model.vessel_points.len()))
+    {
+        return Err(RegisterError::Model(format!(
+            "preoperative model: vessel segment {k} {s:?} refers past the {} vessel points",
+            model.vessel_points.len()
+        )));
+    }
+    Ok(())
+}
+
+/// Per node: the distance of each node in `at` to the nearest flagged node (infinity elsewhere,
+/// and everywhere when no node is flagged).
+fn distance_to_flagged(nodes: &[[f64; 3]], flags: &[bool], at: &[u32]) -> Vec<f64> {
+    let on: Vec<[f64; 3]> = (0..nodes.len())
+        .filter(|&i| flags[i])
+        .map(|i| nodes[i])
+        .collect();
+    let mut d = vec![f64::INFINITY; nodes.len()];
+    for &v in at {
+        let p = nodes[v as usize];
+        d[v as usize] = on
+            .iter()
+            .map(|&q| norm(sub(p, q)))
+            .fold(f64::INFINITY, f64::min);
+    }
+    d
+}
+
+/// Per node: whether matching reads its displacement. The boundary (target surfaces) and the
+/// tets along the vessel centerlines (vertices, and samples every 0.5 mm along each segment).
+fn reading_nodes(model: &PreopModel, tris: &[[u32; 3]], locator: &TetLocator) -> Vec<bool> {
+    let mut is_active = vec![false; model.mesh.num_nodes()];
+    for t in tris {
+        for &v in t {
+            is_active[v as usize] = true;
+        }
+    }
+    let mut mark = |p: [f64; 3]| {
+        if let Some((t, _)) = locator.weights(p) {
+            for v in locator.tet(t) {
+                is_active[v as usize] = true;
+            }
+        }
+    };
+    for &p in &model.vessel_points {
+        mark(p);
+    }
+    for s in &model.vessel_segments {
+        let (a, b) = (
+            model.vessel_points[s[0] as usize],
+            model.vessel_points[s[1] as usize],
+        );
+        let steps = (norm(sub(b, a)) / 0.5).ceil().clamp(1.0, 1e5) as usize;
+        for k in 1..steps {
+            let f = k as f64 / steps as f64;
+            mark([0, 1, 2].map(|c| a[c] + f * (b[c] - a[c])));
+        }
+    }
+    is_active
+}
+
 impl Correspondence {
     /// Builds the target sets of `model`. Fails when the flags do not have one entry per node, the
     /// mesh has no boundary, or a vessel point or segment is invalid.
     pub fn new(model: &PreopModel) -> Result<Self, RegisterError> {
         let mesh = &model.mesh;
         let n = mesh.num_nodes();
-        if n == 0 || mesh.num_tets() == 0 {
-            return Err(RegisterError::Model(
-                "preoperative model: the mesh is empty".into(),
-            ));
-        }
-        for (name, len) in [
-            ("anterior", model.anterior.len()),
-            ("posterior", model.posterior.len()),
-            ("falciform", model.falciform.len()),
-            ("inferior_ridge", model.inferior_ridge.len()),
-        ] {
-            if len != n {
-                return Err(RegisterError::Model(format!(
-                    "preoperative model: {name} has {len} entries, the mesh has {n} nodes"
-                )));
-            }
-        }
-        if let Some(i) = model
-            .vessel_points
-            .iter()
-            .position(|p| p.iter().any(|c| !c.is_finite()))
-        {
-            return Err(RegisterError::Model(format!(
-                "preoperative model: vessel point {i} is not finite"
-            )));
-        }
-        if let Some((k, s)) = model
-            .vessel_segments
-            .iter()
-            .enumerate()
-            .find(|(_, s)| s.iter().any(|&i| i as usize >= model.vessel_points.len()))
-        {
-            return Err(RegisterError::Model(format!(
-                "preoperative model: vessel segment {k} {s:?} refers past the {} vessel points",
-                model.vessel_points.len()
-            )));
-        }
+        check_model(model)?;
         let boundary = mesh.boundary().map_err(|e| {
             RegisterError::Model(format!(
                 "preoperative model: cannot take the mesh boundary: {e}"
@@ -306,53 +366,15 @@ impl Correspondence {
             posterior = everything.clone();
         }
         // Distance of each boundary node to the nearest node of each feature.
-        let feature_distance = [&model.falciform, &model.inferior_ridge].map(|flags| {
-            let on: Vec<[f64; 3]> = (0..n).filter(|&i| flags[i]).map(|i| nodes[i]).collect();
-            let mut d = vec![f64::INFINITY; n];
-            for &v in &boundary.nodes {
-                let p = nodes[v as usize];
-                d[v as usize] = on
-                    .iter()
-                    .map(|&q| norm(sub(p, q)))
-                    .fold(f64::INFINITY, f64::min);
-            }
-            d
-        });
+        let feature_distance = [&model.falciform, &model.inferior_ridge]
+            .map(|flags| distance_to_flagged(&nodes, flags, &boundary.nodes));
         let radius = CorrespondenceParams::default().feature_neighbourhood_mm;
         let features = [0, 1].map(|f| {
             let set = feature_set(&tris, &anterior, &feature_distance[f], radius);
             TargetSet::new(&nodes, &tris, set)
         });
         let locator = TetLocator::new(mesh);
-        // Nodes whose displacement matching reads: the boundary (target surfaces) and the tets
-        // along the vessel centerlines (vertices, and samples every 0.5 mm along each segment).
-        let mut is_active = vec![false; n];
-        for t in &tris {
-            for &v in t {
-                is_active[v as usize] = true;
-            }
-        }
-        let mut mark = |p: [f64; 3]| {
-            if let Some((t, _)) = locator.weights(p) {
-                for v in locator.tet(t) {
-                    is_active[v as usize] = true;
-                }
-            }
-        };
-        for &p in &model.vessel_points {
-            mark(p);
-        }
-        for s in &model.vessel_segments {
-            let (a, b) = (
-                model.vessel_points[s[0] as usize],
-                model.vessel_points[s[1] as usize],
-            );
-            let steps = (norm(sub(b, a)) / 0.5).ceil().clamp(1.0, 1e5) as usize;
-            for k in 1..steps {
-                let f = k as f64 / steps as f64;
-                mark([0, 1, 2].map(|c| a[c] + f * (b[c] - a[c])));
-            }
-        }
+        let is_active = reading_nodes(model, &tris, &locator);
         let active = (0..n as u32).filter(|&i| is_active[i as usize]).collect();
         Ok(Self {
             active,
@@ -754,6 +776,22 @@ pub fn preop_model_from_file(
     };
     let falciform = flags("falciform")?;
     let inferior_ridge = flags("inferior_ridge")?;
+    let (vessel_points, vessel_segments) = vessel_tree(vessels)?;
+    Ok(PreopModel {
+        mesh,
+        anterior: region.iter().map(|&r| r == 1.0).collect(),
+        posterior: region.iter().map(|&r| r == 2.0).collect(),
+        falciform,
+        inferior_ridge,
+        vessel_points,
+        vessel_segments,
+    })
+}
+
+/// The vessel centerlines of a dataset's `vessels.vtp`: its points and one segment
+/// `[parent, child]` per point with a parent (`parent` array, −1 for roots).
+#[allow(clippy::type_complexity)]
+fn vessel_tree(vessels: &MeshFile) -> Result<(Vec<[f64; 3]>, Vec<[u32; 2]>), RegisterError> {
     let vessel_points = vessels.nodes.clone();
     if let Some(i) = vessel_points
         .iter()
@@ -791,13 +829,5 @@ pub fn preop_model_from_file(
             vessel_segments.push([p as u32, i as u32]);
         }
     }
-    Ok(PreopModel {
-        mesh,
-        anterior: region.iter().map(|&r| r == 1.0).collect(),
-        posterior: region.iter().map(|&r| r == 2.0).collect(),
-        falciform,
-        inferior_ridge,
-        vessel_points,
-        vessel_segments,
-    })
+    Ok((vessel_points, vessel_segments))
 }

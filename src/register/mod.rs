@@ -95,6 +95,23 @@ pub struct Measurements {
     pub initial_alignment: Option<Rigid>,
 }
 
+impl Measurements {
+    /// The points `keep` (indices into these measurements), in that order, with their kinds and
+    /// features and the same initial alignment.
+    pub fn subset(&self, keep: &[usize]) -> Measurements {
+        Measurements {
+            points: keep.iter().map(|&i| self.points[i]).collect(),
+            kind: keep.iter().map(|&i| self.kind[i]).collect(),
+            feature: if self.feature.is_empty() {
+                Vec::new()
+            } else {
+                keep.iter().map(|&i| self.feature[i]).collect()
+            },
+            initial_alignment: self.initial_alignment,
+        }
+    }
+}
+
 /// A measured point matched to the model: the model point it corresponds to is
 /// `anchor + Σ_k bary[k] · u[nodes[k]]` for node displacements `u` (image frame) — linear in `u`,
 /// which is what LIBR's least squares needs. Surface and contour matches interpolate a boundary

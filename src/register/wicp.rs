@@ -152,26 +152,7 @@ pub fn wicp(
 ) -> Result<WicpResult, RegisterError> {
     let clock = Instant::now();
     validate_measurements(meas)?;
-    params.correspondence.validate()?;
-    if !(params.tolerance_mm.is_finite() && params.tolerance_mm >= 0.0) {
-        return Err(RegisterError::Parameter(format!(
-            "wicp parameter tolerance_mm must be finite and ≥ 0, got {}",
-            params.tolerance_mm
-        )));
-    }
-    if let Some(sig) = params.trusted_alignment_mm {
-        if !(sig.is_finite() && sig > 0.0) {
-            return Err(RegisterError::Parameter(format!(
-                "wicp parameter trusted_alignment_mm must be finite and > 0, got {sig}"
-            )));
-        }
-    }
-    if !(params.min_conditioning.is_finite() && params.min_conditioning >= 0.0) {
-        return Err(RegisterError::Parameter(format!(
-            "wicp parameter min_conditioning must be finite and ≥ 0, got {}",
-            params.min_conditioning
-        )));
-    }
+    params.validate()?;
     if corr.num_nodes() != model.mesh.num_nodes() {
         return Err(RegisterError::Inconsistent(format!(
             "the correspondence was built for {} nodes, the model has {}",
@@ -179,94 +160,22 @@ pub fn wicp(
             model.mesh.num_nodes()
         )));
     }
-    // Clements' data: the anterior-surface points alone, when asked and there are enough.
     let mut warnings = Vec::new();
-    let surface;
-    let meas = if params.surface_only {
-        let keep: Vec<usize> = (0..meas.points.len())
-            .filter(|&i| meas.kind[i] == MeasuredKind::Surface)
-            .collect();
-        if keep.len() >= 3 {
-            surface = Measurements {
-                points: keep.iter().map(|&i| meas.points[i]).collect(),
-                kind: vec![MeasuredKind::Surface; keep.len()],
-                feature: if meas.feature.is_empty() {
-                    Vec::new()
-                } else {
-                    keep.iter().map(|&i| meas.feature[i]).collect()
-                },
-                initial_alignment: meas.initial_alignment,
-            };
-            &surface
-        } else {
-            warnings.push(format!(
-                "{} anterior-surface point(s): the rigid stage used every point instead of the \
-                 surface alone",
-                keep.len()
-            ));
-            meas
-        }
-    } else {
-        meas
-    };
+    let surface = surface_points(meas, params, &mut warnings);
+    let meas = surface.as_ref().unwrap_or(meas);
     let start = meas.initial_alignment.unwrap_or_default();
     let cap = params.correspondence.max_distance_mm;
     let to_image = |t: &Rigid| -> Vec<[f64; 3]> {
         let inv = t.inverse();
         meas.points.iter().map(|&p| inv.apply(p)).collect()
     };
-
-    // Points far from the model after the initial alignment.
-    let start_image = to_image(&start);
-    let dist: Vec<f64> = start_image
-        .iter()
-        .map(|&p| corr.distance_to_boundary(p))
-        .collect();
-    let far: Vec<usize> = (0..dist.len()).filter(|&i| dist[i] > cap).collect();
+    let (dist, far) = far_points(corr, &to_image(&start), cap, &mut warnings)?;
     let npts = meas.points.len();
-    if 2 * far.len() > npts {
-        let worst = (0..npts)
-            .max_by(|&a, &b| dist[a].total_cmp(&dist[b]))
-            .unwrap_or(0);
-        return Err(RegisterError::FarFromModel {
-            far: far.len(),
-            total: npts,
-            cap_mm: cap,
-            worst,
-            worst_mm: dist[worst],
-        });
-    }
-    if !far.is_empty() {
-        warnings.push(format!(
-            "{} measured point(s) more than {cap} mm from the model after the initial alignment \
-             were left out (first: measurements.points[{}], {:.0} mm away)",
-            far.len(),
-            far[0],
-            dist[far[0]]
-        ));
-    }
 
     let corr_params = &params.correspondence;
     let matching = |t: &Rigid| corr.match_points(&to_image(t), meas, None, corr_params);
     let (_, initial_stats) = matching(&start)?;
-    let mut result = WicpResult {
-        image_to_physical: start,
-        rms_mm: initial_stats.rms_mm,
-        initial_rms_mm: initial_stats.rms_mm,
-        iterations: 0,
-        converged: false,
-        matched: initial_stats.kept,
-        trimmed: initial_stats.trimmed,
-        far: far.len(),
-        stats: initial_stats,
-        degenerate: None,
-        warnings,
-        seconds: 0.0,
-        conditioning: 0.0,
-        prior: None,
-        ill_posed: false,
-        moved_from_start_mm: 0.0,
-    };
+    let mut result = WicpResult::at_start(start, initial_stats, far.len(), warnings);
 
     // Degenerate point sets: the rotation is undetermined whatever the model.
     let near: Vec<[f64; 3]> = (0..npts)
@@ -305,21 +214,139 @@ pub fn wicp(
             params.min_conditioning
         ));
     }
-    let t = run.t;
-    result.iterations = run.iterations;
-    result.converged = run.converged;
-    result.degenerate = run.degenerate;
-    result.conditioning = run.conditioning;
-    result.prior = run.prior;
     result.ill_posed = ill_posed;
-    result.moved_from_start_mm = RigidPrior::new(nodes, start, 1.0, 1.0).rms_mm(&t);
-    result.image_to_physical = t;
-    result.rms_mm = run.stats.rms_mm;
-    result.matched = run.stats.kept;
-    result.trimmed = run.stats.trimmed;
-    result.stats = run.stats;
+    result.moved_from_start_mm = RigidPrior::new(nodes, start, 1.0, 1.0).rms_mm(&run.t);
+    result.ended(run);
     result.seconds = clock.elapsed().as_secs_f64();
     Ok(result)
+}
+
+impl WicpParams {
+    /// Checks the parameters, naming the first bad one.
+    pub fn validate(&self) -> Result<(), RegisterError> {
+        self.correspondence.validate()?;
+        if !(self.tolerance_mm.is_finite() && self.tolerance_mm >= 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "wicp parameter tolerance_mm must be finite and ≥ 0, got {}",
+                self.tolerance_mm
+            )));
+        }
+        if let Some(sig) = self.trusted_alignment_mm {
+            if !(sig.is_finite() && sig > 0.0) {
+                return Err(RegisterError::Parameter(format!(
+                    "wicp parameter trusted_alignment_mm must be finite and > 0, got {sig}"
+                )));
+            }
+        }
+        if !(self.min_conditioning.is_finite() && self.min_conditioning >= 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "wicp parameter min_conditioning must be finite and ≥ 0, got {}",
+                self.min_conditioning
+            )));
+        }
+        Ok(())
+    }
+}
+
+impl WicpResult {
+    /// The result before any iteration: the start, its matching's figures.
+    fn at_start(start: Rigid, stats: MatchStats, far: usize, warnings: Vec<String>) -> Self {
+        WicpResult {
+            image_to_physical: start,
+            rms_mm: stats.rms_mm,
+            initial_rms_mm: stats.rms_mm,
+            iterations: 0,
+            converged: false,
+            matched: stats.kept,
+            trimmed: stats.trimmed,
+            far,
+            stats,
+            degenerate: None,
+            warnings,
+            seconds: 0.0,
+            conditioning: 0.0,
+            prior: None,
+            ill_posed: false,
+            moved_from_start_mm: 0.0,
+        }
+    }
+
+    /// Takes the transform and the final matching's figures from the ICP iterations' end.
+    fn ended(&mut self, run: LoopEnd) {
+        self.iterations = run.iterations;
+        self.converged = run.converged;
+        self.degenerate = run.degenerate;
+        self.conditioning = run.conditioning;
+        self.prior = run.prior;
+        self.image_to_physical = run.t;
+        self.rms_mm = run.stats.rms_mm;
+        self.matched = run.stats.kept;
+        self.trimmed = run.stats.trimmed;
+        self.stats = run.stats;
+    }
+}
+
+/// Clements' data: the anterior-surface points alone, when asked and there are at least three
+/// (None: every point, with a warning when the surface alone was asked but too few).
+fn surface_points(
+    meas: &Measurements,
+    params: &WicpParams,
+    warnings: &mut Vec<String>,
+) -> Option<Measurements> {
+    if !params.surface_only {
+        return None;
+    }
+    let keep: Vec<usize> = (0..meas.points.len())
+        .filter(|&i| meas.kind[i] == MeasuredKind::Surface)
+        .collect();
+    if keep.len() >= 3 {
+        return Some(meas.subset(&keep));
+    }
+    warnings.push(format!(
+        "{} anterior-surface point(s): the rigid stage used every point instead of the \
+         surface alone",
+        keep.len()
+    ));
+    None
+}
+
+/// Each point's distance to the model's boundary after the initial alignment (`start_image`:
+/// the points in the image frame) and the points farther than `cap` mm, which are left out
+/// (with a warning); an error when they are more than half.
+fn far_points(
+    corr: &Correspondence,
+    start_image: &[[f64; 3]],
+    cap: f64,
+    warnings: &mut Vec<String>,
+) -> Result<(Vec<f64>, Vec<usize>), RegisterError> {
+    let dist: Vec<f64> = start_image
+        .iter()
+        .map(|&p| corr.distance_to_boundary(p))
+        .collect();
+    let far: Vec<usize> = (0..dist.len()).filter(|&i| dist[i] > cap).collect();
+    let npts = dist.len();
+    if 2 * far.len() > npts {
+        let worst = (0..npts)
+            .max_by(|&a, &b| dist[a].total_cmp(&dist[b]))
+            .unwrap_or(0);
+        return Err(RegisterError::FarFromModel {
+            far: far.len(),
+            total: npts,
+            cap_mm: cap,
+            worst,
+            worst_mm: dist[worst],
+        });
+    }
+    if !far.is_empty() {
+        warnings.push(format!(
+            "{} measured point(s) more than {cap} mm from the model after the initial alignment \
+             were left out (first: measurements.points[{}], {:.0} mm away)",
+            far.len(),
+            far[0],
+            dist[far[0]]
+        ));
+    }
+    Ok((dist, far))
 }
 
 /// The matching of the measured points under a transform.

@@ -459,6 +459,68 @@ pub fn tetrahedralize_with_report(
 ) -> Result<(TetMesh, TetraReport), TetraError> {
     let start = Instant::now();
     let mut seconds = TetraTimings::default();
+    let lat = lattice(surface, params)?;
+    let h = lat.h;
+    let sd = SignedDistance::new(surface)?;
+    seconds.setup = start.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let (f, hint, distance_queries) = distances(&lat, &sd);
+    seconds.distance = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let cuts = cut_points(&lat, &sd, &f, &hint);
+    seconds.cut_points = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let (warped, sign) = warp(&lat, &f, &hint, &cuts, params);
+    seconds.warp = t.elapsed().as_secs_f64();
+
+    // 4. Stencils, per pair of face-adjacent cube centres (each centre owns its +x, +y, +z pairs).
+    let t = Instant::now();
+    let ctx = Fill {
+        lat: &lat,
+        sign: &sign,
+        cuts: &cuts,
+        warped: &warped,
+        sd: &sd,
+    };
+    let (global_tets, all_on_surface_tets) = stencils(&ctx)?;
+    seconds.fill = t.elapsed().as_secs_f64();
+    if global_tets.is_empty() {
+        return Err(TetraError::NoTetrahedra { edge_mm: h });
+    }
+
+    let t = Instant::now();
+    let mesh = compact(&ctx, global_tets)?;
+    let (mesh, pinches, pieces, dropped_tets) = clean(mesh, params)?;
+    seconds.finish = t.elapsed().as_secs_f64();
+    seconds.total = start.elapsed().as_secs_f64();
+    let report = TetraReport {
+        edge_mm: h,
+        lattice_cubes: lat.n,
+        lattice_points: lat.num_points,
+        distance_queries,
+        cut_points: cuts.len(),
+        warped_vertices: warped.len(),
+        all_on_surface_tets,
+        split_vertices: pinches.copies,
+        pinch_fill_tets: pinches.fills,
+        pinched_edges: pinches.left,
+        pinched_vertices: pinches.left_vertices,
+        dropped_tets,
+        pieces,
+        nodes: mesh.num_nodes(),
+        tets: mesh.num_tets(),
+        seconds,
+    };
+    Ok((mesh, report))
+}
+
+/// Checks the parameters and the surface (closed, consistently oriented, not smaller than two
+/// edges across) and lays the body-centred cubic lattice over it: the box plus at least one
+/// cube of margin on each side, centred on the box.
+fn lattice(surface: &TriSurface, params: &TetraParams) -> Result<Lattice, TetraError> {
     let h = params.edge_mm;
     if !(h.is_finite() && h > 0.0) {
         return Err(TetraError::InvalidEdgeLength { edge_mm: h });
@@ -498,7 +560,6 @@ pub fn tetrahedralize_with_report(
             max_mm: 0.5 * max_extent,
         });
     }
-    // Cubes per axis: the box plus at least one cube of margin on each side, centred on the box.
     let cubes_f = extent.map(|e| (e / h).ceil() + 2.0);
     let points_f =
         cubes_f.iter().map(|c| c + 1.0).product::<f64>() + cubes_f.iter().product::<f64>();
@@ -513,22 +574,29 @@ pub fn tetrahedralize_with_report(
     let n = cubes_f.map(|c| c as usize);
     let lo = [0, 1, 2].map(|a| 0.5 * (bmin[a] + bmax[a]) - 0.5 * h * n[a] as f64);
     let num_corners = (n[0] + 1) * (n[1] + 1) * (n[2] + 1);
-    let lat = Lattice {
+    Ok(Lattice {
         h,
         lo,
         n,
         num_corners,
         num_points: num_corners + n[0] * n[1] * n[2],
-    };
-    let sd = SignedDistance::new(surface)?;
-    seconds.setup = start.elapsed().as_secs_f64();
+    })
+}
 
-    // 1. Signed distance at the lattice points, row by row (x fastest); a point whose distance
-    //    bound from the last exact value along its row exceeds H only gets the sign.
-    let t = Instant::now();
+/// The distance beyond which a lattice point only gets the sign of its signed distance.
+fn skip_distance(h: f64) -> f64 {
+    h * (1.0 + 1e-6)
+}
+
+/// 1. Signed distance at the lattice points, row by row (x fastest); a point whose distance
+///    bound from the last exact value along its row exceeds H only gets the sign. Returns the
+///    values, each exact point's nearest triangle (`u32::MAX` where only bounded) and the
+///    number of exact queries.
+fn distances(lat: &Lattice, sd: &SignedDistance) -> (Vec<f64>, Vec<u32>, usize) {
+    let (h, n, num_corners) = (lat.h, lat.n, lat.num_corners);
     let mut f = vec![0.0f64; lat.num_points];
     let mut hint = vec![u32::MAX; lat.num_points];
-    let skip = h * (1.0 + 1e-6);
+    let skip = skip_distance(h);
     let eval_row = |first: usize, fr: &mut [f64], hr: &mut [u32]| -> usize {
         let mut last: Option<(usize, f64, u32)> = None;
         let mut queries = 0;
@@ -553,29 +621,36 @@ pub fn tetrahedralize_with_report(
     let (fc, fm) = f.split_at_mut(num_corners);
     let (hc, hm) = hint.split_at_mut(num_corners);
     let rx_c = n[0] + 1;
-    let mut distance_queries: usize = fc
+    let mut queries: usize = fc
         .par_chunks_mut(rx_c)
         .zip(hc.par_chunks_mut(rx_c))
         .enumerate()
         .map(|(r, (fr, hr))| eval_row(r * rx_c, fr, hr))
         .sum();
-    distance_queries += fm
+    queries += fm
         .par_chunks_mut(n[0])
         .zip(hm.par_chunks_mut(n[0]))
         .enumerate()
         .map(|(r, (fr, hr))| eval_row(num_corners + r * n[0], fr, hr))
         .sum::<usize>();
-    seconds.distance = t.elapsed().as_secs_f64();
+    (f, hint, queries)
+}
 
-    // 2. Cut points on lattice edges with strictly opposite signs (both ends are exact: |f| ≤ H).
-    let t = Instant::now();
-    let near = |p: u32| hint[p as usize] != u32::MAX && f[p as usize].abs() <= skip;
+/// Whether lattice point `p` got an exact distance of at most H.
+fn near(f: &[f64], hint: &[u32], p: u32, skip: f64) -> bool {
+    hint[p as usize] != u32::MAX && f[p as usize].abs() <= skip
+}
+
+/// 2. Cut points on lattice edges with strictly opposite signs (both ends are exact: |f| ≤ H),
+///    sorted by edge.
+fn cut_points(lat: &Lattice, sd: &SignedDistance, f: &[f64], hint: &[u32]) -> Vec<Cut> {
+    let skip = skip_distance(lat.h);
     let mut edges: Vec<(u32, u32)> = (0..lat.num_points as u32)
         .into_par_iter()
         .with_min_len(4096)
         .flat_map_iter(|p| {
             let sp = sign_of(f[p as usize]);
-            let candidates: Vec<(u32, u32)> = if sp != 0 && near(p) {
+            let candidates: Vec<(u32, u32)> = if sp != 0 && near(f, hint, p, skip) {
                 lat.neighbours(p)
                     .filter(|&(q, _)| q > p && sign_of(f[q as usize]) == -sp)
                     .map(|(q, _)| (p, q))
@@ -587,8 +662,8 @@ pub fn tetrahedralize_with_report(
         })
         .collect();
     edges.sort_unstable();
-    let tol = 1e-7 * h;
-    let cuts: Vec<Cut> = edges
+    let tol = 1e-7 * lat.h;
+    edges
         .par_iter()
         .with_min_len(64)
         .map(|&(a, b)| {
@@ -597,28 +672,40 @@ pub fn tetrahedralize_with_report(
             let seed = [hint[a as usize], hint[b as usize]]
                 .into_iter()
                 .find(|&s| s != u32::MAX);
-            let t = find_zero(&sd, pa, fa, pb, fb, seed, tol);
+            let t = find_zero(sd, pa, fa, pb, fb, seed, tol);
             Cut {
                 key: edge_key(a, b),
                 t,
                 pos: add(pa, scale(sub(pb, pa), t)),
             }
         })
-        .collect();
+        .collect()
+}
+
+/// 3. Warping: a vertex violated by a cut point on one of its edges moves to the closest one.
+///    Returns the warped vertices with their positions, and every lattice point's sign (0 where
+///    warped).
+#[allow(clippy::type_complexity)]
+fn warp(
+    lat: &Lattice,
+    f: &[f64],
+    hint: &[u32],
+    cuts: &[Cut],
+    params: &TetraParams,
+) -> (Vec<(u32, [f64; 3])>, Vec<i8>) {
+    let h = lat.h;
+    let skip = skip_distance(h);
+    let (al, as_) = (params.alpha_long, params.alpha_short);
     let find_cut = |a: u32, b: u32| -> Option<usize> {
         cuts.binary_search_by_key(&edge_key(a, b), |c| c.key).ok()
     };
-    seconds.cut_points = t.elapsed().as_secs_f64();
-
-    // 3. Warping: a vertex violated by a cut point on one of its edges moves to the closest one.
-    let t = Instant::now();
     let short_len = 0.5 * 3f64.sqrt() * h;
     let warped: Vec<(u32, [f64; 3])> = (0..lat.num_points as u32)
         .into_par_iter()
         .with_min_len(4096)
         .filter_map(|p| {
             let sp = sign_of(f[p as usize]);
-            if sp == 0 || !near(p) {
+            if sp == 0 || !near(f, hint, p, skip) {
                 return None;
             }
             let mut best: Option<(f64, [f64; 3])> = None;
@@ -640,18 +727,14 @@ pub fn tetrahedralize_with_report(
     for &(p, _) in &warped {
         sign[p as usize] = 0;
     }
-    seconds.warp = t.elapsed().as_secs_f64();
+    (warped, sign)
+}
 
-    // 4. Stencils, per pair of face-adjacent cube centres (each centre owns its +x, +y, +z pairs).
-    let t = Instant::now();
-    let ctx = Fill {
-        lat: &lat,
-        sign: &sign,
-        cuts: &cuts,
-        warped: &warped,
-        sd: &sd,
-    };
-    let num_centres = lat.num_points - num_corners;
+/// The stencil tetrahedra of every cube centre (global node ids), and how many lie wholly on
+/// the surface.
+fn stencils(ctx: &Fill<'_>) -> Result<(Vec<[u32; 4]>, usize), TetraError> {
+    let num_corners = ctx.lat.num_corners;
+    let num_centres = ctx.lat.num_points - num_corners;
     let pieces: Vec<(Vec<[u32; 4]>, usize, Option<TetraError>)> = (0..num_centres)
         .into_par_iter()
         .with_min_len(256)
@@ -676,13 +759,11 @@ pub fn tetrahedralize_with_report(
         all_on_surface_tets += all_on;
         global_tets.extend_from_slice(&out);
     }
-    seconds.fill = t.elapsed().as_secs_f64();
-    if global_tets.is_empty() {
-        return Err(TetraError::NoTetrahedra { edge_mm: h });
-    }
+    Ok((global_tets, all_on_surface_tets))
+}
 
-    // 5. Compact: nodes are the used lattice points (warped where warped) then the used cut points.
-    let t = Instant::now();
+/// 5. Compact: nodes are the used lattice points (warped where warped) then the used cut points.
+fn compact(ctx: &Fill<'_>, global_tets: Vec<[u32; 4]>) -> Result<TetMesh, TetraError> {
     let mut used: Vec<u32> = global_tets.iter().flatten().copied().collect();
     used.par_sort_unstable();
     used.dedup();
@@ -699,7 +780,16 @@ pub fn tetrahedralize_with_report(
         })
         .collect();
     drop(global_tets);
-    let mut mesh = TetMesh::new(nodes, tets).map_err(|e| TetraError::Internal(e.to_string()))?;
+    TetMesh::new(nodes, tets).map_err(|e| TetraError::Internal(e.to_string()))
+}
+
+/// The pinches repaired (when asked), the largest face-connected piece kept (when asked), every
+/// tetrahedron checked positive and the mesh validated. Returns the mesh, the repair, the
+/// number of pieces and the tetrahedra dropped with the smaller pieces.
+fn clean(
+    mut mesh: TetMesh,
+    params: &TetraParams,
+) -> Result<(TetMesh, PinchRepair, usize, usize), TetraError> {
     let pinches = if params.repair_pinches {
         repair_pinches(&mut mesh)?
     } else {
@@ -735,25 +825,5 @@ pub fn tetrahedralize_with_report(
     }
     mesh.validate()
         .map_err(|e| TetraError::Internal(format!("the stuffed mesh is invalid: {e}")))?;
-    seconds.finish = t.elapsed().as_secs_f64();
-    seconds.total = start.elapsed().as_secs_f64();
-    let report = TetraReport {
-        edge_mm: h,
-        lattice_cubes: n,
-        lattice_points: lat.num_points,
-        distance_queries,
-        cut_points: cuts.len(),
-        warped_vertices: warped.len(),
-        all_on_surface_tets,
-        split_vertices: pinches.copies,
-        pinch_fill_tets: pinches.fills,
-        pinched_edges: pinches.left,
-        pinched_vertices: pinches.left_vertices,
-        dropped_tets,
-        pieces,
-        nodes: mesh.num_nodes(),
-        tets: mesh.num_tets(),
-        seconds,
-    };
-    Ok((mesh, report))
+    Ok((mesh, pinches, pieces, dropped_tets))
 }

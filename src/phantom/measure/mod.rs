@@ -374,6 +374,115 @@ pub fn simulate_focused(
     focus: Option<u32>,
     seed: u64,
 ) -> Result<Scenario, PhantomError> {
+    check_inputs(mesh, labels, vessels, displacement, params)?;
+    let n = mesh.num_nodes();
+    let rest = mesh.nodes();
+    let deformed: Vec<[f64; 3]> = (0..n)
+        .map(|i| add(rest[i], [0, 1, 2].map(|k| displacement[3 * i + k])))
+        .collect();
+    let boundary = mesh.boundary()?;
+    let tris = &boundary.triangles;
+    let view = Visible::new(tris, labels, &deformed)?;
+
+    // Surface points on a grown visible patch.
+    let mut rng = stream(seed, STREAM_SURFACE);
+    let [c0, c1] = params.coverage;
+    let target = c0 + (c1 - c0) * rng.next_f64();
+    let patch = grow_patch(
+        tris,
+        &view.anterior,
+        &view.ant_areas,
+        &deformed,
+        [target, c0, c1].map(|c| c * view.ant_total),
+        focus.and_then(|v| deformed.get(v as usize).copied()),
+        &mut rng,
+    );
+    let patch_area: f64 = patch.iter().map(|&i| view.ant_areas[i]).sum();
+    let coverage = patch_area / view.ant_total;
+    let patch_tris: Vec<[[f64; 3]; 3]> = patch
+        .iter()
+        .map(|&i| tris[view.anterior[i]].map(|v| deformed[v as usize]))
+        .collect();
+    let patch_areas: Vec<f64> = patch.iter().map(|&i| view.ant_areas[i]).collect();
+    let surface = dart_throw(
+        &patch_tris,
+        &patch_areas,
+        params.surface_spacing_mm,
+        &mut rng,
+    );
+    let mut noise_rng = stream(seed, STREAM_NOISE);
+    let mut pts = Points {
+        feature: surface_features(&surface, labels, &deformed, params),
+        truth: surface.clone(),
+        kind: vec![PointKind::Surface; surface.len()],
+        plane_of: vec![-1i32; surface.len()],
+        noisy: surface
+            .iter()
+            .map(|&p| {
+                let e = [0; 3].map(|_| params.surface_noise_mm * noise_rng.normal());
+                add(p, e)
+            })
+            .collect(),
+    };
+
+    // Ultrasound planes.
+    let nplanes = category.planes();
+    let mut planes_image = Vec::with_capacity(nplanes);
+    if nplanes > 0 {
+        let scan = Scan {
+            mesh,
+            vessels,
+            displacement,
+            deformed: &deformed,
+            tris,
+            view: &view,
+            params,
+        };
+        planes_image = scan.planes(nplanes, seed, &mut noise_rng, &mut pts)?;
+    }
+    let tf = misalignment(rest, params, seed);
+    let marks = landmarks(rest, labels, &deformed, &tf, params, seed)?;
+    let Points {
+        truth,
+        kind,
+        plane_of,
+        feature,
+        noisy,
+    } = pts;
+    let Landmarks {
+        landmark_nodes,
+        landmarks_image,
+        landmarks_physical,
+        initial_alignment,
+    } = marks;
+
+    Ok(Scenario {
+        category,
+        seed,
+        coverage,
+        points: noisy.iter().map(|&p| tf.apply(p)).collect(),
+        kind,
+        plane: plane_of,
+        feature,
+        planes: planes_image.iter().map(|p| p.transformed(&tf)).collect(),
+        truth_image: truth,
+        image_to_physical: tf,
+        landmark_nodes,
+        landmarks_image,
+        landmarks_physical,
+        initial_alignment,
+    })
+}
+
+/// Checks the inputs of [`simulate_focused`]: the displacement and labels have one entry per
+/// node, everything is finite, and the vessel segments name vessel points.
+fn check_inputs(
+    mesh: &TetMesh,
+    labels: &AnatomyLabels,
+    vessels: &VesselTree,
+    displacement: &[f64],
+    params: &MeasureParams,
+) -> Result<(), PhantomError> {
     params.validate()?;
     let n = mesh.num_nodes();
     if displacement.len() != 3 * n {
@@ -421,60 +530,61 @@ pub fn simulate_focused(
         )));
     }
 
-    let rest = mesh.nodes();
-    let deformed: Vec<[f64; 3]> = (0..n)
-        .map(|i| add(rest[i], [0, 1, 2].map(|k| displacement[3 * i + k])))
-        .collect();
-    let boundary = mesh.boundary()?;
-    let tris = &boundary.triangles;
-    let is = |t: &[u32; 3], r: Region| t.iter().all(|&v| labels.region[v as usize] == r);
-    let anterior: Vec<usize> = (0..tris.len())
-        .filter(|&t| is(&tris[t], Region::Anterior))
-        .collect();
-    let posterior: Vec<usize> = (0..tris.len())
-        .filter(|&t| is(&tris[t], Region::Posterior))
-        .collect();
-    let area = |t: usize| {
-        let p = tris[t].map(|v| deformed[v as usize]);
-        0.5 * norm(cross(sub(p[1], p[0]), sub(p[2], p[0])))
-    };
-    let ant_areas: Vec<f64> = anterior.iter().map(|&t| area(t)).collect();
-    let ant_total: f64 = ant_areas.iter().sum();
-    if anterior.is_empty() || ant_total.is_nan() || ant_total <= 0.0 {
-        return Err(PhantomError::Inconsistent("no anterior boundary triangle (all three nodes labelled Anterior) with positive area: \
-             nothing for a laparoscope to see"
-                .into(),
-        ));
+    Ok(())
+}
+
+/// The deformed boundary as a laparoscope and a probe see it: the anterior and posterior
+/// triangles (indices into the boundary's), the anterior ones' areas and their total.
+struct Visible {
+    anterior: Vec<usize>,
+    posterior: Vec<usize>,
+    ant_areas: Vec<f64>,
+    ant_total: f64,
+}
+
+impl Visible {
+    fn new(
+        tris: &[[u32; 3]],
+        labels: &AnatomyLabels,
+        deformed: &[[f64; 3]],
+    ) -> Result<Self, PhantomError> {
+        let is = |t: &[u32; 3], r: Region| t.iter().all(|&v| labels.region[v as usize] == r);
+        let anterior: Vec<usize> = (0..tris.len())
+            .filter(|&t| is(&tris[t], Region::Anterior))
+            .collect();
+        let posterior: Vec<usize> = (0..tris.len())
+            .filter(|&t| is(&tris[t], Region::Posterior))
+            .collect();
+        let area = |t: usize| {
+            let p = tris[t].map(|v| deformed[v as usize]);
+            0.5 * norm(cross(sub(p[1], p[0]), sub(p[2], p[0])))
+        };
+        let ant_areas: Vec<f64> = anterior.iter().map(|&t| area(t)).collect();
+        let ant_total: f64 = ant_areas.iter().sum();
+        if anterior.is_empty() || ant_total.is_nan() || ant_total <= 0.0 {
+            return Err(PhantomError::Inconsistent("no anterior boundary triangle (all three nodes labelled Anterior) with positive area: \
+                 nothing for a laparoscope to see"
+                    .into(),
+            ));
+        }
+        Ok(Self {
+            anterior,
+            posterior,
+            ant_areas,
+            ant_total,
+        })
     }
+}
 
-    // Surface points on a grown visible patch.
-    let mut rng = stream(seed, STREAM_SURFACE);
-    let [c0, c1] = params.coverage;
-    let target = c0 + (c1 - c0) * rng.next_f64();
-    let patch = grow_patch(
-        tris,
-        &anterior,
-        &ant_areas,
-        &deformed,
-        [target, c0, c1].map(|c| c * ant_total),
-        focus.and_then(|v| deformed.get(v as usize).copied()),
-        &mut rng,
-    );
-    let patch_area: f64 = patch.iter().map(|&i| ant_areas[i]).sum();
-    let coverage = patch_area / ant_total;
-    let patch_tris: Vec<[[f64; 3]; 3]> = patch
-        .iter()
-        .map(|&i| tris[anterior[i]].map(|v| deformed[v as usize]))
-        .collect();
-    let patch_areas: Vec<f64> = patch.iter().map(|&i| ant_areas[i]).collect();
-    let surface = dart_throw(
-        &patch_tris,
-        &patch_areas,
-        params.surface_spacing_mm,
-        &mut rng,
-    );
-
-    // Salient features: the nearest labelled falciform / ridge node within the radius.
+/// Salient features of surface points: the nearest labelled falciform (1) or ridge (2) node
+/// within the feature radius, else 0.
+fn surface_features(
+    surface: &[[f64; 3]],
+    labels: &AnatomyLabels,
+    deformed: &[[f64; 3]],
+    params: &MeasureParams,
+) -> Vec<u8> {
+    let n = deformed.len();
     let falciform: Vec<[f64; 3]> = (0..n)
         .filter(|&i| labels.falciform[i])
         .map(|i| deformed[i])
@@ -488,7 +598,7 @@ pub fn simulate_focused(
             .map(|&q| norm(sub(p, q)))
             .fold(f64::INFINITY, f64::min)
     };
-    let mut feature: Vec<u8> = surface
+    surface
         .iter()
         .map(|&p| {
             let (df, dr) = (nearest(&falciform, p), nearest(&ridge, p));
@@ -500,77 +610,107 @@ pub fn simulate_focused(
                 2
             }
         })
-        .collect();
-    let mut truth = surface.clone();
-    let mut kind = vec![PointKind::Surface; surface.len()];
-    let mut plane_of = vec![-1i32; surface.len()];
-    let mut noise_rng = stream(seed, STREAM_NOISE);
-    let mut noisy: Vec<[f64; 3]> = surface
-        .iter()
-        .map(|&p| {
-            let e = [0; 3].map(|_| params.surface_noise_mm * noise_rng.normal());
-            add(p, e)
-        })
-        .collect();
+        .collect()
+}
 
-    // Ultrasound planes.
-    let nplanes = category.planes();
-    let mut planes_image = Vec::with_capacity(nplanes);
-    if nplanes > 0 {
+/// The measured points as they are gathered (image frame): truth, kind, plane, feature and
+/// noisy position of each.
+struct Points {
+    truth: Vec<[f64; 3]>,
+    kind: Vec<PointKind>,
+    plane_of: Vec<i32>,
+    feature: Vec<u8>,
+    noisy: Vec<[f64; 3]>,
+}
+
+/// What the tracked ultrasound probe scans.
+struct Scan<'a> {
+    mesh: &'a TetMesh,
+    vessels: &'a VesselTree,
+    displacement: &'a [f64],
+    deformed: &'a [[f64; 3]],
+    tris: &'a [[u32; 3]],
+    view: &'a Visible,
+    params: &'a MeasureParams,
+}
+
+impl Scan<'_> {
+    /// `nplanes` planes from contacts spread over the anterior surface, each with its posterior
+    /// contour and vessel points added to `pts` (noise from `noise_rng`, in the plane); returns
+    /// the planes (image frame).
+    fn planes(
+        &self,
+        nplanes: usize,
+        seed: u64,
+        noise_rng: &mut SplitMix64,
+        pts: &mut Points,
+    ) -> Result<Vec<UsPlane>, PhantomError> {
+        let (tris, deformed, params) = (self.tris, self.deformed, self.params);
+        let mut planes_image = Vec::with_capacity(nplanes);
         let mut rng = stream(seed, STREAM_PLANES);
         let normals =
-            crate::mesh::TriSurface::new(deformed.clone(), tris.clone())?.vertex_normals();
-        let contacts = spread_contacts(tris, &anterior, &deformed, nplanes, &mut rng);
-        let locator = TetLocator::new(mesh);
-        let vessel_deformed: Vec<[f64; 3]> = vessels
+            crate::mesh::TriSurface::new(deformed.to_vec(), tris.to_vec())?.vertex_normals();
+        let contacts = spread_contacts(tris, &self.view.anterior, deformed, nplanes, &mut rng);
+        let locator = TetLocator::new(self.mesh);
+        let vessel_deformed: Vec<[f64; 3]> = self
+            .vessels
             .points
             .iter()
-            .map(|&p| add(p, locator.interpolate(displacement, p)))
+            .map(|&p| add(p, locator.interpolate(self.displacement, p)))
             .collect();
         for (j, &node) in contacts.iter().enumerate() {
-            let origin = deformed[node as usize];
-            let nrm = normals[node as usize];
-            let depth_dir = if norm(nrm) > 0.5 {
-                scale(nrm, -1.0)
-            } else {
-                [0.0, 1.0, 0.0]
-            };
-            let (t1, t2) = tangent_basis(depth_dir);
-            let phi = 2.0 * std::f64::consts::PI * rng.next_f64();
-            let lateral_dir = add(scale(t1, phi.cos()), scale(t2, phi.sin()));
-            let pl = UsPlane {
-                origin,
-                depth_dir,
-                lateral_dir,
-                normal: cross(depth_dir, lateral_dir),
-            };
-            let mut found = contour_points(tris, &posterior, &deformed, &pl, params, &mut rng);
+            let pl = probe_plane(deformed[node as usize], normals[node as usize], &mut rng);
+            let mut found =
+                contour_points(tris, &self.view.posterior, deformed, &pl, params, &mut rng);
             let contour_len = found.len();
-            found.extend(vessel_points(vessels, &vessel_deformed, &pl, params));
+            found.extend(vessel_points(self.vessels, &vessel_deformed, &pl, params));
             for (m, q) in found.into_iter().enumerate() {
-                truth.push(q);
-                kind.push(if m < contour_len {
+                pts.truth.push(q);
+                pts.kind.push(if m < contour_len {
                     PointKind::PosteriorContour
                 } else {
                     PointKind::Vessel
                 });
-                plane_of.push(j as i32);
-                feature.push(0);
+                pts.plane_of.push(j as i32);
+                pts.feature.push(0);
                 let e = add(
                     scale(pl.depth_dir, params.us_noise_mm * noise_rng.normal()),
                     scale(pl.lateral_dir, params.us_noise_mm * noise_rng.normal()),
                 );
-                noisy.push(add(q, e));
+                pts.noisy.push(add(q, e));
             }
             planes_image.push(pl);
         }
+        Ok(planes_image)
     }
+}
 
-    // The misalignment, about the node centroid.
+/// A probe's plane at a contact (`origin`, surface normal `nrm`): depth into the organ, the
+/// lateral direction turned by a random angle about it.
+fn probe_plane(origin: [f64; 3], nrm: [f64; 3], rng: &mut SplitMix64) -> UsPlane {
+    let depth_dir = if norm(nrm) > 0.5 {
+        scale(nrm, -1.0)
+    } else {
+        [0.0, 1.0, 0.0]
+    };
+    let (t1, t2) = tangent_basis(depth_dir);
+    let phi = 2.0 * std::f64::consts::PI * rng.next_f64();
+    let lateral_dir = add(scale(t1, phi.cos()), scale(t2, phi.sin()));
+    UsPlane {
+        origin,
+        depth_dir,
+        lateral_dir,
+        normal: cross(depth_dir, lateral_dir),
+    }
+}
+
+/// The misalignment, about the node centroid: a random rotation up to `max_rotation_deg` and a
+/// shift up to `max_translation_mm` (uniform in the ball).
+fn misalignment(rest: &[[f64; 3]], params: &MeasureParams, seed: u64) -> Rigid {
     let mut rng = stream(seed, STREAM_TRANSFORM);
     let centroid = scale(
         rest.iter().fold([0.0; 3], |a, &p| add(a, p)),
-        1.0 / n as f64,
+        1.0 / rest.len() as f64,
     );
     let axis = unit_sphere(&mut rng);
     let angle = params.max_rotation_deg.to_radians() * rng.next_f64();
@@ -579,12 +719,30 @@ pub fn simulate_focused(
         params.max_translation_mm * rng.next_f64().cbrt(),
     );
     let rot = Rigid::from_axis_angle(axis, angle, [0.0; 3]);
-    let tf = Rigid {
+    Rigid {
         translation: sub(add(centroid, shift), rot.apply_vector(centroid)),
         ..rot
-    };
+    }
+}
 
-    // Landmarks.
+/// The landmarks the navigation system's start comes from, and the start.
+struct Landmarks {
+    landmark_nodes: Vec<u32>,
+    landmarks_image: Vec<[f64; 3]>,
+    landmarks_physical: Vec<[f64; 3]>,
+    initial_alignment: Rigid,
+}
+
+/// Landmark nodes, their preoperative and (deformed, moved by `tf`, noisy) physical positions,
+/// and the rigid fit between them (or `tf` itself for a trusted start).
+fn landmarks(
+    rest: &[[f64; 3]],
+    labels: &AnatomyLabels,
+    deformed: &[[f64; 3]],
+    tf: &Rigid,
+    params: &MeasureParams,
+    seed: u64,
+) -> Result<Landmarks, PhantomError> {
     let mut rng = stream(seed, STREAM_LANDMARKS);
     let landmark_nodes = choose_landmarks(rest, labels, params.landmarks, &mut rng);
     if landmark_nodes.len() < 3 {
@@ -603,7 +761,7 @@ pub fn simulate_focused(
         })
         .collect();
     let initial_alignment = if params.trusted_start {
-        tf
+        *tf
     } else {
         Rigid::fit(&landmarks_image, &landmarks_physical, None).ok_or_else(|| {
             PhantomError::Geometry(format!(
@@ -611,18 +769,7 @@ pub fn simulate_focused(
             ))
         })?
     };
-
-    Ok(Scenario {
-        category,
-        seed,
-        coverage,
-        points: noisy.iter().map(|&p| tf.apply(p)).collect(),
-        kind,
-        plane: plane_of,
-        feature,
-        planes: planes_image.iter().map(|p| p.transformed(&tf)).collect(),
-        truth_image: truth,
-        image_to_physical: tf,
+    Ok(Landmarks {
         landmark_nodes,
         landmarks_image,
         landmarks_physical,

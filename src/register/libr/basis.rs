@@ -191,20 +191,7 @@ impl LibrBasis {
         physics: &Physics,
         sites: Sites<'_>,
     ) -> Result<Self, RegisterError> {
-        params.validate()?;
-        if levels.is_empty() {
-            return Err(RegisterError::Parameter(
-                "a basis needs at least one level of control points".into(),
-            ));
-        }
-        for &(count, width) in levels {
-            LibrParams {
-                control_points: count,
-                load_width: width,
-                ..*params
-            }
-            .validate()?;
-        }
+        check_levels(params, levels)?;
         crate::register::physics::model::check_fits(mesh, sites, physics)?;
         let t0 = Instant::now();
         let nodes = mesh.nodes();
@@ -215,166 +202,28 @@ impl LibrBasis {
                 "mesh has fewer than 3 boundary nodes".into(),
             ));
         }
-        let mut control = Vec::new();
-        for &(count, _) in levels {
-            let level = farthest_point_sampling(nodes, &boundary.nodes, count, params.seed);
-            if level.len() < count {
-                return Err(RegisterError::Parameter(format!(
-                    "control_points = {count} but the boundary has only {} distinct nodes",
-                    level.len()
-                )));
-            }
-            control.extend(level);
-        }
-        // Area-weighted vertex normals and the boundary area.
-        let mut vnormal = vec![[0.0; 3]; n];
-        let mut area = 0.0;
-        for t in &boundary.triangles {
-            let [a, b, c] = t.map(|v| nodes[v as usize]);
-            let na = cross(sub(b, a), sub(c, a));
-            area += 0.5 * dot(na, na).sqrt();
-            for &v in t {
-                for k in 0..3 {
-                    vnormal[v as usize][k] += na[k];
-                }
-            }
-        }
-        let kk = control.len();
-        let widths: Vec<f64> = levels
-            .iter()
-            .flat_map(|&(count, w)| {
-                let width = match w {
-                    LoadWidth::Mm(w) => w,
-                    LoadWidth::Spacing(s) => s * (2.0 * area / (3f64.sqrt() * count as f64)).sqrt(),
-                };
-                std::iter::repeat_n(width, count)
-            })
-            .collect();
-        let width = widths[0];
+        let control = control_nodes(nodes, &boundary.nodes, levels, params.seed)?;
+        let (vnormal, area) = vertex_normals(nodes, &boundary.triangles);
+        let widths = level_widths(levels, area);
         let t_model = Instant::now();
         let solver = ModelSolver::new(mesh, &params.material, sites, physics)?;
         let model_s = crate::util::secs(t_model);
-        // Effect loads (unit amplitude), after the LIBR columns, as the model carries them: by
-        // its supports when it has one (applied as they are), else balanced by inertia relief.
-        let mut effect_loads = Vec::new();
-        let mut effect_labels = Vec::new();
-        if !physics.is_empty() {
-            let geom = BoundaryGeometry::new(mesh)?;
-            for e in &physics.effects {
-                let (cols, _) = solver.effect_unit_loads(mesh, &geom, e)?;
-                let count = cols.len();
-                for (a, c) in cols.into_iter().enumerate() {
-                    effect_labels.push(if count == 1 {
-                        e.kind.name().to_string()
-                    } else {
-                        format!("{}.{}", e.kind.name(), ["x", "y", "z"][a])
-                    });
-                    effect_loads.push(c);
-                }
-            }
-        }
-        let m = 3 * kk + effect_loads.len();
-        let mut fmat = Mat::<f64>::zeros(3 * n, m);
-        for (k, &c) in control.iter().enumerate() {
-            let nc = unit(vnormal[c as usize]);
-            for axis in 0..3 {
-                let mut f = control_traction(
-                    nodes,
-                    &boundary.triangles,
-                    nodes[c as usize],
-                    nc,
-                    axis,
-                    widths[k],
-                );
-                solver.prepare_load(&mut f);
-                for (r, &x) in f.iter().enumerate() {
-                    fmat[(r, 3 * k + axis)] = x;
-                }
-            }
-        }
-        for (j, mut f) in effect_loads.into_iter().enumerate() {
-            if solver.is_free() {
-                solver.prepare_load(&mut f);
-            }
-            for (r, &x) in f.iter().enumerate() {
-                fmat[(r, 3 * kk + j)] = x;
-            }
-        }
+        let (effect_loads, effect_labels) = effect_loads(&solver, mesh, physics)?;
+        let kk = control.len();
+        let loads = Loads {
+            control: &control,
+            normals: &vnormal,
+            widths: &widths,
+            effects: effect_loads,
+        };
+        let fmat = loads.matrix(&solver, nodes, &boundary.triangles);
         let loads_s = crate::util::secs(t0) - model_s;
         let t3 = Instant::now();
         let umat = solver.solve_prepared(fmat.as_ref());
         let solve_s = crate::util::secs(t3);
         let t4 = Instant::now();
-        let mut phi = vec![0.0; 3 * n * m];
-        let mut load_scale = vec![0.0; m];
-        let mut col = vec![0.0; 3 * n];
-        // A supported model's effect columns (loads its supports carry) have their rigid part
-        // removed, as a free model's columns are solved without one: the organ's motion on its
-        // supports under its weight is the registration's pose. Kept, it dwarfed the
-        // deformation (the carried weight sinks the organ into a soft bed by centimetres) and
-        // competed with the sweeps' poses: the true supported model cross-validated worse than
-        // plain LIBR on generated cohorts (27–33 % more held-out misfit). The LIBR columns of
-        // a supported model keep theirs (their loads are balanced; it is small).
-        let modes = (!solver.is_free())
-            .then(|| RigidModes::new(nodes, &lumped_volumes(mesh)))
-            .transpose()?;
-        for j in 0..m {
-            for (r, x) in col.iter_mut().enumerate() {
-                *x = umat[(r, j)];
-            }
-            if let Some(modes) = modes.as_ref().filter(|_| j >= 3 * kk) {
-                modes.remove_rigid(nodes, &mut col);
-            }
-            let peak = (0..n)
-                .map(|i| {
-                    (col[3 * i].powi(2) + col[3 * i + 1].powi(2) + col[3 * i + 2].powi(2)).sqrt()
-                })
-                .fold(0.0f64, f64::max);
-            if !(peak.is_finite() && peak > 0.0) {
-                let what = if j < 3 * kk {
-                    format!("control node {}, axis {}", control[j / 3], j % 3)
-                } else {
-                    format!("effect {}", effect_labels[j - 3 * kk])
-                };
-                return Err(RegisterError::Model(format!(
-                    "basis column {j} ({what}) has peak displacement {peak}: the load is empty, self-balanced to nothing, or the solve failed"
-                )));
-            }
-            load_scale[j] = 1.0 / peak;
-            for (r, &x) in col.iter().enumerate() {
-                phi[r * m + j] = x / peak;
-            }
-        }
-        let system = solver.system();
-        // E = Φᵀ (K Φ), symmetrized (K with the supports' springs).
-        let mut kphi = Mat::<f64>::zeros(3 * n, m);
-        let mut phimat = Mat::<f64>::zeros(3 * n, m);
-        for j in 0..m {
-            for r in 0..3 * n {
-                col[r] = phi[r * m + j];
-                phimat[(r, j)] = col[r];
-            }
-            let kc = system.apply(&col);
-            for (r, &x) in kc.iter().enumerate() {
-                kphi[(r, j)] = x;
-            }
-        }
-        let e = phimat.transpose() * &kphi;
-        let mut energy = vec![0.0; m * m];
-        for i in 0..m {
-            for j in 0..m {
-                energy[i * m + j] = 0.5 * (e[(i, j)] + e[(j, i)]);
-            }
-        }
-        // Effect columns are not regularised: the effect is part of the model and its amplitude
-        // is estimated freely (their energy is left out of E, so of λαᵀẼα).
-        for i in 0..m {
-            for j in 0..m {
-                if i >= 3 * kk || j >= 3 * kk {
-                    energy[i * m + j] = 0.0;
-                }
-            }
-        }
+        let (phi, load_scale) = scaled_columns(mesh, &solver, &umat, &control, &effect_labels)?;
+        let energy = strain_energy(&solver, &phi, n, kk);
         let energy_s = crate::util::secs(t4);
         Ok(Self {
             control_nodes: control,
@@ -382,7 +231,7 @@ impl LibrBasis {
             phi,
             energy,
             load_scale,
-            load_width_mm: width,
+            load_width_mm: widths[0],
             control_width_mm: if levels.len() > 1 { widths } else { Vec::new() },
             effect_labels,
             physics_hash: physics.hash(),
@@ -481,4 +330,236 @@ impl LibrBasis {
     pub fn libr_columns(&self) -> usize {
         self.columns() - self.effect_labels.len()
     }
+}
+
+/// Checks the parameters and every level of a multi-level basis.
+fn check_levels(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> Result<(), RegisterError> {
+    params.validate()?;
+    if levels.is_empty() {
+        return Err(RegisterError::Parameter(
+            "a basis needs at least one level of control points".into(),
+        ));
+    }
+    for &(count, width) in levels {
+        LibrParams {
+            control_points: count,
+            load_width: width,
+            ..*params
+        }
+        .validate()?;
+    }
+    Ok(())
+}
+
+/// Every level's control points, in level order: farthest-point samples of the boundary nodes
+/// from the same seed.
+fn control_nodes(
+    nodes: &[[f64; 3]],
+    boundary: &[u32],
+    levels: &[(usize, LoadWidth)],
+    seed: u64,
+) -> Result<Vec<u32>, RegisterError> {
+    let mut control = Vec::new();
+    for &(count, _) in levels {
+        let level = farthest_point_sampling(nodes, boundary, count, seed);
+        if level.len() < count {
+            return Err(RegisterError::Parameter(format!(
+                "control_points = {count} but the boundary has only {} distinct nodes",
+                level.len()
+            )));
+        }
+        control.extend(level);
+    }
+    Ok(control)
+}
+
+/// Area-weighted vertex normals (not normalised; zero off the boundary) and the boundary area.
+fn vertex_normals(nodes: &[[f64; 3]], triangles: &[[u32; 3]]) -> (Vec<[f64; 3]>, f64) {
+    let mut vnormal = vec![[0.0; 3]; nodes.len()];
+    let mut area = 0.0;
+    for t in triangles {
+        let [a, b, c] = t.map(|v| nodes[v as usize]);
+        let na = cross(sub(b, a), sub(c, a));
+        area += 0.5 * dot(na, na).sqrt();
+        for &v in t {
+            for k in 0..3 {
+                vnormal[v as usize][k] += na[k];
+            }
+        }
+    }
+    (vnormal, area)
+}
+
+/// The load width of every control point, level by level (a spacing is a multiple of the
+/// level's mean control-point spacing over the boundary `area`).
+fn level_widths(levels: &[(usize, LoadWidth)], area: f64) -> Vec<f64> {
+    levels
+        .iter()
+        .flat_map(|&(count, w)| {
+            let width = match w {
+                LoadWidth::Mm(w) => w,
+                LoadWidth::Spacing(s) => s * (2.0 * area / (3f64.sqrt() * count as f64)).sqrt(),
+            };
+            std::iter::repeat_n(width, count)
+        })
+        .collect()
+}
+
+/// The effect loads (unit amplitude) of an augmented model and their column labels, after the
+/// LIBR columns, as the model carries them: by its supports when it has one (applied as they
+/// are), else balanced by inertia relief.
+fn effect_loads(
+    solver: &ModelSolver,
+    mesh: &TetMesh,
+    physics: &Physics,
+) -> Result<(Vec<Vec<f64>>, Vec<String>), RegisterError> {
+    let mut loads = Vec::new();
+    let mut labels = Vec::new();
+    if physics.is_empty() {
+        return Ok((loads, labels));
+    }
+    let geom = BoundaryGeometry::new(mesh)?;
+    for e in &physics.effects {
+        let (cols, _) = solver.effect_unit_loads(mesh, &geom, e)?;
+        let count = cols.len();
+        for (a, c) in cols.into_iter().enumerate() {
+            labels.push(if count == 1 {
+                e.kind.name().to_string()
+            } else {
+                format!("{}.{}", e.kind.name(), ["x", "y", "z"][a])
+            });
+            loads.push(c);
+        }
+    }
+    Ok((loads, labels))
+}
+
+/// The basis's right-hand sides: three tractions per control point, then the effect loads.
+struct Loads<'a> {
+    control: &'a [u32],
+    normals: &'a [[f64; 3]],
+    widths: &'a [f64],
+    effects: Vec<Vec<f64>>,
+}
+
+impl Loads<'_> {
+    /// The 3n × (3K + effects) load matrix, each column prepared for the solver.
+    fn matrix(self, solver: &ModelSolver, nodes: &[[f64; 3]], triangles: &[[u32; 3]]) -> Mat<f64> {
+        let kk = self.control.len();
+        let n = nodes.len();
+        let m = 3 * kk + self.effects.len();
+        let mut fmat = Mat::<f64>::zeros(3 * n, m);
+        for (k, &c) in self.control.iter().enumerate() {
+            let nc = unit(self.normals[c as usize]);
+            for axis in 0..3 {
+                let mut f = control_traction(
+                    nodes,
+                    triangles,
+                    nodes[c as usize],
+                    nc,
+                    axis,
+                    self.widths[k],
+                );
+                solver.prepare_load(&mut f);
+                for (r, &x) in f.iter().enumerate() {
+                    fmat[(r, 3 * k + axis)] = x;
+                }
+            }
+        }
+        for (j, mut f) in self.effects.into_iter().enumerate() {
+            if solver.is_free() {
+                solver.prepare_load(&mut f);
+            }
+            for (r, &x) in f.iter().enumerate() {
+                fmat[(r, 3 * kk + j)] = x;
+            }
+        }
+        fmat
+    }
+}
+
+/// Φ (row-major 3n × m) from the solved columns, each scaled to a 1 mm peak, and each column's
+/// scale. A supported model's effect columns (loads its supports carry) have their rigid part
+/// removed, as a free model's columns are solved without one: the organ's motion on its
+/// supports under its weight is the registration's pose. Kept, it dwarfed the deformation (the
+/// carried weight sinks the organ into a soft bed by centimetres) and competed with the sweeps'
+/// poses: the true supported model cross-validated worse than plain LIBR on generated cohorts
+/// (27–33 % more held-out misfit). The LIBR columns of a supported model keep theirs (their
+/// loads are balanced; it is small).
+fn scaled_columns(
+    mesh: &TetMesh,
+    solver: &ModelSolver,
+    umat: &Mat<f64>,
+    control: &[u32],
+    effect_labels: &[String],
+) -> Result<(Vec<f64>, Vec<f64>), RegisterError> {
+    let nodes = mesh.nodes();
+    let n = nodes.len();
+    let kk = control.len();
+    let m = umat.ncols();
+    let mut phi = vec![0.0; 3 * n * m];
+    let mut load_scale = vec![0.0; m];
+    let mut col = vec![0.0; 3 * n];
+    let modes = (!solver.is_free())
+        .then(|| RigidModes::new(nodes, &lumped_volumes(mesh)))
+        .transpose()?;
+    for j in 0..m {
+        for (r, x) in col.iter_mut().enumerate() {
+            *x = umat[(r, j)];
+        }
+        if let Some(modes) = modes.as_ref().filter(|_| j >= 3 * kk) {
+            modes.remove_rigid(nodes, &mut col);
+        }
+        let peak = (0..n)
+            .map(|i| (col[3 * i].powi(2) + col[3 * i + 1].powi(2) + col[3 * i + 2].powi(2)).sqrt())
+            .fold(0.0f64, f64::max);
+        if !(peak.is_finite() && peak > 0.0) {
+            let what = if j < 3 * kk {
+                format!("control node {}, axis {}", control[j / 3], j % 3)
+            } else {
+                format!("effect {}", effect_labels[j - 3 * kk])
+            };
+            return Err(RegisterError::Model(format!(
+                "basis column {j} ({what}) has peak displacement {peak}: the load is empty, self-balanced to nothing, or the solve failed"
+            )));
+        }
+        load_scale[j] = 1.0 / peak;
+        for (r, &x) in col.iter().enumerate() {
+            phi[r * m + j] = x / peak;
+        }
+    }
+    Ok((phi, load_scale))
+}
+
+/// `E = Φᵀ (K Φ)`, symmetrized (K with the supports' springs; row-major m × m). Effect columns
+/// (past the `kk` control points' 3kk) are not regularised: the effect is part of the model and
+/// its amplitude is estimated freely (their energy is left out of E, so of λαᵀẼα).
+fn strain_energy(solver: &ModelSolver, phi: &[f64], n: usize, kk: usize) -> Vec<f64> {
+    let m = phi.len() / (3 * n);
+    let system = solver.system();
+    let mut kphi = Mat::<f64>::zeros(3 * n, m);
+    let mut phimat = Mat::<f64>::zeros(3 * n, m);
+    let mut col = vec![0.0; 3 * n];
+    for j in 0..m {
+        for r in 0..3 * n {
+            col[r] = phi[r * m + j];
+            phimat[(r, j)] = col[r];
+        }
+        let kc = system.apply(&col);
+        for (r, &x) in kc.iter().enumerate() {
+            kphi[(r, j)] = x;
+        }
+    }
+    let e = phimat.transpose() * &kphi;
+    let mut energy = vec![0.0; m * m];
+    for i in 0..m {
+        for j in 0..m {
+            energy[i * m + j] = if i >= 3 * kk || j >= 3 * kk {
+                0.0
+            } else {
+                0.5 * (e[(i, j)] + e[(j, i)])
+            };
+        }
+    }
+    energy
 }

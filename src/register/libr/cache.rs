@@ -218,32 +218,8 @@ impl LibrBasis {
 
     /// Reads what [`LibrBasis::to_npz`] wrote; checks names, dtypes, shapes and finiteness.
     pub fn from_npz(bytes: &[u8]) -> Result<Self, RegisterError> {
-        let arrays = read_npz(bytes)?;
-        let get = |name: &str| {
-            arrays
-                .iter()
-                .find(|a| a.name == name)
-                .ok_or_else(|| RegisterError::BasisFile(format!("no array {name}")))
-        };
-        let f64s = |name: &str| -> Result<(Vec<usize>, Vec<f64>), RegisterError> {
-            let a = get(name)?;
-            match &a.data {
-                NpyData::F64(v) => Ok((a.shape.clone(), v.clone())),
-                _ => Err(RegisterError::BasisFile(format!(
-                    "basis array {name} is not f8"
-                ))),
-            }
-        };
-        let text = |name: &str| -> Result<String, RegisterError> {
-            match &get(name)?.data {
-                NpyData::U8(v) => String::from_utf8(v.clone())
-                    .map_err(|e| RegisterError::BasisFile(format!("{name}: {e}"))),
-                _ => Err(RegisterError::BasisFile(format!(
-                    "basis array {name} is not u1"
-                ))),
-            }
-        };
-        match &get("version")?.data {
+        let file = BasisArrays(read_npz(bytes)?);
+        match &file.get("version")?.data {
             NpyData::I64(v) if v.as_slice() == [BASIS_VERSION as i64] => {}
             _ => {
                 return Err(RegisterError::BasisFile(format!(
@@ -251,47 +227,21 @@ impl LibrBasis {
                 )));
             }
         }
-        let (ps, phi) = f64s("phi")?;
-        let (es, energy) = f64s("energy")?;
-        let (ls, load_scale) = f64s("load_scale")?;
-        let (_, width) = f64s("load_width_mm")?;
-        let control_nodes: Vec<u32> = match &get("control_nodes")?.data {
-            NpyData::I64(v) => v
-                .iter()
-                .map(|&x| {
-                    u32::try_from(x).map_err(|_| {
-                        RegisterError::BasisFile(format!("control node {x} out of range"))
-                    })
-                })
-                .collect::<Result<_, _>>()?,
-            _ => {
-                return Err(RegisterError::BasisFile(
-                    "basis array control_nodes is not i8".into(),
-                ));
-            }
-        };
+        let (ps, phi) = file.f64s("phi")?;
+        let (es, energy) = file.f64s("energy")?;
+        let (ls, load_scale) = file.f64s("load_scale")?;
+        let (_, width) = file.f64s("load_width_mm")?;
+        let control_nodes = file.control_nodes()?;
         // Optional (augmented models): the effect columns' labels as JSON, and the physics hash.
-        let effect_labels: Vec<String> = if arrays.iter().any(|a| a.name == "effect_labels") {
-            serde_json::from_str(&text("effect_labels")?)
+        let effect_labels: Vec<String> = if file.has("effect_labels") {
+            serde_json::from_str(&file.text("effect_labels")?)
                 .map_err(|e| RegisterError::BasisFile(format!("effect_labels: {e}")))?
         } else {
             Vec::new()
         };
-        // Optional (multi-resolution bases): each control point's patch width.
-        let control_width_mm = if arrays.iter().any(|a| a.name == "control_width_mm") {
-            let (shape, w) = f64s("control_width_mm")?;
-            if shape != [control_nodes.len()] || w.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
-                return Err(RegisterError::BasisFile(format!(
-                    "control_width_mm has shape {shape:?} for {} control nodes, or a width that is not finite and > 0",
-                    control_nodes.len()
-                )));
-            }
-            w
-        } else {
-            Vec::new()
-        };
-        let physics_hash = if arrays.iter().any(|a| a.name == "physics_hash") {
-            text("physics_hash")?
+        let control_width_mm = file.control_widths(control_nodes.len())?;
+        let physics_hash = if file.has("physics_hash") {
+            file.text("physics_hash")?
         } else {
             String::new()
         };
@@ -335,9 +285,78 @@ impl LibrBasis {
             control_width_mm,
             effect_labels,
             physics_hash,
-            mesh_hash: text("mesh_hash")?,
-            params_hash: text("params_hash")?,
+            mesh_hash: file.text("mesh_hash")?,
+            params_hash: file.text("params_hash")?,
             timings: BasisTimings::default(),
         })
+    }
+}
+
+/// The arrays of a basis file, read by name.
+struct BasisArrays(Vec<NpyArray>);
+
+impl BasisArrays {
+    fn has(&self, name: &str) -> bool {
+        self.0.iter().any(|a| a.name == name)
+    }
+
+    fn get(&self, name: &str) -> Result<&NpyArray, RegisterError> {
+        self.0
+            .iter()
+            .find(|a| a.name == name)
+            .ok_or_else(|| RegisterError::BasisFile(format!("no array {name}")))
+    }
+
+    /// An f8 array's shape and values.
+    fn f64s(&self, name: &str) -> Result<(Vec<usize>, Vec<f64>), RegisterError> {
+        let a = self.get(name)?;
+        match &a.data {
+            NpyData::F64(v) => Ok((a.shape.clone(), v.clone())),
+            _ => Err(RegisterError::BasisFile(format!(
+                "basis array {name} is not f8"
+            ))),
+        }
+    }
+
+    /// A u1 array as UTF-8 text.
+    fn text(&self, name: &str) -> Result<String, RegisterError> {
+        match &self.get(name)?.data {
+            NpyData::U8(v) => String::from_utf8(v.clone())
+                .map_err(|e| RegisterError::BasisFile(format!("{name}: {e}"))),
+            _ => Err(RegisterError::BasisFile(format!(
+                "basis array {name} is not u1"
+            ))),
+        }
+    }
+
+    /// The control nodes (i8 array `control_nodes`, each a u32).
+    fn control_nodes(&self) -> Result<Vec<u32>, RegisterError> {
+        match &self.get("control_nodes")?.data {
+            NpyData::I64(v) => v
+                .iter()
+                .map(|&x| {
+                    u32::try_from(x).map_err(|_| {
+                        RegisterError::BasisFile(format!("control node {x} out of range"))
+                    })
+                })
+                .collect(),
+            _ => Err(RegisterError::BasisFile(
+                "basis array control_nodes is not i8".into(),
+            )),
+        }
+    }
+
+    /// Optional (multi-resolution bases): each control point's patch width, finite and > 0.
+    fn control_widths(&self, controls: usize) -> Result<Vec<f64>, RegisterError> {
+        if !self.has("control_width_mm") {
+            return Ok(Vec::new());
+        }
+        let (shape, w) = self.f64s("control_width_mm")?;
+        if shape != [controls] || w.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
+            return Err(RegisterError::BasisFile(format!(
+                "control_width_mm has shape {shape:?} for {controls} control nodes, or a width that is not finite and > 0"
+            )));
+        }
+        Ok(w)
     }
 }

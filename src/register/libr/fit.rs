@@ -385,7 +385,6 @@ pub(super) fn finish(
 ) -> Result<StepResult, RegisterError> {
     let Assembled {
         used,
-        wsum,
         cen,
         radius,
         m,
@@ -398,7 +397,7 @@ pub(super) fn finish(
         normal_s,
         ..
     } = asm;
-    let (wsum, cen, radius, m, p, rows) = (*wsum, *cen, *radius, *m, *p, *rows);
+    let (cen, radius, m, p, rows) = (*cen, *radius, *m, *p, *rows);
     let b = x;
     if !(0..p).all(|i| b[(i, 0)].is_finite()) {
         return Err(RegisterError::IllConditioned(
@@ -427,22 +426,7 @@ pub(super) fn finish(
         translation: [0, 1, 2].map(|k| cen[k] + tau[k] - rc[k]),
     };
     // Residual after the step with the exact rotation, over all weighted matches.
-    let mut after = 0.0;
-    for mt in used {
-        let mut q = mt.anchor;
-        for (k, &v) in mt.nodes.iter().enumerate() {
-            if mt.bary[k] == 0.0 {
-                continue;
-            }
-            let base = 3 * v as usize;
-            for ax in 0..3 {
-                let row = &basis.phi[(base + ax) * m..(base + ax + 1) * m];
-                q[ax] += mt.bary[k] * row.iter().zip(&alpha).map(|(x, y)| x * y).sum::<f64>();
-            }
-        }
-        let r = sub(rigid_correction.apply(q), targets_image_of(asm, mt));
-        after += mt.weight / wsum * dot(r, r);
-    }
+    let after = residual_after(basis, asm, &alpha, &rigid_correction);
     let strain_energy_uj = basis.strain_energy(&alpha);
     Ok(StepResult {
         alpha,
@@ -460,6 +444,34 @@ pub(super) fn finish(
             solve_s: crate::util::secs(t_solve),
         },
     })
+}
+
+/// The weighted mean square residual of the used matches after the step: the model deformed by
+/// `Φ α`, moved by the exact rigid correction, against the matches' targets (mm²).
+fn residual_after(
+    basis: &LibrBasis,
+    asm: &Assembled<'_>,
+    alpha: &[f64],
+    rigid_correction: &Rigid,
+) -> f64 {
+    let m = asm.m;
+    let mut after = 0.0;
+    for mt in &asm.used {
+        let mut q = mt.anchor;
+        for (k, &v) in mt.nodes.iter().enumerate() {
+            if mt.bary[k] == 0.0 {
+                continue;
+            }
+            let base = 3 * v as usize;
+            for ax in 0..3 {
+                let row = &basis.phi[(base + ax) * m..(base + ax + 1) * m];
+                q[ax] += mt.bary[k] * row.iter().zip(alpha).map(|(x, y)| x * y).sum::<f64>();
+            }
+        }
+        let r = sub(rigid_correction.apply(q), targets_image_of(asm, mt));
+        after += mt.weight / asm.wsum * dot(r, r);
+    }
+    after
 }
 
 fn targets_image_of(asm: &Assembled<'_>, mt: &Match) -> [f64; 3] {

@@ -232,26 +232,14 @@ pub fn unit_loads_with(
             loads::add_body_force(&mut f, mesh, effect.direction("direction"));
             Ok((vec![f], vec![effect.scalar("magnitude")]))
         }
-        EffectKind::Gravity => {
-            let g = effect.direction("direction");
-            let mut f = vec![0.0; 3 * n];
-            loads::add_body_force(&mut f, mesh, g);
-            let s: Vec<f64> = geom
-                .tri_normal
-                .iter()
-                .map(|nn| dot(*nn, g).max(0.0))
-                .collect();
-            let support: f64 = s.iter().zip(&geom.tri_area).map(|(s, a)| s * a).sum();
-            if support <= 0.0 {
-                return Err(RegisterError::Model(
-                    "gravity: no boundary face turns towards the gravity direction".into(),
-                ));
-            }
-            let c = geom.volume / support;
-            let tr: Vec<[f64; 3]> = s.iter().map(|&si| g.map(|x| -c * si * x)).collect();
-            loads::add_traction(&mut f, nodes, &geom.triangles, &tr);
-            Ok((vec![f], vec![effect.scalar("magnitude")]))
-        }
+        EffectKind::Gravity => Ok((
+            vec![gravity_with_reaction(
+                mesh,
+                geom,
+                effect.direction("direction"),
+            )?],
+            vec![effect.scalar("magnitude")],
+        )),
         EffectKind::Pressure => {
             let d = effect.direction("direction");
             let faces: Vec<[u32; 3]> = geom
@@ -280,24 +268,60 @@ pub fn unit_loads_with(
                 )));
             }
             let cols = (0..3)
-                .map(|axis| {
-                    let tr: Vec<[f64; 3]> = weights
-                        .iter()
-                        .map(|wt| {
-                            let mut v = [0.0; 3];
-                            v[axis] = wt / total;
-                            v
-                        })
-                        .collect();
-                    let mut f = vec![0.0; 3 * n];
-                    loads::add_traction(&mut f, nodes, &patch, &tr);
-                    f
-                })
+                .map(|axis| pack_column(nodes, &patch, &weights, total, axis))
                 .collect();
             Ok((cols, effect.vector("force_mn").to_vec()))
         }
         _ => Ok((Vec::new(), Vec::new())),
     }
+}
+
+/// Gravity along `g` (unit) with its reaction: the body force, balanced by a traction on the
+/// faces that turn towards `g` (in proportion to how much they do), as a dependent surface
+/// resting on what is below it.
+fn gravity_with_reaction(
+    mesh: &TetMesh,
+    geom: &BoundaryGeometry,
+    g: [f64; 3],
+) -> Result<Vec<f64>, RegisterError> {
+    let mut f = vec![0.0; 3 * mesh.num_nodes()];
+    loads::add_body_force(&mut f, mesh, g);
+    let s: Vec<f64> = geom
+        .tri_normal
+        .iter()
+        .map(|nn| dot(*nn, g).max(0.0))
+        .collect();
+    let support: f64 = s.iter().zip(&geom.tri_area).map(|(s, a)| s * a).sum();
+    if support <= 0.0 {
+        return Err(RegisterError::Model(
+            "gravity: no boundary face turns towards the gravity direction".into(),
+        ));
+    }
+    let c = geom.volume / support;
+    let tr: Vec<[f64; 3]> = s.iter().map(|&si| g.map(|x| -c * si * x)).collect();
+    loads::add_traction(&mut f, mesh.nodes(), &geom.triangles, &tr);
+    Ok(f)
+}
+
+/// A pack's unit load along `axis`: its patch's weights, normalised by their integral `total`.
+fn pack_column(
+    nodes: &[[f64; 3]],
+    patch: &[[u32; 3]],
+    weights: &[f64],
+    total: f64,
+    axis: usize,
+) -> Vec<f64> {
+    let tr: Vec<[f64; 3]> = weights
+        .iter()
+        .map(|wt| {
+            let mut v = [0.0; 3];
+            v[axis] = wt / total;
+            v
+        })
+        .collect();
+    let mut f = vec![0.0; 3 * nodes.len()];
+    loads::add_traction(&mut f, nodes, patch, &tr);
+    f
 }
 
 /// The boundary faces a pack at `c`, `w` mm wide, loads (those whose three nodes lie within

@@ -10,10 +10,13 @@
 //! converge is recorded in the manifest's `failed` list and redrawn with the next seed, never
 //! written as ground truth.
 
-use super::family::TruthFamily;
+mod files;
+use files::{collect_entries, json_bytes, write_geometry, write_scenarios};
+
+use super::family::{FamilyDraw, TruthFamily};
 use super::hidden::{HiddenEffectSpec, libr_truth};
-use super::measure::{Category, MeasureParams, PointKind, Scenario, simulate_focused};
-use super::patterns::{Pattern, PatternParams, load_case};
+use super::measure::{Category, MeasureParams, Scenario, simulate_focused};
+use super::patterns::{LoadCase, Pattern, PatternParams, load_case};
 use super::shape::{ShapeVariantParams, variant};
 use super::tissue::{Tissue, TissueParams};
 use super::truth::{
@@ -23,20 +26,16 @@ use super::truth::{
 use super::vessels::{VesselParams, VesselTree};
 use super::{PhantomError, derive};
 use crate::dataset::{
-    DeformationEntry, FORMAT, FailedEntry, GeometryEntry, Manifest, ScenarioEntry, TumourEntry,
-    VERSION,
+    DeformationEntry, FORMAT, FailedEntry, GeometryEntry, Manifest, TumourEntry, VERSION,
 };
 use crate::fem::LameField;
 use crate::fem::hyperelastic::NewtonParams;
-use crate::mesh::io::npz::{NpyArray, NpyData, write_npz};
-use crate::mesh::io::{self, DataArray, MeshFile};
-use crate::mesh::rigid::Rigid;
 use crate::mesh::tetra::{TetraParams, tetrahedralize};
 use crate::mesh::{TetMesh, TriSurface};
 use crate::register::anatomy::{AnatomyLabels, LabelParams, label};
 use crate::util::fnv1a_hex;
 use rayon::prelude::*;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// A named preset.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -265,18 +264,6 @@ fn plan(config: &GenerateConfig) -> (Vec<GeometryPlan>, Vec<DeformationPlan>) {
     (geometries, deformations)
 }
 
-fn write_mesh_file(path: &Path, file: &MeshFile) -> Result<(), PhantomError> {
-    let format = io::Format::from_path(path)?;
-    let bytes = io::write_bytes(file, format, Default::default(), path)?;
-    Ok(crate::util::write_atomic(path, &bytes)?)
-}
-
-fn json_bytes<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, PhantomError> {
-    let mut s = serde_json::to_string_pretty(value)?;
-    s.push('\n');
-    Ok(s.into_bytes())
-}
-
 fn build_geometry(
     config: &GenerateConfig,
     surfaces: &[TriSurface],
@@ -348,150 +335,6 @@ fn geometry_entry(config: &GenerateConfig, g: &GeometryPlan, b: &Built) -> Geome
     }
 }
 
-fn write_geometry(dir: &Path, entry: &GeometryEntry, b: &Built) -> Result<(), PhantomError> {
-    let mut file = b.mesh.to_file();
-    file.point_data = b.labels.to_point_data();
-    file.point_data.push(DataArray::new(
-        "tumour",
-        1,
-        b.tissue
-            .nodes_in_tumours(&b.mesh)
-            .iter()
-            .map(|&t| if t { 1.0 } else { 0.0 })
-            .collect(),
-    ));
-    file.cell_data = b.tissue.to_cell_data();
-    write_mesh_file(&dir.join(&entry.preop), &file)?;
-    let mut parent = vec![-1.0; b.vessels.points.len()];
-    for s in &b.vessels.segments {
-        parent[s[1] as usize] = s[0] as f64;
-    }
-    let vessels = MeshFile {
-        nodes: b.vessels.points.clone(),
-        point_data: vec![
-            DataArray::new("radius_mm", 1, b.vessels.radii.clone()),
-            DataArray::new("parent", 1, parent),
-        ],
-        ..Default::default()
-    };
-    write_mesh_file(&dir.join(&entry.vessels), &vessels)
-}
-
-fn rigid_matrix(r: &Rigid) -> [f64; 16] {
-    let m = r.rotation;
-    let t = r.translation;
-    [
-        m[0][0], m[0][1], m[0][2], t[0], m[1][0], m[1][1], m[1][2], t[1], m[2][0], m[2][1],
-        m[2][2], t[2], 0.0, 0.0, 0.0, 1.0,
-    ]
-}
-
-/// The npz arrays of a deformation's scenarios (documented in docs/dataset-and-models.md).
-fn scenarios_npz(
-    mesh: &TetMesh,
-    u: &[f64],
-    scenarios: &[Scenario],
-) -> Result<Vec<u8>, PhantomError> {
-    let s = scenarios.len();
-    let total: usize = scenarios.iter().map(|c| c.points.len()).sum();
-    let planes: usize = scenarios.iter().map(|c| c.planes.len()).sum();
-    let landmarks = scenarios.first().map_or(0, |c| c.landmark_nodes.len());
-    if scenarios
-        .iter()
-        .any(|c| c.landmark_nodes.len() != landmarks)
-    {
-        return Err(PhantomError::Inconsistent(
-            "scenarios have different numbers of landmarks".into(),
-        ));
-    }
-    let mut offsets = vec![0i64];
-    let mut plane_offsets = vec![0i64];
-    let (mut points, mut truth) = (Vec::with_capacity(total), Vec::with_capacity(total));
-    let (mut kind, mut plane) = (Vec::with_capacity(total), Vec::with_capacity(total));
-    let mut feature = Vec::with_capacity(total);
-    let mut plane_data: [Vec<[f64; 3]>; 4] = Default::default();
-    let (mut t_true, mut t_init) = (Vec::new(), Vec::new());
-    let (mut lm_nodes, mut lm_img, mut lm_phys) = (Vec::new(), Vec::new(), Vec::new());
-    for c in scenarios {
-        points.extend_from_slice(&c.points);
-        truth.extend_from_slice(&c.truth_image);
-        kind.extend(c.kind.iter().map(|&k| k as u8));
-        plane.extend_from_slice(&c.plane);
-        feature.extend_from_slice(&c.feature);
-        offsets.push(points.len() as i64);
-        for p in &c.planes {
-            plane_data[0].push(p.origin);
-            plane_data[1].push(p.depth_dir);
-            plane_data[2].push(p.lateral_dir);
-            plane_data[3].push(p.normal);
-        }
-        plane_offsets.push(plane_data[0].len() as i64);
-        t_true.extend(rigid_matrix(&c.image_to_physical));
-        t_init.extend(rigid_matrix(&c.initial_alignment));
-        lm_nodes.extend(c.landmark_nodes.iter().map(|&n| n as i32));
-        lm_img.extend(c.landmarks_image.iter().flatten());
-        lm_phys.extend(c.landmarks_physical.iter().flatten());
-    }
-    let nodes = mesh.num_nodes();
-    let arrays = vec![
-        NpyArray::new("format_version", &[1], NpyData::I32(vec![VERSION as i32]))?,
-        NpyArray::points("nodes", mesh.nodes()),
-        NpyArray::new(
-            "tets",
-            &[mesh.num_tets(), 4],
-            NpyData::I32(mesh.tets().iter().flatten().map(|&v| v as i32).collect()),
-        )?,
-        NpyArray::new("displacement", &[nodes, 3], NpyData::F64(u.to_vec()))?,
-        NpyArray::points("points", &points),
-        NpyArray::new("kind", &[total], NpyData::U8(kind))?,
-        NpyArray::new("plane", &[total], NpyData::I32(plane))?,
-        NpyArray::new("feature", &[total], NpyData::U8(feature))?,
-        NpyArray::points("truth_image", &truth),
-        NpyArray::new("offsets", &[s + 1], NpyData::I64(offsets))?,
-        NpyArray::new(
-            "category",
-            &[s],
-            NpyData::U8(
-                scenarios
-                    .iter()
-                    .map(|c| {
-                        Category::ALL
-                            .iter()
-                            .position(|&k| k == c.category)
-                            .unwrap_or(0) as u8
-                    })
-                    .collect(),
-            ),
-        )?,
-        NpyArray::new(
-            "seed",
-            &[s],
-            NpyData::U64(scenarios.iter().map(|c| c.seed).collect()),
-        )?,
-        NpyArray::new(
-            "coverage",
-            &[s],
-            NpyData::F64(scenarios.iter().map(|c| c.coverage).collect()),
-        )?,
-        NpyArray::new("image_to_physical", &[s, 4, 4], NpyData::F64(t_true))?,
-        NpyArray::new("initial_alignment", &[s, 4, 4], NpyData::F64(t_init))?,
-        NpyArray::new("landmark_nodes", &[s, landmarks], NpyData::I32(lm_nodes))?,
-        NpyArray::new("landmarks_image", &[s, landmarks, 3], NpyData::F64(lm_img))?,
-        NpyArray::new(
-            "landmarks_physical",
-            &[s, landmarks, 3],
-            NpyData::F64(lm_phys),
-        )?,
-        NpyArray::new("plane_offsets", &[s + 1], NpyData::I64(plane_offsets))?,
-        NpyArray::points("plane_origin", &plane_data[0]),
-        NpyArray::points("plane_depth_dir", &plane_data[1]),
-        NpyArray::points("plane_lateral_dir", &plane_data[2]),
-        NpyArray::points("plane_normal", &plane_data[3]),
-    ];
-    debug_assert_eq!(planes, plane_data[0].len());
-    Ok(write_npz(&arrays)?)
-}
-
 /// What a run did.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct RunReport {
@@ -520,51 +363,8 @@ pub fn generate(
     shard: (usize, usize),
     progress: Progress<'_>,
 ) -> Result<RunReport, PhantomError> {
-    if surfaces.is_empty() || surfaces.len() != config.sources.len() {
-        return Err(PhantomError::Parameter(
-            "need at least one source surface (and one name per surface)".into(),
-        ));
-    }
-    if shard.1 == 0 || shard.0 >= shard.1 {
-        return Err(PhantomError::Parameter(format!(
-            "shard {}/{} is invalid: need 0 ≤ i < N",
-            shard.0, shard.1
-        )));
-    }
-    if config.geometries == 0 || config.scenarios == 0 {
-        return Err(PhantomError::Parameter(
-            "need at least one geometry and one scenario per deformation".into(),
-        ));
-    }
-    config.measure.validate()?;
-    if !config.families.is_empty() && config.truth != TruthModel::Nonlinear {
-        return Err(PhantomError::Parameter(
-            "families: truth families are nonlinear truths; they cannot be combined with --truth"
-                .into(),
-        ));
-    }
-    if !config.hidden_effects.is_empty() && config.truth != TruthModel::Libr {
-        return Err(PhantomError::Parameter(
-            "hidden effects need the libr truth (--truth libr): they are added to LIBR's own physics"
-                .into(),
-        ));
-    }
-    let mut parameters = serde_json::to_value(config)?;
-    if !config.hidden_effects.is_empty() {
-        // How the hidden effects' loads are carried: part of what the data are.
-        parameters["hidden_carry"] = serde_json::json!(super::hidden::HIDDEN_CARRY);
-    }
-    let hash = fnv1a_hex(parameters.to_string().as_bytes());
-    // A directory holding another dataset is refused rather than mixed.
-    if let Ok(old) = crate::dataset::read_manifest(dir)
-        && old.parameters_hash != hash
-    {
-        return Err(PhantomError::Parameter(format!(
-            "{} already holds a dataset generated with other parameters (hash {} ≠ {hash}); use another --out",
-            dir.display(),
-            old.parameters_hash
-        )));
-    }
+    check_config(config, surfaces, shard)?;
+    let (parameters, hash) = parameters_hash(config, dir)?;
     let (geo_plan, def_plan) = plan(config);
     let built: Vec<Built> = geo_plan
         .par_iter()
@@ -594,7 +394,6 @@ pub fn generate(
     let done = std::sync::atomic::AtomicUsize::new(0);
     let total = mine.len();
     progress(0, total, "solving ground truth");
-    type Outcome = (String, Result<(bool, f64), PhantomError>, Vec<FailedEntry>);
     let outcomes: Vec<Outcome> = mine
         .par_iter()
         .map(|d| {
@@ -612,52 +411,8 @@ pub fn generate(
             out
         })
         .collect();
-    let mut report = RunReport::default();
-    let mut failed_log: Vec<FailedEntry> = Vec::new();
-    for (id, r, failed) in outcomes {
-        failed_log.extend(failed);
-        match r {
-            Ok((true, secs)) => {
-                report.written.push(id);
-                report.seconds.push(secs);
-            }
-            Ok((false, _)) => report.resumed.push(id),
-            Err(e) => report.errors.push(format!("{id}: {e}")),
-        }
-    }
-    // Failed draws of this run are kept beside the deformations so shards and resumed runs
-    // assemble the same manifest.
-    for f in &failed_log {
-        let path = dir.join(format!("deformations/{}/failed-{}.json", f.id, f.seed));
-        crate::util::write_atomic(&path, &json_bytes(f)?)?;
-    }
-    let mut deformations = Vec::new();
-    let mut missing = Vec::new();
-    let mut failed = Vec::new();
-    for d in &def_plan {
-        match read_entry(d) {
-            Some(e) => deformations.push(e),
-            None => missing.push(d.id.clone()),
-        }
-        if let Ok(rd) = std::fs::read_dir(dir.join(format!("deformations/{}", d.id))) {
-            let mut names: Vec<PathBuf> = rd
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| {
-                    p.file_name()
-                        .and_then(|n| n.to_str())
-                        .is_some_and(|n| n.starts_with("failed-") && n.ends_with(".json"))
-                })
-                .collect();
-            names.sort();
-            for p in names {
-                if let Ok(t) = std::fs::read_to_string(&p)
-                    && let Ok(f) = serde_json::from_str::<FailedEntry>(&t)
-                {
-                    failed.push(f);
-                }
-            }
-        }
-    }
+    let mut report = run_report(dir, outcomes)?;
+    let (deformations, missing, failed) = collect_entries(dir, &def_plan, &read_entry);
     let manifest = Manifest {
         format: FORMAT.into(),
         version: VERSION,
@@ -676,6 +431,96 @@ pub fn generate(
     };
     crate::util::write_atomic(&dir.join("manifest.json"), &json_bytes(&manifest)?)?;
     report.manifest = Some(manifest);
+    Ok(report)
+}
+
+/// Checks what [`generate`] is asked: one surface per source, a valid shard, something to
+/// generate, valid measurement parameters, and truth options that go together.
+fn check_config(
+    config: &GenerateConfig,
+    surfaces: &[TriSurface],
+    shard: (usize, usize),
+) -> Result<(), PhantomError> {
+    if surfaces.is_empty() || surfaces.len() != config.sources.len() {
+        return Err(PhantomError::Parameter(
+            "need at least one source surface (and one name per surface)".into(),
+        ));
+    }
+    if shard.1 == 0 || shard.0 >= shard.1 {
+        return Err(PhantomError::Parameter(format!(
+            "shard {}/{} is invalid: need 0 ≤ i < N",
+            shard.0, shard.1
+        )));
+    }
+    if config.geometries == 0 || config.scenarios == 0 {
+        return Err(PhantomError::Parameter(
+            "need at least one geometry and one scenario per deformation".into(),
+        ));
+    }
+    config.measure.validate()?;
+    if !config.families.is_empty() && config.truth != TruthModel::Nonlinear {
+        return Err(PhantomError::Parameter(
+            "families: truth families are nonlinear truths; they cannot be combined with --truth"
+                .into(),
+        ));
+    }
+    if !config.hidden_effects.is_empty() && config.truth != TruthModel::Libr {
+        return Err(PhantomError::Parameter(
+            "hidden effects need the libr truth (--truth libr): they are added to LIBR's own physics"
+                .into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The parameters the dataset records and their hash; a directory that holds a dataset made
+/// with other parameters is refused rather than mixed.
+fn parameters_hash(
+    config: &GenerateConfig,
+    dir: &Path,
+) -> Result<(serde_json::Value, String), PhantomError> {
+    let mut parameters = serde_json::to_value(config)?;
+    if !config.hidden_effects.is_empty() {
+        // How the hidden effects' loads are carried: part of what the data are.
+        parameters["hidden_carry"] = serde_json::json!(super::hidden::HIDDEN_CARRY);
+    }
+    let hash = fnv1a_hex(parameters.to_string().as_bytes());
+    if let Ok(old) = crate::dataset::read_manifest(dir)
+        && old.parameters_hash != hash
+    {
+        return Err(PhantomError::Parameter(format!(
+            "{} already holds a dataset generated with other parameters (hash {} ≠ {hash}); use another --out",
+            dir.display(),
+            old.parameters_hash
+        )));
+    }
+    Ok((parameters, hash))
+}
+
+/// A draw's outcome: its id, whether it was written (and in how many seconds) or resumed, and
+/// the draws that failed on the way.
+type Outcome = (String, Result<(bool, f64), PhantomError>, Vec<FailedEntry>);
+
+/// The run's report from its outcomes, the failed draws written beside their deformations (so
+/// that shards and resumed runs assemble the same manifest).
+fn run_report(dir: &Path, outcomes: Vec<Outcome>) -> Result<RunReport, PhantomError> {
+    let mut report = RunReport::default();
+    let mut failed_log: Vec<FailedEntry> = Vec::new();
+    for (id, r, failed) in outcomes {
+        failed_log.extend(failed);
+        match r {
+            Ok((true, secs)) => {
+                report.written.push(id);
+                report.seconds.push(secs);
+            }
+            Ok((false, _)) => report.resumed.push(id),
+            Err(e) => report.errors.push(format!("{id}: {e}")),
+        }
+    }
+    for f in &failed_log {
+        let path = dir.join(format!("deformations/{}/failed-{}.json", f.id, f.seed));
+        crate::util::write_atomic(&path, &json_bytes(f)?)?;
+    }
     Ok(report)
 }
 
@@ -710,59 +555,7 @@ fn make_deformation(
         };
         let case = load_case(&b.mesh, &b.labels, d.pattern, &config.patterns, seed)?;
         let family = d.family.map(|f| f.draw(&b.tissue, derive(seed, &[8])));
-        let solved = if config.truth == TruthModel::Libr {
-            libr_truth(
-                &b.mesh,
-                &b.labels,
-                &config.tissue.parenchyma,
-                &case,
-                &config.patterns,
-                &config.hidden_effects,
-                seed,
-            )
-            .map(|t| Solved {
-                truth: GroundTruth {
-                    displacement: t.displacement,
-                    info: Default::default(),
-                    active_contacts: 0,
-                },
-                // What LIBR's own model gives under the same load: the gap is the hidden effects'.
-                linear: t.libr,
-                description: format!("{}; {}", case.description, t.note),
-                hidden: Some((t.physics, t.roles)),
-                contacts: 0,
-            })
-        } else {
-            let (lam, mu) = config.tissue.parenchyma.lame();
-            let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), &case, LoadParts::ALL)
-                .map_err(|e| PhantomError::within("linear comparison", e))?;
-            let truth = match config.truth {
-                // The control: the linear solution is the truth (no Newton; every bed spring acts).
-                TruthModel::LinearHomogeneous => Ok(GroundTruth {
-                    displacement: linear.clone(),
-                    info: Default::default(),
-                    active_contacts: case.contacts.len(),
-                }),
-                _ => match &family {
-                    Some(f) => solve_truth_law(
-                        &b.mesh,
-                        f.lame.as_ref().unwrap_or(&b.lame),
-                        f.law,
-                        &case,
-                        &config.newton,
-                    ),
-                    None => solve_truth(&b.mesh, &b.lame, &case, &config.newton),
-                }
-                .map_err(Into::into),
-            };
-            truth.map(|truth| Solved {
-                truth,
-                linear,
-                description: case.description.clone(),
-                hidden: None,
-                contacts: case.contacts.len(),
-            })
-        };
+        let solved = solve_draw(config, b, &case, family.as_ref(), seed)?;
         let Solved {
             truth,
             linear,
@@ -783,21 +576,7 @@ fn make_deformation(
         };
         let u = &truth.displacement;
         let (mean, max) = magnitude_stats(u);
-        // A held organ is measured where it is: no misalignment, the navigation start the true
-        // alignment, the camera on the tool's spot.
-        let base_measure = d
-            .family
-            .map_or(config.measure, |f| f.measure(&config.measure));
-        let measure = if case.held {
-            MeasureParams {
-                max_rotation_deg: 0.0,
-                max_translation_mm: 0.0,
-                trusted_start: true,
-                ..base_measure
-            }
-        } else {
-            base_measure
-        };
+        let measure = measure_params(config, d, &case);
         let scenarios: Vec<Scenario> = (0..config.scenarios)
             .into_par_iter()
             .map(|k| {
@@ -816,44 +595,7 @@ fn make_deformation(
             })
             .collect::<Result<_, _>>()?;
         let base = format!("deformations/{}", d.id);
-        let mut gt = b.mesh.to_file();
-        gt.point_data = vec![DataArray::new("displacement", 3, u.clone())];
-        write_mesh_file(&dir.join(format!("{base}/gt.vtu")), &gt)?;
-        let mut entries = Vec::with_capacity(scenarios.len());
-        for (k, c) in scenarios.iter().enumerate() {
-            let file = format!("{base}/scenarios/{k:04}.vtp");
-            let pts = MeshFile {
-                nodes: c.points.clone(),
-                point_data: vec![
-                    DataArray::new("kind", 1, c.kind.iter().map(|&k| k as u8 as f64).collect()),
-                    DataArray::new("plane", 1, c.plane.iter().map(|&p| p as f64).collect()),
-                    DataArray::new("feature", 1, c.feature.iter().map(|&f| f as f64).collect()),
-                    DataArray::new(
-                        "truth_image",
-                        3,
-                        c.truth_image.iter().flatten().copied().collect(),
-                    ),
-                ],
-                ..Default::default()
-            };
-            write_mesh_file(&dir.join(&file), &pts)?;
-            entries.push(ScenarioEntry {
-                index: k,
-                category: c.category.name().into(),
-                seed: c.seed,
-                file,
-                coverage: c.coverage,
-                surface_points: c.count(PointKind::Surface),
-                contour_points: c.count(PointKind::PosteriorContour),
-                vessel_points: c.count(PointKind::Vessel),
-                feature_points: c.feature.iter().filter(|&&f| f > 0).count(),
-                misalignment_deg: c.image_to_physical.rotation_angle_deg(),
-            });
-        }
-        crate::util::write_atomic(
-            &dir.join(format!("{base}/scenarios.npz")),
-            &scenarios_npz(&b.mesh, u, &scenarios)?,
-        )?;
+        let entries = write_scenarios(dir, &base, b, u, &scenarios)?;
         let hidden_effects =
             hidden.map(|(p, roles)| p.to_value(&super::hidden::role_values(&roles)));
         if let Some(v) = &hidden_effects {
@@ -893,4 +635,87 @@ fn make_deformation(
         "every one of {} draws failed (last: {last_error})",
         config.attempts.max(1)
     )))
+}
+
+/// Solves a draw's ground truth: LIBR's physics with the hidden effects (`--truth libr`), or the
+/// nonlinear (or control linear) truth with its linear comparison. The inner error is the
+/// draw's (another draw is tried); the outer one, the linear comparison's, ends the deformation.
+fn solve_draw(
+    config: &GenerateConfig,
+    b: &Built,
+    case: &LoadCase,
+    family: Option<&FamilyDraw>,
+    seed: u64,
+) -> Result<Result<Solved, PhantomError>, PhantomError> {
+    if config.truth == TruthModel::Libr {
+        return Ok(libr_truth(
+            &b.mesh,
+            &b.labels,
+            &config.tissue.parenchyma,
+            case,
+            &config.patterns,
+            &config.hidden_effects,
+            seed,
+        )
+        .map(|t| Solved {
+            truth: GroundTruth {
+                displacement: t.displacement,
+                info: Default::default(),
+                active_contacts: 0,
+            },
+            // What LIBR's own model gives under the same load: the gap is the hidden effects'.
+            linear: t.libr,
+            description: format!("{}; {}", case.description, t.note),
+            hidden: Some((t.physics, t.roles)),
+            contacts: 0,
+        }));
+    }
+    let (lam, mu) = config.tissue.parenchyma.lame();
+    let linear = solve_linear(&b.mesh, &LameField::Uniform(lam, mu), case, LoadParts::ALL)
+        .map_err(|e| PhantomError::within("linear comparison", e))?;
+    let truth = match config.truth {
+        // The control: the linear solution is the truth (no Newton; every bed spring acts).
+        TruthModel::LinearHomogeneous => Ok(GroundTruth {
+            displacement: linear.clone(),
+            info: Default::default(),
+            active_contacts: case.contacts.len(),
+        }),
+        _ => match family {
+            Some(f) => solve_truth_law(
+                &b.mesh,
+                f.lame.as_ref().unwrap_or(&b.lame),
+                f.law,
+                case,
+                &config.newton,
+            ),
+            None => solve_truth(&b.mesh, &b.lame, case, &config.newton),
+        }
+        .map_err(Into::into),
+    };
+    Ok(truth.map(|truth| Solved {
+        truth,
+        linear,
+        description: case.description.clone(),
+        hidden: None,
+        contacts: case.contacts.len(),
+    }))
+}
+
+/// The measurement parameters of a deformation's scenarios (its truth family's, where it has
+/// one). A held organ is measured where it is: no misalignment, the navigation start the true
+/// alignment, the camera on the tool's spot.
+fn measure_params(config: &GenerateConfig, d: &DeformationPlan, case: &LoadCase) -> MeasureParams {
+    let base_measure = d
+        .family
+        .map_or(config.measure, |f| f.measure(&config.measure));
+    if case.held {
+        MeasureParams {
+            max_rotation_deg: 0.0,
+            max_translation_mm: 0.0,
+            trusted_start: true,
+            ..base_measure
+        }
+    } else {
+        base_measure
+    }
 }
