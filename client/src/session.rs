@@ -6,6 +6,7 @@ use crate::pb::lib_r_plus_client::LibRPlusClient;
 use crate::stats::code_name;
 use anyhow::{Context, Result};
 use std::future::Future;
+use std::ops::ControlFlow;
 use std::time::Duration;
 use tokio::time::Instant;
 use tonic::metadata::{AsciiMetadataValue, MetadataValue};
@@ -435,70 +436,17 @@ async fn attempt<F>(
 where
     F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
 {
-    let (tx, rx) = tokio::sync::mpsc::channel(rest.len() + 1);
-    // Queued before the call: a server may read the start before it answers with headers.
-    tx.try_send(first).expect("the channel has room");
-    let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
-    if let Some(t) = &cfg.token {
-        req.metadata_mut().insert("authorization", t.clone());
-    }
-    let mut client = client.clone();
     let updates_before = out.updates;
-    let lost_or = |s: tonic::Status, out: &mut SessionOutcome, refused: bool| {
-        let end = if refused && out.updates == 0 {
-            SessionEnd::Refused(s.clone())
-        } else {
-            SessionEnd::Failed(s.clone())
-        };
-        let take_back = cfg.resume.is_some_and(|r| r.take_back);
-        if transient(&s) && (take_back || !taken_over(&s)) {
-            Attempt::Lost(end)
-        } else {
-            out.end = end;
-            Attempt::Over
-        }
-    };
-    let mut inbound = match bounded(client.stream_register(req), cfg.timeout, cfg.deadline).await {
-        Bounded::Done(Ok(r)) => r.into_inner(),
-        Bounded::Done(Err(s)) => return lost_or(s, out, true),
-        Bounded::TimedOut => {
-            return over(out, SessionEnd::TimedOut(0));
-        }
-        Bounded::Cut => {
-            return over(out, SessionEnd::Cut);
-        }
+    let (tx, mut inbound) = match open_stream(client, first, rest.len(), cfg, out).await {
+        ControlFlow::Continue(opened) => opened,
+        ControlFlow::Break(a) => return a,
     };
     // A resumed session first answers what the server recorded.
-    if resuming {
-        match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
-            Bounded::Done(Ok(Some(u))) => {
-                out.updates += 1;
-                let done = u.last_client_seq;
-                match st.pending.take() {
-                    Some((seq, sent)) if seq <= done => {
-                        out.answered += 1;
-                        on_update(&u, Some(sent.elapsed()));
-                    }
-                    _ => on_update(&u, None),
-                }
-                st.next = rest
-                    .iter()
-                    .position(|m| m.client_seq > done)
-                    .unwrap_or(rest.len());
-            }
-            Bounded::Done(Ok(None)) => {
-                return Attempt::Lost(SessionEnd::ClosedEarly(
-                    rest.get(st.next).map_or(0, |m| m.client_seq),
-                ));
-            }
-            Bounded::Done(Err(s)) => return lost_or(s, out, false),
-            Bounded::TimedOut => {
-                return over(out, SessionEnd::TimedOut(0));
-            }
-            Bounded::Cut => {
-                return over(out, SessionEnd::Cut);
-            }
-        }
+    if resuming
+        && let ControlFlow::Break(a) =
+            recorded_answer(&mut inbound, rest, cfg, st, out, on_update).await
+    {
+        return a;
     }
     let interval = cfg
         .rate_hz
@@ -506,21 +454,173 @@ where
         .map(|r| Duration::from_secs_f64(1.0 / r));
     while st.next < rest.len() {
         let m = &rest[st.next];
-        if let (Some(iv), Some(t)) = (interval, st.last_send) {
-            let at = t + iv;
-            if cfg.deadline.is_some_and(|d| at >= d) {
-                return over(out, SessionEnd::Cut);
-            }
-            tokio::time::sleep_until(at).await;
-        }
-        if cfg.deadline.is_some_and(|d| Instant::now() >= d) {
-            return over(out, SessionEnd::Cut);
+        if let ControlFlow::Break(a) = pace(interval, cfg, st, out).await {
+            return a;
         }
         let sent = Instant::now();
         st.last_send = Some(sent);
         st.pending = Some((m.client_seq, sent));
         // A failed send means the server already ended the stream: its status comes next.
         let _ = tx.send(m.clone()).await;
+        let answer = Answer {
+            m,
+            sent,
+            updates_before,
+            fresh: !resuming,
+        };
+        if let ControlFlow::Break(a) = answer.wait(&mut inbound, cfg, st, out, on_update).await {
+            return a;
+        }
+    }
+    drop(tx);
+    read_to_end(&mut inbound, rest, cfg, out, on_update).await
+}
+
+/// Where an open stream's requests go, and the stream of its updates.
+type Opened = (
+    tokio::sync::mpsc::Sender<pb::StreamRegisterRequest>,
+    tonic::Streaming<pb::StreamUpdate>,
+);
+
+/// How a lost stream ends an attempt: resumable when the status is transient (and not a take-over
+/// by another stream, unless `take_back`), else the session is over. `refused`: a stream lost
+/// before any update counts as refused, not failed.
+fn lost_or(
+    s: tonic::Status,
+    cfg: &SessionConfig,
+    out: &mut SessionOutcome,
+    refused: bool,
+) -> Attempt {
+    let end = if refused && out.updates == 0 {
+        SessionEnd::Refused(s.clone())
+    } else {
+        SessionEnd::Failed(s.clone())
+    };
+    let take_back = cfg.resume.is_some_and(|r| r.take_back);
+    if transient(&s) && (take_back || !taken_over(&s)) {
+        Attempt::Lost(end)
+    } else {
+        out.end = end;
+        Attempt::Over
+    }
+}
+
+/// Opens the session's stream with `first` (queued before the call: a server may read the start
+/// before it answers with headers) and room for `rest` more messages; breaks with how the
+/// attempt ended when it does not open.
+async fn open_stream(
+    client: &Client,
+    first: pb::StreamRegisterRequest,
+    rest: usize,
+    cfg: &SessionConfig,
+    out: &mut SessionOutcome,
+) -> ControlFlow<Attempt, Opened> {
+    let (tx, rx) = tokio::sync::mpsc::channel(rest + 1);
+    // Queued before the call: a server may read the start before it answers with headers.
+    tx.try_send(first).expect("the channel has room");
+    let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
+    if let Some(t) = &cfg.token {
+        req.metadata_mut().insert("authorization", t.clone());
+    }
+    let mut client = client.clone();
+    match bounded(client.stream_register(req), cfg.timeout, cfg.deadline).await {
+        Bounded::Done(Ok(r)) => ControlFlow::Continue((tx, r.into_inner())),
+        Bounded::Done(Err(s)) => ControlFlow::Break(lost_or(s, cfg, out, true)),
+        Bounded::TimedOut => ControlFlow::Break(over(out, SessionEnd::TimedOut(0))),
+        Bounded::Cut => ControlFlow::Break(over(out, SessionEnd::Cut)),
+    }
+}
+
+/// A resumed session's first update: what the server recorded. The message sent and not answered
+/// counts as answered when the update covers it; the next message to send is the first after the
+/// last one the server recorded. Breaks with how the attempt ended when no update comes.
+async fn recorded_answer<F>(
+    inbound: &mut tonic::Streaming<pb::StreamUpdate>,
+    rest: &[pb::StreamRegisterRequest],
+    cfg: &SessionConfig,
+    st: &mut State,
+    out: &mut SessionOutcome,
+    on_update: &mut F,
+) -> ControlFlow<Attempt>
+where
+    F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
+{
+    match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
+        Bounded::Done(Ok(Some(u))) => {
+            out.updates += 1;
+            let done = u.last_client_seq;
+            match st.pending.take() {
+                Some((seq, sent)) if seq <= done => {
+                    out.answered += 1;
+                    on_update(&u, Some(sent.elapsed()));
+                }
+                _ => on_update(&u, None),
+            }
+            st.next = rest
+                .iter()
+                .position(|m| m.client_seq > done)
+                .unwrap_or(rest.len());
+            ControlFlow::Continue(())
+        }
+        Bounded::Done(Ok(None)) => ControlFlow::Break(Attempt::Lost(SessionEnd::ClosedEarly(
+            rest.get(st.next).map_or(0, |m| m.client_seq),
+        ))),
+        Bounded::Done(Err(s)) => ControlFlow::Break(lost_or(s, cfg, out, false)),
+        Bounded::TimedOut => ControlFlow::Break(over(out, SessionEnd::TimedOut(0))),
+        Bounded::Cut => ControlFlow::Break(over(out, SessionEnd::Cut)),
+    }
+}
+
+/// Waits for the rate limit (`interval` after the last message sent); breaks with the session
+/// cut when the deadline comes first.
+async fn pace(
+    interval: Option<Duration>,
+    cfg: &SessionConfig,
+    st: &State,
+    out: &mut SessionOutcome,
+) -> ControlFlow<Attempt> {
+    if let (Some(iv), Some(t)) = (interval, st.last_send) {
+        let at = t + iv;
+        if cfg.deadline.is_some_and(|d| at >= d) {
+            return ControlFlow::Break(over(out, SessionEnd::Cut));
+        }
+        tokio::time::sleep_until(at).await;
+    }
+    if cfg.deadline.is_some_and(|d| Instant::now() >= d) {
+        return ControlFlow::Break(over(out, SessionEnd::Cut));
+    }
+    ControlFlow::Continue(())
+}
+
+/// A message sent and the wait for its answer.
+struct Answer<'a> {
+    /// The message.
+    m: &'a pb::StreamRegisterRequest,
+    /// When it was sent.
+    sent: Instant,
+    /// The session's updates before this connection.
+    updates_before: u64,
+    /// Whether this connection opened the session (not a resume): a stream lost before its
+    /// first update was then refused.
+    fresh: bool,
+}
+
+impl Answer<'_> {
+    /// Reads updates until one answers the message (`last_client_seq` reaches its
+    /// `client_seq`): each goes to `on_update`, the answer with its latency. Breaks with how the
+    /// attempt ended when the stream ends, fails, times out or is cut first.
+    async fn wait<F>(
+        &self,
+        inbound: &mut tonic::Streaming<pb::StreamUpdate>,
+        cfg: &SessionConfig,
+        st: &mut State,
+        out: &mut SessionOutcome,
+        on_update: &mut F,
+    ) -> ControlFlow<Attempt>
+    where
+        F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
+    {
+        let m = self.m;
         loop {
             match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
                 Bounded::Done(Ok(Some(u))) => {
@@ -532,31 +632,43 @@ where
                         out.answered += 1;
                         st.pending = None;
                         st.next += 1;
-                        on_update(&u, Some(sent.elapsed()));
-                        break;
+                        on_update(&u, Some(self.sent.elapsed()));
+                        return ControlFlow::Continue(());
                     }
                     on_update(&u, None);
                 }
                 Bounded::Done(Ok(None)) => {
                     let end = SessionEnd::ClosedEarly(m.client_seq);
                     if cfg.resume.is_some() {
-                        return Attempt::Lost(end);
+                        return ControlFlow::Break(Attempt::Lost(end));
                     }
-                    return over(out, end);
+                    return ControlFlow::Break(over(out, end));
                 }
                 Bounded::Done(Err(s)) => {
-                    return lost_or(s, out, out.updates == updates_before && !resuming);
+                    let refused = out.updates == self.updates_before && self.fresh;
+                    return ControlFlow::Break(lost_or(s, cfg, out, refused));
                 }
                 Bounded::TimedOut => {
-                    return over(out, SessionEnd::TimedOut(m.client_seq));
+                    return ControlFlow::Break(over(out, SessionEnd::TimedOut(m.client_seq)));
                 }
-                Bounded::Cut => {
-                    return over(out, SessionEnd::Cut);
-                }
+                Bounded::Cut => return ControlFlow::Break(over(out, SessionEnd::Cut)),
             }
         }
     }
-    drop(tx);
+}
+
+/// After the last answer (the client's side closed): reads the stream to its end, each extra
+/// update to `on_update`.
+async fn read_to_end<F>(
+    inbound: &mut tonic::Streaming<pb::StreamUpdate>,
+    rest: &[pb::StreamRegisterRequest],
+    cfg: &SessionConfig,
+    out: &mut SessionOutcome,
+    on_update: &mut F,
+) -> Attempt
+where
+    F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
+{
     loop {
         match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
             Bounded::Done(Ok(Some(u))) => {
@@ -567,7 +679,7 @@ where
             // Lost after the last answer (the server killed, the session taken over): resumed
             // like any lost stream, to end it cleanly; without `resume` it ends here.
             Bounded::Done(Err(s)) if out.updates > 0 => {
-                return lost_or(s, out, false);
+                return lost_or(s, cfg, out, false);
             }
             Bounded::Done(Err(s)) => {
                 out.end = SessionEnd::Refused(s);

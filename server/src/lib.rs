@@ -43,8 +43,11 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 use tokio::sync::{oneshot, watch};
-use tonic::transport::Server;
+use tonic::transport::server::Router;
+use tonic::transport::{Server, ServerTlsConfig};
 use tonic_health::ServingStatus;
+use tonic_health::pb::health_server::{Health, HealthServer};
+use tonic_health::server::HealthReporter;
 
 /// What preload did.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -101,9 +104,12 @@ pub struct Running {
     stop: Option<oneshot::Sender<()>>,
     serve: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
     reload: tokio::sync::mpsc::Sender<Reload>,
-    ready: watch::Receiver<Option<Result<PreloadReport, Arc<PreloadError>>>>,
-    health: tonic_health::server::HealthReporter,
+    ready: watch::Receiver<Ready>,
+    health: HealthReporter,
 }
+
+/// What preload came to, once it has: its report, or why it failed.
+type Ready = Option<Result<PreloadReport, Arc<PreloadError>>>;
 
 static PROMETHEUS: OnceLock<Option<metrics_exporter_prometheus::PrometheusHandle>> =
     OnceLock::new();
@@ -135,6 +141,56 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .await
         .with_context(|| format!("listen {}", config.listen))?;
     let addr = listener.local_addr()?;
+    let auth = load_auth(&config, addr)?;
+    let metrics_addr = match (&config.metrics_listen, prom) {
+        (Some(a), Some(h)) => Some(metrics_http::serve(a, h).await?),
+        (Some(_), None) => {
+            tracing::warn!("another metrics recorder is installed; no /metrics endpoint");
+            None
+        }
+        _ => None,
+    };
+    let (health, health_svc) = tonic_health::server::health_reporter();
+    set_health(&health, ServingStatus::NotServing).await;
+    let (drain_tx, drain_rx) = watch::channel(false);
+    let shared = open_shared(&config, auth, drain_rx)?;
+    let make = router_maker(&config, &shared, health_svc);
+    let first = make(tls_config(&config)?)?;
+    let (stop_tx, stop_rx) = oneshot::channel::<()>();
+    let (reload_tx, reload_rx) = tokio::sync::mpsc::channel::<Reload>(1);
+    let gate = generations::Gate::new(
+        config.max_connections,
+        Duration::from_secs_f64(config.preface_timeout_s),
+    );
+    let serve = tokio::spawn(generations::serve(
+        listener, gate, first, make, reload_rx, stop_rx,
+    ));
+    tracing::info!(
+        %addr,
+        tls = config.tls_cert.is_some(),
+        client_certificates = config.client_ca.is_some(),
+        auth = config.auth.is_some(),
+        audit = config.audit_db.is_some(),
+        "listening (health NOT_SERVING until preload finishes)"
+    );
+    let (ready_tx, ready_rx) = watch::channel(None);
+    spawn_preload(shared.clone(), health.clone(), ready_tx);
+    Ok(Running {
+        addr,
+        metrics_addr,
+        shared,
+        drain: drain_tx,
+        stop: Some(stop_tx),
+        serve,
+        reload: reload_tx,
+        ready: ready_rx,
+        health,
+    })
+}
+
+/// Reads the auth file (`auth`, if any), and refuses to serve an address other machines reach
+/// with no client authenticated unless `insecure` says so.
+fn load_auth(config: &ServerConfig, addr: SocketAddr) -> anyhow::Result<Option<auth::Auth>> {
     let auth = config
         .auth
         .as_deref()
@@ -149,22 +205,22 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
             config.listen
         );
     }
-    let metrics_addr = match (&config.metrics_listen, prom) {
-        (Some(a), Some(h)) => Some(metrics_http::serve(a, h).await?),
-        (Some(_), None) => {
-            tracing::warn!("another metrics recorder is installed; no /metrics endpoint");
-            None
-        }
-        _ => None,
-    };
-    let (health, health_svc) = tonic_health::server::health_reporter();
-    health
-        .set_service_status("", ServingStatus::NotServing)
-        .await;
-    health
-        .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
-        .await;
-    let (drain_tx, drain_rx) = watch::channel(false);
+    Ok(auth)
+}
+
+/// Sets the health of the server (`""`) and of the `librplus.v1.LibRPlus` service.
+async fn set_health(health: &HealthReporter, status: ServingStatus) {
+    health.set_service_status("", status).await;
+    health.set_service_status(SERVICE_NAME, status).await;
+}
+
+/// Opens what every request shares: the session journal, the audit log (its folder created),
+/// the case store, the compute engine, with `auth` and the drain signal.
+fn open_shared(
+    config: &ServerConfig,
+    auth: Option<auth::Auth>,
+    drain: watch::Receiver<bool>,
+) -> anyhow::Result<Arc<Shared>> {
     let journal = config
         .session_journal
         .as_deref()
@@ -191,14 +247,28 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         .map(store::Store::open)
         .transpose()
         .context("--case-store")?;
-    let shared = Arc::new(Shared::new(
+    Ok(Arc::new(Shared::new(
         config.clone(),
         auth,
         audit,
         store,
         compute::Engine::new(config.slots(), config.max_queued),
-        drain_rx,
-    ));
+        drain,
+    )))
+}
+
+/// The function that builds the gRPC server for a TLS configuration (None: plaintext): health,
+/// reflection (v1 and v1alpha) and the `librplus.v1.LibRPlus` service, each call in a span
+/// named by its request id.
+///
+/// The gRPC server is built once per TLS configuration (a "generation"): a certificate reload
+/// starts a new generation for new connections while the old one finishes its connections'
+/// streams (graceful shutdown: GOAWAY, open sessions go on), so no session is dropped.
+fn router_maker<H: Health>(
+    config: &ServerConfig,
+    shared: &Arc<Shared>,
+    health_svc: HealthServer<H>,
+) -> impl Fn(Option<ServerTlsConfig>) -> anyhow::Result<Router> + Send + 'static {
     // Requests are refused by their size before they are decoded (a few hundred kilobytes for
     // the point limits); replies (a described mesh) may be larger.
     let svc = LibRPlusServer::new(Svc(shared.clone()))
@@ -226,10 +296,7 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         Duration::from_secs_f64(config.keepalive_s),
     );
     let request_ids = Arc::new(AtomicU64::new(0));
-    // The gRPC server is built once per TLS configuration (a "generation"): a certificate reload
-    // starts a new generation for new connections while the old one finishes its connections'
-    // streams (graceful shutdown: GOAWAY, open sessions go on), so no session is dropped.
-    let make = move |tls: Option<tonic::transport::ServerTlsConfig>| -> anyhow::Result<_> {
+    move |tls: Option<ServerTlsConfig>| -> anyhow::Result<_> {
         let reflection = || {
             tonic_reflection::server::Builder::configure()
                 .register_encoded_file_descriptor_set(librplus_proto::FILE_DESCRIPTOR_SET)
@@ -247,15 +314,7 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
         }
         let ids = request_ids.clone();
         Ok(builder
-            .trace_fn(move |req: &tonic::codegen::http::Request<()>| {
-                let id = req
-                    .headers()
-                    .get("x-request-id")
-                    .and_then(|v| v.to_str().ok())
-                    .map(|s| s.chars().take(64).collect::<String>())
-                    .unwrap_or_else(|| format!("r{}", ids.fetch_add(1, Ordering::Relaxed) + 1));
-                tracing::info_span!("rpc", path = %req.uri().path(), request_id = %id)
-            })
+            .trace_fn(move |req: &tonic::codegen::http::Request<()>| rpc_span(&ids, req))
             .add_service(InterceptedService::new(
                 health_svc.clone(),
                 health_gate.clone(),
@@ -269,70 +328,51 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
                 reflection_gate.clone(),
             ))
             .add_service(svc.clone()))
-    };
-    let first = make(tls_config(&config)?)?;
-    let (stop_tx, stop_rx) = oneshot::channel::<()>();
-    let (reload_tx, reload_rx) = tokio::sync::mpsc::channel::<Reload>(1);
-    let gate = generations::Gate::new(
-        config.max_connections,
-        Duration::from_secs_f64(config.preface_timeout_s),
-    );
-    let serve = tokio::spawn(generations::serve(
-        listener, gate, first, make, reload_rx, stop_rx,
-    ));
-    tracing::info!(
-        %addr,
-        tls = config.tls_cert.is_some(),
-        client_certificates = config.client_ca.is_some(),
-        auth = config.auth.is_some(),
-        audit = config.audit_db.is_some(),
-        "listening (health NOT_SERVING until preload finishes)"
-    );
-    let (ready_tx, ready_rx) = watch::channel(None);
-    {
-        let shared = shared.clone();
-        let health = health.clone();
-        tokio::spawn(async move {
-            let sh = shared.clone();
-            let report = tokio::task::spawn_blocking(move || preload(&sh)).await;
-            let report = match report {
-                Ok(Ok(report)) => {
-                    shared.registry.set_preloaded();
-                    if shared.store.is_some() && shared.config.evict_idle_s > 0.0 {
-                        tokio::spawn(evict_idle(shared.clone()));
-                    }
-                    health.set_service_status("", ServingStatus::Serving).await;
-                    health
-                        .set_service_status(SERVICE_NAME, ServingStatus::Serving)
-                        .await;
-                    tracing::info!(
-                        cases = report.cases.len(),
-                        failed = report.failed.len(),
-                        seconds = report.seconds,
-                        "preload done; SERVING"
-                    );
-                    Ok(report)
-                }
-                Ok(Err(e)) => {
-                    tracing::error!(error = %e, "preload failed; staying NOT_SERVING");
-                    Err(Arc::new(e))
-                }
-                Err(e) => Err(Arc::new(PreloadError::Task(e.to_string()))),
-            };
-            let _ = ready_tx.send(Some(report));
-        });
     }
-    Ok(Running {
-        addr,
-        metrics_addr,
-        shared,
-        drain: drain_tx,
-        stop: Some(stop_tx),
-        serve,
-        reload: reload_tx,
-        ready: ready_rx,
-        health,
-    })
+}
+
+/// The span of one call: its path and request id (the caller's `x-request-id`, at most 64
+/// characters, else the next of `ids`: `r1`, `r2`, ...).
+fn rpc_span(ids: &AtomicU64, req: &tonic::codegen::http::Request<()>) -> tracing::Span {
+    let id = req
+        .headers()
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .map(|s| s.chars().take(64).collect::<String>())
+        .unwrap_or_else(|| format!("r{}", ids.fetch_add(1, Ordering::Relaxed) + 1));
+    tracing::info_span!("rpc", path = %req.uri().path(), request_id = %id)
+}
+
+/// Preloads every case in the background; then health SERVING (and, with a case store and
+/// `evict_idle_s`, idle uploads evicted), or NOT_SERVING kept when it failed. The report, or
+/// why it failed, is sent on `ready`.
+fn spawn_preload(shared: Arc<Shared>, health: HealthReporter, ready: watch::Sender<Ready>) {
+    tokio::spawn(async move {
+        let sh = shared.clone();
+        let report = tokio::task::spawn_blocking(move || preload(&sh)).await;
+        let report = match report {
+            Ok(Ok(report)) => {
+                shared.registry.set_preloaded();
+                if shared.store.is_some() && shared.config.evict_idle_s > 0.0 {
+                    tokio::spawn(evict_idle(shared.clone()));
+                }
+                set_health(&health, ServingStatus::Serving).await;
+                tracing::info!(
+                    cases = report.cases.len(),
+                    failed = report.failed.len(),
+                    seconds = report.seconds,
+                    "preload done; SERVING"
+                );
+                Ok(report)
+            }
+            Ok(Err(e)) => {
+                tracing::error!(error = %e, "preload failed; staying NOT_SERVING");
+                Err(Arc::new(e))
+            }
+            Err(e) => Err(Arc::new(PreloadError::Task(e.to_string()))),
+        };
+        let _ = ready.send(Some(report));
+    });
 }
 
 /// A TLS reload request: the new settings, and where to say whether they took.
@@ -807,12 +847,7 @@ impl Running {
     /// the grace ran out (0 on a clean drain).
     pub async fn shutdown(mut self) -> usize {
         tracing::info!("shutting down: draining sessions");
-        self.health
-            .set_service_status("", ServingStatus::NotServing)
-            .await;
-        self.health
-            .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
-            .await;
+        set_health(&self.health, ServingStatus::NotServing).await;
         let _ = self.drain.send(true);
         let grace = Duration::from_secs_f64(self.shared.config.drain_grace_s);
         let t0 = Instant::now();

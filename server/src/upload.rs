@@ -16,6 +16,7 @@ use librplus_proto::v1 as pb;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
+use tokio::sync::OwnedSemaphorePermit;
 use tonic::Streaming;
 
 /// Longest wait for the next message of an upload.
@@ -59,32 +60,7 @@ pub async fn create(
     who: &Arc<Principal>,
     mut inbound: Streaming<pb::CreateCaseRequest>,
 ) -> Result<pb::CreateCaseResponse, ServiceError> {
-    if shared.store.is_none() {
-        return Err(no_store());
-    }
-    if *shared.drain.borrow() {
-        return Err(ServiceError::Unavailable(
-            "the server is shutting down".into(),
-        ));
-    }
-    access::cases(shared)?;
-    let cfg = &shared.config;
-    // Each upload is held in memory until stored: a few at once.
-    let _slot = shared
-        .uploads
-        .clone()
-        .try_acquire_owned()
-        .map_err(|_| ServiceError::Quota {
-            message: format!(
-                "{} uploads are being received; retry when one is done",
-                crate::shared::MAX_UPLOADS
-            ),
-            subject: "uploads",
-            description: format!(
-                "at most {} uploads are received at once",
-                crate::shared::MAX_UPLOADS
-            ),
-        })?;
+    let _slot = admit(shared)?;
     let Some(pb::create_case_request::Part::Upload(up)) = next(&mut inbound).await? else {
         return Err(ServiceError::field(
             "part",
@@ -99,31 +75,7 @@ pub async fn create(
         tets,
         total_bytes,
     } = up;
-    store::check_id(&case_id).map_err(|e| ServiceError::field("upload.case_id", e))?;
-    if !who.may_use(&case_id) {
-        return Err(ServiceError::PermissionDenied(format!(
-            "principal {:?} may not upload case {case_id:?}: it is outside the cases it may use",
-            who.name
-        )));
-    }
-    let max = cfg.max_case_bytes;
-    let too_big = |n: u64| ServiceError::Quota {
-        message: format!("upload: {n} bytes, above the server's limit of {max} bytes"),
-        subject: "case_bytes",
-        description: format!("at most {max} bytes per upload (max_case_bytes)"),
-    };
-    if total_bytes > max as u64 {
-        return Err(too_big(total_bytes));
-    }
-    // Over a quota: refused before the upload is received (and again, under the store's lock,
-    // when it is stored). A retry of a stored case is no new case.
-    let quotas = store::Quotas::from_config(cfg);
-    let store = shared.store.as_ref().expect("checked");
-    if store.find(&case_id).is_none() {
-        store
-            .check_quota(&who.name, total_bytes, &quotas)
-            .map_err(|e| e.to_service())?;
-    }
+    let quotas = check_header(shared, who, &case_id, total_bytes)?;
     let arrays = !nodes_mm.is_empty() || !tets.is_empty();
     if arrays && !mesh_format.is_empty() {
         return Err(ServiceError::field(
@@ -132,17 +84,151 @@ pub async fn create(
         ));
     }
     let mut received = (nodes_mm.len() * 8 + tets.len() * 4) as u64;
+    let files = receive(
+        &mut inbound,
+        arrays,
+        &mut received,
+        shared.config.max_case_bytes,
+    )
+    .await?;
+    check_not_configured(shared, &case_id)?;
+    let upload = Upload {
+        case_id: case_id.clone(),
+        mesh: if arrays {
+            MeshSource::Arrays {
+                nodes: nodes_mm,
+                tets,
+            }
+        } else {
+            MeshSource::File {
+                bytes: files.mesh,
+                format: mesh_format,
+            }
+        },
+        unit: mesh_unit,
+        vessels: files.vessels,
+        physics: files.physics,
+    };
+    let (stored, created) = put(shared, who, upload, quotas).await?;
+    if created {
+        record_created(shared, who, &case_id, &stored, received).await?;
+    }
+    let status = match shared.registry.status(&case_id) {
+        // A new copy in the store is preloaded (also after a failed one of the same content).
+        Some(s) if s.version == stored.version && !created => s,
+        _ => preload(shared.clone(), stored.clone()),
+    };
+    Ok(pb::CreateCaseResponse {
+        case_id,
+        version: stored.version,
+        created,
+        status: Some(status),
+        node_count: stored.nodes as u32,
+        tet_count: stored.tets as u32,
+    })
+}
+
+/// Admits an upload: the server keeps a case store and is not shutting down, the cases can be
+/// listed, and fewer than [`crate::shared::MAX_UPLOADS`] uploads are being received (each is
+/// held in memory until stored: a few at once). The slot it holds.
+fn admit(shared: &Arc<Shared>) -> Result<OwnedSemaphorePermit, ServiceError> {
+    if shared.store.is_none() {
+        return Err(no_store());
+    }
+    if *shared.drain.borrow() {
+        return Err(ServiceError::Unavailable(
+            "the server is shutting down".into(),
+        ));
+    }
+    access::cases(shared)?;
+    shared
+        .uploads
+        .clone()
+        .try_acquire_owned()
+        .map_err(|_| ServiceError::Quota {
+            message: format!(
+                "{} uploads are being received; retry when one is done",
+                crate::shared::MAX_UPLOADS
+            ),
+            subject: "uploads",
+            description: format!(
+                "at most {} uploads are received at once",
+                crate::shared::MAX_UPLOADS
+            ),
+        })
+}
+
+/// An upload of `n` bytes, above the server's `max` (`max_case_bytes`).
+fn too_big(n: u64, max: usize) -> ServiceError {
+    ServiceError::Quota {
+        message: format!("upload: {n} bytes, above the server's limit of {max} bytes"),
+        subject: "case_bytes",
+        description: format!("at most {max} bytes per upload (max_case_bytes)"),
+    }
+}
+
+/// Checks what the first message says before the upload is received: the case id's form, that
+/// `who` may use it, the announced `total_bytes` against `max_case_bytes`, and the store's
+/// quotas (checked again, under the store's lock, when the case is stored; a retry of a stored
+/// case is no new case). The quotas in force.
+fn check_header(
+    shared: &Arc<Shared>,
+    who: &Arc<Principal>,
+    case_id: &str,
+    total_bytes: u64,
+) -> Result<store::Quotas, ServiceError> {
+    store::check_id(case_id).map_err(|e| ServiceError::field("upload.case_id", e))?;
+    if !who.may_use(case_id) {
+        return Err(ServiceError::PermissionDenied(format!(
+            "principal {:?} may not upload case {case_id:?}: it is outside the cases it may use",
+            who.name
+        )));
+    }
+    let cfg = &shared.config;
+    let max = cfg.max_case_bytes;
+    if total_bytes > max as u64 {
+        return Err(too_big(total_bytes, max));
+    }
+    let quotas = store::Quotas::from_config(cfg);
+    let store = shared.store.as_ref().expect("checked");
+    if store.find(case_id).is_none() {
+        store
+            .check_quota(&who.name, total_bytes, &quotas)
+            .map_err(|e| e.to_service())?;
+    }
+    Ok(quotas)
+}
+
+/// The files of an upload, as received in its chunks.
+struct Files {
+    /// The mesh file's bytes (empty when the arrays carry the mesh).
+    mesh: Vec<u8>,
+    /// Vessel centerlines (.vtp bytes), if sent.
+    vessels: Option<Vec<u8>>,
+    /// physics.json bytes, if sent.
+    physics: Option<Vec<u8>>,
+}
+
+/// Receives the upload's chunks to the end of the stream, counting their bytes in `received`
+/// (at most `max`). `arrays`: the first message carried the mesh, so no mesh chunk may come;
+/// else a mesh must.
+async fn receive(
+    inbound: &mut Streaming<pb::CreateCaseRequest>,
+    arrays: bool,
+    received: &mut u64,
+    max: usize,
+) -> Result<Files, ServiceError> {
     let (mut mesh, mut vessels, mut physics) = (Vec::new(), None::<Vec<u8>>, None::<Vec<u8>>);
-    while let Some(part) = next(&mut inbound).await? {
+    while let Some(part) = next(inbound).await? {
         let pb::create_case_request::Part::Chunk(pb::CaseChunk { file, data }) = part else {
             return Err(ServiceError::field(
                 "part",
                 "a second CaseUpload: only the first message describes the upload",
             ));
         };
-        received += data.len() as u64;
-        if received > max as u64 {
-            return Err(too_big(received));
+        *received += data.len() as u64;
+        if *received > max as u64 {
+            return Err(too_big(*received, max));
         }
         match pb::CaseFile::try_from(file) {
             Ok(pb::CaseFile::Mesh) if arrays => {
@@ -170,11 +256,20 @@ pub async fn create(
             "no mesh: send CASE_FILE_MESH chunks (with upload.mesh_format) or upload.nodes_mm and upload.tets",
         ));
     }
-    // A case the server was started with keeps its id (an upload that failed and was removed
-    // from the store does not).
-    if shared.registry.status(&case_id).is_some()
-        && !shared.registry.is_uploaded(&case_id)
-        && store.find(&case_id).is_none()
+    Ok(Files {
+        mesh,
+        vessels,
+        physics,
+    })
+}
+
+/// Refuses the id of a case the server was started with (it keeps its id; an upload that failed
+/// and was removed from the store does not).
+fn check_not_configured(shared: &Arc<Shared>, case_id: &str) -> Result<(), ServiceError> {
+    let store = shared.store.as_ref().expect("checked");
+    if shared.registry.status(case_id).is_some()
+        && !shared.registry.is_uploaded(case_id)
+        && store.find(case_id).is_none()
     {
         return Err(ServiceError::precondition(
             "CASE",
@@ -185,27 +280,21 @@ pub async fn create(
             ),
         ));
     }
-    let upload = Upload {
-        case_id: case_id.clone(),
-        mesh: if arrays {
-            MeshSource::Arrays {
-                nodes: nodes_mm,
-                tets,
-            }
-        } else {
-            MeshSource::File {
-                bytes: mesh,
-                format: mesh_format,
-            }
-        },
-        unit: mesh_unit,
-        vessels,
-        physics,
-    };
+    Ok(())
+}
+
+/// Checks the upload ([`store::check`], up to `max_case_nodes`) and stores it within `quotas`,
+/// off the async threads; (the stored case, whether it is new).
+async fn put(
+    shared: &Arc<Shared>,
+    who: &Arc<Principal>,
+    upload: Upload,
+    quotas: store::Quotas,
+) -> Result<(store::Stored, bool), ServiceError> {
     let sh = shared.clone();
     let principal = who.name.clone();
-    let max_nodes = cfg.max_case_nodes;
-    let (stored, created) = tokio::task::spawn_blocking(move || {
+    let max_nodes = shared.config.max_case_nodes;
+    tokio::task::spawn_blocking(move || {
         let checked = store::check(&upload, max_nodes)?;
         let store = sh.store.as_ref().expect("checked");
         store
@@ -213,36 +302,31 @@ pub async fn create(
             .map_err(|e| e.to_service())
     })
     .await
-    .map_err(|e| ServiceError::Internal(format!("storing the upload: {e}")))??;
-    if created {
-        // Acknowledged once recorded.
-        shared
-            .record(vec![Record::Event {
-                kind: "case_created",
-                principal: who.name.clone(),
-                case_id: Some(case_id.clone()),
-                session_id: None,
-                detail: serde_json::json!({
-                    "version": stored.version, "nodes": stored.nodes, "tets": stored.tets,
-                    "bytes": received, "vessels": stored.vessels, "physics": stored.physics,
-                }),
-            }])
-            .await?;
-        tracing::info!(case = %case_id, version = %stored.version, nodes = stored.nodes, principal = %who.name, "case uploaded; preloading");
-    }
-    let status = match shared.registry.status(&case_id) {
-        // A new copy in the store is preloaded (also after a failed one of the same content).
-        Some(s) if s.version == stored.version && !created => s,
-        _ => preload(shared.clone(), stored.clone()),
-    };
-    Ok(pb::CreateCaseResponse {
-        case_id,
-        version: stored.version,
-        created,
-        status: Some(status),
-        node_count: stored.nodes as u32,
-        tet_count: stored.tets as u32,
-    })
+    .map_err(|e| ServiceError::Internal(format!("storing the upload: {e}")))?
+}
+
+/// Records a new case in the audit log (the upload is acknowledged once recorded) and logs it.
+async fn record_created(
+    shared: &Arc<Shared>,
+    who: &Arc<Principal>,
+    case_id: &str,
+    stored: &store::Stored,
+    received: u64,
+) -> Result<(), ServiceError> {
+    shared
+        .record(vec![Record::Event {
+            kind: "case_created",
+            principal: who.name.clone(),
+            case_id: Some(case_id.to_string()),
+            session_id: None,
+            detail: serde_json::json!({
+                "version": stored.version, "nodes": stored.nodes, "tets": stored.tets,
+                "bytes": received, "vessels": stored.vessels, "physics": stored.physics,
+            }),
+        }])
+        .await?;
+    tracing::info!(case = %case_id, version = %stored.version, nodes = stored.nodes, principal = %who.name, "case uploaded; preloading");
+    Ok(())
 }
 
 /// Deletes an uploaded case no session uses.

@@ -34,12 +34,13 @@
 //! to RAS on loading). A plane pose (plane frame → physical) is converted as `F P`. With
 //! `--frame lps` everything passes unchanged.
 
+use super::geometry::{CaseGeometry, frame_rigid, transform_of};
+pub use super::geometry::{Frame, Target, read_targets};
+use super::requests::request_of;
 use super::wire::{
     self, AttributeKind, AttributeLocation, CellArray, Decoder, EncodeOptions, Message,
-    PointElement, PolyAttribute, PolyData, Status, Transform, status_code,
+    PointElement, PolyAttribute, PolyData, Status, status_code,
 };
-use librplus::mesh::TetMesh;
-use librplus::mesh::locate::TetLocator;
 use librplus::mesh::rigid::Rigid;
 use librplus_client::pb;
 use std::net::SocketAddr;
@@ -60,34 +61,6 @@ pub const DEVICE_TARGETS: &str = "LIBR_Targets";
 pub const DEVICE_LIVER: &str = "LIBR_Liver";
 /// Device name of the bridge's `STATUS` messages.
 pub const DEVICE_STATUS: &str = "LIBR_Status";
-
-/// The patient frame the OpenIGTLink peer works in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Frame {
-    /// Right, anterior, superior (3D Slicer's world).
-    Ras,
-    /// Left, posterior, superior (DICOM, ITK, LIBR+).
-    Lps,
-}
-
-impl Frame {
-    /// Converts a point or vector between this frame and LPS (its own inverse).
-    pub fn convert(self, p: [f64; 3]) -> [f64; 3] {
-        match self {
-            Frame::Ras => [-p[0], -p[1], p[2]],
-            Frame::Lps => p,
-        }
-    }
-}
-
-/// A named target in the preoperative image frame (LPS, mm).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Target {
-    /// Its label.
-    pub name: String,
-    /// Position, image frame, LPS, mm.
-    pub image_mm: [f64; 3],
-}
 
 /// What the bridge does.
 #[derive(Debug, Clone)]
@@ -147,124 +120,6 @@ pub fn timeout_of(flag: &str, seconds: f64) -> anyhow::Result<Duration> {
         anyhow::bail!("{flag} {seconds}: a positive number of seconds");
     }
     Duration::try_from_secs_f64(seconds).map_err(|e| anyhow::anyhow!("{flag} {seconds}: {e}"))
-}
-
-/// Reads targets from a 3D Slicer markups file (`.mrk.json`, schema 1.0: `markups[].
-/// controlPoints[].{label, position}` with `markups[].coordinateSystem` `LPS` or `RAS`, which
-/// Slicer writes) into the image frame (LPS).
-pub fn read_targets(path: &std::path::Path) -> anyhow::Result<Vec<Target>> {
-    use anyhow::Context;
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("--targets {}", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("--targets {}: not JSON", path.display()))?;
-    let bad = |what: String| anyhow::anyhow!("--targets {}: {what}", path.display());
-    let markups = v["markups"]
-        .as_array()
-        .ok_or_else(|| bad("no `markups` array (a 3D Slicer .mrk.json)".into()))?;
-    let mut out = Vec::new();
-    for (m, mk) in markups.iter().enumerate() {
-        let frame = match mk["coordinateSystem"].as_str().unwrap_or("LPS") {
-            "LPS" => Frame::Lps,
-            "RAS" => Frame::Ras,
-            other => {
-                return Err(bad(format!(
-                    "markups[{m}].coordinateSystem {other:?} is neither LPS nor RAS"
-                )));
-            }
-        };
-        for (k, cp) in mk["controlPoints"]
-            .as_array()
-            .map(Vec::as_slice)
-            .unwrap_or_default()
-            .iter()
-            .enumerate()
-        {
-            let field = format!("markups[{m}].controlPoints[{k}]");
-            let p: Vec<f64> = cp["position"]
-                .as_array()
-                .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect())
-                .unwrap_or_default();
-            if p.len() != 3 || p.iter().any(|x| !x.is_finite()) {
-                return Err(bad(format!("{field}.position is not 3 finite numbers")));
-            }
-            out.push(Target {
-                name: cp["label"]
-                    .as_str()
-                    .map_or_else(|| format!("target-{}", out.len() + 1), str::to_string),
-                image_mm: frame.convert([p[0], p[1], p[2]]),
-            });
-        }
-    }
-    Ok(out)
-}
-
-/// The case as the bridge needs it: nodes, the boundary surface and the targets' embedding.
-struct CaseGeometry {
-    nodes: Vec<[f64; 3]>,
-    /// Boundary nodes (indices into `nodes`) and triangles over them (local indices).
-    surface_nodes: Vec<u32>,
-    surface_triangles: Vec<[u32; 3]>,
-    targets: Vec<Embedded>,
-}
-
-/// A target embedded in the mesh: its name, image position, and the nodes and barycentric
-/// weights of the tet it is in (or nearest to).
-struct Embedded {
-    name: String,
-    image_mm: [f64; 3],
-    nodes: [u32; 4],
-    weights: [f64; 4],
-}
-
-impl CaseGeometry {
-    fn new(d: &pb::DescribeCaseResponse, targets: &[Target]) -> anyhow::Result<Self> {
-        let nodes: Vec<[f64; 3]> = d
-            .nodes_mm
-            .chunks_exact(3)
-            .map(|c| [c[0], c[1], c[2]])
-            .collect();
-        let tets: Vec<[u32; 4]> = d
-            .tets
-            .chunks_exact(4)
-            .map(|c| [c[0], c[1], c[2], c[3]])
-            .collect();
-        let mesh = TetMesh::new(nodes.clone(), tets)
-            .map_err(|e| anyhow::anyhow!("the case's mesh from DescribeCase: {e}"))?;
-        let b = mesh
-            .boundary()
-            .map_err(|e| anyhow::anyhow!("the case's boundary surface: {e}"))?;
-        let mut local = vec![u32::MAX; nodes.len()];
-        for (k, &n) in b.nodes.iter().enumerate() {
-            local[n as usize] = k as u32;
-        }
-        let surface_triangles = b
-            .triangles
-            .iter()
-            .map(|t| t.map(|n| local[n as usize]))
-            .collect();
-        let locator = TetLocator::new(&mesh);
-        let targets = targets
-            .iter()
-            .map(|t| {
-                let (tet, w) = locator.weights(t.image_mm).ok_or_else(|| {
-                    anyhow::anyhow!("target {:?}: no tet of the case near it", t.name)
-                })?;
-                Ok(Embedded {
-                    name: t.name.clone(),
-                    image_mm: t.image_mm,
-                    nodes: locator.tet(tet),
-                    weights: w,
-                })
-            })
-            .collect::<anyhow::Result<_>>()?;
-        Ok(Self {
-            nodes,
-            surface_nodes: b.nodes,
-            surface_triangles,
-            targets,
-        })
-    }
 }
 
 /// Runs the bridge on `listener` until the process ends: describes the case once, then serves
@@ -514,56 +369,31 @@ async fn connection(
     geo: &Arc<CaseGeometry>,
     token: Option<tonic::metadata::AsciiMetadataValue>,
 ) -> anyhow::Result<()> {
-    let (mut rd, mut wr) = socket.into_split();
-    let (out_tx, mut out_rx) = mpsc::channel::<Vec<u8>>(64);
+    let (mut rd, wr) = socket.into_split();
+    let (out_tx, out_rx) = mpsc::channel::<Vec<u8>>(64);
     let opened = Instant::now();
     // When the last message to the peer was written, ms after `opened`.
     let last_sent_ms = Arc::new(AtomicU64::new(0));
-    let sent = last_sent_ms.clone();
-    let mut writer = tokio::spawn(async move {
-        while let Some(bytes) = out_rx.recv().await {
-            match tokio::time::timeout(WRITE_TIMEOUT, wr.write_all(&bytes)).await {
-                Ok(Ok(())) => sent.store(
-                    u64::try_from(opened.elapsed().as_millis()).unwrap_or(u64::MAX),
-                    Ordering::Relaxed,
-                ),
-                Ok(Err(e)) => return Err(format!("writing the socket: {e}")),
-                Err(_) => {
-                    return Err(format!(
-                        "the peer took no message for {} s",
-                        WRITE_TIMEOUT.as_secs()
-                    ));
-                }
-            }
-        }
-        let _ = tokio::time::timeout(Duration::from_secs(2), wr.shutdown()).await;
-        Ok(())
-    });
+    let mut writer = spawn_writer(wr, out_rx, opened, last_sent_ms.clone());
     let mut writer_ended = false;
-    let mut session: Option<Session> = None;
+    let mut link = Link::new(client, cfg, geo, token, out_tx);
     // OpenIGTLink messages → gRPC requests.
     let mut decoder = Decoder::with_max_body_size(cfg.max_body);
-    let mut poses: std::collections::HashMap<String, Rigid> = Default::default();
-    let mut seq = 1u64;
     let mut buf = vec![0u8; 64 * 1024];
     // When the last complete message (well-formed or not) arrived: partial bytes do not count,
     // so a peer trickling a message byte by byte is idle too. The idle timeout runs from it or
     // from the last message sent to the peer, whichever is later (a registration being computed
     // is not silence).
     let mut last_message = opened;
-    let result = 'read: loop {
-        let (limit, flag) = if session.is_some() {
-            (cfg.session_idle_timeout, "--session-idle-timeout-s")
-        } else {
-            (cfg.idle_timeout, "--idle-timeout-s")
-        };
+    let result = loop {
+        let (limit, flag) = link.idle_limit();
         let last_sent = opened + Duration::from_millis(last_sent_ms.load(Ordering::Relaxed));
         let event = tokio::select! {
             r = rd.read(&mut buf) => Event::Read(r),
             () = tokio::time::sleep_until(last_message.max(last_sent) + limit) => Event::Idle,
             r = &mut writer, if !writer_ended => Event::WriterEnded(r),
             r = async {
-                match session.as_mut() {
+                match link.session.as_mut() {
                     Some(s) if !s.ended => (&mut s.answers).await.unwrap_or(None),
                     _ => std::future::pending().await,
                 }
@@ -582,133 +412,20 @@ async fn connection(
             {
                 continue;
             }
-            Event::Idle => {
-                let why = format!(
-                    "no OpenIGTLink message from the peer, nor to it, for {} s ({flag}; {}): connection closed",
-                    limit.as_secs_f64(),
-                    if session.is_some() {
-                        "session open"
-                    } else {
-                        "no POINT or POLYDATA yet, so no session"
-                    }
-                );
-                tracing::warn!("{why}");
-                // Never waits: a peer that does not read gets no STATUS.
-                out_tx
-                    .try_send(status(status_code::TIME_OUT, "IDLE_TIMEOUT", &why))
-                    .ok();
-                break Err(anyhow::anyhow!(why));
-            }
+            Event::Idle => break Err(link.idle(limit, flag)),
             Event::WriterEnded(r) => {
                 writer_ended = true;
-                let why = match r {
-                    Ok(Ok(())) => "the writer ended".to_string(),
-                    Ok(Err(why)) => why,
-                    Err(e) => format!("the writer failed: {e}"),
-                };
-                break Err(anyhow::anyhow!("{why}; connection closed"));
+                break Err(writer_end(r));
             }
-            Event::SessionEnded(why) => {
-                if let Some(s) = session.as_mut() {
-                    s.ended = true;
-                }
-                break match why {
-                    Some(why) => Err(anyhow::anyhow!("{why}; connection closed")),
-                    None => Err(anyhow::anyhow!(
-                        "the LIBR+ server ended the session; connection closed"
-                    )),
-                };
-            }
+            Event::SessionEnded(why) => break Err(link.session_ended(why)),
         };
         decoder.feed(&buf[..n]);
-        while let Some(next) = decoder.next_message() {
-            last_message = Instant::now();
-            match next {
-                Ok((header, msg)) => match request_of(&header, msg, cfg.frame, &mut poses) {
-                    Ok(Some(m)) => {
-                        if session.is_none() {
-                            match open_session(&client, cfg, geo, token.as_ref(), &out_tx).await {
-                                Ok(s) => {
-                                    tracing::info!(
-                                        kind = %header.type_name,
-                                        device = %header.device_name,
-                                        "first data message: gRPC session opened"
-                                    );
-                                    session = Some(s);
-                                }
-                                Err(s) => {
-                                    out_tx
-                                        .send(grpc_status(
-                                            &s,
-                                            "the LIBR+ server refused the session",
-                                        ))
-                                        .await
-                                        .ok();
-                                    break 'read Err(anyhow::anyhow!(
-                                        "StreamRegister refused: {}: {}",
-                                        librplus_client::code_name(s.code()),
-                                        s.message()
-                                    ));
-                                }
-                            }
-                        }
-                        let Some(s) = session.as_ref() else {
-                            break 'read Err(anyhow::anyhow!("no gRPC session"));
-                        };
-                        seq += 1;
-                        let r = pb::StreamRegisterRequest {
-                            client_seq: seq,
-                            msg: Some(m),
-                        };
-                        if s.requests.send(r).await.is_err() {
-                            break 'read Err(anyhow::anyhow!("the gRPC session has ended"));
-                        }
-                    }
-                    Ok(None) => {}
-                    Err((code, why)) => {
-                        tracing::warn!(
-                            device = %header.device_name,
-                            kind = %header.type_name,
-                            "{why}"
-                        );
-                        out_tx.send(status(code, "BAD_MESSAGE", &why)).await.ok();
-                    }
-                },
-                Err(e) => {
-                    let recoverable = e.is_recoverable();
-                    tracing::warn!(error = %e, recoverable, "malformed OpenIGTLink message");
-                    let code = match e {
-                        wire::WireError::BadCrc { .. } => status_code::CHECKSUM_ERROR,
-                        _ => status_code::CONFIG_ERROR,
-                    };
-                    out_tx
-                        .send(status(code, "BAD_MESSAGE", &e.to_string()))
-                        .await
-                        .ok();
-                    if !recoverable {
-                        break 'read Err(anyhow::anyhow!("unrecoverable stream error: {e}"));
-                    }
-                }
-            }
+        if let Err(e) = link.messages(&mut decoder, &mut last_message).await {
+            break Err(e);
         }
     };
     // Close the gRPC side, let the last answers through, then the socket.
-    if let Some(Session {
-        requests,
-        mut answers,
-        ended,
-    }) = session
-    {
-        drop(requests);
-        if !ended
-            && tokio::time::timeout(CLOSE_GRACE, &mut answers)
-                .await
-                .is_err()
-        {
-            answers.abort();
-        }
-    }
-    drop(out_tx);
+    link.close().await;
     if !writer_ended
         && tokio::time::timeout(WRITE_TIMEOUT, &mut writer)
             .await
@@ -719,184 +436,256 @@ async fn connection(
     result
 }
 
-/// The gRPC request for one OpenIGTLink message (None: a pose, stored for the next POLYDATA of
-/// its device), or the STATUS code and reason it is refused with.
-fn request_of(
-    header: &wire::Header,
-    msg: Message,
-    frame: Frame,
-    poses: &mut std::collections::HashMap<String, Rigid>,
-) -> Result<Option<pb::stream_register_request::Msg>, (u16, String)> {
-    use pb::stream_register_request::Msg;
-    let acquired_at = Some(acquired_at(header));
-    let device = &header.device_name;
-    match msg {
-        Message::Point(points) => {
-            if points.is_empty() {
-                return Err((status_code::CONFIG_ERROR, "POINT: no points".into()));
-            }
-            Ok(Some(Msg::Surface(pb::SurfaceBatch {
-                acquired_at,
-                xyz_mm: points
-                    .iter()
-                    .flat_map(|p| frame.convert(p.position_mm.map(f64::from)))
-                    .collect(),
-                feature: Vec::new(),
-            })))
-        }
-        Message::Transform(t) => {
-            let pose = rigid_of(&t).map_err(|why| {
-                (
-                    status_code::CONFIG_ERROR,
-                    format!("TRANSFORM {device:?}: {why}"),
-                )
-            })?;
-            // Plane → peer frame, then peer frame → LPS.
-            poses.insert(device.clone(), pose.then(&frame_rigid(frame)));
-            Ok(None)
-        }
-        Message::PolyData(pd) => {
-            let pose = poses.get(device).ok_or_else(|| {
-                (
-                    status_code::CONFIG_ERROR,
-                    format!(
-                        "POLYDATA {device:?}: no TRANSFORM {device:?} (the plane's pose) received before it"
-                    ),
-                )
-            })?;
-            let kind = pd
-                .attributes
-                .iter()
-                .find(|a| a.name == "kind" && a.location == AttributeLocation::Point);
-            if let Some(k) = kind
-                && (k.kind.components() != 1 || k.tuple_count() != pd.points.len())
-            {
-                return Err((
-                    status_code::CONFIG_ERROR,
-                    format!(
-                        "POLYDATA {device:?}: attribute `kind` needs one scalar per point ({} points)",
-                        pd.points.len()
-                    ),
-                ));
-            }
-            let (mut contour, mut vessel) = (Vec::new(), Vec::new());
-            for (i, p) in pd.points.iter().enumerate() {
-                if f64::from(p[2]).abs() > 0.5 {
-                    return Err((
-                        status_code::CONFIG_ERROR,
-                        format!(
-                            "POLYDATA {device:?}: point {i} has w = {} mm: points are (u, v, 0) in the plane's own frame",
-                            p[2]
-                        ),
-                    ));
-                }
-                let uv = [f64::from(p[0]), f64::from(p[1])];
-                let k = kind.map_or(0.0, |k| k.data[i]);
-                if k == 0.0 {
-                    contour.extend(uv);
-                } else if k == 1.0 {
-                    vessel.extend(uv);
-                } else {
-                    return Err((
-                        status_code::CONFIG_ERROR,
-                        format!(
-                            "POLYDATA {device:?}: kind of point {i} is {k}: 0 (contour) or 1 (vessel)"
-                        ),
+/// Writes what `out_rx` brings to the peer's socket, each message within [`WRITE_TIMEOUT`],
+/// noting when the last one was written (`last_sent_ms`, ms after `opened`); shuts the socket
+/// down when `out_rx` ends. Err: why it stopped early.
+fn spawn_writer(
+    mut wr: tokio::net::tcp::OwnedWriteHalf,
+    mut out_rx: mpsc::Receiver<Vec<u8>>,
+    opened: Instant,
+    last_sent_ms: Arc<AtomicU64>,
+) -> tokio::task::JoinHandle<Result<(), String>> {
+    tokio::spawn(async move {
+        while let Some(bytes) = out_rx.recv().await {
+            match tokio::time::timeout(WRITE_TIMEOUT, wr.write_all(&bytes)).await {
+                Ok(Ok(())) => last_sent_ms.store(
+                    u64::try_from(opened.elapsed().as_millis()).unwrap_or(u64::MAX),
+                    Ordering::Relaxed,
+                ),
+                Ok(Err(e)) => return Err(format!("writing the socket: {e}")),
+                Err(_) => {
+                    return Err(format!(
+                        "the peer took no message for {} s",
+                        WRITE_TIMEOUT.as_secs()
                     ));
                 }
             }
-            Ok(Some(Msg::Ultrasound(pb::UltrasoundPlane {
-                acquired_at,
-                plane_to_physical: Some(librplus_client::rigid_message(pose)),
-                contour_uv_mm: contour,
-                vessel_uv_mm: vessel,
-            })))
         }
-        Message::Status(_) => Ok(None),
-        Message::Unknown { type_name, .. } => Err((
-            status_code::ILLEGAL_INSTRUCTION,
-            format!(
-                "{type_name:?} messages are not used by LIBR+ (POINT, TRANSFORM and POLYDATA are)"
-            ),
-        )),
-    }
-}
-
-/// The header's timestamp, or now when it is 0 (unused).
-fn acquired_at(h: &wire::Header) -> prost_types::Timestamp {
-    let secs = if h.timestamp == 0 {
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0.0, |d| d.as_secs_f64())
-    } else {
-        h.timestamp_secs()
-    };
-    prost_types::Timestamp {
-        seconds: secs.floor() as i64,
-        nanos: ((secs - secs.floor()) * 1e9).round().min(999_999_999.0) as i32,
-    }
-}
-
-/// The frame change as a rigid transform (a rotation by 180° about z for RAS ↔ LPS).
-fn frame_rigid(frame: Frame) -> Rigid {
-    let mut r = Rigid::identity();
-    if frame == Frame::Ras {
-        r.rotation[0][0] = -1.0;
-        r.rotation[1][1] = -1.0;
-    }
-    r
-}
-
-/// A received TRANSFORM as a rigid transform: its rotation re-orthonormalised (the wire's
-/// float32 rounding), refused when it is not a rotation to 1e-3.
-fn rigid_of(t: &Transform) -> Result<Rigid, String> {
-    let m = &t.matrix;
-    let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
-    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    let (a, b, c) = (col(0), col(1), col(2));
-    let err = [
-        (dot(a, a) - 1.0).abs(),
-        (dot(b, b) - 1.0).abs(),
-        (dot(c, c) - 1.0).abs(),
-        dot(a, b).abs(),
-        dot(a, c).abs(),
-        dot(b, c).abs(),
-    ]
-    .into_iter()
-    .fold(0.0, f64::max);
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    if err.is_nan() || err > 1e-3 || dot(cross(a, b), c) <= 0.0 {
-        return Err(
-            "the rotation part is not a rotation (orthonormal, determinant +1, to 1e-3)".into(),
-        );
-    }
-    let norm = |v: [f64; 3]| {
-        let n = dot(v, v).sqrt();
-        v.map(|x| x / n)
-    };
-    let u = norm(a);
-    let w = norm(cross(u, b));
-    let v = cross(w, u);
-    Ok(Rigid {
-        rotation: [[u[0], v[0], w[0]], [u[1], v[1], w[1]], [u[2], v[2], w[2]]],
-        translation: [m[0][3], m[1][3], m[2][3]],
+        let _ = tokio::time::timeout(Duration::from_secs(2), wr.shutdown()).await;
+        Ok(())
     })
 }
 
-/// A rigid transform as an OpenIGTLink TRANSFORM.
-fn transform_of(r: &Rigid) -> Transform {
-    let mut m = Transform::IDENTITY.matrix;
-    for (i, row) in m.iter_mut().take(3).enumerate() {
-        row[..3].copy_from_slice(&r.rotation[i]);
-        row[3] = r.translation[i];
+/// Why the connection ends when its writer stopped.
+fn writer_end(r: Result<Result<(), String>, tokio::task::JoinError>) -> anyhow::Error {
+    let why = match r {
+        Ok(Ok(())) => "the writer ended".to_string(),
+        Ok(Err(why)) => why,
+        Err(e) => format!("the writer failed: {e}"),
+    };
+    anyhow::anyhow!("{why}; connection closed")
+}
+
+impl Session {
+    /// Closes the gRPC side: no more requests; the last answers are let through (for
+    /// [`CLOSE_GRACE`] at most).
+    async fn close(self) {
+        let Session {
+            requests,
+            mut answers,
+            ended,
+        } = self;
+        drop(requests);
+        if !ended
+            && tokio::time::timeout(CLOSE_GRACE, &mut answers)
+                .await
+                .is_err()
+        {
+            answers.abort();
+        }
     }
-    Transform { matrix: m }
+}
+
+/// A connection's side towards the gRPC server: what it forwards the peer's messages with.
+struct Link<'a> {
+    client: librplus_client::Client,
+    cfg: &'a BridgeConfig,
+    geo: &'a Arc<CaseGeometry>,
+    token: Option<tonic::metadata::AsciiMetadataValue>,
+    /// Messages to the peer (through the writer).
+    out_tx: mpsc::Sender<Vec<u8>>,
+    /// The gRPC session, once a message that carries data arrived.
+    session: Option<Session>,
+    /// The last pose of each ultrasound plane (by device), LPS.
+    poses: std::collections::HashMap<String, Rigid>,
+    /// The `client_seq` of the last request sent.
+    seq: u64,
+}
+
+impl<'a> Link<'a> {
+    /// A connection's link, with no session yet: its messages to the peer go to `out_tx`.
+    fn new(
+        client: librplus_client::Client,
+        cfg: &'a BridgeConfig,
+        geo: &'a Arc<CaseGeometry>,
+        token: Option<tonic::metadata::AsciiMetadataValue>,
+        out_tx: mpsc::Sender<Vec<u8>>,
+    ) -> Self {
+        Self {
+            client,
+            cfg,
+            geo,
+            token,
+            out_tx,
+            session: None,
+            poses: Default::default(),
+            seq: 1,
+        }
+    }
+
+    /// Closes the gRPC side (its last answers let through, see [`Session::close`]), then the
+    /// way to the writer, so that it ends once it has written what is queued.
+    async fn close(self) {
+        if let Some(s) = self.session {
+            s.close().await;
+        }
+        drop(self.out_tx);
+    }
+
+    /// The idle timeout in force and its option's name: before the session opens, and after.
+    fn idle_limit(&self) -> (Duration, &'static str) {
+        if self.session.is_some() {
+            (self.cfg.session_idle_timeout, "--session-idle-timeout-s")
+        } else {
+            (self.cfg.idle_timeout, "--idle-timeout-s")
+        }
+    }
+
+    /// The connection stayed silent for `limit` (option `flag`): logged, the peer sent a STATUS
+    /// 7 (never waiting: a peer that does not read gets none); the error that ends it.
+    fn idle(&self, limit: Duration, flag: &str) -> anyhow::Error {
+        let why = format!(
+            "no OpenIGTLink message from the peer, nor to it, for {} s ({flag}; {}): connection closed",
+            limit.as_secs_f64(),
+            if self.session.is_some() {
+                "session open"
+            } else {
+                "no POINT or POLYDATA yet, so no session"
+            }
+        );
+        tracing::warn!("{why}");
+        // Never waits: a peer that does not read gets no STATUS.
+        self.out_tx
+            .try_send(status(status_code::TIME_OUT, "IDLE_TIMEOUT", &why))
+            .ok();
+        anyhow::anyhow!(why)
+    }
+
+    /// The gRPC session ended (`why`, when with an error): the error that ends the connection.
+    fn session_ended(&mut self, why: Option<String>) -> anyhow::Error {
+        if let Some(s) = self.session.as_mut() {
+            s.ended = true;
+        }
+        match why {
+            Some(why) => anyhow::anyhow!("{why}; connection closed"),
+            None => anyhow::anyhow!("the LIBR+ server ended the session; connection closed"),
+        }
+    }
+
+    /// Handles every complete message `decoder` holds (noting when each arrived in
+    /// `last_message`): forwarded, or answered with a STATUS. Err: the connection ends (the
+    /// session refused or ended, a stream that cannot be trusted).
+    async fn messages(
+        &mut self,
+        decoder: &mut Decoder,
+        last_message: &mut Instant,
+    ) -> anyhow::Result<()> {
+        while let Some(next) = decoder.next_message() {
+            *last_message = Instant::now();
+            match next {
+                Ok((header, msg)) => {
+                    match request_of(&header, msg, self.cfg.frame, &mut self.poses) {
+                        Ok(Some(m)) => self.send(&header, m).await?,
+                        Ok(None) => {}
+                        Err((code, why)) => {
+                            tracing::warn!(
+                                device = %header.device_name,
+                                kind = %header.type_name,
+                                "{why}"
+                            );
+                            self.out_tx
+                                .send(status(code, "BAD_MESSAGE", &why))
+                                .await
+                                .ok();
+                        }
+                    }
+                }
+                Err(e) => self.malformed(e).await?,
+            }
+        }
+        Ok(())
+    }
+
+    /// Sends one request on the gRPC session, opening the session first (for the first message
+    /// that carries data, `header`'s). Err: the session was refused or has ended.
+    async fn send(
+        &mut self,
+        header: &wire::Header,
+        m: pb::stream_register_request::Msg,
+    ) -> anyhow::Result<()> {
+        if self.session.is_none() {
+            match open_session(
+                &self.client,
+                self.cfg,
+                self.geo,
+                self.token.as_ref(),
+                &self.out_tx,
+            )
+            .await
+            {
+                Ok(s) => {
+                    tracing::info!(
+                        kind = %header.type_name,
+                        device = %header.device_name,
+                        "first data message: gRPC session opened"
+                    );
+                    self.session = Some(s);
+                }
+                Err(s) => {
+                    self.out_tx
+                        .send(grpc_status(&s, "the LIBR+ server refused the session"))
+                        .await
+                        .ok();
+                    anyhow::bail!(
+                        "StreamRegister refused: {}: {}",
+                        librplus_client::code_name(s.code()),
+                        s.message()
+                    );
+                }
+            }
+        }
+        let Some(s) = self.session.as_ref() else {
+            anyhow::bail!("no gRPC session");
+        };
+        self.seq += 1;
+        let r = pb::StreamRegisterRequest {
+            client_seq: self.seq,
+            msg: Some(m),
+        };
+        if s.requests.send(r).await.is_err() {
+            anyhow::bail!("the gRPC session has ended");
+        }
+        Ok(())
+    }
+
+    /// A malformed message: logged and answered with a STATUS; Err when the stream cannot be
+    /// read on (its header cannot be trusted).
+    async fn malformed(&self, e: wire::WireError) -> anyhow::Result<()> {
+        let recoverable = e.is_recoverable();
+        tracing::warn!(error = %e, recoverable, "malformed OpenIGTLink message");
+        let code = match e {
+            wire::WireError::BadCrc { .. } => status_code::CHECKSUM_ERROR,
+            _ => status_code::CONFIG_ERROR,
+        };
+        self.out_tx
+            .send(status(code, "BAD_MESSAGE", &e.to_string()))
+            .await
+            .ok();
+        if !recoverable {
+            anyhow::bail!("unrecoverable stream error: {e}");
+        }
+        Ok(())
+    }
 }
 
 /// The OpenIGTLink messages answering one gRPC update.
@@ -1071,45 +860,6 @@ mod tests {
         for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e300] {
             let e = timeout_of("--idle-timeout-s", bad).unwrap_err().to_string();
             assert!(e.starts_with("--idle-timeout-s "), "{e}");
-        }
-    }
-
-    #[test]
-    fn frames_convert_and_transforms_round_trip() {
-        assert_eq!(Frame::Ras.convert([1.0, 2.0, 3.0]), [-1.0, -2.0, 3.0]);
-        assert_eq!(Frame::Lps.convert([1.0, 2.0, 3.0]), [1.0, 2.0, 3.0]);
-        // A rotation about an oblique axis, through the wire's float32 and back.
-        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
-        let r = Rigid {
-            rotation: [
-                [c, -s, 0.0],
-                [s * 0.6, c * 0.6, -0.8],
-                [s * 0.8, c * 0.8, 0.6],
-            ],
-            translation: [10.0, -20.5, 300.25],
-        };
-        let t = Transform::from_wire(&transform_of(&r).to_wire().unwrap());
-        let back = rigid_of(&t).unwrap();
-        for i in 0..3 {
-            for j in 0..3 {
-                assert!((back.rotation[i][j] - r.rotation[i][j]).abs() < 1e-6);
-            }
-            assert!((back.translation[i] - r.translation[i]).abs() < 1e-4);
-        }
-        // Not a rotation: a scaling, a reflection.
-        let mut scaled = transform_of(&r);
-        scaled.matrix[0][0] *= 1.1;
-        assert!(rigid_of(&scaled).is_err());
-        let mut reflected = transform_of(&Rigid::identity());
-        reflected.matrix[2][2] = -1.0;
-        assert!(rigid_of(&reflected).is_err());
-        // F T F in RAS equals T applied to converted points.
-        let f = frame_rigid(Frame::Ras);
-        let p = [3.0, -4.0, 5.0];
-        let a = f.then(&r).then(&f).apply(Frame::Ras.convert(p));
-        let b = Frame::Ras.convert(r.apply(p));
-        for k in 0..3 {
-            assert!((a[k] - b[k]).abs() < 1e-12);
         }
     }
 }
