@@ -390,6 +390,24 @@ struct Scene<'a> {
 }
 
 impl Scene<'_> {
+    /// A random table tilt, `head_up` and `lateral` ranges in degrees, its gravity applied;
+    /// returns the angles drawn.
+    fn tilt(
+        &self,
+        d: &mut Draw,
+        out: &mut Applied,
+        head_up: (f64, f64),
+        lateral: (f64, f64),
+    ) -> (f64, f64) {
+        let (rt, lat) = (
+            d.uniform(head_up.0, head_up.1),
+            d.uniform(lateral.0, lateral.1),
+        );
+        let g = tilted_gravity(self.params.gravity, rt, lat);
+        loads::add_body_force(&mut out.gravity, self.mesh, g);
+        (rt, lat)
+    }
+
     /// Pattern H: held at the hilum and the bare area, a tool pushing the anterior surface; returns the description and the tool's node.
     fn held(&self, d: &mut Draw, out: &mut Applied) -> Result<(String, u32), PhantomError> {
         let Scene {
@@ -473,23 +491,16 @@ impl Scene<'_> {
         out: &mut Applied,
     ) -> Result<String, PhantomError> {
         let Scene {
-            mesh,
             labels,
             nodes,
             boundary,
             x_f,
             centroid_z,
             ls,
-            params,
             n,
             ..
         } = *self;
-        let (rt, lat) = (d.uniform(10.0, 30.0), d.uniform(-15.0, 15.0));
-        loads::add_body_force(
-            &mut out.gravity,
-            mesh,
-            tilted_gravity(params.gravity, rt, lat),
-        );
+        let (rt, lat) = self.tilt(d, out, (10.0, 30.0), (-15.0, 15.0));
         let ridge: Vec<u32> = AnatomyLabels::nodes_where(&labels.inferior_ridge)
             .into_iter()
             .filter(|&i| nodes[i as usize][0] > x_f)
@@ -543,22 +554,15 @@ impl Scene<'_> {
     /// Pattern R: table tilt and a pack under the right lobe, posterior-inferior.
     fn right_lobe_pack(&self, d: &mut Draw, out: &mut Applied) -> Result<String, PhantomError> {
         let Scene {
-            mesh,
             labels,
             nodes,
             boundary,
             x_f,
             centroid_z,
             ls,
-            params,
             ..
         } = *self;
-        let (rt, lat) = (d.uniform(10.0, 30.0), d.uniform(-15.0, 15.0));
-        loads::add_body_force(
-            &mut out.gravity,
-            mesh,
-            tilted_gravity(params.gravity, rt, lat),
-        );
+        let (rt, lat) = self.tilt(d, out, (10.0, 30.0), (-15.0, 15.0));
         let cands: Vec<u32> = labels
             .nodes_in(Region::Posterior)
             .into_iter()
@@ -592,20 +596,13 @@ impl Scene<'_> {
     /// Pattern W: table tilt and insufflation pressure on the anterior surface.
     fn insufflation(&self, d: &mut Draw, out: &mut Applied) -> String {
         let Scene {
-            mesh,
             labels,
             nodes,
             boundary,
             ls,
-            params,
             ..
         } = *self;
-        let (rt, lat) = (d.uniform(20.0, 35.0), d.uniform(-20.0, 20.0));
-        loads::add_body_force(
-            &mut out.gravity,
-            mesh,
-            tilted_gravity(params.gravity, rt, lat),
-        );
+        let (rt, lat) = self.tilt(d, out, (20.0, 35.0), (-20.0, 20.0));
         let p = ls * d.uniform(0.1, 0.3);
         let anterior: Vec<[u32; 3]> = boundary
             .triangles
@@ -631,9 +628,7 @@ impl Scene<'_> {
         // typically 20–30°, at most ~65°: the push always has an inward component); on the
         // other half a broad pressure on a random cap of the surface (the 15–50 % of the
         // surface off the bare area farthest along a random direction).
-        let (rt, lat) = (d.uniform(0.0, 35.0), d.uniform(-20.0, 20.0));
-        let g = tilted_gravity(self.params.gravity, rt, lat);
-        loads::add_body_force(&mut out.gravity, self.mesh, g);
+        let (rt, lat) = self.tilt(d, out, (0.0, 35.0), (-20.0, 20.0));
         let cands: Vec<u32> = self
             .boundary
             .nodes
@@ -754,22 +749,15 @@ impl Scene<'_> {
     /// Pattern V: a slight tilt and packing behind the posterior surface.
     fn posterior_packing(&self, d: &mut Draw, out: &mut Applied) -> String {
         let Scene {
-            mesh,
             labels,
             nodes,
             boundary,
             lo,
             hi,
             ls,
-            params,
             ..
         } = *self;
-        let (rt, lat) = (d.uniform(0.0, 5.0), d.uniform(-5.0, 5.0));
-        loads::add_body_force(
-            &mut out.gravity,
-            mesh,
-            tilted_gravity(params.gravity, rt, lat),
-        );
+        let (rt, lat) = self.tilt(d, out, (0.0, 5.0), (-5.0, 5.0));
         let cy = 0.5 * (lo[1] + hi[1]);
         let p = ls * d.uniform(0.8, 1.4);
         let dir = unit([d.uniform(-0.2, 0.2), -1.0, d.uniform(-0.2, 0.4)]);
