@@ -4,7 +4,7 @@
 //! directories and prints.
 
 use super::report::CATEGORY_ORDER;
-use super::{ScenarioData, tre};
+use super::{GeometryData, ScenarioData, tre};
 use crate::eval::EvalError;
 use crate::mesh::TetMesh;
 use crate::pipeline::PipelineError;
@@ -160,6 +160,88 @@ pub fn pick_across_categories(categories: &[&str], n: usize) -> Vec<usize> {
         }
     }
     out
+}
+
+/// A geometry of a dataset and the scenarios `bench register` times on it.
+pub struct BenchScenarios {
+    /// The geometry's id.
+    pub geometry: String,
+    /// The geometry: its preoperative model, boundary flags and targets.
+    pub geo: GeometryData,
+    /// Every scenario of the geometry's deformations, in dataset order.
+    pub all: Vec<ScenarioData>,
+    /// Indices into [`Self::all`] of the scenarios timed ([`pick_across_categories`]).
+    pub picked: Vec<usize>,
+}
+
+impl BenchScenarios {
+    /// Reads geometry `geometry` (None: the first) of the dataset in `data` with its scenarios,
+    /// and picks `n` of them across the measurement categories.
+    pub fn load(data: &Path, geometry: Option<&str>, n: usize) -> Result<Self, EvalError> {
+        let m = super::open(data)?;
+        let geometry = match geometry {
+            Some(g) => g.to_string(),
+            None => m.geometries.first().map(|g| g.id.clone()).ok_or_else(|| {
+                EvalError::Data(format!("{}: the manifest has no geometry", data.display()))
+            })?,
+        };
+        let geo = super::load_geometry(data, &m, &geometry)
+            .map_err(|e| EvalError::Parameter(format!("--geometry {geometry:?}: {e}")))?;
+        let mut all = Vec::new();
+        for d in m.deformations.iter().filter(|d| d.geometry == geometry) {
+            all.extend(super::load_scenarios(data, d)?);
+        }
+        let categories: Vec<&str> = all.iter().map(|s| s.category.as_str()).collect();
+        let picked = pick_across_categories(&categories, n);
+        if picked.is_empty() {
+            return Err(EvalError::Data(format!(
+                "{}: geometry {geometry} has no scenarios in the categories {:?}",
+                data.display(),
+                CATEGORY_ORDER
+            )));
+        }
+        Ok(Self {
+            geometry,
+            geo,
+            all,
+            picked,
+        })
+    }
+
+    /// The scenarios timed.
+    pub fn picked(&self) -> Vec<&ScenarioData> {
+        self.picked.iter().map(|&i| &self.all[i]).collect()
+    }
+}
+
+/// [`time_registrations`] of the picked scenarios in a pool of `threads` threads: one
+/// registration after another, each with the pool's threads (1: single-registration latency on
+/// one core).
+pub fn time_in_pool(
+    threads: usize,
+    case: &Prepared,
+    scenarios: &BenchScenarios,
+    method: Method,
+    params: &PipelineParams,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<RegistrationBench, EvalError> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| EvalError::Parameter(format!("building the thread pool: {e}")))?;
+    let picked = scenarios.picked();
+    let geo = &scenarios.geo;
+    pool.install(|| {
+        time_registrations(
+            case,
+            &picked,
+            &geo.surface,
+            &geo.targets,
+            method,
+            params,
+            progress,
+        )
+    })
 }
 
 /// Stage timings of one registration (seconds), from what [`Registration`] reports.

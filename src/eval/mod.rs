@@ -68,6 +68,7 @@ pub(crate) fn over_kept_scenarios<C: Sync, T: Send>(
 pub mod abstain;
 pub mod bench;
 pub mod calibrate_error;
+pub mod campaign;
 pub mod detectability;
 pub mod discover_score;
 pub mod discover_study;
@@ -76,8 +77,11 @@ pub use error::EvalError;
 pub mod experiments;
 pub mod plot;
 pub mod report;
+pub mod report_dir;
+pub mod runs;
 pub mod splits;
 pub mod train;
+pub mod train_run;
 
 /// Target registration errors (mm).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]

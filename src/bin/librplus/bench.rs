@@ -6,8 +6,12 @@ use crate::data::liver_surface;
 use crate::mesh::load_volume;
 use crate::util::emit;
 use anyhow::{Context, Result, bail};
+use librplus::eval::bench::{
+    BenchScenarios, PreloadBench, RegistrationBench, preload_model, time_in_pool,
+};
 use librplus::fem;
 use librplus::mesh::io::Unit;
+use librplus::pipeline::{Method, Prepared};
 use serde_json::{Value, json};
 use std::path::Path;
 
@@ -132,10 +136,8 @@ fn print_preload(p: &librplus::eval::bench::PreloadBench) {
     }
 }
 
+/// `bench register`: the preload of a case, then registrations timed one at a time.
 pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
-    use librplus::eval::bench::{
-        pick_across_categories, preload_mesh, preload_model, time_registrations,
-    };
     if a.threads == 0 {
         bail!("--threads must be at least 1");
     }
@@ -152,30 +154,8 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         .tempdir()
         .context("a temporary directory for the benchmark's cache")?;
     let cache = tmp.path().join("cache");
-    let spinner = |msg: &str| {
-        let bar = indicatif::ProgressBar::new_spinner().with_message(msg.to_string());
-        bar.enable_steady_tick(std::time::Duration::from_millis(200));
-        bar
-    };
     if let Some(path) = &a.mesh {
-        let mesh = load_volume(path, a.common.unit)?.mesh;
-        let bar = spinner("LIBR basis: cold build, then warm load");
-        let p = preload_mesh(&mesh, &params.libr, &cache);
-        bar.finish_and_clear();
-        let p = p?;
-        if a.common.json {
-            println!(
-                "{}",
-                json!({"mesh": path.display().to_string(), "preload": preload_json(&p), "registrations": Value::Null})
-            );
-        } else {
-            println!(
-                "bench register: {} (mesh only: preload, no registrations)",
-                path.display()
-            );
-            print_preload(&p);
-        }
-        return Ok(());
+        return bench_mesh(a, path, &params, &cache);
     }
     let data = match &a.data {
         Some(d) => d.clone(),
@@ -188,44 +168,79 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
             dir
         }
     };
-    let m = librplus::eval::open(&data)?;
-    let geometry = match &a.geometry {
-        Some(g) => g.clone(),
-        None => m
-            .geometries
-            .first()
-            .map(|g| g.id.clone())
-            .with_context(|| format!("{}: the manifest has no geometry", data.display()))?,
+    let scenarios = BenchScenarios::load(&data, a.geometry.as_deref(), a.scenarios)?;
+    let (preload, case, method, model_prepare_s) = prepare_case(a, &params, &scenarios, &cache)?;
+    let bar =
+        indicatif::ProgressBar::new(scenarios.picked.len() as u64).with_message("registrations");
+    let r = time_in_pool(a.threads, &case, &scenarios, method, &params, &|done, _| {
+        bar.set_position(done as u64)
+    });
+    bar.finish_and_clear();
+    let timed = Timed {
+        data: &data,
+        geometry: &scenarios.geometry,
+        method,
+        preload: &preload,
+        model_prepare_s,
+        registrations: &r?,
     };
-    let geo = librplus::eval::load_geometry(&data, &m, &geometry)
-        .map_err(|e| anyhow::anyhow!("--geometry {geometry:?}: {e}"))?;
-    let mut scenarios = Vec::new();
-    for d in m.deformations.iter().filter(|d| d.geometry == geometry) {
-        scenarios.extend(librplus::eval::load_scenarios(&data, d)?);
+    if a.common.json {
+        println!("{}", timed.to_json(a));
+    } else {
+        timed.print(a);
     }
-    let cats: Vec<&str> = scenarios.iter().map(|s| s.category.as_str()).collect();
-    let picked: Vec<&librplus::eval::ScenarioData> = pick_across_categories(&cats, a.scenarios)
-        .into_iter()
-        .map(|i| &scenarios[i])
-        .collect();
-    if picked.is_empty() {
-        bail!(
-            "{}: geometry {geometry} has no scenarios in the categories {:?}",
-            data.display(),
-            librplus::eval::report::CATEGORY_ORDER
+    Ok(())
+}
+
+/// A spinner saying `msg`.
+fn spinner(msg: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new_spinner().with_message(msg.to_string());
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    bar
+}
+
+/// `bench register --mesh`: the LIBR basis preload of a bare mesh alone.
+fn bench_mesh(
+    a: &BenchRegisterArgs,
+    path: &Path,
+    params: &librplus::pipeline::PipelineParams,
+    cache: &Path,
+) -> Result<()> {
+    let mesh = load_volume(path, a.common.unit)?.mesh;
+    let bar = spinner("LIBR basis: cold build, then warm load");
+    let p = librplus::eval::bench::preload_mesh(&mesh, &params.libr, cache);
+    bar.finish_and_clear();
+    let p = p?;
+    if a.common.json {
+        println!(
+            "{}",
+            json!({"mesh": path.display().to_string(), "preload": preload_json(&p), "registrations": Value::Null})
         );
+    } else {
+        println!(
+            "bench register: {} (mesh only: preload, no registrations)",
+            path.display()
+        );
+        print_preload(&p);
     }
+    Ok(())
+}
+
+/// The benchmark's case: its preload timed (cold, then warm), adaptive LIBR's basis when the
+/// method needs it, the learned model attached (with the seconds that took), and the method.
+fn prepare_case(
+    a: &BenchRegisterArgs,
+    params: &librplus::pipeline::PipelineParams,
+    scenarios: &BenchScenarios,
+    cache: &Path,
+) -> Result<(PreloadBench, Prepared, Method, Option<f64>)> {
     let bar = spinner("preload: LIBR basis cold build, then warm load");
-    let physics = match &a.physics {
-        None => librplus::register::physics::Physics::none(),
-        Some(p) => librplus::register::physics::Physics::read(p)
-            .map_err(|e| anyhow::anyhow!("--physics: {e}"))?,
-    };
-    let pre = preload_model(&geo.model, &params.libr, &physics, &cache);
+    let physics = librplus::eval::runs::read_physics(a.physics.as_deref())?;
+    let pre = preload_model(&scenarios.geo.model, &params.libr, &physics, cache);
     bar.finish_and_clear();
     let (pre, mut case) = pre?;
     let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
-    if method == librplus::pipeline::Method::Adaptive {
+    if method == Method::Adaptive {
         let t = std::time::Instant::now();
         case = case.with_adaptive(&params.libr, &params.adaptive, None)?;
         println!(
@@ -241,81 +256,87 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         case = l.attach(case)?;
         model_prepare_s = Some(t.elapsed().as_secs_f64());
     }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(a.threads)
-        .build()
-        .context("building the thread pool")?;
-    let bar = indicatif::ProgressBar::new(picked.len() as u64).with_message("registrations");
-    let progress = |done: usize, _: usize| bar.set_position(done as u64);
-    let r = pool.install(|| {
-        time_registrations(
-            &case,
-            &picked,
-            &geo.surface,
-            &geo.targets,
-            method,
-            &params,
-            &progress,
-        )
-    });
-    bar.finish_and_clear();
-    let r = r?;
-    let out = json!({
-        "data": data.display().to_string(),
-        "data_generated": a.data.is_none(),
-        "geometry": geometry,
-        "method": method.name(),
-        "threads": a.threads,
-        "preload": preload_json(&pre),
-        "model_prepare_s": model_prepare_s,
-        "registrations": {
-            "count": r.count,
-            "failed": r.failed,
-            "per_category": r.per_category,
-            "total_s": r.total_s,
-            "median_s": {
-                "total": r.median.total_s,
-                "wicp": r.median.wicp_s,
-                "libr": r.median.libr_s,
-                "libr_matching": r.median.libr_matching_s,
-                "libr_assemble": r.median.libr_assemble_s,
-                "libr_solve": r.median.libr_solve_s,
-                "libr_other": r.median.libr_other_s,
-                "gcn": r.median.gcn_s,
-                "gcn_network": r.median.gcn_network_s,
-                "gcn_refit": r.median.gcn_refit_s,
-                "v2s": r.median.v2s_s,
-                "v2s_network": r.median.v2s_network_s,
+    Ok((pre, case, method, model_prepare_s))
+}
+
+/// What `bench register` measured on a dataset.
+struct Timed<'a> {
+    data: &'a Path,
+    geometry: &'a str,
+    method: Method,
+    preload: &'a PreloadBench,
+    model_prepare_s: Option<f64>,
+    registrations: &'a RegistrationBench,
+}
+
+impl Timed<'_> {
+    /// The measurements as `--json` prints them.
+    fn to_json(&self, a: &BenchRegisterArgs) -> Value {
+        let r = self.registrations;
+        json!({
+            "data": self.data.display().to_string(),
+            "data_generated": a.data.is_none(),
+            "geometry": self.geometry,
+            "method": self.method.name(),
+            "threads": a.threads,
+            "preload": preload_json(self.preload),
+            "model_prepare_s": self.model_prepare_s,
+            "registrations": {
+                "count": r.count,
+                "failed": r.failed,
+                "per_category": r.per_category,
+                "total_s": r.total_s,
+                "median_s": {
+                    "total": r.median.total_s,
+                    "wicp": r.median.wicp_s,
+                    "libr": r.median.libr_s,
+                    "libr_matching": r.median.libr_matching_s,
+                    "libr_assemble": r.median.libr_assemble_s,
+                    "libr_solve": r.median.libr_solve_s,
+                    "libr_other": r.median.libr_other_s,
+                    "gcn": r.median.gcn_s,
+                    "gcn_network": r.median.gcn_network_s,
+                    "gcn_refit": r.median.gcn_refit_s,
+                    "v2s": r.median.v2s_s,
+                    "v2s_network": r.median.v2s_network_s,
+                },
+                "wicp_iterations_mean": r.wicp_iterations_mean,
+                "libr_iterations_mean": r.libr_iterations_mean,
+                "libr_converged": r.libr_converged,
+                "tre_mm_mean": r.tre_mm_mean,
             },
-            "wicp_iterations_mean": r.wicp_iterations_mean,
-            "libr_iterations_mean": r.libr_iterations_mean,
-            "libr_converged": r.libr_converged,
-            "tre_mm_mean": r.tre_mm_mean,
-        },
-    });
-    if a.common.json {
-        println!("{out}");
-        return Ok(());
+        })
     }
-    println!(
-        "bench register: geometry {geometry} of {}{}, method {}, {} registrations one at a time in a {}-thread pool",
-        data.display(),
-        if a.data.is_none() { " (generated)" } else { "" },
-        method.name(),
-        r.count,
-        a.threads
-    );
-    print_preload(&pre);
-    if let Some(t) = model_prepare_s {
+
+    /// The measurements as lines for a person.
+    fn print(&self, a: &BenchRegisterArgs) {
+        let (r, method) = (self.registrations, self.method);
         println!(
-            "{} prepared for the case in {t:.3} s",
-            if method == librplus::pipeline::Method::V2s {
-                "V2S grid and preoperative channels"
-            } else {
-                "SR-GCN graphs"
-            }
+            "bench register: geometry {} of {}{}, method {}, {} registrations one at a time in a {}-thread pool",
+            self.geometry,
+            self.data.display(),
+            if a.data.is_none() { " (generated)" } else { "" },
+            method.name(),
+            r.count,
+            a.threads
         );
+        print_preload(self.preload);
+        if let Some(t) = self.model_prepare_s {
+            println!(
+                "{} prepared for the case in {t:.3} s",
+                if method == Method::V2s {
+                    "V2S grid and preoperative channels"
+                } else {
+                    "SR-GCN graphs"
+                }
+            );
+        }
+        print_registrations(r, method);
     }
+}
+
+/// The timings of the registrations: their spread, the stage medians and the iterations.
+fn print_registrations(r: &RegistrationBench, method: Method) {
     println!(
         "registration (s): median {:.4}, p10 {:.4}, p90 {:.4}, p99 {:.4}, mean {:.4}, max {:.4}; failed {}",
         r.total_s.median,
@@ -338,7 +359,7 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         r.median.gcn_network_s,
         r.median.gcn_refit_s
     );
-    if method == librplus::pipeline::Method::V2s {
+    if method == Method::V2s {
         println!(
             "  V2S stage median (s): {:.4} (measured channels on the grid, then network and interpolation {:.4})",
             r.median.v2s_s, r.median.v2s_network_s
@@ -353,7 +374,6 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
         r.tre_mm_mean,
         r.per_category
     );
-    Ok(())
 }
 
 /// Generates the `small` preset (seed 1) from `surface` into `dir`, quietly.

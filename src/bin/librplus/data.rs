@@ -178,28 +178,9 @@ fn train_patterns(names: &[String]) -> Result<Vec<librplus::phantom::patterns::P
     Ok(out)
 }
 
+/// `librplus generate`: the dataset (or this shard of it) written, then what it holds printed.
 pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
-    use librplus::phantom::dataset::{GenerateConfig, Preset};
-    let shard = match &a.shard {
-        None => (0, 1),
-        Some(s) => {
-            let (i, n) = s
-                .split_once('/')
-                .with_context(|| format!("--shard {s:?}: expected i/N, e.g. 0/4"))?;
-            let (i, n): (usize, usize) = (
-                i.trim()
-                    .parse()
-                    .with_context(|| format!("--shard {s:?}: i is not a number"))?,
-                n.trim()
-                    .parse()
-                    .with_context(|| format!("--shard {s:?}: N is not a number"))?,
-            );
-            if n == 0 || i >= n {
-                bail!("--shard {s:?}: need 0 ≤ i < N");
-            }
-            (i, n)
-        }
-    };
+    let shard = parse_shard(a.shard.as_deref())?;
     let paths: Vec<Option<&Path>> = if a.surface.is_empty() {
         vec![None]
     } else {
@@ -212,6 +193,51 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
         surfaces.push(s);
         sources.push(name);
     }
+    let config = generate_config(a, sources)?;
+    std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
+    let t0 = Instant::now();
+    let mut report = write_dataset(a, &config, &surfaces, shard)?;
+    let detect = record_detectability(a, &config, shard, report.manifest.as_ref())?;
+    if detect.is_some() {
+        report.manifest = Some(librplus::dataset::read_manifest(&a.out)?);
+    }
+    let out = generate_json(a, &report, shard, detect.as_ref(), t0);
+    emit(a.common.json, &out);
+    if !report.errors.is_empty() {
+        bail!(
+            "{} deformation(s) failed every draw: {}",
+            report.errors.len(),
+            report.errors.join("; ")
+        );
+    }
+    Ok(())
+}
+
+/// `--shard i/N` as (i, N); (0, 1) without it.
+fn parse_shard(shard: Option<&str>) -> Result<(usize, usize)> {
+    let Some(s) = shard else {
+        return Ok((0, 1));
+    };
+    let (i, n) = s
+        .split_once('/')
+        .with_context(|| format!("--shard {s:?}: expected i/N, e.g. 0/4"))?;
+    let (i, n): (usize, usize) = (
+        i.trim()
+            .parse()
+            .with_context(|| format!("--shard {s:?}: i is not a number"))?,
+        n.trim()
+            .parse()
+            .with_context(|| format!("--shard {s:?}: N is not a number"))?,
+    );
+    if n == 0 || i >= n {
+        bail!("--shard {s:?}: need 0 ≤ i < N");
+    }
+    Ok((i, n))
+}
+
+/// The generator's configuration: the preset's, with what the options change.
+fn generate_config(a: &GenerateArgs, sources: Vec<String>) -> Result<GenerateConfig> {
+    use librplus::phantom::dataset::{Preset, TruthModel};
     let preset = match a.preset {
         PresetArg::Small => Preset::Small,
         PresetArg::Paper => Preset::Paper,
@@ -231,10 +257,29 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
     }
     config.paired_categories = a.paired_categories;
     config.truth = match a.truth {
-        TruthArg::Nonlinear => librplus::phantom::dataset::TruthModel::Nonlinear,
-        TruthArg::Linear => librplus::phantom::dataset::TruthModel::LinearHomogeneous,
-        TruthArg::Libr => librplus::phantom::dataset::TruthModel::Libr,
+        TruthArg::Nonlinear => TruthModel::Nonlinear,
+        TruthArg::Linear => TruthModel::LinearHomogeneous,
+        TruthArg::Libr => TruthModel::Libr,
     };
+    truth_options(a, &mut config)?;
+    if let Some(s) = a.scenarios {
+        if s == 0 {
+            bail!("--scenarios must be at least 1");
+        }
+        config.scenarios = s;
+    }
+    if let Some(h) = a.edge_mm {
+        if !(h.is_finite() && h > 0.5) {
+            bail!("--edge-mm {h}: must be a length above 0.5 mm");
+        }
+        config.edge_mm = h;
+    }
+    Ok(config)
+}
+
+/// The options that go with a truth model: hidden effects (LIBR's truth) and truth families
+/// (the nonlinear truth).
+fn truth_options(a: &GenerateArgs, config: &mut GenerateConfig) -> Result<()> {
     if !a.hidden_effect.is_empty() && !matches!(a.truth, TruthArg::Libr) {
         bail!(
             "--hidden-effect needs --truth libr: hidden effects are added to LIBR's own physics \
@@ -256,20 +301,16 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
         config.families = librplus::phantom::family::TruthFamily::parse_list(f)
             .map_err(|e| anyhow::anyhow!("--families: {e}"))?;
     }
-    if let Some(s) = a.scenarios {
-        if s == 0 {
-            bail!("--scenarios must be at least 1");
-        }
-        config.scenarios = s;
-    }
-    if let Some(h) = a.edge_mm {
-        if !(h.is_finite() && h > 0.5) {
-            bail!("--edge-mm {h}: must be a length above 0.5 mm");
-        }
-        config.edge_mm = h;
-    }
-    std::fs::create_dir_all(&a.out).with_context(|| a.out.display().to_string())?;
-    let t0 = Instant::now();
+    Ok(())
+}
+
+/// Generates the dataset (this shard of it) into `--out`, with a progress bar.
+fn write_dataset(
+    a: &GenerateArgs,
+    config: &GenerateConfig,
+    surfaces: &[TriSurface],
+    shard: (usize, usize),
+) -> Result<librplus::phantom::dataset::RunReport> {
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template(
             "{spinner} {msg} [{bar:30}] {pos}/{len} deformations, {elapsed} (eta {eta})",
@@ -284,15 +325,55 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
         bar.set_position(done as u64);
         bar.set_message(msg.to_string());
     };
-    let result = librplus::phantom::dataset::generate(&config, &surfaces, &a.out, shard, &progress);
+    let result = librplus::phantom::dataset::generate(config, surfaces, &a.out, shard, &progress);
     bar.finish_and_clear();
-    let mut report = result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))?;
-    let detect = record_detectability(a, &config, shard, report.manifest.as_ref())?;
-    if detect.is_some() {
-        report.manifest = Some(librplus::dataset::read_manifest(&a.out)?);
-    }
+    result.map_err(|e| anyhow::anyhow!("{}: {e}", a.out.display()))
+}
+
+/// What `generate` prints: the dataset's size and draws, per pattern, and the detectability
+/// recorded.
+fn generate_json(
+    a: &GenerateArgs,
+    report: &librplus::phantom::dataset::RunReport,
+    shard: (usize, usize),
+    detect: Option<&librplus::eval::detectability::DetectabilityReport>,
+    t0: Instant,
+) -> Value {
     let m = report.manifest.as_ref().expect("manifest written");
-    let per_pattern: serde_json::Map<String, Value> = ["L", "R", "W", "V", "X"]
+    let mut out = json!({
+        "out": a.out.display().to_string(),
+        "preset": m.preset,
+        "seed": m.seed,
+        "shard": format!("{}/{}", shard.0, shard.1),
+        "geometries": m.geometries.len(),
+        "nodes": m.geometries.iter().map(|g| g.nodes).collect::<Vec<_>>(),
+        "deformations_written": report.written.len(),
+        "deformations_resumed": report.resumed.len(),
+        "deformations_missing": m.missing.len(),
+        "scenarios": m.deformations.iter().map(|d| d.scenarios.len()).sum::<usize>(),
+        "failed_draws": m.failed.len(),
+        "complete": m.complete,
+        "per_pattern": per_pattern(m),
+        "seconds_per_deformation_median": if report.seconds.is_empty() { 0.0 } else { librplus::util::median(&report.seconds) },
+        "total_s": t0.elapsed().as_secs_f64(),
+    });
+    if let Some(d) = detect {
+        out["detectability"] = json!({
+            "computed": d.computed,
+            "detectable": d.detectable,
+            "kept": d.kept,
+            "errors": d.errors,
+            "detectable_of_all": m.deformations.iter().filter(|e| e.detectability.as_ref().is_some_and(|x| x.detectable)).count(),
+            "recorded_of_all": m.deformations.iter().filter(|e| e.detectability.is_some()).count(),
+        });
+    }
+    out
+}
+
+/// Per pattern of the dataset: its deformations and their mean and largest displacements, and
+/// the gap to the linear homogeneous solution.
+fn per_pattern(m: &librplus::dataset::Manifest) -> serde_json::Map<String, Value> {
+    ["L", "R", "W", "V", "X"]
         .iter()
         .filter_map(|p| {
             let d: Vec<_> = m.deformations.iter().filter(|d| d.pattern == *p).collect();
@@ -309,44 +390,7 @@ pub(crate) fn generate(a: &GenerateArgs) -> Result<()> {
                 )
             })
         })
-        .collect();
-    let out = json!({
-        "out": a.out.display().to_string(),
-        "preset": m.preset,
-        "seed": m.seed,
-        "shard": format!("{}/{}", shard.0, shard.1),
-        "geometries": m.geometries.len(),
-        "nodes": m.geometries.iter().map(|g| g.nodes).collect::<Vec<_>>(),
-        "deformations_written": report.written.len(),
-        "deformations_resumed": report.resumed.len(),
-        "deformations_missing": m.missing.len(),
-        "scenarios": m.deformations.iter().map(|d| d.scenarios.len()).sum::<usize>(),
-        "failed_draws": m.failed.len(),
-        "complete": m.complete,
-        "per_pattern": per_pattern,
-        "seconds_per_deformation_median": if report.seconds.is_empty() { 0.0 } else { librplus::util::median(&report.seconds) },
-        "total_s": t0.elapsed().as_secs_f64(),
-    });
-    let mut out = out;
-    if let Some(d) = &detect {
-        out["detectability"] = json!({
-            "computed": d.computed,
-            "detectable": d.detectable,
-            "kept": d.kept,
-            "errors": d.errors,
-            "detectable_of_all": m.deformations.iter().filter(|e| e.detectability.as_ref().is_some_and(|x| x.detectable)).count(),
-            "recorded_of_all": m.deformations.iter().filter(|e| e.detectability.is_some()).count(),
-        });
-    }
-    emit(a.common.json, &out);
-    if !report.errors.is_empty() {
-        bail!(
-            "{} deformation(s) failed every draw: {}",
-            report.errors.len(),
-            report.errors.join("; ")
-        );
-    }
-    Ok(())
+        .collect()
 }
 
 /// With hidden effects (and not `--no-detectability`, not sharded, the dataset complete):

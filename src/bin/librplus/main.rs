@@ -17,7 +17,6 @@ mod mesh;
 mod register;
 mod study;
 mod train;
-mod train_v2s;
 mod util;
 
 use anyhow::{Context, Result};
@@ -127,7 +126,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Evaluate(args) => evaluate(&args),
         Command::CalibrateError(args) => calibrate_error::calibrate_error(&args),
         Command::CalibrateAbstain(args) => calibrate_error::calibrate_abstain(&args),
-        Command::Train(args) => train(&args).map(|_| ()),
+        Command::Train(args) => train(&args),
         Command::Experiments(args) => experiments(&args),
         Command::Ensemble(args) => ensemble(&args),
         Command::Discover(args) => discover::discover(&args),

@@ -1,4 +1,5 @@
-//! Helpers shared by the commands: printing results, the command line and commit of a run.
+//! Helpers shared by the commands: printing results and progress, the command line and commit of
+//! a run.
 
 use serde_json::Value;
 
@@ -63,47 +64,11 @@ pub(crate) fn shell_command() -> String {
         .join(" ")
 }
 
-/// The scenarios of a split's deformations (those `refs` name), by deformation id, and each
-/// deformation's geometry.
-pub(crate) struct SplitScenarios {
-    scen: std::collections::BTreeMap<String, Vec<librplus::eval::ScenarioData>>,
-    geom_of: std::collections::BTreeMap<String, String>,
-}
-
-impl SplitScenarios {
-    /// Reads the scenarios of every deformation of `m` that `refs` name.
-    pub(crate) fn load<'a>(
-        data: &std::path::Path,
-        m: &librplus::dataset::Manifest,
-        refs: impl Iterator<Item = &'a (String, usize)>,
-    ) -> anyhow::Result<Self> {
-        let needed: std::collections::BTreeSet<&str> = refs.map(|(d, _)| d.as_str()).collect();
-        let mut scen = std::collections::BTreeMap::new();
-        let mut geom_of = std::collections::BTreeMap::new();
-        for d in m
-            .deformations
-            .iter()
-            .filter(|d| needed.contains(d.id.as_str()))
-        {
-            scen.insert(d.id.clone(), librplus::eval::load_scenarios(data, d)?);
-            geom_of.insert(d.id.clone(), d.geometry.clone());
-        }
-        Ok(Self { scen, geom_of })
-    }
-
-    /// The geometries of the deformations read (one per deformation, in deformation order).
-    pub(crate) fn geometries(&self) -> Vec<String> {
-        self.geom_of.values().cloned().collect()
-    }
-
-    /// The scenarios `refs` name, each with its geometry.
-    pub(crate) fn pick(
-        &self,
-        refs: &[(String, usize)],
-    ) -> Vec<(&librplus::eval::ScenarioData, &str)> {
-        refs.iter()
-            .filter_map(|(d, i)| self.scen[d].get(*i).map(|s| (s, self.geom_of[d].as_str())))
-            .collect()
+/// How this process was started, as the provenance of what a run writes records it.
+pub(crate) fn origin() -> librplus::eval::runs::RunOrigin {
+    librplus::eval::runs::RunOrigin {
+        command: shell_command(),
+        commit: git_commit(),
     }
 }
 
@@ -114,4 +79,60 @@ pub(crate) fn bar_style(what: &str) -> indicatif::ProgressStyle {
     ))
     .expect("valid template")
     .progress_chars("=> ")
+}
+
+/// The library's progress of a long run on the terminal: one progress bar (or spinner) at a time
+/// and log lines on stderr, written above the bar.
+#[derive(Default)]
+pub(crate) struct Bars {
+    bar: std::sync::Mutex<Option<indicatif::ProgressBar>>,
+}
+
+impl Bars {
+    /// The current bar, locked.
+    fn current(&self) -> std::sync::MutexGuard<'_, Option<indicatif::ProgressBar>> {
+        self.bar.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Shows `bar` instead of the current one (which goes away).
+    fn show(&self, bar: Option<indicatif::ProgressBar>) {
+        if let Some(old) = std::mem::replace(&mut *self.current(), bar) {
+            old.finish_and_clear();
+        }
+    }
+}
+
+impl librplus::eval::runs::RunProgress for Bars {
+    fn spin(&self, what: &str) {
+        let bar = indicatif::ProgressBar::new_spinner().with_message(what.to_string());
+        bar.enable_steady_tick(std::time::Duration::from_millis(200));
+        self.show(Some(bar));
+    }
+
+    fn start(&self, what: &str, total: usize) {
+        self.show(Some(
+            indicatif::ProgressBar::new(total as u64).with_style(bar_style(what)),
+        ));
+    }
+
+    fn step(&self, done: usize, total: usize, message: Option<&str>) {
+        if let Some(bar) = &*self.current() {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+            if let Some(m) = message {
+                bar.set_message(m.to_string());
+            }
+        }
+    }
+
+    fn finish(&self) {
+        self.show(None);
+    }
+
+    fn log(&self, line: &str) {
+        match &*self.current() {
+            Some(bar) => bar.suspend(|| eprintln!("{line}")),
+            None => eprintln!("{line}"),
+        }
+    }
 }

@@ -63,6 +63,7 @@ pub fn evaluate(
         physics,
         // LIBR+ runs when SR-GCN models are given.
         librplus: librplus.filter(|l| !l.models.is_empty()),
+        v2s,
         only: librplus.and_then(|l| l.only),
         discover,
         cache: dir.join("cache"),
@@ -158,6 +159,8 @@ struct Run<'a> {
     params: &'a PipelineParams,
     physics: &'a crate::register::physics::Physics,
     librplus: Option<LibrPlusEval<'a>>,
+    /// The V2S network of method v2s (given with or without SR-GCN models).
+    v2s: Option<&'a std::sync::Arc<crate::v2s::io::V2sModel>>,
     only: Option<&'a std::collections::BTreeSet<(String, usize)>>,
     discover: Option<DiscoverEval<'a>>,
     cache: PathBuf,
@@ -198,8 +201,7 @@ impl Run<'_> {
         if methods.contains(&Method::Adaptive) {
             case = case.with_adaptive(&params.libr, &params.adaptive, Some(&self.cache))?;
         }
-        let v2s = self.librplus.and_then(|l| l.v2s);
-        if let Some(v) = v2s.filter(|_| methods.contains(&Method::V2s)) {
+        if let Some(v) = self.v2s.filter(|_| methods.contains(&Method::V2s)) {
             case = case.with_v2s(v.clone())?;
         }
         let nodes = geo.model.mesh.num_nodes();

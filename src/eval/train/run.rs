@@ -52,14 +52,14 @@ pub fn train(
     // among the best (ties keep more of the correction).
     let grid = &run.grid;
     let mut config = opts.config.clone();
-    let (k, scaled_valid_mm) = best
-        .errs
-        .iter()
-        .enumerate()
-        .rev()
-        .fold((grid.len() - 1, best.mm), |acc, (k, e)| {
-            if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
-        });
+    let (k, scaled_valid_mm) =
+        best.errs
+            .iter()
+            .enumerate()
+            .rev()
+            .fold((grid.len() - 1, best.mm), |acc, (k, e)| {
+                if *e < acc.1 - 1e-9 { (k, *e) } else { acc }
+            });
     config.correction_scale = grid[k];
     Ok(TrainReport {
         model: TrainedModel {

@@ -495,6 +495,15 @@ pub(crate) enum ScheduleArg {
     Cosine,
 }
 
+impl ScheduleArg {
+    pub(crate) fn get(self) -> librplus::eval::train::Schedule {
+        match self {
+            ScheduleArg::Plateau => librplus::eval::train::Schedule::Plateau,
+            ScheduleArg::Cosine => librplus::eval::train::Schedule::Cosine,
+        }
+    }
+}
+
 #[derive(Clone, Copy, clap::ValueEnum)]
 pub(crate) enum MethodArg {
     /// Salient-feature weighted rigid ICP.
