@@ -175,7 +175,6 @@ pub struct Loaded {
 /// and, with `geometries`, the geometries they belong to.
 pub fn load_selection(dir: &Path, sel: &Selection, geometries: bool) -> Result<Loaded> {
     let manifest = librplus::eval::open(dir)
-        .map_err(anyhow::Error::msg)
         .with_context(|| format!("reading the dataset manifest in {}", dir.display()))?;
     let refs = select(&manifest, sel)?;
     let mut cache: HashMap<usize, HashMap<usize, (ScenarioData, ScenarioPlanes)>> = HashMap::new();
@@ -185,12 +184,8 @@ pub fn load_selection(dir: &Path, sel: &Selection, geometries: bool) -> Result<L
         }
         let d = &manifest.deformations[r.deformation];
         let ctx = || format!("{} (deformation {})", dir.join(&d.npz).display(), d.id);
-        let sc = librplus::eval::load_scenarios(dir, d)
-            .map_err(anyhow::Error::msg)
-            .with_context(ctx)?;
-        let pl = librplus::eval::load_scenario_planes(dir, d)
-            .map_err(anyhow::Error::msg)
-            .with_context(ctx)?;
+        let sc = librplus::eval::load_scenarios(dir, d).with_context(ctx)?;
+        let pl = librplus::eval::load_scenario_planes(dir, d).with_context(ctx)?;
         let by_index = d
             .scenarios
             .iter()
@@ -215,11 +210,9 @@ pub fn load_selection(dir: &Path, sel: &Selection, geometries: bool) -> Result<L
     if geometries {
         for s in &scenarios {
             if !geos.contains_key(&s.case_id) {
-                let g = librplus::eval::load_geometry(dir, &manifest, &s.case_id)
-                    .map_err(anyhow::Error::msg)
-                    .with_context(|| {
-                        format!("reading geometry {} in {}", s.case_id, dir.display())
-                    })?;
+                let g = librplus::eval::load_geometry(dir, &manifest, &s.case_id).with_context(
+                    || format!("reading geometry {} in {}", s.case_id, dir.display()),
+                )?;
                 geos.insert(s.case_id.clone(), g);
             }
         }

@@ -4,16 +4,14 @@
 
 use crate::auth::Principal;
 use crate::cases::Case;
-use crate::error::{ServiceError, short};
+use crate::error::{ServiceError, Unavailable};
 use crate::shared::{MAX_CASE_ID, Shared};
 use std::sync::Arc;
 
 /// The ready cases; UNAVAILABLE while the server still preloads.
 pub(crate) fn cases(shared: &Shared) -> Result<crate::registry::Ready, ServiceError> {
     if !shared.registry.preloaded() {
-        return Err(ServiceError::Unavailable(
-            "the server is still preloading its cases; retry when health reports SERVING".into(),
-        ));
+        return Err(Unavailable::Preloading.into());
     }
     Ok(shared.registry.ready())
 }
@@ -68,11 +66,12 @@ pub(crate) fn case(
                 .status(id)
                 .map(|s| format!("{}, {:.0} %", s.stage, 100.0 * s.fraction))
                 .unwrap_or_default();
-            Err(ServiceError::Unavailable(format!(
-                "{field}: case {:?} was idle and left memory; it is being loaded again \
-                 ({stage}); retry in a few seconds, or follow it with WatchCase",
-                short(id, 64)
-            )))
+            Err(Unavailable::Reloading {
+                field: field.to_string(),
+                id: id.to_string(),
+                stage,
+            }
+            .into())
         }
         _ => Err(ServiceError::UnknownCase {
             field: field.to_string(),

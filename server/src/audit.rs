@@ -14,14 +14,15 @@ use crate::journal::Journal;
 pub use crate::journal::SessionRecord;
 use rusqlite::{Connection, OptionalExtension, params};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
+use std::sync::{Arc, mpsc};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// The audit database format.
 pub const FORMAT: u32 = 2;
 
-/// Why the audit log could not be written or read.
-#[derive(Debug, thiserror::Error)]
+/// Why the audit log could not be written or read. Cheap to clone: one failed commit is the
+/// answer of every write it held.
+#[derive(Debug, Clone, thiserror::Error)]
 pub enum AuditError {
     /// SQLite refused (a full disk, a corrupt or foreign file, a locked database).
     #[error("audit database {}: {source}", path.display())]
@@ -29,7 +30,27 @@ pub enum AuditError {
         /// The database.
         path: PathBuf,
         /// SQLite's error.
-        source: rusqlite::Error,
+        source: Arc<rusqlite::Error>,
+    },
+    /// The session journal refused a record or its fsync.
+    #[error("session journal {}: {source}", dir.display())]
+    Journal {
+        /// The journal's folder.
+        dir: PathBuf,
+        /// The system's error.
+        source: Arc<std::io::Error>,
+    },
+    /// Messages were written to the session journal, but another replica claimed the session
+    /// meanwhile (its takeover may not have read them): they are not answered.
+    #[error(
+        "session journal {}: session {session_id} was taken over by another replica",
+        dir.display()
+    )]
+    TakenOver {
+        /// The journal's folder.
+        dir: PathBuf,
+        /// The session.
+        session_id: String,
     },
     /// The database is of another format.
     #[error("audit database {}: format {found}, this server reads format {FORMAT}", path.display())]
@@ -152,7 +173,7 @@ pub struct RegistrationRecord {
     pub timings: String,
 }
 
-type Reply = tokio::sync::oneshot::Sender<Result<(), String>>;
+type Reply = tokio::sync::oneshot::Sender<Result<(), AuditError>>;
 
 /// The audit log's writer (cheap to share: a channel to its thread).
 #[derive(Debug)]
@@ -168,8 +189,8 @@ fn journal_batch(
     j: &mut Journal,
     batch: &[(Vec<Record>, Reply)],
     touched: &mut Vec<(usize, String)>,
-) -> Vec<Result<(), String>> {
-    let dir = j.dir().display().to_string();
+) -> Vec<Result<(), AuditError>> {
+    let dir = j.dir().to_path_buf();
     batch
         .iter()
         .enumerate()
@@ -202,9 +223,12 @@ fn journal_batch(
                     Record::Event { .. } | Record::Registration(_) => Ok(()),
                 };
                 if let Err(e) = res {
-                    tracing::error!(error = %e, journal = %dir, "session journal write failed");
+                    tracing::error!(error = %e, journal = %dir.display(), "session journal write failed");
                     metrics::counter!("librplus_journal_failures_total").increment(1);
-                    return Err(format!("session journal {dir}: {e}"));
+                    return Err(AuditError::Journal {
+                        dir: dir.clone(),
+                        source: Arc::new(e),
+                    });
                 }
             }
             Ok(())
@@ -238,7 +262,7 @@ CREATE INDEX IF NOT EXISTS events_time ON events(t_ms);
 pub fn open_db(path: &Path) -> Result<Connection, AuditError> {
     let sql = |source| AuditError::Sql {
         path: path.to_path_buf(),
-        source,
+        source: Arc::new(source),
     };
     let c = Connection::open(path).map_err(sql)?;
     c.busy_timeout(std::time::Duration::from_secs(10))
@@ -434,11 +458,17 @@ impl Audit {
                     let result = result.map_err(|e| {
                         tracing::error!(error = %e, db = %p.display(), "audit write failed");
                         metrics::counter!("librplus_audit_failures_total").increment(1);
-                        format!("audit database {}: {e}", p.display())
+                        AuditError::Sql {
+                            path: p.clone(),
+                            source: Arc::new(e),
+                        }
                     });
                     if let Some(j) = journal.as_mut() {
                         if let Err(e) = j.sync(touched.iter().map(|(_, s)| s.as_str())) {
-                            let e = format!("session journal {}: {e}", j.dir().display());
+                            let e = AuditError::Journal {
+                                dir: j.dir().to_path_buf(),
+                                source: Arc::new(e),
+                            };
                             tracing::error!(error = %e, "session journal fsync failed");
                             for (i, _) in &touched {
                                 results[*i] = Err(e.clone());
@@ -448,11 +478,10 @@ impl Audit {
                         // takeover may not have read these messages, so they are not answered.
                         for (i, sid) in &touched {
                             if results[*i].is_ok() && !j.still_held(sid) {
-                                results[*i] = Err(format!(
-                                    "session journal {}: session {sid} was taken over by \
-                                     another replica",
-                                    j.dir().display()
-                                ));
+                                results[*i] = Err(AuditError::TakenOver {
+                                    dir: j.dir().to_path_buf(),
+                                    session_id: sid.clone(),
+                                });
                             }
                         }
                     }
@@ -483,14 +512,14 @@ impl Audit {
     }
 
     /// Writes `records` in one transaction; returns once it is committed (durable), or why not.
-    pub async fn write(&self, records: Vec<Record>) -> Result<(), String> {
+    pub async fn write(&self, records: Vec<Record>) -> Result<(), AuditError> {
         let (reply, rx) = tokio::sync::oneshot::channel();
         self.tx
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .send((records, reply))
-            .map_err(|_| AuditError::Stopped.to_string())?;
-        rx.await.map_err(|_| AuditError::Stopped.to_string())?
+            .map_err(|_| AuditError::Stopped)?;
+        rx.await.map_err(|_| AuditError::Stopped)?
     }
 }
 
@@ -540,15 +569,24 @@ pub fn count_sessions(
     .map(|n| n as u64)
 }
 
+/// A `--since` that is neither Unix seconds nor a UTC date and time.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("--since {given:?}: expected Unix seconds or YYYY-MM-DD[THH:MM[:SS]][Z] (UTC)")]
+pub struct SinceError {
+    /// What was given.
+    pub given: String,
+}
+
 /// Reads `--since`: Unix seconds, or a UTC date and time `YYYY-MM-DD[THH:MM[:SS]][Z]`; in ms.
-pub fn parse_since(s: &str) -> Result<i64, String> {
+pub fn parse_since(s: &str) -> Result<i64, SinceError> {
     if let Ok(x) = s.parse::<f64>()
         && x.is_finite()
     {
         return Ok((x * 1e3) as i64);
     }
-    let bad =
-        || format!("--since {s:?}: expected Unix seconds or YYYY-MM-DD[THH:MM[:SS]][Z] (UTC)");
+    let bad = || SinceError {
+        given: s.to_string(),
+    };
     let t = s.trim_end_matches('Z');
     let (date, time) = t.split_once(['T', ' ']).unwrap_or((t, "00:00:00"));
     let d: Vec<i64> = date
@@ -726,6 +764,37 @@ pub fn rows(
     Ok(out)
 }
 
+/// Why a recorded session could not be exported ([`export_session`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    /// The audit database could not be read.
+    #[error("{0}")]
+    Sql(#[from] rusqlite::Error),
+    /// No session of that id is recorded.
+    #[error("no recorded session {id:?}")]
+    NoSession {
+        /// The id asked for.
+        id: String,
+    },
+    /// The record does not decode, or does not begin with a start.
+    #[error(transparent)]
+    Record(#[from] crate::error::Unreplayable),
+    /// A recorded message's points or the start's initial alignment fail the server's checks.
+    #[error("{0:?}")]
+    Invalid(#[source] crate::error::ServiceError),
+    /// A folder or file could not be written.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The folder or file.
+        path: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+    /// The initial alignment could not be written as JSON.
+    #[error("{0}")]
+    Json(#[from] serde_json::Error),
+}
+
 /// What [`export_session`] wrote.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Exported {
@@ -745,37 +814,41 @@ pub struct Exported {
 /// --scenarios DIR` reads: `surface.csv`, `ultrasound.csv` (posterior contours), `vessel.csv`
 /// and `initial_alignment.json`, in `dir` (created). The points are those the server took, in
 /// its order (salient-feature designations are not kept in these files).
-pub fn export_session(c: &Connection, id: &str, dir: &Path) -> Result<Exported, String> {
+pub fn export_session(c: &Connection, id: &str, dir: &Path) -> Result<Exported, ExportError> {
     use crate::convert::{plane_points, points3, rigid_from_pb};
+    use crate::error::Unreplayable;
     use librplus_proto::v1 as pb;
     use pb::stream_register_request::Msg;
     use prost::Message;
-    let rec = read_session(c, id)
-        .map_err(|e| e.to_string())?
-        .ok_or_else(|| format!("no recorded session {id:?}"))?;
-    let decode = |b: &[u8], what: &str| {
-        pb::StreamRegisterRequest::decode(b).map_err(|e| format!("{what}: {e}"))
-    };
-    let start = match decode(&rec.start, "start")?.msg {
+    let rec = read_session(c, id)?.ok_or_else(|| ExportError::NoSession { id: id.to_string() })?;
+    let start = pb::StreamRegisterRequest::decode(&rec.start[..]).map_err(Unreplayable::Start)?;
+    let start = match start.msg {
         Some(Msg::Start(s)) => s,
-        _ => return Err("the first message is not a start".into()),
+        _ => return Err(Unreplayable::NotAStart.into()),
     };
     let (mut surface, mut contour, mut vessel) = (Vec::new(), Vec::new(), Vec::new());
     for (seq, b) in &rec.messages {
-        let what = format!("message {seq}");
-        match decode(b, &what)?.msg {
-            Some(Msg::Surface(sb)) => surface
-                .extend(points3(&sb.xyz_mm, &what, usize::MAX).map_err(|e| format!("{e:?}"))?),
+        let m = pb::StreamRegisterRequest::decode(&b[..])
+            .map_err(|source| Unreplayable::Decode { seq: *seq, source })?;
+        match m.msg {
+            Some(Msg::Surface(sb)) => surface.extend(
+                points3(&sb.xyz_mm, &format!("message {seq}"), usize::MAX)
+                    .map_err(ExportError::Invalid)?,
+            ),
             Some(Msg::Ultrasound(u)) => {
-                let (c, v) = plane_points(&u, usize::MAX).map_err(|e| format!("{e:?}"))?;
+                let (c, v) = plane_points(&u, usize::MAX).map_err(ExportError::Invalid)?;
                 contour.extend(c);
                 vessel.extend(v);
             }
             _ => {}
         }
     }
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let csv = |name: &str, pts: &[[f64; 3]]| -> Result<(), String> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| ExportError::Io { path, source }
+    };
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let csv = |name: &str, pts: &[[f64; 3]]| -> Result<(), ExportError> {
         if pts.is_empty() {
             return Ok(());
         }
@@ -784,19 +857,15 @@ pub fn export_session(c: &Connection, id: &str, dir: &Path) -> Result<Exported, 
             text.push_str(&format!("{},{},{}\n", p[0], p[1], p[2]));
         }
         let f = dir.join(name);
-        std::fs::write(&f, text).map_err(|e| format!("{}: {e}", f.display()))
+        std::fs::write(&f, text).map_err(io(&f))
     };
     csv("surface.csv", &surface)?;
     csv("ultrasound.csv", &contour)?;
     csv("vessel.csv", &vessel)?;
     if let Some(r) = &start.initial_alignment {
-        let r = rigid_from_pb(r, "start.initial_alignment").map_err(|e| format!("{e:?}"))?;
+        let r = rigid_from_pb(r, "start.initial_alignment").map_err(ExportError::Invalid)?;
         let f = dir.join("initial_alignment.json");
-        std::fs::write(
-            &f,
-            serde_json::to_string_pretty(&r).map_err(|e| e.to_string())?,
-        )
-        .map_err(|e| format!("{}: {e}", f.display()))?;
+        std::fs::write(&f, serde_json::to_string_pretty(&r)?).map_err(io(&f))?;
     }
     Ok(Exported {
         case_id: rec.case_id,

@@ -14,7 +14,9 @@ fn times_parse_and_print_in_utc() {
     assert_eq!(format_ms(1_795_712_400_123), "2026-11-26T17:00:00.123Z");
     assert_eq!(format_ms(951_782_400_000), "2000-02-29T00:00:00.000Z");
     assert_eq!(parse_since("2000-02-29T00:00").unwrap(), 951_782_400_000);
-    assert!(parse_since("yesterday").unwrap_err().contains("--since"));
+    let e = parse_since("yesterday").unwrap_err();
+    assert_eq!(e.given, "yesterday");
+    assert!(e.to_string().starts_with("--since \"yesterday\": "), "{e}");
     assert!(parse_since("2026-13-01").is_err());
 }
 
@@ -72,8 +74,10 @@ async fn records_are_committed_and_read_back() {
     };
     a.write(vec![again(vec![9])]).await.unwrap();
     let e = a.write(vec![again(vec![7])]).await.unwrap_err();
+    assert!(matches!(e, AuditError::Sql { .. }), "{e:?}");
     assert!(
-        e.contains("client_seq 3 is recorded with other content"),
+        e.to_string()
+            .contains("client_seq 3 is recorded with other content"),
         "{e}"
     );
     let s = read_session(&c, "s1").unwrap().unwrap();

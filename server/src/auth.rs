@@ -18,7 +18,7 @@
 //! or unknown: UNAUTHENTICATED; a missing role: PERMISSION_DENIED; a case the principal may not
 //! use: NOT_FOUND, worded exactly as for a case that does not exist.
 
-use crate::error::ServiceError;
+use crate::error::{PermissionDenied, ServiceError, Unauthenticated};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
@@ -131,11 +131,12 @@ impl Principal {
         if self.has(role) {
             return Ok(());
         }
-        Err(ServiceError::PermissionDenied(format!(
-            "principal {:?} may not {what}: it lacks the role {:?}",
-            self.name,
-            role.name()
-        )))
+        Err(PermissionDenied::MissingRole {
+            principal: self.name.clone(),
+            action: what.to_string(),
+            role: role.name(),
+        }
+        .into())
     }
 }
 
@@ -146,7 +147,118 @@ pub struct AuthError {
     /// The file.
     pub path: std::path::PathBuf,
     /// What is wrong.
-    pub problem: String,
+    #[source]
+    pub problem: AuthProblem,
+}
+
+/// What is wrong with an auth file (or a new token); its text names the field:
+/// `principals[I]` is the I-th principal, `[J]` the J-th entry of its list.
+#[derive(Debug, thiserror::Error)]
+pub enum AuthProblem {
+    /// The file does not read.
+    #[error("cannot read: {0}")]
+    Read(#[source] std::io::Error),
+    /// The file is not JSON of the auth file's shape.
+    #[error("{0}")]
+    Json(#[source] serde_json::Error),
+    /// A format other than 1.
+    #[error("format {0} is not supported (1)")]
+    Format(u32),
+    /// A principal's name is empty or longer than [`MAX_NAME`] characters.
+    #[error("principals[{index}].principal: must be 1 to {MAX_NAME} characters")]
+    NameLength {
+        /// The principal's index.
+        index: usize,
+    },
+    /// A principal is listed twice.
+    #[error("principals[{index}].principal: {name:?} is listed twice")]
+    DuplicateName {
+        /// The second entry's index.
+        index: usize,
+        /// The name.
+        name: String,
+    },
+    /// A principal with neither token hashes nor certificate subjects.
+    #[error(
+        "principals[{index}]: neither token_sha256 nor certificate_subjects: it could never \
+         authenticate"
+    )]
+    NoCredentials {
+        /// The principal's index.
+        index: usize,
+    },
+    /// A principal with no role.
+    #[error("principals[{index}].roles: empty (read, register, manage)")]
+    NoRoles {
+        /// The principal's index.
+        index: usize,
+    },
+    /// A principal with no case.
+    #[error("principals[{index}].cases: empty (case ids, prefixes ending in *, or * for all)")]
+    NoCases {
+        /// The principal's index.
+        index: usize,
+    },
+    /// A case pattern that is empty or longer than [`MAX_NAME`] characters.
+    #[error("principals[{index}].cases[{case}]: must be 1 to {MAX_NAME} characters")]
+    CaseLength {
+        /// The principal's index.
+        index: usize,
+        /// The pattern's index.
+        case: usize,
+    },
+    /// A case pattern with a `*` other than at its end.
+    #[error("principals[{index}].cases[{case}]: {pattern:?}: '*' may only end a prefix")]
+    CaseWildcard {
+        /// The principal's index.
+        index: usize,
+        /// The pattern's index.
+        case: usize,
+        /// The pattern.
+        pattern: String,
+    },
+    /// A token hash that is not 64 hex digits.
+    #[error(
+        "principals[{index}].token_sha256[{token}]: not 64 hex digits (the SHA-256 of the token, \
+         never the token itself; `librplus-server token` prints both)"
+    )]
+    TokenHash {
+        /// The principal's index.
+        index: usize,
+        /// The hash's index.
+        token: usize,
+    },
+    /// A token hash another entry already has.
+    #[error("principals[{index}].token_sha256[{token}]: this hash is already another entry's")]
+    DuplicateToken {
+        /// The principal's index.
+        index: usize,
+        /// The hash's index.
+        token: usize,
+    },
+    /// An empty certificate subject.
+    #[error("principals[{index}].certificate_subjects[{subject}]: empty")]
+    EmptySubject {
+        /// The principal's index.
+        index: usize,
+        /// The subject's index.
+        subject: usize,
+    },
+    /// A certificate subject another entry already has.
+    #[error(
+        "principals[{index}].certificate_subjects[{subject}]: {name:?} is already another entry's"
+    )]
+    DuplicateSubject {
+        /// The principal's index.
+        index: usize,
+        /// The subject's index.
+        subject: usize,
+        /// The subject.
+        name: String,
+    },
+    /// The system's random generator failed (making a token).
+    #[error("the system's random generator failed")]
+    Random,
 }
 
 /// The loaded auth file: token hashes and certificate subjects to principals.
@@ -195,7 +307,7 @@ pub fn new_token() -> Result<(String, String), AuthError> {
         .fill(&mut b)
         .map_err(|_| AuthError {
             path: "(token)".into(),
-            problem: "the system's random generator failed".into(),
+            problem: AuthProblem::Random,
         })?;
     let token = format!("lp_{}", hex(&b));
     let hash = hex(&sha256(token.as_bytes()));
@@ -205,54 +317,52 @@ pub fn new_token() -> Result<(String, String), AuthError> {
 impl Auth {
     /// Reads and checks an auth file.
     pub fn load(path: &Path) -> Result<Self, AuthError> {
-        let err = |problem: String| AuthError {
+        let err = |problem: AuthProblem| AuthError {
             path: path.to_path_buf(),
             problem,
         };
-        let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
-        let file: AuthFile = serde_json::from_str(&text).map_err(|e| err(e.to_string()))?;
+        let text = std::fs::read_to_string(path).map_err(|e| err(AuthProblem::Read(e)))?;
+        let file: AuthFile = serde_json::from_str(&text).map_err(|e| err(AuthProblem::Json(e)))?;
         Self::from_file(file).map_err(err)
     }
 
     /// Checks a parsed auth file; the error names the field.
-    pub fn from_file(file: AuthFile) -> Result<Self, String> {
+    pub fn from_file(file: AuthFile) -> Result<Self, AuthProblem> {
         if file.format != 1 {
-            return Err(format!("format {} is not supported (1)", file.format));
+            return Err(AuthProblem::Format(file.format));
         }
         let mut tokens = HashMap::new();
         let mut subjects = HashMap::new();
         let mut names = BTreeSet::new();
-        for (i, e) in file.principals.into_iter().enumerate() {
-            let at = format!("principals[{i}]");
+        for (index, e) in file.principals.into_iter().enumerate() {
             if e.principal.is_empty() || e.principal.chars().count() > MAX_NAME {
-                return Err(format!(
-                    "{at}.principal: must be 1 to {MAX_NAME} characters"
-                ));
+                return Err(AuthProblem::NameLength { index });
             }
             if !names.insert(e.principal.clone()) {
-                return Err(format!("{at}.principal: {:?} is listed twice", e.principal));
+                return Err(AuthProblem::DuplicateName {
+                    index,
+                    name: e.principal,
+                });
             }
             if e.token_sha256.is_empty() && e.certificate_subjects.is_empty() {
-                return Err(format!(
-                    "{at}: neither token_sha256 nor certificate_subjects: it could never authenticate"
-                ));
+                return Err(AuthProblem::NoCredentials { index });
             }
             if e.roles.is_empty() {
-                return Err(format!("{at}.roles: empty (read, register, manage)"));
+                return Err(AuthProblem::NoRoles { index });
             }
             if e.cases.is_empty() {
-                return Err(format!(
-                    "{at}.cases: empty (case ids, prefixes ending in *, or * for all)"
-                ));
+                return Err(AuthProblem::NoCases { index });
             }
-            for (j, c) in e.cases.iter().enumerate() {
+            for (case, c) in e.cases.iter().enumerate() {
                 if c.is_empty() || c.chars().count() > MAX_NAME {
-                    return Err(format!(
-                        "{at}.cases[{j}]: must be 1 to {MAX_NAME} characters"
-                    ));
+                    return Err(AuthProblem::CaseLength { index, case });
                 }
                 if c.strip_suffix('*').unwrap_or(c).contains('*') {
-                    return Err(format!("{at}.cases[{j}]: {c:?}: '*' may only end a prefix"));
+                    return Err(AuthProblem::CaseWildcard {
+                        index,
+                        case,
+                        pattern: c.clone(),
+                    });
                 }
             }
             let p = Arc::new(Principal {
@@ -261,27 +371,24 @@ impl Auth {
                 roles: e.roles.into_iter().collect(),
                 max_sessions: e.max_sessions,
             });
-            for (j, h) in e.token_sha256.iter().enumerate() {
+            for (token, h) in e.token_sha256.iter().enumerate() {
                 let Some(k) = unhex(&h.to_ascii_lowercase()) else {
-                    return Err(format!(
-                        "{at}.token_sha256[{j}]: not 64 hex digits (the SHA-256 of the token, \
-                         never the token itself; `librplus-server token` prints both)"
-                    ));
+                    return Err(AuthProblem::TokenHash { index, token });
                 };
                 if tokens.insert(k, p.clone()).is_some() {
-                    return Err(format!(
-                        "{at}.token_sha256[{j}]: this hash is already another entry's"
-                    ));
+                    return Err(AuthProblem::DuplicateToken { index, token });
                 }
             }
-            for (j, s) in e.certificate_subjects.iter().enumerate() {
+            for (subject, s) in e.certificate_subjects.iter().enumerate() {
                 if s.is_empty() {
-                    return Err(format!("{at}.certificate_subjects[{j}]: empty"));
+                    return Err(AuthProblem::EmptySubject { index, subject });
                 }
                 if subjects.insert(s.clone(), p.clone()).is_some() {
-                    return Err(format!(
-                        "{at}.certificate_subjects[{j}]: {s:?} is already another entry's"
-                    ));
+                    return Err(AuthProblem::DuplicateSubject {
+                        index,
+                        subject,
+                        name: s.clone(),
+                    });
                 }
             }
         }
@@ -303,15 +410,15 @@ impl Auth {
         if let Some(v) = md.get("authorization") {
             // Two headers are refused: proxies and servers disagree on which one counts.
             if md.get_all("authorization").iter().nth(1).is_some() {
-                return Err(ServiceError::Unauthenticated(
-                    "authorization: sent more than once; send exactly one \"Bearer TOKEN\"".into(),
-                ));
+                return Err(Unauthenticated::RepeatedHeader.into());
             }
             let b = v.as_bytes();
             if b.len() > MAX_HEADER {
-                return Err(ServiceError::Unauthenticated(format!(
-                    "authorization: longer than {MAX_HEADER} bytes"
-                )));
+                return Err(Unauthenticated::LongHeader {
+                    len: b.len(),
+                    max: MAX_HEADER,
+                }
+                .into());
             }
             let s = std::str::from_utf8(b).unwrap_or("");
             let Some(token) = s
@@ -319,17 +426,13 @@ impl Auth {
                 .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
                 .map(|(_, t)| t.trim())
             else {
-                return Err(ServiceError::Unauthenticated(
-                    "authorization: expected \"Bearer TOKEN\"".into(),
-                ));
+                return Err(Unauthenticated::NotBearer.into());
             };
             return self
                 .tokens
                 .get(&sha256(token.as_bytes()))
                 .cloned()
-                .ok_or_else(|| {
-                    ServiceError::Unauthenticated("authorization: the token is not valid".into())
-                });
+                .ok_or_else(|| Unauthenticated::UnknownToken.into());
         }
         if let Some(cert) = peer_certs.and_then(|c| c.first()) {
             for s in subject_names(cert) {
@@ -337,17 +440,9 @@ impl Auth {
                     return Ok(p.clone());
                 }
             }
-            return Err(ServiceError::Unauthenticated(
-                "the client certificate's subject is not in the auth file, and no \
-                 authorization token was sent"
-                    .into(),
-            ));
+            return Err(Unauthenticated::UnknownCertificate.into());
         }
-        Err(ServiceError::Unauthenticated(
-            "no credentials: send \"authorization: Bearer TOKEN\" (or a client certificate the \
-             auth file lists)"
-                .into(),
-        ))
+        Err(Unauthenticated::NoCredentials.into())
     }
 }
 
@@ -372,8 +467,8 @@ pub fn subject_names(der: &[u8]) -> Vec<String> {
 mod tests {
     use super::*;
 
-    fn file(json: &str) -> Result<Auth, String> {
-        Auth::from_file(serde_json::from_str(json).map_err(|e| e.to_string())?)
+    fn file(json: &str) -> Result<Auth, AuthProblem> {
+        Auth::from_file(serde_json::from_str(json).map_err(AuthProblem::Json)?)
     }
 
     fn md(auth: &str) -> tonic::metadata::MetadataMap {
@@ -464,8 +559,25 @@ mod tests {
                 "admin",
             ),
         ] {
-            let e = file(&json).unwrap_err();
+            let e = file(&json).unwrap_err().to_string();
             assert!(e.contains(field), "{e} should name {field}");
         }
+        let e = file(
+            r#"{"format":1,"principals":[{"principal":"a","token_sha256":["secret"],"cases":["*"],"roles":["read"]}]}"#,
+        )
+        .unwrap_err();
+        assert!(
+            matches!(e, AuthProblem::TokenHash { index: 0, token: 0 }),
+            "{e:?}"
+        );
+        assert_eq!(
+            e.to_string(),
+            "principals[0].token_sha256[0]: not 64 hex digits (the SHA-256 of the token, never \
+             the token itself; `librplus-server token` prints both)"
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let e = Auth::load(&dir.path().join("absent.json")).unwrap_err();
+        assert!(matches!(e.problem, AuthProblem::Read(_)), "{e:?}");
+        assert!(e.to_string().contains("absent.json: cannot read: "), "{e}");
     }
 }

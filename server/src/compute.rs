@@ -4,7 +4,7 @@
 
 use crate::cases::Case;
 use crate::convert::{method_to_pb, rigid_to_pb};
-use crate::error::{ServiceError, libr_can_fall_back};
+use crate::error::{Internal, ServiceError, Unavailable, libr_can_fall_back};
 use librplus::pipeline::{Method, PipelineParams, register};
 use librplus::register::Measurements;
 use librplus_proto::v1 as pb;
@@ -82,19 +82,22 @@ impl Engine {
         let dec = self.admit_queue(bounded.is_some())?;
         // A unary request first takes one of the unary slots, so that no more of them than
         // those wait ahead of a session's update.
-        let unary =
-            match bounded {
-                Some(_) => Some(self.unary.clone().acquire_owned().await.map_err(|_| {
-                    ServiceError::Unavailable("the server is shutting down".into())
-                })?),
-                None => None,
-            };
+        let unary = match bounded {
+            Some(_) => Some(
+                self.unary
+                    .clone()
+                    .acquire_owned()
+                    .await
+                    .map_err(|_| Unavailable::ShuttingDown)?,
+            ),
+            None => None,
+        };
         let permit = self
             .slots
             .clone()
             .acquire_owned()
             .await
-            .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))?;
+            .map_err(|_| Unavailable::ShuttingDown)?;
         drop(dec);
         let handle = tokio::task::spawn_blocking(move || {
             let r = compute(job);
@@ -107,10 +110,7 @@ impl Engine {
             Err(e) => {
                 tracing::error!(error = %e, "registration task failed");
                 metrics::counter!("librplus_errors_total", "code" => "INTERNAL").increment(1);
-                Err(ServiceError::Internal(
-                    "the registration failed inside the server (logged); the session goes on"
-                        .into(),
-                ))
+                Err(Internal::RegistrationTask(e).into())
             }
         }
     }

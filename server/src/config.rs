@@ -221,9 +221,78 @@ pub enum ConfigError {
         /// The parser's error.
         source: serde_json::Error,
     },
-    /// A value is out of range; the message names the field and the range.
-    #[error("{0}")]
-    Field(String),
+    /// A config file format this server does not read.
+    #[error("format {0} is not supported (1)")]
+    Format(u32),
+    /// Neither a case directory nor a case store.
+    #[error("cases: no case directory given (and no case_store for uploads)")]
+    NoCases,
+    /// A mesh unit other than mm, cm, m.
+    #[error("mesh_unit {0:?}: expected mm, cm or m")]
+    MeshUnit(String),
+    /// A default method that is unknown or switched off.
+    #[error(
+        "default_method {method:?}: expected rigid, libr{}{}",
+        if *.librplus { ", librplus" } else { " (librplus is off)" },
+        if *.v2s { ", v2s" } else { " (v2s is off)" }
+    )]
+    DefaultMethod {
+        /// The method given.
+        method: String,
+        /// Whether LIBR+ is on (`librplus`).
+        librplus: bool,
+        /// Whether V2S is on (`v2s`).
+        v2s: bool,
+    },
+    /// A store limit of 0 (`max_stored_cases`, `max_stored_bytes`).
+    #[error("{0} must be at least 1 (to take no upload, leave case_store unset)")]
+    StoreLimitZero(&'static str),
+    /// A count that must be at least 1 is 0.
+    #[error("{0} must be at least 1")]
+    Zero(&'static str),
+    /// `evict_idle_s` is negative or not finite.
+    #[error(
+        "evict_idle_s must be a finite number of seconds ≥ 0 (0: never), got {}",
+        crate::convert::num(*.0)
+    )]
+    EvictIdle(f64),
+    /// One of the TLS pair is set without the other.
+    #[error("{missing}: missing ({present} is set; TLS needs both)")]
+    TlsPair {
+        /// The field that is missing.
+        missing: &'static str,
+        /// The field that is set.
+        present: &'static str,
+    },
+    /// `client_ca` without TLS.
+    #[error("client_ca: client certificates (mTLS) need TLS: set tls_cert and tls_key")]
+    ClientCaWithoutTls,
+    /// `session_journal` without `audit_db`.
+    #[error("session_journal: needs audit_db (each replica keeps its own audit log)")]
+    JournalWithoutAudit,
+    /// `session_journal_retention_h` is negative or not finite.
+    #[error("session_journal_retention_h must be finite and ≥ 0, got {0}")]
+    JournalRetention(f64),
+    /// A budget outside 1..=its maximum (`time_budget_ms`, `discovery_budget_ms`).
+    #[error("{field} {value} must be in 1..={max_field} ({max})")]
+    Budget {
+        /// The field.
+        field: &'static str,
+        /// Its value.
+        value: u32,
+        /// The field of its maximum.
+        max_field: &'static str,
+        /// The maximum.
+        max: u32,
+    },
+    /// A duration in seconds that is not finite and positive.
+    #[error("{field} must be finite and > 0, got {value}")]
+    NotPositive {
+        /// The field.
+        field: &'static str,
+        /// Its value.
+        value: f64,
+    },
     /// A value of the file `path` is out of range.
     #[error("{}: {source}", path.display())]
     InFile {
@@ -261,35 +330,21 @@ impl ServerConfig {
     /// Checks the values; the message names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
         if self.format != 1 {
-            return Err(ConfigError::Field(format!(
-                "format {} is not supported (1)",
-                self.format
-            )));
+            return Err(ConfigError::Format(self.format));
         }
         if self.cases.is_empty() && self.case_store.is_none() {
-            return Err(ConfigError::Field(
-                "cases: no case directory given (and no case_store for uploads)".into(),
-            ));
+            return Err(ConfigError::NoCases);
         }
         self.unit()?;
         self.method()?;
         if self.max_stored_cases == 0 {
-            return Err(ConfigError::Field(
-                "max_stored_cases must be at least 1 (to take no upload, leave case_store unset)"
-                    .into(),
-            ));
+            return Err(ConfigError::StoreLimitZero("max_stored_cases"));
         }
         if !(self.evict_idle_s.is_finite() && self.evict_idle_s >= 0.0) {
-            return Err(ConfigError::Field(format!(
-                "evict_idle_s must be a finite number of seconds ≥ 0 (0: never), got {}",
-                crate::convert::num(self.evict_idle_s)
-            )));
+            return Err(ConfigError::EvictIdle(self.evict_idle_s));
         }
         if self.max_stored_bytes == 0 {
-            return Err(ConfigError::Field(
-                "max_stored_bytes must be at least 1 (to take no upload, leave case_store unset)"
-                    .into(),
-            ));
+            return Err(ConfigError::StoreLimitZero("max_stored_bytes"));
         }
         for (name, v) in [
             ("max_sessions", self.max_sessions),
@@ -303,52 +358,59 @@ impl ServerConfig {
             ),
         ] {
             if v == 0 {
-                return Err(ConfigError::Field(format!("{name} must be at least 1")));
+                return Err(ConfigError::Zero(name));
             }
         }
         match (&self.tls_cert, &self.tls_key) {
             (Some(_), None) => {
-                return Err(ConfigError::Field(
-                    "tls_key: missing (tls_cert is set; TLS needs both)".into(),
-                ));
+                return Err(ConfigError::TlsPair {
+                    missing: "tls_key",
+                    present: "tls_cert",
+                });
             }
             (None, Some(_)) => {
-                return Err(ConfigError::Field(
-                    "tls_cert: missing (tls_key is set; TLS needs both)".into(),
-                ));
+                return Err(ConfigError::TlsPair {
+                    missing: "tls_cert",
+                    present: "tls_key",
+                });
             }
             _ => {}
         }
         if self.client_ca.is_some() && self.tls_cert.is_none() {
-            return Err(ConfigError::Field(
-                "client_ca: client certificates (mTLS) need TLS: set tls_cert and tls_key".into(),
-            ));
+            return Err(ConfigError::ClientCaWithoutTls);
         }
         if self.session_journal.is_some() && self.audit_db.is_none() {
-            return Err(ConfigError::Field(
-                "session_journal: needs audit_db (each replica keeps its own audit log)".into(),
-            ));
+            return Err(ConfigError::JournalWithoutAudit);
         }
         if !(self.session_journal_retention_h.is_finite()
             && self.session_journal_retention_h >= 0.0)
         {
-            return Err(ConfigError::Field(format!(
-                "session_journal_retention_h must be finite and ≥ 0, got {}",
-                self.session_journal_retention_h
-            )));
+            return Err(ConfigError::JournalRetention(
+                self.session_journal_retention_h,
+            ));
         }
-        if self.discovery_budget_ms == 0 || self.discovery_budget_ms > self.max_discovery_budget_ms
-        {
-            return Err(ConfigError::Field(format!(
-                "discovery_budget_ms {} must be in 1..=max_discovery_budget_ms ({})",
-                self.discovery_budget_ms, self.max_discovery_budget_ms
-            )));
-        }
-        if self.time_budget_ms == 0 || self.time_budget_ms > self.max_time_budget_ms {
-            return Err(ConfigError::Field(format!(
-                "time_budget_ms {} must be in 1..=max_time_budget_ms ({})",
-                self.time_budget_ms, self.max_time_budget_ms
-            )));
+        for (field, value, max_field, max) in [
+            (
+                "discovery_budget_ms",
+                self.discovery_budget_ms,
+                "max_discovery_budget_ms",
+                self.max_discovery_budget_ms,
+            ),
+            (
+                "time_budget_ms",
+                self.time_budget_ms,
+                "max_time_budget_ms",
+                self.max_time_budget_ms,
+            ),
+        ] {
+            if value == 0 || value > max {
+                return Err(ConfigError::Budget {
+                    field,
+                    value,
+                    max_field,
+                    max,
+                });
+            }
         }
         for (name, v) in [
             ("session_idle_timeout_s", self.session_idle_timeout_s),
@@ -358,9 +420,10 @@ impl ServerConfig {
             ("keepalive_s", self.keepalive_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(ConfigError::Field(format!(
-                    "{name} must be finite and > 0, got {v}"
-                )));
+                return Err(ConfigError::NotPositive {
+                    field: name,
+                    value: v,
+                });
             }
         }
         Ok(())
@@ -384,9 +447,7 @@ impl ServerConfig {
             "mm" => Ok(Unit::Mm),
             "cm" => Ok(Unit::Cm),
             "m" => Ok(Unit::M),
-            u => Err(ConfigError::Field(format!(
-                "mesh_unit {u:?}: expected mm, cm or m"
-            ))),
+            u => Err(ConfigError::MeshUnit(u.to_string())),
         }
     }
 
@@ -398,15 +459,11 @@ impl ServerConfig {
             "libr" => Ok(Method::Libr),
             "librplus" if self.librplus => Ok(Method::LibrPlus),
             "v2s" if self.v2s => Ok(Method::V2s),
-            m => Err(ConfigError::Field(format!(
-                "default_method {m:?}: expected rigid, libr{}{}",
-                if self.librplus {
-                    ", librplus"
-                } else {
-                    " (librplus is off)"
-                },
-                if self.v2s { ", v2s" } else { " (v2s is off)" }
-            ))),
+            m => Err(ConfigError::DefaultMethod {
+                method: m.to_string(),
+                librplus: self.librplus,
+                v2s: self.v2s,
+            }),
         }
     }
 
@@ -500,12 +557,54 @@ mod tests {
         .unwrap();
         let c = ServerConfig::from_file(&f).unwrap();
         assert_eq!((c.max_sessions, c.time_budget_ms), (3, 250));
-        assert!(
-            ServerConfig::default()
-                .validate()
-                .unwrap_err()
-                .to_string()
-                .contains("cases")
-        );
+        assert!(matches!(
+            ServerConfig::default().validate(),
+            Err(ConfigError::NoCases)
+        ));
+        // The messages name the field and the value, as they always did.
+        for (e, message) in [
+            (
+                ConfigError::DefaultMethod {
+                    method: "v2s".into(),
+                    librplus: true,
+                    v2s: false,
+                },
+                "default_method \"v2s\": expected rigid, libr, librplus (v2s is off)",
+            ),
+            (
+                ConfigError::EvictIdle(-1.0),
+                "evict_idle_s must be a finite number of seconds ≥ 0 (0: never), got -1",
+            ),
+            (
+                ConfigError::TlsPair {
+                    missing: "tls_key",
+                    present: "tls_cert",
+                },
+                "tls_key: missing (tls_cert is set; TLS needs both)",
+            ),
+            (
+                ConfigError::Budget {
+                    field: "time_budget_ms",
+                    value: 0,
+                    max_field: "max_time_budget_ms",
+                    max: 10_000,
+                },
+                "time_budget_ms 0 must be in 1..=max_time_budget_ms (10000)",
+            ),
+        ] {
+            assert_eq!(e.to_string(), message);
+        }
+        let c = ServerConfig {
+            cases: vec!["x".into()],
+            keepalive_s: 0.0,
+            ..Default::default()
+        };
+        assert!(matches!(
+            c.validate(),
+            Err(ConfigError::NotPositive {
+                field: "keepalive_s",
+                ..
+            })
+        ));
     }
 }

@@ -5,8 +5,14 @@
 use librplus::pipeline::PipelineError;
 use librplus::register::RegisterError;
 use librplus_proto::v1 as pb;
+use std::time::Duration;
+use tokio::task::JoinError;
 use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, StatusExt};
+
+/// A cause from a module above this one (the audit log, the case store, the session journal),
+/// kept whole: its type can be recovered with `downcast_ref`.
+pub type DynError = Box<dyn std::error::Error + Send + Sync + 'static>;
 
 /// The `google.rpc.ErrorInfo` reason of the ABORTED status that ends a stream whose session was
 /// taken over by a newer stream.
@@ -69,13 +75,13 @@ pub enum ServiceError {
         description: String,
     },
     /// The server cannot take requests now (UNAVAILABLE): preloading or shutting down.
-    Unavailable(String),
+    Unavailable(Unavailable),
     /// No credentials, or credentials the server does not know (UNAUTHENTICATED).
-    Unauthenticated(String),
+    Unauthenticated(Unauthenticated),
     /// Known credentials without the role the call needs (PERMISSION_DENIED).
-    PermissionDenied(String),
+    PermissionDenied(PermissionDenied),
     /// The client did not send in time (DEADLINE_EXCEEDED).
-    Deadline(String),
+    Deadline(Deadline),
     /// A status from the transport (a message too large, a reset stream), passed on.
     Received {
         /// Its code.
@@ -85,8 +91,8 @@ pub enum ServiceError {
     },
     /// The pipeline refused or failed; mapped by cause in [`ServiceError::parts`].
     Registration(PipelineError),
-    /// A registration task failed inside the server (INTERNAL; logged).
-    Internal(String),
+    /// Something failed inside the server: a task, a write, a recorded session (INTERNAL).
+    Internal(Internal),
     /// The stream's session was taken over by a newer stream, a resume of the same session
     /// (ABORTED, ErrorInfo reason [`TAKEN_OVER`]): this stream has ended.
     TakenOver {
@@ -95,9 +101,230 @@ pub enum ServiceError {
     },
 }
 
+/// Why the server cannot take a request now (UNAVAILABLE); its text is the status message.
+#[derive(Debug, thiserror::Error)]
+pub enum Unavailable {
+    /// The server is draining (or its compute slots have closed).
+    #[error("the server is shutting down")]
+    ShuttingDown,
+    /// Preload has not finished.
+    #[error("the server is still preloading its cases; retry when health reports SERVING")]
+    Preloading,
+    /// An uploaded case left memory while idle and is being loaded again.
+    #[error(
+        "{field}: case {:?} was idle and left memory; it is being loaded again ({stage}); retry \
+         in a few seconds, or follow it with WatchCase",
+        short(.id, 64)
+    )]
+    Reloading {
+        /// The request field that named it.
+        field: String,
+        /// The case.
+        id: String,
+        /// Its loading stage and progress (`stage, NN %`; empty when unknown).
+        stage: String,
+    },
+    /// The audit log could not be written (its `AuditError`): nothing is answered
+    /// that is not recorded.
+    #[error("the audit log cannot be written, so nothing is answered: {0}")]
+    AuditLog(#[source] DynError),
+    /// The case store failed (its `StoreError`: neither a quota nor a full disk).
+    #[error("{0}; nothing was stored")]
+    Store(#[source] DynError),
+    /// A recorded session could not be read (the session journal or the audit log).
+    #[error("reading the session record: {0}")]
+    SessionRecord(#[source] DynError),
+}
+
+/// Why a caller is not authenticated (UNAUTHENTICATED); its text is the status message (which
+/// never echoes a token).
+#[derive(Debug, thiserror::Error)]
+pub enum Unauthenticated {
+    /// More than one `authorization` header.
+    #[error("authorization: sent more than once; send exactly one \"Bearer TOKEN\"")]
+    RepeatedHeader,
+    /// An `authorization` header longer than the server reads.
+    #[error("authorization: longer than {max} bytes")]
+    LongHeader {
+        /// Its length, bytes.
+        len: usize,
+        /// The longest read, bytes.
+        max: usize,
+    },
+    /// An `authorization` header that is not `Bearer TOKEN`.
+    #[error("authorization: expected \"Bearer TOKEN\"")]
+    NotBearer,
+    /// A bearer token the auth file does not list.
+    #[error("authorization: the token is not valid")]
+    UnknownToken,
+    /// A client certificate whose subject the auth file does not list (and no token).
+    #[error(
+        "the client certificate's subject is not in the auth file, and no authorization token \
+         was sent"
+    )]
+    UnknownCertificate,
+    /// Neither a token nor a client certificate.
+    #[error(
+        "no credentials: send \"authorization: Bearer TOKEN\" (or a client certificate the auth \
+         file lists)"
+    )]
+    NoCredentials,
+}
+
+/// Why an authenticated caller may not do what it asked (PERMISSION_DENIED).
+#[derive(Debug, thiserror::Error)]
+pub enum PermissionDenied {
+    /// The principal lacks the role the call needs.
+    #[error("principal {principal:?} may not {action}: it lacks the role {role:?}")]
+    MissingRole {
+        /// The principal.
+        principal: String,
+        /// What it asked to do (`upload cases`, ...).
+        action: String,
+        /// The role it lacks.
+        role: &'static str,
+    },
+    /// An upload of a case outside the cases the principal may use.
+    #[error(
+        "principal {principal:?} may not upload case {case_id:?}: it is outside the cases it may \
+         use"
+    )]
+    CaseOutside {
+        /// The principal.
+        principal: String,
+        /// The case it tried to upload.
+        case_id: String,
+    },
+}
+
+/// What a client did not send in time (DEADLINE_EXCEEDED).
+#[derive(Debug, thiserror::Error)]
+pub enum Deadline {
+    /// An upload stream sent no message for `waited`.
+    #[error("no upload message for {} s; nothing was stored", .waited.as_secs())]
+    UploadIdle {
+        /// How long the server waited.
+        waited: Duration,
+    },
+}
+
+/// What failed inside the server (INTERNAL); its text is the status message.
+#[derive(Debug, thiserror::Error)]
+pub enum Internal {
+    /// A registration task panicked or was cancelled (logged; the message does not say more).
+    #[error("the registration failed inside the server (logged); the session goes on")]
+    RegistrationTask(#[source] JoinError),
+    /// A blocking task of the server (storing an upload, deleting a case, reading a session
+    /// record) panicked or was cancelled.
+    #[error("{doing}: {source}")]
+    Task {
+        /// What it was doing (`storing the upload`, `deleting`, ...).
+        doing: &'static str,
+        /// How it ended.
+        source: JoinError,
+    },
+    /// A mesh that passed its checks could not be written as VTU.
+    #[error("writing the mesh: {0}")]
+    MeshWrite(#[source] librplus::mesh::io::IoError),
+    /// A recorded session cannot be replayed on resume.
+    #[error("session {session_id}: its record cannot be replayed: {problem}")]
+    Unreplayable {
+        /// The session.
+        session_id: String,
+        /// What is wrong with its record.
+        #[source]
+        problem: Unreplayable,
+    },
+}
+
+/// What is wrong with a recorded session that cannot be replayed.
+#[derive(Debug, thiserror::Error)]
+pub enum Unreplayable {
+    /// The start message does not decode.
+    #[error("start: {0}")]
+    Start(#[source] prost::DecodeError),
+    /// The first message is not a `SessionStart`.
+    #[error("the first message is not a start")]
+    NotAStart,
+    /// A recorded message does not decode.
+    #[error("message {seq}: {source}")]
+    Decode {
+        /// Its client_seq.
+        seq: u64,
+        /// The decoder's error.
+        source: prost::DecodeError,
+    },
+    /// A recorded message is refused by the checks in force now.
+    #[error("message {seq} is refused now: {refusal}")]
+    Refused {
+        /// Its client_seq.
+        seq: u64,
+        /// Why (its text is the refusal's status message).
+        #[source]
+        refusal: Box<ServiceError>,
+    },
+}
+
 impl From<PipelineError> for ServiceError {
     fn from(e: PipelineError) -> Self {
         Self::Registration(e)
+    }
+}
+
+impl From<Unavailable> for ServiceError {
+    fn from(e: Unavailable) -> Self {
+        Self::Unavailable(e)
+    }
+}
+
+impl From<Unauthenticated> for ServiceError {
+    fn from(e: Unauthenticated) -> Self {
+        Self::Unauthenticated(e)
+    }
+}
+
+impl From<PermissionDenied> for ServiceError {
+    fn from(e: PermissionDenied) -> Self {
+        Self::PermissionDenied(e)
+    }
+}
+
+impl From<Deadline> for ServiceError {
+    fn from(e: Deadline) -> Self {
+        Self::Deadline(e)
+    }
+}
+
+impl From<Internal> for ServiceError {
+    fn from(e: Internal) -> Self {
+        Self::Internal(e)
+    }
+}
+
+/// The status message a client gets ([`ServiceError::parts`]).
+impl std::fmt::Display for ServiceError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.parts().1)
+    }
+}
+
+impl std::error::Error for ServiceError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Registration(e) => Some(e),
+            Self::Unavailable(e) => e.source(),
+            Self::Unauthenticated(e) => e.source(),
+            Self::PermissionDenied(e) => e.source(),
+            Self::Deadline(e) => e.source(),
+            Self::Internal(e) => e.source(),
+            Self::InvalidArgument { .. }
+            | Self::Precondition { .. }
+            | Self::UnknownCase { .. }
+            | Self::UnknownSession { .. }
+            | Self::Quota { .. }
+            | Self::Received { .. }
+            | Self::TakenOver { .. } => None,
+        }
     }
 }
 
@@ -243,12 +470,12 @@ impl ServiceError {
                 d.add_quota_failure_violation(*subject, description.clone());
                 (Code::ResourceExhausted, message.clone(), Some(d))
             }
-            Self::Unavailable(m) => (Code::Unavailable, m.clone(), None),
-            Self::Unauthenticated(m) => (Code::Unauthenticated, m.clone(), None),
-            Self::PermissionDenied(m) => (Code::PermissionDenied, m.clone(), None),
-            Self::Deadline(m) => (Code::DeadlineExceeded, m.clone(), None),
+            Self::Unavailable(e) => (Code::Unavailable, e.to_string(), None),
+            Self::Unauthenticated(e) => (Code::Unauthenticated, e.to_string(), None),
+            Self::PermissionDenied(e) => (Code::PermissionDenied, e.to_string(), None),
+            Self::Deadline(e) => (Code::DeadlineExceeded, e.to_string(), None),
             Self::Received { code, message } => (*code, message.clone(), None),
-            Self::Internal(m) => (Code::Internal, m.clone(), None),
+            Self::Internal(e) => (Code::Internal, e.to_string(), None),
             Self::TakenOver { session_id } => {
                 d.set_error_info(
                     TAKEN_OVER,
@@ -461,6 +688,119 @@ mod tests {
         assert!(!libr_can_fall_back(&PipelineError::Rigid(
             RegisterError::TooFewMatches { matched: 2 }
         )));
+    }
+
+    #[test]
+    fn typed_reasons_keep_their_codes_and_messages() {
+        let cases: Vec<(ServiceError, Code, &str)> = vec![
+            (
+                Unavailable::ShuttingDown.into(),
+                Code::Unavailable,
+                "the server is shutting down",
+            ),
+            (
+                Unavailable::Preloading.into(),
+                Code::Unavailable,
+                "the server is still preloading its cases; retry when health reports SERVING",
+            ),
+            (
+                Unavailable::Reloading {
+                    field: "case_id".into(),
+                    id: "c1".into(),
+                    stage: "basis, 50 %".into(),
+                }
+                .into(),
+                Code::Unavailable,
+                "case_id: case \"c1\" was idle and left memory; it is being loaded again (basis, \
+                 50 %); retry in a few seconds, or follow it with WatchCase",
+            ),
+            (
+                Unavailable::AuditLog("disk full".into()).into(),
+                Code::Unavailable,
+                "the audit log cannot be written, so nothing is answered: disk full",
+            ),
+            (
+                Unauthenticated::RepeatedHeader.into(),
+                Code::Unauthenticated,
+                "authorization: sent more than once; send exactly one \"Bearer TOKEN\"",
+            ),
+            (
+                Unauthenticated::LongHeader {
+                    len: 2000,
+                    max: 1024,
+                }
+                .into(),
+                Code::Unauthenticated,
+                "authorization: longer than 1024 bytes",
+            ),
+            (
+                Unauthenticated::UnknownCertificate.into(),
+                Code::Unauthenticated,
+                "the client certificate's subject is not in the auth file, and no authorization \
+                 token was sent",
+            ),
+            (
+                Unauthenticated::NoCredentials.into(),
+                Code::Unauthenticated,
+                "no credentials: send \"authorization: Bearer TOKEN\" (or a client certificate \
+                 the auth file lists)",
+            ),
+            (
+                PermissionDenied::MissingRole {
+                    principal: "a".into(),
+                    action: "upload cases".into(),
+                    role: "manage",
+                }
+                .into(),
+                Code::PermissionDenied,
+                "principal \"a\" may not upload cases: it lacks the role \"manage\"",
+            ),
+            (
+                PermissionDenied::CaseOutside {
+                    principal: "a".into(),
+                    case_id: "b/1".into(),
+                }
+                .into(),
+                Code::PermissionDenied,
+                "principal \"a\" may not upload case \"b/1\": it is outside the cases it may use",
+            ),
+            (
+                Deadline::UploadIdle {
+                    waited: Duration::from_secs(30),
+                }
+                .into(),
+                Code::DeadlineExceeded,
+                "no upload message for 30 s; nothing was stored",
+            ),
+            (
+                Internal::Unreplayable {
+                    session_id: "s1-2".into(),
+                    problem: Unreplayable::Refused {
+                        seq: 3,
+                        refusal: Box::new(ServiceError::field("surface.xyz_mm", "is empty")),
+                    },
+                }
+                .into(),
+                Code::Internal,
+                "session s1-2: its record cannot be replayed: message 3 is refused now: \
+                 surface.xyz_mm: is empty",
+            ),
+        ];
+        for (e, code, message) in cases {
+            let s = e.to_status();
+            assert_eq!((s.code(), s.message()), (code, message));
+            assert_eq!(e.to_string(), message);
+        }
+        // The cause stays reachable.
+        let e = ServiceError::from(Internal::Unreplayable {
+            session_id: "s1-2".into(),
+            problem: Unreplayable::NotAStart,
+        });
+        let source = std::error::Error::source(&e).expect("a source");
+        assert!(matches!(
+            source.downcast_ref::<Unreplayable>(),
+            Some(Unreplayable::NotAStart)
+        ));
     }
 
     #[test]

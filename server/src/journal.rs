@@ -312,21 +312,80 @@ fn epochs(dir: &Path, sid: &str) -> io::Result<Vec<u32>> {
     Ok(out)
 }
 
+/// Why a session's record could not be read from the journal.
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    /// A folder or file does not read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The folder or file.
+        path: PathBuf,
+        /// The system's error.
+        source: io::Error,
+    },
+    /// A file that is not a session journal.
+    #[error(
+        "{}: not a session journal of format 2 or 1 (first line {first:?})",
+        path.display()
+    )]
+    NotAJournal {
+        /// The file.
+        path: PathBuf,
+        /// Its first bytes (40 at most, lossy UTF-8).
+        first: String,
+    },
+    /// A complete record that is malformed or out of place.
+    #[error("{}: {problem}", path.display())]
+    Broken {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        problem: Broken,
+    },
+}
+
+/// What is wrong with a journal file's records.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum Broken {
+    /// A record with no kind byte.
+    #[error("an empty record")]
+    Empty,
+    /// A start record cut short.
+    #[error("a short start")]
+    ShortStart,
+    /// A takeover record cut short.
+    #[error("a short takeover")]
+    ShortTakeover,
+    /// A message record cut short.
+    #[error("a short message")]
+    ShortMessage,
+    /// A record whose kind does not belong at its place.
+    #[error("record {index} of kind {kind} is out of place")]
+    OutOfPlace {
+        /// Its index in the file.
+        index: usize,
+        /// Its kind byte.
+        kind: u8,
+    },
+}
+
 /// The format and complete records of one file (a torn tail ignored).
-fn read_records(path: &Path) -> Result<(u32, Vec<Vec<u8>>), String> {
+fn read_records(path: &Path) -> Result<(u32, Vec<Vec<u8>>), ReadError> {
     let mut bytes = Vec::new();
     File::open(path)
         .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+        .map_err(|source| ReadError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
     let (format, mut rest) = match (bytes.strip_prefix(MAGIC), bytes.strip_prefix(MAGIC_1)) {
         (Some(r), _) => (2, r),
         (None, Some(r)) => (1, r),
         (None, None) => {
-            return Err(format!(
-                "{}: not a session journal of format 2 or 1 (first line {:?})",
-                path.display(),
-                String::from_utf8_lossy(&bytes[..bytes.len().min(40)])
-            ));
+            return Err(ReadError::NotAJournal {
+                path: path.to_path_buf(),
+                first: String::from_utf8_lossy(&bytes[..bytes.len().min(40)]).into_owned(),
+            });
         }
     };
     let mut out = Vec::new();
@@ -378,41 +437,47 @@ pub struct SessionRecord {
 }
 
 /// Reads a session's record from the shared folder (None: no such session).
-pub fn read(dir: &Path, sid: &str) -> Result<Option<SessionRecord>, String> {
+pub fn read(dir: &Path, sid: &str) -> Result<Option<SessionRecord>, ReadError> {
     if !valid_id(sid) {
         return Ok(None);
     }
-    let list = epochs(dir, sid).map_err(|e| format!("{}: {e}", dir.join(sid).display()))?;
+    let list = epochs(dir, sid).map_err(|source| ReadError::Io {
+        path: dir.join(sid),
+        source,
+    })?;
     let mut head: Option<(String, String, Option<String>, Vec<u8>)> = None;
     let mut messages: BTreeMap<u64, Vec<u8>> = BTreeMap::new();
     for epoch in list {
         let path = epoch_path(dir, sid, epoch);
-        let broken = |what: &str| format!("{}: {what}", path.display());
+        let broken = |problem: Broken| ReadError::Broken {
+            path: path.clone(),
+            problem,
+        };
         let (format, records) = read_records(&path)?;
         for (i, rec) in records.into_iter().enumerate() {
             let Some((&kind, mut p)) = rec.split_first() else {
-                return Err(broken("an empty record"));
+                return Err(broken(Broken::Empty));
             };
             match kind {
                 START if epoch == 0 && i == 0 => {
-                    let principal = take_str(&mut p).ok_or_else(|| broken("a short start"))?;
-                    let case = take_str(&mut p).ok_or_else(|| broken("a short start"))?;
+                    let principal = take_str(&mut p).ok_or_else(|| broken(Broken::ShortStart))?;
+                    let case = take_str(&mut p).ok_or_else(|| broken(Broken::ShortStart))?;
                     let version = match format {
                         1 => None,
-                        _ => Some(take_str(&mut p).ok_or_else(|| broken("a short start"))?),
+                        _ => Some(take_str(&mut p).ok_or_else(|| broken(Broken::ShortStart))?),
                     };
                     head = Some((principal, case, version, p.to_vec()));
                 }
                 TAKEOVER if epoch > 0 && i == 0 => {
-                    let last = take_u64(&mut p).ok_or_else(|| broken("a short takeover"))?;
+                    let last = take_u64(&mut p).ok_or_else(|| broken(Broken::ShortTakeover))?;
                     // What the previous epochs wrote after the takeover point is void.
                     messages.retain(|&seq, _| seq <= last);
                 }
                 MESSAGE if i > 0 => {
-                    let seq = take_u64(&mut p).ok_or_else(|| broken("a short message"))?;
+                    let seq = take_u64(&mut p).ok_or_else(|| broken(Broken::ShortMessage))?;
                     messages.insert(seq, p.to_vec());
                 }
-                k => return Err(broken(&format!("record {i} of kind {k} is out of place"))),
+                kind => return Err(broken(Broken::OutOfPlace { index: i, kind })),
             }
         }
     }
@@ -582,10 +647,8 @@ mod tests {
         assert_eq!((r.case_version, r.start), (None, b"s1".to_vec()));
         // Not a journal.
         std::fs::write(&p0, b"hello").unwrap();
-        assert!(
-            read(dir.path(), "s2-7")
-                .unwrap_err()
-                .contains("not a session journal")
-        );
+        let e = read(dir.path(), "s2-7").unwrap_err();
+        assert!(matches!(e, ReadError::NotAJournal { .. }), "{e:?}");
+        assert!(e.to_string().contains("not a session journal"), "{e}");
     }
 }

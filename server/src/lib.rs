@@ -76,7 +76,7 @@ pub enum PreloadError {
     },
     /// The V2S model could not be loaded (`v2s_model`, or the built-in one).
     #[error("v2s_model: {0}")]
-    V2sModel(librplus::v2s::V2sError),
+    V2sModel(#[source] librplus::v2s::V2sError),
     /// Every case failed.
     #[error("no case could be loaded ({found} found): {failed:?}")]
     NoCase {
@@ -87,7 +87,7 @@ pub enum PreloadError {
     },
     /// The preload task itself failed (a panic; logged).
     #[error("preload task failed: {0}")]
-    Task(String),
+    Task(#[source] tokio::task::JoinError),
     /// The server stopped before preload finished.
     #[error("preload task ended")]
     Ended,
@@ -369,16 +369,16 @@ fn spawn_preload(shared: Arc<Shared>, health: HealthReporter, ready: watch::Send
                 tracing::error!(error = %e, "preload failed; staying NOT_SERVING");
                 Err(Arc::new(e))
             }
-            Err(e) => Err(Arc::new(PreloadError::Task(e.to_string()))),
+            Err(e) => Err(Arc::new(PreloadError::Task(e))),
         };
         let _ = ready.send(Some(report));
     });
 }
 
-/// A TLS reload request: the new settings, and where to say whether they took.
+/// A TLS reload request: the new settings, and where to say whether they took (or why not).
 type Reload = (
     tonic::transport::ServerTlsConfig,
-    oneshot::Sender<Result<(), String>>,
+    oneshot::Sender<anyhow::Result<()>>,
 );
 
 mod generations {
@@ -580,7 +580,7 @@ mod generations {
                         }
                         Err(e) => {
                             tracing::warn!(error = %e, "TLS reload failed; the settings are unchanged");
-                            let _ = done.send(Err(format!("{e:#}")));
+                            let _ = done.send(Err(e));
                         }
                     }
                 }
@@ -826,7 +826,6 @@ impl Running {
             .map_err(|_| anyhow::anyhow!("the server has stopped"))?;
         rx.await
             .map_err(|_| anyhow::anyhow!("the server has stopped"))?
-            .map_err(anyhow::Error::msg)
     }
 
     /// Reads the auth file again (`auth`): later calls use the new principals; open sessions

@@ -648,8 +648,7 @@ fn token(principal: String, cases: Vec<String>, roles: Vec<String>) -> Result<()
         open_health: true,
         open_reflection: true,
         principals: vec![entry.clone()],
-    })
-    .map_err(anyhow::Error::msg)?;
+    })?;
     eprintln!("token (give it to the client; it is not stored anywhere):");
     println!("{token}");
     eprintln!("auth file entry (add it to \"principals\"):");
@@ -690,7 +689,7 @@ fn audit(
     }
     let c = audit::open_db(db)?;
     if let (Some(id), Some(out)) = (export, out) {
-        let e = audit::export_session(&c, &id, &out).map_err(anyhow::Error::msg)?;
+        let e = audit::export_session(&c, &id, &out)?;
         eprintln!(
             "session {} (case {}): {} messages, {} surface, {} contour, {} vessel points -> {}",
             printable(&id),
@@ -706,10 +705,7 @@ fn audit(
         }
         return Ok(());
     }
-    let since = since
-        .map(audit::parse_since)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    let since = since.map(audit::parse_since).transpose()?;
     let rows = audit::rows(&c, case, since)?;
     for r in &rows {
         if json {

@@ -6,7 +6,7 @@ use crate::auth::{Principal, Role};
 use crate::cases::Case;
 use crate::compute::Job;
 use crate::convert::{code_name, measurements_from_pb};
-use crate::error::{ServiceError, short};
+use crate::error::{ServiceError, Unavailable, short};
 use crate::session::records::audit_record;
 use crate::session::state::{budget, check_method, trusted};
 pub use crate::shared::{MAX_CASE_ID, MAX_UPLOADS, Shared};
@@ -189,9 +189,7 @@ impl LibRPlus for Svc {
     ) -> Result<Response<pb::Registration>, Status> {
         let arrival = Instant::now();
         if *self.0.drain.borrow() {
-            return Err(fail(ServiceError::Unavailable(
-                "the server is shutting down".into(),
-            )));
+            return Err(fail(Unavailable::ShuttingDown.into()));
         }
         let client_deadline = grpc_timeout(req.metadata());
         let who = self.caller(&req, "Register")?;
@@ -342,9 +340,7 @@ impl LibRPlus for Svc {
         req: Request<Streaming<pb::StreamRegisterRequest>>,
     ) -> Result<Response<Self::StreamRegisterStream>, Status> {
         if *self.0.drain.borrow() {
-            return Err(fail(ServiceError::Unavailable(
-                "the server is shutting down".into(),
-            )));
+            return Err(fail(Unavailable::ShuttingDown.into()));
         }
         crate::access::cases(&self.0).map_err(fail)?;
         let who = self.caller(&req, "StreamRegister")?;

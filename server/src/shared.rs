@@ -8,7 +8,7 @@ use crate::auth::{Auth, Principal};
 use crate::compute::Engine;
 use crate::config::ServerConfig;
 use crate::convert::code_name;
-use crate::error::{ServiceError, short};
+use crate::error::{ServiceError, Unavailable, short};
 use std::collections::HashMap;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, OnceLock};
@@ -91,11 +91,9 @@ impl Shared {
         let Some(a) = &self.audit else {
             return Ok(());
         };
-        a.write(records).await.map_err(|e| {
-            ServiceError::Unavailable(format!(
-                "the audit log cannot be written, so nothing is answered: {e}"
-            ))
-        })
+        a.write(records)
+            .await
+            .map_err(|e| Unavailable::AuditLog(Box::new(e)).into())
     }
 
     /// Records a refusal without waiting for it.

@@ -8,10 +8,10 @@
 use crate::access;
 use crate::audit::Record;
 use crate::auth::Principal;
-use crate::error::ServiceError;
+use crate::error::{Deadline, Internal, PermissionDenied, ServiceError, Unavailable};
 use crate::preload::preload;
 use crate::shared::Shared;
-use crate::store::{self, MeshSource, Upload};
+use crate::store::{self, MeshSource, StoreError, Upload};
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -35,10 +35,7 @@ async fn next(
     inbound: &mut Streaming<pb::CreateCaseRequest>,
 ) -> Result<Option<pb::create_case_request::Part>, ServiceError> {
     match tokio::time::timeout(CHUNK_WAIT, inbound.message()).await {
-        Err(_) => Err(ServiceError::Deadline(format!(
-            "no upload message for {} s; nothing was stored",
-            CHUNK_WAIT.as_secs()
-        ))),
+        Err(_) => Err(Deadline::UploadIdle { waited: CHUNK_WAIT }.into()),
         Ok(Err(s)) => Err(ServiceError::Received {
             code: s.code(),
             message: format!("receiving the upload: {}", s.message()),
@@ -136,9 +133,7 @@ fn admit(shared: &Arc<Shared>) -> Result<OwnedSemaphorePermit, ServiceError> {
         return Err(no_store());
     }
     if *shared.drain.borrow() {
-        return Err(ServiceError::Unavailable(
-            "the server is shutting down".into(),
-        ));
+        return Err(Unavailable::ShuttingDown.into());
     }
     access::cases(shared)?;
     shared
@@ -177,12 +172,13 @@ fn check_header(
     case_id: &str,
     total_bytes: u64,
 ) -> Result<store::Quotas, ServiceError> {
-    store::check_id(case_id).map_err(|e| ServiceError::field("upload.case_id", e))?;
+    store::check_id(case_id).map_err(|e| ServiceError::field("upload.case_id", e.to_string()))?;
     if !who.may_use(case_id) {
-        return Err(ServiceError::PermissionDenied(format!(
-            "principal {:?} may not upload case {case_id:?}: it is outside the cases it may use",
-            who.name
-        )));
+        return Err(PermissionDenied::CaseOutside {
+            principal: who.name.clone(),
+            case_id: case_id.to_string(),
+        }
+        .into());
     }
     let cfg = &shared.config;
     let max = cfg.max_case_bytes;
@@ -194,7 +190,7 @@ fn check_header(
     if store.find(case_id).is_none() {
         store
             .check_quota(&who.name, total_bytes, &quotas)
-            .map_err(|e| e.to_service())?;
+            .map_err(StoreError::into_service)?;
     }
     Ok(quotas)
 }
@@ -299,10 +295,13 @@ async fn put(
         let store = sh.store.as_ref().expect("checked");
         store
             .put(&upload, &checked, &principal, &quotas)
-            .map_err(|e| e.to_service())
+            .map_err(StoreError::into_service)
     })
     .await
-    .map_err(|e| ServiceError::Internal(format!("storing the upload: {e}")))?
+    .map_err(|source| Internal::Task {
+        doing: "storing the upload",
+        source,
+    })?
 }
 
 /// Records a new case in the audit log (the upload is acknowledged once recorded) and logs it.
@@ -415,10 +414,13 @@ pub async fn delete(
             .as_ref()
             .expect("checked")
             .remove(&id)
-            .map_err(|e| e.to_service())
+            .map_err(StoreError::into_service)
     })
     .await
-    .map_err(|e| ServiceError::Internal(format!("deleting: {e}")))?;
+    .map_err(|source| Internal::Task {
+        doing: "deleting",
+        source,
+    })?;
     if let Err(e) = removed {
         // Still stored: served again.
         if let Some(c) = ready {

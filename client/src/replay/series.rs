@@ -16,6 +16,17 @@ pub(super) struct SeriesStep {
     pub(super) uncertainty: Option<Vec<f64>>,
 }
 
+/// Why a session's time series could not be written ([`write_series`]).
+#[derive(Debug, thiserror::Error)]
+pub enum SeriesError {
+    /// A registration's mesh could not be serialised as VTU.
+    #[error("{0}")]
+    Mesh(#[from] librplus::mesh::io::IoError),
+    /// A file could not be written.
+    #[error("{0}")]
+    Write(#[from] librplus::util::FileError),
+}
+
 /// A file-name-safe name for a session's series: `SCENARIO-METHOD` with every character outside
 /// `A-Z a-z 0-9 . _ + -` replaced by `_` (a scenario id `g1-L-00/3` becomes `g1-L-00_3`).
 pub fn series_name(scenario: &str, method: &str) -> String {
@@ -46,7 +57,7 @@ pub(super) fn write_series(
     geo: &GeometryData,
     sc: &ScenarioData,
     steps: &[SeriesStep],
-) -> Result<PathBuf, String> {
+) -> Result<PathBuf, SeriesError> {
     use librplus::mesh::io::{DataArray, MeshFile, PvdEntry, WriteOptions, pvd_collection};
     let mesh = &geo.model.mesh;
     let x = mesh.nodes();
@@ -89,16 +100,14 @@ pub(super) fn write_series(
             librplus::mesh::io::Format::Vtu,
             WriteOptions::default(),
             &dir.join(&rel),
-        )
-        .map_err(|e| e.to_string())?;
-        librplus::util::write_atomic(&dir.join(&rel), &bytes).map_err(|e| e.to_string())?;
+        )?;
+        librplus::util::write_atomic(&dir.join(&rel), &bytes)?;
         entries.push(PvdEntry {
             timestep: (s.client_seq as f64 - 2.0).max(0.0),
             file: rel,
         });
     }
     let pvd = dir.join(format!("{name}.pvd"));
-    librplus::util::write_atomic(&pvd, pvd_collection(&entries).as_bytes())
-        .map_err(|e| e.to_string())?;
+    librplus::util::write_atomic(&pvd, pvd_collection(&entries).as_bytes())?;
     Ok(pvd)
 }

@@ -265,13 +265,59 @@ fn status_code_of(code: &str) -> u16 {
     }
 }
 
+/// Why a connection's gRPC session ended early (the text is the connection's log line).
+#[derive(Debug, thiserror::Error)]
+enum SessionEnd {
+    /// The peer's socket closed while answers were being forwarded.
+    #[error("the peer's socket is closed")]
+    PeerClosed,
+    /// The gRPC stream ended with an error status.
+    #[error(
+        "the gRPC session ended: {}: {}",
+        librplus_client::code_name(.0.code()),
+        .0.message()
+    )]
+    Status(#[source] tonic::Status),
+}
+
+/// Why a connection's writer stopped early.
+#[derive(Debug, thiserror::Error)]
+enum WriteError {
+    /// Writing to the socket failed.
+    #[error("writing the socket: {0}")]
+    Socket(#[source] std::io::Error),
+    /// The peer took no message within the time allowed.
+    #[error("the peer took no message for {} s", .0.as_secs())]
+    Stalled(Duration),
+}
+
+/// Why a connection was closed when its writer or its gRPC session ended.
+#[derive(Debug, thiserror::Error)]
+enum Closed {
+    /// The writer ended (its channel closed).
+    #[error("the writer ended; connection closed")]
+    WriterEnded,
+    /// The writer stopped early.
+    #[error("{0}; connection closed")]
+    WriteFailed(#[source] WriteError),
+    /// The writer task panicked or was cancelled.
+    #[error("the writer failed: {0}; connection closed")]
+    WriterPanicked(#[source] tokio::task::JoinError),
+    /// The gRPC server ended the session without an error.
+    #[error("the LIBR+ server ended the session; connection closed")]
+    SessionEnded,
+    /// The gRPC session ended early.
+    #[error("{0}; connection closed")]
+    SessionFailed(#[source] SessionEnd),
+}
+
 /// The gRPC side of a connection, opened by its first message that carries data.
 struct Session {
     /// Requests to the gRPC stream (its SessionStart already sent).
     requests: mpsc::Sender<pb::StreamRegisterRequest>,
     /// Forwards the gRPC answers to the peer; ends with the gRPC stream (with the reason when it
     /// ended with an error).
-    answers: tokio::task::JoinHandle<Option<String>>,
+    answers: tokio::task::JoinHandle<Option<SessionEnd>>,
     /// Whether `answers` has ended (and was awaited).
     ended: bool,
 }
@@ -322,7 +368,7 @@ async fn open_session(
                     Ok(Some(u)) => {
                         for bytes in answer_messages(&u, &geo, frame) {
                             if out_tx.send(bytes).await.is_err() {
-                                return Some("the peer's socket is closed".into());
+                                return Some(SessionEnd::PeerClosed);
                             }
                         }
                     }
@@ -334,7 +380,7 @@ async fn open_session(
                             .send(grpc_status(&s, "the LIBR+ session ended"))
                             .await
                             .ok();
-                        return Some(format!("the gRPC session ended: {code}: {}", s.message()));
+                        return Some(SessionEnd::Status(s));
                     }
                 }
             }
@@ -355,9 +401,9 @@ enum Event {
     /// No complete message for the idle timeout in force.
     Idle,
     /// The writer stopped: the peer did not take a message in time, or the socket failed.
-    WriterEnded(Result<Result<(), String>, tokio::task::JoinError>),
+    WriterEnded(Result<Result<(), WriteError>, tokio::task::JoinError>),
     /// The gRPC session ended (the reason when it was an error).
-    SessionEnded(Option<String>),
+    SessionEnded(Option<SessionEnd>),
 }
 
 /// One OpenIGTLink connection: at most one gRPC session, opened by its first message that
@@ -444,7 +490,7 @@ fn spawn_writer(
     mut out_rx: mpsc::Receiver<Vec<u8>>,
     opened: Instant,
     last_sent_ms: Arc<AtomicU64>,
-) -> tokio::task::JoinHandle<Result<(), String>> {
+) -> tokio::task::JoinHandle<Result<(), WriteError>> {
     tokio::spawn(async move {
         while let Some(bytes) = out_rx.recv().await {
             match tokio::time::timeout(WRITE_TIMEOUT, wr.write_all(&bytes)).await {
@@ -452,13 +498,8 @@ fn spawn_writer(
                     u64::try_from(opened.elapsed().as_millis()).unwrap_or(u64::MAX),
                     Ordering::Relaxed,
                 ),
-                Ok(Err(e)) => return Err(format!("writing the socket: {e}")),
-                Err(_) => {
-                    return Err(format!(
-                        "the peer took no message for {} s",
-                        WRITE_TIMEOUT.as_secs()
-                    ));
-                }
+                Ok(Err(e)) => return Err(WriteError::Socket(e)),
+                Err(_) => return Err(WriteError::Stalled(WRITE_TIMEOUT)),
             }
         }
         let _ = tokio::time::timeout(Duration::from_secs(2), wr.shutdown()).await;
@@ -467,13 +508,12 @@ fn spawn_writer(
 }
 
 /// Why the connection ends when its writer stopped.
-fn writer_end(r: Result<Result<(), String>, tokio::task::JoinError>) -> anyhow::Error {
-    let why = match r {
-        Ok(Ok(())) => "the writer ended".to_string(),
-        Ok(Err(why)) => why,
-        Err(e) => format!("the writer failed: {e}"),
-    };
-    anyhow::anyhow!("{why}; connection closed")
+fn writer_end(r: Result<Result<(), WriteError>, tokio::task::JoinError>) -> anyhow::Error {
+    anyhow::Error::new(match r {
+        Ok(Ok(())) => Closed::WriterEnded,
+        Ok(Err(e)) => Closed::WriteFailed(e),
+        Err(e) => Closed::WriterPanicked(e),
+    })
 }
 
 impl Session {
@@ -572,14 +612,14 @@ impl<'a> Link<'a> {
     }
 
     /// The gRPC session ended (`why`, when with an error): the error that ends the connection.
-    fn session_ended(&mut self, why: Option<String>) -> anyhow::Error {
+    fn session_ended(&mut self, why: Option<SessionEnd>) -> anyhow::Error {
         if let Some(s) = self.session.as_mut() {
             s.ended = true;
         }
-        match why {
-            Some(why) => anyhow::anyhow!("{why}; connection closed"),
-            None => anyhow::anyhow!("the LIBR+ server ended the session; connection closed"),
-        }
+        anyhow::Error::new(match why {
+            Some(why) => Closed::SessionFailed(why),
+            None => Closed::SessionEnded,
+        })
     }
 
     /// Handles every complete message `decoder` holds (noting when each arrived in
@@ -694,7 +734,11 @@ fn answer_messages(u: &pb::StreamUpdate, geo: &CaseGeometry, frame: Frame) -> Ve
     match &u.update {
         Some(Update::Registration(r)) => match registration_messages(r, geo, frame) {
             Ok(v) => v,
-            Err(why) => vec![status(status_code::UNKNOWN_ERROR, "BAD_ANSWER", &why)],
+            Err(why) => vec![status(
+                status_code::UNKNOWN_ERROR,
+                "BAD_ANSWER",
+                &why.to_string(),
+            )],
         },
         Some(Update::Rejection(r)) => {
             let detail: Vec<String> = r
@@ -721,17 +765,39 @@ fn answer_messages(u: &pb::StreamUpdate, geo: &CaseGeometry, frame: Frame) -> Ve
     }
 }
 
+/// Why a registration cannot be sent to the peer (its text is the STATUS message sent instead).
+#[derive(Debug, thiserror::Error)]
+enum AnswerError {
+    /// The registration has no transform.
+    #[error("registration.image_to_physical is unset")]
+    NoTransform,
+    /// Its transform is malformed (the field named from the registration).
+    #[error("{0}")]
+    Transform(#[source] librplus_client::MessageError),
+    /// Its displacements do not match the case's nodes.
+    #[error("registration.displacement_mm has {values} values for {nodes} nodes")]
+    Displacement {
+        /// Values received.
+        values: usize,
+        /// The case's nodes.
+        nodes: usize,
+    },
+    /// An OpenIGTLink message could not be encoded.
+    #[error("{0}")]
+    Encode(#[source] wire::WireError),
+}
+
 /// TRANSFORM, target POINT, liver POLYDATA (and a STATUS when the quality is not OK) for one
 /// registration.
 fn registration_messages(
     r: &pb::Registration,
     geo: &CaseGeometry,
     frame: Frame,
-) -> Result<Vec<Vec<u8>>, String> {
+) -> Result<Vec<Vec<u8>>, AnswerError> {
     let t = match &r.image_to_physical {
-        None => return Err("registration.image_to_physical is unset".into()),
+        None => return Err(AnswerError::NoTransform),
         Some(t) => librplus_client::rigid_from_message(t)
-            .map_err(|e| format!("registration.image_to_physical.{e}"))?,
+            .map_err(|e| AnswerError::Transform(e.within("registration.image_to_physical")))?,
     };
     let n = geo.nodes.len();
     let u: Vec<f64> = if r.displacement_mm.len() == 3 * n {
@@ -739,16 +805,16 @@ fn registration_messages(
     } else if r.displacement_mm.is_empty() {
         vec![0.0; 3 * n]
     } else {
-        return Err(format!(
-            "registration.displacement_mm has {} values for {n} nodes",
-            r.displacement_mm.len()
-        ));
+        return Err(AnswerError::Displacement {
+            values: r.displacement_mm.len(),
+            nodes: n,
+        });
     };
     let f = frame_rigid(frame);
     let placed =
         |x: [f64; 3], d: [f64; 3]| frame.convert(t.apply([x[0] + d[0], x[1] + d[1], x[2] + d[2]]));
     let opts = EncodeOptions::default();
-    let enc = |m: Message, device: &str| m.encode(device, &opts).map_err(|e| e.to_string());
+    let enc = |m: Message, device: &str| m.encode(device, &opts).map_err(AnswerError::Encode);
     let mut out = Vec::with_capacity(4);
     // The quality first when it is not OK; the liver POLYDATA last (it ends an update).
     if r.quality != pb::Quality::Ok as i32 {

@@ -173,9 +173,19 @@ pub(super) fn frame_rigid(frame: Frame) -> Rigid {
     r
 }
 
+/// A TRANSFORM whose rotation part is not a rotation.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("the rotation part is not a rotation (orthonormal, determinant +1, to 1e-3)")]
+pub(super) struct NotARotation {
+    /// The largest departure of its columns from orthonormal.
+    pub(super) departure: f64,
+    /// Its determinant (the triple product of its columns; +1 for a rotation).
+    pub(super) determinant: f64,
+}
+
 /// A received TRANSFORM as a rigid transform: its rotation re-orthonormalised (the wire's
 /// float32 rounding), refused when it is not a rotation to 1e-3.
-pub(super) fn rigid_of(t: &Transform) -> Result<Rigid, String> {
+pub(super) fn rigid_of(t: &Transform) -> Result<Rigid, NotARotation> {
     let m = &t.matrix;
     let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
@@ -197,10 +207,12 @@ pub(super) fn rigid_of(t: &Transform) -> Result<Rigid, String> {
             a[0] * b[1] - a[1] * b[0],
         ]
     };
-    if err.is_nan() || err > 1e-3 || dot(cross(a, b), c) <= 0.0 {
-        return Err(
-            "the rotation part is not a rotation (orthonormal, determinant +1, to 1e-3)".into(),
-        );
+    let determinant = dot(cross(a, b), c);
+    if err.is_nan() || err > 1e-3 || determinant <= 0.0 {
+        return Err(NotARotation {
+            departure: err,
+            determinant,
+        });
     }
     let norm = |v: [f64; 3]| {
         let n = dot(v, v).sqrt();
@@ -254,10 +266,12 @@ mod tests {
         // Not a rotation: a scaling, a reflection.
         let mut scaled = transform_of(&r);
         scaled.matrix[0][0] *= 1.1;
-        assert!(rigid_of(&scaled).is_err());
+        let e = rigid_of(&scaled).unwrap_err();
+        assert!(e.departure > 1e-3 && e.determinant > 0.0, "{e:?}");
         let mut reflected = transform_of(&Rigid::identity());
         reflected.matrix[2][2] = -1.0;
-        assert!(rigid_of(&reflected).is_err());
+        let e = rigid_of(&reflected).unwrap_err();
+        assert!(e.determinant < 0.0, "{e:?}");
         // F T F in RAS equals T applied to converted points.
         let f = frame_rigid(Frame::Ras);
         let p = [3.0, -4.0, 5.0];

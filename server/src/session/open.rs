@@ -9,7 +9,7 @@ use super::records::lease_record;
 use super::state::{Session, accept, start_session};
 use crate::audit::Record;
 use crate::auth::Principal;
-use crate::error::{ServiceError, short};
+use crate::error::{DynError, Internal, ServiceError, Unavailable, Unreplayable, short};
 use crate::shared::Shared;
 use librplus_proto::v1 as pb;
 use std::path::Path;
@@ -191,15 +191,16 @@ async fn resume_session(
 ) -> Result<(Session, Vec<u8>), ServiceError> {
     use prost::Message;
     let rec = read_record(shared, who, id).await?;
-    let broken = |what: String| {
-        ServiceError::Internal(format!(
-            "session {id}: its record cannot be replayed: {what}"
-        ))
+    let broken = |problem: Unreplayable| {
+        ServiceError::from(Internal::Unreplayable {
+            session_id: id.to_string(),
+            problem,
+        })
     };
     let first = pb::StreamRegisterRequest::decode(&rec.start[..])
-        .map_err(|e| broken(format!("start: {e}")))?;
+        .map_err(|e| broken(Unreplayable::Start(e)))?;
     let Some(pb::stream_register_request::Msg::Start(start)) = &first.msg else {
-        return Err(broken("the first message is not a start".into()));
+        return Err(broken(Unreplayable::NotAStart));
     };
     let mut s = start_session(shared, who, start, first.client_seq).map_err(|e| match e {
         ServiceError::UnknownCase { .. } => ServiceError::precondition(
@@ -218,17 +219,17 @@ async fn resume_session(
     check_case_version(&rec, &s, id)?;
     for (seq, bytes) in &rec.messages {
         let m = pb::StreamRegisterRequest::decode(&bytes[..])
-            .map_err(|e| broken(format!("message {seq}: {e}")))?;
+            .map_err(|source| broken(Unreplayable::Decode { seq: *seq, source }))?;
         if matches!(m.msg, Some(pb::stream_register_request::Msg::Discover(_))) {
             // A discovery run is not repeated; its message still counts.
             s.last_seq = *seq;
             continue;
         }
         accept(&mut s, m, &shared.config).map_err(|e| {
-            broken(format!(
-                "message {seq} is refused now: {}",
-                e.to_status().message()
-            ))
+            broken(Unreplayable::Refused {
+                seq: *seq,
+                refusal: Box::new(e),
+            })
         })?;
     }
     Ok((s, rec.start))
@@ -253,17 +254,22 @@ async fn read_record(
     let path = audit.path().to_path_buf();
     let journal = audit.journal_dir().map(Path::to_path_buf);
     let key = id.to_string();
-    let rec = tokio::task::spawn_blocking(move || match journal {
-        // Replicas: the shared journal has every replica's sessions.
-        Some(dir) => crate::journal::read(&dir, &key),
-        None => {
-            let c = crate::audit::open_db(&path).map_err(|e| e.to_string())?;
-            crate::audit::read_session(&c, &key).map_err(|e| e.to_string())
+    let rec = tokio::task::spawn_blocking(move || -> Result<_, DynError> {
+        match journal {
+            // Replicas: the shared journal has every replica's sessions.
+            Some(dir) => Ok(crate::journal::read(&dir, &key)?),
+            None => {
+                let c = crate::audit::open_db(&path)?;
+                Ok(crate::audit::read_session(&c, &key)?)
+            }
         }
     })
     .await
-    .map_err(|e| ServiceError::Internal(format!("reading the session record: {e}")))?
-    .map_err(|e| ServiceError::Unavailable(format!("reading the session record: {e}")))?;
+    .map_err(|source| Internal::Task {
+        doing: "reading the session record",
+        source,
+    })?
+    .map_err(Unavailable::SessionRecord)?;
     let unknown = || ServiceError::UnknownSession {
         field: RESUME_FIELD.into(),
         id: id.to_string(),

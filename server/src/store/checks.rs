@@ -2,7 +2,7 @@
 //! every check preload makes short of the LIBR basis), and the content's version (SHA-256).
 
 use super::{MeshSource, ORGAN_MM, Upload, unit};
-use crate::error::ServiceError;
+use crate::error::{Internal, ServiceError};
 use librplus::mesh::io::{self, Format, MeshFile, Unit};
 use librplus::mesh::{MeshError, TetMesh};
 use librplus::register::physics::Physics;
@@ -35,7 +35,7 @@ pub(super) fn field(f: impl Into<String>, p: impl Into<String>) -> ServiceError 
 /// limit (`max_nodes`), then [`validate`]. Errors are INVALID_ARGUMENT naming the field (and
 /// the tet or node), or RESOURCE_EXHAUSTED for the node limit.
 pub fn check(u: &Upload, max_nodes: usize) -> Result<Checked, ServiceError> {
-    let unit = unit(&u.unit).map_err(|e| field("upload.mesh_unit", e))?;
+    let unit = unit(&u.unit).map_err(|e| field("upload.mesh_unit", e.to_string()))?;
     let arrays = matches!(u.mesh, MeshSource::Arrays { .. });
     if arrays && unit != Unit::Mm {
         return Err(field(
@@ -108,7 +108,7 @@ pub fn check(u: &Upload, max_nodes: usize) -> Result<Checked, ServiceError> {
                 io::WriteOptions::default(),
                 Path::new("mesh.vtu"),
             )
-            .map_err(|e| ServiceError::Internal(format!("writing the mesh: {e}")))?;
+            .map_err(Internal::MeshWrite)?;
             ("mesh.vtu".to_string(), bytes, file)
         }
     };

@@ -21,7 +21,7 @@ mod checks;
 #[cfg(test)]
 mod tests;
 
-use crate::error::ServiceError;
+use crate::error::{ServiceError, Unavailable};
 use checks::field;
 pub use checks::{Checked, Content, bytes, check, number, validate};
 use librplus::mesh::io::{self, Unit};
@@ -126,17 +126,18 @@ impl Stored {
     }
 
     /// Checks the stored content again with [`validate`] (a case stored with older checks).
-    pub fn validate(&self) -> Result<(), ServiceError> {
+    pub fn validate(&self) -> Result<(), Recheck> {
         let mesh = self.mesh_path();
-        let file = io::read(&mesh, self.unit()).map_err(|e| field("mesh", e.to_string()))?;
-        let read = |name: &str| -> Result<Option<Vec<u8>>, ServiceError> {
-            let p = self.dir.join(name);
-            if !p.is_file() {
+        let file = io::read(&mesh, self.unit())
+            .map_err(|e| Recheck::Invalid(field("mesh", e.to_string())))?;
+        let read = |name: &str| -> Result<Option<Vec<u8>>, Recheck> {
+            let path = self.dir.join(name);
+            if !path.is_file() {
                 return Ok(None);
             }
-            std::fs::read(&p)
+            std::fs::read(&path)
                 .map(Some)
-                .map_err(|e| ServiceError::Unavailable(format!("{}: {e}", p.display())))
+                .map_err(|source| Recheck::Unreadable { path, source })
         };
         validate(&Content {
             file: &file,
@@ -147,7 +148,24 @@ impl Stored {
             physics: read("mesh.physics.json")?.as_deref(),
         })
         .map(|_| ())
+        .map_err(Recheck::Invalid)
     }
+}
+
+/// Why a stored case fails [`Stored::validate`].
+#[derive(Debug, thiserror::Error)]
+pub enum Recheck {
+    /// One of its files does not read (the case is not at fault: it stays stored).
+    #[error("{}: {source}", path.display())]
+    Unreadable {
+        /// The file.
+        path: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+    /// Its content fails the upload checks (the message names the field).
+    #[error("{0}")]
+    Invalid(#[source] ServiceError),
 }
 
 /// Why the store could not do something.
@@ -169,6 +187,16 @@ pub enum StoreError {
         /// Its version.
         version: String,
     },
+    /// A file of a stored case does not read when the case is checked again (it stays stored).
+    #[error("case store {}: {}: {source}", dir.display(), path.display())]
+    Unreadable {
+        /// The case's folder.
+        dir: PathBuf,
+        /// The file.
+        path: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
     /// A `case.json` does not read.
     #[error("case store {}: {problem}", path.display())]
     Corrupt {
@@ -189,8 +217,9 @@ pub enum StoreError {
         version: String,
         /// Who uploaded it.
         principal: String,
-        /// What is wrong (naming the field).
-        problem: String,
+        /// What is wrong (its text names the field).
+        #[source]
+        problem: Box<ServiceError>,
     },
     /// A quota of the store would be passed; nothing was stored.
     #[error("{message}")]
@@ -211,9 +240,10 @@ impl StoreError {
     }
 
     /// As the service's error: a full disk or a quota is RESOURCE_EXHAUSTED (QuotaFailure
-    /// naming it), a taken id FAILED_PRECONDITION, the rest UNAVAILABLE.
-    pub fn to_service(&self) -> ServiceError {
-        match self {
+    /// naming it), a taken id FAILED_PRECONDITION, the rest UNAVAILABLE (keeping this error as
+    /// its source).
+    pub fn into_service(self) -> ServiceError {
+        match &self {
             StoreError::Io { source, .. } if source.raw_os_error() == Some(28) => {
                 ServiceError::Quota {
                     message: format!("the case store is full: {self}; nothing was stored"),
@@ -234,37 +264,65 @@ impl StoreError {
                     "{quota}: the case store's limit was reached; delete a case (DeleteCase) to upload another"
                 ),
             },
-            _ => ServiceError::Unavailable(format!("{self}; nothing was stored")),
+            _ => Unavailable::Store(Box::new(self)).into(),
         }
     }
 }
 
+/// A mesh unit that is none of `mm`, `cm`, `m`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{unit:?}: expected mm, cm or m")]
+pub struct UnknownUnit {
+    /// The unit given.
+    pub unit: String,
+}
+
 /// The mesh unit named by `s` ("" is mm).
-pub fn unit(s: &str) -> Result<Unit, String> {
+pub fn unit(s: &str) -> Result<Unit, UnknownUnit> {
     match s {
         "" | "mm" => Ok(Unit::Mm),
         "cm" => Ok(Unit::Cm),
         "m" => Ok(Unit::M),
-        u => Err(format!("{u:?}: expected mm, cm or m")),
+        u => Err(UnknownUnit {
+            unit: u.to_string(),
+        }),
     }
 }
 
-/// Checks a case id's form; the problem in words.
-pub fn check_id(id: &str) -> Result<(), String> {
-    if id.is_empty() || id.chars().count() > MAX_ID {
-        return Err(format!("must be 1 to {MAX_ID} characters"));
+/// Why a case id is refused ([`check_id`]); its text is the problem in words.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CaseIdError {
+    /// Empty, or longer than [`MAX_ID`] characters.
+    #[error("must be 1 to {MAX_ID} characters")]
+    Length {
+        /// Its length, characters.
+        chars: usize,
+    },
+    /// A character outside `A-Z a-z 0-9 . _ - /`.
+    #[error("{0:?} is not allowed (A-Z a-z 0-9 . _ - /)")]
+    Character(char),
+    /// A path segment that is empty, `.` or `..` (a leading or trailing `/` included).
+    #[error("path segments must be non-empty and not . or ..")]
+    Segment,
+}
+
+/// Checks a case id's form.
+pub fn check_id(id: &str) -> Result<(), CaseIdError> {
+    let chars = id.chars().count();
+    if id.is_empty() || chars > MAX_ID {
+        return Err(CaseIdError::Length { chars });
     }
     if let Some(c) = id
         .chars()
         .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-' | '/')))
     {
-        return Err(format!("{c:?} is not allowed (A-Z a-z 0-9 . _ - /)"));
+        return Err(CaseIdError::Character(c));
     }
     if id.starts_with('/')
         || id.ends_with('/')
         || id.split('/').any(|p| p.is_empty() || p == "." || p == "..")
     {
-        return Err("path segments must be non-empty and not . or ..".into());
+        return Err(CaseIdError::Segment);
     }
     Ok(())
 }
@@ -469,18 +527,18 @@ impl Store {
                 }
                 Ok(s)
             }
-            Err(ServiceError::Unavailable(problem)) => Err(StoreError::Corrupt {
-                path: s.dir.clone(),
-                problem,
+            Err(Recheck::Unreadable { path, source }) => Err(StoreError::Unreadable {
+                dir: s.dir.clone(),
+                path,
+                source,
             }),
-            Err(e) => {
-                let problem = e.to_status().message().to_string();
+            Err(Recheck::Invalid(e)) => {
                 self.remove(&s.case_id)?;
                 Err(StoreError::Invalid {
                     id: s.case_id,
                     version: s.version,
                     principal: s.principal,
-                    problem,
+                    problem: Box::new(e),
                 })
             }
         }

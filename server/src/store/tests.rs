@@ -40,6 +40,16 @@ fn ids_are_checked() {
     ] {
         assert!(check_id(bad).is_err(), "{bad:?}");
     }
+    assert_eq!(check_id("a b"), Err(CaseIdError::Character(' ')));
+    assert_eq!(check_id("a//b"), Err(CaseIdError::Segment));
+    assert_eq!(
+        check_id("").unwrap_err().to_string(),
+        "must be 1 to 128 characters"
+    );
+    assert_eq!(
+        unit("in").unwrap_err().to_string(),
+        "\"in\": expected mm, cm or m"
+    );
 }
 
 #[test]
@@ -264,7 +274,7 @@ fn quotas_bound_the_store_per_principal_and_in_total() {
     let quota = |r: Result<(Stored, bool), StoreError>| match r {
         Err(StoreError::Quota { quota, message }) => {
             let s = StoreError::Quota { quota, message }
-                .to_service()
+                .into_service()
                 .to_status();
             assert_eq!(s.code(), tonic::Code::ResourceExhausted);
             assert!(s.message().contains(quota), "{}", s.message());
