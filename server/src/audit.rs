@@ -350,56 +350,8 @@ fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
         Record::Messages {
             session_id,
             messages,
-        } => {
-            // A client_seq recorded again with other content is refused (the transaction and
-            // so the answer fail), never replaced or dropped; the same content again is kept once.
-            let mut st = c.prepare_cached(
-                "INSERT INTO messages(session_id, client_seq, t_ms, msg) VALUES(?1, ?2, ?3, ?4) \
-                 ON CONFLICT(session_id, client_seq) DO NOTHING",
-            )?;
-            let mut same = c.prepare_cached(
-                "SELECT msg = ?3 FROM messages WHERE session_id = ?1 AND client_seq = ?2",
-            )?;
-            for (seq, m) in messages {
-                if st.execute(params![session_id, *seq as i64, t, m])? == 0 {
-                    let equal: bool =
-                        same.query_row(params![session_id, *seq as i64, m], |r| r.get(0))?;
-                    if !equal {
-                        return Err(rusqlite::Error::ToSqlConversionFailure(
-                            format!(
-                                "session {session_id}: client_seq {seq} is recorded with other \
-                                 content; refused"
-                            )
-                            .into(),
-                        ));
-                    }
-                }
-            }
-        }
-        Record::Registration(g) => {
-            c.execute(
-                "INSERT INTO registrations(t_ms, principal, case_id, session_id, client_seq, \
-                 method, quality, quality_reason, total_ms, residual_rms_mm, points_total, \
-                 measurements, answer_sha256, timings) \
-                 VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
-                params![
-                    t,
-                    g.principal,
-                    g.case_id,
-                    g.session_id,
-                    g.client_seq as i64,
-                    g.method,
-                    g.quality,
-                    g.quality_reason,
-                    g.total_ms,
-                    g.residual_rms_mm,
-                    g.points_total as i64,
-                    g.measurements,
-                    g.answer_sha256,
-                    g.timings
-                ],
-            )?;
-        }
+        } => write_messages(c, session_id, messages, t)?,
+        Record::Registration(g) => write_registration(c, g, t)?,
         Record::Claim { .. } => {}
         Record::SessionEnd {
             session_id,
@@ -411,6 +363,66 @@ fn write(c: &Connection, r: &Record, t: i64) -> rusqlite::Result<()> {
             )?;
         }
     }
+    Ok(())
+}
+
+/// A session's messages, each under its `client_seq`. A client_seq recorded again with other
+/// content is refused (the transaction and so the answer fail), never replaced or dropped; the
+/// same content again is kept once.
+fn write_messages(
+    c: &Connection,
+    session_id: &str,
+    messages: &[(u64, Vec<u8>)],
+    t: i64,
+) -> rusqlite::Result<()> {
+    let mut st = c.prepare_cached(
+        "INSERT INTO messages(session_id, client_seq, t_ms, msg) VALUES(?1, ?2, ?3, ?4) \
+         ON CONFLICT(session_id, client_seq) DO NOTHING",
+    )?;
+    let mut same = c.prepare_cached(
+        "SELECT msg = ?3 FROM messages WHERE session_id = ?1 AND client_seq = ?2",
+    )?;
+    for (seq, m) in messages {
+        if st.execute(params![session_id, *seq as i64, t, m])? == 0 {
+            let equal: bool = same.query_row(params![session_id, *seq as i64, m], |r| r.get(0))?;
+            if !equal {
+                return Err(rusqlite::Error::ToSqlConversionFailure(
+                    format!(
+                        "session {session_id}: client_seq {seq} is recorded with other \
+                         content; refused"
+                    )
+                    .into(),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// One acknowledged registration.
+fn write_registration(c: &Connection, g: &RegistrationRecord, t: i64) -> rusqlite::Result<()> {
+    c.execute(
+        "INSERT INTO registrations(t_ms, principal, case_id, session_id, client_seq, \
+         method, quality, quality_reason, total_ms, residual_rms_mm, points_total, \
+         measurements, answer_sha256, timings) \
+         VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+        params![
+            t,
+            g.principal,
+            g.case_id,
+            g.session_id,
+            g.client_seq as i64,
+            g.method,
+            g.quality,
+            g.quality_reason,
+            g.total_ms,
+            g.residual_rms_mm,
+            g.points_total as i64,
+            g.measurements,
+            g.answer_sha256,
+            g.timings
+        ],
+    )?;
     Ok(())
 }
 

@@ -427,32 +427,7 @@ impl ServiceError {
                 d.add_precondition_failure_violation(*kind, subject.clone(), description.clone());
                 (Code::FailedPrecondition, message.clone(), Some(d))
             }
-            Self::UnknownCase { field, id, known } => {
-                // The id echoed is cut to 64 characters (as every echo of a client's string);
-                // the list to the first 20.
-                let id = short(id, 64);
-                let mut list = known
-                    .iter()
-                    .take(20)
-                    .cloned()
-                    .collect::<Vec<_>>()
-                    .join(", ");
-                if known.len() > 20 {
-                    list.push_str(&format!(" and {} more", known.len() - 20));
-                }
-                d.add_bad_request_violation(field.clone(), format!("no case {id:?}"));
-                d.set_resource_info(
-                    "case",
-                    id.to_string(),
-                    "",
-                    format!("the cases you may use: {list}"),
-                );
-                (
-                    Code::NotFound,
-                    format!("{field}: no case {id:?} (the cases you may use: {list})"),
-                    Some(d),
-                )
-            }
+            Self::UnknownCase { field, id, known } => unknown_case(field, id, known, d),
             Self::UnknownSession { field, id } => {
                 let id = short(id, 64);
                 d.add_bad_request_violation(field.clone(), format!("no session {id:?}"));
@@ -476,48 +451,8 @@ impl ServiceError {
             Self::Deadline(e) => (Code::DeadlineExceeded, e.to_string(), None),
             Self::Received { code, message } => (*code, message.clone(), None),
             Self::Internal(e) => (Code::Internal, e.to_string(), None),
-            Self::TakenOver { session_id } => {
-                d.set_error_info(
-                    TAKEN_OVER,
-                    "librplus.v1",
-                    std::collections::HashMap::from([(
-                        "session_id".to_string(),
-                        session_id.clone(),
-                    )]),
-                );
-                (
-                    Code::Aborted,
-                    format!(
-                        "session {session_id} was taken over by a newer stream (a resume of the \
-                         same session), which holds it now; this stream has ended and sends \
-                         nothing more"
-                    ),
-                    Some(d),
-                )
-            }
-            Self::Registration(e) => match pipeline_cause(e) {
-                Cause::Input => {
-                    d.add_bad_request_violation("measurements", e.to_string());
-                    (Code::InvalidArgument, format!("measurements: {e}"), Some(d))
-                }
-                Cause::Data => {
-                    d.add_precondition_failure_violation("DATA", "measurements", e.to_string());
-                    (
-                        Code::FailedPrecondition,
-                        format!("these measurements do not permit a registration: {e}"),
-                        Some(d),
-                    )
-                }
-                Cause::Case => {
-                    d.add_precondition_failure_violation("CASE", "method", e.to_string());
-                    (Code::FailedPrecondition, e.to_string(), Some(d))
-                }
-                Cause::Server => (
-                    Code::Internal,
-                    format!("the registration failed inside the server: {e}"),
-                    None,
-                ),
-            },
+            Self::TakenOver { session_id } => taken_over(session_id, d),
+            Self::Registration(e) => registration(e, d),
         }
     }
 
@@ -589,6 +524,83 @@ pub fn libr_can_fall_back(e: &PipelineError) -> bool {
         | PipelineError::NoV2sModel
         | PipelineError::V2s(_)
         | PipelineError::NoRefitIterations => false,
+    }
+}
+
+/// A case the caller may not use or that does not exist: the id echoed (cut to 64 characters,
+/// as every echo of a client's string) with the cases the caller may use (the first 20).
+fn unknown_case(
+    field: &str,
+    id: &str,
+    known: &[String],
+    mut d: ErrorDetails,
+) -> (Code, String, Option<ErrorDetails>) {
+    let id = short(id, 64);
+    let mut list = known
+        .iter()
+        .take(20)
+        .cloned()
+        .collect::<Vec<_>>()
+        .join(", ");
+    if known.len() > 20 {
+        list.push_str(&format!(" and {} more", known.len() - 20));
+    }
+    d.add_bad_request_violation(field.to_string(), format!("no case {id:?}"));
+    d.set_resource_info(
+        "case",
+        id.to_string(),
+        "",
+        format!("the cases you may use: {list}"),
+    );
+    (
+        Code::NotFound,
+        format!("{field}: no case {id:?} (the cases you may use: {list})"),
+        Some(d),
+    )
+}
+
+/// A stream whose session a newer stream (a resume of it) took over.
+fn taken_over(session_id: &str, mut d: ErrorDetails) -> (Code, String, Option<ErrorDetails>) {
+    d.set_error_info(
+        TAKEN_OVER,
+        "librplus.v1",
+        std::collections::HashMap::from([("session_id".to_string(), session_id.to_string())]),
+    );
+    (
+        Code::Aborted,
+        format!(
+            "session {session_id} was taken over by a newer stream (a resume of the \
+             same session), which holds it now; this stream has ended and sends \
+             nothing more"
+        ),
+        Some(d),
+    )
+}
+
+/// A registration that failed, by cause: the measurements, the data, the case, or the server.
+fn registration(e: &PipelineError, mut d: ErrorDetails) -> (Code, String, Option<ErrorDetails>) {
+    match pipeline_cause(e) {
+        Cause::Input => {
+            d.add_bad_request_violation("measurements", e.to_string());
+            (Code::InvalidArgument, format!("measurements: {e}"), Some(d))
+        }
+        Cause::Data => {
+            d.add_precondition_failure_violation("DATA", "measurements", e.to_string());
+            (
+                Code::FailedPrecondition,
+                format!("these measurements do not permit a registration: {e}"),
+                Some(d),
+            )
+        }
+        Cause::Case => {
+            d.add_precondition_failure_violation("CASE", "method", e.to_string());
+            (Code::FailedPrecondition, e.to_string(), Some(d))
+        }
+        Cause::Server => (
+            Code::Internal,
+            format!("the registration failed inside the server: {e}"),
+            None,
+        ),
     }
 }
 
