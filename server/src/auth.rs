@@ -164,7 +164,7 @@ pub enum AuthProblem {
     /// A format other than 1.
     #[error("format {0} is not supported (1)")]
     Format(u32),
-    /// A principal's name is empty or longer than [`MAX_NAME`] characters.
+    /// A principal's name is empty or longer than 256 characters.
     #[error("principals[{index}].principal: must be 1 to {MAX_NAME} characters")]
     NameLength {
         /// The principal's index.
@@ -199,7 +199,7 @@ pub enum AuthProblem {
         /// The principal's index.
         index: usize,
     },
-    /// A case pattern that is empty or longer than [`MAX_NAME`] characters.
+    /// A case pattern that is empty or longer than 256 characters.
     #[error("principals[{index}].cases[{case}]: must be 1 to {MAX_NAME} characters")]
     CaseLength {
         /// The principal's index.

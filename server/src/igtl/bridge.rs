@@ -34,13 +34,12 @@
 //! to RAS on loading). A plane pose (plane frame → physical) is converted as `F P`. With
 //! `--frame lps` everything passes unchanged.
 
-use super::geometry::{CaseGeometry, frame_rigid, transform_of};
+pub use super::answers::{DEVICE_LIVER, DEVICE_STATUS, DEVICE_TARGETS, DEVICE_TRANSFORM};
+use super::answers::{registered_messages, rejection_status, status, status_code_of};
+use super::geometry::CaseGeometry;
 pub use super::geometry::{Frame, Target, read_targets};
 use super::requests::request_of;
-use super::wire::{
-    self, AttributeKind, AttributeLocation, CellArray, Decoder, EncodeOptions, Message,
-    PointElement, PolyAttribute, PolyData, Status, status_code,
-};
+use super::wire::{self, Decoder, status_code};
 use librplus::mesh::rigid::Rigid;
 use librplus_client::pb;
 use std::net::SocketAddr;
@@ -52,15 +51,6 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{Semaphore, mpsc};
 use tokio::time::Instant;
 use tracing::Instrument;
-
-/// Device name of the image → physical `TRANSFORM` sent after each registration.
-pub const DEVICE_TRANSFORM: &str = "LIBR_ImageToPhysical";
-/// Device name of the registered targets' `POINT`.
-pub const DEVICE_TARGETS: &str = "LIBR_Targets";
-/// Device name of the registered liver's `POLYDATA`.
-pub const DEVICE_LIVER: &str = "LIBR_Liver";
-/// Device name of the bridge's `STATUS` messages.
-pub const DEVICE_STATUS: &str = "LIBR_Status";
 
 /// What the bridge does.
 #[derive(Debug, Clone)]
@@ -126,38 +116,9 @@ pub fn timeout_of(flag: &str, seconds: f64) -> anyhow::Result<Duration> {
 /// every OpenIGTLink connection (at most [`BridgeConfig::max_sessions`] at once) as its own
 /// registration session.
 pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<()> {
-    if cfg.max_sessions == 0 {
-        anyhow::bail!("--max-sessions 0: at least 1 (the most OpenIGTLink connections served)");
-    }
-    for (flag, t) in [
-        ("--idle-timeout-s", cfg.idle_timeout),
-        ("--session-idle-timeout-s", cfg.session_idle_timeout),
-    ] {
-        if t.is_zero() {
-            anyhow::bail!("{flag} 0: a positive number of seconds");
-        }
-    }
-    let client = librplus_client::connect_with(&cfg.server, &cfg.tls).await?;
-    let session_cfg = librplus_client::SessionConfig::new(
-        std::time::Duration::from_secs(60),
-        cfg.token.as_deref(),
-    )?;
-    let mut req = tonic::Request::new(pb::DescribeCaseRequest {
-        case_id: cfg.case_id.clone(),
-        include_mesh: true,
-    });
-    if let Some(t) = &session_cfg.token {
-        req.metadata_mut().insert("authorization", t.clone());
-    }
-    let described = client
-        .clone()
-        .describe_case(req)
-        .await
-        .map_err(|s| anyhow::anyhow!("DescribeCase {:?}: {}", cfg.case_id, s.message()))?
-        .into_inner();
-    let geo = Arc::new(CaseGeometry::new(&described, &cfg.targets)?);
-    let cfg = Arc::new(cfg);
-    let token = session_cfg.token.clone();
+    check_limits(&cfg)?;
+    let shared = Shared::connect(cfg).await?;
+    let (cfg, geo) = (&shared.cfg, &shared.geo);
     tracing::info!(
         listen = %listener.local_addr()?,
         case = %cfg.case_id,
@@ -170,51 +131,104 @@ pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<(
     );
     let slots = Arc::new(Semaphore::new(cfg.max_sessions));
     let mut next_id = 1u64;
-    // Refused connections since the last line about them (logged at most every
-    // REFUSAL_LOG_EVERY, so a flood of connections does not flood the log).
-    let (mut refused, mut refusal_logged) = (0u64, None::<Instant>);
+    let mut refusals = Refusals::default();
     loop {
-        let (socket, peer) = match listener.accept().await {
-            Ok(x) => x,
+        let (socket, peer) = accept(&listener).await;
+        let id = next_id;
+        next_id += 1;
+        match slots.clone().try_acquire_owned() {
+            Ok(slot) => shared.spawn_connection(socket, peer, id, slot),
+            Err(_) => {
+                refusals.note(id, peer, cfg.max_sessions);
+                refuse_busy(socket, cfg.max_sessions);
+            }
+        }
+    }
+}
+
+/// Checks the limits of `cfg`: at least one session, timeouts above zero.
+fn check_limits(cfg: &BridgeConfig) -> anyhow::Result<()> {
+    if cfg.max_sessions == 0 {
+        anyhow::bail!("--max-sessions 0: at least 1 (the most OpenIGTLink connections served)");
+    }
+    for (flag, t) in [
+        ("--idle-timeout-s", cfg.idle_timeout),
+        ("--session-idle-timeout-s", cfg.session_idle_timeout),
+    ] {
+        if t.is_zero() {
+            anyhow::bail!("{flag} 0: a positive number of seconds");
+        }
+    }
+    Ok(())
+}
+
+/// The next connection on `listener`; a failed accept is logged and retried after 100 ms.
+async fn accept(listener: &TcpListener) -> (TcpStream, SocketAddr) {
+    loop {
+        match listener.accept().await {
+            Ok(x) => return x,
             Err(e) => {
                 tracing::warn!(error = %e, "accept failed");
                 tokio::time::sleep(std::time::Duration::from_millis(100)).await;
-                continue;
             }
-        };
-        let id = next_id;
-        next_id += 1;
-        let Ok(slot) = slots.clone().try_acquire_owned() else {
-            refused += 1;
-            if refusal_logged.is_none_or(|t| t.elapsed() >= REFUSAL_LOG_EVERY) {
-                tracing::warn!(
-                    connection = id,
-                    %peer,
-                    max_sessions = cfg.max_sessions,
-                    refused,
-                    "OpenIGTLink connection refused: the bridge already serves --max-sessions connections (refused: since the last such line)"
-                );
-                (refused, refusal_logged) = (0, Some(Instant::now()));
-            }
-            let busy = status(
-                status_code::BUSY,
-                "BUSY",
-                &format!(
-                    "the LIBR+ bridge already serves its {} connections (--max-sessions); try again later",
-                    cfg.max_sessions
-                ),
-            );
-            tokio::spawn(async move {
-                let mut socket = socket;
-                let _ = tokio::time::timeout(Duration::from_secs(2), async {
-                    socket.write_all(&busy).await?;
-                    socket.shutdown().await
-                })
-                .await;
-            });
-            continue;
-        };
-        let (client, cfg, geo, token) = (client.clone(), cfg.clone(), geo.clone(), token.clone());
+        }
+    }
+}
+
+/// What every connection of the bridge shares: the gRPC client, the options, the case.
+#[derive(Clone)]
+struct Shared {
+    client: librplus_client::Client,
+    cfg: Arc<BridgeConfig>,
+    geo: Arc<CaseGeometry>,
+    /// The bearer token's metadata value, when there is one.
+    token: Option<tonic::metadata::AsciiMetadataValue>,
+}
+
+impl Shared {
+    /// Connects to the gRPC server and describes the case (with its mesh) once.
+    async fn connect(cfg: BridgeConfig) -> anyhow::Result<Self> {
+        let client = librplus_client::connect_with(&cfg.server, &cfg.tls).await?;
+        let session_cfg = librplus_client::SessionConfig::new(
+            std::time::Duration::from_secs(60),
+            cfg.token.as_deref(),
+        )?;
+        let mut req = tonic::Request::new(pb::DescribeCaseRequest {
+            case_id: cfg.case_id.clone(),
+            include_mesh: true,
+        });
+        if let Some(t) = &session_cfg.token {
+            req.metadata_mut().insert("authorization", t.clone());
+        }
+        let described = client
+            .clone()
+            .describe_case(req)
+            .await
+            .map_err(|s| anyhow::anyhow!("DescribeCase {:?}: {}", cfg.case_id, s.message()))?
+            .into_inner();
+        let geo = Arc::new(CaseGeometry::new(&described, &cfg.targets)?);
+        Ok(Self {
+            client,
+            cfg: Arc::new(cfg),
+            geo,
+            token: session_cfg.token,
+        })
+    }
+
+    /// Serves connection `id` from `peer` on its own task, holding `slot` until it ends.
+    fn spawn_connection(
+        &self,
+        socket: TcpStream,
+        peer: SocketAddr,
+        id: u64,
+        slot: tokio::sync::OwnedSemaphorePermit,
+    ) {
+        let Self {
+            client,
+            cfg,
+            geo,
+            token,
+        } = self.clone();
         tokio::spawn(
             async move {
                 tracing::info!(%peer, "OpenIGTLink peer connected");
@@ -229,17 +243,52 @@ pub async fn serve(listener: TcpListener, cfg: BridgeConfig) -> anyhow::Result<(
     }
 }
 
-/// An encoded STATUS message (never fails: the texts are cut to their fields' sizes).
-fn status(code: u16, name: &str, message: &str) -> Vec<u8> {
-    let s = Status {
-        code,
-        subcode: 0,
-        error_name: name.chars().take(20).collect(),
-        message: message.replace('\0', " "),
-    };
-    Message::Status(s)
-        .encode(DEVICE_STATUS, &EncodeOptions::default())
-        .unwrap_or_default()
+/// Refused connections since the last line about them (logged at most every
+/// [`REFUSAL_LOG_EVERY`], so a flood of connections does not flood the log).
+#[derive(Default)]
+struct Refusals {
+    /// Connections refused since the last line.
+    refused: u64,
+    /// When the last line was logged.
+    logged: Option<Instant>,
+}
+
+impl Refusals {
+    /// Counts connection `id` from `peer` as refused; logs the count when the last line is old
+    /// enough.
+    fn note(&mut self, id: u64, peer: SocketAddr, max_sessions: usize) {
+        self.refused += 1;
+        if self.logged.is_none_or(|t| t.elapsed() >= REFUSAL_LOG_EVERY) {
+            tracing::warn!(
+                connection = id,
+                %peer,
+                max_sessions,
+                refused = self.refused,
+                "OpenIGTLink connection refused: the bridge already serves --max-sessions connections (refused: since the last such line)"
+            );
+            (self.refused, self.logged) = (0, Some(Instant::now()));
+        }
+    }
+}
+
+/// Answers a connection the bridge has no slot for with `STATUS` 6 (busy) and closes it, on its
+/// own task (2 s at most).
+fn refuse_busy(socket: TcpStream, max_sessions: usize) {
+    let busy = status(
+        status_code::BUSY,
+        "BUSY",
+        &format!(
+            "the LIBR+ bridge already serves its {max_sessions} connections (--max-sessions); try again later"
+        ),
+    );
+    tokio::spawn(async move {
+        let mut socket = socket;
+        let _ = tokio::time::timeout(Duration::from_secs(2), async {
+            socket.write_all(&busy).await?;
+            socket.shutdown().await
+        })
+        .await;
+    });
 }
 
 /// A gRPC status as an encoded STATUS: its code mapped, its name, `what: message`.
@@ -250,19 +299,6 @@ fn grpc_status(s: &tonic::Status, what: &str) -> Vec<u8> {
         code,
         &format!("{what}: {}", s.message()),
     )
-}
-
-/// The OpenIGTLink status code for a gRPC status code name.
-fn status_code_of(code: &str) -> u16 {
-    match code {
-        "NOT_FOUND" => status_code::NOT_FOUND,
-        "PERMISSION_DENIED" | "UNAUTHENTICATED" => status_code::ACCESS_DENIED,
-        "RESOURCE_EXHAUSTED" => status_code::BUSY,
-        "DEADLINE_EXCEEDED" => status_code::TIME_OUT,
-        "UNAVAILABLE" => status_code::NOT_READY,
-        "INVALID_ARGUMENT" | "FAILED_PRECONDITION" | "OUT_OF_RANGE" => status_code::CONFIG_ERROR,
-        _ => status_code::UNKNOWN_ERROR,
-    }
 }
 
 /// Why a connection's gRPC session ended early (the text is the connection's log line).
@@ -740,27 +776,7 @@ fn answer_messages(u: &pb::StreamUpdate, geo: &CaseGeometry, frame: Frame) -> Ve
                 &why.to_string(),
             )],
         },
-        Some(Update::Rejection(r)) => {
-            let detail: Vec<String> = r
-                .violations
-                .iter()
-                .map(|v| format!("{}: {}", v.field, v.description))
-                .collect();
-            vec![status(
-                status_code_of(&r.code),
-                &r.code,
-                &format!(
-                    "message {} rejected: {}{}",
-                    r.client_seq,
-                    r.message,
-                    if detail.is_empty() {
-                        String::new()
-                    } else {
-                        format!(" ({})", detail.join("; "))
-                    }
-                ),
-            )]
-        }
+        Some(Update::Rejection(r)) => vec![rejection_status(r)],
         _ => Vec::new(),
     }
 }
@@ -799,103 +815,23 @@ fn registration_messages(
         Some(t) => librplus_client::rigid_from_message(t)
             .map_err(|e| AnswerError::Transform(e.within("registration.image_to_physical")))?,
     };
-    let n = geo.nodes.len();
-    let u: Vec<f64> = if r.displacement_mm.len() == 3 * n {
-        r.displacement_mm.iter().map(|&x| f64::from(x)).collect()
+    let u = displacements(r, geo.nodes.len())?;
+    registered_messages(r, &t, &u, geo, frame).map_err(AnswerError::Encode)
+}
+
+/// The registration's node displacements (mm, three per node of the case's `n`; all zero when
+/// it sent none).
+fn displacements(r: &pb::Registration, n: usize) -> Result<Vec<f64>, AnswerError> {
+    if r.displacement_mm.len() == 3 * n {
+        Ok(r.displacement_mm.iter().map(|&x| f64::from(x)).collect())
     } else if r.displacement_mm.is_empty() {
-        vec![0.0; 3 * n]
+        Ok(vec![0.0; 3 * n])
     } else {
-        return Err(AnswerError::Displacement {
+        Err(AnswerError::Displacement {
             values: r.displacement_mm.len(),
             nodes: n,
-        });
-    };
-    let f = frame_rigid(frame);
-    let placed =
-        |x: [f64; 3], d: [f64; 3]| frame.convert(t.apply([x[0] + d[0], x[1] + d[1], x[2] + d[2]]));
-    let opts = EncodeOptions::default();
-    let enc = |m: Message, device: &str| m.encode(device, &opts).map_err(AnswerError::Encode);
-    let mut out = Vec::with_capacity(4);
-    // The quality first when it is not OK; the liver POLYDATA last (it ends an update).
-    if r.quality != pb::Quality::Ok as i32 {
-        let q = pb::Quality::try_from(r.quality).map_or_else(
-            |_| format!("QUALITY_{}", r.quality),
-            |q| q.as_str_name().to_string(),
-        );
-        out.push(status(
-            status_code::OK,
-            q.trim_start_matches("QUALITY_"),
-            &r.quality_reason,
-        ));
+        })
     }
-    // Image (peer frame) → physical (peer frame).
-    out.push(enc(
-        Message::Transform(transform_of(&f.then(&t).then(&f))),
-        DEVICE_TRANSFORM,
-    )?);
-    if !geo.targets.is_empty() {
-        let points = geo
-            .targets
-            .iter()
-            .map(|e| {
-                let mut d = [0.0; 3];
-                for (&node, &w) in e.nodes.iter().zip(&e.weights) {
-                    for (a, da) in d.iter_mut().enumerate() {
-                        *da += w * u[3 * node as usize + a];
-                    }
-                }
-                PointElement {
-                    name: e.name.chars().take(64).collect(),
-                    group: "Target".into(),
-                    rgba: [255, 64, 64, 255],
-                    position_mm: placed(e.image_mm, d).map(|c| c as f32),
-                    diameter_mm: 5.0,
-                    owner: String::new(),
-                }
-            })
-            .collect();
-        out.push(enc(Message::Point(points), DEVICE_TARGETS)?);
-    }
-    let mut points = Vec::with_capacity(geo.surface_nodes.len());
-    let mut displacement = Vec::with_capacity(3 * geo.surface_nodes.len());
-    for &i in &geo.surface_nodes {
-        let i = i as usize;
-        let d = [u[3 * i], u[3 * i + 1], u[3 * i + 2]];
-        points.push(placed(geo.nodes[i], d).map(|c| c as f32));
-        // The node's deformation in the peer's physical frame: F R u.
-        displacement.extend(frame.convert(t.apply_vector(d)).map(|c| c as f32));
-    }
-    let mut attributes = vec![PolyAttribute {
-        name: "displacement".into(),
-        location: AttributeLocation::Point,
-        kind: AttributeKind::Vector,
-        data: displacement,
-    }];
-    // The error estimate's per-node bound, when the server sent one for every node.
-    if let Some(e) = r
-        .error_estimate
-        .as_ref()
-        .filter(|e| e.node_uncertainty_mm.len() == n)
-    {
-        attributes.push(PolyAttribute {
-            name: "uncertainty_mm".into(),
-            location: AttributeLocation::Point,
-            kind: AttributeKind::Scalar { components: 1 },
-            data: geo
-                .surface_nodes
-                .iter()
-                .map(|&i| e.node_uncertainty_mm[i as usize])
-                .collect(),
-        });
-    }
-    let liver = PolyData {
-        points,
-        polygons: CellArray::from_cells(geo.surface_triangles.iter().map(|t| t.to_vec())),
-        attributes,
-        ..PolyData::default()
-    };
-    out.push(enc(Message::PolyData(liver), DEVICE_LIVER)?);
-    Ok(out)
 }
 
 /// Binds `addr` and runs [`serve`].

@@ -135,7 +135,7 @@ pub struct CategorySummary {
 
 /// Per-node error statistics of one method on one geometry over the scenarios of a split that
 /// registered: running sums, so memory stays at three arrays per mesh whatever the number of
-/// scenarios. Node errors as [`node_errors_mm`] (the definition of [`super::tre`]).
+/// scenarios. Node errors as [`crate::eval::node_errors_mm`] (the definition of [`super::tre`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ErrorMap {
     /// Geometry id.
@@ -276,7 +276,7 @@ pub struct LibrPlusEval<'a> {
     /// The trained model, or an ensemble's members (their corrections averaged); empty: no
     /// LIBR+.
     pub models: &'a [std::sync::Arc<TrainedModel>],
-    /// The V2S network of method [`Method::V2s`].
+    /// The V2S network of method [`crate::pipeline::Method::V2s`].
     pub v2s: Option<&'a std::sync::Arc<V2sModel>>,
     /// Only these scenarios (deformation id, index), e.g. the model's test split.
     pub only: Option<&'a std::collections::BTreeSet<(String, usize)>>,

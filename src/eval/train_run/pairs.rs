@@ -62,7 +62,7 @@ impl PairSums {
     }
 }
 
-/// [`PairSums`] over all the rows of [`pair_rows`] and per measurement category.
+/// `PairSums` over all the rows of [`pair_rows`] and per measurement category.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct PairTotals {
     /// Over every scenario.
