@@ -149,18 +149,7 @@ pub fn features(
                 .sqrt()
         })
         .collect();
-    let mut centroid = [0.0; 3];
-    for x in nodes {
-        for a in 0..3 {
-            centroid[a] += x[a] / n as f64;
-        }
-    }
-    let size = (nodes
-        .iter()
-        .map(|x| (0..3).map(|a| (x[a] - centroid[a]).powi(2)).sum::<f64>())
-        .sum::<f64>()
-        / n as f64)
-        .sqrt();
+    let size = rms_radius(nodes);
     let (mut on, mut covered) = (0usize, 0usize);
     for (i, d) in dist.iter().enumerate() {
         if boundary.is_empty() || boundary[i] {
@@ -201,6 +190,23 @@ pub fn features(
         coverage_p90_mm: crate::util::quantile(&dist, 0.9),
     };
     Some((f, dist))
+}
+
+/// RMS distance of the nodes from their centroid (mm): the organ's size.
+fn rms_radius(nodes: &[[f64; 3]]) -> f64 {
+    let n = nodes.len();
+    let mut centroid = [0.0; 3];
+    for x in nodes {
+        for a in 0..3 {
+            centroid[a] += x[a] / n as f64;
+        }
+    }
+    (nodes
+        .iter()
+        .map(|x| (0..3).map(|a| (x[a] - centroid[a]).powi(2)).sum::<f64>())
+        .sum::<f64>()
+        / n as f64)
+        .sqrt()
 }
 
 /// The failed-registration part of a method's model (see the module documentation).

@@ -72,6 +72,23 @@ pub fn offset_targets(matches: &[Match], targets: &mut [[f64; 3]], offset: &[f64
     }
 }
 
+/// T: identity but for the rotations, ω_G = ω'/radius and τ_G = τ − ω_G × (cen − centre): the
+/// change from the step's scaled rotation about `cen` to `G`'s rotation about `centre` (`m`
+/// basis weights, `p` unknowns in all).
+fn rotation_change(m: usize, p: usize, radius: f64, cen: [f64; 3], centre: [f64; 3]) -> Mat<f64> {
+    let mut t = Mat::<f64>::identity(p, p);
+    for k in 0..3 {
+        t[(m + k, m + k)] = 1.0 / radius;
+        let mut e = [0.0; 3];
+        e[k] = 1.0;
+        let c = cross(e, sub(cen, centre));
+        for a in 0..3 {
+            t[(m + 3 + a, m + k)] = -c[a] / radius;
+        }
+    }
+    t
+}
+
 /// The refit's first step at `offset`, linearised ([`LinearRefit`]): `matches` and
 /// `measured_image` (the measured points in the image frame) as the refit would use them there;
 /// `centre` is that of `G`'s rotations. Errors as [`fit_step`]'s, and when `offset` does not fit
@@ -110,17 +127,7 @@ pub fn linearised_refit(
             asm.used.len()
         ))
     })?;
-    // T: identity but for the rotations, ω_G = ω'/radius and τ_G = τ − ω_G × (cen − centre).
-    let mut t = Mat::<f64>::identity(p, p);
-    for k in 0..3 {
-        t[(m + k, m + k)] = 1.0 / asm.radius;
-        let mut e = [0.0; 3];
-        e[k] = 1.0;
-        let c = cross(e, sub(asm.cen, centre));
-        for a in 0..3 {
-            t[(m + 3 + a, m + k)] = -c[a] / asm.radius;
-        }
-    }
+    let t = rotation_change(m, p, asm.radius, asm.cen, centre);
     let mut ninv_tt = t.transpose().to_owned();
     llt.solve_in_place(ninv_tt.as_mut());
     let k = &t * &ninv_tt;
