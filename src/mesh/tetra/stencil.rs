@@ -134,6 +134,31 @@ impl Fill<'_> {
         s: [i8; 4],
         out: &mut Vec<[u32; 4]>,
     ) -> Result<(), TetraError> {
+        let poly = self.polytope(v, s)?;
+        let mut faces = self.lattice_faces(&poly, v, s)?;
+        let free_quad = match self.cut_face(&poly, v, s) {
+            Some(f) => {
+                let quad = f.len == 4;
+                faces.push(f);
+                quad
+            }
+            None => false,
+        };
+        match best_pulling(&poly, &faces, free_quad) {
+            Some((_, t)) => {
+                out.extend_from_slice(&t);
+                Ok(())
+            }
+            None => Err(TetraError::NoValidStencil {
+                lattice_tet: v,
+                signs: s,
+            }),
+        }
+    }
+
+    /// The inside polytope's vertices: the tetrahedron's inside and on-surface lattice vertices,
+    /// then the cut points on its crossing edges.
+    fn polytope(&self, v: [u32; 4], s: [i8; 4]) -> Result<Polytope, TetraError> {
         let np = self.lat.num_points as u32;
         // Polytope vertices: global ids and positions.
         let mut ids = [0u32; MAX_PV];
@@ -170,7 +195,24 @@ impl Fill<'_> {
                 }
             }
         }
-        // Faces on the four lattice faces (outward, clipped in order).
+        Ok(Polytope {
+            ids,
+            pos,
+            count,
+            of_lattice,
+            of_cut,
+        })
+    }
+
+    /// The polytope's faces on the four lattice faces (outward, clipped in order), with the
+    /// quadrilaterals' diagonals the lattice-face rules fix.
+    fn lattice_faces(
+        &self,
+        poly: &Polytope,
+        v: [u32; 4],
+        s: [i8; 4],
+    ) -> Result<Vec<PFace>, TetraError> {
+        let (of_lattice, of_cut) = (&poly.of_lattice, &poly.of_cut);
         let mut faces: Vec<PFace> = Vec::with_capacity(5);
         for lf in TET_FACES {
             let mut poly = [0u8; 4];
@@ -218,7 +260,13 @@ impl Fill<'_> {
                 diag,
             });
         }
-        // The cut face: on-surface vertices and cut points, oriented toward the outside vertices.
+        Ok(faces)
+    }
+
+    /// The cut face: on-surface vertices and cut points, oriented toward the outside vertices
+    /// (None when it has fewer than three corners).
+    fn cut_face(&self, poly: &Polytope, v: [u32; 4], s: [i8; 4]) -> Option<PFace> {
+        let (of_lattice, of_cut, pos) = (&poly.of_lattice, &poly.of_cut, &poly.pos);
         let mut cut_face = [0u8; 4];
         let mut clen = 0usize;
         let ins: Vec<usize> = (0..4).filter(|&i| s[i] < 0).collect();
@@ -258,100 +306,13 @@ impl Fill<'_> {
             if dot(normal, sub(outside, q(0))) < 0.0 {
                 cut_face[..clen].reverse();
             }
-            faces.push(PFace {
+            return Some(PFace {
                 v: cut_face,
                 len: clen as u8,
                 diag: None,
             });
         }
-        // Pulling triangulations from each admissible vertex; keep the best.
-        let free_quad = clen == 4;
-        let mut best: Option<(f64, Vec<[u32; 4]>)> = None;
-        let mut tets: Vec<[u32; 4]> = Vec::with_capacity(4);
-        for apex in 0..count as u8 {
-            let contains = |f: &PFace, x: u8| f.v[..f.len as usize].contains(&x);
-            let admissible = faces.iter().all(|f| match f.diag {
-                Some((x, y)) if contains(f, apex) => x == apex || y == apex,
-                _ => true,
-            });
-            if !admissible {
-                continue;
-            }
-            let options = if free_quad && !contains(&faces[faces.len() - 1], apex) {
-                2
-            } else {
-                1
-            };
-            for option in 0..options {
-                tets.clear();
-                let mut min_angle = f64::INFINITY;
-                let mut valid = true;
-                for (fi, f) in faces.iter().enumerate() {
-                    if contains(f, apex) {
-                        continue;
-                    }
-                    let fv = &f.v[..f.len as usize];
-                    let mut tris: [[u8; 3]; 2] = [[0; 3]; 2];
-                    let ntri = if f.len == 3 {
-                        tris[0] = [fv[0], fv[1], fv[2]];
-                        1
-                    } else {
-                        // Split along the diagonal through slot `k` and `k + 2`.
-                        let k = match f.diag {
-                            Some((x, _)) => fv.iter().position(|&y| y == x).unwrap_or(0) % 2,
-                            None => {
-                                if fi == faces.len() - 1 {
-                                    option
-                                } else {
-                                    0
-                                }
-                            }
-                        };
-                        tris[0] = [fv[k], fv[k + 1], fv[(k + 2) % 4]];
-                        tris[1] = [fv[k], fv[(k + 2) % 4], fv[(k + 3) % 4]];
-                        2
-                    };
-                    for tri in &tris[..ntri] {
-                        let p = [
-                            pos[tri[0] as usize],
-                            pos[tri[2] as usize],
-                            pos[tri[1] as usize],
-                            pos[apex as usize],
-                        ];
-                        let vol = tet_signed_volume(&p);
-                        let lmax = crate::mesh::tet_mesh::longest_edge(&p);
-                        if vol <= 1e-9 * lmax * lmax * lmax {
-                            valid = false;
-                            break;
-                        }
-                        let angles = quality::dihedral_angles_deg(&p);
-                        min_angle = angles.iter().copied().fold(min_angle, f64::min);
-                        tets.push([
-                            ids[tri[0] as usize],
-                            ids[tri[2] as usize],
-                            ids[tri[1] as usize],
-                            ids[apex as usize],
-                        ]);
-                    }
-                    if !valid {
-                        break;
-                    }
-                }
-                if valid && best.as_ref().is_none_or(|(b, _)| min_angle > *b) {
-                    best = Some((min_angle, tets.clone()));
-                }
-            }
-        }
-        match best {
-            Some((_, t)) => {
-                out.extend_from_slice(&t);
-                Ok(())
-            }
-            None => Err(TetraError::NoValidStencil {
-                lattice_tet: v,
-                signs: s,
-            }),
-        }
+        None
     }
 
     /// For a lattice face with inside vertices `u`, `v` and outside vertex `w`: true when the
@@ -388,4 +349,97 @@ impl Fill<'_> {
         let odd = negative % 2 == 1;
         cu != odd
     }
+}
+
+/// The inside polytope of a crossing BCC tetrahedron: its vertices' global ids and positions,
+/// and which polytope vertex each lattice vertex and each crossing edge's cut point is.
+struct Polytope {
+    ids: [u32; MAX_PV],
+    pos: [[f64; 3]; MAX_PV],
+    count: usize,
+    of_lattice: [u8; 4],
+    of_cut: [[u8; 4]; 4],
+}
+
+/// Pulling triangulations of the polytope from each admissible vertex (both splits of a free
+/// cut quadrilateral, the last face, where it is one); the best by its smallest dihedral angle.
+fn best_pulling(poly: &Polytope, faces: &[PFace], free_quad: bool) -> Option<(f64, Vec<[u32; 4]>)> {
+    let (ids, pos, count) = (&poly.ids, &poly.pos, poly.count);
+    let mut best: Option<(f64, Vec<[u32; 4]>)> = None;
+    let mut tets: Vec<[u32; 4]> = Vec::with_capacity(4);
+    for apex in 0..count as u8 {
+        let contains = |f: &PFace, x: u8| f.v[..f.len as usize].contains(&x);
+        let admissible = faces.iter().all(|f| match f.diag {
+            Some((x, y)) if contains(f, apex) => x == apex || y == apex,
+            _ => true,
+        });
+        if !admissible {
+            continue;
+        }
+        let options = if free_quad && !contains(&faces[faces.len() - 1], apex) {
+            2
+        } else {
+            1
+        };
+        for option in 0..options {
+            tets.clear();
+            let mut min_angle = f64::INFINITY;
+            let mut valid = true;
+            for (fi, f) in faces.iter().enumerate() {
+                if contains(f, apex) {
+                    continue;
+                }
+                let fv = &f.v[..f.len as usize];
+                let mut tris: [[u8; 3]; 2] = [[0; 3]; 2];
+                let ntri = if f.len == 3 {
+                    tris[0] = [fv[0], fv[1], fv[2]];
+                    1
+                } else {
+                    // Split along the diagonal through slot `k` and `k + 2`.
+                    let k = match f.diag {
+                        Some((x, _)) => fv.iter().position(|&y| y == x).unwrap_or(0) % 2,
+                        None => {
+                            if fi == faces.len() - 1 {
+                                option
+                            } else {
+                                0
+                            }
+                        }
+                    };
+                    tris[0] = [fv[k], fv[k + 1], fv[(k + 2) % 4]];
+                    tris[1] = [fv[k], fv[(k + 2) % 4], fv[(k + 3) % 4]];
+                    2
+                };
+                for tri in &tris[..ntri] {
+                    let p = [
+                        pos[tri[0] as usize],
+                        pos[tri[2] as usize],
+                        pos[tri[1] as usize],
+                        pos[apex as usize],
+                    ];
+                    let vol = tet_signed_volume(&p);
+                    let lmax = crate::mesh::tet_mesh::longest_edge(&p);
+                    if vol <= 1e-9 * lmax * lmax * lmax {
+                        valid = false;
+                        break;
+                    }
+                    let angles = quality::dihedral_angles_deg(&p);
+                    min_angle = angles.iter().copied().fold(min_angle, f64::min);
+                    tets.push([
+                        ids[tri[0] as usize],
+                        ids[tri[2] as usize],
+                        ids[tri[1] as usize],
+                        ids[apex as usize],
+                    ]);
+                }
+                if !valid {
+                    break;
+                }
+            }
+            if valid && best.as_ref().is_none_or(|(b, _)| min_angle > *b) {
+                best = Some((min_angle, tets.clone()));
+            }
+        }
+    }
+    best
 }
