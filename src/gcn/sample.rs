@@ -18,8 +18,8 @@ use super::{GcnError, SplineGraph, cartesian_pseudo, mesh_graph};
 use crate::fem::{FemError, LameField, StiffnessSystem};
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
-use crate::register::Measurements;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
+use crate::register::{Match, Measurements};
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
@@ -382,63 +382,107 @@ impl SampleData {
             .collect();
         let inv = transform.inverse();
         let points: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
-        // Bipartite graph: each point to its n_top nearest LIBR-deformed vertices (the paper's
-        // diagnostic: nearest ground-truth vertices, see `SrGcnConfig::diagnostic_truth_neighbours`).
-        let bipartite = if cfg.bipartite {
-            let near = if cfg.diagnostic_truth_neighbours {
-                let Some(truth) = neighbour_positions else {
-                    return Err(GcnError::Invalid(
-                        "this model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak): it needs the ground truth and cannot register".into(),
-                    ));
-                };
-                let truth_image: Vec<[f64; 3]> = truth.iter().map(|&p| inv.apply(p)).collect();
-                knn(&truth_image, &points, cfg.n_top)
-            } else {
-                knn(&deformed, &points, cfg.n_top)
-            };
-            let mut local = vec![usize::MAX; v];
-            let mut vertices = Vec::new();
-            for list in &near {
-                for &i in list {
-                    if local[i] == usize::MAX {
-                        local[i] = vertices.len();
-                        vertices.push(i);
-                    }
-                }
-            }
-            let nv = vertices.len();
-            let mut targets = Vec::new();
-            let mut sources = Vec::new();
-            for (p, list) in near.iter().enumerate() {
-                for &i in list {
-                    targets.extend([local[i], nv + p]);
-                    sources.extend([nv + p, local[i]]);
-                }
-            }
-            let mut pos: Vec<f64> = vertices.iter().flat_map(|&i| deformed[i]).collect();
-            pos.extend(points.iter().flatten());
-            let pseudo = cartesian_pseudo(&pos, 3, &targets, &sources)?;
-            let mut features: Vec<f32> = vertices
-                .iter()
-                .flat_map(|&i| frame.normalise(deformed[i]))
-                .collect();
-            features.extend(points.iter().flat_map(|&p| frame.normalise(p)));
-            Some(BipartiteData {
-                graph: Graph {
-                    num_nodes: nv + points.len(),
-                    targets,
-                    sources,
-                    pseudo,
-                },
-                vertices,
-                features,
-            })
-        } else {
-            None
-        };
+        let bipartite =
+            Self::bipartite_linking(cfg, frame, &deformed, &points, &inv, neighbour_positions)?;
         // Sparse loss: the model point matched to each measured point on the LIBR-deformed model.
         let unit = frame.unit_mm();
         let (matches, _) = correspondence.match_points(&points, meas, Some(u), cparams)?;
+        let (sparse_rows, sparse_target) = Self::sparse_loss(cfg, &matches, &points, u, v, unit)?;
+        let misfit = Self::measured_misfit(cfg, &matches, &points, u, v, unit);
+        let loads = if cfg.load_input {
+            frame.implied_loads(mesh, u)?
+        } else {
+            Vec::new()
+        };
+        let channels = cfg.mesh_inputs();
+        let node_features =
+            Self::mesh_node_features(cfg, frame, &deformed, u, &misfit, &loads, unit);
+        Ok(Self {
+            num_nodes: v,
+            node_features,
+            channels,
+            bipartite,
+            sparse_rows,
+            sparse_target,
+            target: None,
+        })
+    }
+
+    /// The bipartite graph of [`SampleData::build_linking`] (`None` unless `cfg.bipartite`): each
+    /// point to its `n_top` nearest LIBR-deformed vertices (the paper's diagnostic: nearest
+    /// ground-truth vertices, see `SrGcnConfig::diagnostic_truth_neighbours`).
+    fn bipartite_linking(
+        cfg: &SrGcnConfig,
+        frame: &CaseFrame,
+        deformed: &[[f64; 3]],
+        points: &[[f64; 3]],
+        inv: &Rigid,
+        neighbour_positions: Option<&[[f64; 3]]>,
+    ) -> Result<Option<BipartiteData>, GcnError> {
+        if !cfg.bipartite {
+            return Ok(None);
+        }
+        let v = deformed.len();
+        let near = if cfg.diagnostic_truth_neighbours {
+            let Some(truth) = neighbour_positions else {
+                return Err(GcnError::Invalid(
+                    "this model was trained with --diagnostic-truth-neighbours (the LIBR+ paper's ground-truth leak): it needs the ground truth and cannot register".into(),
+                ));
+            };
+            let truth_image: Vec<[f64; 3]> = truth.iter().map(|&p| inv.apply(p)).collect();
+            knn(&truth_image, points, cfg.n_top)
+        } else {
+            knn(deformed, points, cfg.n_top)
+        };
+        let mut local = vec![usize::MAX; v];
+        let mut vertices = Vec::new();
+        for list in &near {
+            for &i in list {
+                if local[i] == usize::MAX {
+                    local[i] = vertices.len();
+                    vertices.push(i);
+                }
+            }
+        }
+        let nv = vertices.len();
+        let mut targets = Vec::new();
+        let mut sources = Vec::new();
+        for (p, list) in near.iter().enumerate() {
+            for &i in list {
+                targets.extend([local[i], nv + p]);
+                sources.extend([nv + p, local[i]]);
+            }
+        }
+        let mut pos: Vec<f64> = vertices.iter().flat_map(|&i| deformed[i]).collect();
+        pos.extend(points.iter().flatten());
+        let pseudo = cartesian_pseudo(&pos, 3, &targets, &sources)?;
+        let mut features: Vec<f32> = vertices
+            .iter()
+            .flat_map(|&i| frame.normalise(deformed[i]))
+            .collect();
+        features.extend(points.iter().flat_map(|&p| frame.normalise(p)));
+        Ok(Some(BipartiteData {
+            graph: Graph {
+                num_nodes: nv + points.len(),
+                targets,
+                sources,
+                pseudo,
+            },
+            vertices,
+            features,
+        }))
+    }
+
+    /// The sparse-loss operator (one row of barycentric weights per match, over `v` nodes) and
+    /// its targets: measured point minus the `cfg.target` base point, in units of `unit` mm.
+    fn sparse_loss(
+        cfg: &SrGcnConfig,
+        matches: &[Match],
+        points: &[[f64; 3]],
+        u: &[f64],
+        v: usize,
+        unit: f64,
+    ) -> Result<(Csr, Vec<f32>), GcnError> {
         let mut trip = Vec::new();
         let mut sparse_target = Vec::with_capacity(3 * matches.len());
         for (row, m) in matches.iter().enumerate() {
@@ -455,10 +499,22 @@ impl SampleData {
             sparse_target.extend((0..3).map(|a| ((p[a] - base[a]) / unit) as f32));
         }
         let sparse_rows = Csr::from_triplets(matches.len(), v, &trip)?;
-        // Measured misfit per vertex (barycentric-weighted mean over the matches it carries).
+        Ok((sparse_rows, sparse_target))
+    }
+
+    /// Measured misfit per vertex: barycentric-weighted sums of `(p − q) / unit` over the matches
+    /// it carries, and the weight sum in `[3]` (empty unless `cfg.misfit_input`).
+    fn measured_misfit(
+        cfg: &SrGcnConfig,
+        matches: &[Match],
+        points: &[[f64; 3]],
+        u: &[f64],
+        v: usize,
+        unit: f64,
+    ) -> Vec<[f64; 4]> {
         let mut misfit = vec![[0f64; 4]; if cfg.misfit_input { v } else { 0 }];
         if cfg.misfit_input {
-            for m in &matches {
+            for m in matches {
                 let q = m.model_point(u);
                 let p = points[m.point];
                 for k in 0..4 {
@@ -473,12 +529,20 @@ impl SampleData {
                 }
             }
         }
-        let loads = if cfg.load_input {
-            frame.implied_loads(mesh, u)?
-        } else {
-            Vec::new()
-        };
-        // Mesh-branch input.
+        misfit
+    }
+
+    /// The mesh-branch input, `[V, cfg.mesh_inputs()]` row-major.
+    fn mesh_node_features(
+        cfg: &SrGcnConfig,
+        frame: &CaseFrame,
+        deformed: &[[f64; 3]],
+        u: &[f64],
+        misfit: &[[f64; 4]],
+        loads: &[f32],
+        unit: f64,
+    ) -> Vec<f32> {
+        let v = deformed.len();
         let channels = cfg.mesh_inputs();
         let mut node_features = Vec::with_capacity(v * channels);
         for i in 0..v {
@@ -500,15 +564,7 @@ impl SampleData {
                 node_features.extend_from_slice(&loads[3 * i..3 * i + 3]);
             }
         }
-        Ok(Self {
-            num_nodes: v,
-            node_features,
-            channels,
-            bipartite,
-            sparse_rows,
-            sparse_target,
-            target: None,
-        })
+        node_features
     }
 
     /// A copy whose normalised **position** channels (the preoperative and LIBR-deformed node

@@ -463,16 +463,25 @@ impl Correspondence {
                 .map(|i| add(self.nodes[i], [u[3 * i], u[3 * i + 1], u[3 * i + 2]]))
                 .collect()
         });
+        let targets = self.call_targets(meas, u, params, deformed.as_deref());
         let geometry: &[[f64; 3]] = deformed.as_deref().unwrap_or(&self.nodes);
+        let (candidates, unmatched) =
+            self.match_candidates(points_image, meas, u, params, geometry, &targets);
+        Ok(trim_candidates(candidates, unmatched, params))
+    }
 
+    /// The per-call targets: feature sets for another radius, trees refitted to `deformed`.
+    fn call_targets(
+        &self,
+        meas: &Measurements,
+        u: Option<&[f64]>,
+        params: &CorrespondenceParams,
+        deformed: Option<&[[f64; 3]]>,
+    ) -> CallTargets {
+        let geometry: &[[f64; 3]] = deformed.unwrap_or(&self.nodes);
         // Which targets are needed.
-        let designated = |i: usize| -> Option<usize> {
-            match meas.feature.get(i) {
-                Some(&f) if f > 0 && meas.kind[i] == MeasuredKind::Surface => Some(f as usize - 1),
-                _ => None,
-            }
-        };
-        let need_feature = |f: usize| (0..meas.points.len()).any(|i| designated(i) == Some(f));
+        let need_feature =
+            |f: usize| (0..meas.points.len()).any(|i| designated(meas, i) == Some(f));
         // A neighbourhood radius other than the prebuilt one: rebuilt for this call.
         let feature_sets: [Option<TargetSet>; 2] = [0, 1].map(|f| {
             if need_feature(f) && params.feature_neighbourhood_mm != self.feature_radius {
@@ -499,9 +508,6 @@ impl Correspondence {
             bvh.refit(geometry);
             Some(bvh)
         };
-        let ant_bvh = rebuild(&self.anterior, need(MeasuredKind::Surface));
-        let post_bvh = rebuild(&self.posterior, need(MeasuredKind::PosteriorContour));
-        let feat_bvh = [0, 1].map(|f| rebuild(feature_target(f), need_feature(f)));
         let vessel_deformed: Option<Vec<[f64; 3]>> = if need(MeasuredKind::Vessel) {
             Some(match u {
                 Some(u) => self
@@ -514,25 +520,46 @@ impl Correspondence {
         } else {
             None
         };
+        CallTargets {
+            ant_bvh: rebuild(&self.anterior, need(MeasuredKind::Surface)),
+            post_bvh: rebuild(&self.posterior, need(MeasuredKind::PosteriorContour)),
+            feat_bvh: [0, 1].map(|f| rebuild(feature_target(f), need_feature(f))),
+            vessel_deformed,
+            feature_sets,
+        }
+    }
 
+    /// Each point's closest model point and its distance, untrimmed; and how many have none.
+    fn match_candidates(
+        &self,
+        points_image: &[[f64; 3]],
+        meas: &Measurements,
+        u: Option<&[f64]>,
+        params: &CorrespondenceParams,
+        geometry: &[[f64; 3]],
+        call: &CallTargets,
+    ) -> (Vec<(Match, f64)>, usize) {
+        let feature_target = |f: usize| call.feature_sets[f].as_ref().unwrap_or(&self.features[f]);
         let mut candidates: Vec<(Match, f64)> = Vec::with_capacity(points_image.len());
         let mut unmatched = 0usize;
         for (i, &p) in points_image.iter().enumerate() {
             let kind = meas.kind[i];
             let (set, bvh, w) = match kind {
-                MeasuredKind::Surface => match designated(i) {
+                MeasuredKind::Surface => match designated(meas, i) {
                     Some(f) if !feature_target(f).tris.is_empty() => (
                         feature_target(f),
-                        feat_bvh[f].as_ref(),
+                        call.feat_bvh[f].as_ref(),
                         params.surface_weight * params.feature_weight,
                     ),
-                    _ => (&self.anterior, ant_bvh.as_ref(), params.surface_weight),
+                    _ => (&self.anterior, call.ant_bvh.as_ref(), params.surface_weight),
                 },
-                MeasuredKind::PosteriorContour => {
-                    (&self.posterior, post_bvh.as_ref(), params.contour_weight)
-                }
+                MeasuredKind::PosteriorContour => (
+                    &self.posterior,
+                    call.post_bvh.as_ref(),
+                    params.contour_weight,
+                ),
                 MeasuredKind::Vessel => {
-                    let vd = vessel_deformed.as_deref().unwrap_or(&[]);
+                    let vd = call.vessel_deformed.as_deref().unwrap_or(&[]);
                     match self.match_vessel(p, vd) {
                         Some(mut m) => {
                             m.point = i;
@@ -546,83 +573,52 @@ impl Correspondence {
                 }
             };
             let bvh = bvh.unwrap_or(&set.bvh);
-            let Some(c) = bvh.closest(p, None) else {
+            let Some(m) = self.match_triangle(i, p, set, bvh, w, geometry) else {
                 unmatched += 1;
                 continue;
-            };
-            let tri = self.tris[set.tris[c.triangle as usize] as usize];
-            let corners = tri.map(|v| geometry[v as usize]);
-            let b = triangle_barycentric(c.point, corners);
-            let rest = tri.map(|v| self.nodes[v as usize]);
-            let anchor =
-                [0, 1, 2].map(|a| b[0] * rest[0][a] + b[1] * rest[1][a] + b[2] * rest[2][a]);
-            let e1 = sub(corners[1], corners[0]);
-            let e2 = sub(corners[2], corners[0]);
-            let nrm = [
-                e1[1] * e2[2] - e1[2] * e2[1],
-                e1[2] * e2[0] - e1[0] * e2[2],
-                e1[0] * e2[1] - e1[1] * e2[0],
-            ];
-            let len = norm(nrm);
-            let m = Match {
-                point: i,
-                anchor,
-                nodes: [tri[0], tri[1], tri[2], tri[0]],
-                bary: [b[0], b[1], b[2], 0.0],
-                weight: w,
-                normal: if len > 0.0 {
-                    nrm.map(|x| x / len)
-                } else {
-                    [0.0; 3]
-                },
             };
             let d = norm(sub(p, m.model_point_or_anchor(u)));
             candidates.push((m, d));
         }
+        (candidates, unmatched)
+    }
 
-        // Trimming.
-        let mut ds: Vec<f64> = candidates.iter().map(|c| c.1).collect();
-        ds.sort_by(f64::total_cmp);
-        let median = if ds.is_empty() {
-            0.0
-        } else if ds.len() % 2 == 1 {
-            ds[ds.len() / 2]
-        } else {
-            0.5 * (ds[ds.len() / 2 - 1] + ds[ds.len() / 2])
-        };
-        let threshold =
-            (params.trim_factor * median + params.trim_floor_mm).min(params.max_distance_mm);
-        let mut stats = MatchStats {
-            unmatched,
-            median_mm: median,
-            threshold_mm: threshold,
-            ..Default::default()
-        };
-        let mut kept = Vec::with_capacity(candidates.len());
-        let mut sum2 = 0.0;
-        let c = 0.5 * threshold.max(1e-9);
-        for (mut m, d) in candidates {
-            if d > params.max_distance_mm {
-                stats.far += 1;
-                stats.trimmed += 1;
-            } else if params.robust_kernel {
-                m.weight /= 1.0 + (d / c) * (d / c);
-                sum2 += d * d;
-                stats.max_mm = stats.max_mm.max(d);
-                kept.push(m);
-            } else if d > threshold {
-                stats.trimmed += 1;
+    /// Point `i` (at `p`) matched with weight `w` to the closest point of `set` in `bvh`.
+    fn match_triangle(
+        &self,
+        i: usize,
+        p: [f64; 3],
+        set: &TargetSet,
+        bvh: &TriangleBvh,
+        w: f64,
+        geometry: &[[f64; 3]],
+    ) -> Option<Match> {
+        let c = bvh.closest(p, None)?;
+        let tri = self.tris[set.tris[c.triangle as usize] as usize];
+        let corners = tri.map(|v| geometry[v as usize]);
+        let b = triangle_barycentric(c.point, corners);
+        let rest = tri.map(|v| self.nodes[v as usize]);
+        let anchor = [0, 1, 2].map(|a| b[0] * rest[0][a] + b[1] * rest[1][a] + b[2] * rest[2][a]);
+        let e1 = sub(corners[1], corners[0]);
+        let e2 = sub(corners[2], corners[0]);
+        let nrm = [
+            e1[1] * e2[2] - e1[2] * e2[1],
+            e1[2] * e2[0] - e1[0] * e2[2],
+            e1[0] * e2[1] - e1[1] * e2[0],
+        ];
+        let len = norm(nrm);
+        Some(Match {
+            point: i,
+            anchor,
+            nodes: [tri[0], tri[1], tri[2], tri[0]],
+            bary: [b[0], b[1], b[2], 0.0],
+            weight: w,
+            normal: if len > 0.0 {
+                nrm.map(|x| x / len)
             } else {
-                sum2 += d * d;
-                stats.max_mm = stats.max_mm.max(d);
-                kept.push(m);
-            }
-        }
-        stats.kept = kept.len();
-        if !kept.is_empty() {
-            stats.rms_mm = (sum2 / kept.len() as f64).sqrt();
-        }
-        Ok((kept, stats))
+                [0.0; 3]
+            },
+        })
     }
 
     /// The closest point of the (deformed) centerline to `p`: the undeformed point `q` at the same
@@ -666,6 +662,73 @@ impl Correspondence {
             normal: [0.0; 3],
         })
     }
+}
+
+/// Per-call targets of [`Correspondence::match_points`]: rebuilt feature sets, refitted trees.
+struct CallTargets {
+    feature_sets: [Option<TargetSet>; 2],
+    ant_bvh: Option<TriangleBvh>,
+    post_bvh: Option<TriangleBvh>,
+    feat_bvh: [Option<TriangleBvh>; 2],
+    vessel_deformed: Option<Vec<[f64; 3]>>,
+}
+
+/// The salient feature (0 or 1) surface point `i` is designated on, if any.
+fn designated(meas: &Measurements, i: usize) -> Option<usize> {
+    match meas.feature.get(i) {
+        Some(&f) if f > 0 && meas.kind[i] == MeasuredKind::Surface => Some(f as usize - 1),
+        _ => None,
+    }
+}
+
+/// Trimming of [`Correspondence::match_points`] (or the robust kernel's down-weighting).
+fn trim_candidates(
+    candidates: Vec<(Match, f64)>,
+    unmatched: usize,
+    params: &CorrespondenceParams,
+) -> (Vec<Match>, MatchStats) {
+    let mut ds: Vec<f64> = candidates.iter().map(|c| c.1).collect();
+    ds.sort_by(f64::total_cmp);
+    let median = if ds.is_empty() {
+        0.0
+    } else if ds.len() % 2 == 1 {
+        ds[ds.len() / 2]
+    } else {
+        0.5 * (ds[ds.len() / 2 - 1] + ds[ds.len() / 2])
+    };
+    let threshold =
+        (params.trim_factor * median + params.trim_floor_mm).min(params.max_distance_mm);
+    let mut stats = MatchStats {
+        unmatched,
+        median_mm: median,
+        threshold_mm: threshold,
+        ..Default::default()
+    };
+    let mut kept = Vec::with_capacity(candidates.len());
+    let mut sum2 = 0.0;
+    let c = 0.5 * threshold.max(1e-9);
+    for (mut m, d) in candidates {
+        if d > params.max_distance_mm {
+            stats.far += 1;
+            stats.trimmed += 1;
+        } else if params.robust_kernel {
+            m.weight /= 1.0 + (d / c) * (d / c);
+            sum2 += d * d;
+            stats.max_mm = stats.max_mm.max(d);
+            kept.push(m);
+        } else if d > threshold {
+            stats.trimmed += 1;
+        } else {
+            sum2 += d * d;
+            stats.max_mm = stats.max_mm.max(d);
+            kept.push(m);
+        }
+    }
+    stats.kept = kept.len();
+    if !kept.is_empty() {
+        stats.rms_mm = (sum2 / kept.len() as f64).sqrt();
+    }
+    (kept, stats)
 }
 
 impl Match {

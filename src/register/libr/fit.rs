@@ -92,15 +92,13 @@ pub(super) struct Assembled<'a> {
     pub(super) normal_s: f64,
 }
 
-/// Validates the matches and builds the step's system (see [`fit_step`] for the errors).
-pub(super) fn assemble<'a>(
+/// Checks λ and every match against the basis and the targets (see [`fit_step`] for the errors).
+fn validate_matches(
     basis: &LibrBasis,
-    matches: &'a [Match],
-    targets_image: &'a [[f64; 3]],
+    matches: &[Match],
+    targets_image: &[[f64; 3]],
     params: &LibrParams,
-    prior: Option<&PriorPairs>,
-) -> Result<Assembled<'a>, RegisterError> {
-    let t0 = Instant::now();
+) -> Result<(), RegisterError> {
     let lambda = params.regularization;
     if !(lambda.is_finite() && lambda >= 0.0) {
         return Err(RegisterError::Parameter(format!(
@@ -142,23 +140,13 @@ pub(super) fn assemble<'a>(
             )));
         }
     }
-    let used: Vec<&Match> = matches.iter().filter(|m| m.weight > 0.0).collect();
-    if used.len() < 3 {
-        return Err(RegisterError::TooFewMatches {
-            matched: used.len(),
-        });
-    }
-    let wsum: f64 = used.iter().map(|m| m.weight).sum();
-    if !(wsum.is_finite() && wsum > 0.0) {
-        return Err(RegisterError::IllConditioned(format!(
-            "total match weight is {wsum}"
-        )));
-    }
-    let m = basis.columns();
-    let p = m + 6;
-    // Centroid and radius of the anchors: rotation centre and scale of the ω unknowns.
+    Ok(())
+}
+
+/// Weighted centroid and RMS radius (at least 1) of the used matches' anchors.
+fn anchor_centre(used: &[&Match], wsum: f64) -> ([f64; 3], f64) {
     let mut cen = [0.0; 3];
-    for mt in &used {
+    for mt in used {
         for a in 0..3 {
             cen[a] += mt.weight * mt.anchor[a] / wsum;
         }
@@ -170,17 +158,97 @@ pub(super) fn assemble<'a>(
         / wsum)
         .sqrt()
         .max(1.0);
-    // Weighted rows: J (R × p) and r = y − a (R), scaled by √(w/W): one row per match on a
-    // surface when the tangential weight is 0 (pure point-to-plane), three otherwise.
-    let tw = params.tangential_weight.sqrt();
-    let rows_of = |mt: &Match| -> usize {
-        if tw == 0.0 && dot(mt.normal, mt.normal) > 0.0 {
-            1
-        } else {
-            3
+    (cen, radius)
+}
+
+/// Rows a match contributes: one on a surface under pure point-to-plane (`tw == 0`), else three.
+fn rows_of(mt: &Match, tw: f64) -> usize {
+    if tw == 0.0 && dot(mt.normal, mt.normal) > 0.0 {
+        1
+    } else {
+        3
+    }
+}
+
+/// The unknowns' geometry shared by every row: basis columns `m`, unknowns `p`, the anchors'
+/// centre and radius, and √ of the tangential weight.
+struct RowShape {
+    m: usize,
+    p: usize,
+    cen: [f64; 3],
+    radius: f64,
+    tw: f64,
+}
+
+/// Fills `axis_rows` (3 × p) with the x, y, z rows of one match scaled by `s`, and returns the
+/// scaled residuals `s (y − a)`.
+fn match_axis_rows(
+    basis: &LibrBasis,
+    mt: &Match,
+    s: f64,
+    y: [f64; 3],
+    sh: &RowShape,
+    axis_rows: &mut [f64],
+) -> [f64; 3] {
+    let (m, p) = (sh.m, sh.p);
+    axis_rows.iter_mut().for_each(|x| *x = 0.0);
+    let mut r = [0.0; 3];
+    for a in 0..3 {
+        let dst = &mut axis_rows[a * p..(a + 1) * p];
+        for (k, &v) in mt.nodes.iter().enumerate() {
+            let b = mt.bary[k];
+            if b == 0.0 {
+                continue;
+            }
+            let src = &basis.phi[(3 * v as usize + a) * m..(3 * v as usize + a + 1) * m];
+            for (j, &x) in src.iter().enumerate() {
+                dst[j] += s * b * x;
+            }
         }
-    };
-    let rows: usize = used.iter().map(|mt| rows_of(mt)).sum();
+        // ω × d = −[d]× ω; unknowns ω' = ω·radius.
+        let rot = mode_rows(mt.anchor, sh.cen)[a];
+        for k in 0..3 {
+            dst[m + k] = s * rot[3 + k] / sh.radius;
+            dst[m + 3 + k] = if k == a { s } else { 0.0 };
+        }
+        r[a] = s * (y[a] - mt.anchor[a]);
+    }
+    r
+}
+
+/// The row frame of a match: (n, t1, t2) with the tangential ones scaled by `tw` for a match
+/// with a normal (point-to-plane), the axes otherwise (point-to-point).
+fn row_frame(normal: [f64; 3], tw: f64) -> [[f64; 3]; 3] {
+    let len = dot(normal, normal).sqrt();
+    if len > 0.0 {
+        let nn = normal.map(|x| x / len);
+        let helper = if nn[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
+        let t1 = normalize3(cross(nn, helper));
+        let t2 = cross(nn, t1);
+        [nn, t1.map(|x| tw * x), t2.map(|x| tw * x)]
+    } else {
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    }
+}
+
+/// The weighted rows of the used matches: Jᵀ (p × rows), r, the squared residual before the
+/// step, and each row's scaled frame vector and match.
+type Rows = (Mat<f64>, Mat<f64>, f64, Vec<([f64; 3], usize)>);
+
+/// Builds the weighted rows J (stored transposed) and r = y − a, scaled by √(w/W).
+fn build_rows(
+    basis: &LibrBasis,
+    used: &[&Match],
+    targets_image: &[[f64; 3]],
+    wsum: f64,
+    sh: &RowShape,
+    rows: usize,
+) -> Rows {
+    let p = sh.p;
     // Stored transposed (p × 3N, column-major) so each row of J is contiguous.
     let mut jt = Mat::<f64>::zeros(p, rows);
     let mut rhs = Mat::<f64>::zeros(rows, 1);
@@ -191,45 +259,11 @@ pub(super) fn assemble<'a>(
     for (ui, mt) in used.iter().enumerate() {
         let s = (mt.weight / wsum).sqrt();
         let y = targets_image[mt.point];
-        axis_rows.iter_mut().for_each(|x| *x = 0.0);
-        let mut r = [0.0; 3];
-        for a in 0..3 {
-            let dst = &mut axis_rows[a * p..(a + 1) * p];
-            for (k, &v) in mt.nodes.iter().enumerate() {
-                let b = mt.bary[k];
-                if b == 0.0 {
-                    continue;
-                }
-                let src = &basis.phi[(3 * v as usize + a) * m..(3 * v as usize + a + 1) * m];
-                for (j, &x) in src.iter().enumerate() {
-                    dst[j] += s * b * x;
-                }
-            }
-            // ω × d = −[d]× ω; unknowns ω' = ω·radius.
-            let rot = mode_rows(mt.anchor, cen)[a];
-            for k in 0..3 {
-                dst[m + k] = s * rot[3 + k] / radius;
-                dst[m + 3 + k] = if k == a { s } else { 0.0 };
-            }
-            r[a] = s * (y[a] - mt.anchor[a]);
-        }
+        let r = match_axis_rows(basis, mt, s, y, sh, &mut axis_rows);
         // Point-to-plane: rotate the three axis rows into (n, t1, t2), the tangential ones
         // down-weighted; without a normal, the axis rows as they are (point-to-point).
-        let len = dot(mt.normal, mt.normal).sqrt();
-        let frame: [[f64; 3]; 3] = if len > 0.0 {
-            let nn = mt.normal.map(|x| x / len);
-            let helper = if nn[0].abs() < 0.9 {
-                [1.0, 0.0, 0.0]
-            } else {
-                [0.0, 1.0, 0.0]
-            };
-            let t1 = normalize3(cross(nn, helper));
-            let t2 = cross(nn, t1);
-            [nn, t1.map(|x| tw * x), t2.map(|x| tw * x)]
-        } else {
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-        };
-        for f in frame.iter().take(rows_of(mt)) {
+        let frame = row_frame(mt.normal, sh.tw);
+        for f in frame.iter().take(rows_of(mt, sh.tw)) {
             let dst = jt
                 .col_mut(row)
                 .try_as_col_major_mut()
@@ -247,8 +281,11 @@ pub(super) fn assemble<'a>(
         }
     }
     debug_assert_eq!(row, rows);
-    let rows_s = crate::util::secs(t0);
-    let t1 = Instant::now();
+    (jt, rhs, before, row_frames)
+}
+
+/// The lower triangle of JᵀJ and Jᵀr, sequentially (bit-stable).
+fn normal_equations(jt: &Mat<f64>, rhs: &Mat<f64>, p: usize) -> (Mat<f64>, Mat<f64>) {
     // Lower triangle of JᵀJ only (what the Cholesky factorization reads).
     let mut a = Mat::<f64>::zeros(p, p);
     tri_matmul(
@@ -273,18 +310,23 @@ pub(super) fn assemble<'a>(
         1.0,
         Par::Seq,
     );
-    let rhs0 = rhs;
+    (a, b)
+}
+
+/// Adds the rigid prior's rows to the normal equations and returns their squared residual.
+fn add_prior(a: &mut Mat<f64>, b: &mut Mat<f64>, prior: Option<&PriorPairs>, sh: &RowShape) -> f64 {
+    let m = sh.m;
     let mut prior_rr = 0.0;
     // The rigid prior: each pose pair a point-to-point row on the rigid unknowns alone (the
     // prior is on the pose, not the deformation), scaled by √(κ/6).
     if let Some(pr) = prior {
         let s = (pr.weight / 6.0).sqrt();
         for &(q, target) in &pr.pairs {
-            let rot = mode_rows(q, cen);
+            let rot = mode_rows(q, sh.cen);
             for ax in 0..3 {
                 let mut g = [0.0; 6];
                 for k in 0..3 {
-                    g[k] = s * rot[ax][3 + k] / radius;
+                    g[k] = s * rot[ax][3 + k] / sh.radius;
                     g[3 + k] = if k == ax { s } else { 0.0 };
                 }
                 let r = s * (target[ax] - q[ax]);
@@ -298,6 +340,11 @@ pub(super) fn assemble<'a>(
             }
         }
     }
+    prior_rr
+}
+
+/// Damps the rigid unknowns slightly and adds the strain-energy regularisation λ/e·E.
+fn damp_and_regularize(a: &mut Mat<f64>, basis: &LibrBasis, lambda: f64, m: usize, p: usize) {
     // A vanishing damping of the rigid unknowns keeps the system definite when the data leave
     // a rigid direction free (a flat patch under pure point-to-plane): there Jᵀr = 0, so the
     // step along it is zero instead of a failed factorization.
@@ -314,6 +361,53 @@ pub(super) fn assemble<'a>(
             }
         }
     }
+}
+
+/// Validates the matches and builds the step's system (see [`fit_step`] for the errors).
+pub(super) fn assemble<'a>(
+    basis: &LibrBasis,
+    matches: &'a [Match],
+    targets_image: &'a [[f64; 3]],
+    params: &LibrParams,
+    prior: Option<&PriorPairs>,
+) -> Result<Assembled<'a>, RegisterError> {
+    let t0 = Instant::now();
+    let lambda = params.regularization;
+    validate_matches(basis, matches, targets_image, params)?;
+    let used: Vec<&Match> = matches.iter().filter(|m| m.weight > 0.0).collect();
+    if used.len() < 3 {
+        return Err(RegisterError::TooFewMatches {
+            matched: used.len(),
+        });
+    }
+    let wsum: f64 = used.iter().map(|m| m.weight).sum();
+    if !(wsum.is_finite() && wsum > 0.0) {
+        return Err(RegisterError::IllConditioned(format!(
+            "total match weight is {wsum}"
+        )));
+    }
+    let m = basis.columns();
+    let p = m + 6;
+    // Centroid and radius of the anchors: rotation centre and scale of the ω unknowns.
+    let (cen, radius) = anchor_centre(&used, wsum);
+    // Weighted rows: J (R × p) and r = y − a (R), scaled by √(w/W): one row per match on a
+    // surface when the tangential weight is 0 (pure point-to-plane), three otherwise.
+    let tw = params.tangential_weight.sqrt();
+    let sh = RowShape {
+        m,
+        p,
+        cen,
+        radius,
+        tw,
+    };
+    let rows: usize = used.iter().map(|mt| rows_of(mt, tw)).sum();
+    let (jt, rhs, before, row_frames) = build_rows(basis, &used, targets_image, wsum, &sh, rows);
+    let rows_s = crate::util::secs(t0);
+    let t1 = Instant::now();
+    let (mut a, mut b) = normal_equations(&jt, &rhs, p);
+    let rhs0 = rhs;
+    let prior_rr = add_prior(&mut a, &mut b, prior, &sh);
+    damp_and_regularize(&mut a, basis, lambda, m, p);
     let normal_s = crate::util::secs(t1);
     Ok(Assembled {
         used,

@@ -205,21 +205,7 @@ pub fn solve_with_limits(
         rigid_prior,
         hold,
     } = run;
-    if let Some(h) = hold {
-        h.validate(basis.nodes)?;
-    }
-    if let Some(o) = offset {
-        if o.len() != 3 * basis.nodes {
-            return Err(RegisterError::Inconsistent(format!(
-                "offset has {} values, the basis needs {}",
-                o.len(),
-                3 * basis.nodes
-            )));
-        }
-        if o.iter().any(|x| !x.is_finite()) {
-            return Err(RegisterError::Inconsistent("offset is not finite".into()));
-        }
-    }
+    check_hold_and_offset(basis, hold, offset)?;
     params.validate()?;
     let active = &checked_active(mesh, basis, params, active)?[..];
     let t0 = Instant::now();
@@ -231,15 +217,7 @@ pub fn solve_with_limits(
         let tm = Instant::now();
         let mut matches = rematch(&u, &t)?;
         info.matching_s += crate::util::secs(tm);
-        let inv = t.inverse();
-        let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
-        if let Some(h) = hold {
-            h.append(mesh, &mut matches, &mut targets, &inv);
-        }
-        if let Some(o) = offset {
-            // Fit Φα to what the offset leaves.
-            offset_targets(&matches, &mut targets, o);
-        }
+        let targets = step_targets(mesh, measured_physical, &t, hold, offset, &mut matches);
         let prior = rigid_prior.map(|p| PriorPairs {
             pairs: p.image_pairs(&t),
             weight: p.weight(),
@@ -247,26 +225,8 @@ pub fn solve_with_limits(
         let step = fit_step_with_prior(basis, &matches, &targets, params, prior.as_ref())?;
         info.assemble_s += step.timings.rows_s + step.timings.normal_s;
         info.solve_s += step.timings.solve_s;
-        let mut u_new = u.clone();
-        basis.displacement_at(&step.alpha, active, &mut u_new);
-        if let Some(o) = offset {
-            for &i in active {
-                for a in 0..3 {
-                    let k = 3 * i as usize + a;
-                    u_new[k] += o[k];
-                }
-            }
-        }
-        // Movement in the image frame of the old estimate: δ(X + u_new) − (X + u_old).
-        let mut moved = 0.0f64;
-        for &i in active {
-            let (i, x) = (i as usize, mesh.nodes()[i as usize]);
-            let old = [0, 1, 2].map(|a| x[a] + u[3 * i + a]);
-            let new = step
-                .rigid_correction
-                .apply([0, 1, 2].map(|a| x[a] + u_new[3 * i + a]));
-            moved = moved.max(dist2(old, new).sqrt());
-        }
+        let u_new = stepped_displacement(basis, &step.alpha, active, &u, offset);
+        let moved = movement(mesh, active, &u, &u_new, &step.rigid_correction);
         t = step.rigid_correction.then(&t);
         alpha = step.alpha;
         u = u_new;
@@ -296,19 +256,8 @@ pub fn solve_with_limits(
             }
         }
     }
-    info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
-    info.held_nodes = hold.map_or(0, |h| h.nodes.len());
-    info.strain_energy_uj = basis.strain_energy(&alpha);
-    info.regularization = params.regularization;
-    info.columns = basis.columns();
-    info.prior_mm2 =
-        params.regularization * 2.0 * info.strain_energy_uj / basis.energy_scale().max(1e-300);
-    let mut u = basis.displacement(&alpha);
-    if let Some(o) = offset {
-        for (x, y) in u.iter_mut().zip(o) {
-            *x += y;
-        }
-    }
+    finish_info(&mut info, basis, params, hold, &alpha);
+    let u = full_displacement(basis, &alpha, offset);
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {
         alpha,
@@ -316,6 +265,114 @@ pub fn solve_with_limits(
         image_to_physical: t,
         info,
     })
+}
+
+/// The complete displacement `Φα`, plus the offset.
+fn full_displacement(basis: &LibrBasis, alpha: &[f64], offset: Option<&[f64]>) -> Vec<f64> {
+    let mut u = basis.displacement(alpha);
+    if let Some(o) = offset {
+        for (x, y) in u.iter_mut().zip(o) {
+            *x += y;
+        }
+    }
+    u
+}
+
+/// Checks the hold and the offset (3n finite values) against the basis.
+fn check_hold_and_offset(
+    basis: &LibrBasis,
+    hold: Option<&Hold>,
+    offset: Option<&[f64]>,
+) -> Result<(), RegisterError> {
+    if let Some(h) = hold {
+        h.validate(basis.nodes)?;
+    }
+    if let Some(o) = offset {
+        if o.len() != 3 * basis.nodes {
+            return Err(RegisterError::Inconsistent(format!(
+                "offset has {} values, the basis needs {}",
+                o.len(),
+                3 * basis.nodes
+            )));
+        }
+        if o.iter().any(|x| !x.is_finite()) {
+            return Err(RegisterError::Inconsistent("offset is not finite".into()));
+        }
+    }
+    Ok(())
+}
+
+/// The measured points in the image frame of `t`, with the held pairs appended (to `matches`
+/// too) and the offset taken off.
+fn step_targets(
+    mesh: &TetMesh,
+    measured_physical: &[[f64; 3]],
+    t: &Rigid,
+    hold: Option<&Hold>,
+    offset: Option<&[f64]>,
+    matches: &mut Vec<Match>,
+) -> Vec<[f64; 3]> {
+    let inv = t.inverse();
+    let mut targets: Vec<[f64; 3]> = measured_physical.iter().map(|&p| inv.apply(p)).collect();
+    if let Some(h) = hold {
+        h.append(mesh, matches, &mut targets, &inv);
+    }
+    if let Some(o) = offset {
+        // Fit Φα to what the offset leaves.
+        offset_targets(matches, &mut targets, o);
+    }
+    targets
+}
+
+/// `u` with the active nodes' displacement replaced by `Φα` (plus the offset).
+fn stepped_displacement(
+    basis: &LibrBasis,
+    alpha: &[f64],
+    active: &[u32],
+    u: &[f64],
+    offset: Option<&[f64]>,
+) -> Vec<f64> {
+    let mut u_new = u.to_vec();
+    basis.displacement_at(alpha, active, &mut u_new);
+    if let Some(o) = offset {
+        for &i in active {
+            for a in 0..3 {
+                let k = 3 * i as usize + a;
+                u_new[k] += o[k];
+            }
+        }
+    }
+    u_new
+}
+
+/// Largest movement of an active node in the image frame of the old estimate:
+/// `|δ(X + u_new) − (X + u_old)|`.
+fn movement(mesh: &TetMesh, active: &[u32], u: &[f64], u_new: &[f64], delta: &Rigid) -> f64 {
+    let mut moved = 0.0f64;
+    for &i in active {
+        let (i, x) = (i as usize, mesh.nodes()[i as usize]);
+        let old = [0, 1, 2].map(|a| x[a] + u[3 * i + a]);
+        let new = delta.apply([0, 1, 2].map(|a| x[a] + u_new[3 * i + a]));
+        moved = moved.max(dist2(old, new).sqrt());
+    }
+    moved
+}
+
+/// Fills the summary fields of `info` after the last iteration.
+fn finish_info(
+    info: &mut LibrInfo,
+    basis: &LibrBasis,
+    params: &LibrParams,
+    hold: Option<&Hold>,
+    alpha: &[f64],
+) {
+    info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
+    info.held_nodes = hold.map_or(0, |h| h.nodes.len());
+    info.strain_energy_uj = basis.strain_energy(alpha);
+    info.regularization = params.regularization;
+    info.columns = basis.columns();
+    info.prior_mm2 =
+        params.regularization * 2.0 * info.strain_energy_uj / basis.energy_scale().max(1e-300);
 }
 
 /// What every LIBR iteration checks before it starts (the mesh is the basis's, at least one
