@@ -215,6 +215,7 @@ fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
     let single = PipelineParams {
         pose: PoseParams {
             start_angles_deg: Vec::new(),
+            search_above_mm2: gate,
             ..PoseParams::default()
         },
         ..PipelineParams::default()
@@ -224,6 +225,11 @@ fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
     let good = register(&case, &l.meas, Method::Libr, &gated).unwrap();
     let one = register(&case, &l.meas, Method::Libr, &single).unwrap();
     assert!(good.pose.is_none(), "the search ran from a good start");
+    assert_eq!(good.search_skipped_mm2, None, "a search ran");
+    assert_eq!(
+        one.search_skipped_mm2, None,
+        "a good start's fit scored above the gate"
+    );
     assert_eq!(good.image_to_physical, one.image_to_physical);
     assert_eq!(good.u, one.u);
     // Starts that lead the single start astray: its fit scores above the gate, the search runs
@@ -245,6 +251,15 @@ fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
             continue;
         }
         astray += 1;
+        // With no search configured, the answer says the gate would have searched (the server
+        // turns the search off when its time budget is short, and says so from this).
+        let skipped = one
+            .search_skipped_mm2
+            .expect("an astray start's skipped search is said");
+        assert!(
+            skipped > gate && skipped.is_finite(),
+            "skipped at {skipped} mm²"
+        );
         let r = register(&case, &m, Method::Libr, &gated).unwrap();
         let err = pose_gap(&l.model, &r.image_to_physical, &l.truth);
         println!(

@@ -914,3 +914,52 @@ fn a_flat_patch_is_flagged_ill_posed_and_does_not_move_the_organ() {
     assert!(!r.ill_posed && r.prior.is_none(), "{}", r.conditioning);
     assert!(r.conditioning > 1e-2, "{}", r.conditioning);
 }
+
+/// The closest-triangle searches of a matching loop start from the last call's triangles
+/// (`match_points_hinted`): the matches must be those of a search from nothing, bit for bit,
+/// whether the hints are fresh (the points moved a little), stale (moved a lot), or belong to
+/// other points entirely (the list reversed), on the undeformed and on a deformed model.
+#[test]
+fn hinted_matching_gives_the_matches_of_an_unhinted_one() {
+    use librplus::register::correspondence::Hints;
+    let l = liver();
+    let s = scenario(Category::Planes3, &MeasureParams::default(), 17);
+    let meas = measurements(&s);
+    let cparams = CorrespondenceParams::default();
+    let n = l.mesh.num_nodes();
+    // A smooth deformation of a few millimetres, to exercise the refitted trees too.
+    let u: Vec<f64> = (0..3 * n)
+        .map(|k| {
+            let x = l.mesh.nodes()[k / 3];
+            3.0 * ((x[0] * 0.03 + k as f64 % 3.0).sin() + (x[1] * 0.02).cos())
+        })
+        .collect();
+    let mut rng = SplitMix64::new(5);
+    for deformed in [None, Some(&u[..])] {
+        let mut hints = Hints::default();
+        for step in 0..8 {
+            // Steps 0-3 move the points by up to 0.5 mm, 4-5 by up to 20 mm, 6-7 reverse them.
+            let amp = if step < 4 { 0.5 } else { 20.0 };
+            let mut pts: Vec<[f64; 3]> = meas
+                .points
+                .iter()
+                .map(|&p| p.map(|c| c + amp * (rng.next_f64() - 0.5)))
+                .collect();
+            let mut m = meas.clone();
+            if step >= 6 {
+                pts.reverse();
+                m.points.reverse();
+                m.kind.reverse();
+                m.feature.reverse();
+            }
+            let plain = l.corr.match_points(&pts, &m, deformed, &cparams).unwrap();
+            let hinted = l
+                .corr
+                .match_points_hinted(&pts, &m, deformed, &cparams, &mut hints)
+                .unwrap();
+            assert_eq!(plain.0, hinted.0, "step {step}: the matches differ");
+            assert_eq!(plain.1, hinted.1, "step {step}: the statistics differ");
+            assert!(!plain.0.is_empty());
+        }
+    }
+}

@@ -303,6 +303,10 @@ struct Plan {
     params: PipelineParams,
     /// Time spent waiting for a compute slot (ms).
     queue_ms: f64,
+    /// Why the pose search was turned off (the budget left could not hold it); said in the
+    /// answer when the registration needed it
+    /// ([`librplus::pipeline::Registration::search_skipped_mm2`]).
+    search_off: Option<String>,
 }
 
 /// Plans and runs one registration within its budget.
@@ -326,6 +330,15 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         reg.rigid.seconds * 1e3,
         reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
     );
+    if let (Some(why), Some(score)) = (&plan.search_off, reg.search_skipped_mm2) {
+        // Never silently: the registration the gate would have searched says it was not.
+        plan.degraded.get_or_insert_with(|| {
+            format!(
+                "{why}: the pose search was skipped, though the navigation start's fit scored {score:.1} mm² (the search runs above {:.1} mm²)",
+                plan.params.pose.search_above_mm2
+            )
+        });
+    }
     if let Some(c) = reg.correction.as_ref().filter(|c| !c.applied) {
         plan.method = Method::Libr;
         plan.degraded.get_or_insert_with(|| {
@@ -403,14 +416,21 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         } else {
             est.libr_fixed_ms + 10.0 * est.libr_iteration_ms
         };
+    let mut search_off = None;
     if left < POSE_SEARCH_COST * one {
         params.pose.start_angles_deg.clear();
+        search_off = Some(format!(
+            "time budget {:.0} ms: {left:.0} ms left, the pose search needs about {:.0} ms",
+            ms(job.budget),
+            POSE_SEARCH_COST * one
+        ));
     }
     Plan {
         method,
         degraded,
         params,
         queue_ms,
+        search_off,
     }
 }
 

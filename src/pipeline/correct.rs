@@ -43,6 +43,8 @@ pub fn refit(
     };
     let cparams = &params.libr_correspondence();
     let corr = &case.correspondence;
+    // Each search starts from the triangle the point matched last time (same matches).
+    let mut hints = crate::register::correspondence::Hints::default();
     libr::solve_with_limits(
         &case.model.mesh,
         basis,
@@ -60,7 +62,7 @@ pub fn refit(
         |u, t| {
             let inv = t.inverse();
             let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
-            corr.match_points(&pts, meas, Some(u), cparams)
+            corr.match_points_hinted(&pts, meas, Some(u), cparams, &mut hints)
                 .map(|(m, _)| m)
         },
     )

@@ -445,6 +445,11 @@ pub struct Registration {
     pub v2s: Option<V2sInfo>,
     /// The error estimate (when the case has an error model calibrated for the method).
     pub error: Option<ErrorEstimate>,
+    /// The navigation start's fit score (mm²) when it was above
+    /// [`pose::PoseParams::search_above_mm2`] but no pose search was configured (no
+    /// [`pose::PoseParams::start_angles_deg`]: asked for, or a time budget too tight for it):
+    /// the search would have run. None otherwise.
+    pub search_skipped_mm2: Option<f64>,
     /// Total time (s).
     pub seconds: f64,
 }

@@ -9,7 +9,7 @@ use super::{
 };
 use crate::gcn::infer::LibrPlusCase;
 use crate::mesh::rigid::Rigid;
-use crate::register::correspondence::{CorrespondenceParams, validate_measurements};
+use crate::register::correspondence::{CorrespondenceParams, Hints, validate_measurements};
 use crate::register::libr::{self, LibrSolution};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::{Match, Measurements, RegisterError};
@@ -51,6 +51,9 @@ struct Run<'a> {
     /// The correspondence settings of LIBR's iterations.
     cparams: CorrespondenceParams,
     t0: Instant,
+    /// The navigation start's fit score when the gate would have searched but no search was
+    /// configured ([`Registration::search_skipped_mm2`]).
+    search_skipped: std::sync::OnceLock<f64>,
 }
 
 /// The deformable fits of every candidate pose: each pose's solution and score (None and
@@ -88,6 +91,7 @@ impl<'a> Run<'a> {
             rigid,
             cparams: params.libr_correspondence(),
             t0,
+            search_skipped: std::sync::OnceLock::new(),
         }
     }
 
@@ -137,6 +141,7 @@ impl<'a> Run<'a> {
             correction: r.correction,
             v2s: r.v2s,
             error: None,
+            search_skipped_mm2: self.search_skipped.get().copied(),
             seconds: secs(self.t0),
         }
         .estimated(self.case, self.meas)
@@ -267,9 +272,19 @@ impl<'a> Run<'a> {
             return Ok((candidates, None, search_seconds));
         }
         let sol = self.deform(&candidates.poses[0], deadline)?;
-        if pose::searchable(&candidates.poses[0], &self.rigid, &self.params.pose)
-            && self.fitted_score(&sol)? > self.params.pose.search_above_mm2
-        {
+        let searchable = pose::searchable(&candidates.poses[0], &self.rigid, &self.params.pose);
+        // A search turned off (no extra starts: a tight time budget, or asked) is still judged,
+        // so that an answer the gate would have searched says so.
+        let off = self.params.pose.start_angles_deg.is_empty();
+        let score = if searchable || off {
+            self.fitted_score(&sol)?
+        } else {
+            0.0
+        };
+        if off && score > self.params.pose.search_above_mm2 {
+            let _ = self.search_skipped.set(score);
+        }
+        if searchable && score > self.params.pose.search_above_mm2 {
             let t = Instant::now();
             let first = candidates.poses.swap_remove(0);
             // The search keeps the navigation start's wICP first: its fit is the one just made.
@@ -383,12 +398,18 @@ impl<'a> Run<'a> {
     }
 
     /// The measured points re-matched on the model deformed by `u` and placed by `t`.
-    fn rematch(&self, u: &[f64], t: &Rigid) -> Result<Vec<Match>, RegisterError> {
+    /// The searches start from the triangles of the last matching (`hints`: same matches).
+    fn rematch(
+        &self,
+        u: &[f64],
+        t: &Rigid,
+        hints: &mut Hints,
+    ) -> Result<Vec<Match>, RegisterError> {
         let inv = t.inverse();
         let pts: Vec<[f64; 3]> = self.meas.points.iter().map(|&p| inv.apply(p)).collect();
         self.case
             .correspondence
-            .match_points(&pts, self.meas, Some(u), &self.cparams)
+            .match_points_hinted(&pts, self.meas, Some(u), &self.cparams, hints)
             .map(|(m, _)| m)
     }
 
@@ -414,7 +435,8 @@ impl<'a> Run<'a> {
             },
             hold: held.as_ref(),
         };
-        let rematch = |u: &[f64], t: &Rigid| self.rematch(u, t);
+        let mut hints = Hints::default();
+        let rematch = |u: &[f64], t: &Rigid| self.rematch(u, t, &mut hints);
         if self.method == Method::Adaptive {
             let ad = case
                 .adaptive

@@ -32,12 +32,12 @@
 //! Surgery code: this module never sees how the ground truth was made (no `phantom`).
 
 use super::RegisterError;
+pub use super::preop_file::preop_model_from_file;
 use super::{Match, MeasuredKind, Measurements, PreopModel};
-use crate::mesh::io::MeshFile;
+use crate::mesh::TriSurface;
 use crate::mesh::locate::TetLocator;
 use crate::mesh::spatial::TriangleBvh;
 use crate::mesh::vec3::{add, cross, dot, norm, sub};
-use crate::mesh::{TetMesh, TriSurface};
 
 /// Weights and trimming of correspondences.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -425,6 +425,22 @@ impl Correspondence {
         u: Option<&[f64]>,
         params: &CorrespondenceParams,
     ) -> Result<(Vec<Match>, MatchStats), RegisterError> {
+        self.match_points_hinted(points_image, meas, u, params, &mut Hints::default())
+    }
+
+    /// [`Correspondence::match_points`], starting each point's closest-triangle search from the
+    /// triangle `hints` holds for it (the last call's answer: an iteration's points move little)
+    /// and leaving this call's answers there. The matches are the same with or without hints
+    /// (the search's ties go to the lower triangle index whatever the start); hints only
+    /// prune the search, which is most of an iteration's matching time.
+    pub fn match_points_hinted(
+        &self,
+        points_image: &[[f64; 3]],
+        meas: &Measurements,
+        u: Option<&[f64]>,
+        params: &CorrespondenceParams,
+        hints: &mut Hints,
+    ) -> Result<(Vec<Match>, MatchStats), RegisterError> {
         validate_measurements(meas)?;
         params.validate()?;
         if points_image.len() != meas.points.len() {
@@ -465,8 +481,9 @@ impl Correspondence {
         });
         let targets = self.call_targets(meas, u, params, deformed.as_deref());
         let geometry: &[[f64; 3]] = deformed.as_deref().unwrap_or(&self.nodes);
+        hints.fit(points_image.len());
         let (candidates, unmatched) =
-            self.match_candidates(points_image, meas, u, params, geometry, &targets);
+            self.match_candidates(points_image, meas, u, params, geometry, &targets, hints);
         Ok(trim_candidates(candidates, unmatched, params))
     }
 
@@ -530,6 +547,7 @@ impl Correspondence {
     }
 
     /// Each point's closest model point and its distance, untrimmed; and how many have none.
+    #[allow(clippy::too_many_arguments)]
     fn match_candidates(
         &self,
         points_image: &[[f64; 3]],
@@ -538,6 +556,7 @@ impl Correspondence {
         params: &CorrespondenceParams,
         geometry: &[[f64; 3]],
         call: &CallTargets,
+        hints: &mut Hints,
     ) -> (Vec<(Match, f64)>, usize) {
         let feature_target = |f: usize| call.feature_sets[f].as_ref().unwrap_or(&self.features[f]);
         let mut candidates: Vec<(Match, f64)> = Vec::with_capacity(points_image.len());
@@ -573,17 +592,21 @@ impl Correspondence {
                 }
             };
             let bvh = bvh.unwrap_or(&set.bvh);
-            let Some(m) = self.match_triangle(i, p, set, bvh, w, geometry) else {
+            let Some((m, tri)) = self.match_triangle(i, p, set, bvh, w, geometry, hints.get(i))
+            else {
                 unmatched += 1;
                 continue;
             };
+            hints.0[i] = tri;
             let d = norm(sub(p, m.model_point_or_anchor(u)));
             candidates.push((m, d));
         }
         (candidates, unmatched)
     }
 
-    /// Point `i` (at `p`) matched with weight `w` to the closest point of `set` in `bvh`.
+    /// Point `i` (at `p`) matched with weight `w` to the closest point of `set` in `bvh`
+    /// (the search started from triangle `hint` of the set), and that triangle.
+    #[allow(clippy::too_many_arguments)]
     fn match_triangle(
         &self,
         i: usize,
@@ -592,8 +615,9 @@ impl Correspondence {
         bvh: &TriangleBvh,
         w: f64,
         geometry: &[[f64; 3]],
-    ) -> Option<Match> {
-        let c = bvh.closest(p, None)?;
+        hint: Option<u32>,
+    ) -> Option<(Match, u32)> {
+        let c = bvh.closest(p, hint)?;
         let tri = self.tris[set.tris[c.triangle as usize] as usize];
         let corners = tri.map(|v| geometry[v as usize]);
         let b = triangle_barycentric(c.point, corners);
@@ -607,7 +631,7 @@ impl Correspondence {
             e1[0] * e2[1] - e1[1] * e2[0],
         ];
         let len = norm(nrm);
-        Some(Match {
+        let m = Match {
             point: i,
             anchor,
             nodes: [tri[0], tri[1], tri[2], tri[0]],
@@ -618,7 +642,8 @@ impl Correspondence {
             } else {
                 [0.0; 3]
             },
-        })
+        };
+        Some((m, c.triangle))
     }
 
     /// The closest point of the (deformed) centerline to `p`: the undeformed point `q` at the same
@@ -661,6 +686,29 @@ impl Correspondence {
             weight: 1.0,
             normal: [0.0; 3],
         })
+    }
+}
+
+/// Where each measured point's closest-triangle search starts ([`Correspondence::match_points_hinted`]):
+/// the triangle (of the point's target set) it matched last time. Start empty and pass the same
+/// hints to every call of one loop over the same measurements.
+#[derive(Debug, Clone, Default)]
+pub struct Hints(Vec<u32>);
+
+impl Hints {
+    const NONE: u32 = u32::MAX;
+
+    /// One slot per point: kept when the count is unchanged, else cleared.
+    fn fit(&mut self, points: usize) {
+        if self.0.len() != points {
+            self.0.clear();
+            self.0.resize(points, Self::NONE);
+        }
+    }
+
+    /// Point `i`'s hint, if any.
+    fn get(&self, i: usize) -> Option<u32> {
+        self.0.get(i).copied().filter(|&h| h != Self::NONE)
     }
 }
 
@@ -783,114 +831,4 @@ fn triangle_barycentric(q: [f64; 3], p: [[f64; 3]; 3]) -> [f64; 3] {
     let s: f64 = b.iter().sum();
     b = b.map(|x| x / s);
     b
-}
-
-/// Builds a [`PreopModel`] from a dataset's `preop.vtu` (tet mesh with point arrays `region`
-/// — 0 interior, 1 anterior, 2 posterior — and, when present, `falciform` and `inferior_ridge`
-/// 0/1 flags) and its `vessels.vtp` (centerline points with a `parent` array, −1 for roots; an
-/// empty file means no vessels). Errors name the file role, array and index.
-pub fn preop_model_from_file(
-    file: &MeshFile,
-    vessels: &MeshFile,
-) -> Result<PreopModel, RegisterError> {
-    let mesh =
-        TetMesh::from_file(file).map_err(|e| RegisterError::Model(format!("preop mesh: {e}")))?;
-    let n = mesh.num_nodes();
-    let array = |name: &str, required: bool| -> Result<Option<Vec<f64>>, RegisterError> {
-        match file.point_array(name) {
-            None if required => Err(RegisterError::Model(format!(
-                "preop mesh: point array '{name}' is missing"
-            ))),
-            None => Ok(None),
-            Some(a) => {
-                if a.components != 1 || a.values.len() != n {
-                    return Err(RegisterError::Model(format!(
-                        "preop mesh: point array '{name}' has {} values in {} components, \
-                         expected one per node ({n})",
-                        a.values.len(),
-                        a.components
-                    )));
-                }
-                Ok(Some(a.values.clone()))
-            }
-        }
-    };
-    let region = array("region", true)?.unwrap_or_default();
-    if let Some(i) = region
-        .iter()
-        .position(|&r| !(r == 0.0 || r == 1.0 || r == 2.0))
-    {
-        return Err(RegisterError::Model(format!(
-            "preop mesh: region[{i}] is {}, expected 0 (interior), 1 (anterior) or 2 (posterior)",
-            region[i]
-        )));
-    }
-    let flags = |name: &str| -> Result<Vec<bool>, RegisterError> {
-        let Some(v) = array(name, false)? else {
-            return Ok(vec![false; n]);
-        };
-        if let Some(i) = v.iter().position(|&x| !(x == 0.0 || x == 1.0)) {
-            return Err(RegisterError::Model(format!(
-                "preop mesh: {name}[{i}] is {}, expected 0 or 1",
-                v[i]
-            )));
-        }
-        Ok(v.iter().map(|&x| x == 1.0).collect())
-    };
-    let falciform = flags("falciform")?;
-    let inferior_ridge = flags("inferior_ridge")?;
-    let (vessel_points, vessel_segments) = vessel_tree(vessels)?;
-    Ok(PreopModel {
-        mesh,
-        anterior: region.iter().map(|&r| r == 1.0).collect(),
-        posterior: region.iter().map(|&r| r == 2.0).collect(),
-        falciform,
-        inferior_ridge,
-        vessel_points,
-        vessel_segments,
-    })
-}
-
-/// The vessel centerlines of a dataset's `vessels.vtp`: its points and one segment
-/// `[parent, child]` per point with a parent (`parent` array, −1 for roots).
-#[allow(clippy::type_complexity)]
-fn vessel_tree(vessels: &MeshFile) -> Result<(Vec<[f64; 3]>, Vec<[u32; 2]>), RegisterError> {
-    let vessel_points = vessels.nodes.clone();
-    if let Some(i) = vessel_points
-        .iter()
-        .position(|p| p.iter().any(|c| !c.is_finite()))
-    {
-        return Err(RegisterError::Model(format!(
-            "vessels: point {i} is not finite"
-        )));
-    }
-    let mut vessel_segments = Vec::new();
-    if !vessel_points.is_empty() {
-        let parent = vessels.point_array("parent").ok_or_else(|| {
-            RegisterError::Model("vessels: point array 'parent' is missing".into())
-        })?;
-        if parent.components != 1 || parent.values.len() != vessel_points.len() {
-            return Err(RegisterError::Model(format!(
-                "vessels: point array 'parent' has {} values, expected one per point ({})",
-                parent.values.len(),
-                vessel_points.len()
-            )));
-        }
-        for (i, &p) in parent.values.iter().enumerate() {
-            if p == -1.0 {
-                continue;
-            }
-            if !(p >= 0.0 && p.fract() == 0.0 && (p as usize) < vessel_points.len())
-                || p as usize == i
-            {
-                return Err(RegisterError::Model(format!(
-                    "vessels: parent[{i}] is {p}, expected −1 or the index of another of the {} \
-                     points",
-                    vessel_points.len()
-                )));
-            }
-            vessel_segments.push([p as u32, i as u32]);
-        }
-    }
-    Ok((vessel_points, vessel_segments))
 }

@@ -18,6 +18,7 @@ pub mod equilibrium;
 mod error;
 pub mod libr;
 pub mod physics;
+mod preop_file;
 pub mod prior;
 pub mod uncertainty;
 pub mod wicp;

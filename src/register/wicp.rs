@@ -151,15 +151,7 @@ pub fn wicp(
     params: &WicpParams,
 ) -> Result<WicpResult, RegisterError> {
     let clock = Instant::now();
-    validate_measurements(meas)?;
-    params.validate()?;
-    if corr.num_nodes() != model.mesh.num_nodes() {
-        return Err(RegisterError::Inconsistent(format!(
-            "the correspondence was built for {} nodes, the model has {}",
-            corr.num_nodes(),
-            model.mesh.num_nodes()
-        )));
-    }
+    check_inputs(model, corr, meas, params)?;
     let mut warnings = Vec::new();
     let surface = surface_points(meas, params, &mut warnings);
     let meas = surface.as_ref().unwrap_or(meas);
@@ -173,7 +165,17 @@ pub fn wicp(
     let npts = meas.points.len();
 
     let corr_params = &params.correspondence;
-    let matching = |t: &Rigid| corr.match_points(&to_image(t), meas, None, corr_params);
+    // The closest-triangle searches start where the last iteration's ended (same matches).
+    let hints = std::cell::RefCell::new(super::correspondence::Hints::default());
+    let matching = |t: &Rigid| {
+        corr.match_points_hinted(
+            &to_image(t),
+            meas,
+            None,
+            corr_params,
+            &mut hints.borrow_mut(),
+        )
+    };
     let (_, initial_stats) = matching(&start)?;
     let mut result = WicpResult::at_start(start, initial_stats, far.len(), warnings);
 
@@ -219,6 +221,25 @@ pub fn wicp(
     result.ended(run);
     result.seconds = clock.elapsed().as_secs_f64();
     Ok(result)
+}
+
+/// The measurements, the parameters, and the correspondence against the model.
+fn check_inputs(
+    model: &PreopModel,
+    corr: &Correspondence,
+    meas: &Measurements,
+    params: &WicpParams,
+) -> Result<(), RegisterError> {
+    validate_measurements(meas)?;
+    params.validate()?;
+    if corr.num_nodes() != model.mesh.num_nodes() {
+        return Err(RegisterError::Inconsistent(format!(
+            "the correspondence was built for {} nodes, the model has {}",
+            corr.num_nodes(),
+            model.mesh.num_nodes()
+        )));
+    }
+    Ok(())
 }
 
 impl WicpParams {
