@@ -9,8 +9,9 @@
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind, unary};
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind, binary, unary};
 use burn::backend::flex::FlexTensor;
+use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, backend_extension};
 use burn::tensor::{DType, Device, IndexingUpdateOp, Int, Tensor, TensorData};
@@ -241,6 +242,53 @@ impl SparseOp {
 pub trait SparseBackend: Backend {
     /// `A · x`.
     fn spmm(x: FloatTensor<Self>, a: SparseOp) -> FloatTensor<Self>;
+    /// `z · w` (`[n, k] · [k, c]`), differentiable in both (see [`weight_product`]).
+    fn weight_product(z: FloatTensor<Self>, w: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// `g · wᵀ` (`[n, c] · [k, c]ᵀ` → `[n, k]`), written straight into the tensor returned.
+    fn matmul_nt(g: FloatTensor<Self>, w: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+/// `z · w` for a tall `z` (`[n, k]`, `n` nodes) and a small `w` (`[k, c]`), differentiable in
+/// both. The same product as burn's `matmul`; what differs is its backward pass on the CPU: the
+/// gradient `dz = g · wᵀ` (as large as `z`: 288 MB for a 9,000-node mesh with 125 kernel weights
+/// of width 64) is computed into the buffer the returned tensor owns, where burn-flex's `matmul`
+/// allocates every output twice and copies it once (its empty tensor is a byte vector whose
+/// declared alignment never meets the 16 its storage checks for). On other devices, `matmul`.
+pub fn weight_product(z: Tensor<2>, w: Tensor<2>) -> Tensor<2> {
+    if z.device().without_autodiff() != Device::flex() {
+        return z.matmul(w);
+    }
+    let out = <Dispatch as SparseBackend>::weight_product(z.into_dispatch(), w.into_dispatch());
+    Tensor::from_dispatch(out)
+}
+
+/// Rows of `g · wᵀ` computed per block in [`Flex`]'s `matmul_nt`: each block is one sequential
+/// product, so the bits do not depend on the thread count.
+const NT_BLOCK_ROWS: usize = 256;
+
+/// `g · wᵀ` for row-major `g` (`n × c`) and `w` (`k × c`), into row-major `n × k`.
+fn matmul_nt_rows(g: &[f32], w: &[f32], n: usize, k: usize, c: usize) -> Vec<f32> {
+    let mut out = vec![0f32; n * k];
+    if n == 0 || k == 0 {
+        return out;
+    }
+    let wt = faer::MatRef::from_row_major_slice(w, k, c).transpose();
+    out.par_chunks_mut(NT_BLOCK_ROWS * k)
+        .zip(g.par_chunks(NT_BLOCK_ROWS * c))
+        .for_each(|(o, gb)| {
+            let rows = gb.len() / c.max(1);
+            let dst = faer::MatMut::from_row_major_slice_mut(o, rows, k);
+            let lhs = faer::MatRef::from_row_major_slice(gb, rows, c);
+            faer::linalg::matmul::matmul(
+                dst,
+                faer::Accum::Replace,
+                lhs,
+                wt,
+                1.0f32,
+                faer::Par::Seq,
+            );
+        });
+    out
 }
 
 impl SparseBackend for Flex {
@@ -253,6 +301,47 @@ impl SparseBackend for Flex {
             other => panic!("sparse product: unsupported dtype {other:?}"),
         };
         FlexTensor::from_data(TensorData::new(y, [a.matrix().rows, c]))
+    }
+
+    fn weight_product(z: FloatTensor<Self>, w: FloatTensor<Self>) -> FloatTensor<Self> {
+        <Flex as FloatTensorOps<Flex>>::float_matmul(z, w)
+    }
+
+    fn matmul_nt(g: FloatTensor<Self>, w: FloatTensor<Self>) -> FloatTensor<Self> {
+        let g: FlexTensor = g.to_contiguous();
+        let w: FlexTensor = w.to_contiguous();
+        let (gd, wd) = (g.layout().shape().to_vec(), w.layout().shape().to_vec());
+        assert!(
+            gd.len() == 2 && wd.len() == 2 && gd[1] == wd[1],
+            "matmul_nt: shapes {gd:?} and {wd:?} do not match"
+        );
+        let (n, c, k) = (gd[0], gd[1], wd[0]);
+        let y = match (g.dtype(), w.dtype()) {
+            (DType::F32, DType::F32) => {
+                matmul_nt_rows(g.storage::<f32>(), w.storage::<f32>(), n, k, c)
+            }
+            other => panic!("matmul_nt: unsupported dtypes {other:?}"),
+        };
+        FlexTensor::from_data(TensorData::new(y, [n, k]))
+    }
+}
+
+#[derive(Debug)]
+struct WeightProductBackward;
+
+impl<B: Backend + SparseBackend> Backward<B, 2> for WeightProductBackward {
+    /// The inputs `z` and `w` (reference-counted on the CPU: no copy).
+    type State = (FloatTensor<B>, FloatTensor<B>);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _c: &mut Checkpointer) {
+        let (z, w) = ops.state;
+        binary::<B, _, _>(
+            ops.parents,
+            ops.node,
+            grads,
+            |g| B::matmul_nt(g, w),
+            |g| B::float_matmul(B::float_transpose(z), g),
+        );
     }
 }
 
@@ -281,6 +370,29 @@ impl<B: Backend + SparseBackend, C: CheckpointStrategy> SparseBackend for Autodi
             }
             OpsKind::UnTracked(prep) => prep.finish(B::spmm(x.into_primitive(), a)),
         }
+    }
+
+    fn weight_product(z: FloatTensor<Self>, w: FloatTensor<Self>) -> FloatTensor<Self> {
+        match WeightProductBackward
+            .prepare::<C>([z.node(), w.node()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let (zp, wp) = (z.into_primitive(), w.into_primitive());
+                let out = B::weight_product(zp.clone(), wp.clone());
+                prep.finish((zp, wp), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::weight_product(z.into_primitive(), w.into_primitive()))
+            }
+        }
+    }
+
+    fn matmul_nt(g: FloatTensor<Self>, w: FloatTensor<Self>) -> FloatTensor<Self> {
+        // Only ever called on the inner backend, inside a backward pass.
+        let out = B::matmul_nt(g.into_primitive(), w.into_primitive());
+        FloatTensor::<Self>::new(out)
     }
 }
 
@@ -319,6 +431,57 @@ mod tests {
 
     fn host(t: Tensor<2>) -> Vec<f32> {
         t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+    }
+
+    #[test]
+    fn weight_product_and_its_gradients_match_dense_algebra() {
+        // y = z w; with L = sum(m ⊙ y): dL/dz = m wᵀ, dL/dw = zᵀ m. 600 rows: three blocks of
+        // `g · wᵀ`, the last one short.
+        let (n, k, c) = (600, 9, 4);
+        let mut s = 11u64;
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) as f64 / (1u64 << 31) as f64) as f32 - 0.5
+        };
+        let z: Vec<f32> = (0..n * k).map(|_| rnd()).collect();
+        let w: Vec<f32> = (0..k * c).map(|_| rnd()).collect();
+        let m: Vec<f32> = (0..n * c).map(|_| rnd()).collect();
+        let dev = Device::flex().autodiff();
+        let zt = Tensor::<2>::from_data(TensorData::new(z.clone(), [n, k]), &dev).require_grad();
+        let wt = Tensor::<2>::from_data(TensorData::new(w.clone(), [k, c]), &dev).require_grad();
+        let mt = Tensor::<2>::from_data(TensorData::new(m.clone(), [n, c]), &dev);
+        let y = weight_product(zt.clone(), wt.clone());
+        let yv = host(y.clone());
+        for i in 0..n {
+            for j in 0..c {
+                let want: f32 = (0..k).map(|q| z[i * k + q] * w[q * c + j]).sum();
+                assert!((yv[i * c + j] - want).abs() < 1e-5, "y[{i}, {j}]");
+            }
+        }
+        let g = (y * mt).sum().backward();
+        let gz = host(zt.grad(&g).unwrap());
+        for i in 0..n {
+            for q in 0..k {
+                let want: f32 = (0..c).map(|j| m[i * c + j] * w[q * c + j]).sum();
+                assert!((gz[i * k + q] - want).abs() < 1e-5, "dz[{i}, {q}]");
+            }
+        }
+        let gw = host(wt.grad(&g).unwrap());
+        for q in 0..k {
+            for j in 0..c {
+                let want: f32 = (0..n).map(|i| z[i * k + q] * m[i * c + j]).sum();
+                assert!((gw[q * c + j] - want).abs() < 1e-3, "dw[{q}, {j}]");
+            }
+        }
+        // Without gradients it is burn's matmul, bit for bit.
+        let zp = Tensor::<2>::from_data(TensorData::new(z.clone(), [n, k]), &Device::flex());
+        let wp = Tensor::<2>::from_data(TensorData::new(w.clone(), [k, c]), &Device::flex());
+        assert_eq!(
+            host(weight_product(zp.clone(), wp.clone())),
+            host(zp.matmul(wp))
+        );
     }
 
     #[test]

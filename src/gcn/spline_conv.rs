@@ -13,7 +13,9 @@
 //! `z[i, k, :] = Σ basis[e,s] · x_j` per node and kernel weight; then one matmul with the weight
 //! reshaped to `[K·in, out]` applies all kernel weights at once. `A · x` is the differentiable
 //! sparse product of [`super::sparse`] (backward `Aᵀ · dz`); burn's generic `select` and
-//! `select_assign` did the same 5–10× slower on a 9,000-node mesh.
+//! `select_assign` did the same 5–10× slower on a 9,000-node mesh. The weight product is
+//! [`super::sparse::weight_product`], burn's matmul with a backward pass that writes the large
+//! `dz` without burn-flex's extra copy.
 
 use burn::config::Config;
 use burn::module::{Initializer, Module, Param};
@@ -307,9 +309,10 @@ impl SplineConv {
         let device = x.device();
         let mut out = if graph.num_edges > 0 {
             let z = graph.op.apply(x.clone())?;
-            let agg = z
-                .reshape([n, k * cin])
-                .matmul(self.weight.val().reshape([k * cin, cout]));
+            let agg = super::sparse::weight_product(
+                z.reshape([n, k * cin]),
+                self.weight.val().reshape([k * cin, cout]),
+            );
             match self.aggregation {
                 Aggregation::Sum => agg,
                 Aggregation::Mean => agg * graph.inv_degree.clone(),
