@@ -429,6 +429,17 @@ mod tests {
         assert!(Csr::from_triplets(2, 2, &[(0, 0, f32::NAN)]).is_err());
     }
 
+    /// A fixed pseudo-random sequence in [0, 1) (a linear congruential generator's high bits).
+    fn uniform(seed: u64) -> impl FnMut() -> f32 {
+        let mut s = seed;
+        move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 33) as f64 / (1u64 << 31) as f64) as f32
+        }
+    }
+
     fn host(t: Tensor<2>) -> Vec<f32> {
         t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
     }
@@ -438,13 +449,8 @@ mod tests {
         // y = z w; with L = sum(m ⊙ y): dL/dz = m wᵀ, dL/dw = zᵀ m. 600 rows: three blocks of
         // `g · wᵀ`, the last one short.
         let (n, k, c) = (600, 9, 4);
-        let mut s = 11u64;
-        let mut rnd = move || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((s >> 33) as f64 / (1u64 << 31) as f64) as f32 - 0.5
-        };
+        let mut u = uniform(11);
+        let mut rnd = move || u() - 0.5;
         let z: Vec<f32> = (0..n * k).map(|_| rnd()).collect();
         let w: Vec<f32> = (0..k * c).map(|_| rnd()).collect();
         let m: Vec<f32> = (0..n * c).map(|_| rnd()).collect();
@@ -488,13 +494,7 @@ mod tests {
     fn product_and_its_gradient_match_dense_algebra() {
         // A random sparse matrix; y = A x and d(sum(w ⊙ y))/dx = Aᵀ w.
         let (rows, cols, c) = (7, 5, 3);
-        let mut s = 7u64;
-        let mut rnd = move || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((s >> 33) as f64 / (1u64 << 31) as f64) as f32
-        };
+        let mut rnd = uniform(7);
         let trip: Vec<_> = (0..14)
             .map(|_| {
                 (
