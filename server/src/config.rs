@@ -47,11 +47,37 @@ pub struct ServerConfig {
     /// A stream must send its SessionStart within this many seconds, or it ends with
     /// DEADLINE_EXCEEDED (it holds no session slot meanwhile). Default 5.
     pub session_start_timeout_s: f64,
-    /// Most sessions one principal holds at once (0: `max_sessions`; an auth file entry's
-    /// `max_sessions` overrides it). Default 0.
+    /// Most sessions one principal holds at once (an auth file entry's `max_sessions`
+    /// overrides it). 0: half of `max_sessions` (rounded up) when an auth file names the
+    /// principals, so that no tenant takes every slot; all of them without one (every caller
+    /// is then the one anonymous principal). Default 0.
     pub max_sessions_per_principal: usize,
-    /// Most open client connections; beyond, new ones are closed at once. Default 512.
+    /// A session that has accepted no points this long after its start ends with
+    /// DEADLINE_EXCEEDED and frees its slot, s (once it has points, `session_idle_timeout_s`
+    /// applies). Default 30.
+    pub session_no_data_timeout_s: f64,
+    /// Most open client connections; beyond, a new one closes the oldest connection on which
+    /// no call was accepted yet, or is closed itself. Default 512.
     pub max_connections: usize,
+    /// A connection on which no call was accepted (authenticated, or any call without an auth
+    /// file) within this many seconds of its first bytes is closed. Connections of no call
+    /// are also at most half of `max_connections`, and at most
+    /// `max_unauthenticated_connections_per_address` from one address (beyond, the oldest of
+    /// them is closed), so that the other half is kept for clients that authenticate.
+    /// Default 10.
+    pub connection_idle_timeout_s: f64,
+    /// Most connections from one IP address on which no call was accepted yet; a new one
+    /// beyond closes the oldest of them. Default 16.
+    pub max_unauthenticated_connections_per_address: usize,
+    /// Most uploads (`CreateCase`) received at once, each held in memory (up to
+    /// `max_case_bytes`) until it is stored. Default 2.
+    pub max_uploads: usize,
+    /// Most uploads one principal sends at once. Default 1.
+    pub max_uploads_per_principal: usize,
+    /// An upload slower than this on average, bytes/s, counted from its 10th second, is ended
+    /// with DEADLINE_EXCEEDED (a trickle cannot hold an upload slot). 0: no minimum. Default
+    /// 65,536 (64 KiB/s).
+    pub min_upload_bytes_per_s: u64,
     /// A connection must send its first bytes (the HTTP/2 preface, or the TLS hello) within this
     /// many seconds; silent ones are closed (and the oldest silent ones first when more than
     /// `max_connections` / 4 wait). Default 5.
@@ -166,7 +192,13 @@ impl Default for ServerConfig {
             max_request_bytes: 0,
             session_start_timeout_s: 5.0,
             max_sessions_per_principal: 0,
+            session_no_data_timeout_s: 30.0,
             max_connections: 512,
+            connection_idle_timeout_s: 10.0,
+            max_unauthenticated_connections_per_address: 16,
+            max_uploads: 2,
+            max_uploads_per_principal: 1,
+            min_upload_bytes_per_s: 64 << 10,
             preface_timeout_s: 5.0,
             max_streams_per_connection: 32,
             keepalive_s: 30.0,
@@ -353,6 +385,12 @@ impl ServerConfig {
             ("max_message_bytes", self.max_message_bytes),
             ("max_connections", self.max_connections),
             (
+                "max_unauthenticated_connections_per_address",
+                self.max_unauthenticated_connections_per_address,
+            ),
+            ("max_uploads", self.max_uploads),
+            ("max_uploads_per_principal", self.max_uploads_per_principal),
+            (
                 "max_streams_per_connection",
                 self.max_streams_per_connection as usize,
             ),
@@ -414,6 +452,8 @@ impl ServerConfig {
         }
         for (name, v) in [
             ("session_idle_timeout_s", self.session_idle_timeout_s),
+            ("session_no_data_timeout_s", self.session_no_data_timeout_s),
+            ("connection_idle_timeout_s", self.connection_idle_timeout_s),
             ("drain_grace_s", self.drain_grace_s),
             ("session_start_timeout_s", self.session_start_timeout_s),
             ("preface_timeout_s", self.preface_timeout_s),
@@ -479,9 +519,11 @@ impl ServerConfig {
         }
     }
 
-    /// Most sessions one principal may hold, given its own limit (0: none of its own).
-    pub fn principal_sessions(&self, own: usize) -> usize {
+    /// Most sessions one principal may hold, given its own limit (0: none of its own) and
+    /// whether an auth file names the principals (`tenants`).
+    pub fn principal_sessions(&self, own: usize, tenants: bool) -> usize {
         match (own, self.max_sessions_per_principal) {
+            (0, 0) if tenants => self.max_sessions.div_ceil(2),
             (0, 0) => self.max_sessions,
             (0, n) | (n, _) => n,
         }

@@ -206,6 +206,19 @@ pub enum Deadline {
         /// How long the server waited.
         waited: Duration,
     },
+    /// An upload arrived slower than the server's minimum rate.
+    #[error(
+        "upload: {received} bytes in {:.0} s, slower than the server's minimum of {min_per_s} bytes/s (min_upload_bytes_per_s); nothing was stored",
+        .after.as_secs_f64()
+    )]
+    UploadSlow {
+        /// Bytes received.
+        received: u64,
+        /// Since the upload started.
+        after: Duration,
+        /// The minimum rate, bytes/s.
+        min_per_s: u64,
+    },
 }
 
 /// What failed inside the server (INTERNAL); its text is the status message.
@@ -783,6 +796,16 @@ mod tests {
                 .into(),
                 Code::DeadlineExceeded,
                 "no upload message for 30 s; nothing was stored",
+            ),
+            (
+                Deadline::UploadSlow {
+                    received: 12,
+                    after: Duration::from_secs(10),
+                    min_per_s: 65_536,
+                }
+                .into(),
+                Code::DeadlineExceeded,
+                "upload: 12 bytes in 10 s, slower than the server's minimum of 65536 bytes/s (min_upload_bytes_per_s); nothing was stored",
             ),
             (
                 Internal::Unreplayable {

@@ -15,6 +15,7 @@ pub mod auth;
 pub mod cases;
 pub mod compute;
 pub mod config;
+pub mod connections;
 pub mod convert;
 pub mod discovery;
 pub mod error;
@@ -159,6 +160,7 @@ pub async fn start(config: ServerConfig) -> anyhow::Result<Running> {
     let (stop_tx, stop_rx) = oneshot::channel::<()>();
     let (reload_tx, reload_rx) = tokio::sync::mpsc::channel::<Reload>(1);
     let gate = generations::Gate::new(
+        shared.connections.clone(),
         config.max_connections,
         Duration::from_secs_f64(config.preface_timeout_s),
     );
@@ -278,15 +280,21 @@ fn router_maker<H: Health>(
     let gate = |health: bool| {
         let shared = shared.clone();
         move |req: tonic::Request<()>| -> Result<tonic::Request<()>, tonic::Status> {
+            // A call without credentials keeps its connection from the idle timeout, not from
+            // the bounds on unauthenticated connections.
+            let (peer, calls) = (req.remote_addr(), &shared.connections);
             let Some(a) = shared.auth() else {
+                calls.called(peer, false);
                 return Ok(req);
             };
             if (health && a.open_health) || (!health && a.open_reflection) {
+                calls.called(peer, false);
                 return Ok(req);
             }
             let certs = req.peer_certs();
-            a.authenticate(req.metadata(), certs.as_deref().map(Vec::as_slice))
-                .map_err(|e| e.to_status())?;
+            let who = a.authenticate(req.metadata(), certs.as_deref().map(Vec::as_slice));
+            calls.called(peer, who.is_ok());
+            who.map_err(|e| e.to_status())?;
             Ok(req)
         }
     };
@@ -388,7 +396,9 @@ mod generations {
     use std::collections::VecDeque;
     use std::convert::Infallible;
     use std::pin::Pin;
-    use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+    use crate::connections::{Admitted, Closed, Connections};
+    use std::future::Future;
+    use std::sync::atomic::{AtomicU64, Ordering};
     use std::sync::{Arc, Mutex};
     use std::task::{Context, Poll};
     use std::time::Duration;
@@ -405,28 +415,29 @@ mod generations {
 
     /// Connection admission: each connection must send its first bytes within `preface`; at
     /// most `max / 4` may wait silently (a new one closes the oldest silent one, so a flood of
-    /// silent connections cannot keep a real client out); at most `max` that have spoken are
-    /// served (beyond, a new one is closed).
+    /// silent connections cannot keep a real client out); those that have spoken are counted in
+    /// the [`Connections`] table, which bounds the ones of no accepted call and closes them
+    /// when they open no call in time.
     pub(super) struct Gate {
-        max: usize,
+        conns: Arc<Connections>,
+        max_silent: usize,
         preface: Duration,
-        open: Arc<AtomicUsize>,
         silent: Arc<Mutex<Silent>>,
         next: AtomicU64,
     }
 
     impl Gate {
-        pub(super) fn new(max: usize, preface: Duration) -> Self {
+        pub(super) fn new(conns: Arc<Connections>, max: usize, preface: Duration) -> Self {
             Self {
-                max,
+                conns,
+                max_silent: (max / 4).max(1),
                 preface,
-                open: Arc::new(AtomicUsize::new(0)),
                 silent: Default::default(),
                 next: AtomicU64::new(0),
             }
         }
 
-        /// Admits an accepted connection: counts it, waits (in a task) for its first bytes,
+        /// Admits an accepted connection: waits (in a task) for its first bytes, counts it,
         /// then hands it to `conns`; or closes it.
         fn admit(&self, s: TcpStream, conns: mpsc::Sender<Conn>) {
             let id = self.next.fetch_add(1, Ordering::Relaxed);
@@ -434,7 +445,7 @@ mod generations {
             {
                 let mut q = self.silent.lock().unwrap_or_else(|e| e.into_inner());
                 q.push_back((id, kill));
-                while q.len() > (self.max / 4).max(1) {
+                while q.len() > self.max_silent {
                     if let Some((_, k)) = q.pop_front() {
                         let _ = k.send(());
                     }
@@ -442,7 +453,7 @@ mod generations {
             }
             let silent = self.silent.clone();
             let preface = self.preface;
-            let (open, max) = (self.open.clone(), self.max);
+            let table = self.conns.clone();
             tokio::spawn(async move {
                 // `peek` waits for a byte (readiness alone has false positives); 0: closed.
                 let mut byte = [0u8; 1];
@@ -457,37 +468,52 @@ mod generations {
                 if !spoke {
                     metrics::counter!("librplus_connections_refused_total", "reason" => "silent")
                         .increment(1);
-                } else if open.fetch_add(1, Ordering::SeqCst) >= max {
-                    open.fetch_sub(1, Ordering::SeqCst);
+                    return;
+                }
+                let Some(admitted) = s.peer_addr().ok().and_then(|a| table.admit(a)) else {
                     metrics::counter!("librplus_connections_refused_total", "reason" => "limit")
                         .increment(1);
                     tracing::debug!("connection limit reached; connection closed");
-                } else {
-                    let guard = Open(open);
-                    let _ = conns
-                        .send(Ok(Counted {
-                            io: s,
-                            _open: guard,
-                        }))
-                        .await;
-                }
+                    return;
+                };
+                let key = admitted.id();
+                let expiry = table.clone();
+                tokio::spawn(async move {
+                    tokio::time::sleep(expiry.idle_timeout()).await;
+                    expiry.expire(key);
+                });
+                let _ = conns
+                    .send(Ok(Counted {
+                        io: s,
+                        admitted,
+                        closed: None,
+                    }))
+                    .await;
             });
         }
     }
 
-    /// Holds one unit of the open-connection count.
-    struct Open(Arc<AtomicUsize>);
-
-    impl Drop for Open {
-        fn drop(&mut self) {
-            self.0.fetch_sub(1, Ordering::SeqCst);
-        }
-    }
-
-    /// An admitted connection (counted until it closes).
+    /// An admitted connection: counted until it closes, and closed when the table says so.
     pub(super) struct Counted {
         io: TcpStream,
-        _open: Open,
+        admitted: Admitted,
+        /// Why the table closed it, once it did; None while it may.
+        closed: Option<Option<Closed>>,
+    }
+
+    impl Counted {
+        /// The reason the table closed this connection, once it did.
+        fn closed(&mut self, cx: &mut Context<'_>) -> Option<Closed> {
+            if self.closed.is_none() {
+                match Pin::new(&mut self.admitted.closed).poll(cx) {
+                    Poll::Ready(Ok(why)) => self.closed = Some(Some(why)),
+                    // Trusted: never closed by the table.
+                    Poll::Ready(Err(_)) => self.closed = Some(None),
+                    Poll::Pending => {}
+                }
+            }
+            self.closed.flatten()
+        }
     }
 
     impl Connected for Counted {
@@ -503,7 +529,15 @@ mod generations {
             cx: &mut Context<'_>,
             buf: &mut ReadBuf<'_>,
         ) -> Poll<std::io::Result<()>> {
-            Pin::new(&mut self.get_mut().io).poll_read(cx, buf)
+            let me = self.get_mut();
+            if let Some(why) = me.closed(cx) {
+                tracing::debug!(reason = why.label(), "connection closed by the server");
+                return Poll::Ready(Err(std::io::Error::new(
+                    std::io::ErrorKind::ConnectionAborted,
+                    format!("closed by the server ({})", why.label()),
+                )));
+            }
+            Pin::new(&mut me.io).poll_read(cx, buf)
         }
     }
 

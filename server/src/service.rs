@@ -9,7 +9,7 @@ use crate::convert::{code_name, measurements_from_pb};
 use crate::error::{ServiceError, Unavailable, short};
 use crate::session::records::audit_record;
 use crate::session::state::{budget, check_method, trusted};
-pub use crate::shared::{MAX_CASE_ID, MAX_UPLOADS, Shared};
+pub use crate::shared::{MAX_CASE_ID, Shared};
 use crate::shared::{count_error, random_u64};
 use librplus_proto::v1 as pb;
 use pb::lib_r_plus_server::LibRPlus;
@@ -51,14 +51,17 @@ pub fn grpc_timeout(md: &tonic::metadata::MetadataMap) -> Option<Duration> {
 
 impl Svc {
     /// The caller of `rpc` (refusals are audited).
+    /// Its connection is marked as used, and as authenticated when the caller is.
     fn caller<T>(&self, req: &Request<T>, rpc: &str) -> Result<Arc<Principal>, Status> {
         let certs = req.peer_certs();
-        self.0
-            .caller(req.metadata(), certs.as_deref().map(Vec::as_slice))
-            .map_err(|e| {
-                self.0.refused(rpc, "", None, &e);
-                fail(e)
-            })
+        let who = self
+            .0
+            .caller(req.metadata(), certs.as_deref().map(Vec::as_slice));
+        self.0.connections.called(req.remote_addr(), who.is_ok());
+        who.map_err(|e| {
+            self.0.refused(rpc, "", None, &e);
+            fail(e)
+        })
     }
 
     /// `who` may call `rpc` (it holds `role`); refusals are audited.

@@ -45,7 +45,12 @@ pub struct Shared {
     /// The principal of every call when there is no auth file.
     pub anonymous: Arc<Principal>,
     /// Sessions open per principal.
-    pub per_principal: std::sync::Mutex<HashMap<String, usize>>,
+    pub(crate) per_principal: Arc<PerKey>,
+    /// Uploads being received per principal.
+    pub(crate) uploads_per_principal: Arc<PerKey>,
+    /// The open client connections (what the connection gate admits, and which of them had a
+    /// call accepted).
+    pub connections: Arc<crate::connections::Connections>,
     /// The audit log, when kept (`audit_db`).
     pub audit: Option<Arc<Audit>>,
     /// This run's prefix of session ids (unique across restarts).
@@ -66,7 +71,7 @@ impl Shared {
     ) -> Self {
         Self {
             store,
-            uploads: Arc::new(Semaphore::new(MAX_UPLOADS)),
+            uploads: Arc::new(Semaphore::new(config.max_uploads)),
             registry: Default::default(),
             learned: OnceLock::new(),
             audit: audit.map(Arc::new),
@@ -80,6 +85,8 @@ impl Shared {
             auth: auth.map(|a| std::sync::RwLock::new(Arc::new(a))),
             anonymous: Principal::anonymous(),
             per_principal: Default::default(),
+            uploads_per_principal: Default::default(),
+            connections: Arc::new(crate::connections::Connections::new(&config)),
             live: Default::default(),
             config,
         }
@@ -139,57 +146,123 @@ impl Shared {
     }
 }
 
-/// Uploads received at once: each may hold up to `max_case_bytes` in memory.
-pub const MAX_UPLOADS: usize = 2;
-
 /// Longest case id, bytes.
 pub const MAX_CASE_ID: usize = 256;
 
-/// A session's hold on a server slot and on its principal's quota; released on drop.
-pub(crate) struct Admission {
-    _permit: OwnedSemaphorePermit,
-    _quota: Option<QuotaHold>,
+/// Holds counted per key (a principal's sessions, its uploads), each released when it drops:
+/// the one place such a count goes down, whether the hold ends normally or its admission fails
+/// half-way.
+#[derive(Default)]
+pub(crate) struct PerKey {
+    counts: std::sync::Mutex<HashMap<String, usize>>,
 }
 
-/// One session counted against its principal's own quota; uncounted on drop (the one place a
-/// quota is released, whether the session ends or its admission fails half-way).
-struct QuotaHold {
-    principal: String,
-    shared: Arc<Shared>,
+/// One unit of a [`PerKey`] count; uncounted on drop.
+pub(crate) struct KeyHold {
+    key: String,
+    of: Arc<PerKey>,
 }
 
-impl Drop for QuotaHold {
+impl PerKey {
+    /// One more hold of `key` if it holds fewer than `limit`; else how many it holds.
+    pub(crate) fn try_hold(self: &Arc<Self>, key: &str, limit: usize) -> Result<KeyHold, usize> {
+        let mut m = self.counts.lock().unwrap_or_else(|e| e.into_inner());
+        let n = m.entry(key.to_string()).or_insert(0);
+        if *n >= limit {
+            let held = *n;
+            if held == 0 {
+                m.remove(key);
+            }
+            return Err(held);
+        }
+        *n += 1;
+        Ok(KeyHold {
+            key: key.to_string(),
+            of: self.clone(),
+        })
+    }
+}
+
+impl Drop for KeyHold {
     fn drop(&mut self) {
-        let mut m = self
-            .shared
-            .per_principal
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
-        if let Some(n) = m.get_mut(&self.principal) {
+        let mut m = self.of.counts.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(n) = m.get_mut(&self.key) {
             *n -= 1;
             if *n == 0 {
-                m.remove(&self.principal);
+                m.remove(&self.key);
             }
         }
     }
 }
 
+/// A session's hold on a server slot and on its principal's quota; released on drop.
+pub(crate) struct Admission {
+    _permit: OwnedSemaphorePermit,
+    _quota: Option<KeyHold>,
+}
+
+/// An upload's hold on a server upload slot and on its principal's; released on drop.
+pub(crate) struct UploadSlot {
+    _permit: OwnedSemaphorePermit,
+    _principal: KeyHold,
+}
+
 impl Shared {
+    /// An upload slot for `who`: at most `max_uploads_per_principal` of its own (with an auth
+    /// file), then one of the server's `max_uploads` (so that one principal cannot hold every
+    /// upload slot).
+    pub(crate) fn admit_upload(&self, who: &Principal) -> Result<UploadSlot, ServiceError> {
+        // Without an auth file every caller is the one anonymous principal.
+        let limit = match self.auth.is_some() {
+            true => self.config.max_uploads_per_principal,
+            false => self.config.max_uploads,
+        };
+        let own = self.uploads_per_principal.try_hold(&who.name, limit).map_err(|n| {
+            metrics::counter!("librplus_refused_total", "reason" => "principal_uploads")
+                .increment(1);
+            ServiceError::Quota {
+                message: format!(
+                    "principal {:?} is sending {n} upload(s), its limit (max_uploads_per_principal = {limit}); retry when one is done",
+                    who.name
+                ),
+                subject: "principal_uploads",
+                description: format!(
+                    "at most {limit} uploads per principal at once (max_uploads_per_principal)"
+                ),
+            }
+        })?;
+        let max = self.config.max_uploads;
+        let permit = self.uploads.clone().try_acquire_owned().map_err(|_| {
+            metrics::counter!("librplus_refused_total", "reason" => "uploads").increment(1);
+            ServiceError::Quota {
+                message: format!(
+                    "{max} uploads are being received (max_uploads); retry when one is done"
+                ),
+                subject: "uploads",
+                description: format!("at most {max} uploads are received at once (max_uploads)"),
+            }
+        })?;
+        Ok(UploadSlot {
+            _permit: permit,
+            _principal: own,
+        })
+    }
+
     /// A session slot for `who`: its principal's quota, then the server's (waiting briefly for
     /// a slot a session just released).
     pub(crate) async fn admit(
         self: &Arc<Self>,
         who: &Principal,
     ) -> Result<Admission, ServiceError> {
-        let limit = self.config.principal_sessions(who.max_sessions);
+        let limit = self
+            .config
+            .principal_sessions(who.max_sessions, self.auth.is_some());
         // A quota of its own only when it is below the server's.
         let quota = if limit < self.config.max_sessions {
-            let mut m = self.per_principal.lock().unwrap_or_else(|e| e.into_inner());
-            let n = m.entry(who.name.clone()).or_insert(0);
-            if *n >= limit {
+            let hold = self.per_principal.try_hold(&who.name, limit).map_err(|n| {
                 metrics::counter!("librplus_refused_total", "reason" => "principal_sessions")
                     .increment(1);
-                return Err(ServiceError::Quota {
+                ServiceError::Quota {
                     message: format!(
                         "principal {:?} holds {n} sessions, its limit; retry after one ends",
                         who.name
@@ -198,13 +271,9 @@ impl Shared {
                     description: format!(
                         "at most {limit} streamed sessions per principal; retry after one ends"
                     ),
-                });
-            }
-            *n += 1;
-            Some(QuotaHold {
-                principal: who.name.clone(),
-                shared: self.clone(),
-            })
+                }
+            })?;
+            Some(hold)
         } else {
             None
         };

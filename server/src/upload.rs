@@ -10,17 +10,59 @@ use crate::audit::Record;
 use crate::auth::Principal;
 use crate::error::{Deadline, Internal, PermissionDenied, ServiceError, Unavailable};
 use crate::preload::preload;
-use crate::shared::Shared;
+use crate::shared::{Shared, UploadSlot};
 use crate::store::{self, MeshSource, StoreError, Upload};
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
-use tokio::sync::OwnedSemaphorePermit;
+use std::time::{Duration, Instant};
 use tonic::Streaming;
 
 /// Longest wait for the next message of an upload.
 const CHUNK_WAIT: Duration = Duration::from_secs(30);
+
+/// An upload's minimum average rate is enforced from this long after its start.
+const RATE_GRACE: Duration = Duration::from_secs(10);
+
+/// An upload's pace: its bytes so far against the server's minimum rate
+/// (`min_upload_bytes_per_s`), so that a trickle ends instead of holding an upload slot.
+struct Pace {
+    start: Instant,
+    bytes: u64,
+    min_per_s: u64,
+}
+
+impl Pace {
+    fn new(min_per_s: u64) -> Self {
+        Self {
+            start: Instant::now(),
+            bytes: 0,
+            min_per_s,
+        }
+    }
+
+    fn add(&mut self, n: usize) {
+        self.bytes = self.bytes.saturating_add(n as u64);
+    }
+
+    /// When the upload falls below the minimum rate unless more bytes come (None: no
+    /// minimum).
+    fn too_slow_at(&self) -> Option<Instant> {
+        (self.min_per_s > 0).then(|| {
+            let due = Duration::from_secs_f64(self.bytes as f64 / self.min_per_s as f64);
+            self.start + due.max(RATE_GRACE)
+        })
+    }
+
+    fn too_slow(&self) -> ServiceError {
+        Deadline::UploadSlow {
+            received: self.bytes,
+            after: self.start.elapsed(),
+            min_per_s: self.min_per_s,
+        }
+        .into()
+    }
+}
 
 fn no_store() -> ServiceError {
     ServiceError::precondition(
@@ -31,10 +73,17 @@ fn no_store() -> ServiceError {
     )
 }
 
+/// The next part of an upload: within [`CHUNK_WAIT`], and before the upload falls below its
+/// minimum rate.
 async fn next(
     inbound: &mut Streaming<pb::CreateCaseRequest>,
+    pace: &Pace,
 ) -> Result<Option<pb::create_case_request::Part>, ServiceError> {
-    match tokio::time::timeout(CHUNK_WAIT, inbound.message()).await {
+    let idle_at = Instant::now() + CHUNK_WAIT;
+    let slow_at = pace.too_slow_at().filter(|&t| t < idle_at);
+    let until = slow_at.unwrap_or(idle_at);
+    match tokio::time::timeout_at(until.into(), inbound.message()).await {
+        Err(_) if slow_at.is_some() => Err(pace.too_slow()),
         Err(_) => Err(Deadline::UploadIdle { waited: CHUNK_WAIT }.into()),
         Ok(Err(s)) => Err(ServiceError::Received {
             code: s.code(),
@@ -57,8 +106,9 @@ pub async fn create(
     who: &Arc<Principal>,
     mut inbound: Streaming<pb::CreateCaseRequest>,
 ) -> Result<pb::CreateCaseResponse, ServiceError> {
-    let _slot = admit(shared)?;
-    let Some(pb::create_case_request::Part::Upload(up)) = next(&mut inbound).await? else {
+    let _slot = admit(shared, who)?;
+    let mut pace = Pace::new(shared.config.min_upload_bytes_per_s);
+    let Some(pb::create_case_request::Part::Upload(up)) = next(&mut inbound, &pace).await? else {
         return Err(ServiceError::field(
             "part",
             "the first message of an upload must be a CaseUpload",
@@ -72,7 +122,8 @@ pub async fn create(
         tets,
         total_bytes,
     } = up;
-    let quotas = check_header(shared, who, &case_id, total_bytes)?;
+    let array_bytes = (nodes_mm.len() * 8 + tets.len() * 4) as u64;
+    let quotas = check_header(shared, who, &case_id, total_bytes.max(array_bytes))?;
     let arrays = !nodes_mm.is_empty() || !tets.is_empty();
     if arrays && !mesh_format.is_empty() {
         return Err(ServiceError::field(
@@ -80,11 +131,12 @@ pub async fn create(
             "is set while nodes_mm/tets carry the mesh: send one or the other",
         ));
     }
-    let mut received = (nodes_mm.len() * 8 + tets.len() * 4) as u64;
+    let mut received = array_bytes;
+    pace.add(received as usize);
     let files = receive(
         &mut inbound,
         arrays,
-        &mut received,
+        (&mut received, &mut pace),
         shared.config.max_case_bytes,
     )
     .await?;
@@ -126,9 +178,9 @@ pub async fn create(
 }
 
 /// Admits an upload: the server keeps a case store and is not shutting down, the cases can be
-/// listed, and fewer than [`crate::shared::MAX_UPLOADS`] uploads are being received (each is
-/// held in memory until stored: a few at once). The slot it holds.
-fn admit(shared: &Arc<Shared>) -> Result<OwnedSemaphorePermit, ServiceError> {
+/// listed, and `who` and the server receive fewer uploads than their limits (each is held in
+/// memory until stored: a few at once, [`Shared::admit_upload`]). The slot it holds.
+fn admit(shared: &Arc<Shared>, who: &Principal) -> Result<UploadSlot, ServiceError> {
     if shared.store.is_none() {
         return Err(no_store());
     }
@@ -136,21 +188,7 @@ fn admit(shared: &Arc<Shared>) -> Result<OwnedSemaphorePermit, ServiceError> {
         return Err(Unavailable::ShuttingDown.into());
     }
     access::cases(shared)?;
-    shared
-        .uploads
-        .clone()
-        .try_acquire_owned()
-        .map_err(|_| ServiceError::Quota {
-            message: format!(
-                "{} uploads are being received; retry when one is done",
-                crate::shared::MAX_UPLOADS
-            ),
-            subject: "uploads",
-            description: format!(
-                "at most {} uploads are received at once",
-                crate::shared::MAX_UPLOADS
-            ),
-        })
+    shared.admit_upload(who)
 }
 
 /// An upload of `n` bytes, above the server's `max` (`max_case_bytes`).
@@ -163,7 +201,7 @@ fn too_big(n: u64, max: usize) -> ServiceError {
 }
 
 /// Checks what the first message says before the upload is received: the case id's form, that
-/// `who` may use it, the announced `total_bytes` against `max_case_bytes`, and the store's
+/// `who` may use it, the bytes it announces or carries against `max_case_bytes`, and the store's
 /// quotas (checked again, under the store's lock, when the case is stored; a retry of a stored
 /// case is no new case). The quotas in force.
 fn check_header(
@@ -206,16 +244,16 @@ struct Files {
 }
 
 /// Receives the upload's chunks to the end of the stream, counting their bytes in `received`
-/// (at most `max`). `arrays`: the first message carried the mesh, so no mesh chunk may come;
+/// (at most `max`) and in its `pace`. `arrays`: the first message carried the mesh, so no mesh chunk may come;
 /// else a mesh must.
 async fn receive(
     inbound: &mut Streaming<pb::CreateCaseRequest>,
     arrays: bool,
-    received: &mut u64,
+    (received, pace): (&mut u64, &mut Pace),
     max: usize,
 ) -> Result<Files, ServiceError> {
     let (mut mesh, mut vessels, mut physics) = (Vec::new(), None::<Vec<u8>>, None::<Vec<u8>>);
-    while let Some(part) = next(inbound).await? {
+    while let Some(part) = next(inbound, pace).await? {
         let pb::create_case_request::Part::Chunk(pb::CaseChunk { file, data }) = part else {
             return Err(ServiceError::field(
                 "part",
@@ -223,6 +261,7 @@ async fn receive(
             ));
         };
         *received += data.len() as u64;
+        pace.add(data.len());
         if *received > max as u64 {
             return Err(too_big(*received, max));
         }

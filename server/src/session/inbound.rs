@@ -26,16 +26,48 @@ async fn discovered(
     }
 }
 
+/// How long a session may stay silent.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Quiet {
+    /// This long from now without a message.
+    For(Duration),
+    /// A session with no points yet: until `at`, `after` its start, whatever it sends.
+    NoData { at: Instant, after: Duration },
+}
+
+impl Quiet {
+    fn until(self) -> tokio::time::Instant {
+        match self {
+            Quiet::For(d) => tokio::time::Instant::now() + d,
+            Quiet::NoData { at, .. } => tokio::time::Instant::from_std(at),
+        }
+    }
+
+    fn ended(self) -> Status {
+        match self {
+            Quiet::For(d) => Status::deadline_exceeded(format!(
+                "no message for {:.0} s; session closed",
+                d.as_secs_f64()
+            )),
+            Quiet::NoData { after, .. } => Status::deadline_exceeded(format!(
+                "no points accepted {:.0} s after the session's start \
+                 (session_no_data_timeout_s); session closed, its slot freed",
+                after.as_secs_f64()
+            )),
+        }
+    }
+}
+
 /// The next client message, or why there is none.
 pub(crate) async fn next(
     inbound: &mut Streaming<pb::StreamRegisterRequest>,
-    idle: Duration,
+    quiet: Quiet,
     deadline: Option<Instant>,
     drain: &mut watch::Receiver<bool>,
     pending: &mut Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
     lease: Option<(&str, &mut crate::live::Lease)>,
 ) -> Result<Next, Status> {
-    let idle_at = tokio::time::Instant::now() + idle;
+    let idle_at = quiet.until();
     let until = match deadline {
         Some(d) => idle_at.min(tokio::time::Instant::from_std(d)),
         None => idle_at,
@@ -57,10 +89,7 @@ pub(crate) async fn next(
             if deadline.is_some_and(|d| Instant::now() >= d) {
                 Err(Status::deadline_exceeded("the call's deadline passed"))
             } else {
-                Err(Status::deadline_exceeded(format!(
-                    "no message for {:.0} s; session closed",
-                    idle.as_secs_f64()
-                )))
+                Err(quiet.ended())
             }
         }
         o = discovered(pending) => Ok(Next::Discovered(o)),

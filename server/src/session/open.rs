@@ -4,7 +4,7 @@
 //! arrived), takes over the stream that holds it if any, claims it on a shared journal, and is
 //! recorded as taken over. Either way the stream then holds a lease on the session.
 
-use super::inbound::{Next, next};
+use super::inbound::{Next, Quiet, next};
 use super::records::lease_record;
 use super::state::{Session, accept, start_session};
 use crate::audit::Record;
@@ -40,7 +40,16 @@ pub(crate) async fn open(
     fresh: &str,
 ) -> Result<Option<Opened>, Status> {
     let start_within = Duration::from_secs_f64(shared.config.session_start_timeout_s);
-    let first = match next(inbound, start_within, deadline, drain, &mut None, None).await {
+    let first = match next(
+        inbound,
+        Quiet::For(start_within),
+        deadline,
+        drain,
+        &mut None,
+        None,
+    )
+    .await
+    {
         Ok(Next::Msg(m)) => m,
         Ok(Next::End | Next::Discovered(_)) => return Ok(None),
         Err(e)

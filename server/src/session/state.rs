@@ -149,6 +149,7 @@ pub(crate) fn start_session(
         discovery,
         resume_session_id: _, // handled by the caller
     } = start;
+    check_seq_range(seq, "client_seq")?;
     let case = crate::access::case(shared, case_id, "start.case_id", who)?;
     let method = check_method(&case, *method, "start.method")?;
     let budget = budget(&shared.config, options.as_ref(), "start.options")?;
@@ -337,8 +338,24 @@ pub(crate) fn accept(
     Ok(Accepted::Points)
 }
 
-/// `client_seq` must grow from message to message.
+/// The largest `client_seq` a session takes: the audit log and the session journal keep it as a
+/// signed 64-bit integer (SQLite's INTEGER), so a larger one could be answered but not replayed.
+pub(crate) const MAX_CLIENT_SEQ: u64 = i64::MAX as u64;
+
+/// A `client_seq` the log can keep (at most [`MAX_CLIENT_SEQ`]); `field`: where it was sent.
+pub(crate) fn check_seq_range(seq: u64, field: &str) -> Result<(), ServiceError> {
+    if seq <= MAX_CLIENT_SEQ {
+        return Ok(());
+    }
+    Err(ServiceError::field(
+        field,
+        format!("is {seq}, above the largest the server records ({MAX_CLIENT_SEQ} = 2^63 - 1)"),
+    ))
+}
+
+/// `client_seq` must grow from message to message, within what the log can keep.
 fn check_seq(s: &Session, seq: u64) -> Result<(), ServiceError> {
+    check_seq_range(seq, "client_seq")?;
     if seq > s.last_seq {
         return Ok(());
     }

@@ -5,7 +5,7 @@
 //! finished discovery run is reported as it ends; the client's end of stream waits for a run it
 //! started.
 
-use super::inbound::{Next, next};
+use super::inbound::{Next, Quiet, next};
 use super::open::Opened;
 use super::outbox::{Gone, Outbox};
 use super::records::{audit_record, lease_record, rejected_event};
@@ -87,6 +87,10 @@ pub(crate) struct Stream {
     deadline: Option<Instant>,
     drain: watch::Receiver<bool>,
     idle: Duration,
+    /// How long after `started` a session with no points yet ends
+    /// (`session_no_data_timeout_s`).
+    no_data: Duration,
+    started: Instant,
     s: Session,
     sid: String,
     lease: crate::live::Lease,
@@ -114,6 +118,8 @@ impl Stream {
         } = opened;
         Self {
             idle: Duration::from_secs_f64(shared.config.session_idle_timeout_s),
+            no_data: Duration::from_secs_f64(shared.config.session_no_data_timeout_s),
+            started: Instant::now(),
             out: Outbox::new(tx, &session_id),
             _in_use: InUse::new(&session.case),
             shared,
@@ -144,9 +150,17 @@ impl Stream {
             self.register(seq, Instant::now()).await?;
         }
         loop {
+            // A session that holds no points yet keeps its slot only briefly.
+            let quiet = match self.s.meas.points.is_empty() && self.no_data < self.idle {
+                true => Quiet::NoData {
+                    at: self.started + self.no_data,
+                    after: self.no_data,
+                },
+                false => Quiet::For(self.idle),
+            };
             let heard = next(
                 &mut self.inbound,
-                self.idle,
+                quiet,
                 self.deadline,
                 &mut self.drain,
                 &mut self.s.pending,

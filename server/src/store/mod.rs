@@ -105,6 +105,11 @@ pub struct Stored {
     /// 0 in a store written before it was recorded.
     #[serde(default)]
     pub bytes: u64,
+    /// Bytes its LIBR bases will take in its cache ([`basis_cache_bytes`]), counted against the
+    /// quotas from the moment it is stored, before the preload writes them. 0 in a store
+    /// written before it was recorded.
+    #[serde(default)]
+    pub cache_reserve: u64,
     /// The version of the checks it passed ([`CHECKS`]; 0 in a store written before they were
     /// versioned).
     #[serde(default)]
@@ -340,6 +345,17 @@ pub struct Quotas {
     pub cases_per_principal: usize,
     /// Most bytes of the cases one principal uploaded.
     pub bytes_per_principal: u64,
+    /// Columns of the bases the server builds for a case (LIBR's, and adaptive LIBR's when
+    /// configured): what its cache will hold ([`basis_cache_bytes`]).
+    pub basis_columns: usize,
+}
+
+/// Bytes a case's basis cache takes for a mesh of `nodes` nodes and bases of `columns` columns
+/// in all: each basis file holds the displacement basis (3·nodes × m) and its energy matrix
+/// (m × m) as 8-byte floats, with a few small arrays and headers.
+pub fn basis_cache_bytes(nodes: usize, columns: usize) -> u64 {
+    let (n, m) = (nodes as u64, columns as u64);
+    8 * (3 * n * m + m * m + 4 * m) + 4096
 }
 
 impl Quotas {
@@ -349,6 +365,7 @@ impl Quotas {
         bytes: u64::MAX,
         cases_per_principal: usize::MAX,
         bytes_per_principal: u64::MAX,
+        basis_columns: 0,
     };
 
     /// The configured quotas (a per-principal 0: the total's).
@@ -364,8 +381,18 @@ impl Quotas {
                 0 => c.max_stored_bytes,
                 n => n,
             },
+            basis_columns: basis_columns(c.adaptive),
         }
     }
+}
+
+/// Columns of the bases the server builds for each case: LIBR's (3 a control point), and
+/// adaptive LIBR's multi-level basis when `adaptive`.
+fn basis_columns(adaptive: bool) -> usize {
+    let libr = 3 * librplus::register::libr::LibrParams::default().control_points;
+    let levels = librplus::register::libr::AdaptiveParams::default().levels;
+    let multi: usize = levels.iter().map(|l| 3 * l.0).sum();
+    libr + if adaptive { multi } else { 0 }
 }
 
 /// What the store holds: cases and bytes, in total and of one principal.
@@ -379,6 +406,17 @@ pub struct Usage {
     pub principal_cases: usize,
     /// Their bytes on disk.
     pub principal_bytes: u64,
+}
+
+/// What an upload of `adding` bytes does to a quota, in words (0: its size is not known yet).
+fn adding_words(adding: u64) -> String {
+    match adding {
+        0 => ", no room for another upload: it reaches".into(),
+        n => format!(
+            "; this upload's {} (with its LIBR bases, once they are known) would pass",
+            bytes(n)
+        ),
+    }
 }
 
 /// Bytes of the files under `path` (0 for what does not read).
@@ -552,7 +590,8 @@ impl Store {
             let Ok(s) = Self::read(&d) else {
                 continue;
             };
-            let b = disk_bytes(&d);
+            // What it will occupy once its bases are cached, or what it holds when more.
+            let b = disk_bytes(&d).max(s.bytes.saturating_add(s.cache_reserve));
             u.cases += 1;
             u.bytes += b;
             if s.principal == principal {
@@ -582,9 +621,9 @@ impl Store {
             return quota(
                 "max_bytes_per_principal",
                 format!(
-                    "principal {principal:?}'s stored cases hold {} (their files and LIBR bases); this upload's {} would pass the {} one principal may keep (max_bytes_per_principal): delete one of them (DeleteCase) first",
+                    "principal {principal:?}'s stored cases hold {} (their files and LIBR bases){}, the {} one principal may keep (max_bytes_per_principal): delete one of them (DeleteCase) first",
                     bytes(u.principal_bytes),
-                    bytes(adding),
+                    adding_words(adding),
                     bytes(q.bytes_per_principal)
                 ),
             );
@@ -602,9 +641,9 @@ impl Store {
             return quota(
                 "max_stored_bytes",
                 format!(
-                    "the case store holds {} (cases' files and LIBR bases); this upload's {} would pass its {} (max_stored_bytes): delete a case (DeleteCase) first",
+                    "the case store holds {} (cases' files and LIBR bases){}, its {} (max_stored_bytes): delete a case (DeleteCase) first",
                     bytes(u.bytes),
-                    bytes(adding),
+                    adding_words(adding),
                     bytes(q.bytes)
                 ),
             );
@@ -634,7 +673,11 @@ impl Store {
         let size = (c.mesh_bytes.len()
             + u.vessels.as_ref().map_or(0, Vec::len)
             + u.physics.as_ref().map_or(0, Vec::len)) as u64;
-        self.check_quota(principal, size, quotas)?;
+        let cache_reserve = match quotas.basis_columns {
+            0 => 0,
+            m => basis_cache_bytes(c.nodes, m),
+        };
+        self.check_quota(principal, size.saturating_add(cache_reserve), quotas)?;
         let tmp = self.dir.join(format!(".upload-{}", random_hex()));
         let result = (|| {
             std::fs::create_dir(&tmp).map_err(StoreError::io(&tmp))?;
@@ -658,6 +701,7 @@ impl Store {
                 vessels: u.vessels.is_some(),
                 physics: u.physics.is_some(),
                 bytes: size,
+                cache_reserve,
                 checks: CHECKS,
                 dir: PathBuf::new(),
             };

@@ -268,6 +268,7 @@ fn quotas_bound_the_store_per_principal_and_in_total() {
         bytes: 10 * size,
         cases_per_principal: 2,
         bytes_per_principal: 10 * size,
+        basis_columns: 0,
     };
     put("a1", "a", &q).unwrap();
     put("a22", "a", &q).unwrap();
@@ -353,4 +354,78 @@ fn a_stored_case_older_checks_refuse_is_removed_when_listed() {
     assert_eq!(good.checks, CHECKS);
     assert!(good.bytes > 0);
     assert_eq!(store.list().unwrap().len(), 1);
+}
+
+/// A case counts against the quotas with the LIBR bases its preload will cache from the moment
+/// it is stored: back-to-back uploads cannot pass a byte quota before their caches are written.
+#[test]
+fn a_stored_case_counts_its_basis_cache_before_it_is_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    let (n, t) = cube();
+    let columns = basis_columns(false);
+    assert_eq!(
+        columns,
+        3 * librplus::register::libr::LibrParams::default().control_points
+    );
+    let put = |id: &str, q: &Quotas| {
+        let mut nodes = n.clone();
+        nodes[0] = -(id.len() as f64);
+        let u = upload(id, nodes, t.clone());
+        store.put(&u, &check(&u, 100).unwrap(), "a", q)
+    };
+    let files = check(&upload("x", n.clone(), t.clone()), 100)
+        .unwrap()
+        .mesh_bytes
+        .len() as u64;
+    let nodes = n.len() / 3;
+    let reserve = basis_cache_bytes(nodes, columns);
+    assert!(reserve > files, "{reserve} vs {files}");
+    // Room for two cases with their caches, not three.
+    let q = Quotas {
+        bytes_per_principal: 2 * (files + reserve) + reserve / 2,
+        basis_columns: columns,
+        ..Quotas::NONE
+    };
+    let (s1, _) = put("a1", &q).unwrap();
+    assert_eq!(s1.cache_reserve, reserve);
+    let u = store.usage("a").unwrap();
+    assert_eq!(u.principal_bytes, files + reserve, "nothing cached yet");
+    put("a22", &q).unwrap();
+    match put("a333", &q) {
+        Err(StoreError::Quota { quota, message }) => {
+            assert_eq!(quota, "max_bytes_per_principal");
+            assert!(message.contains("LIBR bases"), "{message}");
+        }
+        other => panic!("a third case fits: {other:?}"),
+    }
+    // Once the cache is written, the folder's own size counts (here larger than reserved).
+    let cache = s1.dir.join("cache");
+    std::fs::create_dir_all(&cache).unwrap();
+    std::fs::write(cache.join("basis.npz"), vec![0u8; 2 * reserve as usize]).unwrap();
+    let u2 = store.usage("a").unwrap();
+    assert!(u2.principal_bytes >= u.principal_bytes + 2 * reserve);
+}
+
+/// The estimate of a basis cache against the file the library writes (a stored `.npz` of the
+/// basis, its energy matrix and small arrays): within a few kilobytes of it, never below.
+#[test]
+fn the_basis_cache_estimate_matches_a_written_cache() {
+    use librplus::register::libr::{LibrBasis, LibrParams};
+    let mesh = librplus::mesh::procedural::box_mesh([120.0, 90.0, 60.0], [6, 5, 4], 0.2);
+    let dir = tempfile::tempdir().unwrap();
+    let (basis, _) = LibrBasis::load_or_build(&mesh, &LibrParams::default(), dir.path()).unwrap();
+    let written: u64 = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().metadata().unwrap().len())
+        .sum();
+    let estimate = basis_cache_bytes(mesh.num_nodes(), basis.columns());
+    assert_eq!(basis.columns(), basis_columns(false));
+    eprintln!(
+        "{} nodes, {} columns: cache {written} bytes, estimate {estimate}",
+        mesh.num_nodes(),
+        basis.columns()
+    );
+    assert!(estimate >= written, "{estimate} < {written}");
+    assert!(estimate - written < 8192, "{estimate} vs {written}");
 }

@@ -12,6 +12,7 @@ mod discovery;
 mod igtl;
 mod interop;
 mod limits;
+mod probe;
 mod replicas;
 mod resume;
 mod safety;

@@ -457,16 +457,19 @@ async fn a_full_disk_is_a_clear_error() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_uploads_are_bounded() {
     let dir = tempfile::tempdir().unwrap();
-    let mut running = librplus_server::start(ServerConfig {
+    let cfg = ServerConfig {
         case_store: Some(dir.path().join("store")),
+        max_uploads: 2,
+        // Stalled, not slow: this test waits for the end of the stream.
+        min_upload_bytes_per_s: 0,
         ..config(2)
-    })
-    .await
-    .unwrap();
+    };
+    let max_uploads = cfg.max_uploads;
+    let mut running = librplus_server::start(cfg).await.unwrap();
     running.ready().await.unwrap();
     let c = client(running.addr).await;
     let mut held = Vec::new();
-    for k in 0..librplus_server::service::MAX_UPLOADS {
+    for k in 0..max_uploads {
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tx.send(file_upload(&format!("stall-{k}"), "vtu", b"")[0].clone())
             .await

@@ -17,6 +17,9 @@ pub use tonic::Code;
 pub use tonic::transport::Channel;
 pub use tonic_types::StatusExt;
 
+mod hostile;
+pub use hostile::*;
+
 /// A small dataset (2 geometries, 10 scenarios per deformation) with its LIBR bases cached.
 /// Generated once per `cargo test` run and shared by its tests (and by any other test binary of
 /// the same run): under `CARGO_TARGET_TMPDIR`, keyed by the parent process, made in a private
