@@ -67,7 +67,8 @@ pub struct ServerConfig {
     /// Default 10.
     pub connection_idle_timeout_s: f64,
     /// Most connections from one IP address on which no call was accepted yet; a new one
-    /// beyond closes the oldest of them. Default 16.
+    /// beyond closes the oldest of them. Default 64 (a client's pool of connections opened
+    /// before its first calls).
     pub max_unauthenticated_connections_per_address: usize,
     /// Most uploads (`CreateCase`) received at once, each held in memory (up to
     /// `max_case_bytes`) until it is stored. Default 2.
@@ -195,7 +196,7 @@ impl Default for ServerConfig {
             session_no_data_timeout_s: 30.0,
             max_connections: 512,
             connection_idle_timeout_s: 10.0,
-            max_unauthenticated_connections_per_address: 16,
+            max_unauthenticated_connections_per_address: 64,
             max_uploads: 2,
             max_uploads_per_principal: 1,
             min_upload_bytes_per_s: 64 << 10,

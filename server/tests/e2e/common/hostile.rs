@@ -145,3 +145,18 @@ pub async fn idle_flood(
     }
     held
 }
+
+/// `n` idle HTTP/2 connections from loopback address `local`; the ones the server took.
+pub async fn idle_flood_from(
+    addr: std::net::SocketAddr,
+    local: std::net::Ipv4Addr,
+    n: usize,
+) -> Vec<tokio::task::JoinHandle<()>> {
+    let mut held = Vec::with_capacity(n);
+    for _ in 0..n {
+        if let Some(h) = idle_h2(local, addr).await {
+            held.push(h);
+        }
+    }
+    held
+}
