@@ -5,15 +5,18 @@
 use crate::error::WireError;
 use crate::header::{HEADER_SIZE, Header, raw_body_size, raw_type_name};
 use crate::message::Message;
-use crate::read::DEFAULT_MAX_BODY_SIZE;
+use crate::read::{DEFAULT_MAX_BODY_SIZE, untrusted};
 
 /// An incremental decoder for non-blocking I/O: [`Decoder::feed`] it the bytes as they arrive,
 /// then call [`Decoder::next_message`] until it returns `None`.
 ///
 /// It buffers at most one header and one body (bounded by the body limit) plus what the last
-/// `feed` brought; a body over the limit is dropped as it arrives. Each `Some` result consumes
-/// one whole frame, so an error (bad CRC, malformed content, oversized body) is followed by the
-/// next message as usual (but see [`WireError::is_recoverable`]).
+/// `feed` brought; a body over the limit is dropped as it arrives (up to
+/// [`MAX_DISCARDED_BODY_SIZE`]). Each `Some` result consumes one whole frame, so an error (bad
+/// CRC, malformed content, oversized body) is followed by the next message as usual (but see
+/// [`WireError::is_recoverable`]).
+///
+/// [`MAX_DISCARDED_BODY_SIZE`]: crate::MAX_DISCARDED_BODY_SIZE
 #[derive(Clone, Debug)]
 pub struct Decoder {
     buf: Vec<u8>,
@@ -93,13 +96,23 @@ impl Decoder {
         let head: [u8; HEADER_SIZE] = *self.pending().first_chunk::<HEADER_SIZE>()?;
         let body_size = raw_body_size(&head);
         let header = match Header::parse(&head) {
-            Ok(header) => header,
             // The size field of a header with a foreign version cannot be trusted: drop the
             // header only.
             Err(e @ WireError::UnsupportedVersion { .. }) => {
                 self.discard(0);
                 return Some(Err(e));
             }
+            // Nor can a size no message has (skipping it would swallow the stream): drop the
+            // header only.
+            _ if untrusted(body_size, self.max_body_size) => {
+                self.discard(0);
+                return Some(Err(WireError::UntrustedBodySize {
+                    type_name: raw_type_name(&head),
+                    body_size,
+                    limit: self.max_body_size,
+                }));
+            }
+            Ok(header) => header,
             Err(e) => {
                 self.discard(body_size);
                 return Some(Err(e));

@@ -89,6 +89,19 @@ pub enum WireError {
         /// The limit in force.
         limit: u64,
     },
+    /// `BODY_SIZE` exceeds the configured limit and [`MAX_DISCARDED_BODY_SIZE`] too: no message
+    /// is that large (usually garbage, or a size written in the wrong byte order), so the stream's
+    /// framing cannot be trusted. Only the header was consumed.
+    ///
+    /// [`MAX_DISCARDED_BODY_SIZE`]: crate::MAX_DISCARDED_BODY_SIZE
+    UntrustedBodySize {
+        /// The header's message type.
+        type_name: String,
+        /// The header's `BODY_SIZE`.
+        body_size: u64,
+        /// The limit in force.
+        limit: u64,
+    },
     /// [`Message::decode`] was given a body whose length differs from the header's `BODY_SIZE`.
     ///
     /// [`Message::decode`]: crate::Message::decode
@@ -169,8 +182,9 @@ pub enum WireError {
 
 impl WireError {
     /// Whether the stream's framing is still trustworthy after this error, so that reading the
-    /// next message makes sense. `false` for I/O errors, the end of the stream, truncation and an
-    /// unsupported header version (the bytes are probably not OpenIGTLink): close the connection.
+    /// next message makes sense. `false` for I/O errors, the end of the stream, truncation, an
+    /// unsupported header version (the bytes are probably not OpenIGTLink) and a `BODY_SIZE` too
+    /// large to skip: close the connection.
     pub fn is_recoverable(&self) -> bool {
         !matches!(
             self,
@@ -178,6 +192,7 @@ impl WireError {
                 | WireError::EndOfStream
                 | WireError::Truncated { .. }
                 | WireError::UnsupportedVersion { .. }
+                | WireError::UntrustedBodySize { .. }
         )
     }
 
@@ -215,6 +230,17 @@ impl fmt::Display for WireError {
                 f,
                 "header: BODY_SIZE {body_size} of a {type_name:?} message exceeds the limit of \
                  {limit} bytes (body discarded)"
+            ),
+            WireError::UntrustedBodySize {
+                type_name,
+                body_size,
+                limit,
+            } => write!(
+                f,
+                "header: BODY_SIZE {body_size} of a {type_name:?} message exceeds the limit of \
+                 {limit} bytes and is too large to skip (over {} bytes: garbage, or a size in the \
+                 wrong byte order?): the stream's framing cannot be trusted",
+                crate::MAX_DISCARDED_BODY_SIZE
             ),
             WireError::BodyLength { declared, given } => {
                 write!(

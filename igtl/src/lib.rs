@@ -47,8 +47,9 @@
 //! readers ([`read_message`] and [`Decoder`]) consume exactly one frame (58 + `BODY_SIZE` bytes)
 //! per message, decoded or not, so after a bad CRC, an oversized body (discarded as it arrives,
 //! never buffered), a header with a non-UTF-8 name or a malformed content the next message is
-//! read normally. The exception is a header version other than 1 or 2: its size field cannot be
-//! trusted, so only the 58 header bytes are consumed and the error comes at once.
+//! read normally. The exceptions are a header version other than 1 or 2 and a `BODY_SIZE` over
+//! both the limit and [`MAX_DISCARDED_BODY_SIZE`] (4 GiB): the size field cannot be trusted, so
+//! only the 58 header bytes are consumed and the error comes at once.
 //! [`WireError::is_recoverable`] says when the stream itself is suspect (e.g. a header version
 //! other than 1 or 2 usually means the peer is not speaking OpenIGTLink) and the connection
 //! should be closed instead.
@@ -110,7 +111,9 @@ pub use polydata::{
     AttributeKind, AttributeLocation, CellArray, MAX_ATTRIBUTE_NAME_LEN,
     POLYDATA_ATTRIBUTE_HEADER_SIZE, POLYDATA_HEADER_SIZE, PolyAttribute, PolyData,
 };
-pub use read::{DEFAULT_MAX_BODY_SIZE, read_message, read_message_with_limit};
+pub use read::{
+    DEFAULT_MAX_BODY_SIZE, MAX_DISCARDED_BODY_SIZE, read_message, read_message_with_limit,
+};
 pub use status::{STATUS_ERROR_NAME_LEN, STATUS_HEADER_SIZE, Status, status_code};
 pub use time::{timestamp_from_secs, timestamp_from_system_time, timestamp_to_secs};
 pub use transform::{TRANSFORM_CONTENT_SIZE, Transform};

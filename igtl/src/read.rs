@@ -5,13 +5,25 @@
 use std::io::{self, Read};
 
 use crate::error::WireError;
-use crate::header::{HEADER_SIZE, Header, raw_body_size};
+use crate::header::{HEADER_SIZE, Header, raw_body_size, raw_type_name};
 use crate::message::Message;
 
 /// Default limit on `BODY_SIZE` for [`read_message`] and [`Decoder::new`]: 64 MiB.
 ///
 /// [`Decoder::new`]: crate::Decoder::new
 pub const DEFAULT_MAX_BODY_SIZE: u64 = 64 * 1024 * 1024;
+
+/// Largest `BODY_SIZE` over the body limit that is skipped (discarded as it arrives) so that the
+/// next message can be read: 4 GiB. A header declaring more, and more than the limit, is taken as
+/// garbage (any size under 4 GiB written in the wrong byte order reads as more):
+/// [`WireError::UntrustedBodySize`], after which the stream cannot be read on.
+pub const MAX_DISCARDED_BODY_SIZE: u64 = 1 << 32;
+
+/// Whether a header's `BODY_SIZE` is too large to be a message's, with `max_body_size` the limit
+/// in force.
+pub(crate) fn untrusted(body_size: u64, max_body_size: u64) -> bool {
+    body_size > max_body_size.max(MAX_DISCARDED_BODY_SIZE)
+}
 
 /// Reads one message with the default body limit ([`DEFAULT_MAX_BODY_SIZE`]).
 /// See [`read_message_with_limit`].
@@ -23,8 +35,9 @@ pub fn read_message<R: Read + ?Sized>(reader: &mut R) -> Result<(Header, Message
 ///
 /// Whatever the outcome, the whole frame is consumed, so the next call reads the next message:
 /// a body over `max_body_size` is read and discarded without being buffered; a header with a
-/// non-UTF-8 name still has its body skipped. After [`WireError::UnsupportedVersion`] only the
-/// header was consumed (its size cannot be trusted; close the connection).
+/// non-UTF-8 name still has its body skipped. After [`WireError::UnsupportedVersion`] and
+/// [`WireError::UntrustedBodySize`] only the header was consumed (its size cannot be trusted;
+/// close the connection).
 /// [`WireError::EndOfStream`] means the stream ended cleanly between messages.
 pub fn read_message_with_limit<R: Read + ?Sized>(
     reader: &mut R,
@@ -44,9 +57,17 @@ pub fn read_message_with_limit<R: Read + ?Sized>(
     }
     let body_size = raw_body_size(&head);
     let header = match Header::parse(&head) {
-        Ok(header) => header,
         // The size field of a header with a foreign version cannot be trusted: do not skip.
         Err(e @ WireError::UnsupportedVersion { .. }) => return Err(e),
+        // Nor can a size no message has: do not try to skip it.
+        _ if untrusted(body_size, max_body_size) => {
+            return Err(WireError::UntrustedBodySize {
+                type_name: raw_type_name(&head),
+                body_size,
+                limit: max_body_size,
+            });
+        }
+        Ok(header) => header,
         Err(e) => {
             skip(reader, body_size)?;
             return Err(e);

@@ -674,6 +674,25 @@ pub struct Row {
     pub detail: serde_json::Value,
 }
 
+impl Row {
+    /// The detail as the table of `librplus-server audit` shows it: a refusal as its text
+    /// (`DescribeCase NOT_FOUND: case_id "x": ...`), so that the table's own escaping is the
+    /// only one (as JSON its quotes would be escaped twice); anything else as JSON.
+    pub fn detail_text(&self) -> String {
+        let text = |k: &str| self.detail.get(k).and_then(serde_json::Value::as_str);
+        if self.kind == "refused"
+            && let Some(rpc) = text("rpc")
+        {
+            match (text("code"), text("message"), text("outcome")) {
+                (Some(code), Some(message), _) => return format!("{rpc} {code}: {message}"),
+                (_, _, Some(outcome)) => return format!("{rpc} {outcome}"),
+                _ => {}
+            }
+        }
+        self.detail.to_string()
+    }
+}
+
 /// Every record of the database (of `case`, since `since_ms`), in time order.
 pub fn rows(
     c: &Connection,

@@ -126,3 +126,36 @@ fn a_format_1_database_is_migrated_and_its_sessions_have_no_version() {
     // Opened again: nothing more to do.
     open_db(&db).unwrap();
 }
+
+/// A refusal is shown in the table as its text, its quotes as the client's message has them
+/// (as JSON, then escaped by the table, they came out `\\"`); other details stay JSON.
+#[test]
+fn refusals_are_shown_as_their_text() {
+    let row = |kind: &str, detail: serde_json::Value| Row {
+        t_ms: 0,
+        time: format_ms(0),
+        kind: kind.into(),
+        principal: "p".into(),
+        case_id: None,
+        session_id: None,
+        detail,
+    };
+    let refused = row(
+        "refused",
+        serde_json::json!({"rpc": "DescribeCase", "code": "NOT_FOUND", "message": "case_id \"x\": no such case"}),
+    );
+    assert_eq!(
+        refused.detail_text(),
+        "DescribeCase NOT_FOUND: case_id \"x\": no such case"
+    );
+    let stream = row(
+        "refused",
+        serde_json::json!({"rpc": "StreamRegister", "outcome": "NOT_FOUND: case_id \"x\""}),
+    );
+    assert_eq!(
+        stream.detail_text(),
+        "StreamRegister NOT_FOUND: case_id \"x\""
+    );
+    let other = row("case_created", serde_json::json!({"nodes": 3}));
+    assert_eq!(other.detail_text(), r#"{"nodes":3}"#);
+}

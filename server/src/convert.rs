@@ -125,31 +125,40 @@ pub fn points3(v: &[f64], field: &str, max_points: usize) -> Result<Vec<[f64; 3]
         ));
     }
     // A bad coordinate is named by its point: `measurements.points[17]` for a NaN anywhere in
-    // `measurements.xyz_mm[51..54]`.
+    // `measurements.xyz_mm[51..54]`, once per point however many of its coordinates are bad.
     let points = field.strip_suffix(".xyz_mm").unwrap_or(field);
     let mut bad = Vec::new();
-    for (i, x) in v.iter().enumerate() {
-        if !(x.is_finite() && x.abs() <= MAX_ABS_MM) {
-            bad.push((
-                format!("{points}.points[{}]", i / 3),
-                format!(
-                    "{} = {} is not finite or beyond ±{MAX_ABS_MM} mm ({field}[{i}])",
-                    ["x", "y", "z"][i % 3],
-                    num(*x),
-                ),
-            ));
-            if bad.len() == 10 {
-                break;
-            }
+    for (i, p) in v.chunks_exact(3).enumerate() {
+        let wrong: Vec<usize> = (0..3)
+            .filter(|&k| !(p[k].is_finite() && p[k].abs() <= MAX_ABS_MM))
+            .collect();
+        if wrong.is_empty() {
+            continue;
+        }
+        let values: Vec<String> = wrong
+            .iter()
+            .map(|&k| format!("{} = {}", ["x", "y", "z"][k], num(p[k])))
+            .collect();
+        let at: Vec<String> = wrong
+            .iter()
+            .map(|&k| format!("{field}[{}]", 3 * i + k))
+            .collect();
+        bad.push((
+            format!("{points}.points[{i}]"),
+            format!(
+                "{} {} not finite or beyond ±{MAX_ABS_MM} mm ({})",
+                values.join(", "),
+                if wrong.len() == 1 { "is" } else { "are" },
+                at.join(", "),
+            ),
+        ));
+        if bad.len() == 10 {
+            break;
         }
     }
     if !bad.is_empty() {
         return Err(ServiceError::invalid(
-            format!(
-                "{field}: {} bad coordinate(s), first {}",
-                bad.len(),
-                bad[0].0
-            ),
+            format!("{field}: {} bad point(s), first {}", bad.len(), bad[0].0),
             bad,
         ));
     }
@@ -391,6 +400,19 @@ mod tests {
             contour_uv_mm: vec![0.0; 8],
             ..Default::default()
         };
+        // One violation per point, naming each of its bad coordinates.
+        v[0] = f64::NAN;
+        v[1] = f64::INFINITY;
+        v[2] = -2e4;
+        let r = points3(&v, "surface.xyz_mm", 100)
+            .unwrap_err()
+            .to_rejection(0);
+        let fields: Vec<&str> = r.violations.iter().map(|v| v.field.as_str()).collect();
+        assert_eq!(fields, ["surface.points[0]", "surface.points[17]"]);
+        assert_eq!(
+            r.violations[0].description,
+            "x = NaN, y = inf, z = -20000 are not finite or beyond ±10000 mm (surface.xyz_mm[0], surface.xyz_mm[1], surface.xyz_mm[2])"
+        );
         p.contour_uv_mm[5] = f64::INFINITY;
         let r = plane_points(&p, 100).unwrap_err().to_rejection(0);
         assert_eq!(r.violations[0].field, "ultrasound.contour_points[2]");

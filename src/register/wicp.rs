@@ -141,6 +141,10 @@ pub struct WicpResult {
 const COLLINEAR_MM: f64 = 2.0;
 /// RMS spread (mm) below which measured points count as one spot.
 const SPOT_MM: f64 = 1e-3;
+/// Coordinates (mm) within which a degenerate (collinear) point set is taken for metres sent as
+/// millimetres: a liver measured in metres lies within a couple of units of the tracker's
+/// origin, and spreads over a fraction of one.
+const METRES_REACH_MM: f64 = 2.0;
 
 /// Rigid salient-feature weighted ICP of `meas` (physical frame) to the undeformed `model`; `corr`
 /// must have been built from `model`. See the module doc.
@@ -518,7 +522,8 @@ pub fn conditioning(matches: &[Match]) -> f64 {
     if hi > 0.0 { (lo / hi).max(0.0) } else { 0.0 }
 }
 
-/// Why a measured point set cannot fix a rotation (one spot, collinear, fewer than 3 points), if so.
+/// Why a measured point set cannot fix a rotation (one spot, collinear, fewer than 3 points), if so;
+/// a collinear set within [`METRES_REACH_MM`] of the origin is said to look like metres.
 pub fn degenerate_points(points: &[[f64; 3]]) -> Option<String> {
     if points.len() < 3 {
         return Some(format!(
@@ -544,6 +549,16 @@ pub fn degenerate_points(points: &[[f64; 3]]) -> Option<String> {
             "all {} points on one spot (spread {:.1e} mm): the rotation is undetermined",
             points.len(),
             ev[0].max(0.0).sqrt()
+        ));
+    }
+    let reach = points.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()));
+    if ev[1].max(0.0).sqrt() < COLLINEAR_MM && reach <= METRES_REACH_MM {
+        return Some(format!(
+            "the {} points spread {:.3} mm (RMS, along a line), every coordinate within \
+             {reach:.3} mm of the origin: they look like metres sent as millimetres (a liver \
+             spans 150 to 250 mm; multiply by 1000)",
+            points.len(),
+            ev[0].sqrt()
         ));
     }
     if ev[1].max(0.0).sqrt() < COLLINEAR_MM {

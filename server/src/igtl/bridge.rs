@@ -25,7 +25,9 @@
 //! registered position, point vector `displacement` and, when the server estimates its error, point
 //! scalar `uncertainty_mm`: the node's 90 % error bound); `STATUS` [`DEVICE_STATUS`] when the
 //! quality is not OK, for a rejected message, and for a malformed or unsupported one (the
-//! connection goes on; only a message whose header cannot be trusted ends it).
+//! connection goes on; only a message whose header cannot be trusted ends it, after its `STATUS`:
+//! a header version other than 1 or 2, or a `BODY_SIZE` over `--max-body` too large to skip,
+//! [`wire::MAX_DISCARDED_BODY_SIZE`]).
 //!
 //! **Frames.** LIBR+ works in LPS; 3D Slicer's world is RAS. With `--frame ras` (the default)
 //! every coordinate received is converted RAS → LPS (x and y negated) and every one sent LPS →
@@ -38,9 +40,8 @@ pub use super::answers::{DEVICE_LIVER, DEVICE_STATUS, DEVICE_TARGETS, DEVICE_TRA
 use super::answers::{registered_messages, rejection_status, status, status_code_of};
 use super::geometry::CaseGeometry;
 pub use super::geometry::{Frame, Target, read_targets};
-use super::requests::request_of;
+use super::requests::{Poses, request_of};
 use super::wire::{self, Decoder, status_code};
-use librplus::mesh::rigid::Rigid;
 use librplus_client::pb;
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -582,8 +583,8 @@ struct Link<'a> {
     out_tx: mpsc::Sender<Vec<u8>>,
     /// The gRPC session, once a message that carries data arrived.
     session: Option<Session>,
-    /// The last pose of each ultrasound plane (by device), LPS.
-    poses: std::collections::HashMap<String, Rigid>,
+    /// The last pose of each ultrasound plane (by device), LPS, or why it was refused.
+    poses: Poses,
     /// The `client_seq` of the last request sent.
     seq: u64,
 }
@@ -753,8 +754,13 @@ impl<'a> Link<'a> {
             wire::WireError::BadCrc { .. } => status_code::CHECKSUM_ERROR,
             _ => status_code::CONFIG_ERROR,
         };
+        let why = if recoverable {
+            e.to_string()
+        } else {
+            format!("{e}; connection closed")
+        };
         self.out_tx
-            .send(status(code, "BAD_MESSAGE", &e.to_string()))
+            .send(status(code, "BAD_MESSAGE", &why))
             .await
             .ok();
         if !recoverable {

@@ -183,10 +183,48 @@ pub(super) struct NotARotation {
     pub(super) determinant: f64,
 }
 
+/// Why a received TRANSFORM is not a pose.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub(super) enum BadPose {
+    /// An entry is not finite, or a translation beyond [`crate::convert::MAX_ABS_MM`].
+    #[error("matrix[{row}][{col}] is {value}: {problem}")]
+    Entry {
+        /// Its row.
+        row: usize,
+        /// Its column (3: the translation).
+        col: usize,
+        /// Its value.
+        value: f64,
+        /// What is wrong with it.
+        problem: &'static str,
+    },
+    /// The rotation part is not a rotation.
+    #[error(transparent)]
+    NotARotation(NotARotation),
+}
+
 /// A received TRANSFORM as a rigid transform: its rotation re-orthonormalised (the wire's
-/// float32 rounding), refused when it is not a rotation to 1e-3.
-pub(super) fn rigid_of(t: &Transform) -> Result<Rigid, NotARotation> {
+/// float32 rounding), refused when an entry is not finite, a translation is beyond ±10 m, or the
+/// rotation part is not a rotation to 1e-3.
+pub(super) fn rigid_of(t: &Transform) -> Result<Rigid, BadPose> {
     let m = &t.matrix;
+    for (row, r) in m.iter().take(3).enumerate() {
+        for (col, &value) in r.iter().enumerate() {
+            let problem = if !value.is_finite() {
+                "every entry must be finite"
+            } else if col == 3 && value.abs() > crate::convert::MAX_ABS_MM {
+                "the translation must be within ±10,000 mm"
+            } else {
+                continue;
+            };
+            return Err(BadPose::Entry {
+                row,
+                col,
+                value,
+                problem,
+            });
+        }
+    }
     let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let (a, b, c) = (col(0), col(1), col(2));
@@ -208,11 +246,11 @@ pub(super) fn rigid_of(t: &Transform) -> Result<Rigid, NotARotation> {
         ]
     };
     let determinant = dot(cross(a, b), c);
-    if err.is_nan() || err > 1e-3 || determinant <= 0.0 {
-        return Err(NotARotation {
+    if err.is_nan() || err > 1e-3 || determinant.is_nan() || determinant <= 0.0 {
+        return Err(BadPose::NotARotation(NotARotation {
             departure: err,
             determinant,
-        });
+        }));
     }
     let norm = |v: [f64; 3]| {
         let n = dot(v, v).sqrt();
@@ -267,11 +305,30 @@ mod tests {
         let mut scaled = transform_of(&r);
         scaled.matrix[0][0] *= 1.1;
         let e = rigid_of(&scaled).unwrap_err();
-        assert!(e.departure > 1e-3 && e.determinant > 0.0, "{e:?}");
+        assert!(
+            matches!(e, BadPose::NotARotation(n) if n.departure > 1e-3 && n.determinant > 0.0),
+            "{e:?}"
+        );
         let mut reflected = transform_of(&Rigid::identity());
         reflected.matrix[2][2] = -1.0;
         let e = rigid_of(&reflected).unwrap_err();
-        assert!(e.determinant < 0.0, "{e:?}");
+        assert!(
+            matches!(e, BadPose::NotARotation(n) if n.determinant < 0.0),
+            "{e:?}"
+        );
+        // Not finite (all NaN: the rotation check alone let it through), or too far away.
+        let nan = Transform {
+            matrix: [[f64::NAN; 4]; 4],
+        };
+        let e = rigid_of(&nan).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "matrix[0][0] is NaN: every entry must be finite"
+        );
+        let mut far = transform_of(&r);
+        far.matrix[1][3] = 2e4;
+        let e = rigid_of(&far).unwrap_err();
+        assert!(e.to_string().starts_with("matrix[1][3] is 20000: "), "{e}");
         // F T F in RAS equals T applied to converted points.
         let f = frame_rigid(Frame::Ras);
         let p = [3.0, -4.0, 5.0];

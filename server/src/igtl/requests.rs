@@ -13,8 +13,9 @@ use pb::stream_register_request::Msg;
 /// Why a message is refused: the STATUS code and the reason sent with it.
 type Refusal = (u16, String);
 
-/// The last pose of each ultrasound plane (by device), LPS.
-type Poses = std::collections::HashMap<String, Rigid>;
+/// The last pose of each ultrasound plane (by device), LPS, or why its last TRANSFORM was
+/// refused (its next POLYDATA is refused too, never placed with an older pose).
+pub(super) type Poses = std::collections::HashMap<String, Result<Rigid, String>>;
 
 /// The gRPC request for one OpenIGTLink message (None: a pose, stored for the next POLYDATA of
 /// its device), or the STATUS code and reason it is refused with.
@@ -63,32 +64,48 @@ fn surface_batch(
 }
 
 /// A `TRANSFORM` of `device`: stored in `poses` as the plane's pose (plane → LPS) for its next
-/// `POLYDATA`; refused when it is not a rigid transform.
+/// `POLYDATA`; refused (and so noted in `poses`) when it is not a rigid transform.
 fn store_pose(device: &str, t: &Transform, frame: Frame, poses: &mut Poses) -> Result<(), Refusal> {
-    let pose = rigid_of(t).map_err(|why| {
-        (
-            status_code::CONFIG_ERROR,
-            format!("TRANSFORM {device:?}: {why}"),
-        )
-    })?;
-    // Plane → peer frame, then peer frame → LPS.
-    poses.insert(device.to_string(), pose.then(&frame_rigid(frame)));
-    Ok(())
+    match rigid_of(t) {
+        Ok(pose) => {
+            // Plane → peer frame, then peer frame → LPS.
+            poses.insert(device.to_string(), Ok(pose.then(&frame_rigid(frame))));
+            Ok(())
+        }
+        Err(why) => {
+            poses.insert(device.to_string(), Err(why.to_string()));
+            Err((
+                status_code::CONFIG_ERROR,
+                format!("TRANSFORM {device:?}: {why}"),
+            ))
+        }
+    }
 }
 
 /// A `POLYDATA` as one `UltrasoundPlane` in the last pose of its device; refused when no pose
-/// was received for it or its points or `kind` attribute are not as documented.
+/// was received for it, its last one was refused, or its points or `kind` attribute are not as documented.
 fn ultrasound_plane(header: &wire::Header, pd: &PolyData, poses: &Poses) -> Result<Msg, Refusal> {
     let acquired_at = Some(acquired_at(header));
     let device = &header.device_name;
-    let pose = poses.get(device).ok_or_else(|| {
-        (
-            status_code::CONFIG_ERROR,
-            format!(
-                "POLYDATA {device:?}: no TRANSFORM {device:?} (the plane's pose) received before it"
-            ),
-        )
-    })?;
+    let pose = match poses.get(device) {
+        Some(Ok(pose)) => pose,
+        Some(Err(why)) => {
+            return Err((
+                status_code::CONFIG_ERROR,
+                format!(
+                    "POLYDATA {device:?}: the last TRANSFORM {device:?} (the plane's pose) was refused ({why}); send a valid pose before the plane's points"
+                ),
+            ));
+        }
+        None => {
+            return Err((
+                status_code::CONFIG_ERROR,
+                format!(
+                    "POLYDATA {device:?}: no TRANSFORM {device:?} (the plane's pose) received before it"
+                ),
+            ));
+        }
+    };
     let kind = kind_attribute(device, pd)?;
     let (contour, vessel) = split_points(device, &pd.points, kind)?;
     Ok(Msg::Ultrasound(pb::UltrasoundPlane {

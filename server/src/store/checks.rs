@@ -165,8 +165,9 @@ pub struct Content<'a> {
 ///    [`ORGAN_MM`] (else the error names the unit and the one that fits);
 /// 3. the tets: none degenerate, one orientation throughout (a mesh entirely negative is flipped
 ///    as preload does; a mixed one is tangled), every node in a tet (preload's elasticity
-///    model has no stiffness at a free node), no tet twice (the same 4 nodes in any order), a
-///    manifold boundary;
+///    model has no stiffness at a free node), no two nodes at one position (a tet on a copy of a
+///    node: a crack inside the mesh), no tet twice (the same 4 nodes in any order), a manifold
+///    boundary;
 /// 4. the vessels file reads;
 /// 5. the preoperative model preload builds (labels from the file's `region` arrays or from the
 ///    geometry) and its correspondence structures;
@@ -239,6 +240,21 @@ pub fn validate(c: &Content<'_>) -> Result<(usize, usize), ServiceError> {
             ),
         ));
     }
+    if let Some((a, b)) = coincident_nodes(mesh.nodes()) {
+        let tet_of = |n: usize| mesh.tets().iter().position(|t| t.contains(&(n as u32)));
+        let p = mesh.nodes()[a];
+        return Err(field(
+            nodes_field,
+            format!(
+                "nodes {a} and {b} are at the same position ({}, {}, {}) mm, node {a} in tet {} and node {b} in tet {}: a tet on a copy of a node leaves a crack inside the mesh; merge them",
+                number(p[0]),
+                number(p[1]),
+                number(p[2]),
+                tet_of(a).unwrap_or_default(),
+                tet_of(b).unwrap_or_default(),
+            ),
+        ));
+    }
     if let Some((tet, other)) = repeated_tet(mesh.tets()) {
         return Err(field(
             tets_field,
@@ -283,6 +299,32 @@ pub fn validate(c: &Content<'_>) -> Result<(usize, usize), ServiceError> {
             .map_err(physics_error)?;
     }
     Ok((mesh.num_nodes(), mesh.num_tets()))
+}
+
+/// Nodes closer than this are one position (mm).
+const COINCIDENT_MM: f64 = 1e-6;
+
+/// The first pair of distinct nodes at one position (within [`COINCIDENT_MM`]): (lower, higher
+/// index), the lowest such pair.
+fn coincident_nodes(nodes: &[[f64; 3]]) -> Option<(usize, usize)> {
+    use std::collections::HashMap;
+    // Cells of COINCIDENT_MM: a node's twin lies in its cell or a neighbouring one.
+    let cell = |p: &[f64; 3]| p.map(|x| (x / COINCIDENT_MM).floor() as i64);
+    let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::with_capacity(nodes.len());
+    for (i, p) in nodes.iter().enumerate() {
+        grid.entry(cell(p)).or_default().push(i);
+    }
+    nodes.iter().enumerate().find_map(|(i, p)| {
+        let c = cell(p);
+        (0..27i64)
+            .flat_map(|d| {
+                let key = [c[0] + d % 3 - 1, c[1] + d / 3 % 3 - 1, c[2] + d / 9 - 1];
+                grid.get(&key).into_iter().flatten().copied()
+            })
+            .filter(|&j| j > i && (0..3).all(|k| (p[k] - nodes[j][k]).abs() <= COINCIDENT_MM))
+            .min()
+            .map(|j| (i, j))
+    })
 }
 
 /// The first tet whose 4 nodes (in any order) an earlier tet has: (it, the earlier one).

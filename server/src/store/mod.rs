@@ -34,8 +34,9 @@ pub const FORMAT: u32 = 1;
 pub const MAX_ID: usize = 128;
 /// The version of [`validate`]'s checks a case passed when stored (`case.json`'s `checks`): 1
 /// before the unused-node, repeated-tet, organ-size, labelled-model and physics-fit checks,
-/// 2 with them. A case stored with older checks is checked again at start.
-pub const CHECKS: u32 = 2;
+/// 2 with them, 3 with the coincident-node check. A case stored with older checks is checked
+/// again at start.
+pub const CHECKS: u32 = 3;
 /// The sizes an organ's mesh may span, mm (the largest side of its bounding box, after the
 /// unit): a liver spans 100–300 mm, a child's or a phantom's less; a mesh outside this range
 /// is in the wrong unit (a 200 mm liver declared in m spans 200,000 mm, in cm 2,000 mm; one

@@ -773,3 +773,139 @@ async fn silent_sockets_hold_no_session_and_are_capped_and_timed_out() {
         st.message
     );
 }
+
+/// The first 60 surface points of the scenario "surface+1us" (RAS, float32, as a peer sends
+/// them).
+fn some_surface_points() -> Vec<[f32; 3]> {
+    let (_, sc) = scenario("surface+1us");
+    let m = &sc.measurements;
+    (0..m.points.len())
+        .filter(|&i| m.kind[i] == MeasuredKind::Surface)
+        .take(60)
+        .map(|i| ras(m.points[i]).map(|v| v as f32))
+        .collect()
+}
+
+/// A header whose BODY_SIZE no message has (2^64 − 1) is answered with a STATUS naming it and
+/// the connection is closed: before, the bridge set out to discard 2^64 bytes and every later
+/// message was lost without an answer. A body over `--max-body` of a size a message may have
+/// is still discarded and the next message answered. Against the bridge process, so that
+/// `LIBRPLUS_SERVER_BIN` can show the test failing on an older build.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_body_size_that_cannot_be_trusted_closes_the_connection() {
+    let p = Proc::start(&[]);
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let bridge = Bridge::start(
+        &p.url(),
+        &case,
+        &["--method", "rigid", "--max-body", "1048576"],
+    );
+    let points = some_surface_points();
+
+    // 2 MiB of IMAGE over a 1 MiB limit: discarded, and the POINT after it answered.
+    let mut s = bridge.connect().await;
+    let image = Message::Unknown {
+        type_name: "IMAGE".into(),
+        body: vec![0; 2 << 20],
+    }
+    .encode("Camera", &EncodeOptions::default())
+    .unwrap();
+    s.write_all(&image).await.unwrap();
+    s.write_all(&point_message(&points, 0)).await.unwrap();
+    let Some((_, Message::Status(st))) = next_message(&mut s, Duration::from_secs(60)).await else {
+        panic!("no STATUS for a body over --max-body")
+    };
+    eprintln!("igtl: 2 MiB body → STATUS {} {}", st.code, st.message);
+    assert!(st.message.contains("body discarded"), "{}", st.message);
+    let answer = read_until(&mut s, "POLYDATA").await;
+    assert!(answer.iter().any(|(h, _, _)| h.type_name == "TRANSFORM"));
+
+    // BODY_SIZE 2^64 − 1, then a valid POINT: a STATUS naming the size, then the end.
+    let mut s = bridge.connect().await;
+    let mut header = point_message(&points, 1)[..wire::HEADER_SIZE].to_vec();
+    header[42..50].copy_from_slice(&u64::MAX.to_be_bytes());
+    s.write_all(&header).await.unwrap();
+    s.write_all(&point_message(&points, 2)).await.unwrap();
+    let Some((h, Message::Status(st))) = next_message(&mut s, Duration::from_secs(30)).await else {
+        panic!("no STATUS for a BODY_SIZE of 2^64 − 1")
+    };
+    eprintln!(
+        "igtl: BODY_SIZE 2^64 − 1 → STATUS {} {}",
+        st.code, st.message
+    );
+    assert_eq!(h.device_name, bridge::DEVICE_STATUS);
+    // Then the end of the stream (before: silence, the POINT after it swallowed).
+    let end = tokio::time::timeout(Duration::from_secs(10), s.read(&mut [0u8; 1])).await;
+    let closed = match &end {
+        Ok(Ok(0)) => true,
+        Ok(Err(e)) => e.kind() == std::io::ErrorKind::ConnectionReset,
+        _ => false,
+    };
+    let log = bridge.log.lock().unwrap().clone();
+    assert!(
+        closed,
+        "still open 10 s after its STATUS ({end:?}); bridge log: {log:?}"
+    );
+    assert_eq!(st.code, status_code::CONFIG_ERROR, "{}", st.message);
+    for needle in [
+        "BODY_SIZE 18446744073709551615",
+        "cannot be trusted",
+        "closed",
+    ] {
+        assert!(st.message.contains(needle), "{needle:?}: {}", st.message);
+    }
+}
+
+/// A TRANSFORM of NaN is refused at the TRANSFORM, naming it (its rotation check let NaN
+/// through, and the error came at the next POLYDATA from the gRPC server); the plane's next
+/// POLYDATA is refused naming the refused pose, never placed with the pose before it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_transform_of_nan_is_refused_at_the_transform() {
+    let p = Proc::start(&[]);
+    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
+    let bridge = Bridge::start(&p.url(), &case, &["--method", "rigid"]);
+    let mut s = bridge.connect().await;
+    let opts = EncodeOptions::default();
+    let pose = Message::Transform(Transform::IDENTITY)
+        .encode("US", &opts)
+        .unwrap();
+    let mut nan = Transform::IDENTITY;
+    for row in nan.matrix.iter_mut().take(3) {
+        *row = [f64::NAN; 4];
+    }
+    s.write_all(&pose).await.unwrap();
+    s.write_all(&Message::Transform(nan).encode("US", &opts).unwrap())
+        .await
+        .unwrap();
+    let Some((h, Message::Status(st))) = next_message(&mut s, Duration::from_secs(20)).await else {
+        panic!("no STATUS for a TRANSFORM of NaN")
+    };
+    eprintln!("igtl: TRANSFORM of NaN → STATUS {} {}", st.code, st.message);
+    assert_eq!(h.device_name, bridge::DEVICE_STATUS);
+    assert_eq!(st.code, status_code::CONFIG_ERROR, "{}", st.message);
+    assert!(
+        st.message
+            .starts_with("TRANSFORM \"US\": matrix[0][0] is NaN"),
+        "{}",
+        st.message
+    );
+    let plane = PolyData {
+        points: vec![[0.0, 0.0, 0.0]],
+        ..PolyData::default()
+    };
+    s.write_all(&Message::PolyData(plane).encode("US", &opts).unwrap())
+        .await
+        .unwrap();
+    let Some((_, Message::Status(st))) = next_message(&mut s, Duration::from_secs(20)).await else {
+        panic!("no STATUS for a POLYDATA after a refused pose")
+    };
+    eprintln!("igtl: then POLYDATA → STATUS {} {}", st.code, st.message);
+    assert_eq!(st.code, status_code::CONFIG_ERROR, "{}", st.message);
+    assert!(
+        st.message.starts_with(
+            "POLYDATA \"US\": the last TRANSFORM \"US\" (the plane's pose) was refused"
+        ),
+        "{}",
+        st.message
+    );
+}

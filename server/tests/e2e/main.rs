@@ -13,6 +13,7 @@ mod igtl;
 mod interop;
 mod limits;
 mod probe;
+mod probe_errors;
 mod replicas;
 mod resume;
 mod safety;

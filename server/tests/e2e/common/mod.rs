@@ -497,3 +497,70 @@ impl Drop for Proc {
         let _ = self.child.wait();
     }
 }
+
+/// The server binary: `LIBRPLUS_SERVER_BIN` (another build, to show a test failing before its
+/// fix) or the one this package builds.
+pub fn server_exe() -> PathBuf {
+    std::env::var_os("LIBRPLUS_SERVER_BIN")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_librplus-server")))
+}
+
+/// An OpenIGTLink bridge process (`librplus-server igtl`, of [`server_exe`]) for `case` on the
+/// gRPC server at `url`, listening on a free loopback port; its stderr lines collected.
+pub struct Bridge {
+    pub child: Child,
+    pub port: u16,
+    pub log: Arc<Mutex<Vec<String>>>,
+}
+
+impl Bridge {
+    pub fn start(url: &str, case: &str, extra: &[&str]) -> Self {
+        let port = free_port();
+        let mut child = Command::new(server_exe())
+            .arg("igtl")
+            .args(["--server", url, "--case", case])
+            .arg("--listen")
+            .arg(format!("127.0.0.1:{port}"))
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stderr(Stdio::piped())
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        let log = Arc::new(Mutex::new(Vec::new()));
+        let stderr = child.stderr.take().unwrap();
+        {
+            let log = log.clone();
+            std::thread::spawn(move || {
+                for line in BufReader::new(stderr).lines() {
+                    let Ok(line) = line else { break };
+                    log.lock().unwrap().push(line);
+                }
+            });
+        }
+        Self { child, port, log }
+    }
+
+    /// A connection to the bridge, once it listens (60 s at most).
+    pub async fn connect(&self) -> tokio::net::TcpStream {
+        for _ in 0..600 {
+            if let Ok(s) = tokio::net::TcpStream::connect(("127.0.0.1", self.port)).await {
+                return s;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        panic!(
+            "the bridge is not listening on {}: {:?}",
+            self.port,
+            self.log.lock().unwrap()
+        );
+    }
+}
+
+impl Drop for Bridge {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
