@@ -393,11 +393,11 @@ mod generations {
     //! One listener, successive gRPC servers ("generations") for successive TLS settings.
 
     use super::Reload;
+    use crate::connections::{Admitted, Closed, Connections};
     use std::collections::VecDeque;
     use std::convert::Infallible;
-    use std::pin::Pin;
-    use crate::connections::{Admitted, Closed, Connections};
     use std::future::Future;
+    use std::pin::Pin;
     use std::sync::atomic::{AtomicU64, Ordering};
     use std::sync::{Arc, Mutex};
     use std::task::{Context, Poll};
