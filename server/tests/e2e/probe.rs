@@ -7,25 +7,24 @@
 use crate::common::*;
 use pb::stream_register_request::Msg;
 
-/// The first surface batch of the dataset's "surface" scenario, under `client_seq` `seq`.
-fn surface_msg(seq: u64) -> pb::StreamRegisterRequest {
+/// Message `k` of the dataset's "surface" scenario as a rigid session streams it (0: the start,
+/// 1: the first surface batch), under `client_seq` `seq`.
+fn scenario_msg(k: usize, seq: u64) -> pb::StreamRegisterRequest {
     let case = open(dataset()).unwrap().deformations[0].geometry.clone();
     let (_, sc) = scenario("surface");
     let (msgs, _) = stream_of(&case, &sc, pb::Method::Rigid);
     pb::StreamRegisterRequest {
         client_seq: seq,
-        ..msgs[1].clone()
+        ..msgs[k].clone()
     }
 }
 
 fn start_msg(seq: u64) -> pb::StreamRegisterRequest {
-    let case = open(dataset()).unwrap().deformations[0].geometry.clone();
-    let (_, sc) = scenario("surface");
-    let (msgs, _) = stream_of(&case, &sc, pb::Method::Rigid);
-    pb::StreamRegisterRequest {
-        client_seq: seq,
-        ..msgs[0].clone()
-    }
+    scenario_msg(0, seq)
+}
+
+fn surface_msg(seq: u64) -> pb::StreamRegisterRequest {
+    scenario_msg(1, seq)
 }
 
 /// A `client_seq` above 2^63 − 1 (what the audit log keeps) is refused naming the field, the

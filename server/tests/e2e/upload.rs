@@ -24,28 +24,7 @@ fn with<T>(msg: T, token: &str) -> tonic::Request<T> {
     r
 }
 
-/// The messages of an upload of a mesh file's bytes, in 256 KiB chunks.
-fn file_upload(id: &str, format: &str, bytes: &[u8]) -> Vec<pb::CreateCaseRequest> {
-    use pb::create_case_request::Part;
-    let mut out = vec![pb::CreateCaseRequest {
-        part: Some(Part::Upload(pb::CaseUpload {
-            case_id: id.into(),
-            mesh_format: format.into(),
-            total_bytes: bytes.len() as u64,
-            ..Default::default()
-        })),
-    }];
-    for c in bytes.chunks(256 << 10) {
-        out.push(pb::CreateCaseRequest {
-            part: Some(Part::Chunk(pb::CaseChunk {
-                file: pb::CaseFile::Mesh as i32,
-                data: c.to_vec(),
-            })),
-        });
-    }
-    out
-}
-
+/// The message of an upload that carries its mesh as arrays.
 fn array_upload(id: &str, nodes: Vec<f64>, tets: Vec<u32>) -> Vec<pb::CreateCaseRequest> {
     vec![pb::CreateCaseRequest {
         part: Some(pb::create_case_request::Part::Upload(pb::CaseUpload {

@@ -60,13 +60,19 @@ pub fn trickle(
 
 /// The dataset's first preoperative mesh as an upload under `id`.
 pub fn mesh_upload(id: &str) -> Vec<pb::CreateCaseRequest> {
-    use pb::create_case_request::Part;
     let m = open(dataset()).unwrap();
     let bytes = std::fs::read(dataset().join(&m.geometries[0].preop)).unwrap();
+    file_upload(id, "vtu", &bytes)
+}
+
+/// An upload of a mesh file's `bytes` in `format` under `id`: the CaseUpload, then chunks of
+/// 256 KiB.
+pub fn file_upload(id: &str, format: &str, bytes: &[u8]) -> Vec<pb::CreateCaseRequest> {
+    use pb::create_case_request::Part;
     let mut out = vec![pb::CreateCaseRequest {
         part: Some(Part::Upload(pb::CaseUpload {
             case_id: id.into(),
-            mesh_format: "vtu".into(),
+            mesh_format: format.into(),
             total_bytes: bytes.len() as u64,
             ..Default::default()
         })),
