@@ -25,8 +25,8 @@ pub use messages::{
     rigid_message, stream_messages,
 };
 pub use replay::{
-    ReplayOptions, ReplaySummary, method_name, parse_method, parse_methods, replay, replay_table,
-    result_sha256, series_name, sha256_hex,
+    DiscoveryRecord, ReplayOptions, ReplaySummary, degradations, discovery_wait, method_name,
+    parse_method, parse_methods, replay, replay_table, result_sha256, series_name, sha256_hex,
 };
 pub use session::{
     Client, Resume, SessionConfig, SessionEnd, SessionOutcome, Tls, connect, connect_replicas,

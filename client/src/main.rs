@@ -170,6 +170,15 @@ struct ReplayArgs {
     /// Time limit of each discovery run, ms (0: the server's default).
     #[arg(long, default_value_t = 0)]
     discovery_budget_ms: u32,
+    /// Replay the sessions with discovery on this many of the scenarios only (those with the
+    /// most points, one deformation after another; 0: every one).
+    #[arg(long, default_value_t = 0)]
+    discover_scenarios: usize,
+    /// Sessions with discovery replayed at once, beside the others (they still send in turn
+    /// with them, `--concurrency` at a time, and wait for their runs side by side); 0: one
+    /// after another with the others.
+    #[arg(long, default_value_t = 0)]
+    discovery_concurrency: usize,
     /// Sessions replayed at once.
     #[arg(long, default_value_t = 1)]
     concurrency: usize,
@@ -296,6 +305,8 @@ async fn run(cli: Cli) -> Result<()> {
                     budget_ms: a.discovery_budget_ms,
                     auto_after_points: 0,
                 },
+                discover_scenarios: a.discover_scenarios,
+                discovery_concurrency: a.discovery_concurrency,
                 tls: a.common.conn.tls(),
                 concurrency: a.concurrency,
                 resume_attempts: a.common.resume_attempts,

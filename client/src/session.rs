@@ -130,6 +130,9 @@ pub struct SessionConfig {
     pub rate_hz: Option<f64>,
     /// Longest wait for the stream to open and for each answer.
     pub timeout: Duration,
+    /// Longest wait, once every message is answered, for each update that still follows (a
+    /// discovery run's report comes as late as its budget): `timeout` when shorter or unset.
+    pub final_timeout: Option<Duration>,
     /// Give up (without counting an error) at this instant: the end of a load test.
     pub deadline: Option<Instant>,
     /// `authorization: Bearer TOKEN` metadata, when set.
@@ -142,6 +145,11 @@ pub struct SessionConfig {
     pub replicas: Vec<Client>,
     /// The replica a session opens on (an index into `replicas`).
     pub first_replica: usize,
+    /// Sessions sharing this gate send in turn, one per permit: a session holds a permit from
+    /// the opening of its stream to its last answer and lets it go while it waits for what
+    /// follows (a discovery run's report), so that sessions waiting on their discovery run
+    /// beside the others without taking their compute. None: no gate.
+    pub lockstep: Option<std::sync::Arc<tokio::sync::Semaphore>>,
 }
 
 /// How a client resumes a lost session.
@@ -180,11 +188,13 @@ impl SessionConfig {
         Ok(Self {
             rate_hz: None,
             timeout,
+            final_timeout: None,
             deadline: None,
             token,
             resume: None,
             replicas: Vec::new(),
             first_replica: 0,
+            lockstep: None,
         })
     }
 }
@@ -203,6 +213,10 @@ pub enum SessionEnd {
     ClosedEarly(u64),
     /// No answer to this `client_seq` (0: the stream did not open) within the timeout.
     TimedOut(u64),
+    /// Every message was answered, but the server sent nothing more (and did not end the
+    /// stream) within this wait: the update still owed after the last answer, a discovery
+    /// run's report, never came.
+    NothingAfter(u64, Duration),
     /// The deadline passed first (not an error).
     Cut,
 }
@@ -216,7 +230,7 @@ impl SessionEnd {
             SessionEnd::Completed | SessionEnd::Cut => None,
             SessionEnd::Refused(s) | SessionEnd::Failed(s) => Some(code_name(s.code())),
             SessionEnd::ClosedEarly(_) => Some("CLOSED_EARLY"),
-            SessionEnd::TimedOut(_) => Some("DEADLINE_EXCEEDED"),
+            SessionEnd::TimedOut(_) | SessionEnd::NothingAfter(..) => Some("DEADLINE_EXCEEDED"),
         }
     }
 
@@ -236,6 +250,10 @@ impl SessionEnd {
             }
             SessionEnd::TimedOut(0) => "the stream did not open in time".into(),
             SessionEnd::TimedOut(q) => format!("no answer to client_seq {q} in time"),
+            SessionEnd::NothingAfter(q, wait) => format!(
+                "client_seq {q} was answered, then the server sent nothing more and did not end the stream within {:.0} s",
+                wait.as_secs_f64()
+            ),
             SessionEnd::Cut => "cut at the deadline".into(),
         }
     }
@@ -437,6 +455,15 @@ where
     F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
 {
     let updates_before = out.updates;
+    let gate = match &cfg.lockstep {
+        Some(g) => match bounded(g.clone().acquire_owned(), Duration::MAX, cfg.deadline).await {
+            Bounded::Done(Ok(permit)) => Some(permit),
+            // A closed gate lets every session through.
+            Bounded::Done(Err(_)) | Bounded::TimedOut => None,
+            Bounded::Cut => return over(out, SessionEnd::Cut),
+        },
+        None => None,
+    };
     let (tx, mut inbound) = match open_stream(client, first, rest.len(), cfg, out).await {
         ControlFlow::Continue(opened) => opened,
         ControlFlow::Break(a) => return a,
@@ -473,6 +500,9 @@ where
         }
     }
     drop(tx);
+    // Every message answered: what still follows (a discovery run's report) is waited for
+    // without the gate.
+    drop(gate);
     read_to_end(&mut inbound, rest, cfg, out, on_update).await
 }
 
@@ -669,8 +699,11 @@ async fn read_to_end<F>(
 where
     F: FnMut(&pb::StreamUpdate, Option<Duration>) + Send,
 {
+    let wait = cfg
+        .final_timeout
+        .map_or(cfg.timeout, |t| t.max(cfg.timeout));
     loop {
-        match bounded(inbound.message(), cfg.timeout, cfg.deadline).await {
+        match bounded(inbound.message(), wait, cfg.deadline).await {
             Bounded::Done(Ok(Some(u))) => {
                 out.updates += 1;
                 on_update(&u, None);
@@ -688,7 +721,7 @@ where
             Bounded::TimedOut => {
                 return over(
                     out,
-                    SessionEnd::TimedOut(rest.last().map_or(0, |m| m.client_seq)),
+                    SessionEnd::NothingAfter(rest.last().map_or(0, |m| m.client_seq), wait),
                 );
             }
             // Every message was answered: the session counts as completed.

@@ -238,12 +238,35 @@ fn spread_selection_covers_deformations_and_categories() {
 
 /// A stand-in server: answers every data message with the start's initial alignment and zero
 /// displacements (or a rejection for an ultrasound plane without points), after a short delay;
-/// refuses unknown cases (NOT_FOUND) and sessions beyond `limit` (RESOURCE_EXHAUSTED).
+/// refuses unknown cases (NOT_FOUND) and sessions beyond `limit` (RESOURCE_EXHAUSTED). A
+/// `DiscoverNow` is answered `RUNNING` at once; its run's `DONE` report follows
+/// `Watch::report_after` after the client has closed its side, as the server does.
 struct Fake {
     nodes: HashMap<String, u32>,
     limit: usize,
     active: Arc<AtomicUsize>,
     sessions: Arc<AtomicUsize>,
+    watch: Arc<Watch>,
+}
+
+/// What the fake saw of the sessions' overlap.
+#[derive(Default)]
+struct Watch {
+    /// How long a discovery run "takes".
+    report_after: Duration,
+    /// Data messages received and not yet answered, over every session; the most at once.
+    in_flight: AtomicUsize,
+    most_in_flight: AtomicUsize,
+    /// Sessions waiting for their discovery report; the most at once.
+    discovering: AtomicUsize,
+    most_discovering: AtomicUsize,
+}
+
+impl Watch {
+    fn enter(now: &AtomicUsize, most: &AtomicUsize) {
+        let n = now.fetch_add(1, Ordering::SeqCst) + 1;
+        most.fetch_max(n, Ordering::SeqCst);
+    }
 }
 
 #[tonic::async_trait]
@@ -310,15 +333,26 @@ impl LibRPlus for Fake {
         }
         self.sessions.fetch_add(1, Ordering::SeqCst);
         let active = self.active.clone();
+        let watch = self.watch.clone();
         let (tx, rx) = tokio::sync::mpsc::channel(16);
         tokio::spawn(async move {
             let mut seq = 0;
+            let mut discover = None;
             while let Ok(Some(m)) = inbound.message().await {
+                Watch::enter(&watch.in_flight, &watch.most_in_flight);
                 tokio::time::sleep(Duration::from_millis(2)).await;
                 seq += 1;
                 let empty_plane = matches!(&m.msg, Some(Msg::Ultrasound(u))
                     if u.contour_uv_mm.is_empty() && u.vessel_uv_mm.is_empty());
-                let update = if empty_plane {
+                let update = if let Some(Msg::Discover(_)) = &m.msg {
+                    discover = Some(m.client_seq);
+                    pb::stream_update::Update::Discovery(pb::DiscoveryReport {
+                        client_seq: m.client_seq,
+                        state: pb::DiscoveryState::Running as i32,
+                        message: "fake: started".into(),
+                        ..Default::default()
+                    })
+                } else if empty_plane {
                     pb::stream_update::Update::Rejection(pb::Rejection {
                         client_seq: m.client_seq,
                         code: "INVALID_ARGUMENT".into(),
@@ -350,9 +384,31 @@ impl LibRPlus for Fake {
                     update: Some(update),
                     points_total: 0,
                 };
+                // Answered (before it is sent: the client's next message comes after it).
+                watch.in_flight.fetch_sub(1, Ordering::SeqCst);
                 if tx.send(Ok(u)).await.is_err() {
                     break;
                 }
+            }
+            if let Some(client_seq) = discover {
+                Watch::enter(&watch.discovering, &watch.most_discovering);
+                tokio::time::sleep(watch.report_after).await;
+                watch.discovering.fetch_sub(1, Ordering::SeqCst);
+                let u = pb::StreamUpdate {
+                    sequence: seq + 1,
+                    session_id: "fake".into(),
+                    last_client_seq: client_seq,
+                    update: Some(pb::stream_update::Update::Discovery(pb::DiscoveryReport {
+                        client_seq,
+                        state: pb::DiscoveryState::Done as i32,
+                        verdict: "none".into(),
+                        message: "fake: the points agree with the model".into(),
+                        elapsed_ms: watch.report_after.as_secs_f64() * 1e3,
+                        ..Default::default()
+                    })),
+                    points_total: 0,
+                };
+                let _ = tx.send(Ok(u)).await;
             }
             active.fetch_sub(1, Ordering::SeqCst);
         });
@@ -362,6 +418,19 @@ impl LibRPlus for Fake {
 
 /// Starts the fake on a free loopback port; returns its URL and its session counter.
 async fn serve(limit: usize) -> (String, Arc<AtomicUsize>) {
+    let (url, sessions, _) = serve_watched(limit, Duration::ZERO).await;
+    (url, sessions)
+}
+
+/// [`serve`] with discovery runs that take `report_after`, and what it saw of the sessions.
+async fn serve_watched(
+    limit: usize,
+    report_after: Duration,
+) -> (String, Arc<AtomicUsize>, Arc<Watch>) {
+    let watch = Arc::new(Watch {
+        report_after,
+        ..Default::default()
+    });
     let dir = dataset();
     let m = librplus::eval::open(dir).unwrap();
     let nodes = m
@@ -375,6 +444,7 @@ async fn serve(limit: usize) -> (String, Arc<AtomicUsize>) {
         limit,
         active: Arc::new(AtomicUsize::new(0)),
         sessions: sessions.clone(),
+        watch: watch.clone(),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
@@ -386,7 +456,130 @@ async fn serve(limit: usize) -> (String, Arc<AtomicUsize>) {
                 s.inspect(|s| s.set_nodelay(true).unwrap())
             })),
     );
-    (format!("http://{addr}"), sessions)
+    (format!("http://{addr}"), sessions, watch)
+}
+
+/// Sessions with discovery wait for their run's report as long as its budget says, not the
+/// per-answer timeout: a report that comes later than `timeout` completes the session. They
+/// wait side by side (`discovery_concurrency`), while every session still sends in turn (never
+/// two data messages in flight at once); they replay only on the scenarios with the most
+/// points (`discover_scenarios`); and the results come in replay order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn discovery_sessions_wait_for_their_report_side_by_side() {
+    let report_after = Duration::from_millis(1500);
+    let (url, _, watch) = serve_watched(100, report_after).await;
+    let all = scenarios();
+    let opts = ReplayOptions {
+        server: url,
+        data: dataset().to_path_buf(),
+        selection: Selection::All,
+        methods: vec![pb::Method::Libr],
+        batch: 50,
+        // Shorter than a run: the report still counts, the session waits for it.
+        timeout: Duration::from_millis(500),
+        discover_with: vec![pb::Method::Libr],
+        discovery: pb::DiscoveryOptions {
+            enabled: true,
+            budget_ms: 3000,
+            auto_after_points: 0,
+        },
+        discover_scenarios: 3,
+        discovery_concurrency: 3,
+        ..Default::default()
+    };
+    let s = librplus_client::replay(&opts).await.unwrap();
+    assert_eq!(s.sessions, 5 + 3);
+    assert_eq!(s.failed, 0, "{}", librplus_client::replay_table(&s));
+    // The three with the most points.
+    let mut by_points: Vec<(usize, &str)> = all
+        .iter()
+        .map(|(_, sc, _)| (sc.measurements.points.len(), sc.id.as_str()))
+        .collect();
+    by_points.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(b.1)));
+    let mut want: Vec<&str> = by_points[..3].iter().map(|x| x.1).collect();
+    let mut got: Vec<&str> = s
+        .results
+        .iter()
+        .filter(|r| r.method == "libr+discovery")
+        .map(|r| r.scenario.as_str())
+        .collect();
+    want.sort();
+    got.sort();
+    assert_eq!(got, want);
+    for r in s.results.iter().filter(|r| r.method == "libr+discovery") {
+        assert!(r.end == "completed", "{}: {}", r.scenario, r.end);
+        let d = r.discovery.as_ref().unwrap();
+        assert_eq!((d.state.as_str(), d.verdict.as_str()), ("DONE", "none"));
+        assert!(!d.unfinished());
+        assert_eq!(d.reason(), "fake: the points agree with the model");
+    }
+    // Replay order: scenario by scenario, LIBR before LIBR with discovery.
+    let order: Vec<(&str, &str)> = s
+        .results
+        .iter()
+        .map(|r| (r.scenario.as_str(), r.method.as_str()))
+        .collect();
+    let mut expected = Vec::new();
+    for (_, sc, _) in &all {
+        expected.push((sc.id.as_str(), "libr"));
+        if want.contains(&sc.id.as_str()) {
+            expected.push((sc.id.as_str(), "libr+discovery"));
+        }
+    }
+    assert_eq!(order, expected);
+    assert_eq!(watch.most_in_flight.load(Ordering::SeqCst), 1);
+    assert!(
+        watch.most_discovering.load(Ordering::SeqCst) >= 2,
+        "the discovery sessions waited one after another"
+    );
+    assert_eq!(
+        s.methods["libr+discovery"].discovery.get("none"),
+        Some(&3),
+        "{:?}",
+        s.methods["libr+discovery"].discovery
+    );
+
+    // Without the budget's wait (a plain session config), the same session ends at its
+    // timeout with the report still owed, and says so.
+    let client = librplus_client::connect(&opts.server).await.unwrap();
+    let (case, sc, pl) = all.iter().find(|x| x.1.id == want[0]).unwrap();
+    let mut msgs = stream_messages(case, pb::Method::Libr, None, sc, pl, 50);
+    if let Some(Msg::Start(start)) = msgs[0].msg.as_mut() {
+        start.discovery = Some(opts.discovery);
+    }
+    let client_seq = msgs.len() as u64 + 1;
+    msgs.push(pb::StreamRegisterRequest {
+        client_seq,
+        msg: Some(Msg::Discover(pb::DiscoverNow {})),
+    });
+    let cfg = librplus_client::SessionConfig::new(Duration::from_millis(500), None).unwrap();
+    let out = librplus_client::run_session(&client, &msgs, &cfg, |_, _| {}).await;
+    assert!(!out.end.is_completed());
+    assert_eq!(out.end.error_code(), Some("DEADLINE_EXCEEDED"));
+    let why = out.end.describe();
+    assert!(
+        why.contains(&format!("client_seq {client_seq} was answered"))
+            && why.contains("nothing more"),
+        "{why}"
+    );
+    // With it, the report comes and the session completes.
+    let mut cfg = cfg;
+    cfg.final_timeout = Some(librplus_client::discovery_wait(&opts.discovery));
+    let mut reports = Vec::new();
+    let out = librplus_client::run_session(&client, &msgs, &cfg, |u, _| {
+        if let Some(pb::stream_update::Update::Discovery(d)) = &u.update {
+            reports.push(d.state);
+        }
+    })
+    .await;
+    assert!(out.end.is_completed(), "{}", out.end.describe());
+    assert_eq!(
+        reports,
+        vec![
+            pb::DiscoveryState::Running as i32,
+            pb::DiscoveryState::Done as i32
+        ]
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

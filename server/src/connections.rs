@@ -93,7 +93,7 @@ impl Table {
     }
 }
 
-/// The open connections ([`Connections::admit`] counts one, [`Connections::trust`] marks the
+/// The open connections ([`Connections::admit`] counts one, [`Connections::called`] marks the
 /// one a call was accepted on).
 pub struct Connections {
     max: usize,

@@ -2,12 +2,18 @@
 //! session has received so far, run in the background so that it never delays a registration
 //! update, and the switch to the augmented model when an effect is named.
 //!
-//! - **Where it runs.** One OS thread per run, at the lowest CPU priority (nice 19), with a
-//!   one-thread rayon pool: registrations keep their compute slots and the global pool, and the
-//!   scheduler gives the run only what they leave.
+//! - **Where it runs.** One OS thread per run with a one-thread rayon pool, both at Linux's
+//!   `SCHED_IDLE` (elsewhere the lowest priority): registrations keep their compute slots and
+//!   the global pool, any of their threads that wakes takes the CPU from the run at once, and
+//!   the run gets only the CPU time they leave (a core of an idle machine, nothing of a busy
+//!   one).
 //! - **Bounded.** The run stops at its budget (checked between the workflow's steps, see
 //!   [`librplus::discover::DiscoverParams::deadline`]); a run that overruns is reported
-//!   `OUT_OF_TIME` and changes nothing. One run per session at a time.
+//!   `OUT_OF_TIME` and changes nothing. A watchdog on the server's runtime sends that report
+//!   [`REPORT_GRACE`] after the budget when the run has not ended by then (a step that the busy
+//!   machine gives no CPU time cannot reach its next check), so every run is reported in time
+//!   however loaded the machine is. One run per session at a time.
+//! - **Never silent.** Every outcome, a failure too, carries its reason in `message`.
 //! - **The data.** The session's points, split into 4–6 interleaved parts
 //!   ([`librplus::discover::session_sweeps`]: the workflow cross-validates across parts and
 //!   spatial blocks), registered with the case's plain LIBR model as `librplus discover` does.
@@ -86,35 +92,137 @@ pub fn started(req: &Request) -> pb::DiscoveryReport {
     }
 }
 
-/// Starts a run on its own thread; the receiver gets its outcome (a failure is an outcome too).
+/// How long after its budget a run that has not ended is reported `OUT_OF_TIME` by its
+/// watchdog: the run checks its deadline only between steps, and on a busy machine a step may
+/// get no CPU time at all.
+pub const REPORT_GRACE: Duration = Duration::from_secs(1);
+
+/// Where a run's outcome goes: sent once, by the run or by its watchdog, whichever comes first.
+type Slot = Arc<std::sync::Mutex<Option<oneshot::Sender<Outcome>>>>;
+
+/// Sends `outcome` unless the slot's outcome was already sent; whether it was sent now.
+fn deliver(slot: &Slot, outcome: Outcome) -> bool {
+    let tx = slot.lock().unwrap_or_else(|e| e.into_inner()).take();
+    match tx {
+        Some(tx) => {
+            let _ = tx.send(outcome);
+            true
+        }
+        None => false,
+    }
+}
+
+/// Starts a run on its own threads; the receiver gets its outcome (a failure is an outcome
+/// too, with its reason) at the latest [`REPORT_GRACE`] after the budget, however busy the
+/// machine is.
 pub fn spawn(req: Request) -> oneshot::Receiver<Outcome> {
     let (tx, rx) = oneshot::channel();
+    let slot: Slot = Arc::new(std::sync::Mutex::new(Some(tx)));
+    let t0 = Instant::now();
+    let (seq, n, budget) = (req.client_seq, req.measurements.points.len(), req.budget);
+    let watchdog = watchdog(slot.clone(), seq, n, budget, t0);
+    let mine = slot.clone();
     let spawned = std::thread::Builder::new()
         .name("discovery".into())
         .spawn(move || {
             lower_priority();
-            let t0 = Instant::now();
-            let seq = req.client_seq;
-            let n = req.measurements.points.len();
-            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(req)))
-                .unwrap_or_else(|_| {
-                    tracing::error!("discovery panicked");
-                    failed(
-                        seq,
-                        n,
-                        t0,
-                        pb::DiscoveryState::Failed,
-                        "discovery failed inside the server (logged); the model is unchanged"
-                            .into(),
-                    )
-                });
-            let _ = tx.send(outcome);
+            let outcome =
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(req, t0)))
+                    .unwrap_or_else(|_| {
+                        tracing::error!("discovery panicked");
+                        failed(
+                            seq,
+                            n,
+                            t0,
+                            pb::DiscoveryState::Failed,
+                            "discovery failed inside the server (logged); the model is unchanged"
+                                .into(),
+                        )
+                    });
+            if let Some(w) = &watchdog {
+                w.abort();
+            }
+            if !deliver(&mine, outcome) {
+                tracing::info!(
+                    elapsed_ms = t0.elapsed().as_secs_f64() * 1e3,
+                    "discovery ended after its budget; it was reported out of time, its result is dropped"
+                );
+            }
         });
     if let Err(e) = spawned {
         tracing::error!(error = %e, "cannot start a discovery thread");
+        deliver(
+            &slot,
+            failed(
+                seq,
+                n,
+                t0,
+                pb::DiscoveryState::Failed,
+                format!(
+                    "discovery could not start: no thread for it ({e}); the model is unchanged"
+                ),
+            ),
+        );
     }
     rx
 }
+
+/// The run's watchdog: at its budget plus [`REPORT_GRACE`], reports it `OUT_OF_TIME` unless
+/// it was reported already. A task on the server's runtime (its handle, to abort it when the
+/// run ends first), or a thread of its own outside one.
+fn watchdog(
+    slot: Slot,
+    seq: u64,
+    points: usize,
+    budget: Duration,
+    t0: Instant,
+) -> Option<tokio::task::AbortHandle> {
+    let at = t0 + budget + REPORT_GRACE;
+    let fire = move || {
+        let message = format!(
+            "out of time: the run had not finished {:.1} s after it started (budget {:.0} s); \
+             discovery gets only the CPU time that registrations and other programs leave, \
+             and the machine left it too little; the model is unchanged",
+            t0.elapsed().as_secs_f64(),
+            budget.as_secs_f64()
+        );
+        if deliver(
+            &slot,
+            failed(seq, points, t0, pb::DiscoveryState::OutOfTime, message),
+        ) {
+            tracing::warn!(
+                budget_s = budget.as_secs_f64(),
+                "discovery reported out of time by its watchdog (the machine is busy)"
+            );
+        }
+    };
+    match tokio::runtime::Handle::try_current() {
+        Ok(h) => Some(
+            h.spawn(async move {
+                tokio::time::sleep_until(tokio::time::Instant::from_std(at)).await;
+                fire();
+            })
+            .abort_handle(),
+        ),
+        Err(_) => {
+            let spawned = std::thread::Builder::new()
+                .name("discovery-watchdog".into())
+                .spawn(move || {
+                    std::thread::sleep(at.saturating_duration_since(Instant::now()));
+                    fire();
+                });
+            if let Err(e) = spawned {
+                tracing::error!(error = %e, "cannot start a discovery watchdog");
+            }
+            None
+        }
+    }
+}
+
+/// Threads of a run's pool: one. Runs of several sessions at once use several cores; with two
+/// threads each, three runs side by side on two cores took about 30 % more CPU time than with
+/// one (parallel steps waiting on each other) and ended later.
+const POOL_THREADS: usize = 1;
 
 /// The calling thread at Linux's SCHED_IDLE (it runs only when no other thread wants the CPU;
 /// no privileges needed); elsewhere the lowest priority the platform gives.
@@ -187,12 +295,17 @@ pub fn params(req: &Request, deadline: Instant) -> DiscoverParams {
     p
 }
 
-fn run(req: Request) -> Outcome {
-    let t0 = Instant::now();
+/// The run (started at `t0`) on its own pool.
+fn run(req: Request, t0: Instant) -> Outcome {
     let deadline = t0 + req.budget;
     let n = req.measurements.points.len();
     let seq = req.client_seq;
-    let pool = match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
+    let pool = match rayon::ThreadPoolBuilder::new()
+        .num_threads(POOL_THREADS)
+        .thread_name(|i| format!("discovery-{i}"))
+        .start_handler(|_| lower_priority())
+        .build()
+    {
         Ok(p) => p,
         Err(e) => {
             return failed(
@@ -225,6 +338,14 @@ fn run(req: Request) -> Outcome {
                 );
             }
         };
+        tracing::info!(
+            verdict = ?found.verdict,
+            register_s = found.timings.register_s,
+            find_s = found.timings.find_s,
+            name_s = found.timings.name_s,
+            total_s = found.timings.total_s,
+                        "discovery workflow done"
+        );
         let mut report = done_report(&req, &found, n);
         let mut augmented = None;
         if found.verdict == Verdict::Effects {
@@ -321,4 +442,59 @@ fn build(req: &Request, physics: &Physics) -> Result<Prepared, librplus::pipelin
         p = p.with_models(l.members.iter().map(|m| m.model.clone()).collect())?;
     }
     Ok(p)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn slot() -> (Slot, oneshot::Receiver<Outcome>) {
+        let (tx, rx) = oneshot::channel();
+        (Arc::new(std::sync::Mutex::new(Some(tx))), rx)
+    }
+
+    /// A run that has not ended by its budget (a step the busy machine gives no CPU time) is
+    /// reported `OUT_OF_TIME` by its watchdog [`REPORT_GRACE`] after the budget, with its
+    /// reason, and the run's own outcome, when it comes, is not sent again.
+    #[tokio::test]
+    async fn a_run_past_its_budget_is_reported_by_its_watchdog() {
+        let (slot, rx) = slot();
+        let budget = Duration::from_millis(200);
+        let t0 = Instant::now();
+        let _w = watchdog(slot.clone(), 7, 321, budget, t0);
+        let o = tokio::time::timeout(Duration::from_secs(30), rx)
+            .await
+            .expect("reported in time")
+            .expect("an outcome");
+        let waited = t0.elapsed();
+        assert!(waited >= budget + REPORT_GRACE, "{waited:?}");
+        let r = &o.report;
+        assert_eq!(r.state, pb::DiscoveryState::OutOfTime as i32);
+        assert_eq!((r.client_seq, r.points_used), (7, 321));
+        assert!(r.message.starts_with("out of time"), "{}", r.message);
+        assert!(
+            r.message.contains("the model is unchanged"),
+            "{}",
+            r.message
+        );
+        assert!(r.elapsed_ms >= 1e3 * (budget + REPORT_GRACE).as_secs_f64() - 1.0);
+        assert!(o.augmented.is_none());
+        let late = failed(7, 321, t0, pb::DiscoveryState::Done, "late".into());
+        assert!(!deliver(&slot, late));
+    }
+
+    /// A run that ends first is the one reported; its watchdog, outside a runtime a thread of
+    /// its own, then finds nothing to send.
+    #[test]
+    fn a_run_that_ends_first_is_the_one_reported() {
+        let (slot, mut rx) = slot();
+        let t0 = Instant::now();
+        assert!(watchdog(slot.clone(), 3, 250, Duration::ZERO, t0).is_none());
+        let done = failed(3, 250, t0, pb::DiscoveryState::Done, "finished".into());
+        assert!(deliver(&slot, done));
+        std::thread::sleep(REPORT_GRACE + Duration::from_millis(300));
+        let o = rx.try_recv().expect("the run's outcome");
+        assert_eq!(o.report.state, pb::DiscoveryState::Done as i32);
+        assert_eq!(o.report.message, "finished");
+    }
 }

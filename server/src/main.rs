@@ -46,6 +46,10 @@ enum Command {
         /// Leave out the LIBR sessions with in-surgery discovery.
         #[arg(long)]
         no_discovery: bool,
+        /// Scenarios replayed with in-surgery discovery, side by side with the other sessions
+        /// (those with the most points, one deformation after another; 0: every scenario).
+        #[arg(long, default_value_t = demo::DISCOVERY_SCENARIOS)]
+        discovery_scenarios: usize,
         /// Only make the default case (into --data) and exit: to serve it from elsewhere, e.g.
         /// a container (docs/deploy.md).
         #[arg(long)]
@@ -420,8 +424,50 @@ fn init_tracing_level(json: bool, level: &str) {
     }
 }
 
-#[tokio::main]
-async fn main() -> Result<()> {
+/// Runs the command; an error ends the program with its message (its causes on the same line, no
+/// backtrace) and exit status 1.
+fn main() -> std::process::ExitCode {
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: cannot start the async runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let r = runtime.block_on(cli());
+    // A registration still computing (an error cut the command short) is not waited for long.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(5));
+    match r {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", error_line(&e));
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// An error and its causes on one line, each said once (a cause whose words are already in the
+/// line is left out).
+fn error_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if text.is_empty() || line.contains(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
+}
+
+/// The command line's command.
+async fn cli() -> Result<()> {
     let cli = Cli::parse();
     let args = match cli.command {
         #[cfg(feature = "demo")]
@@ -431,6 +477,7 @@ async fn main() -> Result<()> {
             scenarios,
             json,
             no_discovery,
+            discovery_scenarios,
             only_data,
         }) => {
             init_tracing_level(false, "warn");
@@ -440,6 +487,7 @@ async fn main() -> Result<()> {
                 scenarios,
                 json,
                 discovery: !no_discovery,
+                discovery_scenarios,
             };
             if only_data {
                 return tokio::task::spawn_blocking(move || demo::ensure_dataset(&o)).await?;
@@ -726,7 +774,7 @@ fn audit(
                             [..12.min(d["answer_sha256"].as_str().map_or(0, str::len))]
                     )
                 }
-                _ => r.detail.to_string(),
+                _ => r.detail_text(),
             };
             // Case ids, principals and details come from clients: control characters (a
             // newline that would forge a line, an escape sequence for the terminal) are shown
@@ -746,4 +794,26 @@ fn audit(
         eprintln!("{} records", rows.len());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    /// An error's line names each cause once, outermost first: a cause already said by the
+    /// message above it is left out, a new one is added.
+    #[test]
+    fn an_error_line_says_each_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "no such file");
+        let e = anyhow::Error::new(io)
+            .context("mesh.stl: no such file")
+            .context("--surface mesh.stl");
+        assert_eq!(
+            super::error_line(&e),
+            "--surface mesh.stl: mesh.stl: no such file"
+        );
+        let e = anyhow::anyhow!("the server closed the stream").context("1 of 3 session(s) failed");
+        assert_eq!(
+            super::error_line(&e),
+            "1 of 3 session(s) failed: the server closed the stream"
+        );
+    }
 }

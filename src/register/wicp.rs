@@ -523,7 +523,7 @@ pub fn conditioning(matches: &[Match]) -> f64 {
 }
 
 /// Why a measured point set cannot fix a rotation (one spot, collinear, fewer than 3 points), if so;
-/// a collinear set within [`METRES_REACH_MM`] of the origin is said to look like metres.
+/// a collinear set within 2 mm of the origin is said to look like metres.
 pub fn degenerate_points(points: &[[f64; 3]]) -> Option<String> {
     if points.len() < 3 {
         return Some(format!(

@@ -21,7 +21,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Duration;
 use summary::summarize;
-pub use summary::{CategorySummary, MethodSummary, ReplaySummary, replay_table};
+pub use summary::{
+    CategorySummary, MethodSummary, ReplaySummary, UnfinishedDiscovery, degradations, replay_table,
+};
 
 /// The short name of a method ("default", "rigid", "libr", "libr_plus").
 pub fn method_name(m: pb::Method) -> &'static str {
@@ -106,6 +108,15 @@ pub struct ReplayOptions {
     pub discover_with: Vec<pb::Method>,
     /// Discovery options of those sessions (`enabled` is set).
     pub discovery: pb::DiscoveryOptions,
+    /// Replay the sessions with discovery on this many of the selected scenarios only (0:
+    /// every one): those with the most points, taken from each deformation in turn
+    /// ([`discovery_picks`]).
+    pub discover_scenarios: usize,
+    /// Sessions with discovery replayed at once, side by side with the others: they send their
+    /// messages in turn with the others (no more than `concurrency` sessions register at a
+    /// time), and wait for their discovery runs (which use only the CPU time registrations
+    /// leave) beside them. 0: one after another with the others, `concurrency` at a time.
+    pub discovery_concurrency: usize,
     /// TLS settings.
     pub tls: crate::session::Tls,
     /// Sessions replayed at once (1: one after another).
@@ -133,6 +144,8 @@ impl Default for ReplayOptions {
             progress: false,
             discover_with: Vec::new(),
             discovery: pb::DiscoveryOptions::default(),
+            discover_scenarios: 0,
+            discovery_concurrency: 0,
             tls: crate::session::Tls::default(),
             concurrency: 1,
             resume_attempts: crate::session::Resume::default().attempts,
@@ -172,6 +185,8 @@ pub struct Step {
     pub predicted_tre_mm: Option<f64>,
     /// Quality name.
     pub quality: String,
+    /// Why the quality is not OK, in the server's words (empty when OK).
+    pub quality_reason: String,
     /// Method the server used.
     pub method_used: String,
     /// Latency of the message it answered (None for an extra update).
@@ -240,6 +255,40 @@ pub struct DiscoveryRecord {
     pub elapsed_ms: f64,
     /// The server's words.
     pub message: String,
+}
+
+impl DiscoveryRecord {
+    /// Whether the run ended without a verdict (`FAILED`, `OUT_OF_TIME`) or its end was never
+    /// reported (still `RUNNING` when the session ended).
+    pub fn unfinished(&self) -> bool {
+        self.state != "DONE"
+    }
+
+    /// Why the run ended as it did, in the server's words ("the server gave no reason" when it
+    /// sent none).
+    pub fn reason(&self) -> &str {
+        if self.message.trim().is_empty() {
+            "the server gave no reason"
+        } else {
+            &self.message
+        }
+    }
+}
+
+/// The server's discovery budget when a session leaves it to the server's default: the largest
+/// one it allows by default (`max_discovery_budget_ms`), for how long the client waits.
+pub const DEFAULT_MAX_DISCOVERY_BUDGET: Duration = Duration::from_secs(600);
+
+/// How long after its last answer a session with discovery waits for each further update: the
+/// run's budget (the server reports every run by then, `OUT_OF_TIME` when it had to stop it)
+/// and a margin for the report and the registration that follows a switch.
+pub fn discovery_wait(d: &pb::DiscoveryOptions) -> Duration {
+    let budget = if d.budget_ms == 0 {
+        DEFAULT_MAX_DISCOVERY_BUDGET
+    } else {
+        Duration::from_millis(u64::from(d.budget_ms))
+    };
+    budget + Duration::from_secs(30)
 }
 
 /// A registration's transform and displacements, or why they could not be read.
@@ -483,6 +532,7 @@ impl Received {
             tre_mm: state.as_ref().ok().map(|(t, d)| scoring.tre(t, d).tre_mm),
             predicted_tre_mm: r.error_estimate.as_ref().map(|e| e.predicted_tre_mm),
             quality: quality.clone(),
+            quality_reason: r.quality_reason.clone(),
             method_used: pb::Method::try_from(r.method_used).map_or_else(
                 |_| format!("UNKNOWN_{}", r.method_used),
                 |m| method_name(m).to_string(),
@@ -581,6 +631,14 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
     });
     cfg.rate_hz = opts.rate_hz;
     cfg.replicas = replicas;
+    if opts.discovery_concurrency > 0 && !opts.discover_with.is_empty() {
+        // Sessions with discovery run beside the others, but send in turn with them: no more
+        // than `concurrency` sessions at a time register, and a session waiting for its
+        // discovery run holds no turn.
+        cfg.lockstep = Some(std::sync::Arc::new(tokio::sync::Semaphore::new(
+            opts.concurrency.max(1),
+        )));
+    }
     let mut all = Latencies::new();
     let mut per_method: BTreeMap<String, Latencies> = BTreeMap::new();
     let mut results = Vec::new();
@@ -594,17 +652,28 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                 .map(|&m| (m, Some(opts.discovery))),
         )
         .collect();
-    let total = loaded.scenarios.len() * runs.len();
+    let picked = discovery_picks(&loaded.scenarios, opts.discover_scenarios);
     let (client, cfg) = (&client, &cfg);
     // Futures made in a plain loop (not a closure over borrowed items), so the whole replay
-    // stays `Send`.
-    let mut jobs = Vec::with_capacity(total);
-    for s in &loaded.scenarios {
+    // stays `Send`. Each job is numbered in replay order (scenario by scenario, method by
+    // method), the order of the results.
+    let mut jobs = Vec::new();
+    let mut discovery_jobs = Vec::new();
+    let mut order = 0usize;
+    for (si, s) in loaded.scenarios.iter().enumerate() {
         let geo = &loaded.geometries[&s.case_id];
         for &(method, discovery) in &runs {
+            if discovery.is_some() && !picked[si] {
+                continue;
+            }
             let mut cfg = cfg.clone();
-            cfg.first_replica = jobs.len();
-            jobs.push(async move {
+            cfg.first_replica = order;
+            if let Some(d) = &discovery {
+                cfg.final_timeout = Some(discovery_wait(d));
+            }
+            let at = order;
+            order += 1;
+            let job = async move {
                 let mut lat = Latencies::new();
                 let r = replay_one(
                     client,
@@ -619,12 +688,22 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                     &mut lat,
                 )
                 .await;
-                (r, lat)
-            });
+                (at, r, lat)
+            };
+            if discovery.is_some() && opts.discovery_concurrency > 0 {
+                discovery_jobs.push(job);
+            } else {
+                jobs.push(job);
+            }
         }
     }
-    let mut done = futures_util::stream::iter(jobs).buffered(opts.concurrency.max(1));
-    while let Some((r, lat)) = done.next().await {
+    let total = order;
+    let others = futures_util::stream::iter(jobs).buffered(opts.concurrency.max(1));
+    let beside =
+        futures_util::stream::iter(discovery_jobs).buffered(opts.discovery_concurrency.max(1));
+    let mut done = futures_util::stream::select(others, beside);
+    let mut numbered = Vec::with_capacity(total);
+    while let Some((at, r, lat)) = done.next().await {
         {
             all.merge(&lat);
             per_method.entry(r.method.clone()).or_default().merge(&lat);
@@ -638,17 +717,7 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                     r.rejections.len(),
                     r.tre
                         .map_or("-".to_string(), |t| format!("{:.2} mm", t.tre_mm)),
-                    r.discovery.as_ref().map_or(String::new(), |d| format!(
-                        "; discovery {} {}{} ({:.1} s)",
-                        d.state,
-                        d.verdict,
-                        if d.switched {
-                            format!(", switched to {}", d.effects.join("+"))
-                        } else {
-                            String::new()
-                        },
-                        d.elapsed_ms / 1e3
-                    )),
+                    r.discovery.as_ref().map_or(String::new(), discovery_line),
                     if r.resumed > 0 {
                         format!("; resumed {}×", r.resumed)
                     } else {
@@ -660,8 +729,13 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
                 );
             }
             results.push(r);
+            numbered.push(at);
         }
     }
+    // In replay order, however the sessions finished.
+    let mut ordered: Vec<(usize, ScenarioResult)> = numbered.into_iter().zip(results).collect();
+    ordered.sort_by_key(|(at, _)| *at);
+    let results: Vec<ScenarioResult> = ordered.into_iter().map(|(_, r)| r).collect();
     if opts.series.is_some()
         && let Some(r) = results.iter().find(|r| {
             r.error
@@ -682,6 +756,74 @@ pub async fn replay(opts: &ReplayOptions) -> Result<ReplaySummary> {
         &all,
         &per_method,
     ))
+}
+
+/// Which of `scenarios` get a session with discovery: `n` of them (0: all), those with the most
+/// points, taken from each deformation in turn (in order of first appearance), so that a few
+/// runs still cover every deformation and none is spent on a scenario too sparse for one.
+pub fn discovery_picks(scenarios: &[crate::data::Replayable], n: usize) -> Vec<bool> {
+    if n == 0 || n >= scenarios.len() {
+        return vec![true; scenarios.len()];
+    }
+    let mut groups: Vec<(String, Vec<usize>)> = Vec::new();
+    for (i, s) in scenarios.iter().enumerate() {
+        let d = s
+            .scenario
+            .id
+            .rsplit_once('/')
+            .map_or(s.scenario.id.as_str(), |(d, _)| d);
+        match groups.iter_mut().find(|(g, _)| g == d) {
+            Some((_, v)) => v.push(i),
+            None => groups.push((d.to_string(), vec![i])),
+        }
+    }
+    let points = |i: usize| scenarios[i].scenario.measurements.points.len();
+    for (_, v) in &mut groups {
+        // Most points first; the selection's order among equals.
+        v.sort_by_key(|&i| (std::cmp::Reverse(points(i)), i));
+    }
+    let mut picked = vec![false; scenarios.len()];
+    let mut taken = 0;
+    for round in 0.. {
+        let mut any = false;
+        for (_, v) in &groups {
+            if let Some(&i) = v.get(round) {
+                any = true;
+                if taken < n {
+                    picked[i] = true;
+                    taken += 1;
+                }
+            }
+        }
+        if !any || taken == n {
+            break;
+        }
+    }
+    picked
+}
+
+/// A session's discovery outcome for its progress line: the verdict (and the switch) of a run
+/// that finished, else its state and the server's reason.
+fn discovery_line(d: &DiscoveryRecord) -> String {
+    if d.unfinished() {
+        return format!(
+            "; discovery {} ({:.1} s): {}",
+            d.state,
+            d.elapsed_ms / 1e3,
+            d.reason()
+        );
+    }
+    format!(
+        "; discovery {} {}{} ({:.1} s)",
+        d.state,
+        d.verdict,
+        if d.switched {
+            format!(", switched to {}", d.effects.join("+"))
+        } else {
+            String::new()
+        },
+        d.elapsed_ms / 1e3
+    )
 }
 
 /// SHA-256 of `bytes`, lower-case hex (the audit log's `answer_sha256`).

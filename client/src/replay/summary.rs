@@ -44,6 +44,82 @@ pub struct MethodSummary {
     /// Sessions with discovery: their final discovery reports by verdict (or state when not
     /// done), and how many switched to an augmented model (by its effects).
     pub discovery: BTreeMap<String, u64>,
+    /// Sessions whose discovery run ended without a verdict (failed, out of time, never
+    /// reported), each with the server's reason.
+    pub discovery_unfinished: Vec<UnfinishedDiscovery>,
+    /// DEGRADED updates by what they gave up ([`degradations`] of their reasons; an update
+    /// may give up more than one thing).
+    pub degraded: BTreeMap<String, u64>,
+}
+
+/// A discovery run that ended without a verdict.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct UnfinishedDiscovery {
+    /// The session's scenario.
+    pub scenario: String,
+    /// `FAILED`, `OUT_OF_TIME`, or `RUNNING` when its end was never reported.
+    pub state: String,
+    /// Why, in the server's words.
+    pub reason: String,
+}
+
+/// What a DEGRADED answer gave up, in a few plain words each, read from the server's reason:
+/// the answer came over its time budget, a lighter method answered in place of the one asked
+/// for, a stage was cut short or left out. A reason of another kind is kept as its first
+/// clause (up to a `:` or `;`), its numbers as `#`.
+pub fn degradations(reason: &str) -> Vec<String> {
+    let known: [(&str, &str); 11] = [
+        ("over its time budget", "answered over its time budget"),
+        ("LIBR+ needs about", "LIBR in place of LIBR+ (time budget)"),
+        (
+            "LIBR needs about",
+            "the rigid result in place of LIBR (time budget)",
+        ),
+        (
+            "pose search was skipped",
+            "pose search skipped (time budget)",
+        ),
+        (
+            "refit stopped after",
+            "LIBR+'s refit cut short (time budget)",
+        ),
+        ("LIBR stopped after", "LIBR cut short (time budget)"),
+        ("refit failed", "LIBR+'s refit failed"),
+        ("SR-GCN correction failed", "SR-GCN correction failed"),
+        ("SR-GCN correction skipped", "SR-GCN correction skipped"),
+        (
+            "no time left for the SR-GCN correction",
+            "SR-GCN correction left out (time budget)",
+        ),
+        (
+            "outside what the SR-GCN learned",
+            "SR-GCN correction left out (outside what it learned)",
+        ),
+    ];
+    let found: Vec<String> = known
+        .iter()
+        .filter(|(k, _)| reason.contains(k))
+        .map(|(_, label)| label.to_string())
+        .collect();
+    if !found.is_empty() {
+        return found;
+    }
+    let first = reason.split([';', ':']).next().unwrap_or_default().trim();
+    if first.is_empty() {
+        return vec!["no reason given".into()];
+    }
+    let mut label = String::new();
+    let mut in_number = false;
+    for c in first.chars() {
+        let digit = c.is_ascii_digit() || (in_number && (c == '.' || c == ','));
+        if digit && !in_number {
+            label.push('#');
+        } else if !digit {
+            label.push(c);
+        }
+        in_number = digit;
+    }
+    vec![label.chars().take(100).collect()]
 }
 
 /// What `replay` measured (`replay --json` prints it).
@@ -121,6 +197,18 @@ pub(super) fn summarize(
         for r in &mine {
             for st in &r.steps {
                 *m.quality.entry(st.quality.clone()).or_default() += 1;
+                if st.quality == "DEGRADED" {
+                    for what in degradations(&st.quality_reason) {
+                        *m.degraded.entry(what).or_default() += 1;
+                    }
+                }
+            }
+            if let Some(d) = r.discovery.as_ref().filter(|d| d.unfinished()) {
+                m.discovery_unfinished.push(UnfinishedDiscovery {
+                    scenario: r.scenario.clone(),
+                    state: d.state.clone(),
+                    reason: d.reason().to_string(),
+                });
             }
             if let Some(d) = &r.discovery {
                 let key = if d.switched {
@@ -166,6 +254,12 @@ pub(super) fn summarize(
     }
     s.results = results;
     s
+}
+
+/// `name count, name count, ...` of a count map.
+fn counted(m: &BTreeMap<String, u64>) -> String {
+    let v: Vec<String> = m.iter().map(|(k, v)| format!("{k} {v}")).collect();
+    v.join(", ")
 }
 
 /// The summary as a readable table.
@@ -230,6 +324,13 @@ pub fn replay_table(s: &ReplaySummary) -> String {
         }
         let q: Vec<String> = m.quality.iter().map(|(k, v)| format!("{k} {v}")).collect();
         let _ = writeln!(o, "  quality: {}", q.join(", "));
+        if let Some(n) = m.quality.get("DEGRADED") {
+            let _ = writeln!(
+                o,
+                "  degraded: {n} update(s), giving up: {}",
+                counted(&m.degraded)
+            );
+        }
         if let Some((p, t)) = m.predicted_tre_mm {
             let _ = writeln!(
                 o,
@@ -244,12 +345,75 @@ pub fn replay_table(s: &ReplaySummary) -> String {
                 .collect();
             let _ = writeln!(o, "  discovery: {}", d.join(", "));
         }
+        for u in &m.discovery_unfinished {
+            let _ = writeln!(
+                o,
+                "    {} {}: {}",
+                u.scenario,
+                u.state.to_lowercase(),
+                u.reason
+            );
+        }
     }
     let l = &s.latency_ms;
+    let degraded: u64 = s
+        .methods
+        .values()
+        .filter_map(|m| m.quality.get("DEGRADED"))
+        .sum();
     let _ = writeln!(
         o,
-        "{} updates over {} sessions ({} scenarios), {} rejected, {} failed; latency p50 {:.1} ms, p95 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+        "{} updates over {} sessions ({} scenarios), {degraded} degraded, {} rejected, {} failed; latency p50 {:.1} ms, p95 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
         s.updates, s.sessions, s.scenarios, s.rejections, s.failed, l.p50, l.p95, l.p99, l.max
     );
     o
+}
+
+#[cfg(test)]
+mod tests {
+    use super::degradations;
+
+    /// The server's reasons for a DEGRADED answer read as what it gave up: each thing named
+    /// once, the late answer and its inner reason both; a reason of another kind keeps its
+    /// first clause, numbers left out.
+    #[test]
+    fn degraded_answers_are_named() {
+        let cases: [(&str, &[&str]); 7] = [
+            (
+                "time budget 250 ms: 40 ms left, LIBR+ needs about 300 ms (SR-GCN 200 ms); LIBR result",
+                &["LIBR in place of LIBR+ (time budget)"],
+            ),
+            (
+                "time budget 250 ms: 230 ms waiting for a compute slot left 20 ms, LIBR needs about 90 ms; rigid result",
+                &["the rigid result in place of LIBR (time budget)"],
+            ),
+            (
+                "over its time budget: answered in 412 ms of 250 ms (300 points; 0 ms waiting, rigid stage 80 ms); time budget 250 ms: LIBR stopped after 3 of 30 iterations",
+                &[
+                    "answered over its time budget",
+                    "LIBR cut short (time budget)",
+                ],
+            ),
+            (
+                "time budget 250 ms: LIBR+'s refit stopped after 1 of 5 iterations",
+                &["LIBR+'s refit cut short (time budget)"],
+            ),
+            (
+                "outside what the SR-GCN learned: LIBR misses the points by 4.2 mm RMS (in-family limit 3.1 mm)",
+                &["SR-GCN correction left out (outside what it learned)"],
+            ),
+            (
+                "no time left for the SR-GCN correction (about 180 ms): LIBR's answer",
+                &["SR-GCN correction left out (time budget)"],
+            ),
+            (
+                "the case's full basis is still building (12 %): answered from a coarser one",
+                &["the case's full basis is still building (# %)"],
+            ),
+        ];
+        for (reason, want) in cases {
+            assert_eq!(degradations(reason), *want, "{reason}");
+        }
+        assert_eq!(degradations(""), ["no reason given"]);
+    }
 }
