@@ -32,12 +32,14 @@ now() { date +%s.%N; }
 since() { python3 -c "import sys; print(f'{float(sys.argv[2]) - float(sys.argv[1]):.1f}')" "$1" "$(now)"; }
 
 # A bearer token for the tests and an auth file that holds only its SHA-256 (docs/service.md).
+# Its principal is the one client of the tests, streaming 8 sessions: its own session limit is
+# the servers' 8 (a principal's default is half of max_sessions when an auth file names them).
 token=$(head -c 24 /dev/urandom | od -An -tx1 | tr -d ' \n')
 mkdir -p "$work/auth"
 cat >"$work/auth/auth.json" <<JSON
 {"format": 1, "open_health": true, "open_reflection": true, "principals": [
   {"principal": "deploy-test", "token_sha256": ["$(printf %s "$token" | sha256sum | cut -d' ' -f1)"],
-   "cases": ["*"], "roles": ["read", "register", "manage"]}]}
+   "cases": ["*"], "roles": ["read", "register", "manage"], "max_sessions": 8}]}
 JSON
 chmod 755 "$work/auth"
 chmod 644 "$work/auth/auth.json"

@@ -119,20 +119,52 @@ pub async fn open_stream_as(
     })
 }
 
-/// An idle HTTP/2 connection from `local` to `addr`: the preface sent, SETTINGS and PING
-/// answered by the h2 client, no stream ever opened. The task ends when the server closes it.
+/// An idle HTTP/2 connection from `local` to `addr`: the client preface and an empty SETTINGS
+/// sent, the server's SETTINGS acknowledged and its PINGs answered (as RFC 9113 asks of a
+/// peer), no stream ever opened. The task ends when the server closes the connection.
 pub async fn idle_h2(
     local: std::net::Ipv4Addr,
     addr: std::net::SocketAddr,
 ) -> Option<tokio::task::JoinHandle<()>> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let sock = tokio::net::TcpSocket::new_v4().ok()?;
     sock.bind((local, 0).into()).ok()?;
-    let tcp = sock.connect(addr).await.ok()?;
-    let (send, conn) = h2::client::handshake(tcp).await.ok()?;
+    let mut tcp = sock.connect(addr).await.ok()?;
+    let mut hello = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+    hello.extend(h2_frame(0x4, 0, &[]));
+    tcp.write_all(&hello).await.ok()?;
     Some(tokio::spawn(async move {
-        let _keep = send;
-        let _ = conn.await;
+        let mut head = [0u8; 9];
+        loop {
+            if tcp.read_exact(&mut head).await.is_err() {
+                return;
+            }
+            let len = u32::from_be_bytes([0, head[0], head[1], head[2]]) as usize;
+            let (kind, flags) = (head[3], head[4]);
+            let mut body = vec![0u8; len];
+            if tcp.read_exact(&mut body).await.is_err() {
+                return;
+            }
+            let answer = match (kind, flags & 1) {
+                (0x4, 0) => h2_frame(0x4, 1, &[]),   // SETTINGS: ACK
+                (0x6, 0) => h2_frame(0x6, 1, &body), // PING: ACK with its payload
+                (0x7, _) => return,                  // GOAWAY
+                _ => continue,
+            };
+            if tcp.write_all(&answer).await.is_err() {
+                return;
+            }
+        }
     }))
+}
+
+/// An HTTP/2 frame on stream 0: its 9-byte header (length, type, flags) and payload.
+fn h2_frame(kind: u8, flags: u8, payload: &[u8]) -> Vec<u8> {
+    let n = payload.len() as u32;
+    let mut f = n.to_be_bytes()[1..].to_vec();
+    f.extend([kind, flags, 0, 0, 0, 0]);
+    f.extend_from_slice(payload);
+    f
 }
 
 /// `n` idle HTTP/2 connections, spread over loopback addresses 127.0.0.2, .3, … (`per` from
