@@ -72,12 +72,8 @@ fn surface_count(sc: &ScenarioData) -> usize {
         .count()
 }
 
-/// With every core busy at normal priority, a session with a 300 ms budget that asked for a
-/// discovery run goes on: each message is answered (an answer over its budget flagged DEGRADED
-/// with the reason, never OK), and the run, which the busy machine gives no CPU time, is reported
-/// OUT_OF_TIME with its reason within its budget plus the report's grace, not left hanging.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_busy_machine_degrades_answers_and_still_reports_discovery() {
+/// A server whose sessions may run discovery on the coarse grid, preloaded.
+async fn coarse_discovery_server() -> librplus_server::Running {
     let mut running = librplus_server::start(ServerConfig {
         discovery_coarse: true,
         ..config(4)
@@ -85,6 +81,16 @@ async fn a_busy_machine_degrades_answers_and_still_reports_discovery() {
     .await
     .unwrap();
     running.ready().await.unwrap();
+    running
+}
+
+/// With every core busy at normal priority, a session with a 300 ms budget that asked for a
+/// discovery run goes on: each message is answered (an answer over its budget flagged DEGRADED
+/// with the reason, never OK), and the run, which the busy machine gives no CPU time, is reported
+/// OUT_OF_TIME with its reason within its budget plus the report's grace, not left hanging.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_busy_machine_degrades_answers_and_still_reports_discovery() {
+    let running = coarse_discovery_server().await;
     let mut client = client(running.addr).await;
     // The scenario with the most surface points: 200 before the run, more after it.
     let (case, sc) = all_scenarios()
@@ -234,13 +240,7 @@ async fn a_busy_machine_degrades_answers_and_still_reports_discovery() {
 /// replay client shows that reason in its summary and its table.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_discovery_that_cannot_run_says_why() {
-    let mut running = librplus_server::start(ServerConfig {
-        discovery_coarse: true,
-        ..config(4)
-    })
-    .await
-    .unwrap();
-    running.ready().await.unwrap();
+    let running = coarse_discovery_server().await;
     let (_, sparse) = all_scenarios()
         .into_iter()
         .min_by_key(|(_, s)| s.measurements.points.len())

@@ -407,12 +407,7 @@ pub struct Proc {
 
 impl Proc {
     pub fn start(extra: &[&str]) -> Self {
-        // LIBRPLUS_SERVER_BIN: another build of the server (an older commit, to show a test
-        // failing before its fix).
-        let bin = std::env::var_os("LIBRPLUS_SERVER_BIN")
-            .map(PathBuf::from)
-            .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_librplus-server")));
-        let mut child = Command::new(bin)
+        let mut child = Command::new(server_exe())
             .arg("--cases")
             .arg(dataset())
             .arg("--no-librplus")
