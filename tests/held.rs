@@ -332,3 +332,65 @@ fn librplus_leaves_a_held_organ_to_libr() {
         fc.skipped
     );
 }
+
+#[test]
+fn auto_with_a_trusted_start_weighs_held_and_free_fits_and_does_no_worse_than_the_free_ones() {
+    use librplus::pipeline::auto::Candidate;
+    let c = case();
+    let mut trusted = PipelineParams::default();
+    trusted.wicp.trusted_alignment_mm = Some(5.0);
+    let (mut auto_sum, mut free_sum, mut nothing_sum) = (0.0, 0.0, 0.0);
+    for seed in [1, 2] {
+        let (meas, truth) = measured(&c.u, seed);
+        let run = |m: Method| register(&c.prepared, &meas, m, &trusted).unwrap();
+        let auto = run(Method::Auto);
+        let info = auto.auto.as_ref().expect("auto says how it chose");
+        let names: Vec<Candidate> = info.candidates.iter().map(|s| s.candidate).collect();
+        assert_eq!(
+            names,
+            [
+                Candidate::Initial,
+                Candidate::Rigid,
+                Candidate::LibrHeld,
+                Candidate::AdaptiveHeld,
+                Candidate::Libr,
+                Candidate::Adaptive
+            ],
+            "a trusted start adds the held fits"
+        );
+        // The answer is the chosen candidate's own.
+        let (_, t, u) = info
+            .answers
+            .iter()
+            .find(|(k, _, _)| *k == info.chosen)
+            .unwrap();
+        assert_eq!((t, u), (&auto.image_to_physical, &auto.u));
+        assert_eq!(auto.method, Method::Auto);
+        let free =
+            tre(&run(Method::Libr), &c.u, &truth).min(tre(&run(Method::Adaptive), &c.u, &truth));
+        let e_auto = tre(&auto, &c.u, &truth);
+        let e0 = tre(&run(Method::Initial), &c.u, &truth);
+        eprintln!(
+            "seed {seed}: auto chose {} (runner-up {:?}, margin {:?} SE, ambiguous {:?}): {e_auto:.2} mm; free fits at best {free:.2}; doing nothing {e0:.2}",
+            info.chosen, info.runner_up, info.margin_se, info.ambiguous
+        );
+        for s in &info.candidates {
+            eprintln!(
+                "  {:14} held out {:?} mm², in sample {:?}",
+                s.candidate.name(),
+                s.held_out_mm2,
+                s.in_sample_mm2
+            );
+        }
+        auto_sum += e_auto;
+        free_sum += free;
+        nothing_sum += e0;
+    }
+    assert!(
+        auto_sum <= free_sum + 0.2,
+        "auto {:.2} mm against the better free fit's {:.2} (doing nothing {:.2})",
+        auto_sum / 2.0,
+        free_sum / 2.0,
+        nothing_sum / 2.0
+    );
+}

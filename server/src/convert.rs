@@ -369,6 +369,9 @@ pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
         librplus::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
         librplus::pipeline::Method::V2s => pb::Method::V2s,
         librplus::pipeline::Method::Adaptive => pb::Method::Adaptive,
+        // The library's automatic choice has no wire value yet: the service never registers
+        // with it (its requests name one of the proto's methods).
+        librplus::pipeline::Method::Auto => pb::Method::Unspecified,
     }
 }
 

@@ -153,6 +153,7 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
                 seconds: 0.0,
                 outside: None,
                 abstained: false,
+                auto: None,
             });
         }
     }

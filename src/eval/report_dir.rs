@@ -154,9 +154,10 @@ fn parse_methods(names: &str) -> Result<(Vec<Method>, bool), EvalError> {
             "librplus" => want_plus = true,
             "v2s" => methods.push(Method::V2s),
             "adaptive" => methods.push(Method::Adaptive),
+            "auto" => methods.push(Method::Auto),
             other => {
                 return Err(param(format!(
-                    "--methods: unknown method {other:?} (initial, rigid, libr, adaptive, v2s, librplus)"
+                    "--methods: unknown method {other:?} (initial, rigid, libr, adaptive, auto, v2s, librplus)"
                 )));
             }
         }

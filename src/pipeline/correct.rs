@@ -58,6 +58,7 @@ pub fn refit(
             rigid_prior,
             // The refit keeps the correction's shape where no data are: nothing more to hold.
             hold: None,
+            held_out: None,
         },
         |u, t| {
             let inv = t.inverse();

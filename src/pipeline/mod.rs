@@ -19,6 +19,7 @@ use crate::v2s::{V2sCase, V2sError};
 use std::path::Path;
 use std::sync::Arc;
 
+pub mod auto;
 mod correct;
 pub mod hold;
 pub mod pose;
@@ -92,6 +93,10 @@ pub enum Method {
     /// prior's strength chosen by the data's evidence ([`crate::register::libr::solve_adaptive`];
     /// needs a case prepared with [`Prepared::with_adaptive`]).
     Adaptive,
+    /// The method chosen per registration from the data ([`auto`]): doing nothing, the rigid
+    /// answer, LIBR, adaptive LIBR (when prepared) and, with a trusted start, their held
+    /// variants, each scored by how well it predicts measured points it did not see.
+    Auto,
 }
 
 impl Method {
@@ -104,6 +109,7 @@ impl Method {
             Method::LibrPlus => "librplus",
             Method::V2s => "v2s",
             Method::Adaptive => "adaptive",
+            Method::Auto => "auto",
         }
     }
 
@@ -116,6 +122,7 @@ impl Method {
             Method::LibrPlus,
             Method::V2s,
             Method::Adaptive,
+            Method::Auto,
         ]
         .into_iter()
         .find(|m| m.name() == name)
@@ -150,6 +157,8 @@ pub struct PipelineParams {
     pub held: bool,
     /// How a held organ's unseen surface is held.
     pub hold: hold::HoldParams,
+    /// How [`Method::Auto`] scores and chooses its candidates.
+    pub auto: auto::AutoParams,
     /// LIBR+ abstains, answering LIBR's result flagged, when a registration lies outside what
     /// its networks learned (their `abstain.json`, [`crate::gcn::abstain`]). Default true.
     pub abstain: bool,
@@ -166,6 +175,7 @@ impl Default for PipelineParams {
             pose: pose::PoseParams::default(),
             held: false,
             hold: hold::HoldParams::default(),
+            auto: auto::AutoParams::default(),
             abstain: true,
         }
     }
@@ -443,8 +453,11 @@ pub struct Registration {
     pub correction: Option<CorrectionInfo>,
     /// The V2S stage, for V2S.
     pub v2s: Option<V2sInfo>,
-    /// The error estimate (when the case has an error model calibrated for the method).
+    /// The error estimate (when the case has an error model calibrated for the method; for
+    /// [`Method::Auto`], the chosen candidate's).
     pub error: Option<ErrorEstimate>,
+    /// How [`Method::Auto`] chose (None for the other methods).
+    pub auto: Option<auto::AutoInfo>,
     /// The navigation start's fit score (mm²) when it was above
     /// [`pose::PoseParams::search_above_mm2`] but no pose search was configured (no
     /// [`pose::PoseParams::start_angles_deg`]: asked for, or a time budget too tight for it):
@@ -508,6 +521,10 @@ impl Registration {
         // LIBR+ whose correction was skipped answered with LIBR's result.
         let answered_by = match (&self.correction, self.method) {
             (Some(c), Method::LibrPlus) if !c.applied => Method::Libr,
+            (_, Method::Auto) => match &self.auto {
+                Some(a) => a.chosen.method(),
+                None => return,
+            },
             (_, m) => m,
         };
         if !model.methods.contains_key(answered_by.name()) {

@@ -10,23 +10,40 @@ use super::{
 use crate::gcn::infer::LibrPlusCase;
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{CorrespondenceParams, Hints, validate_measurements};
-use crate::register::libr::{self, LibrSolution};
+use crate::register::libr::{self, Folds, LibrSolution};
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
 use crate::register::{Match, Measurements, RegisterError};
 use crate::util::secs;
 use crate::v2s::V2sCase;
 use std::time::{Duration, Instant};
 
-/// Registers measurements to a prepared case.
+/// Registers measurements to a prepared case ([`Method::Auto`]: every candidate, the one that
+/// best predicts the points it did not see chosen, [`super::auto`]).
 pub fn register(
     case: &Prepared,
     meas: &Measurements,
     method: Method,
     params: &PipelineParams,
 ) -> Result<Registration, PipelineError> {
+    if method == Method::Auto {
+        return super::auto::register_auto(case, meas, params);
+    }
+    register_scored(case, meas, method, params, None)
+}
+
+/// [`register`] with one method (not [`Method::Auto`]), its deformable fit's held-out
+/// prediction measured on `folds` when given ([`crate::register::libr::held_out`]).
+pub(super) fn register_scored(
+    case: &Prepared,
+    meas: &Measurements,
+    method: Method,
+    params: &PipelineParams,
+    folds: Option<&Folds>,
+) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
     validate_measurements(meas).map_err(PipelineError::Rigid)?;
-    let run = Run::new(case, meas, method, params, t0);
+    let mut run = Run::new(case, meas, method, params, t0);
+    run.folds = folds;
     let v2s = match method {
         Method::V2s => Some(case.v2s.as_ref().ok_or(PipelineError::NoV2sModel)?),
         _ => None,
@@ -54,6 +71,8 @@ struct Run<'a> {
     /// The navigation start's fit score when the gate would have searched but no search was
     /// configured ([`Registration::search_skipped_mm2`]).
     search_skipped: std::sync::OnceLock<f64>,
+    /// The folds the deformable fit's held-out prediction is measured on (None: not measured).
+    folds: Option<&'a Folds>,
 }
 
 /// The deformable fits of every candidate pose: each pose's solution and score (None and
@@ -92,6 +111,7 @@ impl<'a> Run<'a> {
             cparams: params.libr_correspondence(),
             t0,
             search_skipped: std::sync::OnceLock::new(),
+            folds: None,
         }
     }
 
@@ -141,6 +161,7 @@ impl<'a> Run<'a> {
             correction: r.correction,
             v2s: r.v2s,
             error: None,
+            auto: None,
             search_skipped_mm2: self.search_skipped.get().copied(),
             seconds: secs(self.t0),
         }
@@ -434,6 +455,7 @@ impl<'a> Run<'a> {
                 rigid.prior.as_ref()
             },
             hold: held.as_ref(),
+            held_out: self.folds,
         };
         let mut hints = Hints::default();
         let rematch = |u: &[f64], t: &Rigid| self.rematch(u, t, &mut hints);

@@ -42,6 +42,7 @@ pub(crate) fn method_and_model(
         MethodArg::Librplus => Method::LibrPlus,
         MethodArg::V2s => Method::V2s,
         MethodArg::Adaptive => Method::Adaptive,
+        MethodArg::Auto => Method::Auto,
     };
     let learned = match (model, method) {
         (Some(dir), Method::LibrPlus) => Some(Learned::Gcn(shared_models(
@@ -88,6 +89,7 @@ fn registration_json(r: &librplus::pipeline::Registration) -> Value {
             "seconds": r.rigid.seconds,
         },
         "pose": r.pose,
+        "auto": r.auto,
         "libr": libr.map(|i| json!({
             "iterations": i.iterations,
             "converged": i.converged,
@@ -157,12 +159,12 @@ fn prepare_case(
     use librplus::pipeline::{Method, Prepared};
     let case = Prepared::with_physics(
         preop,
-        matches!(method, Method::Libr | Method::LibrPlus).then_some(&params.libr),
+        matches!(method, Method::Libr | Method::LibrPlus | Method::Auto).then_some(&params.libr),
         physics,
         Some(cache),
     )?
     .with_error_model(librplus::register::uncertainty::builtin());
-    let case = if method == Method::Adaptive {
+    let case = if matches!(method, Method::Adaptive | Method::Auto) {
         case.with_adaptive(&params.libr, &params.adaptive, Some(cache))?
     } else {
         case

@@ -79,6 +79,47 @@ pub struct ScenarioResult {
     /// LIBR+ only: it abstained (the answer is LIBR's; [`crate::gcn::abstain`]).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub abstained: bool,
+    /// Auto only: what it chose, and every candidate's score and true error.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub auto: Option<AutoOutcome>,
+}
+
+/// What [`crate::pipeline::Method::Auto`] chose in one registration, with each candidate's
+/// true error (the oracle: the candidate the truth prefers).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct AutoOutcome {
+    /// The candidate chosen.
+    pub chosen: String,
+    /// The best-scoring candidate, when more flexible than the chosen one.
+    pub best_scoring: String,
+    /// The runner-up.
+    pub runner_up: Option<String>,
+    /// The runner-up's margin in standard errors.
+    pub margin_se: Option<f64>,
+    /// Why the data did not decide, when they did not.
+    pub ambiguous: Option<String>,
+    /// The candidate with the lowest true mean TRE.
+    pub oracle: Option<String>,
+    /// Every candidate: name, held-out score (mm²), in-sample (mm²), predicted TRE (mm), true
+    /// mean TRE (mm).
+    pub candidates: Vec<AutoCandidateRow>,
+}
+
+/// One candidate of [`AutoOutcome`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct AutoCandidateRow {
+    /// Its name.
+    pub candidate: String,
+    /// Mean capped squared held-out error (mm²).
+    pub held_out_mm2: Option<f64>,
+    /// Per fold (mm²).
+    pub folds_mm2: Vec<f64>,
+    /// In sample (mm²).
+    pub in_sample_mm2: Option<f64>,
+    /// The error estimate's predicted mean TRE (mm).
+    pub predicted_tre_mm: Option<f64>,
+    /// The true mean TRE over nodes (mm).
+    pub tre_mm: Option<f64>,
 }
 
 /// Aggregate of one method.
@@ -472,6 +513,7 @@ mod tests {
             seconds: 0.1,
             outside: None,
             abstained: false,
+            auto: None,
         }
     }
 

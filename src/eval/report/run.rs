@@ -195,10 +195,11 @@ impl Run<'_> {
     ) -> Result<Geometry, EvalError> {
         let (methods, params) = (self.methods, self.params);
         let geo = load_geometry(self.dir, self.m, &d.geometry)?;
-        let libr = methods.contains(&Method::Libr).then_some(&params.libr);
+        let auto = methods.contains(&Method::Auto);
+        let libr = (auto || methods.contains(&Method::Libr)).then_some(&params.libr);
         let mut case =
             Prepared::with_physics(geo.model.clone(), libr, self.physics, Some(&self.cache))?;
-        if methods.contains(&Method::Adaptive) {
+        if auto || methods.contains(&Method::Adaptive) {
             case = case.with_adaptive(&params.libr, &params.adaptive, Some(&self.cache))?;
         }
         if let Some(v) = self.v2s.filter(|_| methods.contains(&Method::V2s)) {
@@ -311,6 +312,7 @@ impl Run<'_> {
             seconds: r.seconds + t.elapsed().as_secs_f64(),
             outside: None,
             abstained: false,
+            auto: None,
         };
         match corrected {
             Ok((u, transform, outside, abstained)) => {
@@ -373,6 +375,49 @@ impl Run<'_> {
     }
 }
 
+/// Auto's choice in one registration, each candidate's answer scored against the truth.
+fn auto_outcome(
+    geo: &GeometryData,
+    sc: &ScenarioData,
+    a: &crate::pipeline::auto::AutoInfo,
+) -> super::AutoOutcome {
+    let tre = |c: crate::pipeline::auto::Candidate| {
+        let (_, t, u) = a.answers.iter().find(|(k, _, _)| *k == c)?;
+        let err = node_errors_mm(
+            geo.model.mesh.nodes(),
+            (t, u),
+            (&sc.truth.image_to_physical, &sc.truth.displacement),
+        );
+        Some(err.iter().sum::<f64>() / err.len().max(1) as f64)
+    };
+    let candidates: Vec<super::AutoCandidateRow> = a
+        .candidates
+        .iter()
+        .map(|c| super::AutoCandidateRow {
+            candidate: c.candidate.name().to_string(),
+            held_out_mm2: c.held_out_mm2,
+            folds_mm2: c.folds_mm2.clone(),
+            in_sample_mm2: c.in_sample_mm2,
+            predicted_tre_mm: c.predicted_tre_mm,
+            tre_mm: tre(c.candidate),
+        })
+        .collect();
+    let oracle = candidates
+        .iter()
+        .filter_map(|c| c.tre_mm.map(|t| (c.candidate.clone(), t)))
+        .min_by(|x, y| x.1.total_cmp(&y.1))
+        .map(|(c, _)| c);
+    super::AutoOutcome {
+        chosen: a.chosen.name().to_string(),
+        best_scoring: a.best_scoring.name().to_string(),
+        runner_up: a.runner_up.map(|c| c.name().to_string()),
+        margin_se: a.margin_se,
+        ambiguous: a.ambiguous.clone(),
+        oracle,
+        candidates,
+    }
+}
+
 /// A registration's result row and node errors against the scenario's truth.
 fn scored(
     geo: &GeometryData,
@@ -392,6 +437,7 @@ fn scored(
         seconds: 0.0,
         outside: None,
         abstained: false,
+        auto: None,
     };
     match r {
         Ok(r) => {
@@ -401,10 +447,12 @@ fn scored(
                 (&sc.truth.image_to_physical, &sc.truth.displacement),
             );
             let t = tre_from_errors(&err, &geo.surface, &geo.targets);
+            let auto = r.auto.as_ref().map(|a| auto_outcome(geo, sc, a));
             (
                 ScenarioResult {
                     tre: Some(t),
                     seconds: r.seconds,
+                    auto,
                     ..base
                 },
                 Some(err),

@@ -386,6 +386,8 @@ pub fn solve_adaptive(
     let mut escale = 1.0;
     let mut phases = Phases::new(adaptive);
     let cx = Context::new(mesh, basis, first_level, adaptive);
+    // The last step's system, for the held-out check.
+    let mut last = None;
     for _ in 0..params.max_iterations {
         let tm = Instant::now();
         let matches = rematch(&u, &t)?;
@@ -423,6 +425,9 @@ pub fn solve_adaptive(
         t = step.rigid_correction.then(&t);
         record(&mut info, &step, moved, lambda);
         alpha = step.alpha;
+        if run.held_out.is_some() {
+            last = Some((local, targets, prior, lambda, escale));
+        }
         if phases.advance(&mut info, moved, params)
             || past_deadline(&mut info, run.deadline, params, tm)
         {
@@ -430,6 +435,17 @@ pub fn solve_adaptive(
         }
     }
     let kept = kept.expect("at least one iteration ran");
+    if let (Some(folds), Some((matches, targets, prior, lambda, escale))) = (run.held_out, &last) {
+        let model = FitModel::Basis {
+            basis: &kept.1,
+            lambda: *lambda,
+            escale: *escale,
+        };
+        info.held_out = Some(
+            held_out(model, matches, targets, params, prior.as_ref(), folds)
+                .map_err(|e| e.to_string()),
+        );
+    }
     let (full, u) = adaptive_summary(&mut info, basis, &kept, &alpha, escale, phases.start, &run);
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {

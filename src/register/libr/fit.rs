@@ -162,7 +162,7 @@ fn anchor_centre(used: &[&Match], wsum: f64) -> ([f64; 3], f64) {
 }
 
 /// Rows a match contributes: one on a surface under pure point-to-plane (`tw == 0`), else three.
-fn rows_of(mt: &Match, tw: f64) -> usize {
+pub(super) fn rows_of(mt: &Match, tw: f64) -> usize {
     if tw == 0.0 && dot(mt.normal, mt.normal) > 0.0 {
         1
     } else {
@@ -172,17 +172,17 @@ fn rows_of(mt: &Match, tw: f64) -> usize {
 
 /// The unknowns' geometry shared by every row: basis columns `m`, unknowns `p`, the anchors'
 /// centre and radius, and √ of the tangential weight.
-struct RowShape {
-    m: usize,
-    p: usize,
-    cen: [f64; 3],
-    radius: f64,
-    tw: f64,
+pub(super) struct RowShape {
+    pub(super) m: usize,
+    pub(super) p: usize,
+    pub(super) cen: [f64; 3],
+    pub(super) radius: f64,
+    pub(super) tw: f64,
 }
 
 /// Fills `axis_rows` (3 × p) with the x, y, z rows of one match scaled by `s`, and returns the
 /// scaled residuals `s (y − a)`.
-fn match_axis_rows(
+pub(super) fn match_axis_rows(
     basis: &LibrBasis,
     mt: &Match,
     s: f64,
@@ -218,7 +218,7 @@ fn match_axis_rows(
 
 /// The row frame of a match: (n, t1, t2) with the tangential ones scaled by `tw` for a match
 /// with a normal (point-to-plane), the axes otherwise (point-to-point).
-fn row_frame(normal: [f64; 3], tw: f64) -> [[f64; 3]; 3] {
+pub(super) fn row_frame(normal: [f64; 3], tw: f64) -> [[f64; 3]; 3] {
     let len = dot(normal, normal).sqrt();
     if len > 0.0 {
         let nn = normal.map(|x| x / len);

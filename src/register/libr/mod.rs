@@ -51,6 +51,7 @@
 mod adaptive;
 mod basis;
 mod cache;
+mod cv;
 mod fit;
 mod refit;
 mod solve;
@@ -58,6 +59,7 @@ mod solve;
 pub use adaptive::*;
 pub use basis::*;
 pub use cache::*;
+pub use cv::*;
 pub use fit::*;
 pub use refit::*;
 pub use solve::*;

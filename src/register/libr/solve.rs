@@ -51,6 +51,10 @@ pub struct LibrInfo {
     pub prior_mm2: f64,
     /// Nodes a soft hold kept in place ([`Hold`]; 0: none).
     pub held_nodes: usize,
+    /// The last step's held-out prediction ([`held_out`]; when [`RunLimits::held_out`] asked),
+    /// or why it could not be measured.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub held_out: Option<Result<HeldOut, String>>,
 }
 
 /// The result of [`solve`].
@@ -107,6 +111,9 @@ pub struct RunLimits<'a> {
     pub rigid_prior: Option<&'a RigidPrior>,
     /// A soft hold on nodes the data do not see ([`Hold`]; None: none).
     pub hold: Option<&'a Hold>,
+    /// Measure the final fit's held-out prediction on these folds ([`held_out`]; None: not
+    /// measured), reported as [`LibrInfo::held_out`].
+    pub held_out: Option<&'a Folds>,
 }
 
 /// A soft hold: nodes that should stay where a trusted pose puts them (an organ held in place,
@@ -204,6 +211,7 @@ pub fn solve_with_limits(
         offset,
         rigid_prior,
         hold,
+        held_out: folds,
     } = run;
     check_hold_and_offset(basis, hold, offset)?;
     params.validate()?;
@@ -213,6 +221,8 @@ pub fn solve_with_limits(
     let mut t = *initial;
     let mut alpha = vec![0.0; basis.columns()];
     let mut u = offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec);
+    // The last step's system (its matches, targets and prior), for the held-out check.
+    let mut last = None;
     for _ in 0..params.max_iterations {
         let tm = Instant::now();
         let mut matches = rematch(&u, &t)?;
@@ -230,6 +240,9 @@ pub fn solve_with_limits(
         t = step.rigid_correction.then(&t);
         alpha = step.alpha;
         u = u_new;
+        if folds.is_some() {
+            last = Some((matches, targets, prior));
+        }
         info.iterations += 1;
         info.rms_history_mm.push(step.rms_mm);
         info.movement_history_mm.push(moved);
@@ -257,6 +270,17 @@ pub fn solve_with_limits(
         }
     }
     finish_info(&mut info, basis, params, hold, &alpha);
+    if let (Some(folds), Some((matches, targets, prior))) = (folds, &last) {
+        let model = FitModel::Basis {
+            basis,
+            lambda: params.regularization,
+            escale: basis.energy_scale(),
+        };
+        info.held_out = Some(
+            held_out(model, matches, targets, params, prior.as_ref(), folds)
+                .map_err(|e| e.to_string()),
+        );
+    }
     let u = full_displacement(basis, &alpha, offset);
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {

@@ -517,6 +517,10 @@ pub(crate) enum MethodArg {
     /// wICP, then adaptive LIBR (control loads resolved where the data are, the prior's
     /// strength chosen by the data).
     Adaptive,
+    /// The method chosen per registration from the data: doing nothing, rigid, LIBR, adaptive
+    /// LIBR and (with a trusted start) their held variants, each scored by how well it predicts
+    /// the points it did not see.
+    Auto,
 }
 
 #[derive(Subcommand)]
