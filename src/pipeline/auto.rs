@@ -182,7 +182,8 @@ pub struct AutoInfo {
     /// The runner-up's score minus the chosen one's (mm²; negative when the runner-up scored
     /// better but not clearly).
     pub margin_mm2: Option<f64>,
-    /// The margin in standard errors of the paired fold differences.
+    /// The margin in standard errors of the paired fold differences (None when they do not
+    /// vary).
     pub margin_se: Option<f64>,
     /// RMS distance over the organ's nodes between the chosen answer and the runner-up's (mm).
     pub runner_up_mm: Option<f64>,
@@ -428,31 +429,16 @@ fn choose(
         .min_by(|&a, &b| score(a).mean_mm2.total_cmp(&score(b).mean_mm2));
     let reg = |i: usize| tried[i].reg.as_ref().expect("scored");
     let apart = |i: usize| answers_apart(case, reg(chosen), reg(i));
-    let rival = scored
-        .iter()
-        .copied()
-        .filter(|&i| i != chosen && within(i))
-        .map(|i| (i, apart(i)))
-        .filter(|&(_, d)| d > params.ambiguous_mm)
-        .max_by(|a, b| a.1.total_cmp(&b.1));
-    let ambiguous = rival.map(|(i, d)| {
-        format!(
-            "the data do not decide between {} and {}: they predict the points they did not see equally well (held-out RMS {:.2} and {:.2} mm), and their answers lie {d:.1} mm apart (RMS over the organ)",
-            tried[chosen].candidate,
-            tried[i].candidate,
-            score(chosen).rms_mm(),
-            score(i).rms_mm()
-        )
-    });
+    let ambiguous = ambiguity(&tried, &scored, chosen, &within, &apart, params);
     let info = AutoInfo {
         chosen: tried[chosen].candidate,
         best_scoring: tried[best].candidate,
         runner_up: runner.map(|i| tried[i].candidate),
         margin_mm2: runner.map(|i| score(i).mean_mm2 - score(chosen).mean_mm2),
-        margin_se: runner.map(|i| {
+        margin_se: runner.and_then(|i| {
             let se = paired_se(score(i), score(chosen));
             let m = score(i).mean_mm2 - score(chosen).mean_mm2;
-            if se > 0.0 { m / se } else { f64::INFINITY }
+            (se > 0.0).then_some(m / se)
         }),
         runner_up_mm: runner.map(apart),
         ambiguous,
@@ -474,6 +460,33 @@ fn choose(
     answer.auto = Some(info);
     answer.seconds = secs(t0);
     Ok(answer)
+}
+
+/// Why the data do not decide, when a candidate within the rule's reach of the chosen one
+/// answers more than [`AutoParams::ambiguous_mm`] from it (the farthest such named).
+fn ambiguity(
+    tried: &[Tried],
+    scored: &[usize],
+    chosen: usize,
+    within: &dyn Fn(usize) -> bool,
+    apart: &dyn Fn(usize) -> f64,
+    params: &AutoParams,
+) -> Option<String> {
+    let rms = |i: usize| tried[i].score.as_ref().map_or(f64::NAN, HeldOut::rms_mm);
+    let (i, d) = scored
+        .iter()
+        .copied()
+        .filter(|&i| i != chosen && within(i))
+        .map(|i| (i, apart(i)))
+        .filter(|&(_, d)| d > params.ambiguous_mm)
+        .max_by(|a, b| a.1.total_cmp(&b.1))?;
+    Some(format!(
+        "the data do not decide between {} and {}: they predict the points they did not see equally well (held-out RMS {:.2} and {:.2} mm), and their answers lie {d:.1} mm apart (RMS over the organ)",
+        tried[chosen].candidate,
+        tried[i].candidate,
+        rms(chosen),
+        rms(i)
+    ))
 }
 
 /// A candidate's line in [`AutoInfo::candidates`].

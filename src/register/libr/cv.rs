@@ -195,14 +195,16 @@ pub fn held_out(
             (&empty, 0.0)
         }
     };
-    let unregularised = LibrParams {
-        regularization: 0.0,
-        ..*params
+    let sys = System {
+        basis,
+        f,
+        matches,
+        targets,
+        params,
+        prior,
+        measured: folds.of_point.len(),
+        cap2: folds.cap_mm * folds.cap_mm,
     };
-    let measured = folds.of_point.len();
-    let cap2 = folds.cap_mm * folds.cap_mm;
-    let in_fold =
-        |mt: &Match, k: usize| mt.point < measured && folds.of_point[mt.point] as usize == k;
     if let FitModel::Fixed = model {
         // No unknowns: every fold's prediction is the residual as it stands.
         let sh = RowShape {
@@ -212,24 +214,60 @@ pub fn held_out(
             radius: 1.0,
             tw: params.tangential_weight.sqrt(),
         };
-        let zero = vec![0.0; 6];
-        let mut err = vec![cap2; measured];
-        let mut scratch = vec![0.0; 18];
-        for mt in matches.iter().filter(|m| m.point < measured) {
-            let rows = unscaled_rows(basis, mt, targets[mt.point], &sh, &mut scratch);
-            err[mt.point] = predicted(&rows, &zero).min(cap2);
-        }
+        let mut err = vec![sys.cap2; sys.measured];
+        sys.predict(&sh, &[0.0; 6], &mut err, &|_| true);
         return Ok(summarise(&err, &err, folds));
     }
-    // The full fit: what the fit itself leaves at every point.
-    let solved = |kept: &[Match]| -> Result<Option<(RowShape, Vec<f64>)>, RegisterError> {
-        let asm = assemble(basis, kept, targets, &unregularised, prior)?;
+    let (sh, full) = sys.solve(matches)?.ok_or_else(|| {
+        RegisterError::IllConditioned("the held-out check's full system cannot be solved".into())
+    })?;
+    let mut fitted = vec![sys.cap2; sys.measured];
+    sys.predict(&sh, &full, &mut fitted, &|_| true);
+    // Each fold: the fit without its points' matches (LIBR's objective on the rest, its mean
+    // misfit over the rest), predicting them. A fold whose rest cannot be fitted (too few
+    // matches, a singular system) counts the cap.
+    let in_fold =
+        |mt: &Match, k: usize| mt.point < sys.measured && folds.of_point[mt.point] as usize == k;
+    let mut err = vec![sys.cap2; sys.measured];
+    for k in 0..folds.count {
+        let kept: Vec<Match> = matches.iter().filter(|m| !in_fold(m, k)).cloned().collect();
+        let Ok(Some((sh, x))) = sys.solve(&kept) else {
+            continue;
+        };
+        sys.predict(&sh, &x, &mut err, &|m| in_fold(m, k));
+    }
+    Ok(summarise(&err, &fitted, folds))
+}
+
+/// One fit's system, solved on a subset of its matches and predicting the rest.
+struct System<'a> {
+    basis: &'a LibrBasis,
+    /// λ / ē.
+    f: f64,
+    matches: &'a [Match],
+    targets: &'a [[f64; 3]],
+    params: &'a LibrParams,
+    prior: Option<&'a PriorPairs>,
+    /// Number of measured points.
+    measured: usize,
+    /// The cap on a point's squared error (mm²).
+    cap2: f64,
+}
+
+impl System<'_> {
+    /// The regularised fit of `kept` (None: singular, or not finite) and its row shape.
+    fn solve(&self, kept: &[Match]) -> Result<Option<(RowShape, Vec<f64>)>, RegisterError> {
+        let unregularised = LibrParams {
+            regularization: 0.0,
+            ..*self.params
+        };
+        let asm = assemble(self.basis, kept, self.targets, &unregularised, self.prior)?;
         let (m, p) = (asm.m, asm.p);
         let mut a = asm.a.clone();
-        if f > 0.0 {
+        if self.f > 0.0 {
             for i in 0..m {
                 for j in 0..=i {
-                    a[(i, j)] += f * basis.energy[i * m + j];
+                    a[(i, j)] += self.f * self.basis.energy[i * m + j];
                 }
             }
         }
@@ -238,7 +276,7 @@ pub fn held_out(
             p,
             cen: asm.cen,
             radius: asm.radius,
-            tw: params.tangential_weight.sqrt(),
+            tw: self.params.tangential_weight.sqrt(),
         };
         let Ok(llt) = a.llt(Side::Lower) else {
             return Ok(None);
@@ -247,32 +285,20 @@ pub fn held_out(
         llt.solve_in_place(x.as_mut());
         let x: Vec<f64> = (0..p).map(|i| x[(i, 0)]).collect();
         Ok(x.iter().all(|v| v.is_finite()).then_some((sh, x)))
-    };
-    // The squared error at each of `points`' matches under a solution.
-    let predict = |sh: &RowShape, x: &[f64], out: &mut [f64], pick: &dyn Fn(&Match) -> bool| {
-        let mut scratch = vec![0.0; 3 * sh.p];
-        for mt in matches.iter().filter(|m| m.point < measured && pick(m)) {
-            let rows = unscaled_rows(basis, mt, targets[mt.point], sh, &mut scratch);
-            out[mt.point] = predicted(&rows, x).min(cap2);
-        }
-    };
-    let (sh, full) = solved(matches)?.ok_or_else(|| {
-        RegisterError::IllConditioned("the held-out check's full system cannot be solved".into())
-    })?;
-    let mut fitted = vec![cap2; measured];
-    predict(&sh, &full, &mut fitted, &|_| true);
-    // Each fold: the fit without its points' matches (LIBR's objective on the rest, its mean
-    // misfit over the rest), predicting them. A fold whose rest cannot be fitted (too few
-    // matches, a singular system) counts the cap.
-    let mut err = vec![cap2; measured];
-    for k in 0..folds.count {
-        let kept: Vec<Match> = matches.iter().filter(|m| !in_fold(m, k)).cloned().collect();
-        let Ok(Some((sh, x))) = solved(&kept) else {
-            continue;
-        };
-        predict(&sh, &x, &mut err, &|m| in_fold(m, k));
     }
-    Ok(summarise(&err, &fitted, folds))
+
+    /// The capped squared error under the solution `x` at each picked measured point's match.
+    fn predict(&self, sh: &RowShape, x: &[f64], out: &mut [f64], pick: &dyn Fn(&Match) -> bool) {
+        let mut scratch = vec![0.0; 3 * sh.p];
+        for mt in self
+            .matches
+            .iter()
+            .filter(|m| m.point < self.measured && pick(m))
+        {
+            let rows = unscaled_rows(self.basis, mt, self.targets[mt.point], sh, &mut scratch);
+            out[mt.point] = predicted(&rows, x).min(self.cap2);
+        }
+    }
 }
 
 /// The squared error of a point's rows under the solution `x`: `Σ (r − j·x)²`.
