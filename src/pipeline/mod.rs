@@ -25,8 +25,21 @@ pub mod hold;
 pub mod pose;
 mod run;
 pub use correct::{correct_libr, refit};
-pub use run::register;
 use std::time::Instant;
+
+/// Registers measurements to a prepared case ([`Method::Auto`]: every candidate, the one that
+/// best predicts the points it did not see chosen, [`auto`]).
+pub fn register(
+    case: &Prepared,
+    meas: &Measurements,
+    method: Method,
+    params: &PipelineParams,
+) -> Result<Registration, PipelineError> {
+    if method == Method::Auto {
+        return auto::register_auto(case, meas, params);
+    }
+    run::register_scored(case, meas, method, params, None)
+}
 
 /// Why a case could not be prepared or a registration did not run, by stage.
 #[derive(Debug, thiserror::Error)]

@@ -1,4 +1,4 @@
-//! [`register`]: one registration of a prepared case, stage by stage. The rigid stage (from the
+//! [`super::register`]: one registration of a prepared case, stage by stage. The rigid stage (from the
 //! navigation start, or every start of the pose search), then either the rigid methods' answer
 //! (the baseline, wICP, V2S) or the deformable fit from every candidate pose, the best kept, and
 //! LIBR+'s correction on it.
@@ -17,21 +17,7 @@ use crate::util::secs;
 use crate::v2s::V2sCase;
 use std::time::{Duration, Instant};
 
-/// Registers measurements to a prepared case ([`Method::Auto`]: every candidate, the one that
-/// best predicts the points it did not see chosen, [`super::auto`]).
-pub fn register(
-    case: &Prepared,
-    meas: &Measurements,
-    method: Method,
-    params: &PipelineParams,
-) -> Result<Registration, PipelineError> {
-    if method == Method::Auto {
-        return super::auto::register_auto(case, meas, params);
-    }
-    register_scored(case, meas, method, params, None)
-}
-
-/// [`register`] with one method (not [`Method::Auto`]), its deformable fit's held-out
+/// [`super::register`] with one method (not [`Method::Auto`]), its deformable fit's held-out
 /// prediction measured on `folds` when given ([`crate::register::libr::held_out`]).
 pub(super) fn register_scored(
     case: &Prepared,
