@@ -18,7 +18,7 @@ use std::sync::{Arc, mpsc};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// The audit database format.
-pub const FORMAT: u32 = 2;
+pub const FORMAT: u32 = 3;
 
 /// Why the audit log could not be written or read. Cheap to clone: one failed commit is the
 /// answer of every write it held.
@@ -171,6 +171,9 @@ pub struct RegistrationRecord {
     pub answer_sha256: String,
     /// Stage timings (JSON).
     pub timings: String,
+    /// How METHOD_AUTO chose (JSON: chosen, runner_up, margin_mm2, margin_se, runner_up_mm and
+    /// each candidate's held-out score; None for the other methods).
+    pub choice: Option<String>,
 }
 
 type Reply = tokio::sync::oneshot::Sender<Result<(), AuditError>>;
@@ -252,7 +255,7 @@ CREATE TABLE IF NOT EXISTS registrations(
   id INTEGER PRIMARY KEY, t_ms INTEGER NOT NULL, principal TEXT NOT NULL, case_id TEXT NOT NULL,
   session_id TEXT, client_seq INTEGER, method TEXT, quality TEXT, quality_reason TEXT,
   total_ms REAL, residual_rms_mm REAL, points_total INTEGER, measurements BLOB,
-  answer_sha256 TEXT NOT NULL, timings TEXT);
+  answer_sha256 TEXT NOT NULL, timings TEXT, choice TEXT);
 CREATE INDEX IF NOT EXISTS registrations_case ON registrations(case_id, t_ms);
 CREATE INDEX IF NOT EXISTS registrations_session ON registrations(session_id);
 CREATE INDEX IF NOT EXISTS events_time ON events(t_ms);
@@ -285,15 +288,20 @@ pub fn open_db(path: &Path) -> Result<Connection, AuditError> {
             .map_err(sql)?;
         }
         Some(f) if f == FORMAT.to_string() => {}
-        Some(f) if f == "1" => {
-            // Format 1 had no case version: the column is added (NULL for its sessions).
-            let has: bool = c
-                .prepare("SELECT 1 FROM pragma_table_info('sessions') WHERE name = 'case_version'")
-                .and_then(|mut st| st.exists([]))
-                .map_err(sql)?;
-            if !has {
-                c.execute("ALTER TABLE sessions ADD COLUMN case_version TEXT", [])
+        Some(f) if f == "1" || f == "2" => {
+            // Format 1 had no case version, formats 1 and 2 no model choice: the columns are
+            // added (NULL for the rows before).
+            for (table, column) in [("sessions", "case_version"), ("registrations", "choice")] {
+                let has: bool = c
+                    .prepare(&format!(
+                        "SELECT 1 FROM pragma_table_info('{table}') WHERE name = '{column}'"
+                    ))
+                    .and_then(|mut st| st.exists([]))
                     .map_err(sql)?;
+                if !has {
+                    c.execute(&format!("ALTER TABLE {table} ADD COLUMN {column} TEXT"), [])
+                        .map_err(sql)?;
+                }
             }
             c.execute(
                 "UPDATE meta SET value = ?1 WHERE key = 'format'",
@@ -404,8 +412,8 @@ fn write_registration(c: &Connection, g: &RegistrationRecord, t: i64) -> rusqlit
     c.execute(
         "INSERT INTO registrations(t_ms, principal, case_id, session_id, client_seq, \
          method, quality, quality_reason, total_ms, residual_rms_mm, points_total, \
-         measurements, answer_sha256, timings) \
-         VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+         measurements, answer_sha256, timings, choice) \
+         VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
         params![
             t,
             g.principal,
@@ -420,7 +428,8 @@ fn write_registration(c: &Connection, g: &RegistrationRecord, t: i64) -> rusqlit
             g.points_total as i64,
             g.measurements,
             g.answer_sha256,
-            g.timings
+            g.timings,
+            g.choice
         ],
     )?;
     Ok(())
@@ -764,7 +773,7 @@ pub fn rows(
     let mut st = c.prepare(
         "SELECT t_ms, principal, case_id, session_id, client_seq, method, quality, \
          quality_reason, total_ms, residual_rms_mm, points_total, answer_sha256, timings, \
-         measurements IS NOT NULL FROM registrations \
+         measurements IS NOT NULL, choice FROM registrations \
          WHERE t_ms >= ?1 AND (?2 IS NULL OR case_id = ?2)",
     )?;
     for r in st.query_map(params![since, case], |r| {
@@ -786,6 +795,8 @@ pub fn rows(
                 "timings": r.get::<_, Option<String>>(12)?
                     .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok()),
                 "measurements_recorded": r.get::<_, bool>(13)?,
+                "choice": r.get::<_, Option<String>>(14)?
+                    .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok()),
             }),
         ))
     })? {

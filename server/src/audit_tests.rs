@@ -127,6 +127,60 @@ fn a_format_1_database_is_migrated_and_its_sessions_have_no_version() {
     open_db(&db).unwrap();
 }
 
+#[test]
+fn a_format_2_database_gains_the_choice_column_and_keeps_its_registrations() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("audit.db");
+    {
+        // The format-2 registrations table as it was (no choice).
+        let c = Connection::open(&db).unwrap();
+        c.execute_batch(
+            "CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+             INSERT INTO meta VALUES('format', '2');
+             CREATE TABLE registrations(id INTEGER PRIMARY KEY, t_ms INTEGER NOT NULL,
+               principal TEXT NOT NULL, case_id TEXT NOT NULL, session_id TEXT,
+               client_seq INTEGER, method TEXT, quality TEXT, quality_reason TEXT,
+               total_ms REAL, residual_rms_mm REAL, points_total INTEGER, measurements BLOB,
+               answer_sha256 TEXT NOT NULL, timings TEXT);
+             INSERT INTO registrations(t_ms, principal, case_id, answer_sha256)
+               VALUES(1, 'p', 'c', 'old');",
+        )
+        .unwrap();
+    }
+    let c = open_db(&db).unwrap();
+    let choices: Vec<(String, Option<String>)> = c
+        .prepare("SELECT answer_sha256, choice FROM registrations")
+        .unwrap()
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(choices, [("old".to_string(), None)]);
+    let f: String = c
+        .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
+            r.get(0)
+        })
+        .unwrap();
+    assert_eq!(f, FORMAT.to_string());
+    // A new registration keeps its choice.
+    let g = RegistrationRecord {
+        principal: "p".into(),
+        case_id: "c".into(),
+        answer_sha256: "new".into(),
+        choice: Some(r#"{"chosen":"libr"}"#.into()),
+        ..Default::default()
+    };
+    write_registration(&c, &g, 2).unwrap();
+    let kept: Option<String> = c
+        .query_row(
+            "SELECT choice FROM registrations WHERE answer_sha256 = 'new'",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(kept.as_deref(), Some(r#"{"chosen":"libr"}"#));
+}
+
 /// A refusal is shown in the table as its text, its quotes as the client's message has them
 /// (as JSON, then escaped by the table, they came out `\\"`); other details stay JSON.
 #[test]

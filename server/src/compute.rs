@@ -5,6 +5,7 @@
 use crate::cases::Case;
 use crate::convert::{method_to_pb, rigid_to_pb};
 use crate::error::{Internal, ServiceError, Unavailable, libr_can_fall_back};
+use librplus::pipeline::quality::Circumstances;
 use librplus::pipeline::{Method, PipelineParams, register};
 use librplus::register::Measurements;
 use librplus_proto::v1 as pb;
@@ -190,109 +191,28 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-/// What a registration ran into, for [`judge`].
-struct Outcome<'a> {
-    degenerate: Option<&'a str>,
-    fallback: Option<String>,
-    degraded: Option<String>,
-    refit_error: Option<&'a str>,
-    refit: Option<&'a librplus::register::libr::LibrInfo>,
-    libr: Option<&'a librplus::register::libr::LibrInfo>,
-    rigid_converged: bool,
-    rigid_iterations: usize,
-    /// Why the pose is ambiguous, when it is.
-    ambiguous_pose: Option<String>,
-    /// Why the answer has likely failed, when the error estimate says so.
-    likely_failed: Option<String>,
-}
-
-/// The error estimate's failure probability from which an answer is flagged
-/// `QUALITY_LIKELY_FAILED`. On the paper preset (seed 2, 500 LIBR registrations with the gated
-/// pose search, the built-in error model) this flag or an ambiguous pose catches 9 of the 14
-/// wrong answers (mean TRE > 20 mm) and flags 17 of the 486 others; at 0.5, 7 and 12.
-pub const LIKELY_FAILED_PROBABILITY: f64 = 0.3;
-
-/// Why an answer has likely failed, from its error estimate (None: not likely).
-fn likely_failed(e: Option<&librplus::register::uncertainty::ErrorEstimate>) -> Option<String> {
-    let e = e?;
-    let p = e.failure_probability?;
-    (p >= LIKELY_FAILED_PROBABILITY).then(|| {
-        format!(
-            "the error estimate gives a {:.0} % chance that the mean error exceeds {:.0} mm (predicted mean error {:.1} mm): check the alignment",
-            100.0 * p,
-            e.failure_threshold_mm.unwrap_or(f64::NAN),
-            e.predicted_tre_mm
-        )
-    })
-}
-
-/// The answer's quality and its reason: the first that applies of degenerate data, a fallback,
-/// a planned degradation, a failed or cut-short refit, LIBR cut short, not converged.
-fn judge(o: &Outcome<'_>, budget: Duration, params: &PipelineParams) -> (pb::Quality, String) {
-    if let Some(r) = o.degenerate {
-        (pb::Quality::Degenerate, format!("degenerate data: {r}"))
-    } else if let Some(r) = &o.fallback {
-        (pb::Quality::Degenerate, r.clone())
-    } else if let Some(r) = &o.ambiguous_pose {
-        (pb::Quality::AmbiguousPose, r.clone())
-    } else if let Some(r) = &o.likely_failed {
-        (pb::Quality::LikelyFailed, r.clone())
-    } else if let Some(r) = &o.degraded {
-        (pb::Quality::Degraded, r.clone())
-    } else if let Some(e) = o.refit_error {
-        (
-            pb::Quality::Degraded,
-            format!("LIBR+'s refit failed ({e}); the answer is the network's correction of LIBR"),
-        )
-    } else if let Some(i) = o.refit.filter(|i| i.stopped_at_deadline) {
-        // Finding 7.5: a refit cut short is not the full computation either.
-        (
-            pb::Quality::Degraded,
-            format!(
-                "time budget {:.0} ms: LIBR+'s refit stopped after {} of {} iterations",
-                ms(budget),
-                i.iterations,
-                params.refit_iterations
-            ),
-        )
-    } else if let Some(i) = o.libr.filter(|i| i.stopped_at_deadline) {
-        (
-            pb::Quality::Degraded,
-            format!(
-                "time budget {:.0} ms: LIBR stopped after {} of {} iterations",
-                ms(budget),
-                i.iterations,
-                params.libr.max_iterations
-            ),
-        )
-    } else if let Some(i) = o.libr.filter(|i| !i.settled) {
-        // Not settled: the objective was still falling, or the model running away, when the
-        // iteration cap came (a fit that cycles around a flat objective is settled, and OK).
-        (
-            pb::Quality::NotConverged,
-            format!(
-                "LIBR ran its {} iterations without settling; the last moved the model by up to {:.2} mm (tolerance {} mm)",
-                i.iterations,
-                i.movement_history_mm.last().copied().unwrap_or(f64::NAN),
-                params.libr.tolerance_mm
-            ),
-        )
-    } else if !o.rigid_converged && o.libr.is_none() {
-        (
-            pb::Quality::NotConverged,
-            format!(
-                "the rigid stage ran its {} iterations without converging",
-                o.rigid_iterations
-            ),
-        )
-    } else {
-        (pb::Quality::Ok, String::new())
+/// The wire's quality flag of the library's.
+pub(crate) fn quality_to_pb(q: librplus::pipeline::quality::Quality) -> pb::Quality {
+    use librplus::pipeline::quality::Quality;
+    match q {
+        Quality::Ok => pb::Quality::Ok,
+        Quality::NotConverged => pb::Quality::NotConverged,
+        Quality::Degraded => pb::Quality::Degraded,
+        Quality::Degenerate => pb::Quality::Degenerate,
+        Quality::AmbiguousPose => pb::Quality::AmbiguousPose,
+        Quality::AmbiguousModel => pb::Quality::AmbiguousModel,
+        Quality::LikelyFailed => pb::Quality::LikelyFailed,
     }
 }
 
 /// How many single registrations' time the pose search takes, with a margin (measured about six
 /// on the paper liver, 2 cores; up to eight on a 1,800-node liver, whose fixed costs weigh more).
 const POSE_SEARCH_COST: f64 = 8.0;
+
+/// How many LIBR registrations' time the automatic choice takes, with a margin: its deformable
+/// candidates (LIBR, adaptive LIBR and, with a trusted start, their held variants) share the
+/// compute slot's cores, and each is cross-validated on its last matches (`BENCHMARKS.md`).
+const AUTO_COST: f64 = 3.0;
 
 /// What a registration was planned to be within its budget.
 struct Plan {
@@ -315,7 +235,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let mut plan = plan(&job, prepared, Instant::now());
     let mut result = register(prepared, &job.measurements, plan.method, &plan.params);
     let mut fallback: Option<String> = None;
-    if let (Err(e), Method::Libr | Method::LibrPlus) = (&result, plan.method)
+    if let (Err(e), Method::Libr | Method::LibrPlus | Method::Auto) = (&result, plan.method)
         && libr_can_fall_back(e)
     {
         // The data stopped LIBR (too few, degenerate or clustered points): the rigid result,
@@ -347,11 +267,13 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
                 .unwrap_or_else(|| "SR-GCN correction skipped".into())
         });
     }
-    let (quality, reason) = judge(
-        &outcome(&reg, fallback, plan.degraded.take()),
-        job.budget,
-        &plan.params,
-    );
+    let circumstances = Circumstances {
+        fallback,
+        degraded: plan.degraded.take(),
+        budget_ms: Some(ms(job.budget)),
+    };
+    let judged = librplus::pipeline::quality::judge(&reg, &plan.params, &circumstances);
+    let (quality, reason) = (quality_to_pb(judged.quality), judged.reason);
     let total_ms = ms(job.arrival.elapsed());
     let (quality, reason) = late(&job, &reg, &plan, quality, reason, total_ms);
     record_stages(&reg, &plan, quality, total_ms);
@@ -394,7 +316,17 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
             }
         }
     }
-    if matches!(method, Method::Libr | Method::LibrPlus) {
+    if method == Method::Auto {
+        let need = AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms);
+        if left < need {
+            method = Method::Libr;
+            degraded = Some(format!(
+                "time budget {:.0} ms: {left:.0} ms left, the automatic choice needs about {need:.0} ms; LIBR result",
+                ms(job.budget)
+            ));
+        }
+    }
+    if matches!(method, Method::Libr | Method::LibrPlus | Method::Auto) {
         let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
         if left < need {
             method = Method::Rigid;
@@ -410,12 +342,11 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
     // The pose search (`librplus::pipeline::pose`) costs about six single registrations: it
     // runs when the budget left holds that many, otherwise the navigation start alone.
     let left = ms(deadline.saturating_duration_since(Instant::now()));
-    let one = est.rigid_ms
-        + if matches!(method, Method::Rigid | Method::V2s) {
-            0.0
-        } else {
-            est.libr_fixed_ms + 10.0 * est.libr_iteration_ms
-        };
+    let one = match method {
+        Method::Rigid | Method::V2s => est.rigid_ms,
+        Method::Auto => AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms),
+        _ => est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms,
+    };
     let mut search_off = None;
     if left < POSE_SEARCH_COST * one {
         params.pose.start_angles_deg.clear();
@@ -431,36 +362,6 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         params,
         queue_ms,
         search_off,
-    }
-}
-
-/// What the quality judgement reads of a registration.
-fn outcome(
-    reg: &librplus::pipeline::Registration,
-    fallback: Option<String>,
-    degraded: Option<String>,
-) -> Outcome<'_> {
-    let gcn = reg.correction.as_ref();
-    Outcome {
-        degenerate: reg.rigid.degenerate.as_deref(),
-        fallback,
-        degraded,
-        refit_error: gcn.and_then(|c| c.refit_error.as_deref()),
-        refit: gcn.and_then(|c| c.refit.as_ref()),
-        libr: reg.libr.as_ref(),
-        rigid_converged: reg.rigid.converged,
-        rigid_iterations: reg.rigid.iterations,
-        likely_failed: likely_failed(reg.error.as_ref()),
-        ambiguous_pose: reg.pose.as_ref().filter(|p| p.ambiguous).map(|p| {
-            let mut sorted = p.scores.clone();
-            sorted.sort_by(f64::total_cmp);
-            format!(
-                "two rigid poses {:.0} mm apart explain the points about equally after the deformable fit (scores {:.2} and {:.2} mm²): the answer is the better one and may be wrong",
-                p.runner_up_mm.unwrap_or(0.0),
-                sorted[0],
-                sorted.get(1).copied().unwrap_or(f64::NAN)
-            )
-        }),
     }
 }
 
@@ -552,6 +453,7 @@ fn answer(
         },
         node_count: prepared.model.mesh.num_nodes() as u32,
         method_used: method_to_pb(plan.method) as i32,
+        choice: reg.auto.as_ref().map(crate::convert::choice_to_pb),
         residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
         points_used: job.measurements.points.len() as u32,
         points_matched: reg.rigid.matched as u32,
@@ -607,127 +509,28 @@ fn error_estimate(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use librplus::register::libr::LibrInfo;
+    use librplus::pipeline::quality::Quality;
 
-    fn clean<'a>(libr: Option<&'a LibrInfo>, refit: Option<&'a LibrInfo>) -> Outcome<'a> {
-        Outcome {
-            degenerate: None,
-            fallback: None,
-            degraded: None,
-            refit_error: None,
-            refit,
-            libr,
-            rigid_converged: true,
-            rigid_iterations: 10,
-            ambiguous_pose: None,
-            likely_failed: None,
-        }
-    }
-
-    /// An answer the error estimate gives a high failure probability is flagged LIKELY_FAILED
-    /// (from [`LIKELY_FAILED_PROBABILITY`] on), with the probability and the prediction in its
-    /// reason; below it, or without a failure part, it is not.
+    /// Every library flag has its own wire value (the judgement itself is the library's,
+    /// tested there).
     #[test]
-    fn a_likely_failure_is_flagged() {
-        let params = PipelineParams::default();
-        let est = |p: Option<f64>| librplus::register::uncertainty::ErrorEstimate {
-            predicted_tre_mm: 23.4,
-            level: 0.9,
-            node_bound_mm: Vec::new(),
-            failure_probability: p,
-            failure_threshold_mm: Some(20.0),
-            features: Default::default(),
-            seconds: 0.0,
-        };
-        assert_eq!(likely_failed(None), None);
-        assert_eq!(likely_failed(Some(&est(None))), None);
+    fn every_quality_has_its_own_wire_value() {
+        let all = [
+            Quality::Ok,
+            Quality::NotConverged,
+            Quality::Degraded,
+            Quality::Degenerate,
+            Quality::AmbiguousPose,
+            Quality::AmbiguousModel,
+            Quality::LikelyFailed,
+        ];
+        let wire: std::collections::HashSet<i32> =
+            all.iter().map(|&q| quality_to_pb(q) as i32).collect();
+        assert_eq!(wire.len(), all.len());
+        assert!(!wire.contains(&(pb::Quality::Unspecified as i32)));
         assert_eq!(
-            likely_failed(Some(&est(Some(LIKELY_FAILED_PROBABILITY - 1e-9)))),
-            None
-        );
-        let why = likely_failed(Some(&est(Some(0.47)))).unwrap();
-        assert!(
-            why.contains("47 %") && why.contains("20 mm") && why.contains("23.4 mm"),
-            "{why}"
-        );
-        let libr = LibrInfo {
-            settled: true,
-            ..LibrInfo::default()
-        };
-        let o = Outcome {
-            likely_failed: Some(why.clone()),
-            ..clean(Some(&libr), None)
-        };
-        let (q, r) = judge(&o, Duration::from_millis(250), &params);
-        assert_eq!((q, r), (pb::Quality::LikelyFailed, why));
-        // An ambiguous pose says more (which poses) and comes first.
-        let o = Outcome {
-            ambiguous_pose: Some("two poses".into()),
-            ..o
-        };
-        assert_eq!(
-            judge(&o, Duration::from_millis(250), &params).0,
-            pb::Quality::AmbiguousPose
-        );
-    }
-
-    /// Finding 7.5: a LIBR+ answer whose refit ran 1 of its 5 iterations (the deadline) was
-    /// flagged OK; it is DEGRADED, and says how far the refit got.
-    #[test]
-    fn a_refit_cut_short_is_degraded() {
-        let params = PipelineParams::default();
-        let budget = Duration::from_millis(250);
-        let libr = LibrInfo {
-            iterations: 4,
-            converged: true,
-            settled: true,
-            ..Default::default()
-        };
-        let full = LibrInfo {
-            iterations: params.refit_iterations,
-            converged: true,
-            settled: true,
-            ..Default::default()
-        };
-        assert_eq!(
-            judge(&clean(Some(&libr), Some(&full)), budget, &params).0,
-            pb::Quality::Ok
-        );
-        let cut = LibrInfo {
-            iterations: 1,
-            stopped_at_deadline: true,
-            ..full.clone()
-        };
-        let (q, why) = judge(&clean(Some(&libr), Some(&cut)), budget, &params);
-        assert_eq!(q, pb::Quality::Degraded);
-        assert!(why.contains("refit stopped after 1 of"), "{why}");
-        // LIBR cut short, and not converged, keep their flags.
-        let libr_cut = LibrInfo {
-            stopped_at_deadline: true,
-            ..libr.clone()
-        };
-        assert_eq!(
-            judge(&clean(Some(&libr_cut), None), budget, &params).0,
-            pb::Quality::Degraded
-        );
-        // Settled without converging (nodes cycling around a flat objective) is OK; not
-        // settled is NOT_CONVERGED.
-        let cycling = LibrInfo {
-            converged: false,
-            ..libr.clone()
-        };
-        assert_eq!(
-            judge(&clean(Some(&cycling), None), budget, &params).0,
-            pb::Quality::Ok
-        );
-        let unconverged = LibrInfo {
-            converged: false,
-            settled: false,
-            ..libr
-        };
-        assert_eq!(
-            judge(&clean(Some(&unconverged), None), budget, &params).0,
-            pb::Quality::NotConverged
+            quality_to_pb(Quality::AmbiguousModel).as_str_name(),
+            "QUALITY_AMBIGUOUS_MODEL"
         );
     }
 }

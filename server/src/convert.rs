@@ -352,9 +352,12 @@ pub fn method_from_pb(
         )),
         // Whether the case has adaptive LIBR's basis is checked with the case.
         Ok(pb::Method::Adaptive) => Ok(Method::Adaptive),
+        Ok(pb::Method::Auto) => Ok(Method::Auto),
         Err(_) => Err(ServiceError::field(
             field,
-            format!("{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S, 5 adaptive)"),
+            format!(
+                "{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S, 5 adaptive, 6 auto)"
+            ),
         )),
     }
 }
@@ -369,9 +372,30 @@ pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
         librplus::pipeline::Method::LibrPlus => pb::Method::LibrPlus,
         librplus::pipeline::Method::V2s => pb::Method::V2s,
         librplus::pipeline::Method::Adaptive => pb::Method::Adaptive,
-        // The library's automatic choice has no wire value yet: the service never registers
-        // with it (its requests name one of the proto's methods).
-        librplus::pipeline::Method::Auto => pb::Method::Unspecified,
+        librplus::pipeline::Method::Auto => pb::Method::Auto,
+    }
+}
+
+/// How the automatic method chose, for the wire.
+pub fn choice_to_pb(a: &librplus::pipeline::auto::AutoInfo) -> pb::ModelChoice {
+    pb::ModelChoice {
+        chosen: a.chosen.name().to_string(),
+        best_scoring: a.best_scoring.name().to_string(),
+        runner_up: a.runner_up.map_or_else(String::new, |c| c.name().to_string()),
+        margin_mm2: a.margin_mm2.unwrap_or(0.0),
+        margin_se: a.margin_se.unwrap_or(0.0),
+        runner_up_mm: a.runner_up_mm.unwrap_or(0.0),
+        candidates: a
+            .candidates
+            .iter()
+            .map(|c| pb::CandidateScore {
+                name: c.candidate.name().to_string(),
+                held_out_mm2: c.held_out_mm2,
+                in_sample_mm2: c.in_sample_mm2,
+                predicted_tre_mm: c.predicted_tre_mm,
+                failed: c.failed.clone().unwrap_or_default(),
+            })
+            .collect(),
     }
 }
 

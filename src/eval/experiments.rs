@@ -154,6 +154,8 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
                 outside: None,
                 abstained: false,
                 auto: None,
+                quality: None,
+                quality_reason: None,
             });
         }
     }

@@ -23,6 +23,7 @@ pub mod auto;
 mod correct;
 pub mod hold;
 pub mod pose;
+pub mod quality;
 mod run;
 pub use correct::{correct_libr, refit};
 use std::time::Instant;
@@ -382,7 +383,7 @@ impl Prepared {
 }
 
 /// How the SR-GCN stage of a LIBR+ registration went.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct CorrectionInfo {
     /// Whether the correction was applied (false: the answer is LIBR's, see `skipped`).
     pub applied: bool,
@@ -481,6 +482,12 @@ pub struct Registration {
 }
 
 impl Registration {
+    /// The answer's quality flag and its reason ([`quality::judge`]) as run with `params`,
+    /// with nothing the caller adds (no fallback, no time budget).
+    pub fn quality(&self, params: &PipelineParams) -> quality::Judgement {
+        quality::judge(self, params, &quality::Circumstances::default())
+    }
+
     /// What the error estimate reads of this registration: the fit's residual (LIBR+'s refit,
     /// else LIBR's, else wICP's), LIBR's strain energy, and the coverage of the answer by the
     /// measured points ([`crate::register::uncertainty::features`]), with each node's distance

@@ -87,8 +87,8 @@ impl Default for WicpParams {
     }
 }
 
-/// Result of [`wicp`].
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+/// Result of [`wicp`] (the default: no iterations, an identity pose).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct WicpResult {
     /// The registration, image → physical.
     pub image_to_physical: Rigid,

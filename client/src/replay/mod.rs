@@ -34,11 +34,12 @@ pub fn method_name(m: pb::Method) -> &'static str {
         pb::Method::LibrPlus => "libr_plus",
         pb::Method::V2s => "v2s",
         pb::Method::Adaptive => "adaptive",
+        pb::Method::Auto => "auto",
     }
 }
 
 /// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `v2s`, `adaptive`,
-/// `default`).
+/// `auto`, `default`).
 pub fn parse_method(s: &str) -> Result<pb::Method> {
     Ok(match s.trim() {
         "rigid" => pb::Method::Rigid,
@@ -46,10 +47,11 @@ pub fn parse_method(s: &str) -> Result<pb::Method> {
         "libr_plus" | "libr+" | "libr-plus" => pb::Method::LibrPlus,
         "v2s" => pb::Method::V2s,
         "adaptive" => pb::Method::Adaptive,
+        "auto" => pb::Method::Auto,
         "default" => pb::Method::Unspecified,
         other => {
             bail!(
-                "unknown method {other:?}: expected rigid, libr, libr_plus, v2s, adaptive or default"
+                "unknown method {other:?}: expected rigid, libr, libr_plus, v2s, adaptive, auto or default"
             )
         }
     })

@@ -41,6 +41,17 @@ pub(crate) fn audit_record(
                 .to_string()
             })
             .unwrap_or_default(),
+        choice: reg.choice.as_ref().map(|c| {
+            serde_json::json!({
+                "chosen": c.chosen, "best_scoring": c.best_scoring, "runner_up": c.runner_up,
+                "margin_mm2": c.margin_mm2, "margin_se": c.margin_se,
+                "runner_up_mm": c.runner_up_mm,
+                "candidates": c.candidates.iter().map(|k| serde_json::json!({
+                    "name": k.name, "held_out_mm2": k.held_out_mm2, "failed": k.failed,
+                })).collect::<Vec<_>>(),
+            })
+            .to_string()
+        }),
     }
 }
 

@@ -104,7 +104,9 @@ pub(crate) fn check_method(case: &Case, m: i32, field: &str) -> Result<Method, S
             format!("{field}: case {} has no adaptive LIBR basis", case.id),
         ));
     }
-    if matches!(method, Method::Libr | Method::LibrPlus) && case.prepared.basis.is_none() {
+    if matches!(method, Method::Libr | Method::LibrPlus | Method::Auto)
+        && case.prepared.basis.is_none()
+    {
         return Err(ServiceError::precondition(
             "CASE",
             field,

@@ -72,9 +72,17 @@ fn register_method(a: &RegisterArgs) -> Result<(librplus::pipeline::Method, Opti
     method_and_model(a.method, a.model.as_deref())
 }
 
-fn registration_json(r: &librplus::pipeline::Registration) -> Value {
+/// What `--json` says of a registration run with `params`: its quality flag and reason (as the
+/// service would answer them), then each stage.
+fn registration_json(
+    r: &librplus::pipeline::Registration,
+    params: &librplus::pipeline::PipelineParams,
+) -> Value {
     let libr = r.libr.as_ref();
+    let judged = r.quality(params);
     json!({
+        "quality": judged.quality,
+        "quality_reason": judged.reason,
         "rigid": {
             "rms_mm": r.rigid.rms_mm,
             "iterations": r.rigid.iterations,
@@ -283,7 +291,7 @@ pub(crate) fn register_files(a: &RegisterArgs) -> Result<()> {
         "register_s": r.seconds,
         "out": a.out.as_ref().map(|p| p.display().to_string()),
     });
-    if let (Value::Object(o), Value::Object(extra)) = (&mut out, registration_json(&r)) {
+    if let (Value::Object(o), Value::Object(extra)) = (&mut out, registration_json(&r, &params)) {
         o.extend(extra);
     }
     emit(a.json, &out);
@@ -402,7 +410,7 @@ pub(crate) fn register_scenario(a: &RegisterArgs) -> Result<()> {
         "prepare_s": prepare_s,
         "register_s": r.seconds,
     });
-    if let (Value::Object(o), Value::Object(extra)) = (&mut out, registration_json(&r)) {
+    if let (Value::Object(o), Value::Object(extra)) = (&mut out, registration_json(&r, &params)) {
         o.extend(extra);
     }
     emit(a.json, &out);

@@ -82,6 +82,13 @@ pub struct ScenarioResult {
     /// Auto only: what it chose, and every candidate's score and true error.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub auto: Option<AutoOutcome>,
+    /// The quality flag the service would answer ([`crate::pipeline::quality`]; None when the
+    /// registration failed, or for rows read back from other runs).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quality: Option<crate::pipeline::quality::Quality>,
+    /// Why the flag is not OK (empty when it is).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub quality_reason: Option<String>,
 }
 
 /// What [`crate::pipeline::Method::Auto`] chose in one registration, with each candidate's
@@ -514,6 +521,8 @@ mod tests {
             outside: None,
             abstained: false,
             auto: None,
+            quality: None,
+            quality_reason: None,
         }
     }
 

@@ -286,7 +286,7 @@ impl Run<'_> {
             }
             _ => (None, None),
         };
-        let (a, b) = scored(&g.geo, sc, (&d.geometry, d.family()), method.name(), r);
+        let (a, b) = scored(&g.geo, sc, (&d.geometry, d.family()), method.name(), r, self.params);
         (a, b, pr, pe)
     }
 
@@ -313,6 +313,8 @@ impl Run<'_> {
             outside: None,
             abstained: false,
             auto: None,
+            quality: None,
+            quality_reason: None,
         };
         match corrected {
             Ok((u, transform, outside, abstained)) => {
@@ -322,10 +324,14 @@ impl Run<'_> {
                     (&sc.truth.image_to_physical, &sc.truth.displacement),
                 );
                 let t = tre_from_errors(&err, &g.geo.surface, &g.geo.targets);
+                // The flag of the LIBR answer it corrected (an abstention answers it).
+                let judged = r.quality(self.params);
                 let row = ScenarioResult {
                     tre: Some(t),
                     outside,
                     abstained,
+                    quality: Some(judged.quality),
+                    quality_reason: Some(judged.reason),
                     ..base
                 };
                 (row, Some(err))
@@ -369,7 +375,7 @@ impl Run<'_> {
             .par_iter()
             .map(|sc| {
                 let r = register(case_d, &sc.measurements, Method::Libr, self.params);
-                scored(&g.geo, sc, (&d.geometry, d.family()), DISCOVERED_METHOD, r)
+                scored(&g.geo, sc, (&d.geometry, d.family()), DISCOVERED_METHOD, r, self.params)
             })
             .collect())
     }
@@ -425,6 +431,7 @@ fn scored(
     (geometry, family): (&str, &str),
     method: &str,
     r: Result<crate::pipeline::Registration, crate::pipeline::PipelineError>,
+    params: &crate::pipeline::PipelineParams,
 ) -> (ScenarioResult, Option<Vec<f64>>) {
     let base = ScenarioResult {
         scenario: sc.id.clone(),
@@ -438,6 +445,8 @@ fn scored(
         outside: None,
         abstained: false,
         auto: None,
+        quality: None,
+        quality_reason: None,
     };
     match r {
         Ok(r) => {
@@ -448,11 +457,14 @@ fn scored(
             );
             let t = tre_from_errors(&err, &geo.surface, &geo.targets);
             let auto = r.auto.as_ref().map(|a| auto_outcome(geo, sc, a));
+            let judged = r.quality(params);
             (
                 ScenarioResult {
                     tre: Some(t),
                     seconds: r.seconds,
                     auto,
+                    quality: Some(judged.quality),
+                    quality_reason: Some(judged.reason),
                     ..base
                 },
                 Some(err),

@@ -396,19 +396,14 @@ pub fn solve_adaptive(
         extend_rows(&matches, &mut rows, &mut row_of);
         if kept.is_none() || rows.len() != before || phases.rebuild {
             let ta = Instant::now();
-            let cols = cx.columns(&mut phases, kept.as_ref(), &matches);
-            let r;
-            (r, escale) = restricted_basis(basis, first_level, adaptive, &cols, &rows);
+            let (cols, r, e) = cx.rebuild(&mut phases, kept.as_ref(), &matches, &rows);
+            (kept, escale) = (Some((cols, r)), e);
             info.assemble_s += crate::util::secs(ta);
-            kept = Some((cols, r));
         }
         let (_, reduced) = kept.as_ref().expect("set above");
         let (local, targets) =
             cx.local_matches(measured_physical, &t, run.hold, matches, &row_of)?;
-        let prior = run.rigid_prior.map(|p| PriorPairs {
-            pairs: p.image_pairs(&t),
-            weight: p.weight(),
-        });
+        let prior = PriorPairs::of(run.rigid_prior, &t);
         let g = grid_above(&grid, floor);
         floor *= adaptive.anneal_factor;
         let (step, lambda) = adaptive_step(
@@ -423,10 +418,11 @@ pub fn solve_adaptive(
         let local_u = reduced.displacement(&step.alpha);
         let moved = apply_local(mesh, &rows, &mut u, &local_u, &step.rigid_correction);
         t = step.rigid_correction.then(&t);
-        record(&mut info, &step, moved, lambda);
+        record(&mut info, &step, moved);
+        info.regularization = lambda;
         alpha = step.alpha;
         if run.held_out.is_some() {
-            last = Some((local, targets, prior, lambda, escale));
+            last = Some(((local, targets, prior), lambda, escale));
         }
         if phases.advance(&mut info, moved, params)
             || past_deadline(&mut info, run.deadline, params, tm)
@@ -435,17 +431,7 @@ pub fn solve_adaptive(
         }
     }
     let kept = kept.expect("at least one iteration ran");
-    if let (Some(folds), Some((matches, targets, prior, lambda, escale))) = (run.held_out, &last) {
-        let model = FitModel::Basis {
-            basis: &kept.1,
-            lambda: *lambda,
-            escale: *escale,
-        };
-        info.held_out = Some(
-            held_out(model, matches, targets, params, prior.as_ref(), folds)
-                .map_err(|e| e.to_string()),
-        );
-    }
+    info.held_out = adaptive_held_out(run.held_out, &kept.1, last.as_ref(), params);
     let (full, u) = adaptive_summary(&mut info, basis, &kept, &alpha, escale, phases.start, &run);
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {
@@ -454,6 +440,23 @@ pub fn solve_adaptive(
         image_to_physical: t,
         info,
     })
+}
+
+/// The held-out check ([`held_out_of_last`]) of the last system, on the restricted basis, λ and
+/// energy scale it was fitted with.
+fn adaptive_held_out(
+    folds: Option<&Folds>,
+    reduced: &LibrBasis,
+    last: Option<&(LastSystem, f64, f64)>,
+    params: &LibrParams,
+) -> Option<Result<HeldOut, String>> {
+    let (system, lambda, escale) = last?;
+    let model = FitModel::Basis {
+        basis: reduced,
+        lambda: *lambda,
+        escale: *escale,
+    };
+    held_out_of_last(folds, Some(system), model, params)
 }
 
 /// What every adaptive iteration reads and does not change.
@@ -478,6 +481,21 @@ impl<'a> Context<'a> {
             first_level,
             adaptive,
         }
+    }
+
+    /// The columns to keep ([`Self::columns`]) and the basis restricted to them and to `rows`,
+    /// with its energy scale.
+    fn rebuild(
+        &self,
+        phases: &mut Phases,
+        kept: Option<&(Vec<usize>, LibrBasis)>,
+        matches: &[Match],
+        rows: &[u32],
+    ) -> (Vec<usize>, LibrBasis, f64) {
+        let cols = self.columns(phases, kept, matches);
+        let (r, escale) =
+            restricted_basis(self.basis, self.first_level, self.adaptive, &cols, rows);
+        (cols, r, escale)
     }
 
     /// The matches with the held pairs appended, their nodes moved onto the restricted rows, and
@@ -539,35 +557,6 @@ impl<'a> Context<'a> {
         phases.rebuild = false;
         cols
     }
-}
-
-/// Adds a step's timings and results to `info`.
-fn record(info: &mut LibrInfo, step: &StepResult, moved: f64, lambda: f64) {
-    info.assemble_s += step.timings.rows_s + step.timings.normal_s;
-    info.solve_s += step.timings.solve_s;
-    info.iterations += 1;
-    info.rms_history_mm.push(step.rms_mm);
-    info.movement_history_mm.push(moved);
-    info.rms_mm = step.rms_mm;
-    info.regularization = lambda;
-}
-
-/// Whether another iteration, lasting as long as the one begun at `tm`, would end past the
-/// deadline (setting [`LibrInfo::stopped_at_deadline`]).
-fn past_deadline(
-    info: &mut LibrInfo,
-    deadline: Option<Instant>,
-    params: &LibrParams,
-    tm: Instant,
-) -> bool {
-    if let Some(d) = deadline {
-        let now = Instant::now();
-        if info.iterations < params.max_iterations && now + (now - tm) > d {
-            info.stopped_at_deadline = true;
-            return true;
-        }
-    }
-    false
 }
 
 /// Validates the run (no offset) and returns the rows the fit starts from (the active and the

@@ -164,6 +164,23 @@ fn unscaled_rows(
         .collect()
 }
 
+/// A fit's last system (its matches, the targets and the rigid prior's pairs), kept for the
+/// held-out check.
+pub(super) type LastSystem = (Vec<Match>, Vec<[f64; 3]>, Option<PriorPairs>);
+
+/// [`LibrInfo::held_out`] of a run: [`held_out`] of its last system when `folds` asked for it.
+pub(super) fn held_out_of_last(
+    folds: Option<&Folds>,
+    last: Option<&LastSystem>,
+    model: FitModel<'_>,
+    params: &LibrParams,
+) -> Option<Result<HeldOut, String>> {
+    let (folds, (matches, targets, prior)) = (folds?, last?);
+    Some(
+        held_out(model, matches, targets, params, prior.as_ref(), folds).map_err(|e| e.to_string()),
+    )
+}
+
 /// The held-out score of a fit (module doc): `matches` are the fit's last matches (held pairs
 /// and any match whose point is not a measured point are always fitted, never left out),
 /// `targets` the measured points in the image frame of the pose the fit started from, `params`

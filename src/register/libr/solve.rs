@@ -228,25 +228,17 @@ pub fn solve_with_limits(
         let mut matches = rematch(&u, &t)?;
         info.matching_s += crate::util::secs(tm);
         let targets = step_targets(mesh, measured_physical, &t, hold, offset, &mut matches);
-        let prior = rigid_prior.map(|p| PriorPairs {
-            pairs: p.image_pairs(&t),
-            weight: p.weight(),
-        });
+        let prior = PriorPairs::of(rigid_prior, &t);
         let step = fit_step_with_prior(basis, &matches, &targets, params, prior.as_ref())?;
-        info.assemble_s += step.timings.rows_s + step.timings.normal_s;
-        info.solve_s += step.timings.solve_s;
         let u_new = stepped_displacement(basis, &step.alpha, active, &u, offset);
         let moved = movement(mesh, active, &u, &u_new, &step.rigid_correction);
         t = step.rigid_correction.then(&t);
+        record(&mut info, &step, moved);
         alpha = step.alpha;
         u = u_new;
         if folds.is_some() {
             last = Some((matches, targets, prior));
         }
-        info.iterations += 1;
-        info.rms_history_mm.push(step.rms_mm);
-        info.movement_history_mm.push(moved);
-        info.rms_mm = step.rms_mm;
         if moved <= params.tolerance_mm {
             info.converged = true;
             break;
@@ -259,28 +251,17 @@ pub fn solve_with_limits(
         {
             break;
         }
-        // Stop before an iteration that would end past the deadline (the last one's duration
-        // predicts the next).
-        if let Some(d) = deadline {
-            let now = Instant::now();
-            if info.iterations < params.max_iterations && now + (now - tm) > d {
-                info.stopped_at_deadline = true;
-                break;
-            }
+        if past_deadline(&mut info, deadline, params, tm) {
+            break;
         }
     }
     finish_info(&mut info, basis, params, hold, &alpha);
-    if let (Some(folds), Some((matches, targets, prior))) = (folds, &last) {
-        let model = FitModel::Basis {
-            basis,
-            lambda: params.regularization,
-            escale: basis.energy_scale(),
-        };
-        info.held_out = Some(
-            held_out(model, matches, targets, params, prior.as_ref(), folds)
-                .map_err(|e| e.to_string()),
-        );
-    }
+    let model = FitModel::Basis {
+        basis,
+        lambda: params.regularization,
+        escale: basis.energy_scale(),
+    };
+    info.held_out = held_out_of_last(folds, last.as_ref(), model, params);
     let u = full_displacement(basis, &alpha, offset);
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {
@@ -289,6 +270,45 @@ pub fn solve_with_limits(
         image_to_physical: t,
         info,
     })
+}
+
+impl PriorPairs {
+    /// The rigid prior's pairs for the pose `t` (None without a prior).
+    pub(super) fn of(prior: Option<&RigidPrior>, t: &Rigid) -> Option<Self> {
+        prior.map(|p| Self {
+            pairs: p.image_pairs(t),
+            weight: p.weight(),
+        })
+    }
+}
+
+/// Records an iteration's step (its timings, residual and the movement it made).
+pub(super) fn record(info: &mut LibrInfo, step: &StepResult, moved: f64) {
+    info.assemble_s += step.timings.rows_s + step.timings.normal_s;
+    info.solve_s += step.timings.solve_s;
+    info.iterations += 1;
+    info.rms_history_mm.push(step.rms_mm);
+    info.movement_history_mm.push(moved);
+    info.rms_mm = step.rms_mm;
+}
+
+/// Whether another iteration, lasting as long as the one begun at `tm`, would end past the
+/// deadline (setting [`LibrInfo::stopped_at_deadline`]); the last one's duration predicts the
+/// next.
+pub(super) fn past_deadline(
+    info: &mut LibrInfo,
+    deadline: Option<Instant>,
+    params: &LibrParams,
+    tm: Instant,
+) -> bool {
+    if let Some(d) = deadline {
+        let now = Instant::now();
+        if info.iterations < params.max_iterations && now + (now - tm) > d {
+            info.stopped_at_deadline = true;
+            return true;
+        }
+    }
+    false
 }
 
 /// The complete displacement `Φα`, plus the offset.

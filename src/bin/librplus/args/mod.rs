@@ -257,9 +257,9 @@ pub(crate) struct EvaluateArgs {
     #[arg(long)]
     pub(crate) data: PathBuf,
     /// Comma-separated methods: initial (the navigation start, unregistered: the baseline),
-    /// rigid, libr, adaptive (adaptive LIBR), v2s (--v2s-model), librplus (--model, or the
-    /// built-in model).
-    #[arg(long, default_value = "rigid,libr")]
+    /// rigid, libr, adaptive (adaptive LIBR), auto (chosen per registration from the data),
+    /// v2s (--v2s-model), librplus (--model, or the built-in model).
+    #[arg(long, default_value = "initial,rigid,libr,adaptive,auto")]
     pub(crate) methods: String,
     /// A trained SR-GCN model directory (from `librplus train`), or an ensemble directory (from
     /// `librplus ensemble`): evaluates LIBR+ and restricts every method to the model's held-out
@@ -403,9 +403,11 @@ pub(crate) struct RegisterArgs {
     /// With --preop and a surface file: tet edge length (mm).
     #[arg(long, default_value_t = 7.6)]
     pub(crate) edge_mm: f64,
-    /// rigid (wICP), libr (wICP then LIBR), librplus (then the SR-GCN correction) or v2s
-    /// (wICP then the V2S network).
-    #[arg(long, default_value = "libr")]
+    /// auto (chosen per registration from the data among doing nothing, rigid, LIBR and
+    /// adaptive LIBR, and their held variants with a trusted start), rigid (wICP), libr (wICP
+    /// then LIBR), adaptive (wICP then adaptive LIBR), librplus (LIBR then the SR-GCN
+    /// correction) or v2s (wICP then the V2S network).
+    #[arg(long, default_value = "auto")]
     pub(crate) method: MethodArg,
     /// SR-GCN model directory (from `librplus train`) or ensemble directory (from `librplus
     /// ensemble`) for --method librplus (default: the built-in model); a V2S model directory
