@@ -192,7 +192,7 @@ fn ms(d: Duration) -> f64 {
 }
 
 /// The wire's quality flag of the library's.
-pub(crate) fn quality_to_pb(q: librplus::pipeline::quality::Quality) -> pb::Quality {
+pub fn quality_to_pb(q: librplus::pipeline::quality::Quality) -> pb::Quality {
     use librplus::pipeline::quality::Quality;
     match q {
         Quality::Ok => pb::Quality::Ok,
@@ -344,7 +344,9 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
     let left = ms(deadline.saturating_duration_since(Instant::now()));
     let one = match method {
         Method::Rigid | Method::V2s => est.rigid_ms,
-        Method::Auto => AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms),
+        Method::Auto => {
+            AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms)
+        }
         _ => est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms,
     };
     let mut search_off = None;

@@ -93,8 +93,8 @@ pub struct ServerConfig {
     pub session_idle_timeout_s: f64,
     /// How long shutdown waits for sessions to finish their update and close, s. Default 10.
     pub drain_grace_s: f64,
-    /// Method used when a request leaves it unspecified (`rigid`, `libr`, `librplus`, `v2s`).
-    /// Default `libr`.
+    /// Method used when a request leaves it unspecified (`rigid`, `libr`, `auto`, `adaptive`,
+    /// `librplus`, `v2s`). Default `libr`.
     pub default_method: String,
     /// SR-GCN model directory (`librplus train`'s output, or an ensemble directory) for LIBR+; every case gets it. None:
     /// the model built into the server, when this build has one.
@@ -265,13 +265,16 @@ pub enum ConfigError {
     MeshUnit(String),
     /// A default method that is unknown or switched off.
     #[error(
-        "default_method {method:?}: expected rigid, libr{}{}",
+        "default_method {method:?}: expected rigid, libr, auto{}{}{}",
+        if *.adaptive { ", adaptive" } else { " (adaptive is off)" },
         if *.librplus { ", librplus" } else { " (librplus is off)" },
         if *.v2s { ", v2s" } else { " (v2s is off)" }
     )]
     DefaultMethod {
         /// The method given.
         method: String,
+        /// Whether adaptive LIBR's basis is prepared (`adaptive`).
+        adaptive: bool,
         /// Whether LIBR+ is on (`librplus`).
         librplus: bool,
         /// Whether V2S is on (`v2s`).
@@ -498,10 +501,13 @@ impl ServerConfig {
         match self.default_method.as_str() {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
+            "auto" => Ok(Method::Auto),
+            "adaptive" if self.adaptive => Ok(Method::Adaptive),
             "librplus" if self.librplus => Ok(Method::LibrPlus),
             "v2s" if self.v2s => Ok(Method::V2s),
             m => Err(ConfigError::DefaultMethod {
                 method: m.to_string(),
+                adaptive: self.adaptive,
                 librplus: self.librplus,
                 v2s: self.v2s,
             }),
@@ -609,10 +615,11 @@ mod tests {
             (
                 ConfigError::DefaultMethod {
                     method: "v2s".into(),
+                    adaptive: true,
                     librplus: true,
                     v2s: false,
                 },
-                "default_method \"v2s\": expected rigid, libr, librplus (v2s is off)",
+                "default_method \"v2s\": expected rigid, libr, auto, adaptive, librplus (v2s is off)",
             ),
             (
                 ConfigError::EvictIdle(-1.0),

@@ -381,7 +381,9 @@ pub fn choice_to_pb(a: &librplus::pipeline::auto::AutoInfo) -> pb::ModelChoice {
     pb::ModelChoice {
         chosen: a.chosen.name().to_string(),
         best_scoring: a.best_scoring.name().to_string(),
-        runner_up: a.runner_up.map_or_else(String::new, |c| c.name().to_string()),
+        runner_up: a
+            .runner_up
+            .map_or_else(String::new, |c| c.name().to_string()),
         margin_mm2: a.margin_mm2.unwrap_or(0.0),
         margin_se: a.margin_se.unwrap_or(0.0),
         runner_up_mm: a.runner_up_mm.unwrap_or(0.0),

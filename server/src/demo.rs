@@ -212,14 +212,17 @@ pub async fn run(o: DemoOptions) -> Result<()> {
         selection: Selection::Spread(o.scenarios),
         // The paper's four methods side by side: the rigid stage alone, the data-driven V2S (the
         // built-in network), LIBR and LIBR+ (the built-in SR-GCN), and adaptive LIBR (fine
-        // loads where the data are); then LIBR with in-surgery discovery (the model augmented
-        // when the session's points name an effect it lacks).
+        // loads where the data are), and the automatic choice among doing nothing, rigid, LIBR
+        // and adaptive LIBR (its table says which model each update chose); then LIBR with
+        // in-surgery discovery (the model augmented when the session's points name an effect
+        // it lacks).
         methods: vec![
             pb::Method::Rigid,
             pb::Method::V2s,
             pb::Method::Libr,
             pb::Method::LibrPlus,
             pb::Method::Adaptive,
+            pb::Method::Auto,
         ],
         discover_with: if o.discovery {
             vec![pb::Method::Libr]

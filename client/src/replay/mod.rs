@@ -191,6 +191,9 @@ pub struct Step {
     pub quality_reason: String,
     /// Method the server used.
     pub method_used: String,
+    /// The model METHOD_AUTO chose (`Registration.choice.chosen`; None for the other methods).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub chosen: Option<String>,
     /// Latency of the message it answered (None for an extra update).
     pub latency_ms: Option<f64>,
     /// Why the registration could not be scored.
@@ -539,6 +542,7 @@ impl Received {
                 |_| format!("UNKNOWN_{}", r.method_used),
                 |m| method_name(m).to_string(),
             ),
+            chosen: r.choice.as_ref().map(|c| c.chosen.clone()),
             latency_ms: lat.map(|l| l.as_secs_f64() * 1e3),
             error: state.as_ref().err().map(|e| e.to_string()),
         });

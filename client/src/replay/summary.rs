@@ -34,6 +34,9 @@ pub struct MethodSummary {
     pub failed: usize,
     /// Registration updates by quality name.
     pub quality: BTreeMap<String, u64>,
+    /// METHOD_AUTO: registration updates by the model chosen (empty for the other methods).
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub chosen: BTreeMap<String, u64>,
     /// Mean of the server's predicted TRE over the scenarios with a final TRE and a prediction
     /// (None when the server sent no error estimate), beside `tre_mm` over the same scenarios.
     pub predicted_tre_mm: Option<(f64, f64)>,
@@ -197,6 +200,9 @@ pub(super) fn summarize(
         for r in &mine {
             for st in &r.steps {
                 *m.quality.entry(st.quality.clone()).or_default() += 1;
+                if let Some(c) = &st.chosen {
+                    *m.chosen.entry(c.clone()).or_default() += 1;
+                }
                 if st.quality == "DEGRADED" {
                     for what in degradations(&st.quality_reason) {
                         *m.degraded.entry(what).or_default() += 1;
@@ -324,6 +330,9 @@ pub fn replay_table(s: &ReplaySummary) -> String {
         }
         let q: Vec<String> = m.quality.iter().map(|(k, v)| format!("{k} {v}")).collect();
         let _ = writeln!(o, "  quality: {}", q.join(", "));
+        if !m.chosen.is_empty() {
+            let _ = writeln!(o, "  model chosen per update: {}", counted(&m.chosen));
+        }
         if let Some(n) = m.quality.get("DEGRADED") {
             let _ = writeln!(
                 o,

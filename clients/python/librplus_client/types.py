@@ -35,6 +35,7 @@ _METHODS = {
     "librplus": pb.METHOD_LIBR_PLUS,
     "v2s": pb.METHOD_V2S,
     "adaptive": pb.METHOD_ADAPTIVE,
+    "auto": pb.METHOD_AUTO,
 }
 
 _FEATURES = {
@@ -211,11 +212,16 @@ class Registration:
             ``QUALITY_DEGENERATE`` (do not navigate with it), ``QUALITY_AMBIGUOUS_POSE`` (two
             rigid poses explain the points about equally: the answer may be wrong) or
             ``QUALITY_LIKELY_FAILED`` (the error estimate gives a high chance that the answer's
-            mean error exceeds its failure threshold: check the alignment).
+            mean error exceeds its failure threshold: check the alignment) or
+            ``QUALITY_AMBIGUOUS_MODEL`` (``METHOD_AUTO``: candidate models whose answers lie far
+            apart predict the points equally well).
         quality_reason: why the quality is not OK (empty when it is).
-        method_used: ``METHOD_RIGID``, ``METHOD_LIBR``, ``METHOD_LIBR_PLUS``, ``METHOD_V2S`` or
-            ``METHOD_ADAPTIVE``
+        method_used: ``METHOD_RIGID``, ``METHOD_LIBR``, ``METHOD_LIBR_PLUS``, ``METHOD_V2S``,
+            ``METHOD_ADAPTIVE`` or ``METHOD_AUTO``
             (may differ from the method asked when the server degraded it).
+        chosen_model: for ``METHOD_AUTO``, the candidate chosen (``initial``, ``rigid``,
+            ``libr``, ``adaptive``, ``libr-held``, ``adaptive-held``; the rest of the choice,
+            runner-up, margin and every candidate's score, is ``raw.choice``); None otherwise.
         residual_rms_mm: RMS distance of the matched points to the registered model, mm.
         points_used: points in the registration.
         points_matched: points the fit kept after outlier trimming.
@@ -263,6 +269,7 @@ class Registration:
     sequence: Optional[int] = None
     last_client_seq: Optional[int] = None
     points_total: Optional[int] = None
+    chosen_model: Optional[str] = None
 
     @classmethod
     def from_message(cls, r: Any, update: Any = None) -> "Registration":
@@ -300,6 +307,8 @@ class Registration:
                 extra["node_uncertainty_mm"] = np.asarray(
                     e.node_uncertainty_mm, dtype=np.float32
                 ).astype(np.float64)
+        if r.HasField("choice"):
+            extra["chosen_model"] = r.choice.chosen
         if update is not None:
             extra.update(
                 session_id=update.session_id,

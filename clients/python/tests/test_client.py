@@ -397,6 +397,18 @@ class RegistrationParsingTest(unittest.TestCase):
         with self.assertRaisesRegex(ValueError, "node_uncertainty_mm"):
             lc.Registration.from_message(m)
 
+    def test_auto_names_the_model_chosen(self) -> None:
+        self.assertIsNone(lc.Registration.from_message(registration()).chosen_model)
+        m = registration(method=pb.METHOD_AUTO)
+        m.quality = pb.QUALITY_AMBIGUOUS_MODEL
+        m.choice.chosen = "rigid"
+        m.choice.runner_up = "libr"
+        m.choice.candidates.add(name="rigid", held_out_mm2=1.5)
+        r = lc.Registration.from_message(m)
+        self.assertEqual((r.method_used, r.chosen_model), ("METHOD_AUTO", "rigid"))
+        self.assertEqual(r.quality, "QUALITY_AMBIGUOUS_MODEL")
+        self.assertEqual(r.raw.choice.candidates[0].held_out_mm2, 1.5)
+
     def test_wrong_lengths_name_the_field(self) -> None:
         bad = registration()
         del bad.image_to_physical.rotation[8]

@@ -238,3 +238,88 @@ async fn adaptive_libr_is_answered_when_the_server_prepares_it() {
         assert!(du <= 1e-5, "displacements differ by {du} mm");
     }
 }
+
+/// METHOD_AUTO: answered by a server that prepared adaptive LIBR's basis as the library answers
+/// it (the same candidate chosen, the same displacement to f32 rounding, the same quality flag),
+/// the choice named in the answer (chosen, runner-up, every candidate's held-out score) and kept
+/// in the audit log.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_is_answered_with_its_choice_and_audited() {
+    use librplus::register::libr::AdaptiveParams;
+    let (geo, sc) = scenario("surface+2us");
+    let m = open(dataset()).unwrap();
+    let case = m.deformations[0].geometry.clone();
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("audit.db");
+    let mut running = librplus_server::start(ServerConfig {
+        adaptive: true,
+        audit_db: Some(db.clone()),
+        // Results independent of timing: the plan never degrades auto to LIBR here.
+        time_budget_ms: 60_000,
+        ..config(2)
+    })
+    .await
+    .unwrap();
+    running.ready().await.unwrap();
+    let mut client = client(running.addr).await;
+    let req = request(&case, pb::Method::Auto, measurements_pb(&sc.measurements));
+    let r = client.register(req).await.unwrap().into_inner();
+    running.shutdown().await;
+    assert_eq!(r.method_used, pb::Method::Auto as i32);
+    let choice = r.choice.as_ref().expect("auto names its choice");
+    let lib_case = Prepared::new(geo.model.clone(), Some(&LibrParams::default()), None)
+        .unwrap()
+        .with_adaptive(&LibrParams::default(), &AdaptiveParams::default(), None)
+        .unwrap()
+        .with_error_model(librplus::register::uncertainty::builtin());
+    let params = PipelineParams::default();
+    let lib = register(&lib_case, &sc.measurements, Method::Auto, &params).unwrap();
+    let a = lib.auto.as_ref().unwrap();
+    eprintln!(
+        "auto over the API: chose {} (runner-up {}, margin {:.2} mm², {:.1} SE), quality {:?}",
+        choice.chosen,
+        choice.runner_up,
+        choice.margin_mm2,
+        choice.margin_se,
+        r.quality()
+    );
+    assert_eq!(choice.chosen, a.chosen.name());
+    assert_eq!(
+        choice.runner_up,
+        a.runner_up.map_or(String::new(), |c| c.name().to_string())
+    );
+    // Every candidate tried: doing nothing, rigid, LIBR and adaptive LIBR (no trusted start:
+    // no held variants), each scored.
+    let names: Vec<&str> = choice.candidates.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["initial", "rigid", "libr", "adaptive"]);
+    assert!(
+        choice
+            .candidates
+            .iter()
+            .all(|c| c.held_out_mm2.is_some_and(|s| s >= 0.0) && c.failed.is_empty()),
+        "{choice:?}"
+    );
+    let (dt, du) = difference(&r, &lib);
+    assert!(
+        dt < 1e-9 && du <= 1e-5,
+        "transform {dt}, displacement {du} mm"
+    );
+    let judged = lib.quality(&params);
+    assert_eq!(
+        (r.quality().as_str_name(), r.quality_reason.as_str()),
+        (
+            librplus_server::compute::quality_to_pb(judged.quality).as_str_name(),
+            judged.reason.as_str()
+        )
+    );
+    // The audit log keeps the choice.
+    let conn = librplus_server::audit::open_db(&db).unwrap();
+    let rows = librplus_server::audit::rows(&conn, None, None).unwrap();
+    let reg = rows.iter().find(|r| r.kind == "registration").unwrap();
+    assert_eq!(reg.detail["method"], "METHOD_AUTO");
+    assert_eq!(reg.detail["choice"]["chosen"], choice.chosen.as_str());
+    assert_eq!(
+        reg.detail["choice"]["candidates"].as_array().map(Vec::len),
+        Some(4)
+    );
+}

@@ -227,7 +227,7 @@ fn bench_mesh(
 }
 
 /// The benchmark's case: its preload timed (cold, then warm), adaptive LIBR's basis when the
-/// method needs it, the learned model attached (with the seconds that took), and the method.
+/// method needs it (adaptive, auto), the learned model attached (with the seconds that took), and the method.
 fn prepare_case(
     a: &BenchRegisterArgs,
     params: &librplus::pipeline::PipelineParams,
@@ -240,10 +240,11 @@ fn prepare_case(
     bar.finish_and_clear();
     let (pre, mut case) = pre?;
     let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
-    if method == Method::Adaptive {
+    if matches!(method, Method::Adaptive | Method::Auto) {
         let t = std::time::Instant::now();
         case = case.with_adaptive(&params.libr, &params.adaptive, None)?;
-        println!(
+        // On stderr: `--json` keeps stdout one JSON object.
+        eprintln!(
             "adaptive LIBR's basis ({} columns) built in {:.2} s",
             case.adaptive.as_ref().map_or(0, |b| b.basis.columns()),
             t.elapsed().as_secs_f64()

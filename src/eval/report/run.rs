@@ -286,7 +286,14 @@ impl Run<'_> {
             }
             _ => (None, None),
         };
-        let (a, b) = scored(&g.geo, sc, (&d.geometry, d.family()), method.name(), r, self.params);
+        let (a, b) = scored(
+            &g.geo,
+            sc,
+            (&d.geometry, d.family()),
+            method.name(),
+            r,
+            self.params,
+        );
         (a, b, pr, pe)
     }
 
@@ -375,7 +382,14 @@ impl Run<'_> {
             .par_iter()
             .map(|sc| {
                 let r = register(case_d, &sc.measurements, Method::Libr, self.params);
-                scored(&g.geo, sc, (&d.geometry, d.family()), DISCOVERED_METHOD, r, self.params)
+                scored(
+                    &g.geo,
+                    sc,
+                    (&d.geometry, d.family()),
+                    DISCOVERED_METHOD,
+                    r,
+                    self.params,
+                )
             })
             .collect())
     }

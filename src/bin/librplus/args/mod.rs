@@ -457,7 +457,8 @@ pub(crate) struct BenchRegisterArgs {
     /// latency on one core, the surgical metric). The preload uses every core.
     #[arg(long, default_value_t = 1)]
     pub(crate) threads: usize,
-    /// rigid (wICP), libr (wICP then LIBR) or librplus (then the SR-GCN correction).
+    /// rigid (wICP), libr (wICP then LIBR), adaptive (wICP then adaptive LIBR), auto (the
+    /// model chosen per registration), librplus (LIBR then the SR-GCN correction) or v2s.
     #[arg(long, default_value = "libr")]
     pub(crate) method: MethodArg,
     /// SR-GCN model or ensemble directory for --method librplus (default: the built-in model);
