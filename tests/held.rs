@@ -394,3 +394,56 @@ fn auto_with_a_trusted_start_weighs_held_and_free_fits_and_does_no_worse_than_th
         nothing_sum / 2.0
     );
 }
+
+/// Without a trusted start the hold is a hypothesis: the held fits are tried but rank after the
+/// free ones (so a held fit is chosen only when it predicts the unseen points clearly better,
+/// which the one-standard-error rule checks on the same scores); they are not tried when the
+/// hypothesis is turned off, and the free candidates' scores do not depend on it.
+#[test]
+fn without_a_trusted_start_the_hold_is_a_hypothesis_ranked_after_the_free_fits() {
+    use librplus::pipeline::auto::Candidate;
+    let c = case();
+    let (meas, truth) = measured(&c.u, 1);
+    let on = PipelineParams::default();
+    let mut off = PipelineParams::default();
+    off.auto.hypothesise_hold = false;
+    let with = register(&c.prepared, &meas, Method::Auto, &on).unwrap();
+    let without = register(&c.prepared, &meas, Method::Auto, &off).unwrap();
+    let (a, b) = (with.auto.as_ref().unwrap(), without.auto.as_ref().unwrap());
+    let names = |i: &librplus::pipeline::auto::AutoInfo| -> Vec<Candidate> {
+        i.candidates.iter().map(|s| s.candidate).collect()
+    };
+    use Candidate::*;
+    assert_eq!(
+        names(a),
+        [Initial, Rigid, Libr, Adaptive, LibrHeld, AdaptiveHeld]
+    );
+    assert!(a.hold_hypothesis && !b.hold_hypothesis);
+    assert_eq!(names(b), [Initial, Rigid, Libr, Adaptive]);
+    for s in &b.candidates {
+        let t = a
+            .candidates
+            .iter()
+            .find(|x| x.candidate == s.candidate)
+            .unwrap();
+        assert_eq!(t.held_out_mm2, s.held_out_mm2, "{}", s.candidate.name());
+    }
+    // Ranked after the free fits, a held fit that does not score best changes nothing: the
+    // best score, hence every candidate's reach, is the same, and the first within reach too.
+    if a.best_scoring == b.best_scoring {
+        assert_eq!(a.chosen, b.chosen);
+    }
+    eprintln!(
+        "hypothesis: chose {} ({:.2} mm), without it {} ({:.2} mm); doing nothing {:.2} mm; ambiguous: {:?}",
+        a.chosen,
+        tre(&with, &c.u, &truth),
+        b.chosen,
+        tre(&without, &c.u, &truth),
+        tre(
+            &register(&c.prepared, &meas, Method::Initial, &on).unwrap(),
+            &c.u,
+            &truth
+        ),
+        a.ambiguous
+    );
+}

@@ -209,10 +209,10 @@ pub fn quality_to_pb(q: librplus::pipeline::quality::Quality) -> pb::Quality {
 /// on the paper liver, 2 cores; up to eight on a 1,800-node liver, whose fixed costs weigh more).
 const POSE_SEARCH_COST: f64 = 8.0;
 
-/// How many LIBR registrations' time the automatic choice takes, with a margin: its deformable
-/// candidates (LIBR, adaptive LIBR and, with a trusted start, their held variants) share the
-/// compute slot's cores, and each is cross-validated on its last matches (`BENCHMARKS.md`).
-const AUTO_COST: f64 = 3.0;
+/// How many LIBR registrations' time the automatic choice takes, with a margin: its four
+/// deformable candidates (LIBR, adaptive LIBR and their held variants) share the compute
+/// slot's cores, and each is cross-validated on its last matches (`BENCHMARKS.md`).
+const AUTO_COST: f64 = 4.0;
 
 /// What a registration was planned to be within its budget.
 struct Plan {

@@ -4,10 +4,9 @@
 //! LIBR's broad loads cannot, and overfits where the data are thin; a held organ is described
 //! by a held fit and made worse than doing nothing by a free one; on noisy data the rigid answer
 //! can beat every deformable one. So auto runs the candidates — doing nothing (the navigation
-//! start, undeformed), the rigid answer, LIBR, adaptive LIBR (when the case has its basis) and,
-//! when the start is trusted ([`PipelineParams::held`] or a
-//! [`crate::register::wicp::WicpParams::trusted_alignment_mm`]), LIBR and adaptive LIBR held
-//! ([`super::hold`]) — and scores each by **how well it predicts measured points it did not
+//! start, undeformed), the rigid answer, LIBR, adaptive LIBR (when the case has its basis), and
+//! LIBR and adaptive LIBR held ([`super::hold`]: the start trusted, the unseen surface held) —
+//! and scores each by **how well it predicts measured points it did not
 //! see** ([`crate::register::libr::held_out`]): the measured points are split into
 //! [`AutoParams::folds`] spatial patches, each candidate's last fit is solved again without
 //! each patch (its matches fixed: a downdate of one linear least-squares system, no new
@@ -20,6 +19,11 @@
 //! within [`AutoParams::within_se`] standard errors of the best score (the standard error of
 //! the paired difference over the folds) and within [`AutoParams::within_ratio`] of it. A more flexible model must predict unseen points
 //! clearly better to be chosen; where it does not, the simpler answer changes the organ less.
+//! The held fits rank before the free ones when the start is trusted ([`PipelineParams::held`]
+//! or a [`crate::register::wicp::WicpParams::trusted_alignment_mm`]); without a trusted start
+//! the hold is a hypothesis ([`AutoParams::hypothesise_hold`]) and ranks after them: it is
+//! chosen only when it predicts clearly better, and one within reach whose answer lies apart
+//! makes the choice ambiguous, a flag rather than a guess.
 //! **When the data cannot decide** — a candidate within the rule's reach of the chosen one
 //! whose answer lies more than [`AutoParams::ambiguous_mm`] from it (RMS over the organ's
 //! nodes) — the answer says so ([`AutoInfo::ambiguous`]).
@@ -50,6 +54,12 @@ pub struct AutoParams {
     /// Candidates within reach of the chosen one whose answers differ from it by more than this
     /// (RMS over the organ's nodes, mm) make the choice ambiguous. Default 5.
     pub ambiguous_mm: f64,
+    /// Without a trusted start, the held variants are still tried — the hold as a hypothesis,
+    /// the start trusted to 5 mm as with `held` — but ranked after the free fits: a hold the
+    /// request did not declare is chosen only when it predicts the unseen points clearly
+    /// better, and one within reach whose answer lies apart makes the choice ambiguous.
+    /// Default true.
+    pub hypothesise_hold: bool,
 }
 
 impl Default for AutoParams {
@@ -60,6 +70,7 @@ impl Default for AutoParams {
             within_se: 1.0,
             within_ratio: 1.25,
             ambiguous_mm: 5.0,
+            hypothesise_hold: true,
         }
     }
 }
@@ -165,6 +176,9 @@ pub struct CandidateScore {
     pub predicted_tre_mm: Option<f64>,
     /// Why it has no score (it failed, or its held-out check could not be solved).
     pub failed: Option<String>,
+    /// How far its answer lies from the chosen one's (RMS over the organ's nodes, mm; None
+    /// when it failed).
+    pub apart_mm: Option<f64>,
     /// Its registration's time (s).
     pub seconds: f64,
 }
@@ -190,6 +204,9 @@ pub struct AutoInfo {
     /// Why the data do not decide, when they do not: a candidate within the rule's reach whose
     /// answer lies more than [`AutoParams::ambiguous_mm`] from the chosen one.
     pub ambiguous: Option<String>,
+    /// The held variants were tried without a trusted start, ranked after the free fits
+    /// ([`AutoParams::hypothesise_hold`]).
+    pub hold_hypothesis: bool,
     /// Every candidate tried, simplest first.
     pub candidates: Vec<CandidateScore>,
     /// Every candidate's answer that registered (image → physical transform, node
@@ -214,21 +231,23 @@ pub(super) fn register_auto(
     let t0 = Instant::now();
     params.auto.validate().map_err(PipelineError::Libr)?;
     let folds = Folds::spatial(&meas.points, params.auto.folds, params.auto.cap_mm);
+    let free = PipelineParams {
+        held: false,
+        ..params.clone()
+    };
+    let initial = initial_candidate(case, meas, &free, &folds);
     let trusted = params.held || params.wicp.trusted_alignment_mm.is_some();
+    let hypothesis = !trusted && params.auto.hypothesise_hold;
     let mut deformable = vec![Candidate::Libr];
     if case.adaptive.is_some() {
         deformable.push(Candidate::Adaptive);
     }
-    if trusted {
+    if trusted || hypothesis {
         deformable.push(Candidate::LibrHeld);
         if case.adaptive.is_some() {
             deformable.push(Candidate::AdaptiveHeld);
         }
     }
-    let free = PipelineParams {
-        held: false,
-        ..params.clone()
-    };
     let held = PipelineParams {
         held: true,
         ..params.clone()
@@ -253,10 +272,15 @@ pub(super) fn register_auto(
             }
         })
         .collect();
-    tried.push(initial_candidate(case, meas, &free, &folds));
+    tried.push(initial);
     tried.push(rigid_candidate(case, meas, &free, &folds, &tried));
-    tried.sort_by_key(|t| t.candidate);
-    choose(case, tried, &params.auto, t0)
+    // Simplest first; a hypothesised hold after the free fits.
+    tried.sort_by_key(|t| (hypothesis && t.candidate.held(), t.candidate));
+    let mut answer = choose(case, tried, &params.auto, t0)?;
+    if let Some(a) = answer.auto.as_mut() {
+        a.hold_hypothesis = hypothesis;
+    }
+    Ok(answer)
 }
 
 /// Doing nothing, scored by its residual.
@@ -442,7 +466,15 @@ fn choose(
         }),
         runner_up_mm: runner.map(apart),
         ambiguous,
-        candidates: tried.iter().map(candidate_score).collect(),
+        hold_hypothesis: false,
+        candidates: tried
+            .iter()
+            .enumerate()
+            .map(|(i, t)| CandidateScore {
+                apart_mm: t.reg.as_ref().ok().map(|_| apart(i)),
+                ..candidate_score(t)
+            })
+            .collect(),
         answers: tried
             .iter()
             .filter_map(|t| {
@@ -504,6 +536,7 @@ fn candidate_score(t: &Tried) -> CandidateScore {
             (_, Err(e)) => Some(e.clone()),
             _ => None,
         },
+        apart_mm: None,
         seconds: r.map_or(0.0, |r| r.seconds),
     }
 }

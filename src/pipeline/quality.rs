@@ -355,6 +355,7 @@ mod tests {
             margin_se: Some(0.2),
             runner_up_mm: Some(7.0),
             ambiguous: ambiguous.map(str::to_string),
+            hold_hypothesis: false,
             candidates: Vec::new(),
             answers: Vec::new(),
         };

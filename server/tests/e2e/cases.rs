@@ -288,10 +288,20 @@ async fn auto_is_answered_with_its_choice_and_audited() {
         choice.runner_up,
         a.runner_up.map_or(String::new(), |c| c.name().to_string())
     );
-    // Every candidate tried: doing nothing, rigid, LIBR and adaptive LIBR (no trusted start:
-    // no held variants), each scored.
+    // Every candidate tried: doing nothing, rigid, LIBR, adaptive LIBR and (no trusted start:
+    // the hold as a hypothesis, ranked after the free fits) their held variants, each scored.
     let names: Vec<&str> = choice.candidates.iter().map(|c| c.name.as_str()).collect();
-    assert_eq!(names, ["initial", "rigid", "libr", "adaptive"]);
+    assert_eq!(
+        names,
+        [
+            "initial",
+            "rigid",
+            "libr",
+            "adaptive",
+            "libr-held",
+            "adaptive-held"
+        ]
+    );
     assert!(
         choice
             .candidates
@@ -320,6 +330,6 @@ async fn auto_is_answered_with_its_choice_and_audited() {
     assert_eq!(reg.detail["choice"]["chosen"], choice.chosen.as_str());
     assert_eq!(
         reg.detail["choice"]["candidates"].as_array().map(Vec::len),
-        Some(4)
+        Some(6)
     );
 }

@@ -105,6 +105,8 @@ pub struct AutoOutcome {
     pub margin_se: Option<f64>,
     /// Why the data did not decide, when they did not.
     pub ambiguous: Option<String>,
+    /// The held variants were tried without a trusted start (ranked after the free fits).
+    pub hold_hypothesis: bool,
     /// The candidate with the lowest true mean TRE.
     pub oracle: Option<String>,
     /// Every candidate: name, held-out score (mm²), in-sample (mm²), predicted TRE (mm), true
@@ -127,6 +129,8 @@ pub struct AutoCandidateRow {
     pub predicted_tre_mm: Option<f64>,
     /// The true mean TRE over nodes (mm).
     pub tre_mm: Option<f64>,
+    /// How far its answer lies from the chosen one's (RMS over the organ, mm).
+    pub apart_mm: Option<f64>,
 }
 
 /// Aggregate of one method.

@@ -420,6 +420,7 @@ fn auto_outcome(
             in_sample_mm2: c.in_sample_mm2,
             predicted_tre_mm: c.predicted_tre_mm,
             tre_mm: tre(c.candidate),
+            apart_mm: c.apart_mm,
         })
         .collect();
     let oracle = candidates
@@ -433,6 +434,7 @@ fn auto_outcome(
         runner_up: a.runner_up.map(|c| c.name().to_string()),
         margin_se: a.margin_se,
         ambiguous: a.ambiguous.clone(),
+        hold_hypothesis: a.hold_hypothesis,
         oracle,
         candidates,
     }

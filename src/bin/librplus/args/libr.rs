@@ -45,6 +45,10 @@ pub(crate) struct LibrOpts {
     /// (their abstain.json; by default such a registration answers LIBR's result, flagged)
     #[arg(long)]
     pub(crate) no_abstain: bool,
+    /// Auto without a trusted start: do not try the held variants (by default they are tried
+    /// as a hypothesis, ranked after the free fits)
+    #[arg(long)]
+    pub(crate) auto_no_hold_hypothesis: bool,
     /// With --held: a boundary node is held when no measured point lies within this distance
     /// (mm, default 45)
     #[arg(long, value_name = "MM")]
@@ -134,6 +138,7 @@ impl LibrOpts {
         p.wicp.surface_only = self.wicp_surface_only;
         p.wicp.trusted_alignment_mm = self.trusted_alignment;
         p.held = self.held;
+        p.auto.hypothesise_hold = !self.auto_no_hold_hypothesis;
         p.abstain = !self.no_abstain;
         if let Some(g) = self.search_above {
             p.pose.search_above_mm2 = g;
