@@ -316,15 +316,11 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
             }
         }
     }
-    if method == Method::Auto {
-        let need = AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms);
-        if left < need {
-            method = Method::Libr;
-            degraded = Some(format!(
-                "time budget {:.0} ms: {left:.0} ms left, the automatic choice needs about {need:.0} ms; LIBR result",
-                ms(job.budget)
-            ));
-        }
+    if method == Method::Auto
+        && let Some(why) = auto_does_not_fit(job, left)
+    {
+        method = Method::Libr;
+        degraded = Some(why);
     }
     if matches!(method, Method::Libr | Method::LibrPlus | Method::Auto) {
         let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
@@ -365,6 +361,19 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         queue_ms,
         search_off,
     }
+}
+
+/// Why the automatic choice does not fit the `left` ms of the budget (None: it does), by the
+/// case's running estimates.
+fn auto_does_not_fit(job: &Job, left: f64) -> Option<String> {
+    let est = job.case.estimates();
+    let need = AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms);
+    (left < need).then(|| {
+        format!(
+            "time budget {:.0} ms: {left:.0} ms left, the automatic choice needs about {need:.0} ms; LIBR result",
+            ms(job.budget)
+        )
+    })
 }
 
 /// An answer later than its budget says so (the plan keeps to it when the estimates hold; a
