@@ -94,7 +94,7 @@ pub struct ServerConfig {
     /// How long shutdown waits for sessions to finish their update and close, s. Default 10.
     pub drain_grace_s: f64,
     /// Method used when a request leaves it unspecified (`rigid`, `libr`, `auto`, `adaptive`,
-    /// `librplus`, `v2s`). Default `libr`.
+    /// `librplus`, `v2s`). Default `auto`.
     pub default_method: String,
     /// SR-GCN model directory (`librplus train`'s output, or an ensemble directory) for LIBR+; every case gets it. None:
     /// the model built into the server, when this build has one.
@@ -107,9 +107,10 @@ pub struct ServerConfig {
     /// Whether cases answer METHOD_V2S at all (false: no V2S model is loaded, and METHOD_V2S is
     /// FAILED_PRECONDITION). Default true.
     pub v2s: bool,
-    /// Whether cases also prepare adaptive LIBR's multi-level basis and answer METHOD_ADAPTIVE
-    /// (its preload then costs about four times LIBR's basis, cached beside it). Default false:
-    /// METHOD_ADAPTIVE is FAILED_PRECONDITION.
+    /// Whether cases also prepare adaptive LIBR's multi-level basis, for METHOD_ADAPTIVE and as
+    /// a candidate of METHOD_AUTO (its preload costs about four times LIBR's basis, cached beside
+    /// it). Default true; false: METHOD_ADAPTIVE is FAILED_PRECONDITION and METHOD_AUTO chooses
+    /// without adaptive LIBR.
     pub adaptive: bool,
     /// Log as JSON lines instead of text.
     pub log_json: bool,
@@ -205,12 +206,12 @@ impl Default for ServerConfig {
             keepalive_s: 30.0,
             session_idle_timeout_s: 600.0,
             drain_grace_s: 10.0,
-            default_method: "libr".into(),
+            default_method: "auto".into(),
             model: None,
             librplus: true,
             v2s_model: None,
             v2s: true,
-            adaptive: false,
+            adaptive: true,
             log_json: false,
             discovery_budget_ms: 120_000,
             max_discovery_budget_ms: 600_000,

@@ -184,10 +184,14 @@ struct Args {
     /// Load no V2S model (METHOD_V2S requests get FAILED_PRECONDITION).
     #[arg(long)]
     no_v2s: bool,
-    /// Also prepare adaptive LIBR's multi-level basis for every case, so that METHOD_ADAPTIVE
-    /// is answered (a longer preload).
-    #[arg(long)]
+    /// Prepare adaptive LIBR's multi-level basis for every case (the default; kept for older
+    /// command lines).
+    #[arg(long, conflicts_with = "no_adaptive")]
     adaptive: bool,
+    /// Do not prepare adaptive LIBR's basis (a shorter preload, less memory): METHOD_ADAPTIVE is
+    /// then FAILED_PRECONDITION and METHOD_AUTO chooses without adaptive LIBR.
+    #[arg(long)]
+    no_adaptive: bool,
     /// Log JSON lines.
     #[arg(long)]
     log_json: bool,
@@ -287,6 +291,9 @@ fn config(a: &Args) -> Result<ServerConfig> {
     }
     if a.adaptive {
         c.adaptive = true;
+    }
+    if a.no_adaptive {
+        c.adaptive = false;
     }
     if a.metrics_listen.is_some() {
         c.metrics_listen = a.metrics_listen.clone();

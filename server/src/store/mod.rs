@@ -346,9 +346,10 @@ pub struct Quotas {
     pub cases_per_principal: usize,
     /// Most bytes of the cases one principal uploaded.
     pub bytes_per_principal: u64,
-    /// Columns of the bases the server builds for a case (LIBR's, and adaptive LIBR's when
-    /// configured): what its cache will hold ([`basis_cache_bytes`]).
-    pub basis_columns: usize,
+    /// Columns of each basis the server builds for a case (LIBR's, and adaptive LIBR's when
+    /// configured; 0: none), one cache file each: what its cache will hold
+    /// ([`basis_cache_bytes`]).
+    pub basis_columns: [usize; 2],
 }
 
 /// Bytes a case's basis cache takes for a mesh of `nodes` nodes and bases of `columns` columns
@@ -366,7 +367,7 @@ impl Quotas {
         bytes: u64::MAX,
         cases_per_principal: usize::MAX,
         bytes_per_principal: u64::MAX,
-        basis_columns: 0,
+        basis_columns: [0, 0],
     };
 
     /// The configured quotas (a per-principal 0: the total's).
@@ -388,12 +389,12 @@ impl Quotas {
 }
 
 /// Columns of the bases the server builds for each case: LIBR's (3 a control point), and
-/// adaptive LIBR's multi-level basis when `adaptive`.
-fn basis_columns(adaptive: bool) -> usize {
+/// adaptive LIBR's multi-level basis when `adaptive` (else 0).
+fn basis_columns(adaptive: bool) -> [usize; 2] {
     let libr = 3 * librplus::register::libr::LibrParams::default().control_points;
     let levels = librplus::register::libr::AdaptiveParams::default().levels;
     let multi: usize = levels.iter().map(|l| 3 * l.0).sum();
-    libr + if adaptive { multi } else { 0 }
+    [libr, if adaptive { multi } else { 0 }]
 }
 
 /// What the store holds: cases and bytes, in total and of one principal.
@@ -674,10 +675,12 @@ impl Store {
         let size = (c.mesh_bytes.len()
             + u.vessels.as_ref().map_or(0, Vec::len)
             + u.physics.as_ref().map_or(0, Vec::len)) as u64;
-        let cache_reserve = match quotas.basis_columns {
-            0 => 0,
-            m => basis_cache_bytes(c.nodes, m),
-        };
+        let cache_reserve: u64 = quotas
+            .basis_columns
+            .iter()
+            .filter(|&&m| m > 0)
+            .map(|&m| basis_cache_bytes(c.nodes, m))
+            .sum();
         self.check_quota(principal, size.saturating_add(cache_reserve), quotas)?;
         let tmp = self.dir.join(format!(".upload-{}", random_hex()));
         let result = (|| {

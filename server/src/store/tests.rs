@@ -268,7 +268,7 @@ fn quotas_bound_the_store_per_principal_and_in_total() {
         bytes: 10 * size,
         cases_per_principal: 2,
         bytes_per_principal: 10 * size,
-        basis_columns: 0,
+        basis_columns: [0, 0],
     };
     put("a1", "a", &q).unwrap();
     put("a22", "a", &q).unwrap();
@@ -366,8 +366,14 @@ fn a_stored_case_counts_its_basis_cache_before_it_is_written() {
     let columns = basis_columns(false);
     assert_eq!(
         columns,
-        3 * librplus::register::libr::LibrParams::default().control_points
+        [
+            3 * librplus::register::libr::LibrParams::default().control_points,
+            0
+        ]
     );
+    let with_adaptive = basis_columns(true);
+    assert_eq!(with_adaptive[0], columns[0]);
+    assert!(with_adaptive[1] > columns[0], "{with_adaptive:?}");
     let put = |id: &str, q: &Quotas| {
         let mut nodes = n.clone();
         nodes[0] = -(id.len() as f64);
@@ -379,7 +385,7 @@ fn a_stored_case_counts_its_basis_cache_before_it_is_written() {
         .mesh_bytes
         .len() as u64;
     let nodes = n.len() / 3;
-    let reserve = basis_cache_bytes(nodes, columns);
+    let reserve = basis_cache_bytes(nodes, columns[0]);
     assert!(reserve > files, "{reserve} vs {files}");
     // Room for two cases with their caches, not three.
     let q = Quotas {
@@ -420,7 +426,7 @@ fn the_basis_cache_estimate_matches_a_written_cache() {
         .map(|e| e.unwrap().metadata().unwrap().len())
         .sum();
     let estimate = basis_cache_bytes(mesh.num_nodes(), basis.columns());
-    assert_eq!(basis.columns(), basis_columns(false));
+    assert_eq!(basis.columns(), basis_columns(false)[0]);
     eprintln!(
         "{} nodes, {} columns: cache {written} bytes, estimate {estimate}",
         mesh.num_nodes(),
@@ -428,4 +434,38 @@ fn the_basis_cache_estimate_matches_a_written_cache() {
     );
     assert!(estimate >= written, "{estimate} < {written}");
     assert!(estimate - written < 8192, "{estimate} vs {written}");
+}
+
+/// The same for adaptive LIBR's multi-level basis, the second file of a case's cache when the
+/// server prepares it (the default): its columns are the ones the quota reserves.
+#[test]
+fn the_adaptive_basis_cache_estimate_matches_its_written_file() {
+    use librplus::register::libr::{AdaptiveParams, LibrBasis, LibrParams};
+    use librplus::register::physics::{Physics, model::Sites};
+    let mesh = librplus::mesh::procedural::box_mesh([120.0, 90.0, 60.0], [6, 5, 4], 0.2);
+    let dir = tempfile::tempdir().unwrap();
+    let levels = AdaptiveParams::default().levels;
+    let none = vec![false; mesh.num_nodes()];
+    let sites = Sites {
+        posterior: &none,
+        falciform: &none,
+    };
+    let (basis, _) = LibrBasis::load_or_build_levels(
+        &mesh,
+        &LibrParams::default(),
+        &levels,
+        &Physics::none(),
+        sites,
+        dir.path(),
+    )
+    .unwrap();
+    let written: u64 = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().metadata().unwrap().len())
+        .sum();
+    assert_eq!(basis.columns(), basis_columns(true)[1]);
+    let estimate = basis_cache_bytes(mesh.num_nodes(), basis.columns());
+    eprintln!("adaptive basis: cache {written} bytes, estimate {estimate}");
+    assert!(estimate >= written, "{estimate} < {written}");
+    assert!(estimate - written < 16384, "{estimate} vs {written}");
 }

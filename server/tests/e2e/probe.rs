@@ -337,8 +337,9 @@ async fn the_byte_quota_counts_the_basis_cache_of_each_case() {
     let mesh = std::fs::read(dataset().join(&m.geometries[0].preop)).unwrap();
     let geo = load_geometry(dataset(), &m, &m.geometries[0].id).unwrap();
     let nodes = geo.model.mesh.num_nodes() as u64;
-    // LIBR's basis: 3·nodes × 75 columns and its 75 × 75 energy, 8 bytes each.
-    let cache = 8 * (3 * nodes * 75 + 75 * 75);
+    // LIBR's basis (3·nodes × 75 columns and its 75 × 75 energy) and adaptive LIBR's (375
+    // columns, the server's default), 8 bytes each.
+    let cache = 8 * (3 * nodes * 75 + 75 * 75) + 8 * (3 * nodes * 375 + 375 * 375);
     let one = mesh.len() as u64 + cache;
     let quota = 2 * one + cache / 2;
     let config = write(
