@@ -162,7 +162,20 @@ pub struct MethodSummary {
     /// Per truth family (`generate --families`; `neo-hookean` for data without): mean TRE and
     /// count.
     pub by_family: BTreeMap<String, CategorySummary>,
+    /// Registrations per quality flag ([`crate::pipeline::quality::Quality::name`]).
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub quality: BTreeMap<String, usize>,
+    /// Registrations confidently worse than doing nothing: flagged `ok`, yet more than
+    /// [`FAILED_MM`] off or more than [`WORSE_MM`] worse than method `initial` on the same
+    /// scenario (None when `initial` was not run).
+    pub bad_flagged_ok: Option<usize>,
 }
+
+/// A registration whose mean TRE exceeds this has failed (mm).
+pub const FAILED_MM: f64 = 20.0;
+
+/// A registration this much worse than doing nothing is worse than doing nothing (mm).
+pub const WORSE_MM: f64 = 2.0;
 
 /// The deformation pattern of a scenario id `GEOMETRY-PATTERN-NN/INDEX` (`g1-L-00/5` → `L`);
 /// `?` when the id has another shape.
@@ -338,8 +351,30 @@ pub struct LibrPlusEval<'a> {
 pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> {
     let mut out: BTreeMap<String, MethodSummary> = BTreeMap::new();
     let mut times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    // Doing nothing's TRE per scenario, when it ran.
+    let nothing: BTreeMap<&str, f64> = results
+        .iter()
+        .filter(|r| r.method == crate::pipeline::Method::Initial.name())
+        .filter_map(|r| Some((r.scenario.as_str(), r.tre.as_ref()?.tre_mm)))
+        .collect();
+    let with_nothing = results
+        .iter()
+        .any(|r| r.method == crate::pipeline::Method::Initial.name());
     for r in results {
         let s = out.entry(r.method.clone()).or_default();
+        if let Some(q) = r.quality {
+            *s.quality.entry(q.name().to_string()).or_default() += 1;
+        }
+        if with_nothing {
+            let bad = r.tre.as_ref().is_some_and(|t| {
+                t.tre_mm > FAILED_MM
+                    || nothing
+                        .get(r.scenario.as_str())
+                        .is_some_and(|&n| t.tre_mm > n + WORSE_MM)
+            });
+            let ok = r.quality == Some(crate::pipeline::quality::Quality::Ok);
+            *s.bad_flagged_ok.get_or_insert(0) += usize::from(bad && ok);
+        }
         match &r.tre {
             Some(t) => {
                 s.scenarios += 1;
@@ -528,6 +563,39 @@ mod tests {
             quality: None,
             quality_reason: None,
         }
+    }
+
+    /// The count of confidently worse answers: flagged OK and more than 20 mm off, or more than
+    /// 2 mm worse than doing nothing on the same scenario; a flagged one is not counted, and
+    /// without doing nothing among the methods there is no count.
+    #[test]
+    fn confidently_worse_answers_are_counted_against_doing_nothing() {
+        use crate::pipeline::quality::Quality;
+        let flagged = |mut r: ScenarioResult, q: Quality| {
+            r.quality = Some(q);
+            r
+        };
+        let rows = vec![
+            row("g1-L-00/0", "initial", 5.0),
+            row("g1-L-00/1", "initial", 30.0),
+            row("g1-L-00/2", "initial", 5.0),
+            // 2.5 mm worse, OK: counted.
+            flagged(row("g1-L-00/0", "libr", 7.5), Quality::Ok),
+            // 21 mm off though better than doing nothing, OK: counted.
+            flagged(row("g1-L-00/1", "libr", 21.0), Quality::Ok),
+            // 3 mm worse but flagged: not counted.
+            flagged(row("g1-L-00/2", "libr", 8.0), Quality::AmbiguousModel),
+            // 1.5 mm worse, OK: not counted.
+            flagged(row("g1-L-00/2", "rigid", 6.5), Quality::Ok),
+        ];
+        let s = summarize(&rows);
+        assert_eq!(s["libr"].bad_flagged_ok, Some(2));
+        assert_eq!(s["rigid"].bad_flagged_ok, Some(0));
+        assert_eq!(s["libr"].quality["ok"], 2);
+        assert_eq!(s["libr"].quality["ambiguous_model"], 1);
+        let without: Vec<ScenarioResult> =
+            rows.into_iter().filter(|r| r.method != "initial").collect();
+        assert_eq!(summarize(&without)["libr"].bad_flagged_ok, None);
     }
 
     /// Patterns are read from the deformation id; the per-pattern means are the means of their
