@@ -470,10 +470,7 @@ fn choose(
         candidates: tried
             .iter()
             .enumerate()
-            .map(|(i, t)| CandidateScore {
-                apart_mm: t.reg.as_ref().ok().map(|_| apart(i)),
-                ..candidate_score(t)
-            })
+            .map(|(i, t)| candidate_score(t, t.reg.as_ref().ok().map(|_| apart(i))))
             .collect(),
         answers: tried
             .iter()
@@ -521,8 +518,9 @@ fn ambiguity(
     ))
 }
 
-/// A candidate's line in [`AutoInfo::candidates`].
-fn candidate_score(t: &Tried) -> CandidateScore {
+/// A candidate's line in [`AutoInfo::candidates`] (`apart_mm`: its answer's distance from the
+/// chosen one's).
+fn candidate_score(t: &Tried, apart_mm: Option<f64>) -> CandidateScore {
     let s = t.score.as_ref().ok();
     let r = t.reg.as_ref().ok();
     CandidateScore {
@@ -536,7 +534,7 @@ fn candidate_score(t: &Tried) -> CandidateScore {
             (_, Err(e)) => Some(e.clone()),
             _ => None,
         },
-        apart_mm: None,
+        apart_mm,
         seconds: r.map_or(0.0, |r| r.seconds),
     }
 }
