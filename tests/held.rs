@@ -257,7 +257,11 @@ fn an_organ_that_moved_rigidly_is_answered_no_worse_than_doing_nothing() {
 fn the_hold_is_the_boundary_no_measured_point_comes_near() {
     let c = case();
     let (meas, truth) = measured(&c.u, 5);
-    let p = HoldParams::default();
+    // Every node the clearance leaves (no cap on their number).
+    let p = HoldParams {
+        max_nodes: 0,
+        ..HoldParams::default()
+    };
     let h = hold(&c.prepared.model, &meas, &truth, &p).unwrap();
     let inv = truth.inverse();
     let pts: Vec<[f64; 3]> = meas.points.iter().map(|&q| inv.apply(q)).collect();
@@ -270,6 +274,46 @@ fn the_hold_is_the_boundary_no_measured_point_comes_near() {
         .collect();
     assert_eq!(h.nodes, want);
     assert!(!want.is_empty() && want.len() < boundary.iter().filter(|&&b| b).count());
+    // Capped: a subset of them, spread evenly, held where the full hold holds them.
+    let k = want.len() / 4;
+    let capped = hold(
+        &c.prepared.model,
+        &meas,
+        &truth,
+        &HoldParams { max_nodes: k, ..p },
+    )
+    .unwrap();
+    assert_eq!(capped.nodes.len(), k);
+    assert!(capped.nodes.iter().all(|v| want.binary_search(v).is_ok()));
+    for (&v, q) in capped.nodes.iter().zip(&capped.physical) {
+        assert!(dist(truth.apply(x[v as usize]), *q) < 1e-9);
+    }
+    // Farthest-point sampling: no held node lies farther from the kept ones than the closest
+    // two kept ones lie from each other (else it would have been kept before the later one).
+    let kept: Vec<[f64; 3]> = capped.nodes.iter().map(|&v| x[v as usize]).collect();
+    let nearest = |y: [f64; 3], skip: Option<usize>| {
+        kept.iter()
+            .enumerate()
+            .filter(|&(j, _)| Some(j) != skip)
+            .map(|(_, &z)| dist(y, z))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let cover = want
+        .iter()
+        .map(|&v| nearest(x[v as usize], None))
+        .fold(0.0, f64::max);
+    let separation = (0..k)
+        .map(|j| nearest(kept[j], Some(j)))
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        cover <= separation + 1e-9,
+        "a held node {cover:.2} mm from the kept ones, kept ones {separation:.2} mm apart"
+    );
+    eprintln!(
+        "{} of {} held nodes kept: every held node within {cover:.1} mm of one, the kept ones at least {separation:.1} mm apart",
+        k,
+        want.len()
+    );
     for (&v, q) in h.nodes.iter().zip(&h.physical) {
         assert!(dist(truth.apply(x[v as usize]), *q) < 1e-9);
     }

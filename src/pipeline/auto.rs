@@ -28,10 +28,11 @@
 //! whose answer lies more than [`AutoParams::ambiguous_mm`] from it (RMS over the organ's
 //! nodes) — the answer says so ([`AutoInfo::ambiguous`]).
 
-use super::run::register_scored;
-use super::{Method, PipelineError, PipelineParams, Prepared, Registration};
+use super::run::{Shared, register_scored};
+use super::{Method, PipelineError, PipelineParams, Prepared, Registration, rigid_params};
 use crate::mesh::rigid::Rigid;
 use crate::register::libr::{FitModel, Folds, HeldOut, held_out};
+use crate::register::wicp::{WicpResult, wicp};
 use crate::register::{Measurements, RegisterError};
 use crate::util::secs;
 use rayon::prelude::*;
@@ -238,25 +239,44 @@ pub(super) fn register_auto(
     let initial = initial_candidate(case, meas, &free, &folds);
     let trusted = params.held || params.wicp.trusted_alignment_mm.is_some();
     let hypothesis = !trusted && params.auto.hypothesise_hold;
-    let mut deformable = vec![Candidate::Libr];
+    // The heaviest first, so that the two halves rayon splits them into take about as long.
+    let mut deformable = Vec::new();
+    if case.adaptive.is_some() && (trusted || hypothesis) {
+        deformable.push(Candidate::AdaptiveHeld);
+    }
+    deformable.push(Candidate::Libr);
     if case.adaptive.is_some() {
         deformable.push(Candidate::Adaptive);
     }
     if trusted || hypothesis {
         deformable.push(Candidate::LibrHeld);
-        if case.adaptive.is_some() {
-            deformable.push(Candidate::AdaptiveHeld);
-        }
     }
     let held = PipelineParams {
         held: true,
         ..params.clone()
     };
+    // The rigid stage from the navigation start, once for the free fits and once for the held.
+    let (free_start, held_start) = rayon::join(
+        || start_pose(case, meas, &free),
+        || {
+            (trusted || hypothesis)
+                .then(|| start_pose(case, meas, &held))
+                .flatten()
+        },
+    );
     let mut tried: Vec<Tried> = deformable
         .par_iter()
         .map(|&c| {
-            let p = if c.held() { &held } else { &free };
-            let reg = register_scored(case, meas, c.method(), p, Some(&folds));
+            let (p, start) = if c.held() {
+                (&held, held_start.as_ref())
+            } else {
+                (&free, free_start.as_ref())
+            };
+            let shared = Shared {
+                folds: Some(&folds),
+                start,
+            };
+            let reg = register_scored(case, meas, c.method(), p, shared);
             let score = match &reg {
                 Ok(r) => r
                     .libr
@@ -283,6 +303,18 @@ pub(super) fn register_auto(
     Ok(answer)
 }
 
+/// The rigid stage from the navigation start with `params`' rigid settings (None when it fails:
+/// each candidate then runs, and reports, its own).
+fn start_pose(case: &Prepared, meas: &Measurements, params: &PipelineParams) -> Option<WicpResult> {
+    wicp(
+        &case.model,
+        &case.correspondence,
+        meas,
+        &rigid_params(case, params),
+    )
+    .ok()
+}
+
 /// Doing nothing, scored by its residual.
 fn initial_candidate(
     case: &Prepared,
@@ -290,7 +322,7 @@ fn initial_candidate(
     params: &PipelineParams,
     folds: &Folds,
 ) -> Tried {
-    let reg = register_scored(case, meas, Method::Initial, params, None);
+    let reg = register_scored(case, meas, Method::Initial, params, Shared::default());
     let score = match &reg {
         Ok(r) => pose_score(
             case,
@@ -341,7 +373,7 @@ fn rigid_candidate(
             };
             Ok(r.estimated(case, meas))
         }
-        None => register_scored(case, meas, Method::Rigid, params, None),
+        None => register_scored(case, meas, Method::Rigid, params, Shared::default()),
     };
     let score = match &reg {
         Ok(r) => pose_score(

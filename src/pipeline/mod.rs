@@ -39,7 +39,7 @@ pub fn register(
     if method == Method::Auto {
         return auto::register_auto(case, meas, params);
     }
-    run::register_scored(case, meas, method, params, None)
+    run::register_scored(case, meas, method, params, run::Shared::default())
 }
 
 /// Why a case could not be prepared or a registration did not run, by stage.

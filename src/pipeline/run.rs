@@ -17,19 +17,30 @@ use crate::util::secs;
 use crate::v2s::V2sCase;
 use std::time::{Duration, Instant};
 
-/// [`super::register`] with one method (not [`Method::Auto`]), its deformable fit's held-out
-/// prediction measured on `folds` when given ([`crate::register::libr::held_out`]).
+/// What [`register_scored`] may share with other registrations of the same measurements.
+#[derive(Default, Clone, Copy)]
+pub(super) struct Shared<'a> {
+    /// The folds the deformable fit's held-out prediction is measured on
+    /// ([`crate::register::libr::held_out`]; None: not measured).
+    pub folds: Option<&'a Folds>,
+    /// The rigid stage from the navigation start, already run with these parameters' rigid
+    /// settings ([`rigid_params`]); used where the run starts from the navigation start alone.
+    pub start: Option<&'a WicpResult>,
+}
+
+/// [`super::register`] with one method (not [`Method::Auto`]), with what it shares.
 pub(super) fn register_scored(
     case: &Prepared,
     meas: &Measurements,
     method: Method,
     params: &PipelineParams,
-    folds: Option<&Folds>,
+    shared: Shared<'_>,
 ) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
     validate_measurements(meas).map_err(PipelineError::Rigid)?;
     let mut run = Run::new(case, meas, method, params, t0);
-    run.folds = folds;
+    run.folds = shared.folds;
+    run.start = shared.start;
     let v2s = match method {
         Method::V2s => Some(case.v2s.as_ref().ok_or(PipelineError::NoV2sModel)?),
         _ => None,
@@ -59,6 +70,8 @@ struct Run<'a> {
     search_skipped: std::sync::OnceLock<f64>,
     /// The folds the deformable fit's held-out prediction is measured on (None: not measured).
     folds: Option<&'a Folds>,
+    /// The rigid stage from the navigation start, run already ([`Shared::start`]).
+    start: Option<&'a WicpResult>,
 }
 
 /// The deformable fits of every candidate pose: each pose's solution and score (None and
@@ -98,6 +111,7 @@ impl<'a> Run<'a> {
             t0,
             search_skipped: std::sync::OnceLock::new(),
             folds: None,
+            start: None,
         }
     }
 
@@ -117,8 +131,11 @@ impl<'a> Run<'a> {
     fn start_candidates(&self) -> Result<pose::Candidates, PipelineError> {
         let case = self.case;
         if self.method == Method::Initial || self.gated() {
-            let r = wicp(&case.model, &case.correspondence, self.meas, &self.rigid)
-                .map_err(PipelineError::Rigid)?;
+            let r = match self.start {
+                Some(r) if self.method != Method::Initial => r.clone(),
+                _ => wicp(&case.model, &case.correspondence, self.meas, &self.rigid)
+                    .map_err(PipelineError::Rigid)?,
+            };
             return Ok(pose::Candidates {
                 poses: vec![r],
                 starts: 1,

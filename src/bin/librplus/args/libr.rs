@@ -56,6 +56,10 @@ pub(crate) struct LibrOpts {
     /// With --held: the held nodes' total weight relative to the data's (default 1)
     #[arg(long)]
     pub(crate) hold_weight: Option<f64>,
+    /// With --held: at most this many held nodes, spread evenly over the held surface (default
+    /// 128; 0: every node the clearance leaves)
+    #[arg(long, value_name = "N")]
+    pub(crate) hold_nodes: Option<usize>,
     /// Below this conditioning of the rigid stage's point-to-plane system the start is trusted
     /// to 10 mm and the registration flagged (default 1e-3; 0: never)
     #[arg(long)]
@@ -156,6 +160,9 @@ impl LibrOpts {
         }
         if let Some(w) = self.hold_weight {
             p.hold.weight = w;
+        }
+        if let Some(n) = self.hold_nodes {
+            p.hold.max_nodes = n;
         }
         if let Some(c) = self.min_conditioning {
             p.wicp.min_conditioning = c;
