@@ -673,6 +673,66 @@ fn misalignment_bounds_and_landmark_alignment() {
 }
 
 #[test]
+fn a_harder_start_moves_only_the_start_within_its_bounds() {
+    let l = liver();
+    let base = MeasureParams::default();
+    let hard = MeasureParams {
+        start_error: Some([30.0, 30.0]),
+        ..base
+    };
+    let (mut max_angle, mut max_shift) = (0.0f64, 0.0f64);
+    for seed in 0..60u64 {
+        let run = |p: &MeasureParams| {
+            simulate(
+                &l.mesh,
+                &l.labels,
+                &l.vessels,
+                &l.u,
+                Category::Planes2,
+                p,
+                seed,
+            )
+            .unwrap()
+        };
+        let (a, b) = (run(&base), run(&hard));
+        // Every other draw is the same: points, planes, landmarks, the true misalignment.
+        assert_eq!(a.points, b.points);
+        assert_eq!(a.landmarks_physical, b.landmarks_physical);
+        assert_rigid_close(&a.image_to_physical, &b.image_to_physical, 0.0, 0.0);
+        // The start moved by a rotation within 30° about where it put the centroid, and that
+        // point by at most 30 mm.
+        let extra = a.initial_alignment.inverse().then(&b.initial_alignment);
+        let angle = extra.rotation_angle_deg();
+        let c = a.initial_alignment.apply(l.centroid);
+        let shift = norm(sub(b.initial_alignment.apply(l.centroid), c));
+        assert!(
+            angle <= 30.0 + 1e-9 && shift <= 30.0 + 1e-9,
+            "{angle} {shift}"
+        );
+        max_angle = max_angle.max(angle);
+        max_shift = max_shift.max(shift);
+    }
+    eprintln!(
+        "60 seeds: extra start rotation up to {max_angle:.1}°, centroid shift up to {max_shift:.1} mm"
+    );
+    assert!(
+        max_angle > 25.0 && max_shift > 25.0,
+        "{max_angle} {max_shift}"
+    );
+    // Bad bounds name the field.
+    let bad = MeasureParams {
+        start_error: Some([200.0, 1.0]),
+        ..base
+    };
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("start_error")
+    );
+}
+
+#[test]
 fn noise_levels_match_the_parameters() {
     // Dense surface points (2.5 mm) over three seeds: thousands of residuals per axis, so the
     // standard error of a measured deviation is about 1%, far inside the 10% allowed.

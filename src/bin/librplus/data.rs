@@ -256,6 +256,19 @@ fn generate_config(a: &GenerateArgs, sources: Vec<String>) -> Result<GenerateCon
         config.train_patterns = train_patterns(&a.patterns)?;
     }
     config.paired_categories = a.paired_categories;
+    if let Some(e) = &a.start_error {
+        let [deg, mm] = e[..] else {
+            bail!(
+                "--start-error: DEG,MM (two numbers), got {} value(s)",
+                e.len()
+            );
+        };
+        config.measure.start_error = Some([deg, mm]);
+        config
+            .measure
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--start-error: {e}"))?;
+    }
     config.truth = match a.truth {
         TruthArg::Nonlinear => TruthModel::Nonlinear,
         TruthArg::Linear => TruthModel::LinearHomogeneous,

@@ -146,6 +146,13 @@ pub struct MeasureParams {
     /// parameters (and their hash) when false.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub trusted_start: bool,
+    /// A harder navigation start: the start as drawn (the landmark fit, or the true alignment
+    /// with `trusted_start`) moved further by a random rotation of up to `[0]` degrees about
+    /// where it puts the organ's centroid and a shift of up to `[1]` mm (uniform in the ball),
+    /// from a draw of its own (every other draw stays as it was). None (the default): the start
+    /// as drawn; left out of the parameters (and their hash) when None.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_error: Option<[f64; 2]>,
 }
 
 impl Default for MeasureParams {
@@ -164,6 +171,7 @@ impl Default for MeasureParams {
             landmark_noise_mm: 4.0,
             feature_radius_mm: 5.0,
             trusted_start: false,
+            start_error: None,
         }
     }
 }
@@ -220,6 +228,13 @@ impl MeasureParams {
                 "landmarks must be at least 3 for a rigid fit, got {}",
                 self.landmarks
             )));
+        }
+        if let Some([deg, mm]) = self.start_error {
+            if !((0.0..=180.0).contains(&deg) && mm.is_finite() && mm >= 0.0) {
+                return Err(PhantomError::Parameter(format!(
+                    "start_error must be [degrees in [0, 180], mm ≥ 0 and finite], got [{deg}, {mm}]"
+                )));
+            }
         }
         Ok(())
     }
@@ -327,6 +342,7 @@ const STREAM_TRANSFORM: u64 = 3;
 const STREAM_LANDMARKS: u64 = 4;
 const STREAM_NOISE: u64 = 5;
 const STREAM_LANDMARK_NOISE: u64 = 6;
+const STREAM_START_ERROR: u64 = 7;
 
 /// An independent generator for one stage of the simulation.
 fn stream(seed: u64, id: u64) -> SplitMix64 {
@@ -708,19 +724,31 @@ fn probe_plane(origin: [f64; 3], nrm: [f64; 3], rng: &mut SplitMix64) -> UsPlane
 /// shift up to `max_translation_mm` (uniform in the ball).
 fn misalignment(rest: &[[f64; 3]], params: &MeasureParams, seed: u64) -> Rigid {
     let mut rng = stream(seed, STREAM_TRANSFORM);
-    let centroid = scale(
-        rest.iter().fold([0.0; 3], |a, &p| add(a, p)),
-        1.0 / rest.len() as f64,
-    );
-    let axis = unit_sphere(&mut rng);
-    let angle = params.max_rotation_deg.to_radians() * rng.next_f64();
-    let shift = scale(
-        unit_sphere(&mut rng),
-        params.max_translation_mm * rng.next_f64().cbrt(),
-    );
+    random_rigid(
+        centroid(rest),
+        params.max_rotation_deg,
+        params.max_translation_mm,
+        &mut rng,
+    )
+}
+
+/// The mean of `points`.
+fn centroid(points: &[[f64; 3]]) -> [f64; 3] {
+    scale(
+        points.iter().fold([0.0; 3], |a, &p| add(a, p)),
+        1.0 / points.len().max(1) as f64,
+    )
+}
+
+/// A random rotation of up to `max_deg` about `centre` (axis uniform on the sphere, angle
+/// uniform), then a shift of up to `max_mm` (uniform in the ball).
+fn random_rigid(centre: [f64; 3], max_deg: f64, max_mm: f64, rng: &mut SplitMix64) -> Rigid {
+    let axis = unit_sphere(rng);
+    let angle = max_deg.to_radians() * rng.next_f64();
+    let shift = scale(unit_sphere(rng), max_mm * rng.next_f64().cbrt());
     let rot = Rigid::from_axis_angle(axis, angle, [0.0; 3]);
     Rigid {
-        translation: sub(add(centroid, shift), rot.apply_vector(centroid)),
+        translation: sub(add(centre, shift), rot.apply_vector(centre)),
         ..rot
     }
 }
@@ -760,7 +788,7 @@ fn landmarks(
             add(tf.apply(deformed[v as usize]), e)
         })
         .collect();
-    let initial_alignment = if params.trusted_start {
+    let drawn = if params.trusted_start {
         *tf
     } else {
         Rigid::fit(&landmarks_image, &landmarks_physical, None).ok_or_else(|| {
@@ -768,6 +796,18 @@ fn landmarks(
                 "landmark nodes {landmark_nodes:?} are collinear: no rigid fit"
             ))
         })?
+    };
+    let initial_alignment = match params.start_error {
+        Some([deg, mm]) => {
+            let mut rng = stream(seed, STREAM_START_ERROR);
+            drawn.then(&random_rigid(
+                drawn.apply(centroid(rest)),
+                deg,
+                mm,
+                &mut rng,
+            ))
+        }
+        None => drawn,
     };
     Ok(Landmarks {
         landmark_nodes,

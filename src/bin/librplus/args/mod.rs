@@ -614,6 +614,12 @@ pub(crate) struct GenerateArgs {
     /// are compared on the same draws (off by default: every scenario is drawn on its own).
     #[arg(long)]
     pub(crate) paired_categories: bool,
+    /// Harder navigation starts: each scenario's start (the landmark fit; a held organ's, the
+    /// true alignment) moved further by a random rotation of up to DEG degrees about the organ's
+    /// centroid and a shift of up to MM mm, e.g. `30,30` (a draw of its own: the rest of the
+    /// dataset stays as without it)
+    #[arg(long, value_delimiter = ',', value_name = "DEG,MM", num_args = 1)]
+    pub(crate) start_error: Option<Vec<f64>>,
     #[command(flatten)]
     pub(crate) common: Common,
 }
