@@ -733,6 +733,102 @@ fn a_harder_start_moves_only_the_start_within_its_bounds() {
 }
 
 #[test]
+fn a_patch_cut_from_another_side_lies_on_that_side() {
+    use librplus::phantom::measure::Visible;
+    let l = liver();
+    let def = deformed(l, &l.u);
+    let tris = l.mesh.boundary().unwrap().triangles;
+    let normal = |t: &[u32; 3]| {
+        let p = t.map(|v| def[v as usize]);
+        let (a, b) = (sub(p[1], p[0]), sub(p[2], p[0]));
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    // Outward: Σ n·(x − c) over the boundary is 6 × the volume (divergence theorem), > 0.
+    let c = centroid(&def);
+    let flux: f64 = tris
+        .iter()
+        .map(|t| dot(normal(t), sub(def[t[0] as usize], c)))
+        .sum();
+    assert!(flux > 0.0, "boundary normals point inward ({flux})");
+    let all = TriSurface::new(def.clone(), tris.clone()).unwrap();
+    let all_bvh = TriangleBvh::new(&all);
+    // The surface points of a scenario (noise-free, image frame) and the mean outward normal of
+    // the boundary triangles they lie on.
+    let patch = |side: Visible, seed: u64| {
+        let p = MeasureParams {
+            visible: side,
+            ..noise_free()
+        };
+        let sc = simulate(
+            &l.mesh,
+            &l.labels,
+            &l.vessels,
+            &l.u,
+            Category::Surface,
+            &p,
+            seed,
+        )
+        .unwrap();
+        let mut mean = [0.0; 3];
+        for q in &sc.truth_image {
+            let cl = all_bvh.closest(*q, None).unwrap();
+            assert!(
+                cl.distance <= 1e-9,
+                "{side:?}: {} mm off the boundary",
+                cl.distance
+            );
+            let n = normal(&tris[cl.triangle as usize]);
+            mean = add(mean, n.map(|x| x / norm(n)));
+        }
+        (sc.truth_image.clone(), mean)
+    };
+    for (side, d) in [
+        (Visible::Posterior, [0.0, 1.0, 0.0]),
+        (Visible::Dome, [0.0, 0.0, 1.0]),
+        (Visible::Left, [1.0, 0.0, 0.0]),
+        (Visible::Right, [-1.0, 0.0, 0.0]),
+    ] {
+        // Exactly on the triangles facing that way.
+        let facing: Vec<[u32; 3]> = tris
+            .iter()
+            .copied()
+            .filter(|t| dot(normal(t), d) > 0.0)
+            .collect();
+        let bvh = TriangleBvh::new(&TriSurface::new(def.clone(), facing).unwrap());
+        for seed in 0..4u64 {
+            let (pts, _) = patch(side, seed);
+            assert!(pts.len() > 10, "{side:?} seed {seed}: {} points", pts.len());
+            for q in &pts {
+                let cl = bvh.closest(*q, None).unwrap();
+                assert!(
+                    cl.distance <= 1e-9,
+                    "{side:?} seed {seed}: {} mm off its side",
+                    cl.distance
+                );
+            }
+        }
+    }
+    // Any side: a direction per scenario, so the patches face different ways.
+    let mut octants = std::collections::BTreeSet::new();
+    for seed in 0..12u64 {
+        let (_, m) = patch(Visible::Any, seed);
+        octants.insert(m.map(|x| x > 0.0));
+    }
+    assert!(
+        octants.len() >= 3,
+        "12 patches face only {} octants",
+        octants.len()
+    );
+    // The default (anterior) leaves the parameters as they were: neither key is written.
+    let json = serde_json::to_value(MeasureParams::default()).unwrap();
+    assert!(json.get("visible").is_none() && json.get("start_error").is_none());
+}
+
+#[test]
 fn noise_levels_match_the_parameters() {
     // Dense surface points (2.5 mm) over three seeds: thousands of residuals per axis, so the
     // standard error of a measured deviation is about 1%, far inside the 10% allowed.

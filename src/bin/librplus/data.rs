@@ -256,6 +256,20 @@ fn generate_config(a: &GenerateArgs, sources: Vec<String>) -> Result<GenerateCon
         config.train_patterns = train_patterns(&a.patterns)?;
     }
     config.paired_categories = a.paired_categories;
+    if let Some(v) = &a.visible {
+        use librplus::phantom::measure::Visible;
+        config.measure.visible = match v.as_str() {
+            "anterior" => Visible::Anterior,
+            "posterior" => Visible::Posterior,
+            "dome" => Visible::Dome,
+            "left" => Visible::Left,
+            "right" => Visible::Right,
+            "any" => Visible::Any,
+            other => bail!(
+                "--visible: unknown side {other:?} (anterior, posterior, dome, left, right, any)"
+            ),
+        };
+    }
     if let Some(e) = &a.start_error {
         let [deg, mm] = e[..] else {
             bail!(

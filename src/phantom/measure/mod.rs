@@ -113,6 +113,32 @@ pub enum PointKind {
     Vessel = 2,
 }
 
+/// Which side of the organ the laparoscope sees ([`MeasureParams::visible`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Visible {
+    /// The labelled anterior surface (the default: an open or laparoscopic view from the front).
+    #[default]
+    Anterior,
+    /// The half of the boundary facing posterior (+y of the image frame, LPS).
+    Posterior,
+    /// The half facing superior (+z): the dome under the diaphragm.
+    Dome,
+    /// The half facing the patient's left (+x).
+    Left,
+    /// The half facing the patient's right (−x).
+    Right,
+    /// The half facing a direction drawn uniformly on the sphere per scenario (its own stream).
+    Any,
+}
+
+impl Visible {
+    /// Whether it is the default.
+    pub fn is_anterior(&self) -> bool {
+        *self == Visible::Anterior
+    }
+}
+
 /// Parameters of the measurement simulation. Lengths in mm, angles in degrees.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MeasureParams {
@@ -153,6 +179,12 @@ pub struct MeasureParams {
     /// as drawn; left out of the parameters (and their hash) when None.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start_error: Option<[f64; 2]>,
+    /// The side whose surface the patch is cut from. A side other than the anterior one is the
+    /// boundary triangles whose outward normal (on the deformed organ) faces that direction;
+    /// the coverage is a fraction of its area. Left out of the parameters (and their hash) for
+    /// the default, anterior.
+    #[serde(default, skip_serializing_if = "Visible::is_anterior")]
+    pub visible: Visible,
 }
 
 impl Default for MeasureParams {
@@ -172,6 +204,7 @@ impl Default for MeasureParams {
             feature_radius_mm: 5.0,
             trusted_start: false,
             start_error: None,
+            visible: Visible::Anterior,
         }
     }
 }
@@ -343,6 +376,7 @@ const STREAM_LANDMARKS: u64 = 4;
 const STREAM_NOISE: u64 = 5;
 const STREAM_LANDMARK_NOISE: u64 = 6;
 const STREAM_START_ERROR: u64 = 7;
+const STREAM_VIEW: u64 = 8;
 
 /// An independent generator for one stage of the simulation.
 fn stream(seed: u64, id: u64) -> SplitMix64 {
@@ -398,7 +432,7 @@ pub fn simulate_focused(
         .collect();
     let boundary = mesh.boundary()?;
     let tris = &boundary.triangles;
-    let view = Visible::new(tris, labels, &deformed)?;
+    let view = View::new(tris, labels, &deformed, params.visible, seed)?;
 
     // Surface points on a grown visible patch.
     let mut rng = stream(seed, STREAM_SURFACE);
@@ -549,25 +583,46 @@ fn check_inputs(
     Ok(())
 }
 
-/// The deformed boundary as a laparoscope and a probe see it: the anterior and posterior
-/// triangles (indices into the boundary's), the anterior ones' areas and their total.
-struct Visible {
+/// The deformed boundary as a laparoscope and a probe see it: the triangles the laparoscope
+/// sees (`anterior`: the labelled anterior ones, or the side [`MeasureParams::visible`] asks
+/// for), the labelled anterior ones (where the ultrasound probe touches) and the posterior ones
+/// (indices into the boundary's), the seen ones' areas and their total.
+struct View {
     anterior: Vec<usize>,
+    probe: Vec<usize>,
     posterior: Vec<usize>,
     ant_areas: Vec<f64>,
     ant_total: f64,
 }
 
-impl Visible {
+impl View {
     fn new(
         tris: &[[u32; 3]],
         labels: &AnatomyLabels,
         deformed: &[[f64; 3]],
+        visible: Visible,
+        seed: u64,
     ) -> Result<Self, PhantomError> {
         let is = |t: &[u32; 3], r: Region| t.iter().all(|&v| labels.region[v as usize] == r);
-        let anterior: Vec<usize> = (0..tris.len())
+        let facing = |d: [f64; 3]| -> Vec<usize> {
+            (0..tris.len())
+                .filter(|&t| {
+                    let p = tris[t].map(|v| deformed[v as usize]);
+                    dot(cross(sub(p[1], p[0]), sub(p[2], p[0])), d) > 0.0
+                })
+                .collect()
+        };
+        let probe: Vec<usize> = (0..tris.len())
             .filter(|&t| is(&tris[t], Region::Anterior))
             .collect();
+        let anterior: Vec<usize> = match visible {
+            Visible::Anterior => probe.clone(),
+            Visible::Posterior => facing([0.0, 1.0, 0.0]),
+            Visible::Dome => facing([0.0, 0.0, 1.0]),
+            Visible::Left => facing([1.0, 0.0, 0.0]),
+            Visible::Right => facing([-1.0, 0.0, 0.0]),
+            Visible::Any => facing(unit_sphere(&mut stream(seed, STREAM_VIEW))),
+        };
         let posterior: Vec<usize> = (0..tris.len())
             .filter(|&t| is(&tris[t], Region::Posterior))
             .collect();
@@ -577,14 +632,14 @@ impl Visible {
         };
         let ant_areas: Vec<f64> = anterior.iter().map(|&t| area(t)).collect();
         let ant_total: f64 = ant_areas.iter().sum();
-        if anterior.is_empty() || ant_total.is_nan() || ant_total <= 0.0 {
-            return Err(PhantomError::Inconsistent("no anterior boundary triangle (all three nodes labelled Anterior) with positive area: \
-                 nothing for a laparoscope to see"
-                    .into(),
-            ));
+        if probe.is_empty() || anterior.is_empty() || ant_total.is_nan() || ant_total <= 0.0 {
+            return Err(PhantomError::Inconsistent(format!(
+                "no boundary triangle with positive area on the side a laparoscope sees ({visible:?}; anterior: all three nodes labelled Anterior): nothing for a laparoscope to see"
+            )));
         }
         Ok(Self {
             anterior,
+            probe,
             posterior,
             ant_areas,
             ant_total,
@@ -646,7 +701,7 @@ struct Scan<'a> {
     displacement: &'a [f64],
     deformed: &'a [[f64; 3]],
     tris: &'a [[u32; 3]],
-    view: &'a Visible,
+    view: &'a View,
     params: &'a MeasureParams,
 }
 
@@ -666,7 +721,7 @@ impl Scan<'_> {
         let mut rng = stream(seed, STREAM_PLANES);
         let normals =
             crate::mesh::TriSurface::new(deformed.to_vec(), tris.to_vec())?.vertex_normals();
-        let contacts = spread_contacts(tris, &self.view.anterior, deformed, nplanes, &mut rng);
+        let contacts = spread_contacts(tris, &self.view.probe, deformed, nplanes, &mut rng);
         let locator = TetLocator::new(self.mesh);
         let vessel_deformed: Vec<[f64; 3]> = self
             .vessels

@@ -620,6 +620,11 @@ pub(crate) struct GenerateArgs {
     /// dataset stays as without it)
     #[arg(long, value_delimiter = ',', value_name = "DEG,MM", num_args = 1)]
     pub(crate) start_error: Option<Vec<f64>>,
+    /// The side whose surface the laparoscope sees: anterior (the labelled anterior surface,
+    /// the default), posterior, dome, left, right (the half of the boundary facing that way), or
+    /// any (a direction drawn per scenario)
+    #[arg(long, value_name = "SIDE")]
+    pub(crate) visible: Option<String>,
     #[command(flatten)]
     pub(crate) common: Common,
 }
