@@ -63,15 +63,18 @@ pub fn collect(
             "method librplus needs SR-GCN models".into(),
         ));
     }
-    if methods.contains(&Method::V2s) {
+    if methods
+        .iter()
+        .any(|m| matches!(m, Method::V2s | Method::Auto))
+    {
         return Err(EvalError::Parameter(
-            "the error estimate is calibrated for initial, rigid, libr and librplus".into(),
+            "the error estimate is calibrated for initial, rigid, libr, librplus and adaptive (auto's answers carry their chosen candidate's)".into(),
         ));
     }
     let cache = dir.join("cache");
     let needs_basis = methods
         .iter()
-        .any(|m| matches!(m, Method::Libr | Method::LibrPlus));
+        .any(|m| matches!(m, Method::Libr | Method::LibrPlus | Method::Adaptive));
     let results = super::over_kept_scenarios(
         dir,
         every,
@@ -84,6 +87,9 @@ pub fn collect(
             )?;
             if methods.contains(&Method::LibrPlus) {
                 case = case.with_models(models.to_vec())?;
+            }
+            if methods.contains(&Method::Adaptive) {
+                case = case.with_adaptive(&params.libr, &params.adaptive, Some(&cache))?;
             }
             Ok((case, geo.surface.clone()))
         },

@@ -56,7 +56,10 @@ pub(crate) fn calibrate_error(a: &CalibrateErrorArgs) -> Result<()> {
             "rigid" => Method::Rigid,
             "libr" => Method::Libr,
             "librplus" => Method::LibrPlus,
-            other => bail!("--methods: unknown method {other:?} (initial, rigid, libr, librplus)"),
+            "adaptive" => Method::Adaptive,
+            other => bail!(
+                "--methods: unknown method {other:?} (initial, rigid, libr, librplus, adaptive)"
+            ),
         });
     }
     let models = if methods.contains(&Method::LibrPlus) {
