@@ -12,12 +12,9 @@ mod common;
 
 use librplus::mesh::TetMesh;
 use librplus::mesh::rigid::Rigid;
-use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::phantom::measure::{Category, MeasureParams, simulate};
-use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::pipeline::pose::{PoseParams, choose, pose_gap, score, starts};
 use librplus::pipeline::{Method, PipelineParams, Prepared, register};
-use librplus::register::anatomy::{LabelParams, label};
 use librplus::register::correspondence::{Correspondence, CorrespondenceParams};
 use librplus::register::libr::LibrParams;
 use librplus::register::{Measurements, PreopModel};
@@ -35,11 +32,13 @@ struct Liver {
 fn liver() -> &'static Liver {
     static L: OnceLock<Liver> = OnceLock::new();
     L.get_or_init(|| {
-        let surface = common::sofa_liver_surface();
-        let mesh = tetrahedralize(&surface, &TetraParams::with_edge(10.0)).unwrap();
-        let labels = label(&mesh, &LabelParams::default()).unwrap();
-        let vessels = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
-        let model = labels.preop_model(&mesh, &vessels.points, &vessels.segments);
+        let common::LabelledLiver {
+            mesh,
+            labels,
+            vessels,
+            model,
+        } = common::labelled_liver();
+        let (mesh, model) = (mesh.clone(), model.clone());
         let corr = Correspondence::new(&model).unwrap();
         let u = vec![0.0; 3 * mesh.num_nodes()];
         let exact = MeasureParams {
@@ -47,7 +46,7 @@ fn liver() -> &'static Liver {
             us_noise_mm: 0.0,
             ..MeasureParams::default()
         };
-        let sc = simulate(&mesh, &labels, &vessels, &u, Category::Surface, &exact, 5).unwrap();
+        let sc = simulate(&mesh, labels, vessels, &u, Category::Surface, &exact, 5).unwrap();
         let truth = sc.image_to_physical;
         let meas = common::scenario_measurements(&sc);
         Liver {

@@ -156,6 +156,7 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
                 auto: None,
                 quality: None,
                 quality_reason: None,
+                surface: None,
             });
         }
     }

@@ -228,6 +228,7 @@ pub(super) fn register_auto(
     case: &Prepared,
     meas: &Measurements,
     params: &PipelineParams,
+    side_start: Option<&WicpResult>,
 ) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
     params.auto.validate().map_err(PipelineError::Libr)?;
@@ -256,8 +257,14 @@ pub(super) fn register_auto(
         ..params.clone()
     };
     // The rigid stage from the navigation start, once for the free fits and once for the held.
+    // The side test's start is the free fits' own unless the request holds the organ.
+    let side_start = side_start.filter(|_| !params.held);
     let (free_start, held_start) = rayon::join(
-        || start_pose(case, meas, &free),
+        || {
+            side_start
+                .cloned()
+                .or_else(|| start_pose(case, meas, &free))
+        },
         || {
             (trusted || hypothesis)
                 .then(|| start_pose(case, meas, &held))
@@ -369,6 +376,7 @@ fn rigid_candidate(
                 error: None,
                 auto: None,
                 search_skipped_mm2: l.search_skipped_mm2,
+                surface: None,
                 seconds: l.rigid.seconds,
             };
             Ok(r.estimated(case, meas))

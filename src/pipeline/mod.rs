@@ -25,6 +25,7 @@ pub mod hold;
 pub mod pose;
 pub mod quality;
 mod run;
+pub mod side;
 pub use correct::{correct_libr, refit};
 use std::time::Instant;
 
@@ -36,10 +37,23 @@ pub fn register(
     method: Method,
     params: &PipelineParams,
 ) -> Result<Registration, PipelineError> {
-    if method == Method::Auto {
-        return auto::register_auto(case, meas, params);
-    }
-    run::register_scored(case, meas, method, params, run::Shared::default())
+    // The side the surface patch lies on, decided once for every stage (not for doing nothing).
+    let side = match method {
+        Method::Initial => None,
+        _ => side::choose(case, meas, params)?,
+    };
+    let (params, start) = match &side {
+        Some((info, start)) => (side::params_for(params, info.target), Some(start)),
+        None => (params.clone(), None),
+    };
+    let mut reg = if method == Method::Auto {
+        auto::register_auto(case, meas, &params, start)?
+    } else {
+        let shared = run::Shared { folds: None, start };
+        run::register_scored(case, meas, method, &params, shared)?
+    };
+    reg.surface = side.map(|(info, _)| info);
+    Ok(reg)
 }
 
 /// Why a case could not be prepared or a registration did not run, by stage.
@@ -176,6 +190,9 @@ pub struct PipelineParams {
     /// LIBR+ abstains, answering LIBR's result flagged, when a registration lies outside what
     /// its networks learned (their `abstain.json`, [`crate::gcn::abstain`]). Default true.
     pub abstain: bool,
+    /// Whether the surface patch is matched to the anterior surface or the whole boundary,
+    /// decided from the data ([`side`]).
+    pub side: side::SideParams,
 }
 
 impl Default for PipelineParams {
@@ -191,6 +208,7 @@ impl Default for PipelineParams {
             hold: hold::HoldParams::default(),
             auto: auto::AutoParams::default(),
             abstain: true,
+            side: side::SideParams::default(),
         }
     }
 }
@@ -477,6 +495,9 @@ pub struct Registration {
     /// [`pose::PoseParams::start_angles_deg`]: asked for, or a time budget too tight for it):
     /// the search would have run. None otherwise.
     pub search_skipped_mm2: Option<f64>,
+    /// Which side of the organ the surface patch was matched to, when it was decided from the
+    /// data ([`side`]; None: not tested).
+    pub surface: Option<side::SideInfo>,
     /// Total time (s).
     pub seconds: f64,
 }

@@ -208,6 +208,7 @@ mod tests {
             error: None,
             auto: None,
             search_skipped_mm2: None,
+            surface: None,
             seconds: 0.0,
         }
     }

@@ -166,6 +166,7 @@ impl<'a> Run<'a> {
             error: None,
             auto: None,
             search_skipped_mm2: self.search_skipped.get().copied(),
+            surface: None,
             seconds: secs(self.t0),
         }
         .estimated(self.case, self.meas)

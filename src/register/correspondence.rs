@@ -64,6 +64,22 @@ pub struct CorrespondenceParams {
     /// pair at the threshold counts a fifth). Default false (trimming).
     #[serde(default)]
     pub robust_kernel: bool,
+    /// Which model triangles surface points are matched to: the anterior surface (default; what
+    /// a laparoscope sees from the front) or the whole boundary (a patch seen from another side,
+    /// or a model whose anterior labels cannot be trusted).
+    #[serde(default)]
+    pub surface_target: SurfaceTarget,
+}
+
+/// The model triangles surface points are matched to ([`CorrespondenceParams::surface_target`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SurfaceTarget {
+    /// The anterior triangles (the whole boundary when the model has none).
+    #[default]
+    Anterior,
+    /// Every boundary triangle.
+    Boundary,
 }
 
 impl Default for CorrespondenceParams {
@@ -78,6 +94,7 @@ impl Default for CorrespondenceParams {
             trim_floor_mm: 5.0,
             max_distance_mm: 500.0,
             robust_kernel: false,
+            surface_target: SurfaceTarget::Anterior,
         }
     }
 }
@@ -487,6 +504,20 @@ impl Correspondence {
         Ok(trim_candidates(candidates, unmatched, params))
     }
 
+    /// Whether the anterior triangles are a proper part of the boundary (else matching to the
+    /// anterior surface is matching to the whole boundary).
+    pub fn anterior_is_part(&self) -> bool {
+        self.anterior.tris.len() < self.whole.tris.len()
+    }
+
+    /// The triangles plain surface points are matched to under `params`.
+    fn surface_set(&self, params: &CorrespondenceParams) -> &TargetSet {
+        match params.surface_target {
+            SurfaceTarget::Anterior => &self.anterior,
+            SurfaceTarget::Boundary => &self.whole,
+        }
+    }
+
     /// The per-call targets: feature sets for another radius, trees refitted to `deformed`.
     fn call_targets(
         &self,
@@ -538,7 +569,7 @@ impl Correspondence {
             None
         };
         CallTargets {
-            ant_bvh: rebuild(&self.anterior, need(MeasuredKind::Surface)),
+            ant_bvh: rebuild(self.surface_set(params), need(MeasuredKind::Surface)),
             post_bvh: rebuild(&self.posterior, need(MeasuredKind::PosteriorContour)),
             feat_bvh: [0, 1].map(|f| rebuild(feature_target(f), need_feature(f))),
             vessel_deformed,
@@ -570,7 +601,11 @@ impl Correspondence {
                         call.feat_bvh[f].as_ref(),
                         params.surface_weight * params.feature_weight,
                     ),
-                    _ => (&self.anterior, call.ant_bvh.as_ref(), params.surface_weight),
+                    _ => (
+                        self.surface_set(params),
+                        call.ant_bvh.as_ref(),
+                        params.surface_weight,
+                    ),
                 },
                 MeasuredKind::PosteriorContour => (
                     &self.posterior,

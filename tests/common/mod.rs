@@ -69,3 +69,32 @@ pub fn scenario_measurements(
         initial_alignment: Some(sc.initial_alignment),
     }
 }
+
+/// The SOFA liver meshed with 10 mm tets, labelled and given a vessel tree by the phantom
+/// module, and its preoperative model.
+pub struct LabelledLiver {
+    pub mesh: TetMesh,
+    pub labels: librplus::register::anatomy::AnatomyLabels,
+    pub vessels: librplus::phantom::vessels::VesselTree,
+    pub model: librplus::register::PreopModel,
+}
+
+/// [`LabelledLiver`], built once per test binary.
+pub fn labelled_liver() -> &'static LabelledLiver {
+    use librplus::mesh::tetra::{TetraParams, tetrahedralize};
+    use librplus::phantom::vessels::{VesselParams, VesselTree};
+    use librplus::register::anatomy::{LabelParams, label};
+    static L: std::sync::OnceLock<LabelledLiver> = std::sync::OnceLock::new();
+    L.get_or_init(|| {
+        let mesh = tetrahedralize(&sofa_liver_surface(), &TetraParams::with_edge(10.0)).unwrap();
+        let labels = label(&mesh, &LabelParams::default()).unwrap();
+        let vessels = VesselTree::grow(&mesh, &VesselParams::default()).unwrap();
+        let model = labels.preop_model(&mesh, &vessels.points, &vessels.segments);
+        LabelledLiver {
+            mesh,
+            labels,
+            vessels,
+            model,
+        }
+    })
+}

@@ -97,6 +97,7 @@ fn registration_json(
             "seconds": r.rigid.seconds,
         },
         "pose": r.pose,
+        "surface": r.surface,
         "auto": r.auto,
         "libr": libr.map(|i| json!({
             "iterations": i.iterations,

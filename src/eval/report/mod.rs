@@ -89,6 +89,10 @@ pub struct ScenarioResult {
     /// Why the flag is not OK (empty when it is).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub quality_reason: Option<String>,
+    /// The side test: which side of the organ the surface patch was matched to
+    /// ([`crate::pipeline::side`]; None when it did not run).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub surface: Option<crate::pipeline::side::SideInfo>,
 }
 
 /// What [`crate::pipeline::Method::Auto`] chose in one registration, with each candidate's
@@ -562,6 +566,7 @@ mod tests {
             auto: None,
             quality: None,
             quality_reason: None,
+            surface: None,
         }
     }
 

@@ -197,8 +197,11 @@ impl Run<'_> {
         let geo = load_geometry(self.dir, self.m, &d.geometry)?;
         let auto = methods.contains(&Method::Auto);
         let libr = (auto || methods.contains(&Method::Libr)).then_some(&params.libr);
+        // The built-in error model, as the service attaches it: each registration's estimate
+        // and its quality flag read as the service would answer them.
         let mut case =
-            Prepared::with_physics(geo.model.clone(), libr, self.physics, Some(&self.cache))?;
+            Prepared::with_physics(geo.model.clone(), libr, self.physics, Some(&self.cache))?
+                .with_error_model(crate::register::uncertainty::builtin());
         if auto || methods.contains(&Method::Adaptive) {
             case = case.with_adaptive(&params.libr, &params.adaptive, Some(&self.cache))?;
         }
@@ -322,6 +325,7 @@ impl Run<'_> {
             auto: None,
             quality: None,
             quality_reason: None,
+            surface: None,
         };
         match corrected {
             Ok((u, transform, outside, abstained)) => {
@@ -463,6 +467,7 @@ fn scored(
         auto: None,
         quality: None,
         quality_reason: None,
+        surface: None,
     };
     match r {
         Ok(r) => {
@@ -481,6 +486,7 @@ fn scored(
                     auto,
                     quality: Some(judged.quality),
                     quality_reason: Some(judged.reason),
+                    surface: r.surface.clone(),
                     ..base
                 },
                 Some(err),

@@ -119,6 +119,18 @@ pub(crate) struct LibrOpts {
     /// by the robust kernel
     #[arg(long)]
     pub(crate) trimmed_libr: bool,
+    /// Which model triangles surface points are matched to, kept at every stage: anterior or
+    /// boundary (every boundary triangle: a patch seen from another side). Default: decided from
+    /// the data (the anterior surface unless it leaves clearly more unexplained)
+    #[arg(long, value_enum, value_name = "TARGET")]
+    pub(crate) surface_target: Option<SurfaceTargetArg>,
+}
+
+/// `--surface-target`'s values.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub(crate) enum SurfaceTargetArg {
+    Anterior,
+    Boundary,
 }
 
 impl LibrOpts {
@@ -151,6 +163,15 @@ impl LibrOpts {
             p.pose.energy_weight = w;
         }
         p.wicp.correspondence.robust_kernel = self.robust_kernel;
+        if let Some(t) = self.surface_target {
+            use librplus::register::correspondence::SurfaceTarget;
+            // A target named is a target kept: no side test.
+            p.side.from_data = false;
+            p.wicp.correspondence.surface_target = match t {
+                SurfaceTargetArg::Anterior => SurfaceTarget::Anterior,
+                SurfaceTargetArg::Boundary => SurfaceTarget::Boundary,
+            };
+        }
         p.hold.trimmed = self.trimmed_libr;
         if let Some(w) = self.tangential_weight {
             p.libr.tangential_weight = w;
