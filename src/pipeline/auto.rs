@@ -240,18 +240,7 @@ pub(super) fn register_auto(
     let initial = initial_candidate(case, meas, &free, &folds);
     let trusted = params.held || params.wicp.trusted_alignment_mm.is_some();
     let hypothesis = !trusted && params.auto.hypothesise_hold;
-    // The heaviest first, so that the two halves rayon splits them into take about as long.
-    let mut deformable = Vec::new();
-    if case.adaptive.is_some() && (trusted || hypothesis) {
-        deformable.push(Candidate::AdaptiveHeld);
-    }
-    deformable.push(Candidate::Libr);
-    if case.adaptive.is_some() {
-        deformable.push(Candidate::Adaptive);
-    }
-    if trusted || hypothesis {
-        deformable.push(Candidate::LibrHeld);
-    }
+    let deformable = deformable_candidates(case, trusted || hypothesis);
     let held = PipelineParams {
         held: true,
         ..params.clone()
@@ -308,6 +297,24 @@ pub(super) fn register_auto(
         a.hold_hypothesis = hypothesis;
     }
     Ok(answer)
+}
+
+/// The deformable candidates the case can run (the held ones with `held`), the heaviest first,
+/// so that the two halves rayon splits them into take about as long.
+fn deformable_candidates(case: &Prepared, held: bool) -> Vec<Candidate> {
+    let adaptive = case.adaptive.is_some();
+    let mut out = Vec::new();
+    if adaptive && held {
+        out.push(Candidate::AdaptiveHeld);
+    }
+    out.push(Candidate::Libr);
+    if adaptive {
+        out.push(Candidate::Adaptive);
+    }
+    if held {
+        out.push(Candidate::LibrHeld);
+    }
+    out
 }
 
 /// The rigid stage from the navigation start with `params`' rigid settings (None when it fails:
