@@ -81,6 +81,7 @@
 //! framing: `read` ([`read_message`]) and `decoder` ([`Decoder`]). The tests are in `tests/`,
 //! through this public API only.
 
+#![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 mod crc;

@@ -18,7 +18,7 @@ use std::sync::{Arc, mpsc};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// The audit database format.
-pub const FORMAT: u32 = 3;
+pub const FORMAT: u32 = 4;
 
 /// Why the audit log could not be written or read. Cheap to clone: one failed commit is the
 /// answer of every write it held.
@@ -174,6 +174,8 @@ pub struct RegistrationRecord {
     /// How METHOD_AUTO chose (JSON: chosen, runner_up, margin_mm2, margin_se, runner_up_mm and
     /// each candidate's held-out score; None for the other methods).
     pub choice: Option<String>,
+    /// The side test (JSON: target, anterior_mm2, boundary_mm2; None when it did not run).
+    pub surface: Option<String>,
 }
 
 type Reply = tokio::sync::oneshot::Sender<Result<(), AuditError>>;
@@ -255,7 +257,7 @@ CREATE TABLE IF NOT EXISTS registrations(
   id INTEGER PRIMARY KEY, t_ms INTEGER NOT NULL, principal TEXT NOT NULL, case_id TEXT NOT NULL,
   session_id TEXT, client_seq INTEGER, method TEXT, quality TEXT, quality_reason TEXT,
   total_ms REAL, residual_rms_mm REAL, points_total INTEGER, measurements BLOB,
-  answer_sha256 TEXT NOT NULL, timings TEXT, choice TEXT);
+  answer_sha256 TEXT NOT NULL, timings TEXT, choice TEXT, surface TEXT);
 CREATE INDEX IF NOT EXISTS registrations_case ON registrations(case_id, t_ms);
 CREATE INDEX IF NOT EXISTS registrations_session ON registrations(session_id);
 CREATE INDEX IF NOT EXISTS events_time ON events(t_ms);
@@ -288,10 +290,14 @@ pub fn open_db(path: &Path) -> Result<Connection, AuditError> {
             .map_err(sql)?;
         }
         Some(f) if f == FORMAT.to_string() => {}
-        Some(f) if f == "1" || f == "2" => {
-            // Format 1 had no case version, formats 1 and 2 no model choice: the columns are
-            // added (NULL for the rows before).
-            for (table, column) in [("sessions", "case_version"), ("registrations", "choice")] {
+        Some(f) if f == "1" || f == "2" || f == "3" => {
+            // Format 1 had no case version, formats 1 and 2 no model choice, formats 1 to 3 no
+            // side test: the columns are added (NULL for the rows before).
+            for (table, column) in [
+                ("sessions", "case_version"),
+                ("registrations", "choice"),
+                ("registrations", "surface"),
+            ] {
                 let has: bool = c
                     .prepare(&format!(
                         "SELECT 1 FROM pragma_table_info('{table}') WHERE name = '{column}'"
@@ -412,8 +418,8 @@ fn write_registration(c: &Connection, g: &RegistrationRecord, t: i64) -> rusqlit
     c.execute(
         "INSERT INTO registrations(t_ms, principal, case_id, session_id, client_seq, \
          method, quality, quality_reason, total_ms, residual_rms_mm, points_total, \
-         measurements, answer_sha256, timings, choice) \
-         VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)",
+         measurements, answer_sha256, timings, choice, surface) \
+         VALUES(?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
         params![
             t,
             g.principal,
@@ -429,7 +435,8 @@ fn write_registration(c: &Connection, g: &RegistrationRecord, t: i64) -> rusqlit
             g.measurements,
             g.answer_sha256,
             g.timings,
-            g.choice
+            g.choice,
+            g.surface
         ],
     )?;
     Ok(())
@@ -773,7 +780,7 @@ pub fn rows(
     let mut st = c.prepare(
         "SELECT t_ms, principal, case_id, session_id, client_seq, method, quality, \
          quality_reason, total_ms, residual_rms_mm, points_total, answer_sha256, timings, \
-         measurements IS NOT NULL, choice FROM registrations \
+         measurements IS NOT NULL, choice, surface FROM registrations \
          WHERE t_ms >= ?1 AND (?2 IS NULL OR case_id = ?2)",
     )?;
     for r in st.query_map(params![since, case], |r| {
@@ -796,6 +803,8 @@ pub fn rows(
                     .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok()),
                 "measurements_recorded": r.get::<_, bool>(13)?,
                 "choice": r.get::<_, Option<String>>(14)?
+                    .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok()),
+                "surface": r.get::<_, Option<String>>(15)?
                     .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok()),
             }),
         ))

@@ -128,7 +128,7 @@ fn a_format_1_database_is_migrated_and_its_sessions_have_no_version() {
 }
 
 #[test]
-fn a_format_2_database_gains_the_choice_column_and_keeps_its_registrations() {
+fn a_format_2_database_gains_the_choice_and_surface_columns_and_keeps_its_registrations() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("audit.db");
     {
@@ -148,37 +148,40 @@ fn a_format_2_database_gains_the_choice_column_and_keeps_its_registrations() {
         .unwrap();
     }
     let c = open_db(&db).unwrap();
-    let choices: Vec<(String, Option<String>)> = c
-        .prepare("SELECT answer_sha256, choice FROM registrations")
+    type Row = (String, Option<String>, Option<String>);
+    let choices: Vec<Row> = c
+        .prepare("SELECT answer_sha256, choice, surface FROM registrations")
         .unwrap()
-        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))
         .unwrap()
         .collect::<Result<_, _>>()
         .unwrap();
-    assert_eq!(choices, [("old".to_string(), None)]);
+    assert_eq!(choices, [("old".to_string(), None, None)]);
     let f: String = c
         .query_row("SELECT value FROM meta WHERE key = 'format'", [], |r| {
             r.get(0)
         })
         .unwrap();
     assert_eq!(f, FORMAT.to_string());
-    // A new registration keeps its choice.
+    // A new registration keeps its choice and its side.
     let g = RegistrationRecord {
         principal: "p".into(),
         case_id: "c".into(),
         answer_sha256: "new".into(),
         choice: Some(r#"{"chosen":"libr"}"#.into()),
+        surface: Some(r#"{"target":"boundary"}"#.into()),
         ..Default::default()
     };
     write_registration(&c, &g, 2).unwrap();
-    let kept: Option<String> = c
+    let kept: (Option<String>, Option<String>) = c
         .query_row(
-            "SELECT choice FROM registrations WHERE answer_sha256 = 'new'",
+            "SELECT choice, surface FROM registrations WHERE answer_sha256 = 'new'",
             [],
-            |r| r.get(0),
+            |r| Ok((r.get(0)?, r.get(1)?)),
         )
         .unwrap();
-    assert_eq!(kept.as_deref(), Some(r#"{"chosen":"libr"}"#));
+    assert_eq!(kept.0.as_deref(), Some(r#"{"chosen":"libr"}"#));
+    assert_eq!(kept.1.as_deref(), Some(r#"{"target":"boundary"}"#));
 }
 
 /// A refusal is shown in the table as its text, its quotes as the client's message has them

@@ -465,6 +465,7 @@ fn answer(
         node_count: prepared.model.mesh.num_nodes() as u32,
         method_used: method_to_pb(plan.method) as i32,
         choice: reg.auto.as_ref().map(crate::convert::choice_to_pb),
+        surface: reg.surface.as_ref().map(crate::convert::side_to_pb),
         residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
         points_used: job.measurements.points.len() as u32,
         points_matched: reg.rigid.matched as u32,

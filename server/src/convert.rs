@@ -401,6 +401,15 @@ pub fn choice_to_pb(a: &librplus::pipeline::auto::AutoInfo) -> pb::ModelChoice {
     }
 }
 
+/// The side test's outcome, for the wire.
+pub fn side_to_pb(s: &librplus::pipeline::side::SideInfo) -> pb::SurfaceSide {
+    pb::SurfaceSide {
+        target: s.target.name().to_string(),
+        anterior_mm2: s.anterior_mm2,
+        boundary_mm2: s.boundary_mm2,
+    }
+}
+
 /// The named effects a model carries.
 pub fn effects(p: &librplus::pipeline::Prepared) -> Vec<String> {
     p.physics.kinds().into_iter().map(str::to_string).collect()

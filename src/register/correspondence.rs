@@ -82,6 +82,16 @@ pub enum SurfaceTarget {
     Boundary,
 }
 
+impl SurfaceTarget {
+    /// Its name in files, on the command line and on the wire (`anterior`, `boundary`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Anterior => "anterior",
+            Self::Boundary => "boundary",
+        }
+    }
+}
+
 impl Default for CorrespondenceParams {
     fn default() -> Self {
         Self {

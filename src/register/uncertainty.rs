@@ -696,7 +696,8 @@ mod tests {
     #[test]
     fn the_built_in_model_parses_and_covers_the_served_methods() {
         let m = builtin().expect("assets/models/error/model.json parses");
-        for method in ["rigid", "libr", "librplus"] {
+        // Every method the service answers with (auto answers with its chosen candidate's).
+        for method in ["initial", "rigid", "libr", "librplus", "adaptive"] {
             assert!(
                 m.methods.contains_key(method),
                 "no calibration for {method}"
@@ -725,6 +726,21 @@ mod tests {
                 rigid_rms_mm: 10.0,
                 strain_energy_uj: 400_000.0,
                 ..typical
+            };
+            // Doing nothing moves nothing: its residual is the start's.
+            let (typical, failed_like) = if method == "initial" {
+                let still = |rms_mm| ErrorFeatures {
+                    residual_rms_mm: rms_mm,
+                    rigid_rms_mm: rms_mm,
+                    strain_energy_uj: 0.0,
+                    mean_displacement_mm: 0.0,
+                    far_displacement_mm: 0.0,
+                    max_displacement_mm: 0.0,
+                    ..typical
+                };
+                (still(2.0), still(10.0))
+            } else {
+                (typical, failed_like)
             };
             let (p0, p1) = (
                 mm.failure_probability(&typical).unwrap(),

@@ -52,6 +52,13 @@ pub(crate) fn audit_record(
             })
             .to_string()
         }),
+        surface: reg.surface.as_ref().map(|s| {
+            serde_json::json!({
+                "target": s.target, "anterior_mm2": s.anterior_mm2,
+                "boundary_mm2": s.boundary_mm2,
+            })
+            .to_string()
+        }),
     }
 }
 

@@ -241,8 +241,8 @@ async fn adaptive_libr_is_answered_when_the_server_prepares_it() {
 
 /// METHOD_AUTO: answered by a server that prepared adaptive LIBR's basis as the library answers
 /// it (the same candidate chosen, the same displacement to f32 rounding, the same quality flag),
-/// the choice named in the answer (chosen, runner-up, every candidate's held-out score) and kept
-/// in the audit log.
+/// the choice named in the answer (chosen, runner-up, every candidate's held-out score) and the
+/// side test's outcome, both as the library's and kept in the audit log.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn auto_is_answered_with_its_choice_and_audited() {
     use librplus::register::libr::AdaptiveParams;
@@ -314,6 +314,12 @@ async fn auto_is_answered_with_its_choice_and_audited() {
         dt < 1e-9 && du <= 1e-5,
         "transform {dt}, displacement {du} mm"
     );
+    let side = lib.surface.as_ref().expect("the side test ran");
+    let wire = r.surface.as_ref().expect("the answer names the side");
+    assert_eq!(
+        (wire.target.as_str(), wire.anterior_mm2, wire.boundary_mm2),
+        (side.target.name(), side.anterior_mm2, side.boundary_mm2)
+    );
     let judged = lib.quality(&params);
     assert_eq!(
         (r.quality().as_str_name(), r.quality_reason.as_str()),
@@ -332,4 +338,6 @@ async fn auto_is_answered_with_its_choice_and_audited() {
         reg.detail["choice"]["candidates"].as_array().map(Vec::len),
         Some(6)
     );
+    assert_eq!(reg.detail["surface"]["target"], wire.target.as_str());
+    assert_eq!(reg.detail["surface"]["anterior_mm2"], wire.anterior_mm2);
 }

@@ -173,6 +173,45 @@ pub struct MethodSummary {
     /// [`FAILED_MM`] off or more than [`WORSE_MM`] worse than method `initial` on the same
     /// scenario (None when `initial` was not run).
     pub bad_flagged_ok: Option<usize>,
+    /// Auto only: its choices against the truth's best candidate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub auto: Option<AutoSummary>,
+}
+
+/// How [`crate::pipeline::Method::Auto`] chose over a split, judged by the truth.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct AutoSummary {
+    /// Registrations with a truth-scored oracle.
+    pub registrations: usize,
+    /// Mean over them of the chosen candidate's TRE minus the oracle's (mm, ≥ 0).
+    pub regret_mm: f64,
+    /// `confusion[chosen][oracle]`: how often each candidate was chosen when the truth
+    /// preferred each.
+    pub confusion: BTreeMap<String, BTreeMap<String, usize>>,
+}
+
+impl AutoSummary {
+    /// Adds one registration's choice (skipped when no candidate was scored by the truth).
+    fn add(&mut self, a: &AutoOutcome) {
+        let tre = |name: &str| {
+            a.candidates
+                .iter()
+                .find(|c| c.candidate == name)
+                .and_then(|c| c.tre_mm)
+        };
+        let Some(oracle) = &a.oracle else { return };
+        let (Some(chosen), Some(best)) = (tre(&a.chosen), tre(oracle)) else {
+            return;
+        };
+        self.registrations += 1;
+        self.regret_mm += (chosen - best).max(0.0);
+        *self
+            .confusion
+            .entry(a.chosen.clone())
+            .or_default()
+            .entry(oracle.clone())
+            .or_default() += 1;
+    }
 }
 
 /// A registration whose mean TRE exceeds this has failed (mm).
@@ -379,6 +418,9 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
             let ok = r.quality == Some(crate::pipeline::quality::Quality::Ok);
             *s.bad_flagged_ok.get_or_insert(0) += usize::from(bad && ok);
         }
+        if let Some(a) = &r.auto {
+            s.auto.get_or_insert_with(AutoSummary::default).add(a);
+        }
         match &r.tre {
             Some(t) => {
                 s.scenarios += 1;
@@ -418,6 +460,9 @@ pub fn summarize(results: &[ScenarioResult]) -> BTreeMap<String, MethodSummary> 
             .chain(s.by_family.values_mut())
         {
             c.tre_mm /= c.scenarios.max(1) as f64;
+        }
+        if let Some(a) = &mut s.auto {
+            a.regret_mm /= a.registrations.max(1) as f64;
         }
         if let Some(t) = times.get_mut(m) {
             t.sort_by(f64::total_cmp);
@@ -475,6 +520,52 @@ pub fn markdown(splits: &BTreeMap<String, BTreeMap<String, MethodSummary>>) -> S
             s.push('\n');
         }
         s.push_str(&pattern_table(methods));
+        s.push_str(&flags_table(methods));
+    }
+    s
+}
+
+/// The quality flags each method answered, the answers confidently worse than doing nothing
+/// (flagged OK), and auto's choices against the truth's best candidate; empty when no method
+/// carries flags.
+fn flags_table(methods: &BTreeMap<String, MethodSummary>) -> String {
+    if methods.values().all(|v| v.quality.is_empty()) {
+        return String::new();
+    }
+    let mut s = String::from(
+        "\nQuality flags (the flag the service would answer; confidently worse: flagged ok, yet more than 20 mm off or more than 2 mm worse than doing nothing):\n\n| method | flags | confidently worse |\n| --- | --- | --- |\n",
+    );
+    for (m, v) in methods {
+        let flags: Vec<String> = v.quality.iter().map(|(q, n)| format!("{q} {n}")).collect();
+        let worse = v
+            .bad_flagged_ok
+            .map_or_else(|| "– (initial not run)".to_string(), |n| n.to_string());
+        s.push_str(&format!("| {m} | {} | {worse} |\n", flags.join(", ")));
+    }
+    for (m, v) in methods {
+        let Some(a) = &v.auto else { continue };
+        let mut cols: Vec<&String> = a.confusion.values().flat_map(|o| o.keys()).collect();
+        cols.sort();
+        cols.dedup();
+        s.push_str(&format!(
+            "\n`{m}`: the candidate chosen (rows) against the truth's best (columns), {} registrations; regret {:.2} mm mean:\n\n| chosen |",
+            a.registrations, a.regret_mm
+        ));
+        for c in &cols {
+            s.push_str(&format!(" {c} |"));
+        }
+        s.push_str("\n| --- |");
+        for _ in &cols {
+            s.push_str(" --- |");
+        }
+        s.push('\n');
+        for (chosen, row) in &a.confusion {
+            s.push_str(&format!("| {chosen} |"));
+            for c in &cols {
+                s.push_str(&format!(" {} |", row.get(*c).copied().unwrap_or(0)));
+            }
+            s.push('\n');
+        }
     }
     s
 }
@@ -624,5 +715,77 @@ mod tests {
         let md = markdown(&BTreeMap::from([("all".to_string(), s)]));
         assert!(md.contains("| libr | 7.00 (2) | 4.00 (1) |"), "{md}");
         assert!(md.contains("L -10.0 %, V +25.0 %"), "{md}");
+    }
+
+    /// Auto's regret is the chosen candidate's true TRE minus the best one's, averaged; the
+    /// confusion counts chosen against best; both show in the report.
+    #[test]
+    fn auto_regret_and_confusion_are_read_from_the_candidates_true_errors() {
+        use crate::pipeline::quality::Quality;
+        let outcome = |chosen: &str, tres: &[(&str, f64)]| {
+            let candidates: Vec<AutoCandidateRow> = tres
+                .iter()
+                .map(|&(c, t)| AutoCandidateRow {
+                    candidate: c.into(),
+                    held_out_mm2: Some(1.0),
+                    folds_mm2: Vec::new(),
+                    in_sample_mm2: None,
+                    predicted_tre_mm: None,
+                    tre_mm: Some(t),
+                    apart_mm: None,
+                })
+                .collect();
+            let oracle = tres
+                .iter()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .map(|x| x.0.to_string());
+            AutoOutcome {
+                chosen: chosen.into(),
+                best_scoring: chosen.into(),
+                runner_up: None,
+                margin_se: None,
+                ambiguous: None,
+                hold_hypothesis: false,
+                oracle,
+                candidates,
+            }
+        };
+        let with = |scenario: &str, a: AutoOutcome, tre: f64| {
+            let mut r = row(scenario, "auto", tre);
+            r.auto = Some(a);
+            r.quality = Some(Quality::Ok);
+            r
+        };
+        let rows = vec![
+            // Chose the best: no regret.
+            with(
+                "g1-L-00/0",
+                outcome("libr", &[("libr", 5.0), ("adaptive", 6.0)]),
+                5.0,
+            ),
+            // Chose adaptive, LIBR was 1.5 mm better.
+            with(
+                "g1-L-00/1",
+                outcome("adaptive", &[("libr", 4.0), ("adaptive", 5.5)]),
+                5.5,
+            ),
+            // Chose adaptive, it was the best.
+            with(
+                "g1-L-00/2",
+                outcome("adaptive", &[("libr", 7.0), ("adaptive", 6.5)]),
+                6.5,
+            ),
+        ];
+        let s = summarize(&rows);
+        let a = s["auto"].auto.as_ref().unwrap();
+        assert_eq!(a.registrations, 3);
+        assert!((a.regret_mm - 0.5).abs() < 1e-12, "{}", a.regret_mm);
+        assert_eq!(a.confusion["libr"]["libr"], 1);
+        assert_eq!(a.confusion["adaptive"]["libr"], 1);
+        assert_eq!(a.confusion["adaptive"]["adaptive"], 1);
+        let md = markdown(&BTreeMap::from([("all".to_string(), s)]));
+        assert!(md.contains("3 registrations; regret 0.50 mm mean"), "{md}");
+        assert!(md.contains("| adaptive | 1 | 1 |"), "{md}");
+        assert!(md.contains("| auto | ok 3 | – (initial not run) |"), "{md}");
     }
 }

@@ -307,8 +307,9 @@ pub(crate) struct CalibrateErrorArgs {
     /// The error model written (JSON, docs/error-estimate.md).
     #[arg(long)]
     pub(crate) out: PathBuf,
-    /// Comma-separated methods calibrated: initial, rigid, libr, librplus.
-    #[arg(long, default_value = "rigid,libr,librplus")]
+    /// Comma-separated methods calibrated: initial, rigid, libr, librplus, adaptive (every
+    /// method the service answers with; auto's answers carry their chosen candidate's).
+    #[arg(long, default_value = "initial,rigid,libr,librplus,adaptive")]
     pub(crate) methods: String,
     /// The SR-GCN model or ensemble directory LIBR+ uses (default: the built-in ensemble, the
     /// one the service serves).
