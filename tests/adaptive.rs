@@ -24,10 +24,9 @@ const COARSE: usize = 12;
 const FINE: usize = 60;
 
 fn params() -> LibrParams {
-    LibrParams {
-        control_points: COARSE,
-        ..LibrParams::default()
-    }
+    let mut p = LibrParams::default();
+    p.basis.control_points = COARSE;
+    p
 }
 
 fn levels() -> Vec<(usize, LoadWidth)> {
@@ -281,8 +280,11 @@ fn a_local_dent_on_part_of_the_surface_is_resolved() {
     let truth_basis = LibrBasis::build(
         mesh,
         &LibrParams {
-            control_points: 200,
-            ..LibrParams::default()
+            basis: librplus::register::libr::BasisParams {
+                control_points: 200,
+                ..LibrParams::default().basis
+            },
+            fit: LibrParams::default().fit,
         },
     )
     .unwrap();
@@ -303,8 +305,11 @@ fn a_local_dent_on_part_of_the_surface_is_resolved() {
     let measured: Vec<[f64; 3]> = matches.iter().map(|mt| mt.model_point(&u_true)).collect();
     let id = Rigid::identity();
     let lp = LibrParams {
-        tolerance_mm: 1e-4,
-        ..params()
+        basis: params().basis,
+        fit: librplus::register::libr::FitParams {
+            tolerance_mm: 1e-4,
+            ..params().fit
+        },
     };
     let libr = solve(mesh, plain, &lp, &measured, &id, |_, _| Ok(matches.clone())).unwrap();
     let ad = solve_adaptive(

@@ -19,9 +19,12 @@ fn boxed() -> &'static (TetMesh, LibrBasis) {
     B.get_or_init(|| {
         let mesh = box_mesh([60.0, 40.0, 30.0], [12, 8, 6], 0.3);
         let params = LibrParams {
-            control_points: 24,
-            load_width: LoadWidth::Spacing(1.25),
-            ..LibrParams::default()
+            basis: librplus::register::libr::BasisParams {
+                control_points: 24,
+                load_width: LoadWidth::Spacing(1.25),
+                ..LibrParams::default().basis
+            },
+            fit: LibrParams::default().fit,
         };
         let basis = LibrBasis::build(&mesh, &params).unwrap();
         (mesh, basis)
@@ -70,10 +73,9 @@ fn field(basis: &LibrBasis, amp: f64, rng: &mut SplitMix64) -> Vec<f64> {
 }
 
 fn params(lambda: f64) -> LibrParams {
-    LibrParams {
-        regularization: lambda,
-        ..LibrParams::default()
-    }
+    let mut p = LibrParams::default();
+    p.fit.regularization = lambda;
+    p
 }
 
 fn anchors(matches: &[Match]) -> Vec<[f64; 3]> {

@@ -26,11 +26,10 @@ use std::sync::OnceLock;
 use std::time::Instant;
 
 fn box_params() -> LibrParams {
-    LibrParams {
-        control_points: 24,
-        load_width: LoadWidth::Spacing(1.25),
-        ..LibrParams::default()
-    }
+    let mut p = LibrParams::default();
+    p.basis.control_points = 24;
+    p.basis.load_width = LoadWidth::Spacing(1.25);
+    p
 }
 
 fn boxed() -> &'static (TetMesh, LibrBasis) {
@@ -172,8 +171,11 @@ fn control_points_are_spread_and_deterministic() {
     let other = LibrBasis::build(
         mesh,
         &LibrParams {
-            seed: 7,
-            ..box_params()
+            basis: librplus::register::libr::BasisParams {
+                seed: 7,
+                ..box_params().basis
+            },
+            fit: box_params().fit,
         },
     )
     .unwrap();
@@ -334,10 +336,13 @@ fn exactness(mesh: &TetMesh, basis: &LibrBasis, per: usize, amp: f64) -> (f64, f
         .map(|m| truth.apply(m.model_point(&u_true)))
         .collect();
     let params = LibrParams {
-        regularization: 1e-9,
-        tolerance_mm: 1e-7,
-        max_iterations: 30,
-        ..LibrParams::default()
+        basis: LibrParams::default().basis,
+        fit: librplus::register::libr::FitParams {
+            regularization: 1e-9,
+            tolerance_mm: 1e-7,
+            max_iterations: 30,
+            ..LibrParams::default().fit
+        },
     };
     let sol = solve(
         mesh,
@@ -424,10 +429,13 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
         .map(|m| truth.apply(m.model_point(&u_true)))
         .collect();
     let params = LibrParams {
-        regularization: 1e-9,
-        tolerance_mm: 1e-7,
-        max_iterations: 30,
-        ..LibrParams::default()
+        basis: LibrParams::default().basis,
+        fit: librplus::register::libr::FitParams {
+            regularization: 1e-9,
+            tolerance_mm: 1e-7,
+            max_iterations: 30,
+            ..LibrParams::default().fit
+        },
     };
     // LIBR on `data` (fixed matches, identity start), from `offset`.
     let fit = |data: &[[f64; 3]], offset: Option<&[f64]>| {
@@ -514,8 +522,11 @@ fn regularization_shrinks_the_weights() {
     let mut last_rms = 0.0;
     for lambda in [1e-6, 1e-3, 1e-1, 10.0, 1e3] {
         let params = LibrParams {
-            regularization: lambda,
-            ..box_params()
+            basis: box_params().basis,
+            fit: librplus::register::libr::FitParams {
+                regularization: lambda,
+                ..box_params().fit
+            },
         };
         let s = fit_step(basis, &matches, &targets, &params).unwrap();
         println!(
@@ -542,8 +553,11 @@ fn regularization_shrinks_the_weights() {
         &matches,
         &targets,
         &LibrParams {
-            regularization: 1e9,
-            ..box_params()
+            basis: box_params().basis,
+            fit: librplus::register::libr::FitParams {
+                regularization: 1e9,
+                ..box_params().fit
+            },
         },
     )
     .unwrap();
@@ -558,8 +572,11 @@ fn regularization_shrinks_the_weights() {
 fn cache_round_trips_and_rebuilds_bad_files() {
     let mesh = box_mesh([30.0, 20.0, 20.0], [6, 4, 4], 0.3);
     let params = LibrParams {
-        control_points: 10,
-        ..LibrParams::default()
+        basis: librplus::register::libr::BasisParams {
+            control_points: 10,
+            ..LibrParams::default().basis
+        },
+        fit: LibrParams::default().fit,
     };
     let dir = tempfile::tempdir().unwrap();
     let (built, cached) = LibrBasis::load_or_build(&mesh, &params, dir.path()).unwrap();
@@ -585,24 +602,42 @@ fn cache_round_trips_and_rebuilds_bad_files() {
     );
     // The fit's parameters do not change the key; the basis's do; so does the mesh.
     let fit_only = LibrParams {
-        regularization: 5.0,
-        max_iterations: 3,
-        ..params
+        basis: params.basis,
+        fit: librplus::register::libr::FitParams {
+            regularization: 5.0,
+            max_iterations: 3,
+            ..params.fit
+        },
     };
     assert_eq!(fit_only.basis_hash(), params.basis_hash());
     for other in [
         LibrParams {
-            control_points: 11,
-            ..params
-        },
-        LibrParams { seed: 1, ..params },
-        LibrParams {
-            load_width: LoadWidth::Mm(8.0),
-            ..params
+            basis: librplus::register::libr::BasisParams {
+                control_points: 11,
+                ..params.basis
+            },
+            fit: params.fit,
         },
         LibrParams {
-            material: LinearMaterial::new(5.0, 0.49),
-            ..params
+            basis: librplus::register::libr::BasisParams {
+                seed: 1,
+                ..params.basis
+            },
+            fit: params.fit,
+        },
+        LibrParams {
+            basis: librplus::register::libr::BasisParams {
+                load_width: LoadWidth::Mm(8.0),
+                ..params.basis
+            },
+            fit: params.fit,
+        },
+        LibrParams {
+            basis: librplus::register::libr::BasisParams {
+                material: LinearMaterial::new(5.0, 0.49),
+                ..params.basis
+            },
+            fit: params.fit,
         },
     ] {
         assert_ne!(other.basis_hash(), params.basis_hash(), "{other:?}");
@@ -656,33 +691,51 @@ fn garbage_inputs_are_errors() {
     m4[2].point = targets.len();
     assert!(err(&m4, &targets, &p).contains("point"));
     let neg = LibrParams {
-        regularization: -1.0,
-        ..p
+        basis: p.basis,
+        fit: librplus::register::libr::FitParams {
+            regularization: -1.0,
+            ..p.fit
+        },
     };
     assert!(err(&matches, &targets, &neg).contains("regularization"));
     // Three matches at the same point cannot fix a rotation; without λ nothing holds α.
     let same: Vec<Match> = (0..3).map(|_| matches[0]).collect();
     let zero = LibrParams {
-        regularization: 0.0,
-        ..p
+        basis: p.basis,
+        fit: librplus::register::libr::FitParams {
+            regularization: 0.0,
+            ..p.fit
+        },
     };
     assert!(err(&same, &targets, &zero).contains("singular"));
     for bad in [
         LibrParams {
-            control_points: 0,
-            ..p
+            basis: librplus::register::libr::BasisParams {
+                control_points: 0,
+                ..p.basis
+            },
+            fit: p.fit,
         },
         LibrParams {
-            load_width: LoadWidth::Mm(-1.0),
-            ..p
+            basis: librplus::register::libr::BasisParams {
+                load_width: LoadWidth::Mm(-1.0),
+                ..p.basis
+            },
+            fit: p.fit,
         },
         LibrParams {
-            material: LinearMaterial::new(0.0, 0.45),
-            ..p
+            basis: librplus::register::libr::BasisParams {
+                material: LinearMaterial::new(0.0, 0.45),
+                ..p.basis
+            },
+            fit: p.fit,
         },
         LibrParams {
-            control_points: 100_000,
-            ..p
+            basis: librplus::register::libr::BasisParams {
+                control_points: 100_000,
+                ..p.basis
+            },
+            fit: p.fit,
         },
     ] {
         assert!(LibrBasis::build(mesh, &bad).is_err(), "{bad:?}");
@@ -759,8 +812,11 @@ fn the_linearised_refit_predicts_the_refits_first_step() {
         .flat_map(|x| [0.5 * (x[1] / 15.0).sin(), 0.0, 0.8 * (x[0] / 20.0).cos()])
         .collect();
     let params = LibrParams {
-        max_iterations: 1,
-        ..LibrParams::default()
+        basis: LibrParams::default().basis,
+        fit: librplus::register::libr::FitParams {
+            max_iterations: 1,
+            ..LibrParams::default().fit
+        },
     };
     // One refit iteration from `o` with the matches held: node positions in the start frame.
     let step = |o: &[f64]| {

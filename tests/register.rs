@@ -77,8 +77,8 @@ fn recover_in_span(random_dir: bool) -> (f64, f64) {
     let (mesh, labels, vessels) = liver(10.0);
     // Noiseless data warrant little regularization.
     let mut params = PipelineParams::default();
-    params.libr.max_iterations = 60;
-    params.libr.regularization = 1e-4;
+    params.libr.fit.max_iterations = 60;
+    params.libr.fit.regularization = 1e-4;
     let case = Prepared::new(model(&mesh, &labels, &vessels), Some(&params.libr), None).unwrap();
     let basis = case.basis.as_ref().unwrap();
     // A few loads at control points on the anterior surface (which the data cover), pressing or
@@ -198,8 +198,8 @@ fn libr_residual_on_nonlinear_truth_is_well_above_its_linear_error() {
 
     let (mesh, labels, vessels) = liver(10.0);
     let mut params = PipelineParams::default();
-    params.libr.max_iterations = 60;
-    params.libr.regularization = 1e-4;
+    params.libr.fit.max_iterations = 60;
+    params.libr.fit.regularization = 1e-4;
     let case = Prepared::new(model(&mesh, &labels, &vessels), Some(&params.libr), None).unwrap();
     let dense = dense();
     let surface = boundary_flags(&labels);

@@ -4,9 +4,8 @@
 use crate::config::ServerConfig;
 use librplus::gcn::io::TrainedModel;
 use librplus::mesh::io::{self, MeshFile};
-use librplus::pipeline::{Method, Prepared};
+use librplus::pipeline::{Method, PipelineParams, Prepared};
 use librplus::register::PreopModel;
-use librplus::register::libr::LibrParams;
 use librplus::register::physics::Physics;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -31,6 +30,10 @@ pub struct Case {
     pub source: PathBuf,
     /// The prepared model (with its LIBR basis).
     pub prepared: Prepared,
+    /// The case's parameters: its basis was built with `params.libr.basis`, and every
+    /// registration and discovery run on it starts from these (within its request and the time
+    /// left).
+    pub params: PipelineParams,
     /// Method when a request leaves it unspecified.
     pub default_method: Method,
     /// Stage-duration estimates (exponential moving averages of what was measured).
@@ -237,10 +240,9 @@ pub fn load(
     id: &str,
     source: &CaseSource,
     config: &ServerConfig,
-    libr: &LibrParams,
     learned: &Learned,
 ) -> Result<Case, CaseError> {
-    load_with_progress(id, source, config, libr, learned, &|_, _| {})
+    load_with_progress(id, source, config, learned, &|_, _| {})
 }
 
 /// [`load`], telling `progress` each stage ("reading", "labelling", "preparing", "sr-gcn",
@@ -249,10 +251,11 @@ pub fn load_with_progress(
     id: &str,
     source: &CaseSource,
     config: &ServerConfig,
-    libr: &LibrParams,
     learned: &Learned,
     progress: &dyn Fn(&str, f64),
 ) -> Result<Case, CaseError> {
+    // The library's defaults, made in one place; the case keeps them.
+    let params = PipelineParams::default();
     progress("reading", 0.0);
     let mut version = String::new();
     let (model, path, cache, physics_path) = match source {
@@ -315,7 +318,7 @@ pub fn load_with_progress(
     } else {
         Physics::none()
     };
-    let mut prepared = Prepared::with_physics(model, Some(libr), &physics, Some(&cache))
+    let mut prepared = Prepared::with_physics(model, Some(&params.libr), &physics, Some(&cache))
         .map_err(prepare)?
         .with_error_model(librplus::register::uncertainty::builtin());
     if let Some(m) = &learned.gcn {
@@ -329,11 +332,7 @@ pub fn load_with_progress(
     if config.adaptive {
         progress("adaptive basis", 0.97);
         prepared = prepared
-            .with_adaptive(
-                libr,
-                &librplus::register::libr::AdaptiveParams::default(),
-                Some(&cache),
-            )
+            .with_adaptive(&params.libr, &params.adaptive, Some(&cache))
             .map_err(prepare)?;
     }
     let default_method = config.method()?;
@@ -350,6 +349,7 @@ pub fn load_with_progress(
         id: id.to_string(),
         source: path,
         prepared,
+        params,
         default_method,
         // First guesses, per 10,000 nodes on one core of this machine kind (BENCHMARKS.md);
         // replaced by measurements after the first registrations.

@@ -18,8 +18,8 @@ use tokio::sync::Semaphore;
 pub struct Job {
     /// The case.
     pub case: Arc<Case>,
-    /// All measurements.
-    pub measurements: Measurements,
+    /// All measurements: shared with the session that holds them (a job never copies them).
+    pub measurements: Arc<Measurements>,
     /// Method asked for.
     pub method: Method,
     /// Time budget from `arrival`.
@@ -291,7 +291,8 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
     let est = job.case.estimates();
     let mut method = job.method;
     let mut degraded: Option<String> = None;
-    let mut params = PipelineParams::default();
+    // The case's parameters (its basis was built with their LIBR settings), within this request.
+    let mut params = job.case.params.clone();
     params.wicp.trusted_alignment_mm = job.trusted_alignment_mm;
     params.held = job.held;
     let gcn_ms = prepared
@@ -544,5 +545,71 @@ mod tests {
             quality_to_pb(Quality::AmbiguousModel).as_str_name(),
             "QUALITY_AMBIGUOUS_MODEL"
         );
+    }
+
+    /// A registration on a case, and a discovery run on it, are planned with the settings the
+    /// case's basis was built with (its LIBR basis settings, by hash) and the case's own fit
+    /// settings: the server makes no parameters of its own.
+    #[test]
+    fn a_case_is_registered_with_the_settings_its_basis_was_built_with() {
+        let dir = tempfile::tempdir().unwrap();
+        let mesh = librplus::mesh::procedural::box_mesh([120.0, 90.0, 60.0], [5, 4, 3], 0.1);
+        let path = dir.path().join("organ.vtu");
+        let file = librplus::mesh::io::MeshFile {
+            nodes: mesh.nodes().to_vec(),
+            tets: mesh.tets().to_vec(),
+            triangles: Vec::new(),
+            point_data: Vec::new(),
+            cell_data: Vec::new(),
+            skipped_cells: 0,
+        };
+        librplus::mesh::io::write(&path, &file, Default::default()).unwrap();
+        let config = crate::config::ServerConfig {
+            default_method: "libr".into(),
+            adaptive: false,
+            ..Default::default()
+        };
+        let learned = crate::cases::Learned {
+            gcn: None,
+            v2s: None,
+        };
+        let source = crate::cases::CaseSource::Mesh { path };
+        let case = Arc::new(crate::cases::load("organ", &source, &config, &learned).unwrap());
+        let built = case.prepared.basis.as_ref().unwrap().params_hash.clone();
+        assert_eq!(case.params.libr.basis.hash(), built);
+        let job = Job {
+            case: case.clone(),
+            measurements: Measurements {
+                points: vec![[0.0; 3]],
+                kind: vec![librplus::register::MeasuredKind::Surface],
+                feature: Vec::new(),
+                initial_alignment: None,
+            }
+            .into(),
+            method: Method::Libr,
+            budget: Duration::from_secs(60),
+            arrival: Instant::now(),
+            omit_displacements: true,
+            trusted_alignment_mm: Some(3.0),
+            held: false,
+            prepared: None,
+        };
+        let planned = plan(&job, &case.prepared, Instant::now()).params;
+        assert_eq!(planned.libr.basis.hash(), built);
+        assert_eq!(planned.libr, case.params.libr);
+        assert_eq!(planned.adaptive, case.params.adaptive);
+        assert_eq!(planned.wicp.trusted_alignment_mm, Some(3.0));
+        let req = crate::discovery::Request {
+            case: case.clone(),
+            measurements: job.measurements.clone(),
+            trusted_alignment_mm: None,
+            held: false,
+            budget: Duration::from_secs(1),
+            coarse: true,
+            client_seq: 0,
+        };
+        let discovery = crate::discovery::params(&req, Instant::now()).pipeline;
+        assert_eq!(discovery.libr.basis.hash(), built);
+        assert_eq!(discovery.libr, case.params.libr);
     }
 }

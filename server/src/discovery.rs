@@ -27,9 +27,8 @@ use crate::cases::Case;
 use librplus::discover::{
     CohortDiscovery, DiscoverError, DiscoverParams, Verdict, discover_cohort, session_sweeps,
 };
-use librplus::pipeline::{PipelineParams, Prepared};
+use librplus::pipeline::Prepared;
 use librplus::register::Measurements;
-use librplus::register::libr::LibrParams;
 use librplus::register::physics::Physics;
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
@@ -44,7 +43,7 @@ pub struct Request {
     /// The case.
     pub case: Arc<Case>,
     /// The session's points so far.
-    pub measurements: Measurements,
+    pub measurements: Arc<Measurements>,
     /// The session's trusted-alignment uncertainty, if any.
     pub trusted_alignment_mm: Option<f64>,
     /// The session's organ is held ([`librplus::pipeline::hold`]).
@@ -53,8 +52,6 @@ pub struct Request {
     pub budget: Duration,
     /// The coarse search grid.
     pub coarse: bool,
-    /// The LIBR settings the case was prepared with.
-    pub libr: LibrParams,
     /// The DiscoverNow message that asked (0: automatic).
     pub client_seq: u64,
 }
@@ -285,10 +282,8 @@ pub fn params(req: &Request, deadline: Instant) -> DiscoverParams {
     } else {
         DiscoverParams::default()
     };
-    p.pipeline = PipelineParams {
-        libr: req.libr,
-        ..PipelineParams::default()
-    };
+    // The case's own parameters: its basis was built with their LIBR settings.
+    p.pipeline = req.case.params.clone();
     p.pipeline.wicp.trusted_alignment_mm = req.trusted_alignment_mm;
     p.pipeline.held = req.held;
     p.deadline = Some(deadline);
@@ -436,8 +431,13 @@ fn done_report(req: &Request, found: &CohortDiscovery, n: usize) -> pb::Discover
 /// LIBR+ applies only where it learned this physics).
 fn build(req: &Request, physics: &Physics) -> Result<Prepared, librplus::pipeline::PipelineError> {
     let case = &req.case.prepared;
-    let mut p = Prepared::with_physics(case.model.clone(), Some(&req.libr), physics, None)?
-        .with_error_model(case.error_model.clone());
+    let mut p = Prepared::with_physics(
+        case.model.clone(),
+        Some(&req.case.params.libr),
+        physics,
+        None,
+    )?
+    .with_error_model(case.error_model.clone());
     if let Some(l) = &case.librplus {
         p = p.with_models(l.members.iter().map(|m| m.model.clone()).collect())?;
     }

@@ -35,7 +35,6 @@ pub mod upload;
 use anyhow::Context;
 use config::ServerConfig;
 use librplus::gcn::io::{TrainedModel, builtin_models, load_models_on_device};
-use librplus::register::libr::LibrParams;
 use librplus_proto::v1::lib_r_plus_server::LibRPlusServer;
 use service::Svc;
 use shared::Shared;
@@ -520,7 +519,6 @@ fn preload(shared: &Shared) -> Result<PreloadReport, PreloadError> {
             Err(e) => tracing::error!(error = %e, "the case store cannot be listed"),
         }
     }
-    let libr = LibrParams::default();
     let learned = cases::Learned {
         gcn: load_gcn(config)?,
         v2s: load_v2s(config)?,
@@ -533,7 +531,7 @@ fn preload(shared: &Shared) -> Result<PreloadReport, PreloadError> {
     };
     let mut loaded_configured = 0;
     for (k, (id, src)) in found.iter().enumerate() {
-        match cases::load(id, src, config, &libr, &learned) {
+        match cases::load(id, src, config, &learned) {
             Ok(c) => {
                 tracing::info!(
                     case = %id,

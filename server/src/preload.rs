@@ -99,7 +99,6 @@ fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) ->
                 &id,
                 &CaseSource::Stored(Box::new(stored)),
                 &shared.config,
-                &librplus::register::libr::LibrParams::default(),
                 &learned,
                 &progress,
             );

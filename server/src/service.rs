@@ -231,7 +231,7 @@ impl LibRPlus for Svc {
             }
             let job = Job {
                 case,
-                measurements: meas,
+                measurements: Arc::new(meas),
                 method,
                 budget,
                 arrival,

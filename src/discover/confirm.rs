@@ -49,7 +49,7 @@ pub(super) fn confirm(
         // A pair's load was searched on top of its support: confirmed as found.
         return Ok(Some(first));
     }
-    let (a, _) = basis_design(&first.rows, &cur.basis, ctx.libr.regularization);
+    let (a, _) = basis_design(&first.rows, &cur.basis, ctx.libr.fit.regularization);
     let Some(score) = cross_validate(
         &first.rows,
         &Design {
@@ -151,7 +151,7 @@ pub(super) fn confirm_once(
         Err(DiscoverError::Scenario { .. }) => return Ok(None),
         Err(e) => return Err(e),
     };
-    let (a, prior) = basis_design(&rows, &basis, ctx.libr.regularization);
+    let (a, prior) = basis_design(&rows, &basis, ctx.libr.fit.regularization);
     let amplitude = search::basis_amplitude_prior(ctx, &basis, &physics);
     let Some(score) = cross_validate(
         &rows,

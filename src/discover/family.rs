@@ -143,7 +143,7 @@ pub(super) fn solver_for(
 ) -> Result<std::sync::Arc<ModelSolver>, DiscoverError> {
     Ok(std::sync::Arc::new(ModelSolver::new(
         ctx.mesh,
-        &ctx.libr.material,
+        &ctx.libr.basis.material,
         ctx.sites,
         physics,
     )?))
@@ -165,7 +165,7 @@ pub(super) fn pair_candidates(
     };
     let physics = with_effect(&cur.physics, &support.effect);
     let solver = solver_for(ctx, &physics)?;
-    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.fit.regularization);
     let supported = Current {
         physics,
         basis,

@@ -78,7 +78,7 @@ pub(super) fn find(
         .basis
         .clone()
         .ok_or_else(|| DiscoverError::Input("the case has no LIBR basis".into()))?;
-    let (a, prior) = basis_design(&rows, &basis, libr.regularization);
+    let (a, prior) = basis_design(&rows, &basis, libr.fit.regularization);
     let no_amplitude = AmplitudePrior::none(a.ncols());
     let base_score = cross_validate(
         &rows,

@@ -39,7 +39,7 @@ pub(super) fn name(
     };
     let solver = std::sync::Arc::new(ModelSolver::new(
         &model.mesh,
-        &libr.material,
+        &libr.basis.material,
         sites,
         &Physics::none(),
     )?);

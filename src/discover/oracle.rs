@@ -73,8 +73,8 @@ pub fn detectability(
     };
     let (ic, ia) = common_rows(&rows0, &rows1);
     let (r0, r1) = (subset(&rows0, &ic), subset(&rows1, &ia));
-    let (a0, p0) = basis_design(&r0, b0, libr.regularization);
-    let (a1, p1) = basis_design(&r1, b1, libr.regularization);
+    let (a0, p0) = basis_design(&r0, b0, libr.fit.regularization);
+    let (a1, p1) = basis_design(&r1, b1, libr.fit.regularization);
     let underdetermined = || {
         DiscoverError::Underdetermined(
             "no fold could be fitted: too few points per sweep and block".into(),
@@ -82,7 +82,7 @@ pub fn detectability(
     };
     // The amplitude priors are weighed with plain LIBR's in-sample misfit as the noise.
     let noise_var = {
-        let (a, p) = basis_design(&r0, b0, libr.regularization);
+        let (a, p) = basis_design(&r0, b0, libr.fit.regularization);
         let none = AmplitudePrior::none(b0.libr_columns());
         let (a, p) = (
             a.columns(0, b0.libr_columns()).into_owned(),

@@ -287,7 +287,7 @@ pub fn evaluate_rebuilt(
         Err(crate::register::RegisterError::Model(_)) => return Ok(None),
         Err(e) => return Err(e.into()),
     };
-    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.regularization);
+    let (a, prior) = basis_design(ctx.rows, &basis, ctx.libr.fit.regularization);
     let amplitude = basis_amplitude_prior(ctx, &basis, &physics);
     let Some(score) = cross_validate(
         ctx.rows,

@@ -111,8 +111,11 @@ fn params() -> DiscoverParams {
     DiscoverParams {
         pipeline: PipelineParams {
             libr: LibrParams {
-                control_points: 12,
-                ..LibrParams::default()
+                basis: crate::register::libr::BasisParams {
+                    control_points: 12,
+                    ..LibrParams::default().basis
+                },
+                fit: LibrParams::default().fit,
             },
             ..PipelineParams::default()
         },
@@ -150,7 +153,7 @@ fn hidden_one(effect: Effect, peak_max: f64, seed: u64) -> (Effect, CohortDiscov
     };
     let base = broad_load(&mesh, &model, 1, 0.5);
     let p = params();
-    let u = forward(&mesh, &p.pipeline.libr.material, sites, &truth, &base).unwrap();
+    let u = forward(&mesh, &p.pipeline.libr.basis.material, sites, &truth, &base).unwrap();
     let peak = u
         .chunks_exact(3)
         .map(|c| (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt())
@@ -239,7 +242,7 @@ fn gravity_carried_by_a_bed_is_named_with_its_bed() {
     let p = params();
     let u = forward_with(
         &mesh,
-        &p.pipeline.libr.material,
+        &p.pipeline.libr.basis.material,
         sites,
         &truth,
         &base,
@@ -283,7 +286,7 @@ fn nothing_hidden_names_nothing() {
     let p = params();
     let u = forward(
         &mesh,
-        &p.pipeline.libr.material,
+        &p.pipeline.libr.basis.material,
         sites,
         &Physics::none(),
         &base,

@@ -9,7 +9,7 @@ use crate::gcn::abstain::AbstainSignals;
 use crate::gcn::infer::LibrPlusCase;
 use crate::mesh::rigid::Rigid;
 use crate::register::Measurements;
-use crate::register::libr::{self, LibrInfo, LibrParams};
+use crate::register::libr::{self, LibrInfo};
 use crate::register::prior::RigidPrior;
 use std::time::{Duration, Instant};
 
@@ -37,10 +37,8 @@ pub fn refit(
     if params.refit_iterations == 0 {
         return Err(PipelineError::NoRefitIterations);
     }
-    let lp = LibrParams {
-        max_iterations: params.refit_iterations,
-        ..params.libr
-    };
+    let mut lp = params.libr;
+    lp.fit.max_iterations = params.refit_iterations;
     let cparams = &params.libr_correspondence();
     let corr = &case.correspondence;
     // Each search starts from the triangle the point matched last time (same matches).

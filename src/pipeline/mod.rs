@@ -221,10 +221,10 @@ impl PipelineParams {
     /// robust kernel instead of the trimming for a held organ, or when asked).
     pub fn libr_correspondence(&self) -> CorrespondenceParams {
         CorrespondenceParams {
-            trim_floor_mm: self.libr.trim_floor_mm,
+            trim_floor_mm: self.libr.fit.trim_floor_mm,
             // A held organ's dent leaves large residuals where the tool pushed: the median
             // trimming cuts them, the kernel keeps them at a lower weight.
-            robust_kernel: self.libr.robust_kernel
+            robust_kernel: self.libr.fit.robust_kernel
                 || self.wicp.correspondence.robust_kernel
                 || self.held && !self.hold.trimmed,
             ..self.wicp.correspondence

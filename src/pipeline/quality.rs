@@ -150,7 +150,7 @@ pub fn judge(reg: &Registration, params: &PipelineParams, c: &Circumstances) -> 
             "{}: LIBR stopped after {} of {} iterations",
             budget(c),
             i.iterations,
-            params.libr.max_iterations
+            params.libr.fit.max_iterations
         );
         j(Quality::Degraded, why)
     } else if let Some(i) = reg.libr.as_ref().filter(|i| !i.settled) {
@@ -160,7 +160,7 @@ pub fn judge(reg: &Registration, params: &PipelineParams, c: &Circumstances) -> 
             "LIBR ran its {} iterations without settling; the last moved the model by up to {:.2} mm (tolerance {} mm)",
             i.iterations,
             i.movement_history_mm.last().copied().unwrap_or(f64::NAN),
-            params.libr.tolerance_mm
+            params.libr.fit.tolerance_mm
         );
         j(Quality::NotConverged, why)
     } else if !reg.rigid.converged && reg.libr.is_none() && base != Method::Initial {

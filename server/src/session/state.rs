@@ -24,7 +24,7 @@ pub(crate) struct Session {
     pub trusted_alignment_mm: Option<f64>,
     /// The client said the organ is held (`RegisterOptions.held`).
     pub held: bool,
-    pub meas: Measurements,
+    pub meas: Arc<Measurements>,
     pub last_seq: u64,
     pub last_time: Option<(i64, i32)>,
     /// The last update's number.
@@ -168,10 +168,10 @@ pub(crate) fn start_session(
         omit: options.as_ref().is_some_and(|o| o.omit_displacements),
         trusted_alignment_mm,
         held: options.as_ref().is_some_and(|o| o.held),
-        meas: Measurements {
+        meas: Arc::new(Measurements {
             initial_alignment: initial,
             ..Default::default()
-        },
+        }),
         last_seq: seq,
         last_time: None,
         sequence: 0,
@@ -334,10 +334,23 @@ pub(crate) fn accept(
     if let Some(t) = time {
         s.last_time = Some(t);
     }
-    s.meas.points.extend(points);
-    s.meas.kind.extend(kinds);
-    s.meas.feature.extend(feature);
+    append(&mut s.meas, points, kinds, feature);
     Ok(Accepted::Points)
+}
+
+/// Appends a message's points to a session's measurements. The registrations that shared them
+/// have let go of them (a session awaits its registrations), so they grow in place; only a
+/// discovery run still going keeps its snapshot, and the session then continues on a copy.
+fn append(
+    meas: &mut Arc<Measurements>,
+    points: Vec<[f64; 3]>,
+    kinds: Vec<MeasuredKind>,
+    feature: Vec<u8>,
+) {
+    let meas = Arc::make_mut(meas);
+    meas.points.extend(points);
+    meas.kind.extend(kinds);
+    meas.feature.extend(feature);
 }
 
 /// The largest `client_seq` a session takes: the audit log and the session journal keep it as a
@@ -416,4 +429,45 @@ fn surface_points(
     let f = features(&feature, p.len(), "surface.feature")?;
     let k = vec![MeasuredKind::Surface; p.len()];
     Ok((p, k, f, time))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A registration shares the session's measurements and lets go of them: the next message
+    /// appends to the same allocation (nothing copied), and a snapshot still held (a discovery
+    /// run) keeps the points it was given.
+    #[test]
+    fn updates_share_the_session_s_measurements_without_copying_them() {
+        let mut meas = Arc::new(Measurements::default());
+        let at = Arc::as_ptr(&meas);
+        for k in 0..50 {
+            let job = meas.clone();
+            assert!(Arc::ptr_eq(&job, &meas));
+            drop(job);
+            append(
+                &mut meas,
+                vec![[k as f64, 0.0, 0.0]; 10],
+                vec![MeasuredKind::Surface; 10],
+                vec![0; 10],
+            );
+            assert_eq!(
+                Arc::as_ptr(&meas),
+                at,
+                "message {k} copied the measurements"
+            );
+        }
+        assert_eq!(meas.points.len(), 500);
+        let snapshot = meas.clone();
+        append(
+            &mut meas,
+            vec![[1.0; 3]],
+            vec![MeasuredKind::Vessel],
+            vec![0],
+        );
+        assert_eq!((snapshot.points.len(), meas.points.len()), (500, 501));
+        assert_eq!(meas.kind[500], MeasuredKind::Vessel);
+        assert_eq!(meas.feature.len(), 501);
+    }
 }

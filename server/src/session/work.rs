@@ -91,7 +91,6 @@ pub(crate) fn start_discovery(
         held: s.held,
         budget: plan.budget,
         coarse: shared.config.discovery_coarse,
-        libr: librplus::register::libr::LibrParams::default(),
         client_seq: seq,
     };
     if n < crate::discovery::MIN_POINTS {

@@ -391,8 +391,9 @@ impl Quotas {
 /// Columns of the bases the server builds for each case: LIBR's (3 a control point), and
 /// adaptive LIBR's multi-level basis when `adaptive` (else 0).
 fn basis_columns(adaptive: bool) -> [usize; 2] {
-    let libr = 3 * librplus::register::libr::LibrParams::default().control_points;
-    let levels = librplus::register::libr::AdaptiveParams::default().levels;
+    let defaults = librplus::pipeline::PipelineParams::default();
+    let libr = 3 * defaults.libr.basis.control_points;
+    let levels = defaults.adaptive.levels;
     let multi: usize = levels.iter().map(|l| 3 * l.0).sum();
     [libr, if adaptive { multi } else { 0 }]
 }

@@ -367,7 +367,10 @@ fn a_stored_case_counts_its_basis_cache_before_it_is_written() {
     assert_eq!(
         columns,
         [
-            3 * librplus::register::libr::LibrParams::default().control_points,
+            3 * librplus::pipeline::PipelineParams::default()
+                .libr
+                .basis
+                .control_points,
             0
         ]
     );

@@ -76,7 +76,7 @@ fn truth(model: &PreopModel, g: [f64; 3], magnitude: f64) -> (Vec<f64>, Physics)
     };
     let u = forward(
         mesh,
-        &LibrParams::default().material,
+        &LibrParams::default().basis.material,
         sites,
         &physics,
         &base,

@@ -110,13 +110,10 @@ impl AdaptiveParams {
             ));
         }
         for (i, &(k, w)) in self.levels.iter().enumerate() {
-            LibrParams {
-                control_points: k,
-                load_width: w,
-                ..LibrParams::default()
-            }
-            .validate()
-            .map_err(|e| RegisterError::Parameter(format!("levels[{i}]: {e}")))?;
+            super::BasisParams::default()
+                .with_level(k, w)
+                .validate()
+                .map_err(|e| RegisterError::Parameter(format!("levels[{i}]: {e}")))?;
         }
         if !(self.reach.is_finite() && self.reach > 0.0) {
             return Err(RegisterError::Parameter(format!(
@@ -345,10 +342,8 @@ pub fn adaptive_step(
     escale: Option<f64>,
     prior: Option<&PriorPairs>,
 ) -> Result<(StepResult, f64), RegisterError> {
-    let unregularised = LibrParams {
-        regularization: 0.0,
-        ..*params
-    };
+    let mut unregularised = *params;
+    unregularised.fit.regularization = 0.0;
     let asm = assemble(basis, matches, targets_image, &unregularised, prior)?;
     let t2 = Instant::now();
     let escale = escale.unwrap_or_else(|| basis.energy_scale());
@@ -388,7 +383,7 @@ pub fn solve_adaptive(
     let cx = Context::new(mesh, basis, first_level, adaptive);
     // The last step's system, for the held-out check.
     let mut last = None;
-    for _ in 0..params.max_iterations {
+    for _ in 0..params.fit.max_iterations {
         let tm = Instant::now();
         let matches = rematch(&u, &t)?;
         info.matching_s += crate::util::secs(tm);
@@ -680,19 +675,19 @@ impl Phases {
     /// After an iteration: the coarse phase hands over to the fine one when it calms down (or
     /// has run half the iterations); returns whether to stop (setting `info.converged`).
     fn advance(&mut self, info: &mut LibrInfo, moved: f64, params: &LibrParams) -> bool {
-        let calm = moved <= params.tolerance_mm
+        let calm = moved <= params.fit.tolerance_mm
             || settled(
                 &info.rms_history_mm[self.start..],
                 &info.movement_history_mm[self.start..],
             ) && !shrinking(&info.movement_history_mm[self.start..]);
         if self.phase == 0 {
-            if calm || info.iterations >= params.max_iterations / 2 {
+            if calm || info.iterations >= params.fit.max_iterations / 2 {
                 self.phase = 1;
                 self.start = info.iterations;
                 self.rebuild = true;
             }
         } else if calm {
-            info.converged = moved <= params.tolerance_mm;
+            info.converged = moved <= params.fit.tolerance_mm;
             return true;
         }
         false

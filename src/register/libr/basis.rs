@@ -172,7 +172,7 @@ impl LibrBasis {
         Self::build_levels(
             mesh,
             params,
-            &[(params.control_points, params.load_width)],
+            &[(params.basis.control_points, params.basis.load_width)],
             physics,
             sites,
         )
@@ -202,11 +202,11 @@ impl LibrBasis {
                 "mesh has fewer than 3 boundary nodes".into(),
             ));
         }
-        let control = control_nodes(nodes, &boundary.nodes, levels, params.seed)?;
+        let control = control_nodes(nodes, &boundary.nodes, levels, params.basis.seed)?;
         let (vnormal, area) = vertex_normals(nodes, &boundary.triangles);
         let widths = level_widths(levels, area);
         let t_model = Instant::now();
-        let solver = ModelSolver::new(mesh, &params.material, sites, physics)?;
+        let solver = ModelSolver::new(mesh, &params.basis.material, sites, physics)?;
         let model_s = crate::util::secs(t_model);
         let (effect_loads, effect_labels) = effect_loads(&solver, mesh, physics)?;
         let kk = control.len();
@@ -341,12 +341,7 @@ fn check_levels(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> Result<()
         ));
     }
     for &(count, width) in levels {
-        LibrParams {
-            control_points: count,
-            load_width: width,
-            ..*params
-        }
-        .validate()?;
+        params.basis.with_level(count, width).validate()?;
     }
     Ok(())
 }

@@ -34,8 +34,8 @@ pub fn levels_hash(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> String
     let key = serde_json::json!({
         "version": BASIS_VERSION,
         "levels": levels,
-        "material": params.material,
-        "seed": params.seed,
+        "material": params.basis.material,
+        "seed": params.basis.seed,
     });
     fnv1a_hex(key.to_string().as_bytes())
 }
@@ -44,12 +44,7 @@ pub fn levels_hash(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> String
 /// (so a one-level basis is LIBR's own), else [`levels_hash`].
 pub fn levels_key(params: &LibrParams, levels: &[(usize, LoadWidth)]) -> String {
     match levels {
-        [(count, width)] => LibrParams {
-            control_points: *count,
-            load_width: *width,
-            ..*params
-        }
-        .basis_hash(),
+        [(count, width)] => params.basis.with_level(*count, *width).hash(),
         _ => levels_hash(params, levels),
     }
 }
@@ -110,7 +105,7 @@ impl LibrBasis {
         Self::load_or_build_levels(
             mesh,
             params,
-            &[(params.control_points, params.load_width)],
+            &[(params.basis.control_points, params.basis.load_width)],
             physics,
             sites,
             cache_dir,

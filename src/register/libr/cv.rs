@@ -229,7 +229,7 @@ pub fn held_out(
             p: 6,
             cen: [0.0; 3],
             radius: 1.0,
-            tw: params.tangential_weight.sqrt(),
+            tw: params.fit.tangential_weight.sqrt(),
         };
         let mut err = vec![sys.cap2; sys.measured];
         sys.predict(&sh, &[0.0; 6], &mut err, &|_| true);
@@ -274,10 +274,8 @@ struct System<'a> {
 impl System<'_> {
     /// The regularised fit of `kept` (None: singular, or not finite) and its row shape.
     fn solve(&self, kept: &[Match]) -> Result<Option<(RowShape, Vec<f64>)>, RegisterError> {
-        let unregularised = LibrParams {
-            regularization: 0.0,
-            ..*self.params
-        };
+        let mut unregularised = *self.params;
+        unregularised.fit.regularization = 0.0;
         let asm = assemble(self.basis, kept, self.targets, &unregularised, self.prior)?;
         let (m, p) = (asm.m, asm.p);
         let mut a = asm.a.clone();
@@ -293,7 +291,7 @@ impl System<'_> {
             p,
             cen: asm.cen,
             radius: asm.radius,
-            tw: self.params.tangential_weight.sqrt(),
+            tw: self.params.fit.tangential_weight.sqrt(),
         };
         let Ok(llt) = a.llt(Side::Lower) else {
             return Ok(None);

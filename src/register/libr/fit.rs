@@ -99,7 +99,7 @@ fn validate_matches(
     targets_image: &[[f64; 3]],
     params: &LibrParams,
 ) -> Result<(), RegisterError> {
-    let lambda = params.regularization;
+    let lambda = params.fit.regularization;
     if !(lambda.is_finite() && lambda >= 0.0) {
         return Err(RegisterError::Parameter(format!(
             "regularization must be finite and >= 0, got {lambda}"
@@ -372,7 +372,7 @@ pub(super) fn assemble<'a>(
     prior: Option<&PriorPairs>,
 ) -> Result<Assembled<'a>, RegisterError> {
     let t0 = Instant::now();
-    let lambda = params.regularization;
+    let lambda = params.fit.regularization;
     validate_matches(basis, matches, targets_image, params)?;
     let used: Vec<&Match> = matches.iter().filter(|m| m.weight > 0.0).collect();
     if used.len() < 3 {
@@ -392,7 +392,7 @@ pub(super) fn assemble<'a>(
     let (cen, radius) = anchor_centre(&used, wsum);
     // Weighted rows: J (R × p) and r = y − a (R), scaled by √(w/W): one row per match on a
     // surface when the tangential weight is 0 (pure point-to-plane), three otherwise.
-    let tw = params.tangential_weight.sqrt();
+    let tw = params.fit.tangential_weight.sqrt();
     let sh = RowShape {
         m,
         p,

@@ -4,9 +4,9 @@
 //! weights plus a rigid correction to matched sparse data.
 //!
 //! **Basis.** `K` control points are spread evenly over the boundary by farthest-point sampling
-//! (Euclidean, deterministic from [`LibrParams::seed`]). For each control point `c` and axis `a`
+//! (Euclidean, deterministic from [`BasisParams::seed`]). For each control point `c` and axis `a`
 //! the load is a smooth, localized surface traction `t(x) = e_a · exp(−|x − c|²/2σ²) ·
-//! max(0, n(x)·n_c)` (σ = [`LibrParams::load_width`]; the normal factor keeps a patch from leaking
+//! max(0, n(x)·n_c)` (σ = [`BasisParams::load_width`]; the normal factor keeps a patch from leaking
 //! through thin parts of the organ to the opposite face), lumped to nodes by
 //! [`loads::add_traction`](crate::fem::loads::add_traction). Column `j` of the basis `Φ` (3n × 3K, node-major rows) is the
 //! linear-elastic response to load `j`, all columns from one sparse Cholesky factorization.
@@ -33,14 +33,14 @@
 //! `Σ wᵢ |pᵢ(α) + ω × (aᵢ − c̄) + τ − yᵢ|² / Σ wᵢ + λ αᵀẼα`, with `pᵢ(α) = Match::model_point(Φα)`,
 //! `aᵢ` the anchor and `Ẽ = E / ē` where `ē` is the mean diagonal of `E` (the energy of one
 //! 1 mm basis mode). The misfit is a weighted mean square in mm² and `αᵀẼα` ≈ `Σ αⱼ²` in mm², so
-//! λ ([`LibrParams::regularization`]) is dimensionless and independent of mesh size, number of
+//! λ ([`FitParams::regularization`]) is dimensionless and independent of mesh size, number of
 //! matches and Young's modulus: λ = 1 makes one 1 mm mode cost as much as 1 mm RMS misfit.
 //! [`solve`] iterates the step, re-matching through a caller-supplied function, composing the
 //! rigid correction exactly (rotation by `exp(ω)`), until the largest node movement of an
-//! iteration falls below [`LibrParams::tolerance_mm`] or the fit has settled ([`settled`]: its
+//! iteration falls below [`FitParams::tolerance_mm`] or the fit has settled ([`settled`]: its
 //! residual stopped falling and the model is not running away, so further iterations only cycle
 //! the closest-point matches around the fit; not while the movement is still [`shrinking`]
-//! geometrically), at most [`LibrParams::max_iterations`].
+//! geometrically), at most [`FitParams::max_iterations`].
 //!
 //! **Cache.** [`LibrBasis::load_or_build`] keeps the basis in `cache_dir` as a NumPy `.npz`
 //! named by the mesh hash and the hash of the basis-relevant parameters; an unreadable,
@@ -82,9 +82,11 @@ pub enum LoadWidth {
     Spacing(f64),
 }
 
-/// Parameters of the LIBR basis and fit.
+/// What determines a LIBR basis: the control points, their load patches, the material and the
+/// sampling seed. A prepared case records these ([`LibrBasis::params_hash`] is their
+/// [`BasisParams::hash`]); registering with other ones is a mismatch.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct LibrParams {
+pub struct BasisParams {
     /// Number of control points K (the basis has 3K columns). Default 25: on the training split of
     /// the paper preset (`librplus evaluate --split train`), 25 gave 6.9 mm mean TRE, 40 7.4,
     /// 60 7.7 and 120 8.5 (BENCHMARKS.md); fewer, broader modes are better determined by sparse
@@ -94,6 +96,14 @@ pub struct LibrParams {
     pub load_width: LoadWidth,
     /// Linear-elastic material of the model. Default E = 5 kPa, ν = 0.45.
     pub material: LinearMaterial,
+    /// Chooses the first control point of the farthest-point sampling. Default 0.
+    pub seed: u64,
+}
+
+/// How a LIBR basis is fitted to the data: regularization, matching and iterations. Changing
+/// these never changes the basis.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FitParams {
     /// Strain-energy regularization λ (dimensionless, see the module doc). Default 1e-3 (swept
     /// 1e-4 … 1e-1 on the training split).
     pub regularization: f64,
@@ -115,8 +125,6 @@ pub struct LibrParams {
     pub max_iterations: usize,
     /// [`solve`] stops when no node moved more than this in an iteration (mm). Default 0.01.
     pub tolerance_mm: f64,
-    /// Chooses the first control point of the farthest-point sampling. Default 0.
-    pub seed: u64,
     /// LIBR's correspondences are weighted by a robust (Cauchy) kernel instead of trimmed by the
     /// median (`CorrespondenceParams::robust_kernel`). Default false; a held organ's fit uses it
     /// (the held-organ mode). On the paper preset (seed 2) it changed LIBR by −0.04 mm (500
@@ -126,24 +134,54 @@ pub struct LibrParams {
     pub robust_kernel: bool,
 }
 
-impl Default for LibrParams {
+/// Parameters of the LIBR basis and fit: the two are separate types, since a prepared case's
+/// basis fixes the first and a registration may vary the second.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LibrParams {
+    /// What the basis is built from.
+    #[serde(flatten)]
+    pub basis: BasisParams,
+    /// How it is fitted.
+    #[serde(flatten)]
+    pub fit: FitParams,
+}
+
+impl Default for BasisParams {
     fn default() -> Self {
         Self {
             control_points: 25,
             load_width: LoadWidth::Spacing(1.25),
             material: LinearMaterial::default(),
+            seed: 0,
+        }
+    }
+}
+
+impl Default for FitParams {
+    fn default() -> Self {
+        Self {
             regularization: 1e-3,
             tangential_weight: 0.0,
             trim_floor_mm: 30.0,
             max_iterations: 20,
             tolerance_mm: 0.01,
-            seed: 0,
             robust_kernel: false,
         }
     }
 }
 
-impl LibrParams {
+/// The defaults of both parts. Every path (the command line, `evaluate`, the server) takes them
+/// through [`crate::pipeline::PipelineParams::default`].
+impl Default for LibrParams {
+    fn default() -> Self {
+        Self {
+            basis: BasisParams::default(),
+            fit: FitParams::default(),
+        }
+    }
+}
+
+impl BasisParams {
     /// Checks the parameters; the message names the bad field.
     pub fn validate(&self) -> Result<(), RegisterError> {
         if self.control_points == 0 {
@@ -161,7 +199,36 @@ impl LibrParams {
         }
         self.material
             .validate()
-            .map_err(|e| RegisterError::Parameter(format!("material: {e}")))?;
+            .map_err(|e| RegisterError::Parameter(format!("material: {e}")))
+    }
+
+    /// Hash (16 hex digits) of what determines the basis: version, control points, load width,
+    /// material, seed.
+    pub fn hash(&self) -> String {
+        let key = serde_json::json!({
+            "version": BASIS_VERSION,
+            "control_points": self.control_points,
+            "load_width": self.load_width,
+            "material": self.material,
+            "seed": self.seed,
+        });
+        fnv1a_hex(key.to_string().as_bytes())
+    }
+
+    /// These parameters with the one level `(count, width)` in place of the control points and
+    /// their width (one level of a multi-resolution basis).
+    pub fn with_level(self, count: usize, width: LoadWidth) -> Self {
+        Self {
+            control_points: count,
+            load_width: width,
+            ..self
+        }
+    }
+}
+
+impl FitParams {
+    /// Checks the parameters; the message names the bad field.
+    pub fn validate(&self) -> Result<(), RegisterError> {
         if !(self.tangential_weight.is_finite()
             && self.tangential_weight >= 0.0
             && self.tangential_weight <= 1.0)
@@ -191,17 +258,17 @@ impl LibrParams {
         }
         Ok(())
     }
+}
 
-    /// Hash (16 hex digits) of what determines the basis: version, control points, load width,
-    /// material, seed (not the fit's regularization, iterations or tolerance).
+impl LibrParams {
+    /// Checks the parameters; the message names the bad field.
+    pub fn validate(&self) -> Result<(), RegisterError> {
+        self.basis.validate()?;
+        self.fit.validate()
+    }
+
+    /// [`BasisParams::hash`] of the basis part.
     pub fn basis_hash(&self) -> String {
-        let key = serde_json::json!({
-            "version": BASIS_VERSION,
-            "control_points": self.control_points,
-            "load_width": self.load_width,
-            "material": self.material,
-            "seed": self.seed,
-        });
-        fnv1a_hex(key.to_string().as_bytes())
+        self.basis.hash()
     }
 }

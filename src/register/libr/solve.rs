@@ -223,7 +223,7 @@ pub fn solve_with_limits(
     let mut u = offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec);
     // The last step's system (its matches, targets and prior), for the held-out check.
     let mut last = None;
-    for _ in 0..params.max_iterations {
+    for _ in 0..params.fit.max_iterations {
         let tm = Instant::now();
         let mut matches = rematch(&u, &t)?;
         info.matching_s += crate::util::secs(tm);
@@ -239,7 +239,7 @@ pub fn solve_with_limits(
         if folds.is_some() {
             last = Some((matches, targets, prior));
         }
-        if moved <= params.tolerance_mm {
+        if moved <= params.fit.tolerance_mm {
             info.converged = true;
             break;
         }
@@ -258,7 +258,7 @@ pub fn solve_with_limits(
     finish_info(&mut info, basis, params, hold, &alpha);
     let model = FitModel::Basis {
         basis,
-        lambda: params.regularization,
+        lambda: params.fit.regularization,
         escale: basis.energy_scale(),
     };
     info.held_out = held_out_of_last(folds, last.as_ref(), model, params);
@@ -303,7 +303,7 @@ pub(super) fn past_deadline(
 ) -> bool {
     if let Some(d) = deadline {
         let now = Instant::now();
-        if info.iterations < params.max_iterations && now + (now - tm) > d {
+        if info.iterations < params.fit.max_iterations && now + (now - tm) > d {
             info.stopped_at_deadline = true;
             return true;
         }
@@ -413,10 +413,10 @@ fn finish_info(
     info.settled = info.converged || settled(&info.rms_history_mm, &info.movement_history_mm);
     info.held_nodes = hold.map_or(0, |h| h.nodes.len());
     info.strain_energy_uj = basis.strain_energy(alpha);
-    info.regularization = params.regularization;
+    info.regularization = params.fit.regularization;
     info.columns = basis.columns();
     info.prior_mm2 =
-        params.regularization * 2.0 * info.strain_energy_uj / basis.energy_scale().max(1e-300);
+        params.fit.regularization * 2.0 * info.strain_energy_uj / basis.energy_scale().max(1e-300);
 }
 
 /// What every LIBR iteration checks before it starts (the mesh is the basis's, at least one
@@ -440,7 +440,7 @@ pub(super) fn checked_active(
             basis.nodes
         )));
     }
-    if params.max_iterations == 0 {
+    if params.fit.max_iterations == 0 {
         return Err(RegisterError::Parameter(
             "max_iterations must be at least 1".into(),
         ));

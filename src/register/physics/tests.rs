@@ -464,8 +464,11 @@ fn augmented_basis_columns_are_the_effect_responses() {
         falciform: &falc,
     };
     let params = LibrParams {
-        control_points: 6,
-        ..LibrParams::default()
+        basis: crate::register::libr::BasisParams {
+            control_points: 6,
+            ..LibrParams::default().basis
+        },
+        fit: LibrParams::default().fit,
     };
     let gravity = Effect::new(
         EffectKind::Gravity,
@@ -488,7 +491,14 @@ fn augmented_basis_columns_are_the_effect_responses() {
         }
     }
     let n = mesh.num_nodes();
-    let u = forward(&mesh, &params.material, sites, &physics, &vec![0.0; 3 * n]).unwrap();
+    let u = forward(
+        &mesh,
+        &params.basis.material,
+        sites,
+        &physics,
+        &vec![0.0; 3 * n],
+    )
+    .unwrap();
     let col: Vec<f64> = (0..3 * n)
         .map(|r| 0.01 * aug.phi[r * m + mp] / aug.load_scale[mp])
         .collect();
@@ -660,8 +670,11 @@ fn supported_basis_columns_are_the_carried_responses() {
         falciform: &falc,
     };
     let params = LibrParams {
-        control_points: 6,
-        ..LibrParams::default()
+        basis: crate::register::libr::BasisParams {
+            control_points: 6,
+            ..LibrParams::default().basis
+        },
+        fit: LibrParams::default().fit,
     };
     let physics = bed_and_gravity();
     let n = mesh.num_nodes();
@@ -681,7 +694,7 @@ fn supported_basis_columns_are_the_carried_responses() {
     let base = vec![0.0; 3 * n];
     let want = forward_with(
         &mesh,
-        &params.material,
+        &params.basis.material,
         sites,
         &physics,
         &base,
@@ -690,7 +703,8 @@ fn supported_basis_columns_are_the_carried_responses() {
     .unwrap();
     let d = rel_diff(&col, &want);
     assert!(d < 1e-8, "carried column vs forward_with: {d}");
-    let [b, e] = forward_supported_parts(&mesh, &params.material, sites, &physics, &base).unwrap();
+    let [b, e] =
+        forward_supported_parts(&mesh, &params.basis.material, sites, &physics, &base).unwrap();
     assert!(
         b.iter().all(|x| x.abs() < 1e-12),
         "no base load, no base part"

@@ -137,16 +137,16 @@ impl LibrOpts {
     pub(crate) fn params(&self) -> librplus::pipeline::PipelineParams {
         let mut p = librplus::pipeline::PipelineParams::default();
         if let Some(l) = self.lambda {
-            p.libr.regularization = l;
+            p.libr.fit.regularization = l;
         }
         if let Some(i) = self.iterations {
-            p.libr.max_iterations = i;
+            p.libr.fit.max_iterations = i;
         }
         if let Some(k) = self.control_points {
-            p.libr.control_points = k;
+            p.libr.basis.control_points = k;
         }
         if let Some(w) = self.load_width {
-            p.libr.load_width = librplus::register::libr::LoadWidth::Spacing(w);
+            p.libr.basis.load_width = librplus::register::libr::LoadWidth::Spacing(w);
         }
         if let Some(k) = self.refit_iterations {
             p.refit_iterations = k;
@@ -174,7 +174,7 @@ impl LibrOpts {
         }
         p.hold.trimmed = self.trimmed_libr;
         if let Some(w) = self.tangential_weight {
-            p.libr.tangential_weight = w;
+            p.libr.fit.tangential_weight = w;
         }
         if let Some(c) = self.hold_clearance {
             p.hold.clearance_mm = c;
@@ -189,7 +189,7 @@ impl LibrOpts {
             p.wicp.min_conditioning = c;
         }
         if let Some(levels) = &self.adaptive_levels {
-            let w = p.libr.load_width;
+            let w = p.libr.basis.load_width;
             p.adaptive.levels = levels.iter().map(|&k| (k, w)).collect();
         }
         if let Some(r) = self.adaptive_reach {
