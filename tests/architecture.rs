@@ -66,8 +66,9 @@ enum Rule {
     /// A module of the `librplus` library: the modules of `allowed()[layer]`.
     Library { layer: String },
     /// The server's library or the client crate: `librplus` except `phantom`; the server's also
-    /// not `librplus_client`.
-    Service { may_use_client: bool },
+    /// not `librplus_client`, and not `librplus::eval` (it reads datasets from the data layer,
+    /// `librplus::dataset`, as the library's surgery path does).
+    Service { may_use_client: bool, server: bool },
     /// A binary (the command line, the server's `main` and its demo): anything.
     Binary,
     /// A crate that stands alone (the OpenIGTLink codec): no crate of the workspace.
@@ -115,12 +116,14 @@ fn classify(rel: &str) -> Option<(Rule, Vec<String>)> {
         ["server", "src", "igtl", "bridge.rs"] => Some((
             Rule::Service {
                 may_use_client: true,
+                server: true,
             },
             vec![],
         )),
         ["server", "src", ..] => Some((
             Rule::Service {
                 may_use_client: false,
+                server: true,
             },
             vec![],
         )),
@@ -128,6 +131,7 @@ fn classify(rel: &str) -> Option<(Rule, Vec<String>)> {
         ["client", "src", ..] => Some((
             Rule::Service {
                 may_use_client: true,
+                server: false,
             },
             vec![],
         )),
@@ -290,9 +294,15 @@ fn violations(rel: &str, text: &str) -> Result<Vec<Violation>, String> {
                     out.push(edge(&segments[0]));
                 }
             }
-            Rule::Service { may_use_client } => match segments[0].as_str() {
+            Rule::Service {
+                may_use_client,
+                server,
+            } => match segments[0].as_str() {
                 "librplus" if segments.get(1).is_some_and(|m| m == "phantom") => {
                     out.push(edge("librplus::phantom"))
+                }
+                "librplus" if *server && segments.get(1).is_some_and(|m| m == "eval") => {
+                    out.push(edge("librplus::eval"))
                 }
                 "librplus_client" if !may_use_client => out.push(edge("librplus_client")),
                 _ => {}
@@ -424,6 +434,22 @@ fn a_planted_back_edge_fails_with_its_file_and_line() {
         2
     );
     assert!(violations("server/src/demo.rs", server).unwrap().is_empty());
+    // Nor does it read datasets through `eval` (training and evaluation); the client may.
+    let eval = "fn f(d: &Path) { let _ = librplus::eval::open(d); }\n";
+    assert_eq!(violations("server/src/cases.rs", eval).unwrap().len(), 1);
+    assert!(
+        violations(
+            "server/src/cases.rs",
+            &eval.replace("eval", "dataset::read")
+        )
+        .unwrap()
+        .is_empty()
+    );
+    assert!(
+        violations("client/src/messages.rs", eval)
+            .unwrap()
+            .is_empty()
+    );
     // The client may use its own crate name but not the phantom.
     assert_eq!(violations("client/src/replay.rs", server).unwrap().len(), 1);
     // The OpenIGTLink codec stands alone: any crate of the workspace is a violation.

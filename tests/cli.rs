@@ -282,6 +282,21 @@ fn bench_register_times_preload_and_registrations() {
     assert!(r["libr_iterations_mean"].as_f64().unwrap() >= 1.0);
     assert!(r["tre_mm_mean"].as_f64().unwrap().is_finite());
 
+    // Adaptive LIBR's basis build is reported on stderr: with `--json`, stdout is one object.
+    let a = json(&[
+        "bench",
+        "register",
+        "--scenarios",
+        "2",
+        "--method",
+        "adaptive",
+        "--surface",
+        &data("sofa_liver.vtk"),
+        "--json",
+    ]);
+    assert_eq!(a["registrations"]["count"], 2);
+    assert_eq!(a["registrations"]["failed"], 0);
+
     let m = json(&[
         "bench",
         "register",

@@ -175,7 +175,7 @@ pub fn discover(config: &ServerConfig) -> Result<Vec<(String, CaseSource)>, Case
             Ok(())
         };
         if dir.join("manifest.json").is_file() {
-            let m = librplus::eval::open(dir)?;
+            let m = librplus::dataset::read::open(dir)?;
             for g in &m.geometries {
                 add(
                     g.id.clone(),
@@ -260,8 +260,8 @@ pub fn load_with_progress(
     let mut version = String::new();
     let (model, path, cache, physics_path) = match source {
         CaseSource::Dataset { dir, geometry } => {
-            let m = librplus::eval::open(dir)?;
-            let g = librplus::eval::load_geometry(dir, &m, geometry)?;
+            let m = librplus::dataset::read::open(dir)?;
+            let g = librplus::dataset::read::load_geometry(dir, &m, geometry)?;
             let entry = m
                 .geometries
                 .iter()

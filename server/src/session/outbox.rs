@@ -3,6 +3,7 @@
 
 use super::state::Session;
 use librplus_proto::v1 as pb;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 use tokio::sync::mpsc;
 use tonic::Status;
@@ -15,6 +16,8 @@ pub(crate) struct Gone;
 pub(crate) struct Outbox {
     tx: mpsc::Sender<Result<pb::StreamUpdate, Status>>,
     session_id: String,
+    /// The last update's number (the first is 1).
+    sequence: AtomicU64,
 }
 
 impl Outbox {
@@ -26,6 +29,7 @@ impl Outbox {
         Self {
             tx,
             session_id: session_id.to_string(),
+            sequence: AtomicU64::new(0),
         }
     }
 
@@ -33,13 +37,13 @@ impl Outbox {
     /// `arrival`.
     pub(crate) async fn send(
         &self,
-        s: &mut Session,
+        s: &Session,
         update: pb::stream_update::Update,
         arrival: Instant,
     ) -> Result<(), Gone> {
-        s.sequence += 1;
+        let sequence = self.sequence.fetch_add(1, Ordering::Relaxed) + 1;
         let out = pb::StreamUpdate {
-            sequence: s.sequence,
+            sequence,
             session_id: self.session_id.clone(),
             last_client_seq: s.last_seq,
             update: Some(update),

@@ -27,8 +27,6 @@ pub(crate) struct Session {
     pub meas: Arc<Measurements>,
     pub last_seq: u64,
     pub last_time: Option<(i64, i32)>,
-    /// The last update's number.
-    pub sequence: u64,
     /// In-surgery discovery, when the session opted in.
     pub discovery: Option<DiscoveryPlan>,
     /// The running discovery's outcome.
@@ -174,7 +172,6 @@ pub(crate) fn start_session(
         }),
         last_seq: seq,
         last_time: None,
-        sequence: 0,
         discovery,
         pending: None,
         augmented: None,

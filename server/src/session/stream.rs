@@ -259,7 +259,7 @@ impl Stream {
             lease_record(&self.shared, &self.lease, &self.sid, b.records).await?;
         }
         for r in b.rejections {
-            self.out.send(&mut self.s, r, arrival).await?;
+            self.out.send(&self.s, r, arrival).await?;
         }
         // A discovery run: asked for, or due (the session grew to its automatic threshold).
         let due = self.s.pending.is_none()
@@ -270,7 +270,7 @@ impl Stream {
                 .is_some_and(|d| d.auto_at > 0 && self.s.meas.points.len() >= d.auto_at);
         if let Some(seq) = b.discover.or(due.then_some(0)) {
             let update = start_discovery(&self.shared, &mut self.s, seq);
-            self.out.send(&mut self.s, update, arrival).await?;
+            self.out.send(&self.s, update, arrival).await?;
         }
         if let Some(seq) = b.accepted {
             self.register(seq, arrival).await?;
@@ -305,7 +305,7 @@ impl Stream {
                 lease_record(&self.shared, &self.lease, &self.sid, vec![record]).await?;
             }
         }
-        self.out.send(&mut self.s, update, arrival).await?;
+        self.out.send(&self.s, update, arrival).await?;
         Ok(())
     }
 
@@ -332,12 +332,12 @@ impl Stream {
             self.s.augmented = Some(p);
         }
         let report = pb::stream_update::Update::Discovery(o.report);
-        self.out.send(&mut self.s, report, arrival).await?;
+        self.out.send(&self.s, report, arrival).await?;
         // The switch shows at once: the session's points registered with its new model.
         if switched && !self.s.meas.points.is_empty() {
             let seq = self.s.last_seq;
             let update = register_session(&self.shared, &self.s, arrival, self.deadline, seq).await;
-            self.out.send(&mut self.s, update, arrival).await?;
+            self.out.send(&self.s, update, arrival).await?;
         }
         Ok(())
     }
