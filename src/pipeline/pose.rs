@@ -383,7 +383,6 @@ pub struct Candidates {
 
 /// Chooses among scored candidates (score per candidate, in order; the first the navigation
 /// start's): the lowest score, and whether the runner-up makes it ambiguous.
-#[allow(clippy::too_many_arguments)]
 pub fn choose(
     model: &PreopModel,
     poses: &[Rigid],

@@ -33,7 +33,7 @@
 //!
 //! The iterations are LIBR's ([`super::solve_with_limits`]): re-match on the deformed model, fit,
 //! compose the rigid correction; they stop when the model stops moving
-//! ([`LibrParams::tolerance_mm`]), when the fit has settled ([`super::settled`]), at the
+//! ([`FitParams::tolerance_mm`](super::FitParams::tolerance_mm)), when the fit has settled ([`super::settled`]), at the
 //! iteration cap, or before a deadline.
 
 use super::*;
@@ -58,7 +58,7 @@ pub struct AdaptiveParams {
     /// axis is at least `spread` × σ ([`select_columns`]). Default 0.3.
     pub spread: f64,
     /// The evidence is maximised over λ on a log grid from `lambda_range.0` to `lambda_range.1`
-    /// (λ as in [`LibrParams::regularization`], relative to the broadest level's mean mode
+    /// (λ as in [`FitParams::regularization`](super::FitParams::regularization), relative to the broadest level's mean mode
     /// energy); equal ends fix λ. Default 1e-3 to 1e-3 (fixed: see the module doc).
     pub lambda_range: (f64, f64),
     /// Grid points per decade. Default 2.

@@ -40,7 +40,7 @@ pub struct LibrInfo {
     /// Total time (s).
     pub total_s: f64,
     /// The strain-energy weight λ of the last iteration: LIBR's fixed
-    /// [`LibrParams::regularization`], or what adaptive LIBR chose ([`solve_adaptive`]); 0 when
+    /// [`FitParams::regularization`](super::FitParams::regularization), or what adaptive LIBR chose ([`solve_adaptive`]); 0 when
     /// not recorded.
     pub regularization: f64,
     /// Basis columns the fit used (adaptive LIBR keeps those near the data; 0 when not

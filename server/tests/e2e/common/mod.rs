@@ -290,7 +290,12 @@ impl Stream {
         &mut self,
         m: pb::StreamRegisterRequest,
     ) -> Result<pb::StreamUpdate, tonic::Status> {
-        self.tx.send(m).await.unwrap();
+        // The server may have gone away (killed, restarted) since the stream opened: its end of
+        // the request channel is closed then, an error like any other of a dead stream.
+        self.tx
+            .send(m)
+            .await
+            .map_err(|_| tonic::Status::unavailable("the stream's request side is closed"))?;
         match self.rx.message().await? {
             Some(u) => Ok(u),
             None => Err(tonic::Status::unknown("stream ended")),
