@@ -4,12 +4,17 @@
 
 use crate::audit::Record;
 use crate::cases::{self, CaseSource};
+use crate::config::ServerConfig;
 use crate::shared::Shared;
 use crate::store::Stored;
+use librplus::gcn::io::{TrainedModel, builtin_models, load_models_on_device};
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
+use tokio::sync::watch;
+use tonic_health::ServingStatus;
+use tonic_health::server::HealthReporter;
 
 /// Starts preloading a new upload in the background; its first status. An upload that fails
 /// is removed from the store.
@@ -162,4 +167,266 @@ fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) ->
         }
     });
     first
+}
+
+// The preload at start: every configured and stored case, the learned models, and the
+// eviction of idle uploads.
+
+/// What preload did.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct PreloadReport {
+    /// Cases loaded: (id, nodes, seconds, basis from cache).
+    pub cases: Vec<(String, usize, f64, bool)>,
+    /// Cases that failed: (id, error).
+    pub failed: Vec<(String, String)>,
+    /// Total seconds.
+    pub seconds: f64,
+}
+
+/// Why preload failed (the server then stays NOT_SERVING).
+#[derive(Debug, thiserror::Error)]
+pub enum PreloadError {
+    /// The configured case paths could not be listed.
+    #[error(transparent)]
+    Cases(#[from] cases::CaseError),
+    /// The SR-GCN model could not be loaded (`which`: "model" or "built-in model").
+    #[error("{which}: {source}")]
+    Model {
+        /// Which model.
+        which: &'static str,
+        /// What failed.
+        source: librplus::gcn::GcnError,
+    },
+    /// The V2S model could not be loaded (`v2s_model`, or the built-in one).
+    #[error("v2s_model: {0}")]
+    V2sModel(#[source] librplus::v2s::V2sError),
+    /// Every case failed.
+    #[error("no case could be loaded ({found} found): {failed:?}")]
+    NoCase {
+        /// Cases found.
+        found: usize,
+        /// (id, error) of each.
+        failed: Vec<(String, String)>,
+    },
+    /// The preload task itself failed (a panic; logged).
+    #[error("preload task failed: {0}")]
+    Task(#[source] tokio::task::JoinError),
+    /// The server stopped before preload finished.
+    #[error("preload task ended")]
+    Ended,
+}
+
+/// What preload came to, once it has: its report, or why it failed.
+pub(crate) type Ready = Option<Result<PreloadReport, Arc<PreloadError>>>;
+
+/// The gRPC service whose health is reported beside the server's.
+const SERVICE_NAME: &str = "librplus.v1.LibRPlus";
+
+/// Sets the health of the server (`""`) and of the `librplus.v1.LibRPlus` service.
+pub(crate) async fn set_health(health: &HealthReporter, status: ServingStatus) {
+    health.set_service_status("", status).await;
+    health.set_service_status(SERVICE_NAME, status).await;
+}
+
+/// Preloads every case in the background; then health SERVING (and, with a case store and
+/// `evict_idle_s`, idle uploads evicted), or NOT_SERVING kept when it failed. The report, or
+/// why it failed, is sent on `ready`.
+pub(crate) fn spawn_preload(
+    shared: Arc<Shared>,
+    health: HealthReporter,
+    ready: watch::Sender<Ready>,
+) {
+    tokio::spawn(async move {
+        let sh = shared.clone();
+        let report = tokio::task::spawn_blocking(move || preload_all(&sh)).await;
+        let report = match report {
+            Ok(Ok(report)) => {
+                shared.registry.set_preloaded();
+                if shared.store.is_some() && shared.config.evict_idle_s > 0.0 {
+                    tokio::spawn(evict_idle(shared.clone()));
+                }
+                set_health(&health, ServingStatus::Serving).await;
+                tracing::info!(
+                    cases = report.cases.len(),
+                    failed = report.failed.len(),
+                    seconds = report.seconds,
+                    "preload done; SERVING"
+                );
+                Ok(report)
+            }
+            Ok(Err(e)) => {
+                tracing::error!(error = %e, "preload failed; staying NOT_SERVING");
+                Err(Arc::new(e))
+            }
+            Err(e) => Err(Arc::new(PreloadError::Task(e))),
+        };
+        let _ = ready.send(Some(report));
+    });
+}
+
+/// The SR-GCN model every case gets for LIBR+: the configured directory (a model or an
+/// ensemble), else the built-in one; its networks, shared between cases.
+fn load_gcn(config: &ServerConfig) -> Result<Option<Vec<Arc<TrainedModel>>>, PreloadError> {
+    if !config.librplus {
+        return Ok(None);
+    }
+    let models = match &config.model {
+        Some(dir) => load_models_on_device(dir).map_err(|e| PreloadError::Model {
+            which: "model",
+            source: e,
+        })?,
+        None => builtin_models().map_err(|e| PreloadError::Model {
+            which: "built-in model",
+            source: e,
+        })?,
+    };
+    let first = &models[0];
+    tracing::info!(
+        model = %config.model.as_ref().map_or("built-in".into(), |p| p.display().to_string()),
+        networks = models.len(),
+        width = first.config.width,
+        levels = first.config.levels,
+        "SR-GCN model loaded: LIBR+ available"
+    );
+    Ok(Some(models.into_iter().map(Arc::new).collect()))
+}
+
+/// The V2S network every case gets for METHOD_V2S: the configured directory, else the built-in
+/// one; none when `v2s` is off.
+fn load_v2s(
+    config: &ServerConfig,
+) -> Result<Option<Arc<librplus::v2s::io::V2sModel>>, PreloadError> {
+    if !config.v2s {
+        return Ok(None);
+    }
+    let m = match &config.v2s_model {
+        Some(dir) => librplus::v2s::io::load_model_on_device(dir),
+        None => librplus::v2s::io::builtin_model(),
+    }
+    .map_err(PreloadError::V2sModel)?;
+    tracing::info!(
+        model = %config.v2s_model.as_ref().map_or("built-in".into(), |p| p.display().to_string()),
+        grid = m.config.grid,
+        width = m.config.width,
+        depth = m.config.depth,
+        "V2S model loaded: METHOD_V2S available"
+    );
+    Ok(Some(Arc::new(m)))
+}
+
+/// Takes uploaded cases out of memory once idle for `evict_idle_s` (no request used them, no
+/// session holds them); they stay in the store, STORED, and load again when asked for.
+async fn evict_idle(shared: Arc<Shared>) {
+    let idle_ms = (shared.config.evict_idle_s * 1e3).min(1e15) as i64;
+    let period = Duration::from_secs_f64((shared.config.evict_idle_s / 4.0).clamp(0.05, 60.0));
+    let mut drain = shared.drain.clone();
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(period) => {}
+            _ = drain.wait_for(|d| *d) => return,
+        }
+        let Some(store) = &shared.store else {
+            return;
+        };
+        for (id, c) in shared.registry.ready().iter() {
+            if c.idle_ms() < idle_ms || c.sessions.load(Ordering::SeqCst) > 0 {
+                continue;
+            }
+            // Only an upload, and only the content the store holds (it loads from there).
+            let stored = store.find(id).is_some_and(|s| s.version == c.version);
+            if stored && shared.registry.evict(id, c) {
+                tracing::info!(case = %id, idle_s = c.idle_ms() as f64 / 1e3, "idle uploaded case left memory (STORED; loaded again when asked for)");
+                metrics::counter!("librplus_cases_evicted_total").increment(1);
+            }
+        }
+    }
+}
+
+/// Preloads the configured cases and the case store's, into the registry.
+fn preload_all(shared: &Shared) -> Result<PreloadReport, PreloadError> {
+    let config = &shared.config;
+    let t0 = Instant::now();
+    let mut found = if config.cases.is_empty() {
+        Vec::new()
+    } else {
+        cases::discover(config)?
+    };
+    let configured = found.len();
+    if let Some(store) = &shared.store {
+        match store.list() {
+            Ok(list) => {
+                for s in list {
+                    match s {
+                        Ok(s) => {
+                            if found.iter().any(|(id, _)| *id == s.case_id) {
+                                tracing::error!(case = %s.case_id, "a stored case has the id of a configured case; skipped");
+                                continue;
+                            }
+                            found.push((s.case_id.clone(), cases::CaseSource::Stored(Box::new(s))));
+                        }
+                        Err(e) => {
+                            tracing::error!(error = %e, "a stored case does not read; skipped")
+                        }
+                    }
+                }
+            }
+            Err(e) => tracing::error!(error = %e, "the case store cannot be listed"),
+        }
+    }
+    let learned = cases::Learned {
+        gcn: load_gcn(config)?,
+        v2s: load_v2s(config)?,
+    };
+    let _ = shared.learned.set(learned.clone());
+    let mut report = PreloadReport {
+        cases: Vec::new(),
+        failed: Vec::new(),
+        seconds: 0.0,
+    };
+    let mut loaded_configured = 0;
+    for (k, (id, src)) in found.iter().enumerate() {
+        match cases::load(id, src, config, &learned) {
+            Ok(c) => {
+                tracing::info!(
+                    case = %id,
+                    nodes = c.prepared.model.mesh.num_nodes(),
+                    seconds = c.prepared.seconds,
+                    basis_from_cache = c.prepared.basis_from_cache,
+                    "case preloaded"
+                );
+                report.cases.push((
+                    id.clone(),
+                    c.prepared.model.mesh.num_nodes(),
+                    c.prepared.seconds,
+                    c.prepared.basis_from_cache,
+                ));
+                let c = Arc::new(c);
+                shared
+                    .registry
+                    .set(crate::registry::ready_status(&c), Some(c));
+                loaded_configured += usize::from(k < configured);
+            }
+            Err(e) => {
+                tracing::error!(case = %id, error = %e, "case failed to load; skipped");
+                report.failed.push((id.clone(), e.to_string()));
+                shared.registry.set(
+                    librplus_proto::v1::CaseStatus {
+                        case_id: id.clone(),
+                        state: librplus_proto::v1::CaseState::Failed as i32,
+                        error: e.to_string(),
+                        ..Default::default()
+                    },
+                    None,
+                );
+            }
+        }
+    }
+    if configured > 0 && loaded_configured == 0 {
+        return Err(PreloadError::NoCase {
+            found: configured,
+            failed: report.failed,
+        });
+    }
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(report)
 }
