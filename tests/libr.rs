@@ -32,6 +32,15 @@ fn box_params() -> LibrParams {
     p
 }
 
+/// The default basis with an almost unregularised fit run to a tight tolerance (exactness checks).
+fn exact_fit() -> LibrParams {
+    let mut p = LibrParams::default();
+    p.fit.regularization = 1e-9;
+    p.fit.tolerance_mm = 1e-7;
+    p.fit.max_iterations = 30;
+    p
+}
+
 fn boxed() -> &'static (TetMesh, LibrBasis) {
     static B: OnceLock<(TetMesh, LibrBasis)> = OnceLock::new();
     B.get_or_init(|| {
@@ -335,15 +344,7 @@ fn exactness(mesh: &TetMesh, basis: &LibrBasis, per: usize, amp: f64) -> (f64, f
         .iter()
         .map(|m| truth.apply(m.model_point(&u_true)))
         .collect();
-    let params = LibrParams {
-        basis: LibrParams::default().basis,
-        fit: librplus::register::libr::FitParams {
-            regularization: 1e-9,
-            tolerance_mm: 1e-7,
-            max_iterations: 30,
-            ..LibrParams::default().fit
-        },
-    };
+    let params = exact_fit();
     let sol = solve(
         mesh,
         basis,
@@ -428,15 +429,7 @@ fn a_refit_keeps_its_offset_and_fits_only_what_it_leaves() {
         .iter()
         .map(|m| truth.apply(m.model_point(&u_true)))
         .collect();
-    let params = LibrParams {
-        basis: LibrParams::default().basis,
-        fit: librplus::register::libr::FitParams {
-            regularization: 1e-9,
-            tolerance_mm: 1e-7,
-            max_iterations: 30,
-            ..LibrParams::default().fit
-        },
-    };
+    let params = exact_fit();
     // LIBR on `data` (fixed matches, identity start), from `offset`.
     let fit = |data: &[[f64; 3]], offset: Option<&[f64]>| {
         solve_with_limits(

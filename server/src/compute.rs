@@ -555,15 +555,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mesh = librplus::mesh::procedural::box_mesh([120.0, 90.0, 60.0], [5, 4, 3], 0.1);
         let path = dir.path().join("organ.vtu");
-        let file = librplus::mesh::io::MeshFile {
-            nodes: mesh.nodes().to_vec(),
-            tets: mesh.tets().to_vec(),
-            triangles: Vec::new(),
-            point_data: Vec::new(),
-            cell_data: Vec::new(),
-            skipped_cells: 0,
-        };
-        librplus::mesh::io::write(&path, &file, Default::default()).unwrap();
+        librplus::mesh::io::write(&path, &mesh.to_file(), Default::default()).unwrap();
         let config = crate::config::ServerConfig {
             default_method: "libr".into(),
             adaptive: false,

@@ -23,16 +23,8 @@ fn coarse_case(dir: &Path) -> PreopModel {
         &librplus::mesh::tetra::TetraParams::with_edge(14.0),
     )
     .unwrap();
-    let file = librplus::mesh::io::MeshFile {
-        nodes: mesh.nodes().to_vec(),
-        tets: mesh.tets().to_vec(),
-        triangles: Vec::new(),
-        point_data: Vec::new(),
-        cell_data: Vec::new(),
-        skipped_cells: 0,
-    };
     let path = dir.join("organ.vtu");
-    librplus::mesh::io::write(&path, &file, Default::default()).unwrap();
+    librplus::mesh::io::write(&path, &mesh.to_file(), Default::default()).unwrap();
     let back = librplus::mesh::io::read(&path, librplus::mesh::io::Unit::Mm).unwrap();
     librplus::input::preop_model_from_mesh(&path, &back, librplus::mesh::io::Unit::Mm, 7.6).unwrap()
 }
