@@ -312,12 +312,15 @@ fn a_local_dent_on_part_of_the_surface_is_resolved() {
         },
     };
     let libr = solve(mesh, plain, &lp, &measured, &id, |_, _| Ok(matches.clone())).unwrap();
+    let levels = librplus::register::libr::MultiLevel {
+        basis: two,
+        first_level: COARSE,
+        adaptive: &AdaptiveParams::default(),
+    };
     let ad = solve_adaptive(
         mesh,
-        two,
-        COARSE,
+        levels,
         &lp,
-        &AdaptiveParams::default(),
         &measured,
         &id,
         RunLimits::default(),

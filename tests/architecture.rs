@@ -491,6 +491,7 @@ const SERVER_ORDER: &[&str] = &[
     "store",
     "cases",
     "registry",
+    "counted",
     "live",
     "metrics_http",
     "compute",

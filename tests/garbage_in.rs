@@ -35,7 +35,19 @@ fn case() -> (Prepared, Measurements) {
         7,
     )
     .unwrap();
-    (case, common::scenario_measurements(&sc))
+    (case, common::raw_measurements(&sc))
+}
+
+/// Checks the measurements as every edge does ([`librplus::register::Checked::new`]), then
+/// registers them: the error of whichever refused them.
+fn checked_register(
+    case: &Prepared,
+    meas: &Measurements,
+    method: Method,
+    params: &PipelineParams,
+) -> Result<Registration, String> {
+    let meas = librplus::register::Checked::new(meas.clone()).map_err(|e| e.to_string())?;
+    register(case, &meas, method, params).map_err(|e| e.to_string())
 }
 
 /// Every number of a registration is finite.
@@ -75,7 +87,9 @@ fn check(
     let mut lines = Vec::new();
     let mut problems = Vec::new();
     for method in [Method::Rigid, Method::Libr] {
-        let got = catch_unwind(AssertUnwindSafe(|| register(case, meas, method, &params)));
+        let got = catch_unwind(AssertUnwindSafe(|| {
+            checked_register(case, meas, method, &params)
+        }));
         let tag = format!("{name} [{}]", method.name());
         let needles = match expect {
             Expect::Error(n) | Expect::Degenerate(n) => n,
@@ -137,9 +151,9 @@ fn garbage_measurements_give_errors_or_degenerate_flags_never_panics_or_nan() {
 
     // The valid scenario registers with both methods (the control: the cases below fail for
     // their garbage, not for the setup).
-    let rigid = register(&case, &good, Method::Rigid, &params).unwrap();
+    let rigid = checked_register(&case, &good, Method::Rigid, &params).unwrap();
     assert!(rigid.rigid.degenerate.is_none() && finite(&rigid));
-    let libr = register(&case, &good, Method::Libr, &params).unwrap();
+    let libr = checked_register(&case, &good, Method::Libr, &params).unwrap();
     assert!(finite(&libr));
 
     let with = |f: &dyn Fn(&mut Measurements)| {
@@ -307,7 +321,7 @@ fn garbage_measurements_give_errors_or_degenerate_flags_never_panics_or_nan() {
     for method in [Method::Rigid, Method::Libr] {
         let tag = format!("(e2) a jittered line [{}]", method.name());
         match catch_unwind(AssertUnwindSafe(|| {
-            register(&case, &jittered, method, &params)
+            checked_register(&case, &jittered, method, &params)
         })) {
             Err(_) => all_problems.push(format!("{tag}: PANIC")),
             Ok(Err(e)) => {
@@ -358,7 +372,7 @@ fn garbage_measurements_give_errors_or_degenerate_flags_never_panics_or_nan() {
     });
     for method in [Method::Rigid, Method::Libr] {
         let got = catch_unwind(AssertUnwindSafe(|| {
-            register(&case, &repeated, method, &params)
+            checked_register(&case, &repeated, method, &params)
         }));
         let tag = format!("(h3) each point ×20 [{}]", method.name());
         match got {

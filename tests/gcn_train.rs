@@ -616,21 +616,19 @@ fn sample_of(
     gc: &tr::GeometryCase,
     case: &librplus::pipeline::Prepared,
     params: &PipelineParams,
-    meas: &librplus::register::Measurements,
+    meas: &librplus::register::Checked,
     libr: &librplus::pipeline::Registration,
     truth: Option<&[[f64; 3]]>,
 ) -> Result<librplus::gcn::sample::SampleData, librplus::gcn::GcnError> {
-    librplus::gcn::sample::SampleData::build_linking(
-        cfg,
-        &gc.frame,
-        &gc.geo.model.mesh,
-        &case.correspondence,
-        &params.libr_correspondence(),
+    let registered = librplus::gcn::sample::Registered {
+        mesh: &gc.geo.model.mesh,
+        correspondence: &case.correspondence,
+        cparams: &params.libr_correspondence(),
         meas,
-        &libr.u,
-        &libr.image_to_physical,
-        truth,
-    )
+        u: &libr.u,
+        transform: &libr.image_to_physical,
+    };
+    librplus::gcn::sample::SampleData::build_linking(cfg, &gc.frame, &registered, truth)
 }
 
 #[test]

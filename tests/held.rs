@@ -23,7 +23,7 @@ use librplus::phantom::measure::{Category, MeasureParams, simulate_focused};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::pipeline::hold::{HoldParams, hold};
 use librplus::pipeline::{Method, PipelineParams, Prepared, register};
-use librplus::register::Measurements;
+use librplus::register::Checked;
 use librplus::register::anatomy::{AnatomyLabels, LabelParams, label};
 use librplus::register::libr::{AdaptiveParams, LibrParams};
 use std::sync::OnceLock;
@@ -117,7 +117,7 @@ fn centroid(p: &[[f64; 3]]) -> [f64; 3] {
 
 /// Surface points of the organ under `u`, the camera on the tool's spot, the navigation start the
 /// true alignment; returns the measurements and the true image → physical transform.
-fn measured(u: &[f64], seed: u64) -> (Measurements, Rigid) {
+fn measured(u: &[f64], seed: u64) -> (Checked, Rigid) {
     let c = case();
     let params = MeasureParams {
         coverage: [0.4, 0.4],
@@ -230,14 +230,16 @@ fn an_undeformed_held_organ_stays_where_it_is() {
 fn an_organ_that_moved_rigidly_is_answered_no_worse_than_doing_nothing() {
     let c = case();
     let zero = vec![0.0; c.u.len()];
-    let (mut meas, truth) = measured(&zero, 4);
+    let (meas, truth) = measured(&zero, 4);
     // The organ moved 4 mm after all; the navigation start still says where it was.
     let shift = [2.0, -2.0, 2.0 * 2f64.sqrt()];
+    let mut meas = meas.into_inner();
     for p in &mut meas.points {
         for a in 0..3 {
             p[a] += shift[a];
         }
     }
+    let meas = common::checked(meas);
     let moved = truth.then(&Rigid {
         rotation: Rigid::identity().rotation,
         translation: shift,

@@ -17,14 +17,14 @@ use librplus::pipeline::pose::{PoseParams, choose, pose_gap, score, starts};
 use librplus::pipeline::{Method, PipelineParams, Prepared, register};
 use librplus::register::correspondence::{Correspondence, CorrespondenceParams};
 use librplus::register::libr::LibrParams;
-use librplus::register::{Measurements, PreopModel};
+use librplus::register::{Checked, PreopModel};
 use std::sync::OnceLock;
 
 struct Liver {
     mesh: TetMesh,
     model: PreopModel,
     corr: Correspondence,
-    meas: Measurements,
+    meas: Checked,
     truth: Rigid,
 }
 
@@ -111,12 +111,13 @@ fn the_score_is_the_capped_mean_squared_distance() {
     let exact = score(&l.corr, &l.meas, &cp, None, &l.truth, 10.0).unwrap();
     assert!(exact < 1e-6, "exact points score {exact} mm²");
     // One point moved 60 mm off the organ counts one cap².
-    let mut m = l.meas.clone();
+    let mut m = l.meas.clone().into_inner();
     let c = centroid(&m.points);
     let p = m.points[0];
     let d = [0, 1, 2].map(|a| p[a] - c[a]);
     let len = (0..3).map(|a| d[a] * d[a]).sum::<f64>().sqrt();
     m.points[0] = [0, 1, 2].map(|a| p[a] + 60.0 * d[a] / len);
+    let m = common::checked(m);
     let one = score(&l.corr, &m, &cp, None, &l.truth, 10.0).unwrap();
     let want = 100.0 / m.points.len() as f64;
     assert!((one - want).abs() < 1e-6 * want.max(1.0), "{one} vs {want}");
@@ -172,10 +173,10 @@ fn starts_that_lead_wicp_astray_are_recovered_by_the_search() {
     let mut astray = 0;
     for axis in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] {
         for deg in [60.0, -60.0, 75.0, -75.0, 90.0, -90.0] {
-            let m = Measurements {
-                initial_alignment: Some(turned(&l.truth, axis, deg, c)),
-                ..l.meas.clone()
-            };
+            let m = l
+                .meas
+                .with_alignment(Some(turned(&l.truth, axis, deg, c)))
+                .unwrap();
             let one = register(&case, &m, Method::Rigid, &single).unwrap();
             let err_one = pose_gap(&l.model, &one.image_to_physical, &l.truth);
             if err_one < 5.0 {
@@ -240,10 +241,10 @@ fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
         ([1.0, 0.0, 0.0], 90.0),
         ([0.0, 1.0, 0.0], 90.0),
     ] {
-        let m = Measurements {
-            initial_alignment: Some(turned(&l.truth, axis, deg, c)),
-            ..l.meas.clone()
-        };
+        let m = l
+            .meas
+            .with_alignment(Some(turned(&l.truth, axis, deg, c)))
+            .unwrap();
         let one = register(&case, &m, Method::Libr, &single).unwrap();
         let err_one = pose_gap(&l.model, &one.image_to_physical, &l.truth);
         if err_one < 5.0 {

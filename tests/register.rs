@@ -13,7 +13,7 @@ use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::pipeline::{Method, PipelineParams, Prepared, register};
 use librplus::register::anatomy::{AnatomyLabels, LabelParams, Region, label};
-use librplus::register::{Measurements, PreopModel};
+use librplus::register::{Checked, PreopModel};
 use librplus::util::SplitMix64;
 
 fn liver(h: f64) -> (TetMesh, AnatomyLabels, VesselTree) {
@@ -28,7 +28,7 @@ fn model(mesh: &TetMesh, labels: &AnatomyLabels, vessels: &VesselTree) -> PreopM
     labels.preop_model(mesh, &vessels.points, &vessels.segments)
 }
 
-fn measurements(sc: &Scenario) -> Measurements {
+fn measurements(sc: &Scenario) -> Checked {
     common::scenario_measurements(sc)
 }
 

@@ -111,12 +111,13 @@ fn own_files_register_like_the_library() {
     points.extend(&contour);
     let mut kind = vec![MeasuredKind::Surface; surface.len()];
     kind.extend(vec![MeasuredKind::PosteriorContour; contour.len()]);
-    let want_meas = Measurements {
+    let want_meas = librplus::register::Checked::new(Measurements {
         points,
         kind,
         feature: Vec::new(),
         initial_alignment: Some(start),
-    };
+    })
+    .unwrap();
     let p = PipelineParams::default();
     let case = Prepared::new(geo.model.clone(), Some(&p.libr), None).unwrap();
     let truth = (

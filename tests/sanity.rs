@@ -79,10 +79,9 @@ fn check(name: &str, mesh: TetMesh) {
             )
             .unwrap();
             let meas = common::scenario_measurements(&sc);
-            let meas = librplus::register::Measurements {
-                initial_alignment: Some(start.unwrap_or(sc.initial_alignment)),
-                ..meas
-            };
+            let meas = meas
+                .with_alignment(Some(start.unwrap_or(sc.initial_alignment)))
+                .unwrap();
             let truth = sc.image_to_physical;
             for method in [Method::Rigid, Method::Libr, Method::LibrPlus] {
                 let r = register(&case, &meas, method, &params).unwrap();

@@ -15,7 +15,7 @@ use librplus::phantom::measure::{Category, MeasureParams, Visible, simulate};
 use librplus::pipeline::pose::pose_gap;
 use librplus::pipeline::side::{self, SideParams};
 use librplus::pipeline::{Method, PipelineParams, Prepared, register};
-use librplus::register::Measurements;
+use librplus::register::Checked;
 use librplus::register::correspondence::SurfaceTarget;
 
 fn liver() -> &'static common::LabelledLiver {
@@ -23,7 +23,7 @@ fn liver() -> &'static common::LabelledLiver {
 }
 
 /// Noise-free surface points of the undeformed liver seen from `visible`, and the truth.
-fn patch(visible: Visible, seed: u64) -> (Measurements, Rigid) {
+fn patch(visible: Visible, seed: u64) -> (Checked, Rigid) {
     let l = liver();
     let u = vec![0.0; 3 * l.mesh.num_nodes()];
     let exact = MeasureParams {

@@ -19,8 +19,19 @@ use librplus::register::anatomy::{AnatomyLabels, LabelParams, Region, label};
 use librplus::register::correspondence::{
     Correspondence, CorrespondenceParams, preop_model_from_file,
 };
-use librplus::register::wicp::{WicpParams, WicpResult, wicp};
-use librplus::register::{MeasuredKind, Measurements, PreopModel, RegisterError};
+use librplus::register::wicp::{WicpParams, WicpResult};
+use librplus::register::{Checked, MeasuredKind, Measurements, PreopModel, RegisterError};
+
+/// wICP of measurements checked first, as every edge checks them (the error of whichever
+/// refused them).
+fn wicp(
+    model: &PreopModel,
+    corr: &Correspondence,
+    meas: &Measurements,
+    params: &WicpParams,
+) -> Result<WicpResult, RegisterError> {
+    librplus::register::wicp::wicp(model, corr, &Checked::new(meas.clone())?, params)
+}
 use librplus::util::SplitMix64;
 use std::sync::OnceLock;
 
@@ -94,7 +105,7 @@ fn scenario(category: Category, params: &MeasureParams, seed: u64) -> Scenario {
 }
 
 fn measurements(s: &Scenario) -> Measurements {
-    common::scenario_measurements(s)
+    common::raw_measurements(s)
 }
 
 /// Mean and largest distance over the mesh nodes between the two transforms' images.
@@ -234,7 +245,7 @@ fn noisy_scenarios_have_small_target_registration_error() {
             .corr
             .match_points(
                 &image,
-                &measurements(&s),
+                &common::checked(measurements(&s)),
                 None,
                 &CorrespondenceParams::default(),
             )
@@ -296,7 +307,7 @@ fn a_point_on_a_triangle_matches_itself_under_deformation() {
     let params = CorrespondenceParams::default();
     let (m, stats) = l
         .corr
-        .match_points(&points, &meas, Some(&u), &params)
+        .match_points(&points, &common::checked(meas.clone()), Some(&u), &params)
         .unwrap();
     assert_eq!(m.len(), points.len());
     assert_eq!(stats.trimmed, 0);
@@ -312,7 +323,10 @@ fn a_point_on_a_triangle_matches_itself_under_deformation() {
         assert!(norm(sub(mm.model_point(&zero), mm.anchor)) < 1e-12);
     }
     // Undeformed matching of the deformed points: distances are the gap, not zero.
-    let (_, s0) = l.corr.match_points(&points, &meas, None, &params).unwrap();
+    let (_, s0) = l
+        .corr
+        .match_points(&points, &common::checked(meas.clone()), None, &params)
+        .unwrap();
     assert!(s0.rms_mm > 0.1, "rms {}", s0.rms_mm);
 }
 
@@ -352,7 +366,12 @@ fn vessel_matches_lie_on_the_deformed_centerline() {
     };
     let (m, stats) = l
         .corr
-        .match_points(&points, &meas, Some(&u), &CorrespondenceParams::default())
+        .match_points(
+            &points,
+            &common::checked(meas.clone()),
+            Some(&u),
+            &CorrespondenceParams::default(),
+        )
         .unwrap();
     eprintln!(
         "vessel matches: {} of {} kept, largest distance {:.1e} mm ({} segments)",
@@ -392,7 +411,10 @@ fn vessel_matches_lie_on_the_deformed_centerline() {
         trim_floor_mm: 100.0,
         ..Default::default()
     };
-    let (m, _) = l.corr.match_points(&probes, &meas, None, &params).unwrap();
+    let (m, _) = l
+        .corr
+        .match_points(&probes, &common::checked(meas.clone()), None, &params)
+        .unwrap();
     assert_eq!(m.len(), probes.len());
     let zero = vec![0.0; 3 * n];
     for mm in &m {
@@ -444,7 +466,10 @@ fn designated_feature_points_get_the_feature_weight_and_region() {
             feature_neighbourhood_mm: radius,
             ..Default::default()
         };
-        let (m, _) = l.corr.match_points(&image, &meas, None, &params).unwrap();
+        let (m, _) = l
+            .corr
+            .match_points(&image, &common::checked(meas.clone()), None, &params)
+            .unwrap();
         for mm in &m {
             let f = s.feature[mm.point];
             if f == 0 {
@@ -505,7 +530,12 @@ fn trimming_removes_injected_outliers() {
         .collect();
     let (m, _) = l
         .corr
-        .match_points(&image, &meas, None, &CorrespondenceParams::default())
+        .match_points(
+            &image,
+            &common::checked(meas.clone()),
+            None,
+            &CorrespondenceParams::default(),
+        )
         .unwrap();
     assert!(m.iter().all(|mm| !outliers.contains(&mm.point)));
     // Without trimming, the same outliers pull the registration off.
@@ -643,7 +673,7 @@ fn garbage_inputs_give_errors_or_degenerate_flags() {
         .corr
         .match_points(
             &good.points,
-            &good,
+            &common::checked(good.clone()),
             Some(&[0.0; 5]),
             &CorrespondenceParams::default(),
         )
@@ -952,10 +982,19 @@ fn hinted_matching_gives_the_matches_of_an_unhinted_one() {
                 m.kind.reverse();
                 m.feature.reverse();
             }
-            let plain = l.corr.match_points(&pts, &m, deformed, &cparams).unwrap();
+            let plain = l
+                .corr
+                .match_points(&pts, &common::checked(m.clone()), deformed, &cparams)
+                .unwrap();
             let hinted = l
                 .corr
-                .match_points_hinted(&pts, &m, deformed, &cparams, &mut hints)
+                .match_points_hinted(
+                    &pts,
+                    &common::checked(m.clone()),
+                    deformed,
+                    &cparams,
+                    &mut hints,
+                )
                 .unwrap();
             assert_eq!(plain.0, hinted.0, "step {step}: the matches differ");
             assert_eq!(plain.1, hinted.1, "step {step}: the statistics differ");

@@ -350,12 +350,13 @@ mod tests {
             ScenarioData {
                 id: "d/0".into(),
                 category: "us2".into(),
-                measurements: Measurements {
+                measurements: librplus::register::Checked::new(Measurements {
                     points,
                     kind,
                     feature,
                     initial_alignment: Some(t),
-                },
+                })
+                .unwrap(),
                 truth: Truth {
                     displacement: vec![],
                     image_to_physical: t,

@@ -4,34 +4,52 @@
 
 use crate::cases::Case;
 use crate::convert::{method_to_pb, rigid_to_pb};
+use crate::counted::{KeyHold, PerKey};
 use crate::error::{Internal, ServiceError, Unavailable, libr_can_fall_back};
 use librplus::pipeline::quality::Circumstances;
 use librplus::pipeline::{Method, PipelineParams, register};
-use librplus::register::Measurements;
+use librplus::register::Checked;
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 use tokio::sync::Semaphore;
 
-/// One registration to compute.
-pub struct Job {
-    /// The case.
-    pub case: Arc<Case>,
-    /// All measurements: shared with the session that holds them (a job never copies them).
-    pub measurements: Arc<Measurements>,
-    /// Method asked for.
+/// What a client asks of a registration, checked where it arrived (a unary request, or a
+/// session's start and messages) and not again: the measurements, the method and the options.
+/// A session keeps one and appends its messages' points to it; each of its registrations shares
+/// it (the measurements are an [`Arc`] inside [`Checked`]: a job never copies them).
+#[derive(Debug, Clone)]
+pub struct Request {
+    /// All measurements.
+    pub measurements: Checked,
+    /// Method asked for (checked against what the case was prepared for).
     pub method: Method,
-    /// Time budget from `arrival`.
+    /// The options.
+    pub options: Options,
+}
+
+/// A request's options, checked ([`crate::session::state::options`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Options {
+    /// Time budget from the request's arrival.
     pub budget: Duration,
-    /// When the request arrived.
-    pub arrival: Instant,
     /// Leave the displacements out of the reply.
     pub omit_displacements: bool,
     /// The initial alignment trusted to this uncertainty (mm), when the client says so.
     pub trusted_alignment_mm: Option<f64>,
     /// The organ is held in place, when the client says so ([`librplus::pipeline::hold`]).
     pub held: bool,
+}
+
+/// One registration to compute: a case and a request.
+pub struct Job {
+    /// The case.
+    pub case: Arc<Case>,
+    /// What the client asks (its budget: the time left of the request's or session's).
+    pub request: Request,
+    /// When the request arrived.
+    pub arrival: Instant,
     /// The session's own model (in-surgery discovery switched it to an augmented one), in place
     /// of the case's.
     pub prepared: Option<Arc<librplus::pipeline::Prepared>>,
@@ -46,7 +64,7 @@ pub struct Engine {
     queued: AtomicUsize,
     max_queued: usize,
     /// Unary registrations waiting or running, per client (principal and connection).
-    by_client: std::sync::Mutex<std::collections::HashMap<String, usize>>,
+    by_client: Arc<PerKey>,
 }
 
 impl Engine {
@@ -118,26 +136,25 @@ impl Engine {
 
     /// Counts a unary registration against its client (`key`), refusing it when the client
     /// already has [`Engine::per_client`] in the server; the count is released on drop.
-    fn admit_client(&self, key: &str) -> Result<ClientHold<'_>, ServiceError> {
-        let mut m = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
-        let n = m.entry(key.to_string()).or_insert(0);
-        if *n >= self.per_client() {
-            metrics::counter!("librplus_refused_total", "reason" => "client_queue").increment(1);
-            return Err(ServiceError::Quota {
-                message: format!(
-                    "this client already has {n} registrations in the server (limit {} \
+    fn admit_client(&self, key: &str) -> Result<KeyHold, ServiceError> {
+        self.by_client
+            .try_hold(key, self.per_client())
+            .map_err(|n| {
+                metrics::counter!("librplus_refused_total", "reason" => "client_queue")
+                    .increment(1);
+                ServiceError::Quota {
+                    message: format!(
+                        "this client already has {n} registrations in the server (limit {} \
                      per client); retry when one is answered",
-                    self.per_client()
-                ),
-                subject: "client_queue",
-                description: format!(
-                    "at most {} unary registrations per client wait or run at once",
-                    self.per_client()
-                ),
-            });
-        }
-        *n += 1;
-        Ok(ClientHold(self, key.to_string()))
+                        self.per_client()
+                    ),
+                    subject: "client_queue",
+                    description: format!(
+                        "at most {} unary registrations per client wait or run at once",
+                        self.per_client()
+                    ),
+                }
+            })
     }
 
     /// Counts a job as waiting for a compute slot (until the hold drops), refusing a unary one
@@ -160,21 +177,6 @@ impl Engine {
             });
         }
         Ok(hold)
-    }
-}
-
-/// A unary registration counted against its client ([`Engine::admit_client`]).
-struct ClientHold<'a>(&'a Engine, String);
-
-impl Drop for ClientHold<'_> {
-    fn drop(&mut self) {
-        let mut m = self.0.by_client.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(n) = m.get_mut(&self.1) {
-            *n -= 1;
-            if *n == 0 {
-                m.remove(&self.1);
-            }
-        }
     }
 }
 
@@ -233,7 +235,8 @@ struct Plan {
 fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let prepared = job.prepared.as_deref().unwrap_or(&job.case.prepared);
     let mut plan = plan(&job, prepared, Instant::now());
-    let mut result = register(prepared, &job.measurements, plan.method, &plan.params);
+    let meas = &job.request.measurements;
+    let mut result = register(prepared, meas, plan.method, &plan.params);
     let mut fallback: Option<String> = None;
     if let (Err(e), Method::Libr | Method::LibrPlus | Method::Auto) = (&result, plan.method)
         && libr_can_fall_back(e)
@@ -243,7 +246,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         // reported as such.
         fallback = Some(format!("LIBR could not run: {e}; rigid result"));
         plan.method = Method::Rigid;
-        result = register(prepared, &job.measurements, plan.method, &plan.params);
+        result = register(prepared, meas, plan.method, &plan.params);
     }
     let reg = result?;
     job.case.observe(
@@ -270,7 +273,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let circumstances = Circumstances {
         fallback,
         degraded: plan.degraded.take(),
-        budget_ms: Some(ms(job.budget)),
+        budget_ms: Some(ms(job.request.options.budget)),
     };
     let judged = librplus::pipeline::quality::judge(&reg, &plan.params, &circumstances);
     let (quality, reason) = (quality_to_pb(judged.quality), judged.reason);
@@ -287,14 +290,15 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
 /// [`POSE_SEARCH_COST`] registrations fit.
 fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> Plan {
     let queue_ms = ms(start - job.arrival);
-    let deadline = job.arrival + job.budget;
+    let options = job.request.options;
+    let deadline = job.arrival + options.budget;
     let est = job.case.estimates();
-    let mut method = job.method;
+    let mut method = job.request.method;
     let mut degraded: Option<String> = None;
     // The case's parameters (its basis was built with their LIBR settings), within this request.
     let mut params = job.case.params.clone();
-    params.wicp.trusted_alignment_mm = job.trusted_alignment_mm;
-    params.held = job.held;
+    params.wicp.trusted_alignment_mm = options.trusted_alignment_mm;
+    params.held = options.held;
     let gcn_ms = prepared
         .librplus
         .as_ref()
@@ -306,7 +310,7 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
             method = Method::Libr;
             degraded = Some(format!(
                 "time budget {:.0} ms: {left:.0} ms left, LIBR+ needs about {need:.0} ms (SR-GCN {gcn_ms:.0} ms); LIBR result",
-                ms(job.budget)
+                ms(job.request.options.budget)
             ));
             if left >= need - gcn_ms {
                 // The SR-GCN estimate alone did not fit: let it fall slowly, so that a
@@ -329,7 +333,7 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
             method = Method::Rigid;
             degraded = Some(format!(
                 "time budget {:.0} ms: {queue_ms:.0} ms waiting for a compute slot left {left:.0} ms, LIBR needs about {need:.0} ms; rigid result",
-                ms(job.budget)
+                ms(job.request.options.budget)
             ));
         } else {
             params.deadline =
@@ -351,7 +355,7 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         params.pose.start_angles_deg.clear();
         search_off = Some(format!(
             "time budget {:.0} ms: {left:.0} ms left, the pose search needs about {:.0} ms",
-            ms(job.budget),
+            ms(job.request.options.budget),
             POSE_SEARCH_COST * one
         ));
     }
@@ -372,7 +376,7 @@ fn auto_does_not_fit(job: &Job, left: f64) -> Option<String> {
     (left < need).then(|| {
         format!(
             "time budget {:.0} ms: {left:.0} ms left, the automatic choice needs about {need:.0} ms; LIBR result",
-            ms(job.budget)
+            ms(job.request.options.budget)
         )
     })
 }
@@ -387,7 +391,7 @@ fn late(
     reason: String,
     total_ms: f64,
 ) -> (pb::Quality, String) {
-    let budget_ms = ms(job.budget);
+    let budget_ms = ms(job.request.options.budget);
     if total_ms <= budget_ms {
         return (quality, reason);
     }
@@ -397,7 +401,7 @@ fn late(
             format!(
                 "over its time budget: answered in {total_ms:.0} ms of {budget_ms:.0} ms ({} points; \
                  {:.0} ms waiting, rigid stage {:.0} ms){}",
-                job.measurements.points.len(),
+                job.request.measurements.points.len(),
                 plan.queue_ms,
                 reg.rigid.seconds * 1e3,
                 if reason.is_empty() {
@@ -458,7 +462,7 @@ fn answer(
     let refit = gcn.and_then(|c| c.refit.as_ref());
     pb::Registration {
         image_to_physical: Some(rigid_to_pb(&reg.image_to_physical)),
-        displacement_mm: if job.omit_displacements {
+        displacement_mm: if job.request.options.omit_displacements {
             Vec::new()
         } else {
             reg.u.iter().map(|&x| x as f32).collect()
@@ -468,7 +472,7 @@ fn answer(
         choice: reg.auto.as_ref().map(crate::convert::choice_to_pb),
         surface: reg.surface.as_ref().map(crate::convert::side_to_pb),
         residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
-        points_used: job.measurements.points.len() as u32,
+        points_used: job.request.measurements.points.len() as u32,
         points_matched: reg.rigid.matched as u32,
         timings: Some(pb::StageTimings {
             queue_ms: plan.queue_ms,
@@ -490,7 +494,7 @@ fn answer(
         error_estimate: reg
             .error
             .as_ref()
-            .map(|e| error_estimate(e, job.omit_displacements)),
+            .map(|e| error_estimate(e, job.request.options.omit_displacements)),
     }
 }
 
@@ -569,21 +573,26 @@ mod tests {
         let case = Arc::new(crate::cases::load("organ", &source, &config, &learned).unwrap());
         let built = case.prepared.basis.as_ref().unwrap().params_hash.clone();
         assert_eq!(case.params.libr.basis.hash(), built);
-        let job = Job {
-            case: case.clone(),
-            measurements: Measurements {
+        let request = Request {
+            measurements: Checked::new(librplus::register::Measurements {
                 points: vec![[0.0; 3]],
                 kind: vec![librplus::register::MeasuredKind::Surface],
                 feature: Vec::new(),
                 initial_alignment: None,
-            }
-            .into(),
+            })
+            .unwrap(),
             method: Method::Libr,
-            budget: Duration::from_secs(60),
+            options: Options {
+                budget: Duration::from_secs(60),
+                omit_displacements: true,
+                trusted_alignment_mm: Some(3.0),
+                held: false,
+            },
+        };
+        let job = Job {
+            case: case.clone(),
+            request,
             arrival: Instant::now(),
-            omit_displacements: true,
-            trusted_alignment_mm: Some(3.0),
-            held: false,
             prepared: None,
         };
         let planned = plan(&job, &case.prepared, Instant::now()).params;
@@ -593,7 +602,7 @@ mod tests {
         assert_eq!(planned.wicp.trusted_alignment_mm, Some(3.0));
         let req = crate::discovery::Request {
             case: case.clone(),
-            measurements: job.measurements.clone(),
+            measurements: job.request.measurements.clone(),
             trusted_alignment_mm: None,
             held: false,
             budget: Duration::from_secs(1),

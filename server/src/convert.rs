@@ -3,7 +3,7 @@
 
 use crate::error::ServiceError;
 use librplus::mesh::rigid::Rigid;
-use librplus::register::{MeasuredKind, Measurements};
+use librplus::register::{Checked, MeasuredKind, Measurements};
 use librplus_proto::v1 as pb;
 
 /// Coordinates beyond this (mm) are rejected as nonsense (10 m).
@@ -196,7 +196,7 @@ pub fn measurements_from_pb(
     m: &pb::Measurements,
     field: &str,
     max_points: usize,
-) -> Result<Measurements, ServiceError> {
+) -> Result<Checked, ServiceError> {
     let pb::Measurements {
         xyz_mm,
         kind,
@@ -240,12 +240,14 @@ pub fn measurements_from_pb(
         .as_ref()
         .map(|r| rigid_from_pb(r, &format!("{field}.initial_alignment")))
         .transpose()?;
-    Ok(Measurements {
+    // The one check the registration's stages rely on (they do not check again).
+    Checked::new(Measurements {
         points,
         kind,
         feature,
         initial_alignment,
     })
+    .map_err(|e| ServiceError::field(field, e.to_string()))
 }
 
 /// A point kind from the wire (`UNSPECIFIED` and unknown values: None).

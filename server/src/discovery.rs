@@ -28,7 +28,7 @@ use librplus::discover::{
     CohortDiscovery, DiscoverError, DiscoverParams, Verdict, discover_cohort, session_sweeps,
 };
 use librplus::pipeline::Prepared;
-use librplus::register::Measurements;
+use librplus::register::Checked;
 use librplus::register::physics::Physics;
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
@@ -43,7 +43,7 @@ pub struct Request {
     /// The case.
     pub case: Arc<Case>,
     /// The session's points so far.
-    pub measurements: Arc<Measurements>,
+    pub measurements: Checked,
     /// The session's trusted-alignment uncertainty, if any.
     pub trusted_alignment_mm: Option<f64>,
     /// The session's organ is held ([`librplus::pipeline::hold`]).

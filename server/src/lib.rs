@@ -17,6 +17,7 @@ pub mod compute;
 pub mod config;
 pub mod connections;
 pub mod convert;
+pub mod counted;
 pub mod discovery;
 pub mod error;
 pub mod fuzz;

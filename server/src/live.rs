@@ -12,6 +12,7 @@
 //! The server's session slot (and the principal's quota) passes from the old stream to the new
 //! one: a resume of a session that is live here needs no new slot.
 
+use crate::counted::Admission;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use tokio::sync::watch;
@@ -23,7 +24,7 @@ struct Holder {
     /// The holding stream's number (each takeover adds one).
     generation: u64,
     /// The server slot and quota the session holds (dropped: released).
-    admission: Option<Box<dyn Send>>,
+    admission: Option<Admission>,
     /// The holding stream is running (its lease not dropped).
     alive: bool,
     /// A resume holds the gate: a holder that ends leaves its slot for it to take.
@@ -81,7 +82,7 @@ impl Live {
     }
 
     /// A new session `sid` (a fresh id) held by the calling stream with `admission`.
-    pub fn start(self: &Arc<Self>, sid: &str, admission: Box<dyn Send>) -> Lease {
+    pub fn start(self: &Arc<Self>, sid: &str, admission: Admission) -> Lease {
         let (changed, rx) = watch::channel(1);
         let slot = Arc::new(Slot {
             gate: Default::default(),
@@ -172,7 +173,7 @@ impl Takeover {
 
     /// The calling stream holds the session from now: the previous holder (if any) is told,
     /// and its slot and quota pass on; `admission` is used when there was none.
-    pub fn take(mut self, admission: Option<Box<dyn Send>>) -> Lease {
+    pub fn take(mut self, admission: Option<Admission>) -> Lease {
         let (generation, spare) = {
             let mut h = self.slot.holder();
             h.generation += 1;
@@ -270,23 +271,29 @@ impl Drop for Lease {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::atomic::Ordering;
 
-    struct Counted(Arc<AtomicUsize>);
-    impl Drop for Counted {
-        fn drop(&mut self) {
-            self.0.fetch_sub(1, Ordering::SeqCst);
+    /// Server slots, counted as they are held.
+    #[derive(Clone)]
+    struct Slots(Arc<tokio::sync::Semaphore>);
+    const SLOTS: usize = 64;
+    impl Slots {
+        fn new() -> Self {
+            Self(Arc::new(tokio::sync::Semaphore::new(SLOTS)))
+        }
+        /// How many are held.
+        fn load(&self, _: Ordering) -> usize {
+            SLOTS - self.0.available_permits()
         }
     }
-    fn admission(n: &Arc<AtomicUsize>) -> Box<dyn Send> {
-        n.fetch_add(1, Ordering::SeqCst);
-        Box::new(Counted(n.clone()))
+    fn admission(n: &Slots) -> Admission {
+        Admission::new(n.0.clone().try_acquire_owned().unwrap(), None)
     }
 
     #[tokio::test]
     async fn a_resume_takes_over_the_slot_and_fences_the_old_stream() {
         let live = Arc::new(Live::default());
-        let slots = Arc::new(AtomicUsize::new(0));
+        let slots = Slots::new();
         let mut old = live.start("s1-1", admission(&slots));
         assert!(old.holds() && live.is_live("s1-1"));
         assert_eq!(old.record(async { Ok::<_, ()>(7) }).await.unwrap(), Ok(7));
@@ -325,7 +332,7 @@ mod tests {
     #[tokio::test]
     async fn a_holder_ending_during_a_takeover_leaves_its_slot_to_it() {
         let live = Arc::new(Live::default());
-        let slots = Arc::new(AtomicUsize::new(0));
+        let slots = Slots::new();
         // Taken: the slot passes on although its holder ended after the resume saw it held.
         let old = live.start("s1-4", admission(&slots));
         let t = live.lock("s1-4").await;
@@ -358,7 +365,7 @@ mod tests {
     #[tokio::test]
     async fn a_resume_of_an_ended_session_needs_a_slot_and_a_refused_one_leaves_nothing() {
         let live = Arc::new(Live::default());
-        let slots = Arc::new(AtomicUsize::new(0));
+        let slots = Slots::new();
         let t = live.lock("s1-2").await;
         assert!(!t.held());
         drop(t);
@@ -375,7 +382,7 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
     async fn concurrent_resumes_leave_exactly_one_holder() {
         let live = Arc::new(Live::default());
-        let slots = Arc::new(AtomicUsize::new(0));
+        let slots = Slots::new();
         let first = live.start("s1-3", admission(&slots));
         let mut tasks = Vec::new();
         for _ in 0..16 {

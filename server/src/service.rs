@@ -8,7 +8,7 @@ use crate::compute::Job;
 use crate::convert::{code_name, measurements_from_pb};
 use crate::error::{ServiceError, Unavailable, short};
 use crate::session::records::audit_record;
-use crate::session::state::{budget, check_method, trusted};
+use crate::session::state::{check_method, options as checked_options};
 pub use crate::shared::{MAX_CASE_ID, Shared};
 use crate::shared::{count_error, random_u64};
 use librplus_proto::v1 as pb;
@@ -219,25 +219,23 @@ impl LibRPlus for Svc {
             let m = measurements
                 .as_ref()
                 .ok_or_else(|| ServiceError::field("measurements", "is missing"))?;
-            let meas =
+            let checked =
                 measurements_from_pb(m, "measurements", self.0.config.max_points_per_message)?;
-            librplus::register::correspondence::validate_measurements(&meas)
-                .map_err(|e| ServiceError::field("measurements", e.to_string()))?;
-            let mut budget = budget(&self.0.config, options.as_ref(), "options")?;
-            let trusted_alignment_mm = trusted(options.as_ref(), "options")?;
+            let mut options = checked_options(&self.0.config, options.as_ref(), "options")?;
             if let Some(d) = client_deadline {
                 // Answer before the client gives up: keep 10% (at least 5 ms) for the reply.
-                budget = budget.min(d.mul_f64(0.9).saturating_sub(Duration::from_millis(5)));
+                options.budget = options
+                    .budget
+                    .min(d.mul_f64(0.9).saturating_sub(Duration::from_millis(5)));
             }
             let job = Job {
                 case,
-                measurements: Arc::new(meas),
-                method,
-                budget,
+                request: crate::compute::Request {
+                    measurements: checked,
+                    method,
+                    options,
+                },
                 arrival,
-                omit_displacements: options.as_ref().is_some_and(|o| o.omit_displacements),
-                trusted_alignment_mm,
-                held: options.as_ref().is_some_and(|o| o.held),
                 prepared: None,
             };
             let reg = self.0.engine.run(job, Some(&client)).await?;

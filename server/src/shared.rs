@@ -1,6 +1,6 @@
 //! The state every request shares ([`Shared`]: configuration, cases, compute slots, sessions,
-//! auth, audit log) and what a session holds of it (`Admission`: a server slot and its
-//! principal's quota, released on drop). Below every module that serves a request: the service,
+//! auth, audit log) and the admission of sessions and uploads (counted in [`crate::counted`],
+//! released on drop). Below every module that serves a request: the service,
 //! sessions, uploads and case access all use it, and it uses none of them.
 
 use crate::audit::{Audit, Record};
@@ -8,8 +8,8 @@ use crate::auth::{Auth, Principal};
 use crate::compute::Engine;
 use crate::config::ServerConfig;
 use crate::convert::code_name;
+use crate::counted::{Admission, KeyHold, PerKey};
 use crate::error::{ServiceError, Unavailable, short};
-use std::collections::HashMap;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
@@ -149,58 +149,6 @@ impl Shared {
 /// Longest case id, bytes.
 pub const MAX_CASE_ID: usize = 256;
 
-/// Holds counted per key (a principal's sessions, its uploads), each released when it drops:
-/// the one place such a count goes down, whether the hold ends normally or its admission fails
-/// half-way.
-#[derive(Default)]
-pub(crate) struct PerKey {
-    counts: std::sync::Mutex<HashMap<String, usize>>,
-}
-
-/// One unit of a [`PerKey`] count; uncounted on drop.
-pub(crate) struct KeyHold {
-    key: String,
-    of: Arc<PerKey>,
-}
-
-impl PerKey {
-    /// One more hold of `key` if it holds fewer than `limit`; else how many it holds.
-    pub(crate) fn try_hold(self: &Arc<Self>, key: &str, limit: usize) -> Result<KeyHold, usize> {
-        let mut m = self.counts.lock().unwrap_or_else(|e| e.into_inner());
-        let n = m.entry(key.to_string()).or_insert(0);
-        if *n >= limit {
-            let held = *n;
-            if held == 0 {
-                m.remove(key);
-            }
-            return Err(held);
-        }
-        *n += 1;
-        Ok(KeyHold {
-            key: key.to_string(),
-            of: self.clone(),
-        })
-    }
-}
-
-impl Drop for KeyHold {
-    fn drop(&mut self) {
-        let mut m = self.of.counts.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(n) = m.get_mut(&self.key) {
-            *n -= 1;
-            if *n == 0 {
-                m.remove(&self.key);
-            }
-        }
-    }
-}
-
-/// A session's hold on a server slot and on its principal's quota; released on drop.
-pub(crate) struct Admission {
-    _permit: OwnedSemaphorePermit,
-    _quota: Option<KeyHold>,
-}
-
 /// An upload's hold on a server upload slot and on its principal's; released on drop.
 pub(crate) struct UploadSlot {
     _permit: OwnedSemaphorePermit,
@@ -286,10 +234,7 @@ impl Shared {
                 .and_then(|r| r.map_err(|_| ())),
         };
         match permit {
-            Ok(p) => Ok(Admission {
-                _permit: p,
-                _quota: quota,
-            }),
+            Ok(p) => Ok(Admission::new(p, quota)),
             Err(()) => {
                 // `quota` is released as it drops here.
                 metrics::counter!("librplus_refused_total", "reason" => "sessions").increment(1);

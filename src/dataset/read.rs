@@ -8,7 +8,7 @@ use crate::mesh::io::npz::{NpyArray, read_npz};
 use crate::mesh::io::{self, Unit};
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::preop_model_from_file;
-use crate::register::{MeasuredKind, Measurements, PreopModel};
+use crate::register::{Checked, MeasuredKind, Measurements, PreopModel};
 use std::path::Path;
 
 /// The ground truth of one scenario (evaluation only).
@@ -28,7 +28,7 @@ pub struct ScenarioData {
     /// Category name.
     pub category: String,
     /// The measurements (registration input).
-    pub measurements: Measurements,
+    pub measurements: Checked,
     /// The ground truth (evaluation only).
     pub truth: Truth,
 }
@@ -129,7 +129,7 @@ pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioDa
             Ok(ScenarioData {
                 id: format!("{}/{}", d.id, s.index),
                 category: s.category.clone(),
-                measurements: Measurements {
+                measurements: Checked::new(Measurements {
                     points: points[3 * lo..3 * hi]
                         .chunks_exact(3)
                         .map(|c| [c[0], c[1], c[2]])
@@ -137,7 +137,10 @@ pub fn load_scenarios(dir: &Path, d: &DeformationEntry) -> Result<Vec<ScenarioDa
                     kind: kinds,
                     feature: feature[lo..hi].iter().map(|&f| f as u8).collect(),
                     initial_alignment: Some(rigid_from(&t_init[16 * s.index..16 * s.index + 16])),
-                },
+                })
+                .map_err(|e| {
+                    DatasetError::Content(format!("{}: scenario {}: {e}", d.npz, s.index))
+                })?,
                 truth: Truth {
                     displacement: displacement.clone(),
                     image_to_physical: rigid_from(&t_true[16 * s.index..16 * s.index + 16]),

@@ -131,7 +131,8 @@ pub(super) fn find(
     })
 }
 
-/// Checks a cohort before discovery: at least two sweeps, two folds, and valid measurements.
+/// Checks a cohort before discovery: at least two sweeps, two folds, and points in every sweep
+/// (their measurements were checked when made).
 fn check_cohort(sweeps: &[Sweep], params: &DiscoverParams) -> Result<(), DiscoverError> {
     if sweeps.is_empty() {
         return Err(DiscoverError::Input(
@@ -151,7 +152,7 @@ fn check_cohort(sweeps: &[Sweep], params: &DiscoverParams) -> Result<(), Discove
         )));
     }
     for s in sweeps {
-        crate::register::correspondence::validate_measurements(&s.measurements)
+        crate::register::measured::not_empty(&s.measurements)
             .map_err(|e| DiscoverError::Input(format!("scenario {}: measurements: {e}", s.id)))?;
     }
     Ok(())

@@ -48,7 +48,7 @@ mod stats;
 
 use crate::pipeline::{PipelineError, PipelineParams};
 use crate::register::physics::{Effect, EffectKind, Physics};
-use crate::register::{Measurements, PreopModel, RegisterError};
+use crate::register::{Checked, PreopModel, RegisterError};
 use std::path::Path;
 use std::time::Instant;
 
@@ -193,7 +193,7 @@ pub struct Sweep {
     /// Its id (for messages and reports).
     pub id: String,
     /// Its measurements (physical frame).
-    pub measurements: Measurements,
+    pub measurements: Checked,
 }
 
 /// One acquisition (a surgery session's points, all of one deformed state under one pose) as
@@ -202,24 +202,14 @@ pub struct Sweep {
 /// included. The sweeps are not independent acquisitions: each is registered with its own pose,
 /// which the shared pose makes agree, and the cross-validation still holds out whole spatial
 /// blocks of every sweep, so a misfit must be shared by the region to count.
-pub fn session_sweeps(m: &Measurements, parts: usize) -> Vec<Sweep> {
+pub fn session_sweeps(m: &Checked, parts: usize) -> Vec<Sweep> {
     let parts = parts.max(1);
     (0..parts)
         .map(|k| {
-            let pick = |i: &usize| i % parts == k;
-            let idx: Vec<usize> = (0..m.points.len()).filter(pick).collect();
+            let idx: Vec<usize> = (0..m.points.len()).filter(|i| i % parts == k).collect();
             Sweep {
                 id: format!("part-{}-of-{parts}", k + 1),
-                measurements: Measurements {
-                    points: idx.iter().map(|&i| m.points[i]).collect(),
-                    kind: idx.iter().map(|&i| m.kind[i]).collect(),
-                    feature: if m.feature.len() == m.points.len() {
-                        idx.iter().map(|&i| m.feature[i]).collect()
-                    } else {
-                        Vec::new()
-                    },
-                    initial_alignment: m.initial_alignment,
-                },
+                measurements: m.subset(&idx),
             }
         })
         .collect()

@@ -6,11 +6,11 @@ use super::stats::signed_rank_z;
 use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
-use crate::register::MeasuredKind;
 use crate::register::anatomy::{LabelParams, label};
 use crate::register::libr::{LibrParams, control_traction};
 use crate::register::physics::model::Sites;
 use crate::register::physics::model::forward;
+use crate::register::{MeasuredKind, Measurements};
 use crate::util::SplitMix64;
 
 /// The embedded default liver, meshed coarsely (fast tests).
@@ -96,12 +96,13 @@ fn sweeps(
             }
             Sweep {
                 id: format!("sweep-{s}"),
-                measurements: Measurements {
+                measurements: Checked::new(Measurements {
                     kind: vec![MeasuredKind::Surface; points.len()],
                     points,
                     feature: Vec::new(),
                     initial_alignment: Some(pose),
-                },
+                })
+                .unwrap(),
             }
         })
         .collect()
@@ -364,11 +365,17 @@ fn bad_cohorts_are_refused_with_the_field_named() {
         .to_string();
     assert!(e.contains("only 1 scenario"), "{e}");
     let mut two = sweeps(&mesh, &model, &u, 2, 0.3, 1);
-    two[1].measurements.points[5][2] = f64::NAN;
+    // A point that is not finite cannot make a sweep's measurements; a sweep without points is
+    // refused by name.
+    let mut raw = two[1].measurements.clone().into_inner();
+    raw.points[5][2] = f64::NAN;
+    let e = Checked::new(raw).unwrap_err().to_string();
+    assert!(e.contains("points[5]"), "{e}");
+    two[1].measurements = Checked::empty(None).unwrap();
     let e = discover_cohort(&model, &two, &p, None, &quiet)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("sweep-1") && e.contains("points[5]"), "{e}");
+    assert!(e.contains("sweep-1") && e.contains("empty"), "{e}");
     let bad = DiscoverParams {
         folds: 1,
         ..params()
@@ -516,6 +523,7 @@ fn a_session_splits_into_interleaved_sweeps() {
         feature: (0..n).map(|i| (i % 3) as u8).collect(),
         initial_alignment: Some(pose),
     };
+    let m = Checked::new(m).unwrap();
     for parts in [1, 2, 3] {
         let s = session_sweeps(&m, parts);
         assert_eq!(s.len(), parts);

@@ -92,14 +92,16 @@ pub fn record(
         let sweeps: Vec<crate::discover::Sweep> = scenarios
             .iter()
             .map(|s| {
-                let mut measurements = s.measurements.clone();
-                measurements.initial_alignment = Some(s.truth.image_to_physical);
-                crate::discover::Sweep {
+                let measurements = s
+                    .measurements
+                    .with_alignment(Some(s.truth.image_to_physical))
+                    .map_err(|e| format!("{}: {e}", s.id))?;
+                Ok(crate::discover::Sweep {
                     id: s.id.clone(),
                     measurements,
-                }
+                })
             })
-            .collect();
+            .collect::<Result<_, String>>()?;
         match detectability(&geo.model, &sweeps, &truth, &known, params, Some(&cache)) {
             Ok(det) => {
                 report.computed += 1;

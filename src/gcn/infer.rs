@@ -9,11 +9,8 @@ use super::GcnError;
 use super::io::TrainedModel;
 use super::model::MeshGraphs;
 use super::model::{SrGcnConfig, Target};
-use super::sample::{CaseFrame, SampleData};
+use super::sample::{CaseFrame, Registered, SampleData};
 use crate::mesh::TetMesh;
-use crate::mesh::rigid::Rigid;
-use crate::register::Measurements;
-use crate::register::correspondence::{Correspondence, CorrespondenceParams};
 
 /// What a correction is assumed to cost before one has been timed (s).
 const FIRST_ESTIMATE_S: f64 = 0.15;
@@ -115,9 +112,9 @@ impl LibrPlusCase {
         self.estimate.store(new.to_bits(), Ordering::Relaxed);
     }
 
-    /// Corrects LIBR's displacement `u` (image frame, `transform` image → physical) for the
+    /// Corrects LIBR's answer `libr.u` (image frame, `libr.transform` image → physical) for the
     /// measurements it was fitted to; returns the LIBR+ displacement and the network's share of
-    /// the time (s; the rest builds the sample: graphs, matches, features). `cparams` are the
+    /// the time (s; the rest builds the sample: graphs, matches, features). `libr.cparams` are the
     /// correspondence settings of LIBR's last iteration. The caller records the stage's time
     /// ([`LibrPlusCase::record_seconds`]).
     ///
@@ -127,32 +124,14 @@ impl LibrPlusCase {
     /// undeformed liver measured exactly LIBR is exact, and the ungated correction moved it by
     /// 0.7–1.8 mm (`tests/sanity.rs`). Registrations with ū ≥ 2 mm (every surgical pattern of the
     /// phantom) are unchanged.
-    #[allow(clippy::too_many_arguments)]
-    pub fn correct(
-        &self,
-        mesh: &TetMesh,
-        correspondence: &Correspondence,
-        cparams: &CorrespondenceParams,
-        meas: &Measurements,
-        u: &[f64],
-        transform: &Rigid,
-    ) -> Result<Corrected, GcnError> {
-        let (outs, network_seconds) =
-            self.member_corrections(mesh, correspondence, cparams, meas, u, transform)?;
-        Ok(ensemble_mean(outs, u, network_seconds))
+    pub fn correct(&self, libr: &Registered<'_>) -> Result<Corrected, GcnError> {
+        let (outs, network_seconds) = self.member_corrections(libr)?;
+        Ok(ensemble_mean(outs, libr.u, network_seconds))
     }
 
     /// Each member's corrected displacement, in order, and the networks' time (s).
-    #[allow(clippy::too_many_arguments)]
-    fn member_corrections(
-        &self,
-        mesh: &TetMesh,
-        correspondence: &Correspondence,
-        cparams: &CorrespondenceParams,
-        meas: &Measurements,
-        u: &[f64],
-        transform: &Rigid,
-    ) -> Result<(Vec<Vec<f64>>, f64), GcnError> {
+    fn member_corrections(&self, libr: &Registered<'_>) -> Result<(Vec<Vec<f64>>, f64), GcnError> {
+        let u = libr.u;
         let mut network_s = 0.0;
         let mut outs: Vec<Vec<f64>> = Vec::new();
         // Members whose configurations build the same sample share it.
@@ -162,16 +141,7 @@ impl LibrPlusCase {
                 .as_ref()
                 .is_some_and(|(j, _)| same_inputs(&self.members[*j].model, &m.model));
             if !reuse {
-                let sample = SampleData::build(
-                    &m.model.config,
-                    &self.frame,
-                    mesh,
-                    correspondence,
-                    cparams,
-                    meas,
-                    u,
-                    transform,
-                )?;
+                let sample = SampleData::build(&m.model.config, &self.frame, libr)?;
                 built = Some((k, sample));
             }
             let sample = &built.as_ref().expect("built above").1;

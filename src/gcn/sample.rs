@@ -19,9 +19,27 @@ use crate::fem::{FemError, LameField, StiffnessSystem};
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
-use crate::register::{Match, Measurements};
+use crate::register::{Checked, Match};
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
+
+/// One LIBR registration as the SR-GCN reads it: the case's mesh and matching, the measurements,
+/// and LIBR's answer `(u, transform)`.
+#[derive(Debug, Clone, Copy)]
+pub struct Registered<'a> {
+    /// The preoperative mesh.
+    pub mesh: &'a TetMesh,
+    /// The correspondence built from that mesh.
+    pub correspondence: &'a Correspondence,
+    /// The correspondence settings of LIBR's last iteration.
+    pub cparams: &'a CorrespondenceParams,
+    /// The measurements (physical frame).
+    pub meas: &'a Checked,
+    /// LIBR's node displacements (image frame, mm, node-major `3V`).
+    pub u: &'a [f64],
+    /// LIBR's rigid transform, image → physical.
+    pub transform: &'a Rigid,
+}
 
 /// Per-case normalisation and the mesh graph (computed once per preoperative mesh).
 #[derive(Debug, Clone)]
@@ -321,46 +339,32 @@ impl SampleData {
     /// Builds the input of one registration: the preoperative model, its LIBR result (`u`,
     /// image → physical `transform`) and the measurements. The bipartite graph links each measured
     /// point to its nearest LIBR-deformed vertices. The sample carries no training target.
-    #[allow(clippy::too_many_arguments)]
     pub fn build(
         cfg: &SrGcnConfig,
         frame: &CaseFrame,
-        mesh: &TetMesh,
-        correspondence: &Correspondence,
-        cparams: &CorrespondenceParams,
-        meas: &Measurements,
-        u: &[f64],
-        transform: &Rigid,
+        libr: &Registered<'_>,
     ) -> Result<Self, GcnError> {
-        Self::build_linking(
-            cfg,
-            frame,
-            mesh,
-            correspondence,
-            cparams,
-            meas,
-            u,
-            transform,
-            None,
-        )
+        Self::build_linking(cfg, frame, libr, None)
     }
 
     /// As [`SampleData::build`], but where `cfg.diagnostic_truth_neighbours` is set the bipartite
     /// graph links each measured point to its nearest `neighbour_positions` (physical frame, one
     /// per node) instead of LIBR's deformed vertices. A diagnostic of training only (the LIBR+
     /// paper's ground-truth neighbours); such a model needs them and cannot register.
-    #[allow(clippy::too_many_arguments)]
     pub fn build_linking(
         cfg: &SrGcnConfig,
         frame: &CaseFrame,
-        mesh: &TetMesh,
-        correspondence: &Correspondence,
-        cparams: &CorrespondenceParams,
-        meas: &Measurements,
-        u: &[f64],
-        transform: &Rigid,
+        libr: &Registered<'_>,
         neighbour_positions: Option<&[[f64; 3]]>,
     ) -> Result<Self, GcnError> {
+        let Registered {
+            mesh,
+            correspondence,
+            cparams,
+            meas,
+            u,
+            transform,
+        } = *libr;
         let nodes = mesh.nodes();
         let v = nodes.len();
         if u.len() != 3 * v || u.iter().any(|x| !x.is_finite()) {

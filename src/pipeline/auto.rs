@@ -33,7 +33,7 @@ use super::{Method, PipelineError, PipelineParams, Prepared, Registration, rigid
 use crate::mesh::rigid::Rigid;
 use crate::register::libr::{FitModel, Folds, HeldOut, held_out};
 use crate::register::wicp::{WicpResult, wicp};
-use crate::register::{Measurements, RegisterError};
+use crate::register::{Checked, RegisterError};
 use crate::util::secs;
 use rayon::prelude::*;
 use std::time::Instant;
@@ -226,7 +226,7 @@ struct Tried {
 /// [`Method::Auto`] (module doc).
 pub(super) fn register_auto(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
     side_start: Option<&WicpResult>,
 ) -> Result<Registration, PipelineError> {
@@ -319,7 +319,7 @@ fn deformable_candidates(case: &Prepared, held: bool) -> Vec<Candidate> {
 
 /// The rigid stage from the navigation start with `params`' rigid settings (None when it fails:
 /// each candidate then runs, and reports, its own).
-fn start_pose(case: &Prepared, meas: &Measurements, params: &PipelineParams) -> Option<WicpResult> {
+fn start_pose(case: &Prepared, meas: &Checked, params: &PipelineParams) -> Option<WicpResult> {
     wicp(
         &case.model,
         &case.correspondence,
@@ -332,7 +332,7 @@ fn start_pose(case: &Prepared, meas: &Measurements, params: &PipelineParams) -> 
 /// Doing nothing, scored by its residual.
 fn initial_candidate(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
     folds: &Folds,
 ) -> Tried {
@@ -359,7 +359,7 @@ fn initial_candidate(
 /// registration of its own; scored with six unknowns.
 fn rigid_candidate(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
     folds: &Folds,
     tried: &[Tried],
@@ -412,7 +412,7 @@ fn rigid_candidate(
 /// correspondence settings), fitted with `model`'s unknowns.
 fn pose_score(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
     pose: &Rigid,
     model: FitModel<'_>,

@@ -7,8 +7,9 @@ use super::{
 };
 use crate::gcn::abstain::AbstainSignals;
 use crate::gcn::infer::LibrPlusCase;
+use crate::gcn::sample::Registered;
 use crate::mesh::rigid::Rigid;
-use crate::register::Measurements;
+use crate::register::Checked;
 use crate::register::libr::{self, LibrInfo};
 use crate::register::prior::RigidPrior;
 use std::time::{Duration, Instant};
@@ -26,7 +27,7 @@ use std::time::{Duration, Instant};
 /// back onto them with LIBR's smooth elastic modes and keeps the correction where no data are.
 pub fn refit(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
     u_start: &[f64],
     transform: &Rigid,
@@ -68,21 +69,36 @@ pub fn refit(
     .map_err(PipelineError::Refit)
 }
 
-/// LIBR+'s stage on LIBR's answer `(u, transform)`: the SR-GCN correction (unless
-/// [`correction_mismatch`] or the deadline leaves LIBR's answer), then the data-consistency
-/// [`refit`], with the signals of being outside what the network learned
-/// ([`OutsideSignals`]). Shared by [`super::register`] and the evaluation of cached LIBR runs.
-#[allow(clippy::too_many_arguments)]
+/// LIBR's answer as LIBR+'s stage starts from it.
+#[derive(Debug, Clone, Copy)]
+pub struct LibrAnswer<'a> {
+    /// Node displacements (image frame, mm, node-major `3n`).
+    pub u: &'a [f64],
+    /// Image → physical transform.
+    pub image_to_physical: &'a Rigid,
+    /// LIBR's iterations and residuals.
+    pub info: &'a LibrInfo,
+    /// The rigid stage's prior on the pose, when it had one (the refit keeps it).
+    pub rigid_prior: Option<&'a RigidPrior>,
+}
+
+/// LIBR+'s stage on LIBR's answer: the SR-GCN correction (unless [`correction_mismatch`] or the
+/// deadline leaves LIBR's answer), then the data-consistency [`refit`], with the signals of
+/// being outside what the network learned ([`OutsideSignals`]). Shared by [`super::register`]
+/// and the evaluation of cached LIBR runs.
 pub fn correct_libr(
     g: &LibrPlusCase,
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
-    u: &[f64],
-    transform: &Rigid,
-    libr_info: &LibrInfo,
-    rigid_prior: Option<&RigidPrior>,
+    libr: LibrAnswer<'_>,
 ) -> CorrectionOutcome {
+    let LibrAnswer {
+        u,
+        image_to_physical: transform,
+        info: libr_info,
+        rigid_prior,
+    } = libr;
     let t1 = Instant::now();
     let mut stage = Stage {
         u: u.to_vec(),
@@ -157,19 +173,19 @@ impl Stage {
         &mut self,
         g: &LibrPlusCase,
         case: &Prepared,
-        meas: &Measurements,
+        meas: &Checked,
         params: &PipelineParams,
         libr_info: &LibrInfo,
     ) -> Option<String> {
         let cparams = &params.libr_correspondence();
-        let c = match g.correct(
-            &case.model.mesh,
-            &case.correspondence,
+        let c = match g.correct(&Registered {
+            mesh: &case.model.mesh,
+            correspondence: &case.correspondence,
             cparams,
             meas,
-            &self.u,
-            &self.transform,
-        ) {
+            u: &self.u,
+            transform: &self.transform,
+        }) {
             Ok(c) => c,
             Err(e) => return Some(format!("SR-GCN correction failed ({e}): LIBR's answer")),
         };
@@ -210,7 +226,7 @@ impl Stage {
     fn refit(
         &mut self,
         case: &Prepared,
-        meas: &Measurements,
+        meas: &Checked,
         params: &PipelineParams,
         rigid_prior: Option<&RigidPrior>,
     ) -> (Option<LibrInfo>, Option<String>) {

@@ -22,7 +22,7 @@
 use crate::mesh::rigid::Rigid;
 use crate::mesh::vec3::dist2;
 use crate::register::libr::Hold;
-use crate::register::{Measurements, PreopModel, RegisterError};
+use crate::register::{Checked, PreopModel, RegisterError};
 
 /// How a held organ's unseen surface is held.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -85,7 +85,7 @@ impl HoldParams {
 /// evenly: [`spread_evenly`]), held where `pose` puts it.
 pub fn hold(
     model: &PreopModel,
-    meas: &Measurements,
+    meas: &Checked,
     pose: &Rigid,
     params: &HoldParams,
 ) -> Result<Hold, RegisterError> {

@@ -13,7 +13,7 @@ use crate::register::physics::{EffectKind, Physics};
 use crate::register::prior::HELD_SIGMA_MM;
 use crate::register::uncertainty::{ErrorEstimate, ErrorFeatures, ErrorModel, FitSummary};
 use crate::register::wicp::{WicpParams, WicpResult};
-use crate::register::{Measurements, PreopModel, RegisterError};
+use crate::register::{Checked, PreopModel, RegisterError};
 use crate::v2s::io::V2sModel;
 use crate::v2s::{V2sCase, V2sError};
 use std::path::Path;
@@ -26,14 +26,14 @@ pub mod pose;
 pub mod quality;
 mod run;
 pub mod side;
-pub use correct::{correct_libr, refit};
+pub use correct::{LibrAnswer, correct_libr, refit};
 use std::time::Instant;
 
 /// Registers measurements to a prepared case ([`Method::Auto`]: every candidate, the one that
 /// best predicts the points it did not see chosen, [`auto`]).
 pub fn register(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     method: Method,
     params: &PipelineParams,
 ) -> Result<Registration, PipelineError> {
@@ -520,7 +520,7 @@ impl Registration {
         &self,
         case: &Prepared,
         boundary: &[bool],
-        meas: &Measurements,
+        meas: &Checked,
     ) -> Option<(ErrorFeatures, Vec<f64>)> {
         let refit = self.correction.as_ref().and_then(|c| c.refit.as_ref());
         let residual = refit
@@ -540,7 +540,7 @@ impl Registration {
         )
     }
 
-    fn estimated(mut self, case: &Prepared, meas: &Measurements) -> Self {
+    fn estimated(mut self, case: &Prepared, meas: &Checked) -> Self {
         let t0 = Instant::now();
         self.estimate_error(case, meas);
         let dt = crate::util::secs(t0);
@@ -554,7 +554,7 @@ impl Registration {
     /// Fills [`Registration::error`] from the case's error model (left None when the case has
     /// none, it has no calibration for the method, or the case carries physics effects: the
     /// model is calibrated on plain LIBR).
-    pub fn estimate_error(&mut self, case: &Prepared, meas: &Measurements) {
+    pub fn estimate_error(&mut self, case: &Prepared, meas: &Checked) {
         let Some(model) = &case.error_model else {
             return;
         };
@@ -620,7 +620,7 @@ pub fn correction_mismatch(
 /// held.
 fn held_at(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
     pose: &Rigid,
 ) -> Result<Option<libr::Hold>, PipelineError> {

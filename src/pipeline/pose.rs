@@ -20,7 +20,7 @@ use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
 use crate::register::prior::RigidPrior;
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
-use crate::register::{Measurements, PreopModel, RegisterError};
+use crate::register::{Checked, PreopModel, RegisterError};
 use rayon::prelude::*;
 
 /// Parameters of the multi-start rigid stage and the pose choice.
@@ -162,7 +162,7 @@ pub struct PoseInfo {
 /// `cap²`; points left unmatched or trimmed count `cap²`.
 pub fn score(
     corr: &Correspondence,
-    meas: &Measurements,
+    meas: &Checked,
     cparams: &CorrespondenceParams,
     u: Option<&[f64]>,
     t: &Rigid,
@@ -200,7 +200,7 @@ pub fn score(
 
 /// The starts: the navigation start, then it turned by each angle about the x, y and z axes
 /// (both ways) through the measured points' centroid (physical frame).
-pub fn starts(meas: &Measurements, params: &PoseParams) -> Vec<Rigid> {
+pub fn starts(meas: &Checked, params: &PoseParams) -> Vec<Rigid> {
     let start = meas.initial_alignment.unwrap_or_default();
     let n = meas.points.len().max(1) as f64;
     let mut c = [0.0; 3];
@@ -251,7 +251,7 @@ pub fn searchable(first: &WicpResult, wicp_params: &WicpParams, params: &PosePar
 pub fn rigid_candidates(
     model: &PreopModel,
     corr: &Correspondence,
-    meas: &Measurements,
+    meas: &Checked,
     wicp_params: &WicpParams,
     params: &PoseParams,
 ) -> Result<Candidates, RegisterError> {
@@ -267,7 +267,7 @@ pub fn candidates_from(
     first: WicpResult,
     model: &PreopModel,
     corr: &Correspondence,
-    meas: &Measurements,
+    meas: &Checked,
     wicp_params: &WicpParams,
     params: &PoseParams,
 ) -> Result<Candidates, RegisterError> {
@@ -290,10 +290,7 @@ pub fn candidates_from(
     let reached: Vec<WicpResult> = extra
         .par_iter()
         .filter_map(|s| {
-            let m = Measurements {
-                initial_alignment: Some(*s),
-                ..sub.clone()
-            };
+            let m = sub.with_alignment(Some(*s)).ok()?;
             wicp(model, corr, &m, &search)
                 .ok()
                 .filter(|r| r.degenerate.is_none())
@@ -304,10 +301,7 @@ pub fn candidates_from(
     let others: Vec<WicpResult> = distinct_starts
         .par_iter()
         .filter_map(|s| {
-            let m = Measurements {
-                initial_alignment: Some(*s),
-                ..meas.clone()
-            };
+            let m = meas.with_alignment(Some(*s)).ok()?;
             wicp(model, corr, &m, wicp_params)
                 .ok()
                 .filter(|r| r.degenerate.is_none())
@@ -343,7 +337,7 @@ pub fn candidates_from(
 }
 
 /// Every `len / n`-th measured point (rounded up), at least one step: the search's subsample.
-fn subsample(meas: &Measurements, n: usize) -> Measurements {
+fn subsample(meas: &Checked, n: usize) -> Checked {
     let step = meas.points.len().div_ceil(n).max(1);
     let keep: Vec<usize> = (0..meas.points.len()).step_by(step).collect();
     meas.subset(&keep)

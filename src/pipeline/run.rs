@@ -4,15 +4,16 @@
 //! LIBR+'s correction on it.
 
 use super::{
-    CorrectionInfo, Method, PipelineError, PipelineParams, Prepared, Registration, V2sInfo,
-    correct_libr, held_at, pose, rigid_params,
+    CorrectionInfo, LibrAnswer, Method, PipelineError, PipelineParams, Prepared, Registration,
+    V2sInfo, correct_libr, held_at, pose, rigid_params,
 };
 use crate::gcn::infer::LibrPlusCase;
 use crate::mesh::rigid::Rigid;
-use crate::register::correspondence::{CorrespondenceParams, Hints, validate_measurements};
+use crate::register::correspondence::{CorrespondenceParams, Hints};
 use crate::register::libr::{self, Folds, LibrSolution};
+use crate::register::measured::not_empty;
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
-use crate::register::{Match, Measurements, RegisterError};
+use crate::register::{Checked, Match, RegisterError};
 use crate::util::secs;
 use crate::v2s::V2sCase;
 use std::time::{Duration, Instant};
@@ -31,13 +32,13 @@ pub(super) struct Shared<'a> {
 /// [`super::register`] with one method (not [`Method::Auto`]), with what it shares.
 pub(super) fn register_scored(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     method: Method,
     params: &PipelineParams,
     shared: Shared<'_>,
 ) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
-    validate_measurements(meas).map_err(PipelineError::Rigid)?;
+    not_empty(meas).map_err(PipelineError::Rigid)?;
     let mut run = Run::new(case, meas, method, params, t0);
     run.folds = shared.folds;
     run.start = shared.start;
@@ -57,7 +58,7 @@ pub(super) fn register_scored(
 /// One registration under way: its inputs and the settings every stage reads.
 struct Run<'a> {
     case: &'a Prepared,
-    meas: &'a Measurements,
+    meas: &'a Checked,
     method: Method,
     params: &'a PipelineParams,
     /// The rigid stage's parameters ([`rigid_params`]; no iterations for the baseline).
@@ -85,7 +86,7 @@ struct Fitted {
 impl<'a> Run<'a> {
     fn new(
         case: &'a Prepared,
-        meas: &'a Measurements,
+        meas: &'a Checked,
         method: Method,
         params: &'a PipelineParams,
         t0: Instant,
@@ -468,12 +469,15 @@ impl<'a> Run<'a> {
                 .adaptive
                 .as_ref()
                 .ok_or(PipelineError::NoAdaptiveBasis)?;
+            let levels = libr::MultiLevel {
+                basis: &ad.basis,
+                first_level: ad.params.levels[0].0,
+                adaptive: &ad.params,
+            };
             libr::solve_adaptive(
                 &case.model.mesh,
-                &ad.basis,
-                ad.params.levels[0].0,
+                levels,
                 &self.params.libr,
-                &ad.params,
                 &self.meas.points,
                 &rigid.image_to_physical,
                 run,
@@ -519,16 +523,13 @@ impl<'a> Run<'a> {
         let mut u = sol.u;
         let mut image_to_physical = sol.image_to_physical;
         let correction: Option<CorrectionInfo> = gcn.map(|g| {
-            let out = correct_libr(
-                g,
-                self.case,
-                self.meas,
-                self.params,
-                &u,
-                &image_to_physical,
-                &sol.info,
-                rigid.prior.as_ref(),
-            );
+            let libr = LibrAnswer {
+                u: &u,
+                image_to_physical: &image_to_physical,
+                info: &sol.info,
+                rigid_prior: rigid.prior.as_ref(),
+            };
+            let out = correct_libr(g, self.case, self.meas, self.params, libr);
             u = out.u;
             image_to_physical = out.image_to_physical;
             out.info

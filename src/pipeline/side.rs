@@ -17,7 +17,7 @@ use super::{PipelineError, PipelineParams, Prepared, pose, rigid_params};
 use crate::register::MeasuredKind;
 use crate::register::correspondence::SurfaceTarget;
 use crate::register::wicp::{WicpParams, WicpResult, wicp};
-use crate::register::{Measurements, RegisterError};
+use crate::register::{Checked, RegisterError};
 
 /// How the side is decided.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -77,7 +77,7 @@ pub struct SideInfo {
 /// stage that fails (the run then reports its own error). Fails on bad [`SideParams`].
 pub fn choose(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
 ) -> Result<Option<(SideInfo, WicpResult)>, PipelineError> {
     let side = &params.side;
@@ -95,7 +95,7 @@ pub fn choose(
 /// [`choose`] once it applies.
 fn test(
     case: &Prepared,
-    meas: &Measurements,
+    meas: &Checked,
     params: &PipelineParams,
 ) -> Option<(SideInfo, WicpResult)> {
     let side = &params.side;

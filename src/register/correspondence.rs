@@ -33,7 +33,7 @@
 
 use super::RegisterError;
 pub use super::preop_file::preop_model_from_file;
-use super::{Match, MeasuredKind, Measurements, PreopModel};
+use super::{Checked, Match, MeasuredKind, Measurements, PreopModel};
 use crate::mesh::TriSurface;
 use crate::mesh::locate::TetLocator;
 use crate::mesh::spatial::TriangleBvh;
@@ -198,74 +198,6 @@ impl TargetSet {
         let bvh = TriangleBvh::new(&TriSurface::new_unchecked(nodes.to_vec(), sub_tris));
         Self { tris, bvh }
     }
-}
-
-/// Checks the measurements: at least one point, `kind` (and `feature` when given) as long as
-/// `points`, finite coordinates, feature codes 0–2, a finite initial alignment. The error names the
-/// field and the index.
-pub fn validate_measurements(meas: &Measurements) -> Result<(), RegisterError> {
-    if meas.points.is_empty() {
-        return Err(RegisterError::Measurements(
-            "measurements.points is empty: nothing to register".into(),
-        ));
-    }
-    let n = meas.points.len();
-    if meas.kind.len() != n {
-        return Err(RegisterError::Measurements(format!(
-            "measurements.kind has {} entries, measurements.points has {n}",
-            meas.kind.len()
-        )));
-    }
-    if !meas.feature.is_empty() && meas.feature.len() != n {
-        return Err(RegisterError::Measurements(format!(
-            "measurements.feature has {} entries, measurements.points has {n} (leave it empty when \
-             there are no designations)",
-            meas.feature.len()
-        )));
-    }
-    if let Some(i) = meas
-        .points
-        .iter()
-        .position(|p| p.iter().any(|c| !c.is_finite()))
-    {
-        return Err(RegisterError::Measurements(format!(
-            "measurements.points[{i}] is not finite: {:?}",
-            meas.points[i]
-        )));
-    }
-    if let Some(i) = meas.feature.iter().position(|&f| f > 2) {
-        return Err(RegisterError::Measurements(format!(
-            "measurements.feature[{i}] is {}, expected 0 (none), 1 (falciform) or 2 (inferior ridge)",
-            meas.feature[i]
-        )));
-    }
-    if let Some(t) = &meas.initial_alignment {
-        if t.rotation
-            .iter()
-            .flatten()
-            .chain(&t.translation)
-            .any(|c| !c.is_finite())
-        {
-            return Err(RegisterError::Measurements(
-                "measurements.initial_alignment is not finite".into(),
-            ));
-        }
-        // A rotation: RᵀR = I to a loose tolerance.
-        let r = &t.rotation;
-        for i in 0..3 {
-            for j in 0..3 {
-                let rtr: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
-                let want = if i == j { 1.0 } else { 0.0 };
-                if (rtr - want).abs() > 1e-6 {
-                    return Err(RegisterError::Measurements(format!(
-                        "measurements.initial_alignment.rotation is not a rotation (RᵀR[{i}][{j}] \
-                         = {rtr})"
-                    )));
-                }
-            }
-        }
-    }
-    Ok(())
 }
 
 /// Checks a preoperative model before its target sets are built: a mesh, one flag per node in
@@ -442,13 +374,13 @@ impl Correspondence {
     /// `u` (node-major, `3n`; `None` = undeformed). See the module doc for targets, weights and
     /// trimming. Returns the kept matches in point order and the statistics.
     ///
-    /// Fails when the measurements are invalid (see [`validate_measurements`]; the initial
-    /// alignment is not used here), `points_image` is not as long as `meas.points` or not finite,
+    /// The measurements were checked when they were made ([`Checked`]; the initial alignment is
+    /// not used here). Fails when `points_image` is not as long as `meas.points` or not finite,
     /// `u` has the wrong length or is not finite, or the parameters are invalid.
     pub fn match_points(
         &self,
         points_image: &[[f64; 3]],
-        meas: &Measurements,
+        meas: &Checked,
         u: Option<&[f64]>,
         params: &CorrespondenceParams,
     ) -> Result<(Vec<Match>, MatchStats), RegisterError> {
@@ -463,12 +395,12 @@ impl Correspondence {
     pub fn match_points_hinted(
         &self,
         points_image: &[[f64; 3]],
-        meas: &Measurements,
+        meas: &Checked,
         u: Option<&[f64]>,
         params: &CorrespondenceParams,
         hints: &mut Hints,
     ) -> Result<(Vec<Match>, MatchStats), RegisterError> {
-        validate_measurements(meas)?;
+        super::measured::not_empty(meas)?;
         params.validate()?;
         if points_image.len() != meas.points.len() {
             return Err(RegisterError::Inconsistent(format!(
@@ -506,11 +438,14 @@ impl Correspondence {
                 .map(|i| add(self.nodes[i], [u[3 * i], u[3 * i + 1], u[3 * i + 2]]))
                 .collect()
         });
-        let targets = self.call_targets(meas, u, params, deformed.as_deref());
-        let geometry: &[[f64; 3]] = deformed.as_deref().unwrap_or(&self.nodes);
+        let call = Call {
+            u,
+            params,
+            geometry: deformed.as_deref().unwrap_or(&self.nodes),
+            targets: self.call_targets(meas, u, params, deformed.as_deref()),
+        };
         hints.fit(points_image.len());
-        let (candidates, unmatched) =
-            self.match_candidates(points_image, meas, u, params, geometry, &targets, hints);
+        let (candidates, unmatched) = self.match_candidates(points_image, meas, &call, hints);
         Ok(trim_candidates(candidates, unmatched, params))
     }
 
@@ -588,17 +523,20 @@ impl Correspondence {
     }
 
     /// Each point's closest model point and its distance, untrimmed; and how many have none.
-    #[allow(clippy::too_many_arguments)]
     fn match_candidates(
         &self,
         points_image: &[[f64; 3]],
         meas: &Measurements,
-        u: Option<&[f64]>,
-        params: &CorrespondenceParams,
-        geometry: &[[f64; 3]],
-        call: &CallTargets,
+        call: &Call<'_>,
         hints: &mut Hints,
     ) -> (Vec<(Match, f64)>, usize) {
+        let Call {
+            u,
+            params,
+            geometry,
+            targets: call,
+        } = call;
+        let u = *u;
         let feature_target = |f: usize| call.feature_sets[f].as_ref().unwrap_or(&self.features[f]);
         let mut candidates: Vec<(Match, f64)> = Vec::with_capacity(points_image.len());
         let mut unmatched = 0usize;
@@ -636,9 +574,12 @@ impl Correspondence {
                     continue;
                 }
             };
-            let bvh = bvh.unwrap_or(&set.bvh);
-            let Some((m, tri)) = self.match_triangle(i, p, set, bvh, w, geometry, hints.get(i))
-            else {
+            let target = Target {
+                set,
+                bvh: bvh.unwrap_or(&set.bvh),
+                weight: w,
+            };
+            let Some((m, tri)) = self.match_triangle(i, p, &target, geometry, hints.get(i)) else {
                 unmatched += 1;
                 continue;
             };
@@ -649,19 +590,21 @@ impl Correspondence {
         (candidates, unmatched)
     }
 
-    /// Point `i` (at `p`) matched with weight `w` to the closest point of `set` in `bvh`
-    /// (the search started from triangle `hint` of the set), and that triangle.
-    #[allow(clippy::too_many_arguments)]
+    /// Point `i` (at `p`) matched to the closest point of `target` (the search started from
+    /// triangle `hint` of its set), and that triangle.
     fn match_triangle(
         &self,
         i: usize,
         p: [f64; 3],
-        set: &TargetSet,
-        bvh: &TriangleBvh,
-        w: f64,
+        target: &Target<'_>,
         geometry: &[[f64; 3]],
         hint: Option<u32>,
     ) -> Option<(Match, u32)> {
+        let Target {
+            set,
+            bvh,
+            weight: w,
+        } = *target;
         let c = bvh.closest(p, hint)?;
         let tri = self.tris[set.tris[c.triangle as usize] as usize];
         let corners = tri.map(|v| geometry[v as usize]);
@@ -758,6 +701,24 @@ impl Hints {
 }
 
 /// Per-call targets of [`Correspondence::match_points`]: rebuilt feature sets, refitted trees.
+/// One matching call: the displacement, the settings, the geometry (deformed by `u`, or the
+/// model's) and the targets every point is matched against.
+struct Call<'a> {
+    u: Option<&'a [f64]>,
+    params: &'a CorrespondenceParams,
+    geometry: &'a [[f64; 3]],
+    targets: CallTargets,
+}
+
+/// Where one surface or contour point is matched: the target triangles, their hierarchy on this
+/// call's geometry, and the pair's weight.
+#[derive(Clone, Copy)]
+struct Target<'a> {
+    set: &'a TargetSet,
+    bvh: &'a TriangleBvh,
+    weight: f64,
+}
+
 struct CallTargets {
     feature_sets: [Option<TargetSet>; 2],
     ant_bvh: Option<TriangleBvh>,

@@ -17,6 +17,7 @@ pub mod correspondence;
 pub mod equilibrium;
 mod error;
 pub mod libr;
+pub mod measured;
 pub mod physics;
 mod preop_file;
 pub mod prior;
@@ -24,6 +25,7 @@ pub mod uncertainty;
 pub mod wicp;
 
 pub use error::RegisterError;
+pub use measured::Checked;
 
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;

@@ -27,11 +27,10 @@ use std::time::Instant;
 use nalgebra::{Matrix3, Vector3};
 
 use super::PreopModel;
-use super::correspondence::{
-    Correspondence, CorrespondenceParams, MatchStats, validate_measurements,
-};
+use super::correspondence::{Correspondence, CorrespondenceParams, MatchStats};
+use super::measured::not_empty;
 use super::prior::RigidPrior;
-use super::{Match, MeasuredKind, Measurements};
+use super::{Checked, Match, MeasuredKind};
 use crate::mesh::rigid::Rigid;
 
 /// Parameters of [`wicp`].
@@ -151,7 +150,7 @@ const METRES_REACH_MM: f64 = 2.0;
 pub fn wicp(
     model: &PreopModel,
     corr: &Correspondence,
-    meas: &Measurements,
+    meas: &Checked,
     params: &WicpParams,
 ) -> Result<WicpResult, RegisterError> {
     let clock = Instant::now();
@@ -231,10 +230,10 @@ pub fn wicp(
 fn check_inputs(
     model: &PreopModel,
     corr: &Correspondence,
-    meas: &Measurements,
+    meas: &Checked,
     params: &WicpParams,
 ) -> Result<(), RegisterError> {
-    validate_measurements(meas)?;
+    not_empty(meas)?;
     params.validate()?;
     if corr.num_nodes() != model.mesh.num_nodes() {
         return Err(RegisterError::Inconsistent(format!(
@@ -314,10 +313,10 @@ impl WicpResult {
 /// Clements' data: the anterior-surface points alone, when asked and there are at least three
 /// (None: every point, with a warning when the surface alone was asked but too few).
 fn surface_points(
-    meas: &Measurements,
+    meas: &Checked,
     params: &WicpParams,
     warnings: &mut Vec<String>,
-) -> Option<Measurements> {
+) -> Option<Checked> {
     if !params.surface_only {
         return None;
     }
@@ -391,7 +390,7 @@ struct LoopEnd {
 /// The ICP iterations from `start` (match, weighted Kabsch fit with the prior's pose pairs,
 /// until the RMS settles).
 fn icp_loop(
-    meas: &Measurements,
+    meas: &Checked,
     params: &WicpParams,
     start: Rigid,
     initial_stats: MatchStats,

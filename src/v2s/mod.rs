@@ -37,7 +37,7 @@ use crate::gcn::sparse::SparseOp;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::mesh::spatial::{SignedDistance, point_segment_distance};
-use crate::register::{MeasuredKind, Measurements};
+use crate::register::{Checked, MeasuredKind};
 use grid::Grid;
 use io::V2sModel;
 use model::V2sConfig;
@@ -160,7 +160,7 @@ impl V2sFrame {
     }
 
     /// The input for `meas` (physical frame) under the rigid `image_to_physical`.
-    pub fn input_for(&self, meas: &Measurements, image_to_physical: &Rigid) -> Vec<f32> {
+    pub fn input_for(&self, meas: &Checked, image_to_physical: &Rigid) -> Vec<f32> {
         let inv = image_to_physical.inverse();
         let pts: Vec<[f64; 3]> = meas.points.iter().map(|&p| inv.apply(p)).collect();
         self.input(&pts, &meas.kind)
@@ -214,7 +214,7 @@ impl V2sCase {
     /// `image_to_physical`, and the network's share of the time (s).
     pub fn displacement(
         &self,
-        meas: &Measurements,
+        meas: &Checked,
         image_to_physical: &Rigid,
     ) -> Result<(Vec<f64>, f64), V2sError> {
         let device = crate::gcn::device::compute();

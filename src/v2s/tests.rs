@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::mesh::locate::TetLocator;
+use crate::register::Measurements;
 
 /// The embedded default liver, meshed coarsely (fast tests).
 fn liver() -> TetMesh {
@@ -167,11 +168,12 @@ fn measured_point_channels_and_the_node_interpolation_through_burn_agree_with_di
         rotation: [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
         translation: [5.0, -3.0, 2.0],
     };
-    let meas = Measurements {
+    let meas = Checked::new(Measurements {
         points: pts.iter().map(|&p| t.apply(p)).collect(),
         kind: kinds.clone(),
         ..Default::default()
-    };
+    })
+    .unwrap();
     let moved = frame.input_for(&meas, &t);
     let worst = moved
         .iter()
@@ -213,11 +215,12 @@ fn an_untrained_case_answers_the_rigid_registration() {
     let cfg = V2sConfig::new().with_grid(16).with_width(4).with_depth(2);
     let model = Arc::new(V2sModel::untrained(cfg, 2).unwrap());
     let case = V2sCase::new(model, &mesh, (&[], &[])).unwrap();
-    let meas = Measurements {
+    let meas = Checked::new(Measurements {
         points: mesh.nodes()[..20].to_vec(),
         kind: vec![MeasuredKind::Surface; 20],
         ..Default::default()
-    };
+    })
+    .unwrap();
     let (u, _) = case.displacement(&meas, &Rigid::identity()).unwrap();
     assert_eq!(u.len(), 3 * mesh.num_nodes());
     assert!(u.iter().all(|x| *x == 0.0));

@@ -54,8 +54,21 @@ pub fn sofa_liver_surface() -> librplus::mesh::TriSurface {
     s
 }
 
-/// The registration input of a simulated scenario (what a navigation system would send).
+/// The registration input of a simulated scenario (what a navigation system would send),
+/// checked.
 pub fn scenario_measurements(
+    sc: &librplus::phantom::measure::Scenario,
+) -> librplus::register::Checked {
+    checked(raw_measurements(sc))
+}
+
+/// Measurements checked ([`librplus::register::Checked::new`]; a test's own points are valid).
+pub fn checked(m: librplus::register::Measurements) -> librplus::register::Checked {
+    librplus::register::Checked::new(m).expect("a test's measurements")
+}
+
+/// [`scenario_measurements`] before the check (for tests that spoil them).
+pub fn raw_measurements(
     sc: &librplus::phantom::measure::Scenario,
 ) -> librplus::register::Measurements {
     librplus::register::Measurements {

@@ -97,16 +97,16 @@ async fn start_new(
 ) -> Result<Opened, ServiceError> {
     let s = start_session(shared, who, start, seq)?;
     let admission = shared.admit(who).await?;
-    let lease = shared.live.start(fresh, Box::new(admission));
+    let lease = shared.live.start(fresh, admission);
     let records = vec![Record::SessionStart {
         session_id: fresh.to_string(),
         principal: who.name.clone(),
-        case_id: s.case.id.clone(),
-        case_version: s.case.version.clone(),
+        case_id: s.case().id.clone(),
+        case_version: s.case().version.clone(),
         start: start_bytes,
     }];
     lease_record(shared, &lease, fresh, records).await?;
-    tracing::info!(case = %s.case.id, method = s.method.name(), "session started");
+    tracing::info!(case = %s.case().id, method = s.method().name(), "session started");
     Ok(Opened {
         session: s,
         session_id: fresh.to_string(),
@@ -124,7 +124,7 @@ async fn resume(shared: &Arc<Shared>, who: &Principal, id: &str) -> Result<Opene
     let (mut s, mut recorded) = resume_session(shared, who, id).await?;
     let admission = match takeover.held() {
         true => None,
-        false => Some(Box::new(shared.admit(who).await?) as Box<dyn Send>),
+        false => Some(shared.admit(who).await?),
     };
     if shared
         .audit
@@ -144,8 +144,8 @@ async fn resume(shared: &Arc<Shared>, who: &Principal, id: &str) -> Result<Opene
     let was_live = takeover.held();
     let lease = takeover.take(admission);
     let detail = serde_json::json!({
-        "points": s.meas.points.len(),
-        "last_client_seq": s.last_seq,
+        "points": s.measurements().points.len(),
+        "last_client_seq": s.last_seq(),
         "replica": crate::config::host_name(),
         "took_over_a_live_stream": was_live,
     });
@@ -154,21 +154,21 @@ async fn resume(shared: &Arc<Shared>, who: &Principal, id: &str) -> Result<Opene
         Record::Takeover {
             session_id: id.to_string(),
             principal: who.name.clone(),
-            case_id: s.case.id.clone(),
-            case_version: s.case.version.clone(),
+            case_id: s.case().id.clone(),
+            case_version: s.case().version.clone(),
             start: recorded,
-            last_seq: s.last_seq,
+            last_seq: s.last_seq(),
         },
         Record::Event {
             kind: "session_resumed",
             principal: who.name.clone(),
-            case_id: Some(s.case.id.clone()),
+            case_id: Some(s.case().id.clone()),
             session_id: Some(id.to_string()),
             detail,
         },
     ];
     lease_record(shared, &lease, id, records).await?;
-    tracing::info!(case = %s.case.id, resumed = %id, points = s.meas.points.len(), last_client_seq = s.last_seq, took_over = was_live, "session resumed");
+    tracing::info!(case = %s.case().id, resumed = %id, points = s.measurements().points.len(), last_client_seq = s.last_seq(), took_over = was_live, "session resumed");
     Ok(Opened {
         session: s,
         session_id: id.to_string(),
@@ -231,7 +231,7 @@ async fn resume_session(
             .map_err(|source| broken(Unreplayable::Decode { seq: *seq, source }))?;
         if matches!(m.msg, Some(pb::stream_register_request::Msg::Discover(_))) {
             // A discovery run is not repeated; its message still counts.
-            s.last_seq = *seq;
+            s.replayed(*seq);
             continue;
         }
         accept(&mut s, m, &shared.config).map_err(|e| {
@@ -299,7 +299,7 @@ fn check_case_version(
     let Some(v) = &rec.case_version else {
         return Ok(());
     };
-    if *v == s.case.version {
+    if *v == s.case().version {
         return Ok(());
     }
     Err(ServiceError::precondition(
@@ -307,14 +307,15 @@ fn check_case_version(
         RESUME_FIELD,
         format!(
             "the session's case {:?} changed since it started (version {v}, now {})",
-            rec.case_id, s.case.version
+            rec.case_id,
+            s.case().version
         ),
         format!(
             "{RESUME_FIELD}: session {id} was started on case {:?} version {v}; the case now has \
              version {} (it was replaced since), so the session's points would be registered \
              to another model; start a new session",
             short(&rec.case_id, 64),
-            s.case.version
+            s.case().version
         ),
     ))
 }

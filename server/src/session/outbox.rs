@@ -45,9 +45,9 @@ impl Outbox {
         let out = pb::StreamUpdate {
             sequence,
             session_id: self.session_id.clone(),
-            last_client_seq: s.last_seq,
+            last_client_seq: s.last_seq(),
             update: Some(update),
-            points_total: s.meas.points.len() as u32,
+            points_total: s.measurements().points.len() as u32,
         };
         metrics::histogram!("librplus_update_seconds").record(arrival.elapsed().as_secs_f64());
         self.tx.send(Ok(out)).await.map_err(|_| Gone)

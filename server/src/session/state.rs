@@ -5,34 +5,141 @@
 
 use crate::auth::Principal;
 use crate::cases::Case;
+use crate::compute::{Job, Options, Request};
 use crate::config::ServerConfig;
 use crate::convert::{features, method_from_pb, plane_points, points3, rigid_from_pb};
 use crate::error::ServiceError;
 use crate::shared::Shared;
 use librplus::pipeline::Method;
-use librplus::register::{MeasuredKind, Measurements};
+use librplus::register::{Checked, MeasuredKind};
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-/// Session state after a valid start.
+/// Session state after a valid start. Changed only through its methods: [`accept`] (a message),
+/// [`Session::replayed`] (a resumed session's discovery message), [`Session::start_discovery`]
+/// and [`Session::switch_to`] (discovery's model).
 pub(crate) struct Session {
-    pub case: Arc<Case>,
-    pub method: Method,
-    pub budget: Duration,
-    pub omit: bool,
-    pub trusted_alignment_mm: Option<f64>,
-    /// The client said the organ is held (`RegisterOptions.held`).
-    pub held: bool,
-    pub meas: Arc<Measurements>,
-    pub last_seq: u64,
-    pub last_time: Option<(i64, i32)>,
+    case: Arc<Case>,
+    /// The start's method and options, and every point accepted so far.
+    request: Request,
+    last_seq: u64,
+    last_time: Option<(i64, i32)>,
     /// In-surgery discovery, when the session opted in.
-    pub discovery: Option<DiscoveryPlan>,
+    discovery: Option<DiscoveryPlan>,
     /// The running discovery's outcome.
-    pub pending: Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
+    pending: Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>>,
     /// The session's augmented model, once discovery switched to one.
-    pub augmented: Option<Arc<librplus::pipeline::Prepared>>,
+    augmented: Option<Arc<librplus::pipeline::Prepared>>,
+}
+
+impl Session {
+    /// The session's case.
+    pub fn case(&self) -> &Arc<Case> {
+        &self.case
+    }
+
+    /// Every point accepted so far.
+    pub fn measurements(&self) -> &Checked {
+        &self.request.measurements
+    }
+
+    /// The start's method.
+    pub fn method(&self) -> Method {
+        self.request.method
+    }
+
+    /// The start's options.
+    pub fn options(&self) -> Options {
+        self.request.options
+    }
+
+    /// The last accepted message's `client_seq`.
+    pub fn last_seq(&self) -> u64 {
+        self.last_seq
+    }
+
+    /// The model the session registers with: discovery's augmented one, or the case's.
+    pub fn prepared(&self) -> &librplus::pipeline::Prepared {
+        self.augmented.as_deref().unwrap_or(&self.case.prepared)
+    }
+
+    /// A registration of every point with the session's current model, arriving at `arrival`,
+    /// within the session's budget and the client's `deadline`.
+    pub fn job(&self, arrival: Instant, deadline: Option<Instant>) -> Job {
+        let mut request = self.request.clone();
+        if let Some(d) = deadline {
+            request.options.budget = request
+                .options
+                .budget
+                .min(d.saturating_duration_since(arrival));
+        }
+        Job {
+            case: self.case.clone(),
+            request,
+            arrival,
+            prepared: self.augmented.clone(),
+        }
+    }
+
+    /// A resumed session's replayed discovery message: it counts, but is not run again.
+    pub fn replayed(&mut self, seq: u64) {
+        self.last_seq = seq;
+    }
+
+    /// Whether an automatic discovery run is due: none is under way, and the session grew to
+    /// its threshold.
+    pub fn discovery_due(&self) -> bool {
+        let n = self.request.measurements.points.len();
+        self.pending.is_none()
+            && self
+                .discovery
+                .as_ref()
+                .is_some_and(|d| d.auto_at > 0 && n >= d.auto_at)
+    }
+
+    /// The running discovery's outcome, when there is one (the session keeps waiting on it).
+    pub fn pending_mut(
+        &mut self,
+    ) -> &mut Option<tokio::sync::oneshot::Receiver<crate::discovery::Outcome>> {
+        &mut self.pending
+    }
+
+    /// A discovery run on the session's points, with its settings: None when the session did
+    /// not opt in. The next automatic run is moved to when the session has grown by half.
+    pub fn discovery_request(
+        &mut self,
+        coarse: bool,
+        seq: u64,
+    ) -> Option<crate::discovery::Request> {
+        let plan = self.discovery.as_mut()?;
+        let n = self.request.measurements.points.len();
+        if plan.auto_at > 0 {
+            plan.auto_at = plan.auto_at.max(n + n / 2);
+        }
+        Some(crate::discovery::Request {
+            case: self.case.clone(),
+            measurements: self.request.measurements.clone(),
+            trusted_alignment_mm: self.request.options.trusted_alignment_mm,
+            held: self.request.options.held,
+            budget: plan.budget,
+            coarse,
+            client_seq: seq,
+        })
+    }
+
+    /// A discovery run was started; its outcome arrives on `rx`.
+    pub fn start_discovery(
+        &mut self,
+        rx: tokio::sync::oneshot::Receiver<crate::discovery::Outcome>,
+    ) {
+        self.pending = Some(rx);
+    }
+
+    /// Discovery's augmented model replaces the session's.
+    pub fn switch_to(&mut self, prepared: Arc<librplus::pipeline::Prepared>) {
+        self.augmented = Some(prepared);
+    }
 }
 
 /// A session's discovery settings.
@@ -50,15 +157,30 @@ pub(crate) enum Accepted {
     Discover,
 }
 
+/// A request's options (`field`: where they are), checked: the budget, the trusted alignment,
+/// whether to leave the displacements out and whether the organ is held.
+pub(crate) fn options(
+    config: &ServerConfig,
+    options: Option<&pb::RegisterOptions>,
+    field: &str,
+) -> Result<Options, ServiceError> {
+    Ok(Options {
+        budget: budget(config, options, field)?,
+        omit_displacements: options.is_some_and(|o| o.omit_displacements),
+        trusted_alignment_mm: trusted(options, field)?,
+        held: options.is_some_and(|o| o.held),
+    })
+}
+
 /// The time budget of a request's options (`field`: where they are); the server's default
 /// when 0 or absent, INVALID_ARGUMENT above its limit.
-pub(crate) fn budget(
+fn budget(
     config: &ServerConfig,
     options: Option<&pb::RegisterOptions>,
     field: &str,
 ) -> Result<Duration, ServiceError> {
     // Every field of the options; `omit_displacements`, `trusted_alignment_mm` and `held`
-    // are read by the caller.
+    // are read by [`options`].
     let ms = options.map_or(
         0,
         |pb::RegisterOptions {
@@ -117,7 +239,7 @@ pub(crate) fn check_method(case: &Case, m: i32, field: &str) -> Result<Method, S
 
 /// The options' trusted-alignment uncertainty: None when 0 or absent; an error naming the field
 /// when negative or not finite.
-pub(crate) fn trusted(
+fn trusted(
     options: Option<&pb::RegisterOptions>,
     field: &str,
 ) -> Result<Option<f64>, ServiceError> {
@@ -152,24 +274,21 @@ pub(crate) fn start_session(
     check_seq_range(seq, "client_seq")?;
     let case = crate::access::case(shared, case_id, "start.case_id", who)?;
     let method = check_method(&case, *method, "start.method")?;
-    let budget = budget(&shared.config, options.as_ref(), "start.options")?;
-    let trusted_alignment_mm = trusted(options.as_ref(), "start.options")?;
+    let options = self::options(&shared.config, options.as_ref(), "start.options")?;
     let initial = initial_alignment
         .as_ref()
         .map(|r| rigid_from_pb(r, "start.initial_alignment"))
         .transpose()?;
     let discovery = discovery_plan(&shared.config, &case, discovery.as_ref())?;
+    let measurements = Checked::empty(initial)
+        .map_err(|e| ServiceError::field("start.initial_alignment", e.to_string()))?;
     Ok(Session {
         case,
-        method,
-        budget,
-        omit: options.as_ref().is_some_and(|o| o.omit_displacements),
-        trusted_alignment_mm,
-        held: options.as_ref().is_some_and(|o| o.held),
-        meas: Arc::new(Measurements {
-            initial_alignment: initial,
-            ..Default::default()
-        }),
+        request: Request {
+            measurements,
+            method,
+            options,
+        },
         last_seq: seq,
         last_time: None,
         discovery,
@@ -314,7 +433,7 @@ pub(crate) fn accept(
             (p, k, vec![0; n], time)
         }
     };
-    let total = s.meas.points.len() + points.len();
+    let total = s.request.measurements.points.len() + points.len();
     if total > cfg.max_points_per_session {
         return Err(ServiceError::Quota {
             message: format!(
@@ -331,23 +450,22 @@ pub(crate) fn accept(
     if let Some(t) = time {
         s.last_time = Some(t);
     }
-    append(&mut s.meas, points, kinds, feature);
+    append(&mut s.request.measurements, points, kinds, feature)?;
     Ok(Accepted::Points)
 }
 
-/// Appends a message's points to a session's measurements. The registrations that shared them
-/// have let go of them (a session awaits its registrations), so they grow in place; only a
-/// discovery run still going keeps its snapshot, and the session then continues on a copy.
+/// Appends a message's points to a session's measurements ([`Checked::append`]: only the new
+/// points are checked). The registrations that shared them have let go of them (a session awaits
+/// its registrations), so they grow in place; only a discovery run still going keeps its
+/// snapshot, and the session then continues on a copy.
 fn append(
-    meas: &mut Arc<Measurements>,
+    meas: &mut Checked,
     points: Vec<[f64; 3]>,
     kinds: Vec<MeasuredKind>,
     feature: Vec<u8>,
-) {
-    let meas = Arc::make_mut(meas);
-    meas.points.extend(points);
-    meas.kind.extend(kinds);
-    meas.feature.extend(feature);
+) -> Result<(), ServiceError> {
+    meas.append(points, kinds, feature)
+        .map_err(|e| ServiceError::field("msg", e.to_string()))
 }
 
 /// The largest `client_seq` a session takes: the audit log and the session journal keep it as a
@@ -437,20 +555,21 @@ mod tests {
     /// run) keeps the points it was given.
     #[test]
     fn updates_share_the_session_s_measurements_without_copying_them() {
-        let mut meas = Arc::new(Measurements::default());
-        let at = Arc::as_ptr(&meas);
+        let mut meas = Checked::empty(None).unwrap();
+        let at = Arc::as_ptr(meas.shared());
         for k in 0..50 {
             let job = meas.clone();
-            assert!(Arc::ptr_eq(&job, &meas));
+            assert!(Arc::ptr_eq(job.shared(), meas.shared()));
             drop(job);
             append(
                 &mut meas,
                 vec![[k as f64, 0.0, 0.0]; 10],
                 vec![MeasuredKind::Surface; 10],
                 vec![0; 10],
-            );
+            )
+            .unwrap();
             assert_eq!(
-                Arc::as_ptr(&meas),
+                Arc::as_ptr(meas.shared()),
                 at,
                 "message {k} copied the measurements"
             );
@@ -462,7 +581,8 @@ mod tests {
             vec![[1.0; 3]],
             vec![MeasuredKind::Vessel],
             vec![0],
-        );
+        )
+        .unwrap();
         assert_eq!((snapshot.points.len(), meas.points.len()), (500, 501));
         assert_eq!(meas.kind[500], MeasuredKind::Vessel);
         assert_eq!(meas.feature.len(), 501);

@@ -121,7 +121,7 @@ impl Stream {
             no_data: Duration::from_secs_f64(shared.config.session_no_data_timeout_s),
             started: Instant::now(),
             out: Outbox::new(tx, &session_id),
-            _in_use: InUse::new(&session.case),
+            _in_use: InUse::new(session.case()),
             shared,
             who,
             inbound,
@@ -146,12 +146,12 @@ impl Stream {
     async fn serve(&mut self) -> Result<(), Halt> {
         if self.resumed {
             // The recorded messages answered again: the client goes on after `last_client_seq`.
-            let seq = self.s.last_seq;
+            let seq = self.s.last_seq();
             self.register(seq, Instant::now()).await?;
         }
         loop {
             // A session that holds no points yet keeps its slot only briefly.
-            let quiet = match self.s.meas.points.is_empty() && self.no_data < self.idle {
+            let quiet = match self.s.measurements().points.is_empty() && self.no_data < self.idle {
                 true => Quiet::NoData {
                     at: self.started + self.no_data,
                     after: self.no_data,
@@ -163,7 +163,7 @@ impl Stream {
                 quiet,
                 self.deadline,
                 &mut self.drain,
-                &mut self.s.pending,
+                self.s.pending_mut(),
                 Some((self.sid.as_str(), &mut self.lease)),
             )
             .await?;
@@ -171,7 +171,7 @@ impl Stream {
                 Next::Msg(m) => m,
                 Next::End => return self.finish().await,
                 Next::Discovered(o) => {
-                    self.s.pending = None;
+                    *self.s.pending_mut() = None;
                     self.discovered(o).await?;
                     continue;
                 }
@@ -230,7 +230,7 @@ impl Stream {
                     count_error(e.code());
                     let r = e.to_rejection(seq);
                     if audit {
-                        let case = &self.s.case.id;
+                        let case = &self.s.case().id;
                         b.records
                             .push(rejected_event(&self.who.name, case, &self.sid, &r));
                     }
@@ -262,12 +262,7 @@ impl Stream {
             self.out.send(&self.s, r, arrival).await?;
         }
         // A discovery run: asked for, or due (the session grew to its automatic threshold).
-        let due = self.s.pending.is_none()
-            && self
-                .s
-                .discovery
-                .as_ref()
-                .is_some_and(|d| d.auto_at > 0 && self.s.meas.points.len() >= d.auto_at);
+        let due = self.s.discovery_due();
         if let Some(seq) = b.discover.or(due.then_some(0)) {
             let update = start_discovery(&self.shared, &mut self.s, seq);
             self.out.send(&self.s, update, arrival).await?;
@@ -288,14 +283,14 @@ impl Stream {
                     Some(Record::Registration(Box::new(audit_record(
                         r,
                         &self.who.name,
-                        &self.s.case.id,
+                        &self.s.case().id,
                         Some(&self.sid),
-                        self.s.last_seq,
+                        self.s.last_seq(),
                     ))))
                 }
                 pb::stream_update::Update::Rejection(r) => Some(rejected_event(
                     &self.who.name,
-                    &self.s.case.id,
+                    &self.s.case().id,
                     &self.sid,
                     r,
                 )),
@@ -329,13 +324,13 @@ impl Stream {
             "discovery finished"
         );
         if let Some(p) = o.augmented {
-            self.s.augmented = Some(p);
+            self.s.switch_to(p);
         }
         let report = pb::stream_update::Update::Discovery(o.report);
         self.out.send(&self.s, report, arrival).await?;
         // The switch shows at once: the session's points registered with its new model.
-        if switched && !self.s.meas.points.is_empty() {
-            let seq = self.s.last_seq;
+        if switched && !self.s.measurements().points.is_empty() {
+            let seq = self.s.last_seq();
             let update = register_session(&self.shared, &self.s, arrival, self.deadline, seq).await;
             self.out.send(&self.s, update, arrival).await?;
         }
@@ -345,7 +340,7 @@ impl Stream {
     /// The client finished sending: a discovery run it started is still reported (it was
     /// acknowledged), unless the server drains or the call's deadline passes first.
     async fn finish(&mut self) -> Result<(), Halt> {
-        let Some(rx) = self.s.pending.take() else {
+        let Some(rx) = self.s.pending_mut().take() else {
             return Ok(());
         };
         let until = self.deadline.map_or_else(

@@ -2,7 +2,6 @@
 //! model (plain, or augmented by discovery), and the start of an in-surgery discovery run.
 
 use super::state::Session;
-use crate::compute::Job;
 use crate::shared::{Shared, count_error};
 use librplus::pipeline::Method;
 use librplus_proto::v1 as pb;
@@ -16,15 +15,16 @@ pub(crate) async fn register_session(
     deadline: Option<Instant>,
     seq: u64,
 ) -> pb::stream_update::Update {
-    if s.meas.points.is_empty() {
+    if s.measurements().points.is_empty() {
         // Nothing measured yet (an ultrasound frame in which nothing was found): the answer is
         // the starting pose, flagged, as the proto promises.
-        let prepared = s.augmented.as_deref().unwrap_or(&s.case.prepared);
+        let prepared = s.prepared();
         let n = prepared.model.mesh.num_nodes();
-        let pose = s.meas.initial_alignment.unwrap_or_default();
+        let pose = s.measurements().initial_alignment.unwrap_or_default();
+        let omit = s.options().omit_displacements;
         return pb::stream_update::Update::Registration(pb::Registration {
             image_to_physical: Some(crate::convert::rigid_to_pb(&pose)),
-            displacement_mm: if s.omit { Vec::new() } else { vec![0.0; 3 * n] },
+            displacement_mm: if omit { Vec::new() } else { vec![0.0; 3 * n] },
             node_count: n as u32,
             method_used: crate::convert::method_to_pb(Method::Rigid) as i32,
             quality: pb::Quality::Degenerate as i32,
@@ -39,22 +39,8 @@ pub(crate) async fn register_session(
             ..Default::default()
         });
     }
-    s.case.touch();
-    let job = Job {
-        case: s.case.clone(),
-        measurements: s.meas.clone(),
-        method: s.method,
-        budget: match deadline {
-            Some(d) => s.budget.min(d.saturating_duration_since(arrival)),
-            None => s.budget,
-        },
-        arrival,
-        omit_displacements: s.omit,
-        trusted_alignment_mm: s.trusted_alignment_mm,
-        held: s.held,
-        prepared: s.augmented.clone(),
-    };
-    match shared.engine.run(job, None).await {
+    s.case().touch();
+    match shared.engine.run(s.job(arrival, deadline), None).await {
         Ok(r) => pb::stream_update::Update::Registration(r),
         Err(b) => {
             count_error(b.code());
@@ -70,7 +56,7 @@ pub(crate) fn start_discovery(
     s: &mut Session,
     seq: u64,
 ) -> pb::stream_update::Update {
-    let Some(plan) = s.discovery.as_mut() else {
+    let Some(req) = s.discovery_request(shared.config.discovery_coarse, seq) else {
         // `accept` refuses `discover` when the session did not opt in; kept as a report.
         return pb::stream_update::Update::Discovery(pb::DiscoveryReport {
             client_seq: seq,
@@ -79,20 +65,7 @@ pub(crate) fn start_discovery(
             ..Default::default()
         });
     };
-    let n = s.meas.points.len();
-    if plan.auto_at > 0 {
-        // The next automatic run when the session has grown by half.
-        plan.auto_at = plan.auto_at.max(n + n / 2);
-    }
-    let req = crate::discovery::Request {
-        case: s.case.clone(),
-        measurements: s.meas.clone(),
-        trusted_alignment_mm: s.trusted_alignment_mm,
-        held: s.held,
-        budget: plan.budget,
-        coarse: shared.config.discovery_coarse,
-        client_seq: seq,
-    };
+    let n = req.measurements.points.len();
     if n < crate::discovery::MIN_POINTS {
         let mut r = crate::discovery::started(&req);
         r.state = pb::DiscoveryState::Failed as i32;
@@ -104,6 +77,6 @@ pub(crate) fn start_discovery(
     }
     tracing::info!(points = n, client_seq = seq, "discovery started");
     let report = crate::discovery::started(&req);
-    s.pending = Some(crate::discovery::spawn(req));
+    s.start_discovery(crate::discovery::spawn(req));
     pb::stream_update::Update::Discovery(report)
 }

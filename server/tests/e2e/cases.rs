@@ -70,13 +70,10 @@ async fn a_folder_of_meshes_is_a_set_of_cases() {
     assert_eq!(count(&bare, 1), count(&labelled, 1));
     assert_eq!(count(&bare, 2), count(&labelled, 2));
     let (_, sc) = scenario("surface");
-    let mut meas = sc.measurements.clone();
-    let keep: Vec<usize> = (0..meas.points.len())
-        .filter(|&i| meas.kind[i] != MeasuredKind::Vessel)
+    let keep: Vec<usize> = (0..sc.measurements.points.len())
+        .filter(|&i| sc.measurements.kind[i] != MeasuredKind::Vessel)
         .collect();
-    meas.points = keep.iter().map(|&i| meas.points[i]).collect();
-    meas.kind = keep.iter().map(|&i| meas.kind[i]).collect();
-    meas.feature = keep.iter().map(|&i| meas.feature[i]).collect();
+    let meas = sc.measurements.subset(&keep);
     let r = c
         .register(request("bare", pb::Method::Libr, measurements_pb(&meas)))
         .await

@@ -332,12 +332,13 @@ async fn in_surgery_discovery_names_hidden_gravity_and_switches_the_session() {
     // reported physics on the same points, closer to the truth.
     assert_eq!(after.effects, ["gravity"]);
     let n_after = after.points_used as usize;
-    let meas = librplus::register::Measurements {
+    let meas = librplus::register::Checked::new(librplus::register::Measurements {
         points: pts[..n_after].to_vec(),
         kind: vec![MeasuredKind::Surface; n_after],
         feature: vec![0; n_after],
         initial_alignment: Some(pose),
-    };
+    })
+    .unwrap();
     let lib_case =
         Prepared::with_physics(model.clone(), Some(&LibrParams::default()), &found, None).unwrap();
     let lib = register(&lib_case, &meas, Method::Libr, &PipelineParams::default()).unwrap();

@@ -161,7 +161,7 @@ async fn echoes_and_numbers_are_short_and_session_ids_are_not_guessable() {
     let case = open(dataset()).unwrap().deformations[0].geometry.clone();
     let (_, sc) = scenario("surface+2us");
     // A number far out of range is shown in scientific notation, not as 301 digits.
-    let mut m = sc.measurements.clone();
+    let mut m = sc.measurements.clone().into_inner();
     m.points[0] = [1e300, 0.0, 0.0];
     let e = c
         .register(request(&case, pb::Method::Rigid, measurements_pb(&m)))

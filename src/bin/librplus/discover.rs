@@ -284,10 +284,9 @@ fn discover_files(
         } else {
             read(p, MeasuredKind::Surface, &mut m)?;
         }
-        sweeps.push(Sweep {
-            id,
-            measurements: m,
-        });
+        let measurements = librplus::register::Checked::new(m)
+            .with_context(|| format!("--scenarios: sweep {id}"))?;
+        sweeps.push(Sweep { id, measurements });
     }
     if sweeps.len() < 2 {
         bail!(

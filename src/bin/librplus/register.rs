@@ -256,6 +256,7 @@ pub(crate) fn register_files(a: &RegisterArgs) -> Result<()> {
     bar.finish_and_clear();
     let case = case?;
     let prepare_s = t0.elapsed().as_secs_f64();
+    let meas = librplus::register::Checked::new(meas)?;
     let r = register(&case, &meas, method, &params)?;
     if let Some(out) = &a.out {
         let nodes = case.model.mesh.nodes();

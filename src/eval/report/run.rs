@@ -572,16 +572,13 @@ fn correct_one(
         deadline: None,
         ..params.clone()
     };
-    let out = crate::pipeline::correct_libr(
-        lp,
-        case,
-        &sc.measurements,
-        &params,
-        &r.u,
-        &r.image_to_physical,
-        libr,
-        r.rigid.prior.as_ref(),
-    );
+    let answer = crate::pipeline::LibrAnswer {
+        u: &r.u,
+        image_to_physical: &r.image_to_physical,
+        info: libr,
+        rigid_prior: r.rigid.prior.as_ref(),
+    };
+    let out = crate::pipeline::correct_libr(lp, case, &sc.measurements, &params, answer);
     // A network that failed is an error of the evaluation, not LIBR's answer.
     if let Some(e) = &out.info.skipped
         && e.starts_with("SR-GCN correction failed")

@@ -6,7 +6,7 @@ use crate::dataset::read::ScenarioData;
 use crate::eval::EvalError;
 use crate::gcn::GcnError;
 use crate::gcn::model::{SrGcnConfig, Target};
-use crate::gcn::sample::{CaseFrame, SampleData};
+use crate::gcn::sample::{CaseFrame, Registered, SampleData};
 use crate::mesh::rigid::Rigid;
 use crate::pipeline::PipelineError;
 use crate::pipeline::PipelineParams;
@@ -42,7 +42,7 @@ pub struct RefitLoss {
 /// refit would make there.
 pub fn refit_loss_data(
     gc: &GeometryCase,
-    meas: &crate::register::Measurements,
+    meas: &crate::register::Checked,
     sol: &LibrSolution,
     params: &PipelineParams,
 ) -> Result<RefitLoss, EvalError> {
@@ -145,18 +145,16 @@ pub fn build_samples(
             let Some(sol) = sol else { return Ok(None) };
             let gc = &cases[*g];
             let truth = with_truth.then(|| truth_positions(&gc.geo, sc));
-            let mut data = SampleData::build_linking(
-                cfg,
-                &gc.frame,
-                &gc.geo.model.mesh,
-                &gc.case.correspondence,
-                &cparams,
-                &sc.measurements,
-                &sol.u,
-                &sol.transform,
-                truth.as_deref(),
-            )
-            .map_err(|e| EvalError::within(sc.id.clone(), e))?;
+            let libr = Registered {
+                mesh: &gc.geo.model.mesh,
+                correspondence: &gc.case.correspondence,
+                cparams: &cparams,
+                meas: &sc.measurements,
+                u: &sol.u,
+                transform: &sol.transform,
+            };
+            let mut data = SampleData::build_linking(cfg, &gc.frame, &libr, truth.as_deref())
+                .map_err(|e| EvalError::within(sc.id.clone(), e))?;
             if let Some(t) = &truth {
                 data.target = Some(training_target(
                     cfg,

@@ -351,22 +351,36 @@ pub fn adaptive_step(
     Ok((finish(basis, &asm, &x, t2)?, lambda))
 }
 
-/// Adaptive LIBR (see the module doc): like [`solve_with_limits`] on the multi-level `basis`
-/// (`first_level` = the number of control points of its broadest level), with the columns kept
-/// chosen from the first matching and λ chosen by evidence at every iteration.
-/// [`LibrInfo::regularization`] reports the last λ and [`LibrInfo::columns`] the columns kept.
-#[allow(clippy::too_many_arguments)]
+/// Adaptive LIBR's model: the multi-level basis ([`LibrBasis::build_levels`]), the number of
+/// control points of its broadest level, and the adaptive settings.
+#[derive(Debug, Clone, Copy)]
+pub struct MultiLevel<'a> {
+    /// The multi-level basis.
+    pub basis: &'a LibrBasis,
+    /// The number of control points of its broadest level (its first columns).
+    pub first_level: usize,
+    /// The adaptive settings.
+    pub adaptive: &'a AdaptiveParams,
+}
+
+/// Adaptive LIBR (see the module doc): like [`solve_with_limits`] on the multi-level basis
+/// `levels`, with the columns kept chosen from the first matching and λ chosen by evidence at
+/// every iteration. [`LibrInfo::regularization`] reports the last λ and [`LibrInfo::columns`] the
+/// columns kept.
 pub fn solve_adaptive(
     mesh: &TetMesh,
-    basis: &LibrBasis,
-    first_level: usize,
+    levels: MultiLevel<'_>,
     params: &LibrParams,
-    adaptive: &AdaptiveParams,
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
     run: RunLimits<'_>,
     mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
 ) -> Result<LibrSolution, RegisterError> {
+    let MultiLevel {
+        basis,
+        first_level,
+        adaptive,
+    } = levels;
     // The rows the fit reads: the active nodes, and any other node a match reads (added when
     // one does, and the restricted basis rebuilt).
     let (mut rows, mut row_of) = adaptive_rows(mesh, basis, params, adaptive, &run)?;

@@ -169,7 +169,7 @@ pub fn request(case: &str, method: pb::Method, m: pb::Measurements) -> pb::Regis
 /// The library's answer on the same case and measurements.
 pub fn direct(
     geo: &GeometryData,
-    meas: &librplus::register::Measurements,
+    meas: &librplus::register::Checked,
     method: Method,
 ) -> librplus::pipeline::Registration {
     let case = Prepared::new(
@@ -211,10 +211,7 @@ pub fn stream_of(
     case: &str,
     sc: &ScenarioData,
     method: pb::Method,
-) -> (
-    Vec<pb::StreamRegisterRequest>,
-    librplus::register::Measurements,
-) {
+) -> (Vec<pb::StreamRegisterRequest>, librplus::register::Checked) {
     use pb::stream_register_request::Msg;
     let m = &sc.measurements;
     let mut msgs = vec![pb::StreamRegisterRequest {
@@ -276,6 +273,7 @@ pub fn stream_of(
         ordered.kind.push(m.kind[i]);
         ordered.feature.push(0);
     }
+    let ordered = librplus::register::Checked::new(ordered).expect("a dataset's points");
     (msgs, ordered)
 }
 
