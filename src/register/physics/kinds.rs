@@ -1,8 +1,8 @@
 //! The library of effect kinds, one table: per kind its name, its parameters, how it enters the
 //! augmented model (a load, a support, a material), what physics expects of it before the data
-//! (the discovery prior) and how discovery searches it. Adding a kind is a variant of
-//! [`EffectKind`], its place in [`EffectKind::ALL`] and its entry in [`EffectKind::spec`], all
-//! here; the generator of hidden effects (`phantom::hidden`) draws its ground truth apart, as
+//! (the discovery prior) and how discovery searches it. Adding a kind is one line of the list
+//! `kinds!` (the variant, in the library's order, and its entry) and its entry, a
+//! [`KindSpec`], both here; the generator of hidden effects (`phantom::hidden`) draws its ground truth apart, as
 //! surgery-time code never reads how data were made.
 //!
 //! | kind | what it adds | parameters (image frame, mm, kPa, mN) |
@@ -27,25 +27,48 @@ use crate::mesh::TetMesh;
 use crate::mesh::vec3::{dist2, dot};
 use crate::register::RegisterError;
 
-/// A kind of effect in the library.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum EffectKind {
+/// The list of kinds: each variant of [`EffectKind`] with its entry in the table, in the
+/// library's order. The enum, [`EffectKind::ALL`] and [`EffectKind::spec`] are made from this one
+/// list, so they cannot disagree.
+macro_rules! kinds {
+    ($($(#[$doc:meta])* $kind:ident => $spec:ident,)*) => {
+        /// A kind of effect in the library.
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+        pub enum EffectKind {
+            $($(#[$doc])* $kind,)*
+        }
+
+        impl EffectKind {
+            /// Every kind, in the library's order.
+            pub const ALL: [EffectKind; [$(stringify!($kind)),*].len()] = [$(EffectKind::$kind),*];
+
+            /// The kind's entry in the table.
+            pub fn spec(self) -> &'static KindSpec {
+                match self {
+                    $(EffectKind::$kind => &$spec,)*
+                }
+            }
+        }
+    };
+}
+
+kinds! {
     /// The organ's weight resting on its dependent surface.
-    Gravity,
+    Gravity => GRAVITY,
     /// The posterior surface on an elastic bed.
-    BedSupport,
+    BedSupport => BED_SUPPORT,
     /// The organ held on a boundary region.
-    Fixation,
+    Fixation => FIXATION,
     /// A uniform pressure on the faces turned towards a direction.
-    Pressure,
+    Pressure => PRESSURE,
     /// A localized surface load.
-    Pack,
+    Pack => PACK,
     /// Tethering along the falciform ligament.
-    Ligament,
+    Ligament => LIGAMENT,
     /// A stiffer spherical region.
-    Inclusion,
+    Inclusion => INCLUSION,
     /// Large-deformation behaviour.
-    Nonlinear,
+    Nonlinear => NONLINEAR,
 }
 
 /// Everything the library knows about one kind ([`EffectKind::spec`]).
@@ -480,32 +503,6 @@ static NONLINEAR: KindSpec = KindSpec {
 };
 
 impl EffectKind {
-    /// Every kind, in the library's order.
-    pub const ALL: [EffectKind; 8] = [
-        EffectKind::Gravity,
-        EffectKind::BedSupport,
-        EffectKind::Fixation,
-        EffectKind::Pressure,
-        EffectKind::Pack,
-        EffectKind::Ligament,
-        EffectKind::Inclusion,
-        EffectKind::Nonlinear,
-    ];
-
-    /// The kind's entry in the table.
-    pub fn spec(self) -> &'static KindSpec {
-        match self {
-            EffectKind::Gravity => &GRAVITY,
-            EffectKind::BedSupport => &BED_SUPPORT,
-            EffectKind::Fixation => &FIXATION,
-            EffectKind::Pressure => &PRESSURE,
-            EffectKind::Pack => &PACK,
-            EffectKind::Ligament => &LIGAMENT,
-            EffectKind::Inclusion => &INCLUSION,
-            EffectKind::Nonlinear => &NONLINEAR,
-        }
-    }
-
     /// The kind's name in files and on the command line.
     pub fn name(self) -> &'static str {
         self.spec().name
