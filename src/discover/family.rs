@@ -6,15 +6,53 @@ use super::SearchGrid;
 use super::search::{self, Candidate, Current, SearchContext, basis_design};
 use super::stats::paired;
 use super::{DiscoverError, prior};
+use crate::register::physics::kinds::{GridValues, Place, Search, SiteGrid};
 use crate::register::physics::model::ModelSolver;
 use crate::register::physics::{Effect, EffectKind, Physics};
 
-/// Searches one kind over its parameter grid on top of the current model.
+/// Searches one kind over its parameter grid on top of the current model, as the kind's
+/// [`Search`] in the table of kinds says.
 pub(super) fn search_family(
     ctx: &SearchContext<'_>,
     cur: &Current,
     kind: EffectKind,
     grid: &SearchGrid,
+) -> Result<Vec<Candidate>, DiscoverError> {
+    match kind.spec().search {
+        Search::None => Ok(Vec::new()),
+        Search::Directions {
+            count,
+            direction,
+            amplitude,
+            start,
+        } => search_directions(ctx, cur, kind, count(grid), (direction, amplitude, start)),
+        Search::Grid { site, vary, fixed } => search_grid(ctx, cur, kind, grid, site, vary, fixed),
+    }
+}
+
+/// A candidate evaluated as its kind enters the model: a load's columns on top of the current
+/// model, or a rebuilt basis.
+fn evaluate(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    e: &Effect,
+) -> Result<Option<Candidate>, DiscoverError> {
+    if e.kind.is_load() {
+        search::evaluate_load(ctx, cur, e)
+    } else {
+        search::evaluate_rebuilt(ctx, cur, e)
+    }
+}
+
+/// [`Search::Directions`]: `count` directions over the sphere (those physics rules out
+/// dropped), the best three refined; `(direction, amplitude, start)` name the parameters and
+/// the amplitude the candidates are made with.
+fn search_directions(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    kind: EffectKind,
+    count: usize,
+    (dir_name, amp, amp_value): (&str, &str, f64),
 ) -> Result<Vec<Candidate>, DiscoverError> {
     let mut out = Vec::new();
     let mut push = |c: Option<Candidate>| {
@@ -22,116 +60,97 @@ pub(super) fn search_family(
             out.push(c);
         }
     };
-    match kind {
-        EffectKind::Gravity | EffectKind::Pressure => {
-            let (dir_name, amp, amp_value) = if kind == EffectKind::Gravity {
-                ("direction", "magnitude", 0.01)
-            } else {
-                ("direction", "magnitude_kpa", 1.0)
-            };
-            let make = |d: [f64; 3]| Effect::new(kind, &[(dir_name, &d), (amp, &[amp_value])]);
-            let mut tried = Vec::new();
-            // Directions over the sphere, those physics rules out dropped (a prone patient,
-            // insufflation behind the organ: see [`prior::direction_cone`]).
-            for d in search::sphere_directions(grid.directions)
-                .into_iter()
-                .filter(|d| prior::direction_plausible(kind, *d))
-            {
-                let e = make(d)?;
-                let c = search::evaluate_load(ctx, cur, &e)?;
-                tried.push((
-                    d,
-                    c.as_ref()
+    let make = |d: [f64; 3]| Effect::new(kind, &[(dir_name, &d), (amp, &[amp_value])]);
+    let mut tried = Vec::new();
+    // Directions over the sphere, those physics rules out dropped (a prone patient,
+    // insufflation behind the organ: see [`prior::direction_cone`]).
+    for d in search::sphere_directions(count)
+        .into_iter()
+        .filter(|d| prior::direction_plausible(kind, *d))
+    {
+        let e = make(d)?;
+        let c = evaluate(ctx, cur, &e)?;
+        tried.push((
+            d,
+            c.as_ref()
+                .map(|c| c.score.full_rss)
+                .unwrap_or(f64::INFINITY),
+        ));
+        push(c);
+    }
+    // Refine the three best grid directions by a pattern search with shrinking turns
+    // (a turn is repeated while it improves). Directions are estimated by the full fit's
+    // misfit (maximum likelihood, sharper than the held-out score); whether the effect
+    // is real is the held-out score's question.
+    tried.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let starts: Vec<([f64; 3], f64)> = tried.iter().take(3).copied().collect();
+    for start in starts {
+        let mut best = start;
+        for step in [20.0f64, 10.0, 5.0, 2.5, 1.25] {
+            let mut moved = true;
+            let mut guard = 0;
+            while moved && guard < 6 {
+                moved = false;
+                guard += 1;
+                for d in search::neighbours(best.0, step.to_radians())
+                    .into_iter()
+                    .filter(|d| prior::direction_plausible(kind, *d))
+                {
+                    let e = make(d)?;
+                    let c = evaluate(ctx, cur, &e)?;
+                    let s = c
+                        .as_ref()
                         .map(|c| c.score.full_rss)
-                        .unwrap_or(f64::INFINITY),
-                ));
-                push(c);
-            }
-            // Refine the three best grid directions by a pattern search with shrinking turns
-            // (a turn is repeated while it improves). Directions are estimated by the full fit's
-            // misfit (maximum likelihood, sharper than the held-out score); whether the effect
-            // is real is the held-out score's question.
-            tried.sort_by(|a, b| a.1.total_cmp(&b.1));
-            let starts: Vec<([f64; 3], f64)> = tried.iter().take(3).copied().collect();
-            for start in starts {
-                let mut best = start;
-                for step in [20.0f64, 10.0, 5.0, 2.5, 1.25] {
-                    let mut moved = true;
-                    let mut guard = 0;
-                    while moved && guard < 6 {
-                        moved = false;
-                        guard += 1;
-                        for d in search::neighbours(best.0, step.to_radians())
-                            .into_iter()
-                            .filter(|d| prior::direction_plausible(kind, *d))
-                        {
-                            let e = make(d)?;
-                            let c = search::evaluate_load(ctx, cur, &e)?;
-                            let s = c
-                                .as_ref()
-                                .map(|c| c.score.full_rss)
-                                .unwrap_or(f64::INFINITY);
-                            if s < best.1 {
-                                best = (d, s);
-                                moved = true;
-                            }
-                            push(c);
-                        }
+                        .unwrap_or(f64::INFINITY);
+                    if s < best.1 {
+                        best = (d, s);
+                        moved = true;
                     }
+                    push(c);
                 }
             }
         }
-        EffectKind::Pack => {
-            for c in search::boundary_sites(ctx.mesh, ctx.geom, grid.pack_sites) {
-                for w in grid.pack_widths {
-                    let e = Effect::new(
-                        kind,
-                        &[
-                            ("center", &c),
-                            ("width_mm", &[w]),
-                            ("force_mn", &[0.0, 0.0, 1.0]),
-                        ],
-                    )?;
-                    push(search::evaluate_load(ctx, cur, &e)?);
+    }
+    Ok(out)
+}
+
+/// [`Search::Grid`]: at each site (once without one) each value of the varied parameter, the
+/// fixed parameters held.
+fn search_grid(
+    ctx: &SearchContext<'_>,
+    cur: &Current,
+    kind: EffectKind,
+    grid: &SearchGrid,
+    site: Option<SiteGrid>,
+    (vary, values): (&str, GridValues),
+    fixed: &[(&str, &[f64])],
+) -> Result<Vec<Candidate>, DiscoverError> {
+    let mut out = Vec::new();
+    let sites: Vec<Option<(&str, [f64; 3])>> = match site {
+        None => vec![None],
+        Some(s) => {
+            let at = match s.place {
+                Place::Boundary => search::boundary_sites(ctx.mesh, ctx.geom, (s.count)(grid)),
+                Place::Interior { depth } => {
+                    search::interior_sites(ctx.mesh, ctx.geom, depth, (s.count)(grid))
                 }
-            }
-        }
-        EffectKind::BedSupport | EffectKind::Ligament => {
-            let ks: &[f64] = if kind == EffectKind::BedSupport {
-                &[0.02, 0.07, 0.25]
-            } else {
-                &[0.1, 0.3, 1.0]
             };
-            for &k in ks {
-                let e = Effect::new(kind, &[("stiffness", &[k])])?;
-                push(search::evaluate_rebuilt(ctx, cur, &e)?);
+            at.into_iter().map(|c| Some((s.name, c))).collect()
+        }
+    };
+    for site in &sites {
+        for v in values(grid) {
+            let mut params: Vec<(&str, &[f64])> = Vec::with_capacity(fixed.len() + 2);
+            if let Some((name, c)) = site {
+                params.push((name, c));
+            }
+            params.push((vary, std::slice::from_ref(v)));
+            params.extend_from_slice(fixed);
+            let e = Effect::new(kind, &params)?;
+            if let Some(c) = evaluate(ctx, cur, &e)? {
+                out.push(c);
             }
         }
-        EffectKind::Fixation => {
-            for c in search::boundary_sites(ctx.mesh, ctx.geom, grid.fixation_sites) {
-                for k in [0.3, 1.5] {
-                    let e = Effect::new(
-                        kind,
-                        &[("center", &c), ("radius_mm", &[25.0]), ("stiffness", &[k])],
-                    )?;
-                    push(search::evaluate_rebuilt(ctx, cur, &e)?);
-                }
-            }
-        }
-        EffectKind::Inclusion => {
-            for c in search::interior_sites(ctx.mesh, ctx.geom, 15.0, grid.inclusion_sites) {
-                let e = Effect::new(
-                    kind,
-                    &[
-                        ("center", &c),
-                        ("radius_mm", &[15.0]),
-                        ("stiffness_ratio", &[5.0]),
-                    ],
-                )?;
-                push(search::evaluate_rebuilt(ctx, cur, &e)?);
-            }
-        }
-        EffectKind::Nonlinear => {}
     }
     Ok(out)
 }

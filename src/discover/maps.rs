@@ -13,8 +13,11 @@
 //!   nodal load (mN) at the fitted amplitude; of a support kind: `effect<k>_<kind>_stiffness`,
 //!   the spring stiffness per area (kPa/mm) on the nodes it holds, 0 elsewhere.
 //!
-//! Cell data (one per tet), per named inclusion: `effect<k>_inclusion_ratio`, Young's modulus
-//! multiple (1 outside).
+//! Cell data (one per tet), per named material kind (an inclusion): `effect<k>_<kind>_ratio`,
+//! Young's modulus multiple (1 outside).
+//!
+//! Which map an effect gets is its kind's role in the table of kinds
+//! ([`crate::register::physics::kinds::Role`]).
 
 use super::CohortDiscovery;
 use crate::mesh::TetMesh;
@@ -22,8 +25,9 @@ use crate::mesh::io::{DataArray, MeshFile};
 use crate::mesh::vec3::dist2;
 use crate::register::PreopModel;
 use crate::register::RegisterError;
-use crate::register::physics::model::{BoundaryGeometry, effect_load, nodes_within};
-use crate::register::physics::{EffectKind, Physics};
+use crate::register::physics::Physics;
+use crate::register::physics::kinds::Role;
+use crate::register::physics::model::{BoundaryGeometry, Sites, effect_load};
 
 /// The maps of one cohort's discovery on its preoperative mesh.
 pub fn discovery_maps(
@@ -76,11 +80,15 @@ pub fn discovery_maps(
         block.iter().map(|&b| b as f64).collect(),
     ));
     let geom = BoundaryGeometry::new(mesh)?;
+    let sites = Sites {
+        posterior: &model.posterior,
+        falciform: &model.falciform,
+    };
     for (k, named) in found.effects.iter().enumerate() {
         let e = &named.effect;
         let tag = format!("effect{k}_{}", e.kind.name());
-        match e.kind {
-            EffectKind::Gravity | EffectKind::Pressure | EffectKind::Pack => {
+        match e.kind.role() {
+            Role::Load(_) => {
                 let f = effect_load(
                     mesh,
                     &geom,
@@ -91,55 +99,30 @@ pub fn discovery_maps(
                 file.point_data
                     .push(DataArray::new(format!("{tag}_load_mn"), 3, f));
             }
-            EffectKind::BedSupport | EffectKind::Fixation | EffectKind::Ligament => {
-                let k = e.scalar("stiffness");
+            Role::Support(s) => {
+                let k = e.scalar(s.stiffness);
                 let mut v = vec![0.0; n];
-                match e.kind {
-                    EffectKind::BedSupport => {
-                        for &b in &geom.nodes {
-                            if model.posterior[b as usize] {
-                                v[b as usize] = k;
-                            }
-                        }
-                    }
-                    EffectKind::Ligament => {
-                        for &b in &geom.nodes {
-                            if model.falciform[b as usize] {
-                                v[b as usize] = k;
-                            }
-                        }
-                    }
-                    _ => {
-                        for b in
-                            nodes_within(mesh, &geom, e.vector("center"), e.scalar("radius_mm"))
-                        {
-                            v[b as usize] = k;
-                        }
-                    }
+                for b in (s.held)(mesh, &geom, sites, e) {
+                    v[b as usize] = k;
                 }
                 file.point_data
                     .push(DataArray::new(format!("{tag}_stiffness"), 1, v));
             }
-            EffectKind::Inclusion => {
-                let (c, rad, ratio) = (
-                    e.vector("center"),
-                    e.scalar("radius_mm"),
-                    e.scalar("stiffness_ratio"),
-                );
+            Role::Material(m) => {
                 let p = mesh.nodes();
                 let v: Vec<f64> = mesh
                     .tets()
                     .iter()
                     .map(|t| {
-                        let m = [0, 1, 2]
+                        let c = [0, 1, 2]
                             .map(|a| t.iter().map(|&i| p[i as usize][a]).sum::<f64>() / 4.0);
-                        if dist2(m, c) <= rad * rad { ratio } else { 1.0 }
+                        (m.factor)(e, c)
                     })
                     .collect();
                 file.cell_data
                     .push(DataArray::new(format!("{tag}_ratio"), 1, v));
             }
-            EffectKind::Nonlinear => {}
+            Role::Uncarried => {}
         }
     }
     Ok(file)

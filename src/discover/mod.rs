@@ -47,6 +47,7 @@ mod show;
 mod stats;
 
 use crate::pipeline::{PipelineError, PipelineParams};
+pub use crate::register::physics::kinds::SearchGrid;
 use crate::register::physics::{Effect, EffectKind, Physics};
 use crate::register::{Checked, PreopModel, RegisterError};
 use std::path::Path;
@@ -119,33 +120,6 @@ pub struct DiscoverParams {
     pub deadline: Option<Instant>,
 }
 
-/// How finely each family is searched.
-#[derive(Debug, Clone, Copy)]
-pub struct SearchGrid {
-    /// Directions tried for gravity and pressure (then refined). Default 32.
-    pub directions: usize,
-    /// Boundary sites tried for packs. Default 24.
-    pub pack_sites: usize,
-    /// Pack widths (mm). Default 12, 25.
-    pub pack_widths: [f64; 2],
-    /// Boundary sites tried for fixations. Default 8.
-    pub fixation_sites: usize,
-    /// Interior sites tried for inclusions. Default 6.
-    pub inclusion_sites: usize,
-}
-
-impl Default for SearchGrid {
-    fn default() -> Self {
-        Self {
-            directions: 32,
-            pack_sites: 24,
-            pack_widths: [12.0, 25.0],
-            fixation_sites: 8,
-            inclusion_sites: 6,
-        }
-    }
-}
-
 impl Default for DiscoverParams {
     fn default() -> Self {
         Self {
@@ -158,7 +132,7 @@ impl Default for DiscoverParams {
             confirmations: 3,
             kinds: EffectKind::ALL
                 .into_iter()
-                .filter(|k| *k != EffectKind::Nonlinear)
+                .filter(|k| k.is_carried())
                 .collect(),
             grid: SearchGrid::default(),
             seed: 0,
@@ -175,13 +149,7 @@ impl DiscoverParams {
         Self {
             folds: 5,
             bootstrap: 9,
-            grid: SearchGrid {
-                directions: 16,
-                pack_sites: 8,
-                pack_widths: [12.0, 25.0],
-                fixation_sites: 4,
-                inclusion_sites: 2,
-            },
+            grid: SearchGrid::coarse(),
             ..Self::default()
         }
     }

@@ -18,20 +18,18 @@
 //! The frame is the product's (LPS: anterior −y). The patient lies supine or on the side during
 //! liver surgery, never prone, so the organ's weight points posteriorly within 90°, and the
 //! insufflated space is anterior.
+//!
+//! The numbers are each kind's entry in the table of kinds ([`crate::register::physics::kinds`]);
+//! this module reads them.
 
+use crate::register::physics::kinds::{Hold, LoadPrior};
 use crate::register::physics::model::BoundaryGeometry;
 use crate::register::physics::{Effect, EffectKind};
 use nalgebra::{DMatrix, DVector};
 
-/// ρg of liver tissue (mN/mm³).
-pub const GRAVITY_MAGNITUDE: f64 = 0.0104;
-/// Its prior standard deviation (mN/mm³).
-pub const GRAVITY_SD: f64 = 0.0031;
-/// Insufflation pressure prior: mean and standard deviation (kPa).
-pub const PRESSURE_KPA: (f64, f64) = (1.4, 0.6);
-/// A pack's force: mean along the inward normal, standard deviation along it and across it
-/// (mN).
-pub const PACK_FORCE_MN: (f64, f64, f64) = (5000.0, 3000.0, 2500.0);
+pub use crate::register::physics::kinds::{
+    GRAVITY_MAGNITUDE, GRAVITY_SD, LOCAL_WEIGHT_SHARE, PACK_FORCE_MN, PRESSURE_KPA,
+};
 
 /// The plausible size of a load effect's amplitude (`magnitude`, `magnitude_kpa`, the norm of
 /// `force_mn`): the physical range of the table above, widened by a factor of two either way
@@ -40,17 +38,8 @@ pub const PACK_FORCE_MN: (f64, f64, f64) = (5000.0, 3000.0, 2500.0);
 /// mostly correlated model error that a free amplitude fits at any size; a fitted amplitude
 /// outside this range is not the named effect.
 pub fn plausible_amplitude(kind: EffectKind) -> Option<(f64, f64)> {
-    match kind {
-        EffectKind::Gravity => Some((0.8 * GRAVITY_MAGNITUDE / 2.0, 1.2 * GRAVITY_MAGNITUDE * 2.0)),
-        EffectKind::Pressure => Some((0.93 / 2.0, 1.87 * 2.0)),
-        EffectKind::Pack => Some((2000.0 / 2.0, 8000.0 * 2.0)),
-        _ => None,
-    }
+    kind.load().map(|l| l.plausible)
 }
-
-/// The smallest share of the organ's weight a local support (a fixation patch, the falciform
-/// ligament) carries when no bed does: the neighbouring organs carry the rest, up to 90 %.
-pub const LOCAL_WEIGHT_SHARE: f64 = 0.1;
 
 /// Whether a load effect's fitted amplitude is of a plausible size (always for other kinds).
 pub fn amplitude_plausible(effect: &Effect) -> bool {
@@ -70,13 +59,15 @@ pub fn amplitude_plausible_on(
     let local_only = physics
         .effects
         .iter()
-        .any(|e| matches!(e.kind, EffectKind::Fixation | EffectKind::Ligament))
+        .any(|e| e.kind.hold() == Some(Hold::Local))
         && !physics
             .effects
             .iter()
-            .any(|e| e.kind == EffectKind::BedSupport);
-    if effect.kind == EffectKind::Gravity && local_only {
-        lo = LOCAL_WEIGHT_SHARE * 0.8 * GRAVITY_MAGNITUDE;
+            .any(|e| e.kind.hold() == Some(Hold::Bed));
+    if let Some(floor) = effect.kind.load().and_then(|l| l.local_floor)
+        && local_only
+    {
+        lo = floor;
     }
     let Some((name, _)) = effect.kind.amplitude() else {
         return true;
@@ -92,11 +83,7 @@ pub fn amplitude_plausible_on(
 /// The cone a load's direction must lie in: axis and largest angle (degrees); `None` where any
 /// direction is plausible.
 pub fn direction_cone(kind: EffectKind) -> Option<([f64; 3], f64)> {
-    match kind {
-        EffectKind::Gravity => Some(([0.0, 1.0, 0.0], 90.0)),
-        EffectKind::Pressure => Some(([0.0, -1.0, 0.0], 90.0)),
-        _ => None,
-    }
+    kind.load().and_then(|l| l.cone)
 }
 
 /// Whether `d` lies in the kind's direction cone.
@@ -114,29 +101,28 @@ pub fn amplitude_prior(
     mesh_nodes: &[[f64; 3]],
     geom: &BoundaryGeometry,
 ) -> Option<(DMatrix<f64>, DVector<f64>)> {
-    match effect.kind {
-        EffectKind::Gravity => Some((
-            DMatrix::from_element(1, 1, 1.0 / (GRAVITY_SD * GRAVITY_SD)),
-            DVector::from_element(1, GRAVITY_MAGNITUDE),
+    match effect.kind.load()?.prior {
+        LoadPrior::Gaussian { mean, sd } => Some((
+            DMatrix::from_element(1, 1, 1.0 / (sd * sd)),
+            DVector::from_element(1, mean),
         )),
-        EffectKind::Pressure => Some((
-            DMatrix::from_element(1, 1, 1.0 / (PRESSURE_KPA.1 * PRESSURE_KPA.1)),
-            DVector::from_element(1, PRESSURE_KPA.0),
-        )),
-        EffectKind::Pack => {
-            let c = effect.vector("center");
+        LoadPrior::Inward {
+            at,
+            mean,
+            sd_along: sd_n,
+            sd_across: sd_t,
+        } => {
+            let c = effect.vector(at);
             let v = geom.nodes.iter().copied().min_by(|&a, &b| {
                 crate::mesh::vec3::dist2(mesh_nodes[a as usize], c)
                     .total_cmp(&crate::mesh::vec3::dist2(mesh_nodes[b as usize], c))
             })?;
             let out = crate::mesh::vec3::unit(geom.node_normal[v as usize]);
             let n = DVector::from_iterator(3, out.iter().map(|x| -x));
-            let (mean, sd_n, sd_t) = PACK_FORCE_MN;
             let nnt = &n * n.transpose();
             let precision = &nnt / (sd_n * sd_n) + (DMatrix::identity(3, 3) - &nnt) / (sd_t * sd_t);
             Some((precision, n * mean))
         }
-        _ => None,
     }
 }
 

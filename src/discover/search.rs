@@ -80,16 +80,11 @@ pub fn basis_amplitude_prior(
 
 /// The parameters an effect of `kind` adds to a model, for the information criterion: a load's
 /// fitted amplitudes plus its searched shape (a direction, 2; a pack's centre and width, 4), a
-/// support's stiffness (with a fixation's site, 3), an inclusion's site and ratio (4).
+/// support's stiffness (with a fixation's site, 3), an inclusion's site and ratio (4): the
+/// amplitudes plus the kind's [`KindSpec::searched`](crate::register::physics::kinds::KindSpec::searched).
 pub fn parameter_count(kind: EffectKind) -> usize {
     let amplitudes = kind.amplitude().map_or(0, |(_, k)| k);
-    match kind {
-        EffectKind::Pack => amplitudes + 4,
-        EffectKind::Gravity | EffectKind::Pressure => amplitudes + 2,
-        EffectKind::Fixation => 3,
-        EffectKind::Inclusion => 4,
-        _ => 1,
-    }
+    amplitudes + kind.spec().searched
 }
 
 /// One evaluated candidate.

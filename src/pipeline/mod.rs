@@ -8,8 +8,9 @@ use crate::gcn::io::TrainedModel;
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
 use crate::register::libr::{self, AdaptiveParams, LibrBasis, LibrInfo, LibrParams};
+use crate::register::physics::Physics;
+use crate::register::physics::kinds::Hold;
 use crate::register::physics::model::Sites;
-use crate::register::physics::{EffectKind, Physics};
 use crate::register::prior::HELD_SIGMA_MM;
 use crate::register::uncertainty::{ErrorEstimate, ErrorFeatures, ErrorModel, FitSummary};
 use crate::register::wicp::{WicpParams, WicpResult};
@@ -589,7 +590,7 @@ pub fn rigid_params(case: &Prepared, params: &PipelineParams) -> WicpParams {
             .physics
             .effects
             .iter()
-            .any(|e| matches!(e.kind, EffectKind::Fixation | EffectKind::Ligament));
+            .any(|e| e.kind.hold() == Some(Hold::Local));
     WicpParams {
         trusted_alignment_mm: params
             .wicp

@@ -145,12 +145,12 @@ fn discover_params(a: &DiscoverArgs) -> Result<DiscoverParams> {
                 EffectKind::from_name(s).with_context(|| {
                     format!(
                         "--kinds: unknown kind {s:?} (known: {})",
-                        EffectKind::ALL.map(|k| k.name()).join(", ")
+                        EffectKind::known()
                     )
                 })
             })
             .collect::<Result<_>>()?;
-        if let Some(k) = params.kinds.iter().find(|k| **k == EffectKind::Nonlinear) {
+        if let Some(k) = params.kinds.iter().find(|k| !k.is_carried()) {
             bail!("--kinds: {k} cannot be searched yet (the augmented model does not carry it)");
         }
     }

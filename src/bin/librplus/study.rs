@@ -23,20 +23,20 @@ fn steps(a: &DiscoverStudyArgs) -> Result<(Vec<Step>, Vec<f64>)> {
     let kinds: Vec<EffectKind> = match &a.kinds {
         None => EffectKind::ALL
             .into_iter()
-            .filter(|k| *k != EffectKind::Nonlinear)
+            .filter(|k| k.is_carried())
             .collect(),
         Some(list) => list
             .split(',')
             .map(str::trim)
             .filter(|s| !s.is_empty())
             .map(|s| match EffectKind::from_name(s) {
-                Some(EffectKind::Nonlinear) => {
-                    bail!("--kinds: nonlinear is not generated yet")
+                Some(k) if !k.is_carried() => {
+                    bail!("--kinds: {k} is not generated yet")
                 }
                 Some(k) => Ok(k),
                 None => bail!(
                     "--kinds: unknown kind {s:?} (known: {})",
-                    EffectKind::ALL.map(|k| k.name()).join(", ")
+                    EffectKind::known()
                 ),
             })
             .collect::<Result<_>>()?,

@@ -2,18 +2,8 @@
 //! effects with parameters (`physics.json`, format 1).
 //!
 //! LIBR assumes a free body (inertia relief, see [`crate::register::libr`]) loaded by smooth
-//! surface tractions. An *effect* adds one physical ingredient that model lacks:
-//!
-//! | kind | what it adds | parameters (image frame, mm, kPa, mN) |
-//! | --- | --- | --- |
-//! | `gravity` | the organ's weight resting on its dependent surface | `direction` (unit 3-vector), `magnitude` (mN/mm³) |
-//! | `bed-support` | the posterior surface on an elastic bed (normal stiffness, a tenth across) | `stiffness` (kPa/mm) |
-//! | `fixation` | the organ held on a boundary region (hilum, vena cava, bare area) | `center` (mm), `radius_mm`, `stiffness` (kPa/mm) |
-//! | `pressure` | a uniform pressure on the faces turned towards `direction` (insufflation) | `magnitude_kpa`, `direction` |
-//! | `pack` | a localized load (packing, retractor, tool) | `center`, `width_mm`, `force_mn` (3-vector) |
-//! | `ligament` | tethering along the falciform ligament (isotropic springs) | `stiffness` (kPa/mm) |
-//! | `inclusion` | a stiffer sphere (tumour, vessel tree) | `center`, `radius_mm`, `stiffness_ratio` |
-//! | `nonlinear` | large-deformation behaviour | none (recognised; the augmented model does not carry it yet) |
+//! surface tractions. An *effect* adds one physical ingredient that model lacks; the kinds of
+//! effect, their parameters and how each enters the model are one table, [`kinds`].
 //!
 //! Supports (`bed-support`, `fixation`, `ligament`) are springs per unit boundary area; a model
 //! with any support is no longer free-floating: it keeps the rigid motion the springs allow.
@@ -22,7 +12,10 @@
 //! whose amplitudes the fit estimates; the others change the stiffness the basis is built from.
 //! The physics of each effect is in [`model`]; the file format in `docs/formats.md`.
 
+pub mod kinds;
 pub mod model;
+
+pub use kinds::EffectKind;
 
 use super::RegisterError;
 use crate::util::fnv1a_hex;
@@ -30,27 +23,6 @@ use std::collections::BTreeMap;
 
 /// Version of `physics.json`.
 pub const PHYSICS_FORMAT: u32 = 1;
-
-/// A kind of effect in the library.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum EffectKind {
-    /// The organ's weight resting on its dependent surface.
-    Gravity,
-    /// The posterior surface on an elastic bed.
-    BedSupport,
-    /// The organ held on a boundary region.
-    Fixation,
-    /// A uniform pressure on the faces turned towards a direction.
-    Pressure,
-    /// A localized surface load.
-    Pack,
-    /// Tethering along the falciform ligament.
-    Ligament,
-    /// A stiffer spherical region.
-    Inclusion,
-    /// Large-deformation behaviour.
-    Nonlinear,
-}
 
 /// One parameter of an effect kind: name, length (1 or 3), valid range (per component for
 /// scalars, of the norm for vectors; `None` for positions), unit.
@@ -97,122 +69,6 @@ impl ParamSpec {
             )));
         }
         Ok(())
-    }
-}
-
-const fn scalar(name: &'static str, lo: f64, hi: f64, unit: &'static str) -> ParamSpec {
-    ParamSpec {
-        name,
-        len: 1,
-        range: Some((lo, hi)),
-        unit,
-    }
-}
-
-const fn vector(name: &'static str, range: Option<(f64, f64)>, unit: &'static str) -> ParamSpec {
-    ParamSpec {
-        name,
-        len: 3,
-        range,
-        unit,
-    }
-}
-
-const DIRECTION: ParamSpec = vector("direction", Some((0.5, 2.0)), "unit vector");
-const CENTER: ParamSpec = vector("center", None, "mm");
-
-impl EffectKind {
-    /// Every kind, in the library's order.
-    pub const ALL: [EffectKind; 8] = [
-        EffectKind::Gravity,
-        EffectKind::BedSupport,
-        EffectKind::Fixation,
-        EffectKind::Pressure,
-        EffectKind::Pack,
-        EffectKind::Ligament,
-        EffectKind::Inclusion,
-        EffectKind::Nonlinear,
-    ];
-
-    /// The kind's name in files and on the command line.
-    pub fn name(self) -> &'static str {
-        match self {
-            EffectKind::Gravity => "gravity",
-            EffectKind::BedSupport => "bed-support",
-            EffectKind::Fixation => "fixation",
-            EffectKind::Pressure => "pressure",
-            EffectKind::Pack => "pack",
-            EffectKind::Ligament => "ligament",
-            EffectKind::Inclusion => "inclusion",
-            EffectKind::Nonlinear => "nonlinear",
-        }
-    }
-
-    /// The kind of a name.
-    pub fn from_name(name: &str) -> Option<Self> {
-        Self::ALL.into_iter().find(|k| k.name() == name)
-    }
-
-    /// The kind's parameters with their valid ranges. Ranges are what the model accepts (wide,
-    /// physical); the ranges hidden effects are drawn from are narrower (see the generator).
-    pub fn parameters(self) -> &'static [ParamSpec] {
-        const GRAVITY: [ParamSpec; 2] = [DIRECTION, scalar("magnitude", 0.0, 0.1, "mN/mm³")];
-        const BED: [ParamSpec; 1] = [scalar("stiffness", 1e-3, 10.0, "kPa/mm")];
-        const FIXATION: [ParamSpec; 3] = [
-            CENTER,
-            scalar("radius_mm", 3.0, 150.0, "mm"),
-            scalar("stiffness", 1e-3, 100.0, "kPa/mm"),
-        ];
-        const PRESSURE: [ParamSpec; 2] = [scalar("magnitude_kpa", -10.0, 10.0, "kPa"), DIRECTION];
-        const PACK: [ParamSpec; 3] = [
-            CENTER,
-            scalar("width_mm", 3.0, 100.0, "mm"),
-            vector("force_mn", Some((0.0, 50_000.0)), "mN"),
-        ];
-        const LIGAMENT: [ParamSpec; 1] = [scalar("stiffness", 1e-3, 100.0, "kPa/mm")];
-        const INCLUSION: [ParamSpec; 3] = [
-            CENTER,
-            scalar("radius_mm", 2.0, 100.0, "mm"),
-            scalar("stiffness_ratio", 1.0, 100.0, "×"),
-        ];
-        match self {
-            EffectKind::Gravity => &GRAVITY,
-            EffectKind::BedSupport => &BED,
-            EffectKind::Fixation => &FIXATION,
-            EffectKind::Pressure => &PRESSURE,
-            EffectKind::Pack => &PACK,
-            EffectKind::Ligament => &LIGAMENT,
-            EffectKind::Inclusion => &INCLUSION,
-            EffectKind::Nonlinear => &[],
-        }
-    }
-
-    /// Whether the effect is a support (springs; the model is then no longer free-floating).
-    pub fn is_support(self) -> bool {
-        matches!(
-            self,
-            EffectKind::BedSupport | EffectKind::Fixation | EffectKind::Ligament
-        )
-    }
-
-    /// A load effect's fitted amplitude: its parameter's name and how many basis columns carry
-    /// it (`gravity`: `magnitude`, 1; `pressure`: `magnitude_kpa`, 1; `pack`: `force_mn`, 3);
-    /// `None` for other kinds.
-    pub fn amplitude(self) -> Option<(&'static str, usize)> {
-        match self {
-            EffectKind::Gravity => Some(("magnitude", 1)),
-            EffectKind::Pressure => Some(("magnitude_kpa", 1)),
-            EffectKind::Pack => Some(("force_mn", 3)),
-            _ => None,
-        }
-    }
-
-    /// Whether the effect is a load (an extra basis column family with a fitted amplitude).
-    pub fn is_load(self) -> bool {
-        matches!(
-            self,
-            EffectKind::Gravity | EffectKind::Pressure | EffectKind::Pack
-        )
     }
 }
 
@@ -341,7 +197,7 @@ impl Effect {
         let kind = EffectKind::from_name(kind_name).ok_or_else(|| {
             RegisterError::Parameter(format!(
                 "{at}.kind: unknown kind {kind_name:?} (known: {})",
-                EffectKind::ALL.map(|k| k.name()).join(", ")
+                EffectKind::known()
             ))
         })?;
         let mut parameters = BTreeMap::new();
@@ -391,7 +247,7 @@ impl Effect {
         let kind = EffectKind::from_name(kind_name.trim()).ok_or_else(|| {
             RegisterError::Parameter(format!(
                 "hidden effect {text:?}: unknown kind {kind_name:?} (known: {})",
-                EffectKind::ALL.map(|k| k.name()).join(", ")
+                EffectKind::known()
             ))
         })?;
         let specs = kind.parameters();

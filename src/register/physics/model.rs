@@ -33,9 +33,10 @@
 //! truth ([`forward_with`]) alike. A free-floating model cannot carry a net load: there gravity
 //! rests on its dependent surface and inertia relief balances the rest ([`forward`]).
 
-use super::{Effect, EffectKind, Physics};
+use super::kinds::{Material, Role};
+use super::{Effect, Physics};
 use crate::fem::{
-    Dirichlet, FactorizedSystem, LameField, LinearMaterial, NodeSpring, StiffnessSystem, loads,
+    Dirichlet, FactorizedSystem, LameField, LinearMaterial, NodeSpring, StiffnessSystem,
 };
 use crate::mesh::TetMesh;
 use crate::mesh::vec3::{cross, dist2, dot, sub, unit};
@@ -112,28 +113,6 @@ impl BoundaryGeometry {
     }
 }
 
-/// Springs on flagged sites: `bed-support` on the posterior nodes, `ligament` on the falciform.
-fn site_springs(geom: &BoundaryGeometry, sites: Sites<'_>, e: &Effect) -> Vec<NodeSpring> {
-    let k = e.scalar("stiffness");
-    let flags = match e.kind {
-        EffectKind::BedSupport => sites.posterior,
-        _ => sites.falciform,
-    };
-    geom.nodes
-        .iter()
-        .copied()
-        .filter(|&v| flags.get(v as usize).copied().unwrap_or(false))
-        .map(|v| {
-            let a = geom.node_area[v as usize];
-            if e.kind == EffectKind::BedSupport {
-                NodeSpring::normal_tangent(v, geom.node_normal[v as usize], k * a, 0.1 * k * a)
-            } else {
-                NodeSpring::isotropic(v, k * a)
-            }
-        })
-        .collect()
-}
-
 /// Boundary nodes within `radius` of `center`.
 pub fn nodes_within(
     mesh: &TetMesh,
@@ -157,21 +136,18 @@ pub fn support_springs(
 ) -> Vec<NodeSpring> {
     let mut out = Vec::new();
     for e in &physics.effects {
-        match e.kind {
-            EffectKind::Fixation => {
-                let (c, r, k) = (
-                    e.vector("center"),
-                    e.scalar("radius_mm"),
-                    e.scalar("stiffness"),
-                );
-                for v in nodes_within(mesh, geom, c, r) {
-                    out.push(NodeSpring::isotropic(v, k * geom.node_area[v as usize]));
+        let Role::Support(s) = e.kind.role() else {
+            continue;
+        };
+        let k = e.scalar(s.stiffness);
+        for v in (s.held)(mesh, geom, sites, e) {
+            let a = geom.node_area[v as usize];
+            out.push(match s.across {
+                Some(t) => {
+                    NodeSpring::normal_tangent(v, geom.node_normal[v as usize], k * a, t * k * a)
                 }
-            }
-            EffectKind::BedSupport | EffectKind::Ligament => {
-                out.extend(site_springs(geom, sites, e));
-            }
-            _ => {}
+                None => NodeSpring::isotropic(v, k * a),
+            });
         }
     }
     out
@@ -180,10 +156,13 @@ pub fn support_springs(
 /// The Lamé field of the physics' material: homogeneous, or stiffer inside inclusions.
 pub fn lame_field(mesh: &TetMesh, material: &LinearMaterial, physics: &Physics) -> LameField {
     let (lam, mu) = material.lame();
-    let inclusions: Vec<&Effect> = physics
+    let inclusions: Vec<(&Effect, &Material)> = physics
         .effects
         .iter()
-        .filter(|e| e.kind == EffectKind::Inclusion)
+        .filter_map(|e| match e.kind.role() {
+            Role::Material(m) => Some((e, m)),
+            Role::Load(_) | Role::Support(_) | Role::Uncarried => None,
+        })
         .collect();
     if inclusions.is_empty() {
         return LameField::Uniform(lam, mu);
@@ -193,11 +172,8 @@ pub fn lame_field(mesh: &TetMesh, material: &LinearMaterial, physics: &Physics) 
             let p = mesh.tet_points(t);
             let c = [0, 1, 2].map(|k| p.iter().map(|q| q[k]).sum::<f64>() / 4.0);
             let mut f = 1.0;
-            for e in &inclusions {
-                let r = e.scalar("radius_mm");
-                if dist2(c, e.vector("center")) <= r * r {
-                    f *= e.scalar("stiffness_ratio");
-                }
+            for (e, m) in &inclusions {
+                f *= (m.factor)(e, c);
             }
             (lam * f, mu * f)
         })
@@ -224,140 +200,18 @@ pub fn unit_loads_with(
     effect: &Effect,
     reaction: bool,
 ) -> Result<(Vec<Vec<f64>>, Vec<f64>), RegisterError> {
-    let n = mesh.num_nodes();
-    let nodes = mesh.nodes();
-    match effect.kind {
-        EffectKind::Gravity if !reaction => {
-            let mut f = vec![0.0; 3 * n];
-            loads::add_body_force(&mut f, mesh, effect.direction("direction"));
-            Ok((vec![f], vec![effect.scalar("magnitude")]))
-        }
-        EffectKind::Gravity => Ok((
-            vec![gravity_with_reaction(
-                mesh,
-                geom,
-                effect.direction("direction"),
-            )?],
-            vec![effect.scalar("magnitude")],
-        )),
-        EffectKind::Pressure => {
-            let d = effect.direction("direction");
-            let faces: Vec<[u32; 3]> = geom
-                .triangles
-                .iter()
-                .zip(&geom.tri_normal)
-                .filter(|(_, nn)| dot(**nn, d) > 0.0)
-                .map(|(t, _)| *t)
-                .collect();
-            if faces.is_empty() {
-                return Err(RegisterError::Model(
-                    "pressure: no boundary face turns towards the direction".into(),
-                ));
-            }
-            let mut f = vec![0.0; 3 * n];
-            loads::add_pressure(&mut f, nodes, &faces, 1.0);
-            Ok((vec![f], vec![effect.scalar("magnitude_kpa")]))
-        }
-        EffectKind::Pack => {
-            let (c, w) = (effect.vector("center"), effect.scalar("width_mm"));
-            let (patch, weights, total) = pack_patch(nodes, geom, c, w);
-            if patch.is_empty() || total <= 0.0 {
-                return Err(RegisterError::Model(format!(
-                    "pack: no boundary face within 2 × width_mm = {:.1} mm of center {c:.1?}",
-                    2.0 * w
-                )));
-            }
-            let cols = (0..3)
-                .map(|axis| pack_column(nodes, &patch, &weights, total, axis))
-                .collect();
-            Ok((cols, effect.vector("force_mn").to_vec()))
-        }
-        _ => Ok((Vec::new(), Vec::new())),
+    match effect.kind.role() {
+        Role::Load(l) => (l.unit_loads)(mesh, geom, effect, reaction),
+        Role::Support(_) | Role::Material(_) | Role::Uncarried => Ok((Vec::new(), Vec::new())),
     }
-}
-
-/// Gravity along `g` (unit) with its reaction: the body force, balanced by a traction on the
-/// faces that turn towards `g` (in proportion to how much they do), as a dependent surface
-/// resting on what is below it.
-fn gravity_with_reaction(
-    mesh: &TetMesh,
-    geom: &BoundaryGeometry,
-    g: [f64; 3],
-) -> Result<Vec<f64>, RegisterError> {
-    let mut f = vec![0.0; 3 * mesh.num_nodes()];
-    loads::add_body_force(&mut f, mesh, g);
-    let s: Vec<f64> = geom
-        .tri_normal
-        .iter()
-        .map(|nn| dot(*nn, g).max(0.0))
-        .collect();
-    let support: f64 = s.iter().zip(&geom.tri_area).map(|(s, a)| s * a).sum();
-    if support <= 0.0 {
-        return Err(RegisterError::Model(
-            "gravity: no boundary face turns towards the gravity direction".into(),
-        ));
-    }
-    let c = geom.volume / support;
-    let tr: Vec<[f64; 3]> = s.iter().map(|&si| g.map(|x| -c * si * x)).collect();
-    loads::add_traction(&mut f, mesh.nodes(), &geom.triangles, &tr);
-    Ok(f)
-}
-
-/// A pack's unit load along `axis`: its patch's weights, normalised by their integral `total`.
-fn pack_column(
-    nodes: &[[f64; 3]],
-    patch: &[[u32; 3]],
-    weights: &[f64],
-    total: f64,
-    axis: usize,
-) -> Vec<f64> {
-    let tr: Vec<[f64; 3]> = weights
-        .iter()
-        .map(|wt| {
-            let mut v = [0.0; 3];
-            v[axis] = wt / total;
-            v
-        })
-        .collect();
-    let mut f = vec![0.0; 3 * nodes.len()];
-    loads::add_traction(&mut f, nodes, patch, &tr);
-    f
-}
-
-/// The boundary faces a pack at `c`, `w` mm wide, loads (those whose three nodes lie within
-/// `2·w` of `c`), their weights `exp(−½(r/w)²)`, and the weights' area integral.
-fn pack_patch(
-    nodes: &[[f64; 3]],
-    geom: &BoundaryGeometry,
-    c: [f64; 3],
-    w: f64,
-) -> (Vec<[u32; 3]>, Vec<f64>, f64) {
-    let mut patch = Vec::new();
-    let mut weights = Vec::new();
-    let mut total = 0.0;
-    for (t, tri) in geom.triangles.iter().enumerate() {
-        if tri
-            .iter()
-            .all(|&v| dist2(nodes[v as usize], c) <= 4.0 * w * w)
-        {
-            let wt = (-0.5 * dist2(geom.tri_center[t], c) / (w * w)).exp();
-            total += wt * geom.tri_area[t];
-            patch.push(*tri);
-            weights.push(wt);
-        }
-    }
-    (patch, weights, total)
 }
 
 /// Refuses a kind the augmented model does not carry yet (`nonlinear`), naming its field.
 fn refuse_uncarried(physics: &Physics) -> Result<(), RegisterError> {
-    if let Some(i) = physics
-        .effects
-        .iter()
-        .position(|e| e.kind == EffectKind::Nonlinear)
-    {
+    if let Some(i) = physics.effects.iter().position(|e| !e.kind.is_carried()) {
         return Err(RegisterError::Parameter(format!(
-            "effects[{i}].kind: the augmented model cannot carry `nonlinear` yet (only the generator makes such data)"
+            "effects[{i}].kind: the augmented model cannot carry `{}` yet (only the generator makes such data)",
+            physics.effects[i].kind
         )));
     }
     Ok(())
@@ -381,29 +235,16 @@ pub fn check_fits(
         return Ok(());
     }
     let geom = BoundaryGeometry::new(mesh)?;
-    let nodes = mesh.nodes();
     for (i, e) in physics.effects.iter().enumerate() {
-        if e.kind == EffectKind::Pack {
-            let (c, w) = (e.vector("center"), e.scalar("width_mm"));
-            let (patch, _, total) = pack_patch(nodes, &geom, c, w);
-            if patch.is_empty() || total <= 0.0 {
-                let d = geom
-                    .nodes
-                    .iter()
-                    .map(|&v| dist2(nodes[v as usize], c))
-                    .fold(f64::INFINITY, f64::min)
-                    .sqrt();
-                return Err(RegisterError::Parameter(format!(
-                    "effects[{i}].parameters.center: [{:.1}, {:.1}, {:.1}] is {d:.1} mm from the organ's surface (its nearest boundary node); a pack needs a boundary face within 2 × width_mm = {:.1} mm of its center",
-                    c[0],
-                    c[1],
-                    c[2],
-                    2.0 * w
-                )));
+        let Some(load) = e.kind.load() else {
+            continue;
+        };
+        match load.fits {
+            Some(fits) => fits(mesh, &geom, e, i)?,
+            None => {
+                unit_loads(mesh, &geom, e)
+                    .map_err(|err| RegisterError::Parameter(format!("effects[{i}]: {err}")))?;
             }
-        } else if e.kind.is_load() {
-            unit_loads(mesh, &geom, e)
-                .map_err(|err| RegisterError::Parameter(format!("effects[{i}]: {err}")))?;
         }
     }
     if physics.has_support() && support_springs(mesh, &geom, sites, physics).is_empty() {
