@@ -32,7 +32,6 @@ pub(super) struct Confirmed {
 /// which lie closer to the truth than plain LIBR's when the effect is large) and, where they
 /// moved, confirms the re-estimate too; the better of the two (by the held-out misfit removed)
 /// is returned.
-#[allow(clippy::too_many_arguments)]
 pub(super) fn confirm(
     ctx: &SearchContext<'_>,
     prepared: &Prepared,

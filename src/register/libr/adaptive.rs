@@ -36,6 +36,7 @@
 //! ([`FitParams::tolerance_mm`](super::FitParams::tolerance_mm)), when the fit has settled ([`super::settled`]), at the
 //! iteration cap, or before a deadline.
 
+use super::iterate::{Iterated, Stepper, iterate};
 use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
@@ -374,7 +375,7 @@ pub fn solve_adaptive(
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
     run: RunLimits<'_>,
-    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
+    rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
 ) -> Result<LibrSolution, RegisterError> {
     let MultiLevel {
         basis,
@@ -383,65 +384,39 @@ pub fn solve_adaptive(
     } = levels;
     // The rows the fit reads: the active nodes, and any other node a match reads (added when
     // one does, and the restricted basis rebuilt).
-    let (mut rows, mut row_of) = adaptive_rows(mesh, basis, params, adaptive, &run)?;
-    let grid = adaptive.lambda_grid();
+    let (rows, row_of) = adaptive_rows(mesh, basis, params, adaptive, &run)?;
     let t0 = Instant::now();
-    let mut info = LibrInfo::default();
-    let mut t = *initial;
-    let mut u = vec![0.0; 3 * basis.nodes];
-    let mut kept: Option<(Vec<usize>, LibrBasis)> = None;
-    let mut alpha = Vec::new();
-    let mut floor = adaptive.anneal_start;
-    let mut escale = 1.0;
-    let mut phases = Phases::new(adaptive);
-    let cx = Context::new(mesh, basis, first_level, adaptive);
-    // The last step's system, for the held-out check.
-    let mut last = None;
-    for _ in 0..params.fit.max_iterations {
-        let tm = Instant::now();
-        let matches = rematch(&u, &t)?;
-        info.matching_s += crate::util::secs(tm);
-        let before = rows.len();
-        extend_rows(&matches, &mut rows, &mut row_of);
-        if kept.is_none() || rows.len() != before || phases.rebuild {
-            let ta = Instant::now();
-            let (cols, r, e) = cx.rebuild(&mut phases, kept.as_ref(), &matches, &rows);
-            (kept, escale) = (Some((cols, r)), e);
-            info.assemble_s += crate::util::secs(ta);
-        }
-        let (_, reduced) = kept.as_ref().expect("set above");
-        let (local, targets) =
-            cx.local_matches(measured_physical, &t, run.hold, matches, &row_of)?;
-        let prior = PriorPairs::of(run.rigid_prior, &t);
-        let g = grid_above(&grid, floor);
-        floor *= adaptive.anneal_factor;
-        let (step, lambda) = adaptive_step(
-            reduced,
-            &local,
-            &targets,
-            params,
-            &g,
-            Some(escale),
-            prior.as_ref(),
-        )?;
-        let local_u = reduced.displacement(&step.alpha);
-        let moved = apply_local(mesh, &rows, &mut u, &local_u, &step.rigid_correction);
-        t = step.rigid_correction.then(&t);
-        record(&mut info, &step, moved);
-        info.regularization = lambda;
-        alpha = step.alpha;
-        if run.held_out.is_some() {
-            last = Some(((local, targets, prior), lambda, escale));
-        }
-        if phases.advance(&mut info, moved, params)
-            || past_deadline(&mut info, run.deadline, params, tm)
-        {
-            break;
-        }
-    }
-    let kept = kept.expect("at least one iteration ran");
+    let mut fit = Kept {
+        mesh,
+        params,
+        adaptive,
+        measured_physical,
+        run,
+        cx: Context::new(mesh, basis, first_level, adaptive),
+        grid: adaptive.lambda_grid(),
+        rows,
+        row_of,
+        kept: None,
+        alpha: Vec::new(),
+        floor: adaptive.anneal_start,
+        escale: 1.0,
+        lambda: 0.0,
+        phases: Phases::new(adaptive),
+        u: vec![0.0; 3 * basis.nodes],
+    };
+    let limits = (run.deadline, run.held_out.is_some());
+    let Iterated { t, mut info, last } = iterate(&mut fit, params, initial, limits, rematch)?;
+    let kept = fit.kept.expect("at least one iteration ran");
     info.held_out = adaptive_held_out(run.held_out, &kept.1, last.as_ref(), params);
-    let (full, u) = adaptive_summary(&mut info, basis, &kept, &alpha, escale, phases.start, &run);
+    let (full, u) = adaptive_summary(
+        &mut info,
+        basis,
+        &kept,
+        &fit.alpha,
+        fit.escale,
+        fit.phases.start,
+        &run,
+    );
     info.total_s = crate::util::secs(t0);
     Ok(LibrSolution {
         alpha: full,
@@ -449,6 +424,85 @@ pub fn solve_adaptive(
         image_to_physical: t,
         info,
     })
+}
+
+/// Adaptive LIBR's step ([`iterate`]): the rows a match reads added (and the restricted basis
+/// rebuilt when they grow or a phase asks), λ chosen by evidence above the annealing floor, the
+/// local displacement written back; it stops as its phases say.
+struct Kept<'a> {
+    mesh: &'a TetMesh,
+    params: &'a LibrParams,
+    adaptive: &'a AdaptiveParams,
+    measured_physical: &'a [[f64; 3]],
+    run: RunLimits<'a>,
+    cx: Context<'a>,
+    grid: Vec<f64>,
+    rows: Vec<u32>,
+    row_of: Vec<u32>,
+    /// The columns kept and the basis restricted to them and to the rows.
+    kept: Option<(Vec<usize>, LibrBasis)>,
+    alpha: Vec<f64>,
+    floor: f64,
+    escale: f64,
+    /// The last step's λ.
+    lambda: f64,
+    phases: Phases,
+    u: Vec<f64>,
+}
+
+impl Stepper for Kept<'_> {
+    type Last = (LastSystem, f64, f64);
+
+    fn u(&self) -> &[f64] {
+        &self.u
+    }
+
+    fn step(
+        &mut self,
+        matches: Vec<Match>,
+        t: &Rigid,
+        info: &mut LibrInfo,
+    ) -> Result<(StepResult, f64, Self::Last), RegisterError> {
+        let before = self.rows.len();
+        extend_rows(&matches, &mut self.rows, &mut self.row_of);
+        if self.kept.is_none() || self.rows.len() != before || self.phases.rebuild {
+            let ta = Instant::now();
+            let (cols, r, e) =
+                self.cx
+                    .rebuild(&mut self.phases, self.kept.as_ref(), &matches, &self.rows);
+            (self.kept, self.escale) = (Some((cols, r)), e);
+            info.assemble_s += crate::util::secs(ta);
+        }
+        let (_, reduced) = self.kept.as_ref().expect("set above");
+        let (local, targets) =
+            self.cx
+                .local_matches(self.measured_physical, t, self.run.hold, matches, &self.row_of)?;
+        let prior = PriorPairs::of(self.run.rigid_prior, t);
+        let g = grid_above(&self.grid, self.floor);
+        self.floor *= self.adaptive.anneal_factor;
+        let (step, lambda) = adaptive_step(
+            reduced,
+            &local,
+            &targets,
+            self.params,
+            &g,
+            Some(self.escale),
+            prior.as_ref(),
+        )?;
+        let local_u = reduced.displacement(&step.alpha);
+        let moved = apply_local(self.mesh, &self.rows, &mut self.u, &local_u, &step.rigid_correction);
+        self.lambda = lambda;
+        Ok((step, moved, ((local, targets, prior), lambda, self.escale)))
+    }
+
+    fn keep(&mut self, step: StepResult, info: &mut LibrInfo) {
+        info.regularization = self.lambda;
+        self.alpha = step.alpha;
+    }
+
+    fn done(&mut self, info: &mut LibrInfo, moved: f64, params: &LibrParams) -> bool {
+        self.phases.advance(info, moved, params)
+    }
 }
 
 /// The held-out check ([`held_out_of_last`]) of the last system, on the restricted basis, λ and

@@ -53,6 +53,7 @@ mod basis;
 mod cache;
 mod cv;
 mod fit;
+mod iterate;
 mod refit;
 mod solve;
 

@@ -1,6 +1,7 @@
 //! LIBR's iterations: re-match, fit a step, compose its rigid correction, until the model stops
 //! moving or a deadline comes.
 
+use super::iterate::{Iterated, Stepper, iterate};
 use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
@@ -203,7 +204,7 @@ pub fn solve_with_limits(
     measured_physical: &[[f64; 3]],
     initial: &Rigid,
     run: RunLimits<'_>,
-    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
+    rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
 ) -> Result<LibrSolution, RegisterError> {
     let RunLimits {
         active,
@@ -215,46 +216,23 @@ pub fn solve_with_limits(
     } = run;
     check_hold_and_offset(basis, hold, offset)?;
     params.validate()?;
-    let active = &checked_active(mesh, basis, params, active)?[..];
+    let active = checked_active(mesh, basis, params, active)?;
     let t0 = Instant::now();
-    let mut info = LibrInfo::default();
-    let mut t = *initial;
-    let mut alpha = vec![0.0; basis.columns()];
-    let mut u = offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec);
-    // The last step's system (its matches, targets and prior), for the held-out check.
-    let mut last = None;
-    for _ in 0..params.fit.max_iterations {
-        let tm = Instant::now();
-        let mut matches = rematch(&u, &t)?;
-        info.matching_s += crate::util::secs(tm);
-        let targets = step_targets(mesh, measured_physical, &t, hold, offset, &mut matches);
-        let prior = PriorPairs::of(rigid_prior, &t);
-        let step = fit_step_with_prior(basis, &matches, &targets, params, prior.as_ref())?;
-        let u_new = stepped_displacement(basis, &step.alpha, active, &u, offset);
-        let moved = movement(mesh, active, &u, &u_new, &step.rigid_correction);
-        t = step.rigid_correction.then(&t);
-        record(&mut info, &step, moved);
-        alpha = step.alpha;
-        u = u_new;
-        if folds.is_some() {
-            last = Some((matches, targets, prior));
-        }
-        if moved <= params.fit.tolerance_mm {
-            info.converged = true;
-            break;
-        }
-        // Settled: the objective stopped falling and the model is not running away; what is
-        // left is re-matching cycling around the fit (on the paper liver no fit ever reached
-        // the tolerance: every registration ran the 20 iterations).
-        if settled(&info.rms_history_mm, &info.movement_history_mm)
-            && !shrinking(&info.movement_history_mm)
-        {
-            break;
-        }
-        if past_deadline(&mut info, deadline, params, tm) {
-            break;
-        }
-    }
+    let mut fit = Whole {
+        mesh,
+        basis,
+        params,
+        measured_physical,
+        active: &active,
+        hold,
+        offset,
+        rigid_prior,
+        u: offset.map_or_else(|| vec![0.0; 3 * basis.nodes], <[f64]>::to_vec),
+        alpha: vec![0.0; basis.columns()],
+    };
+    let limits = (deadline, folds.is_some());
+    let Iterated { t, mut info, last } = iterate(&mut fit, params, initial, limits, rematch)?;
+    let alpha = fit.alpha;
     finish_info(&mut info, basis, params, hold, &alpha);
     let model = FitModel::Basis {
         basis,
@@ -270,6 +248,68 @@ pub fn solve_with_limits(
         image_to_physical: t,
         info,
     })
+}
+
+/// Plain LIBR's step ([`iterate`]): the whole basis, the active nodes' displacement replaced by
+/// `Φα` (plus the offset); it stops at the tolerance, or once the fit has [`settled`] without
+/// its movement still [`shrinking`].
+struct Whole<'a> {
+    mesh: &'a TetMesh,
+    basis: &'a LibrBasis,
+    params: &'a LibrParams,
+    measured_physical: &'a [[f64; 3]],
+    active: &'a [u32],
+    hold: Option<&'a Hold>,
+    offset: Option<&'a [f64]>,
+    rigid_prior: Option<&'a RigidPrior>,
+    u: Vec<f64>,
+    alpha: Vec<f64>,
+}
+
+impl Stepper for Whole<'_> {
+    type Last = LastSystem;
+
+    fn u(&self) -> &[f64] {
+        &self.u
+    }
+
+    fn step(
+        &mut self,
+        mut matches: Vec<Match>,
+        t: &Rigid,
+        _: &mut LibrInfo,
+    ) -> Result<(StepResult, f64, LastSystem), RegisterError> {
+        let targets = step_targets(
+            self.mesh,
+            self.measured_physical,
+            t,
+            self.hold,
+            self.offset,
+            &mut matches,
+        );
+        let prior = PriorPairs::of(self.rigid_prior, t);
+        let step = fit_step_with_prior(self.basis, &matches, &targets, self.params, prior.as_ref())?;
+        let u_new = stepped_displacement(self.basis, &step.alpha, self.active, &self.u, self.offset);
+        let moved = movement(self.mesh, self.active, &self.u, &u_new, &step.rigid_correction);
+        self.u = u_new;
+        Ok((step, moved, (matches, targets, prior)))
+    }
+
+    fn keep(&mut self, step: StepResult, _: &mut LibrInfo) {
+        self.alpha = step.alpha;
+    }
+
+    fn done(&mut self, info: &mut LibrInfo, moved: f64, params: &LibrParams) -> bool {
+        if moved <= params.fit.tolerance_mm {
+            info.converged = true;
+            return true;
+        }
+        // Settled: the objective stopped falling and the model is not running away; what is
+        // left is re-matching cycling around the fit (on the paper liver no fit ever reached
+        // the tolerance: every registration ran the 20 iterations).
+        settled(&info.rms_history_mm, &info.movement_history_mm)
+            && !shrinking(&info.movement_history_mm)
+    }
 }
 
 impl PriorPairs {

@@ -20,7 +20,7 @@
 //! `crate::discover::prior`; the search in `crate::discover::search`. The numbers of both are
 //! here, as plain data, so that the layers above ask this table rather than match on kinds.
 
-use super::model::{BoundaryGeometry, Sites, nodes_within};
+use super::boundary::{BoundaryGeometry, Sites, nodes_within};
 use super::{Effect, ParamSpec};
 use crate::fem::loads;
 use crate::mesh::TetMesh;
@@ -104,7 +104,7 @@ pub enum Role {
 
 /// A load's unit loads (mN, node-major), one per fitted amplitude, and the amplitudes its
 /// parameters give them; the flag asks for gravity's dependent-surface reaction (see
-/// [`super::model::unit_loads_with`]).
+/// the augmented model's `unit_loads_with`).
 pub type UnitLoads = fn(
     &TetMesh,
     &BoundaryGeometry,

@@ -12,6 +12,7 @@
 //! whose amplitudes the fit estimates; the others change the stiffness the basis is built from.
 //! The physics of each effect is in [`model`]; the file format in `docs/formats.md`.
 
+pub mod boundary;
 pub mod kinds;
 pub mod model;
 
