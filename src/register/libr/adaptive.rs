@@ -474,9 +474,13 @@ impl Stepper for Kept<'_> {
             info.assemble_s += crate::util::secs(ta);
         }
         let (_, reduced) = self.kept.as_ref().expect("set above");
-        let (local, targets) =
-            self.cx
-                .local_matches(self.measured_physical, t, self.run.hold, matches, &self.row_of)?;
+        let (local, targets) = self.cx.local_matches(
+            self.measured_physical,
+            t,
+            self.run.hold,
+            matches,
+            &self.row_of,
+        )?;
         let prior = PriorPairs::of(self.run.rigid_prior, t);
         let g = grid_above(&self.grid, self.floor);
         self.floor *= self.adaptive.anneal_factor;
@@ -490,7 +494,13 @@ impl Stepper for Kept<'_> {
             prior.as_ref(),
         )?;
         let local_u = reduced.displacement(&step.alpha);
-        let moved = apply_local(self.mesh, &self.rows, &mut self.u, &local_u, &step.rigid_correction);
+        let moved = apply_local(
+            self.mesh,
+            &self.rows,
+            &mut self.u,
+            &local_u,
+            &step.rigid_correction,
+        );
         self.lambda = lambda;
         Ok((step, moved, ((local, targets, prior), lambda, self.escale)))
     }

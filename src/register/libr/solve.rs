@@ -288,9 +288,17 @@ impl Stepper for Whole<'_> {
             &mut matches,
         );
         let prior = PriorPairs::of(self.rigid_prior, t);
-        let step = fit_step_with_prior(self.basis, &matches, &targets, self.params, prior.as_ref())?;
-        let u_new = stepped_displacement(self.basis, &step.alpha, self.active, &self.u, self.offset);
-        let moved = movement(self.mesh, self.active, &self.u, &u_new, &step.rigid_correction);
+        let step =
+            fit_step_with_prior(self.basis, &matches, &targets, self.params, prior.as_ref())?;
+        let u_new =
+            stepped_displacement(self.basis, &step.alpha, self.active, &self.u, self.offset);
+        let moved = movement(
+            self.mesh,
+            self.active,
+            &self.u,
+            &u_new,
+            &step.rigid_correction,
+        );
         self.u = u_new;
         Ok((step, moved, (matches, targets, prior)))
     }

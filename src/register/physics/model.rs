@@ -40,7 +40,6 @@ use crate::fem::{
     Dirichlet, FactorizedSystem, LameField, LinearMaterial, NodeSpring, StiffnessSystem,
 };
 use crate::mesh::TetMesh;
-use crate::mesh::vec3::{cross, dist2, dot, sub, unit};
 use crate::register::RegisterError;
 use crate::register::equilibrium::{RigidModes, lumped_volumes, support_321};
 use faer::{Mat, MatRef};
