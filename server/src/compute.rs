@@ -29,7 +29,8 @@ pub struct Request {
     pub options: Options,
 }
 
-/// A request's options, checked ([`crate::session::state::options`]).
+/// A request's options, checked where the request arrived (a unary call's or a session start's
+/// `RegisterOptions`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Options {
     /// Time budget from the request's arrival.
