@@ -203,3 +203,91 @@ fn check_alignment(t: Option<&Rigid>) -> Result<(), RegisterError> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn surface(n: usize) -> Measurements {
+        Measurements {
+            points: (0..n).map(|i| [i as f64, 0.0, 1.0]).collect(),
+            kind: vec![MeasuredKind::Surface; n],
+            feature: Vec::new(),
+            initial_alignment: None,
+        }
+    }
+
+    /// The constructor refuses what the stages rely on, naming the field and the index; a
+    /// clone shares the points.
+    #[test]
+    fn checked_measurements_are_refused_by_field_and_shared_when_cloned() {
+        let mut m = surface(4);
+        m.points[2][1] = f64::NAN;
+        let e = Checked::new(m).unwrap_err().to_string();
+        assert!(e.contains("measurements.points[2]"), "{e}");
+        let mut m = surface(4);
+        m.kind.pop();
+        let e = Checked::new(m).unwrap_err().to_string();
+        assert!(e.contains("measurements.kind"), "{e}");
+        let mut m = surface(4);
+        m.feature = vec![0, 3, 0, 0];
+        let e = Checked::new(m).unwrap_err().to_string();
+        assert!(e.contains("measurements.feature[1]"), "{e}");
+        let mut m = surface(4);
+        m.initial_alignment = Some(Rigid {
+            rotation: [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.0; 3],
+        });
+        let e = Checked::new(m).unwrap_err().to_string();
+        assert!(e.contains("initial_alignment"), "{e}");
+        // No points is a valid set (a session before its first message), but not a registration.
+        let empty = Checked::empty(None).unwrap();
+        assert!(not_empty(&empty).is_err() && validate_measurements(&empty).is_err());
+        let c = Checked::new(surface(4)).unwrap();
+        assert!(Arc::ptr_eq(c.shared(), c.clone().shared()));
+        assert_eq!(c.clone().into_inner().points, surface(4).points);
+    }
+
+    /// An append checks only what it adds and changes nothing when it refuses; features stay as
+    /// long as the points once either side has any.
+    #[test]
+    fn appends_check_the_new_points_and_keep_features_aligned() {
+        let mut c = Checked::new(surface(3)).unwrap();
+        let e = c
+            .append(
+                vec![[0.0, f64::INFINITY, 0.0]],
+                vec![MeasuredKind::Vessel],
+                vec![],
+            )
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("points[0]"), "{e}");
+        assert_eq!(c.points.len(), 3);
+        assert!(
+            c.append(vec![[0.0; 3]; 2], vec![MeasuredKind::Vessel], vec![])
+                .is_err()
+        );
+        assert_eq!(c.kind.len(), 3);
+        // Features added to a set without: the earlier points get 0.
+        c.append(vec![[1.0; 3]], vec![MeasuredKind::Surface], vec![2])
+            .unwrap();
+        assert_eq!(c.feature, vec![0, 0, 0, 2]);
+        // No features added to a set with: the new points get 0.
+        c.append(
+            vec![[2.0; 3]; 2],
+            vec![MeasuredKind::PosteriorContour; 2],
+            vec![],
+        )
+        .unwrap();
+        assert_eq!(c.feature, vec![0, 0, 0, 2, 0, 0]);
+        assert_eq!((c.points.len(), c.kind.len()), (6, 6));
+        assert!(validate_measurements(&c).is_ok());
+        // A new alignment is checked; the points are kept.
+        assert!(c.with_alignment(Some(Rigid::identity())).is_ok());
+        let bad = Rigid {
+            rotation: [[0.0; 3]; 3],
+            translation: [0.0; 3],
+        };
+        assert!(c.with_alignment(Some(bad)).is_err());
+    }
+}
