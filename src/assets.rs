@@ -1,7 +1,7 @@
 //! Data shipped inside the library and its binaries, so that the demo and the defaults of the
 //! command line work in a fresh clone and from an installed binary, whatever the current
-//! directory: the default liver surface. (The built-in SR-GCN models are embedded by
-//! [`crate::gcn::io`].)
+//! directory: the default liver surface. (The built-in SR-GCN models are embedded by the
+//! SR-GCN's model files, `gcn::io`.)
 //!
 //! The default liver is the SOFA framework's `liver.vtk` (LGPL-2.1-or-later; notice and
 //! attribution in `assets/livers/README.md` and `assets/livers/LICENSE-LGPL-2.1.txt`).

@@ -1,5 +1,5 @@
 //! Measurements checked once, at the edge: [`Checked`] is the only way into the registration's
-//! stages ([`crate::pipeline::register`], [`super::wicp`], the correspondence of every LIBR
+//! stages (the pipeline's registration, [`super::wicp`], the correspondence of every LIBR
 //! iteration), so what it guarantees — one kind per point, features as long as the points or
 //! none, finite coordinates, feature codes 0–2, a rotation for the initial alignment — is checked
 //! when it is made and never again downstream. It shares its measurements ([`Arc`]): a clone is a

@@ -14,7 +14,7 @@
 //!
 //! The same score exists for the rigid answer (six unknowns, [`FitModel::Rigid`]) and for doing
 //! nothing ([`FitModel::Fixed`]: no unknowns, the held-out error is the residual), so every
-//! candidate of the automatic method is scored on one scale (`crate::pipeline::auto`).
+//! candidate of the automatic method is scored on one scale (the pipeline's automatic method).
 
 use super::fit::{RowShape, assemble, match_axis_rows, row_frame, rows_of};
 use super::*;

@@ -172,7 +172,7 @@ impl Default for FitParams {
 }
 
 /// The defaults of both parts. Every path (the command line, `evaluate`, the server) takes them
-/// through [`crate::pipeline::PipelineParams::default`].
+/// through the pipeline's `PipelineParams::default`, which makes them here.
 impl Default for LibrParams {
     fn default() -> Self {
         Self {

@@ -16,8 +16,8 @@
 //! | `inclusion` | a stiffer sphere (tumour, vessel tree) | `center`, `radius_mm`, `stiffness_ratio` |
 //! | `nonlinear` | large-deformation behaviour | none (recognised; the augmented model does not carry it yet) |
 //!
-//! The physics of each kind is described in [`super::model`]; the priors in
-//! `crate::discover::prior`; the search in `crate::discover::search`. The numbers of both are
+//! The physics of each kind is described in [`super::model`]; the priors and the search in the
+//! discovery workflow's `prior` and `search` modules. The numbers of both are
 //! here, as plain data, so that the layers above ask this table rather than match on kinds.
 
 use super::boundary::{BoundaryGeometry, Sites, nodes_within};
