@@ -232,7 +232,8 @@ pub(super) fn register_auto(
 ) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
     params.auto.validate().map_err(PipelineError::Libr)?;
-    let folds = Folds::spatial(&meas.points, params.auto.folds, params.auto.cap_mm);
+    let folds = Folds::spatial(&meas.points, params.auto.folds, params.auto.cap_mm)
+        .weighted((0..meas.points.len()).map(|i| meas.weight(i)).collect());
     let free = PipelineParams {
         held: false,
         ..params.clone()
@@ -384,6 +385,7 @@ fn rigid_candidate(
                 auto: None,
                 search_skipped_mm2: l.search_skipped_mm2,
                 surface: None,
+                points: None,
                 seconds: l.rigid.seconds,
             };
             Ok(r.estimated(case, meas))

@@ -12,6 +12,7 @@ use crate::register::physics::Physics;
 use crate::register::physics::kinds::Hold;
 use crate::register::physics::model::Sites;
 use crate::register::prior::HELD_SIGMA_MM;
+use crate::register::reduce::Reduction;
 use crate::register::uncertainty::{ErrorEstimate, ErrorFeatures, ErrorModel, FitSummary};
 use crate::register::wicp::{WicpParams, WicpResult};
 use crate::register::{Checked, PreopModel, RegisterError};
@@ -39,6 +40,8 @@ pub fn register(
     params: &PipelineParams,
 ) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
+    let reduced = reduce_points(case, meas, method, params).map_err(PipelineError::Rigid)?;
+    let meas = reduced.as_ref().map_or(meas, |(m, _)| m);
     // The side the surface patch lies on, decided once for every stage (not for doing nothing).
     let side = match method {
         Method::Initial => None,
@@ -55,9 +58,35 @@ pub fn register(
         run::register_scored(case, meas, method, &params, shared)?
     };
     reg.surface = side.map(|(info, _)| info);
+    reg.points = reduced.map(|(_, r)| r);
     // The side test's time counts in the registration's.
     reg.seconds = crate::util::secs(t0);
     Ok(reg)
+}
+
+/// The measurements every stage of `method` registers: the surface cloud reduced per
+/// [`PipelineParams::reduce_above`] (None: as received; doing nothing reads no points). The
+/// cells start at a quarter of the model's mean boundary edge.
+fn reduce_points(
+    case: &Prepared,
+    meas: &Checked,
+    method: Method,
+    params: &PipelineParams,
+) -> Result<Option<(Checked, Reduction)>, RegisterError> {
+    if method == Method::Initial || params.reduce_above == 0.0 {
+        return Ok(None);
+    }
+    if !(params.reduce_above.is_finite() && params.reduce_above > 0.0) {
+        return Err(RegisterError::Parameter(format!(
+            "pipeline reduce_above must be finite and >= 0, got {}",
+            params.reduce_above
+        )));
+    }
+    let corr = &case.correspondence;
+    let triangles = corr.surface_triangles(&params.wicp.correspondence);
+    let budget = (params.reduce_above * triangles as f64).ceil() as usize;
+    let start = 0.25 * corr.mean_boundary_edge_mm();
+    crate::register::reduce::reduce_to_budget(meas, budget, start)
 }
 
 /// Why a case could not be prepared or a registration did not run, by stage.
@@ -164,6 +193,9 @@ impl Method {
 /// LIBR iterations of LIBR+'s data-consistency refit by default ([`PipelineParams::refit_iterations`]).
 pub const REFIT_ITERATIONS: usize = 5;
 
+/// The point budget, in points per surface-target triangle ([`PipelineParams::reduce_above`]).
+pub const REDUCE_ABOVE: f64 = 1.0;
+
 /// Parameters of the whole pipeline.
 #[derive(Debug, Clone)]
 pub struct PipelineParams {
@@ -197,6 +229,12 @@ pub struct PipelineParams {
     /// Whether the surface patch is matched to the anterior surface or the whole boundary,
     /// decided from the data ([`side`]).
     pub side: side::SideParams,
+    /// A surface cloud with more points than this many per triangle of the model's surface
+    /// target is reduced to about that many before every stage: one weighted centroid per cubic
+    /// cell, the cells as small as the budget allows ([`crate::register::reduce`]), so that a
+    /// dense cloud costs what the model can use of it; 0: every point as received. Default
+    /// [`REDUCE_ABOVE`].
+    pub reduce_above: f64,
 }
 
 impl Default for PipelineParams {
@@ -213,6 +251,7 @@ impl Default for PipelineParams {
             auto: auto::AutoParams::default(),
             abstain: true,
             side: side::SideParams::default(),
+            reduce_above: REDUCE_ABOVE,
         }
     }
 }
@@ -502,6 +541,9 @@ pub struct Registration {
     /// Which side of the organ the surface patch was matched to, when it was decided from the
     /// data ([`side`]; None: not tested).
     pub surface: Option<side::SideInfo>,
+    /// How the surface cloud was reduced before every stage ([`crate::register::reduce`];
+    /// None: used as received).
+    pub points: Option<Reduction>,
     /// Total time (s).
     pub seconds: f64,
 }

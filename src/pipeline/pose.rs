@@ -181,21 +181,23 @@ pub fn score(
     };
     let c2 = cap * cap;
     let mut sum = 0.0;
-    let mut counted = 0usize;
+    // Each point counts for the measured points it stands for (a reduced cloud's centroid).
+    let mut counted = 0.0;
     for m in &matches {
-        counted += 1;
+        let w = meas.weight(m.point);
+        counted += w;
         if m.weight > 0.0 {
             let q = m.model_point(u);
             let p = pts[m.point];
             let d2 = (0..3).map(|a| (q[a] - p[a]).powi(2)).sum::<f64>();
-            sum += d2.min(c2);
+            sum += w * d2.min(c2);
         } else {
-            sum += c2;
+            sum += w * c2;
         }
     }
-    let n = meas.points.len().max(1);
-    sum += (n.saturating_sub(counted)) as f64 * c2;
-    Ok(sum / n as f64)
+    let n = meas.represented().max(1.0);
+    sum += (n - counted).max(0.0) * c2;
+    Ok(sum / n)
 }
 
 /// The starts: the navigation start, then it turned by each angle about the x, y and z axes

@@ -209,6 +209,7 @@ mod tests {
             auto: None,
             search_skipped_mm2: None,
             surface: None,
+            points: None,
             seconds: 0.0,
         }
     }

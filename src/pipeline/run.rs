@@ -168,6 +168,7 @@ impl<'a> Run<'a> {
             auto: None,
             search_skipped_mm2: self.search_skipped.get().copied(),
             surface: None,
+            points: None,
             seconds: secs(self.t0),
         }
         .estimated(self.case, self.meas)

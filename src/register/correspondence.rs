@@ -27,7 +27,8 @@
 //!
 //! **Trimming**: a pair is dropped when its distance exceeds `trim_factor × median + trim_floor_mm`
 //! (the median over all matched pairs) or the absolute cap `max_distance_mm`. Kept pairs have weight
-//! `kind weight × feature weight`.
+//! `kind weight × feature weight × the point's own weight` (1, or the number of points a reduced
+//! cloud's centroid stands for: [`super::reduce`]).
 //!
 //! Surgery code: this module never sees how the ground truth was made (no `phantom`).
 
@@ -365,6 +366,27 @@ impl Correspondence {
         self.nodes.len()
     }
 
+    /// How many triangles plain surface points are matched to under `params` (the anterior
+    /// surface's, or the whole boundary's).
+    pub fn surface_triangles(&self, params: &CorrespondenceParams) -> usize {
+        self.surface_set(params).tris.len()
+    }
+
+    /// The mean edge length of the boundary triangles (mm): the resolution at which the model's
+    /// surface can follow the data.
+    pub fn mean_boundary_edge_mm(&self) -> f64 {
+        let mut sum = 0.0;
+        for t in &self.tris {
+            for k in 0..3 {
+                sum += norm(sub(
+                    self.nodes[t[k] as usize],
+                    self.nodes[t[(k + 1) % 3] as usize],
+                ));
+            }
+        }
+        sum / (3 * self.tris.len()).max(1) as f64
+    }
+
     /// Distance from `p` (image frame) to the undeformed boundary surface (mm).
     pub fn distance_to_boundary(&self, p: [f64; 3]) -> f64 {
         self.whole.bvh.distance(p)
@@ -526,7 +548,7 @@ impl Correspondence {
     fn match_candidates(
         &self,
         points_image: &[[f64; 3]],
-        meas: &Measurements,
+        meas: &Checked,
         call: &Call<'_>,
         hints: &mut Hints,
     ) -> (Vec<(Match, f64)>, usize) {
@@ -565,7 +587,7 @@ impl Correspondence {
                     match self.match_vessel(p, vd) {
                         Some(mut m) => {
                             m.point = i;
-                            m.weight = params.vessel_weight;
+                            m.weight = params.vessel_weight * meas.weight(i);
                             let d = norm(sub(p, m.model_point_or_anchor(u)));
                             candidates.push((m, d));
                         }
@@ -577,7 +599,8 @@ impl Correspondence {
             let target = Target {
                 set,
                 bvh: bvh.unwrap_or(&set.bvh),
-                weight: w,
+                // A reduced cloud's centroid counts for the points it stands for.
+                weight: w * meas.weight(i),
             };
             let Some((m, tri)) = self.match_triangle(i, p, &target, geometry, hints.get(i)) else {
                 unmatched += 1;

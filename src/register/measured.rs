@@ -16,6 +16,9 @@ use std::sync::Arc;
 #[derive(Debug, Clone)]
 pub struct Checked {
     meas: Arc<Measurements>,
+    /// How many measured points each point stands for (None: one each). A reduced cloud's
+    /// points are cell centroids that stand for the points they merged ([`super::reduce`]).
+    weight: Option<Arc<Vec<f64>>>,
 }
 
 impl Checked {
@@ -27,7 +30,41 @@ impl Checked {
     /// [`Checked::new`] for measurements already shared.
     pub fn from_arc(meas: Arc<Measurements>) -> Result<Self, RegisterError> {
         check_fields(&meas)?;
-        Ok(Self { meas })
+        Ok(Self { meas, weight: None })
+    }
+
+    /// Checked measurements whose points stand for `weight[i]` measured points each (a reduced
+    /// cloud's centroids). Fails when `weight` is not as long as the points, or a weight is not
+    /// finite and positive.
+    pub fn weighted(meas: Measurements, weight: Vec<f64>) -> Result<Self, RegisterError> {
+        let mut c = Self::new(meas)?;
+        if weight.len() != c.points.len() {
+            return Err(RegisterError::Measurements(format!(
+                "measurements weight has {} values for {} points",
+                weight.len(),
+                c.points.len()
+            )));
+        }
+        if let Some(i) = weight.iter().position(|w| !(w.is_finite() && *w > 0.0)) {
+            return Err(RegisterError::Measurements(format!(
+                "measurements weight[{i}] must be finite and > 0, got {}",
+                weight[i]
+            )));
+        }
+        c.weight = Some(Arc::new(weight));
+        Ok(c)
+    }
+
+    /// How many measured points point `i` stands for (1 unless this is a reduced cloud).
+    pub fn weight(&self, i: usize) -> f64 {
+        self.weight.as_ref().map_or(1.0, |w| w[i])
+    }
+
+    /// The number of measured points these points stand for (their weights' sum).
+    pub fn represented(&self) -> f64 {
+        self.weight
+            .as_ref()
+            .map_or(self.points.len() as f64, |w| w.iter().sum())
     }
 
     /// No points yet, with the navigation system's initial alignment (checked as in
@@ -66,13 +103,19 @@ impl Checked {
         } else {
             m.feature.extend(more.feature);
         }
+        let added = more.points.len();
         m.points.extend(more.points);
         m.kind.extend(more.kind);
+        if let Some(w) = &mut self.weight {
+            // What is appended stands for itself.
+            let w = Arc::make_mut(w);
+            w.resize(w.len() + added, 1.0);
+        }
         Ok(())
     }
 
     /// The measurements themselves (a copy unless this is their only holder), to change and
-    /// check again.
+    /// check again; a reduced cloud's weights are not part of them.
     pub fn into_inner(self) -> Measurements {
         Arc::unwrap_or_clone(self.meas)
     }
@@ -87,6 +130,10 @@ impl Checked {
     pub fn subset(&self, keep: &[usize]) -> Checked {
         Checked {
             meas: Arc::new(self.meas.subset(keep)),
+            weight: self
+                .weight
+                .as_ref()
+                .map(|w| Arc::new(keep.iter().map(|&i| w[i]).collect())),
         }
     }
 
@@ -101,6 +148,7 @@ impl Checked {
         meas.initial_alignment = initial_alignment;
         Ok(Checked {
             meas: Arc::new(meas),
+            weight: self.weight.clone(),
         })
     }
 }

@@ -25,7 +25,7 @@
 //! docs/error-estimate.md.
 
 use crate::mesh::rigid::Rigid;
-use crate::register::{MeasuredKind, Measurements};
+use crate::register::{Checked, MeasuredKind};
 use std::collections::BTreeMap;
 
 /// The model file's `format`.
@@ -125,7 +125,7 @@ pub fn features(
     boundary: &[bool],
     u: &[f64],
     image_to_physical: &Rigid,
-    meas: &Measurements,
+    meas: &Checked,
     fit: FitSummary,
 ) -> Option<(ErrorFeatures, Vec<f64>)> {
     let n = nodes.len();
@@ -166,14 +166,18 @@ pub fn features(
         .zip(&dist)
         .filter(|(_, d)| **d > FAR_MM)
         .fold((0.0, 0usize), |(s, c), (x, _)| (s + x, c + 1));
-    let surface_points = meas
-        .kind
-        .iter()
-        .filter(|k| **k == MeasuredKind::Surface)
-        .count();
+    // Counted as received: a reduced cloud's centroid counts the points it stands for.
+    let (mut surface, mut ultrasound) = (0.0, 0.0);
+    for (i, k) in meas.kind.iter().enumerate() {
+        if *k == MeasuredKind::Surface {
+            surface += meas.weight(i);
+        } else {
+            ultrasound += meas.weight(i);
+        }
+    }
     let f = ErrorFeatures {
-        surface_points,
-        ultrasound_points: meas.points.len() - surface_points.min(meas.points.len()),
+        surface_points: surface.round() as usize,
+        ultrasound_points: ultrasound.round() as usize,
         residual_rms_mm: fit.residual_rms_mm,
         rigid_rms_mm: fit.rigid_rms_mm,
         strain_energy_uj: fit.strain_energy_uj,
@@ -529,7 +533,7 @@ mod tests {
                 }
             })
             .collect();
-        let meas = |t: &Rigid| Measurements {
+        let raw = |t: &Rigid| crate::register::Measurements {
             points: image.iter().map(|&p| t.apply(p)).collect(),
             kind: kind.clone(),
             feature: Vec::new(),
@@ -540,6 +544,7 @@ mod tests {
             rigid_rms_mm: 3.0,
             strain_energy_uj: 2.0,
         };
+        let meas = |t: &Rigid| Checked::new(raw(t)).unwrap();
         let (f, d) = features(&nodes, &boundary, &u, &pose, &meas(&pose), fit).unwrap();
         let (g, e) = features(
             &nodes,
@@ -585,12 +590,7 @@ mod tests {
             / 300.0;
         assert!((f.mean_displacement_mm - mu).abs() < 1e-12);
         // No points, or sizes that disagree: no features.
-        let empty = Measurements {
-            points: Vec::new(),
-            kind: Vec::new(),
-            feature: Vec::new(),
-            initial_alignment: None,
-        };
+        let empty = Checked::empty(None).unwrap();
         assert!(features(&nodes, &boundary, &u, &pose, &empty, fit).is_none());
         assert!(features(&nodes, &boundary[1..], &u, &pose, &meas(&pose), fit).is_none());
     }

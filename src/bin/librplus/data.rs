@@ -270,6 +270,13 @@ fn generate_config(a: &GenerateArgs, sources: Vec<String>) -> Result<GenerateCon
             ),
         };
     }
+    if let Some(h) = a.surface_spacing_mm {
+        config.measure.surface_spacing_mm = h;
+        config
+            .measure
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--surface-spacing-mm: {e}"))?;
+    }
     if let Some(e) = &a.start_error {
         let [deg, mm] = e[..] else {
             bail!(

@@ -98,6 +98,7 @@ fn registration_json(
         },
         "pose": r.pose,
         "surface": r.surface,
+        "reduced": r.points,
         "auto": r.auto,
         "libr": libr.map(|i| json!({
             "iterations": i.iterations,

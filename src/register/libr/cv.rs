@@ -31,6 +31,9 @@ pub struct Folds {
     pub count: usize,
     /// Each point's squared held-out error counts at most `cap_mm²` (mm).
     pub cap_mm: f64,
+    /// How many measured points each point stands for in the means (a reduced cloud's
+    /// centroids, [`crate::register::Checked::weight`]); empty: one each.
+    pub weight: Vec<f64>,
 }
 
 impl Folds {
@@ -80,7 +83,22 @@ impl Folds {
             of_point,
             count,
             cap_mm,
+            weight: Vec::new(),
         }
+    }
+
+    /// These folds with each point standing for `weight[i]` measured points in the means
+    /// (ignored unless as long as the points).
+    pub fn weighted(mut self, weight: Vec<f64>) -> Self {
+        if weight.len() == self.of_point.len() {
+            self.weight = weight;
+        }
+        self
+    }
+
+    /// Point `i`'s weight in the means.
+    fn weight_of(&self, i: usize) -> f64 {
+        self.weight.get(i).copied().unwrap_or(1.0)
     }
 }
 
@@ -328,21 +346,27 @@ fn predicted(rows: &[(Vec<f64>, f64)], x: &[f64]) -> f64 {
 
 /// The means of per-point held-out and fitted errors, overall and per fold.
 fn summarise(err: &[f64], fitted: &[f64], folds: &Folds) -> HeldOut {
-    let n = err.len().max(1) as f64;
+    let w = |i: usize| folds.weight_of(i);
+    let n = if err.is_empty() {
+        1.0
+    } else {
+        (0..err.len()).map(w).sum::<f64>()
+    };
     let mut sum = vec![0.0; folds.count];
-    let mut count = vec![0usize; folds.count];
+    let mut count = vec![0.0f64; folds.count];
     for (i, &e) in err.iter().enumerate() {
         let k = folds.of_point[i] as usize;
-        sum[k] += e;
-        count[k] += 1;
+        sum[k] += w(i) * e;
+        count[k] += w(i);
     }
+    let mean = |v: &[f64]| v.iter().enumerate().map(|(i, &e)| w(i) * e).sum::<f64>() / n;
     HeldOut {
-        mean_mm2: err.iter().sum::<f64>() / n,
+        mean_mm2: mean(err),
         folds_mm2: sum
             .iter()
             .zip(&count)
-            .map(|(s, &c)| s / c.max(1) as f64)
+            .map(|(s, &c)| if c > 0.0 { s / c } else { 0.0 })
             .collect(),
-        in_sample_mm2: fitted.iter().sum::<f64>() / n,
+        in_sample_mm2: mean(fitted),
     }
 }

@@ -124,6 +124,14 @@ pub(crate) struct LibrOpts {
     /// the data (the anterior surface unless it leaves clearly more unexplained)
     #[arg(long, value_enum, value_name = "TARGET")]
     pub(crate) surface_target: Option<SurfaceTargetArg>,
+    /// A surface cloud with more points than this many per triangle of the model's surface is
+    /// reduced to about that many weighted cell centroids before every stage (default 1; 0:
+    /// every point as sent)
+    #[arg(long, value_name = "PER_TRIANGLE")]
+    pub(crate) reduce_above: Option<f64>,
+    /// The rigid stage's ICP iterations without Anderson acceleration (plain fixed-point steps)
+    #[arg(long)]
+    pub(crate) plain_icp: bool,
 }
 
 /// `--surface-target`'s values.
@@ -173,6 +181,10 @@ impl LibrOpts {
             };
         }
         p.hold.trimmed = self.trimmed_libr;
+        if let Some(c) = self.reduce_above {
+            p.reduce_above = c;
+        }
+        p.wicp.accelerate = !self.plain_icp;
         if let Some(w) = self.tangential_weight {
             p.libr.fit.tangential_weight = w;
         }

@@ -588,6 +588,11 @@ pub(crate) struct GenerateArgs {
     /// Override: mesher target edge length (mm).
     #[arg(long)]
     pub(crate) edge_mm: Option<f64>,
+    /// Override: the typical spacing of the simulated laparoscope's surface points (mm; default
+    /// 5): 2.5 gives a navigation system's few thousand points, 0.8 a stereo camera's dense
+    /// cloud of tens of thousands.
+    #[arg(long, value_name = "MM")]
+    pub(crate) surface_spacing_mm: Option<f64>,
     /// Ground-truth physics: nonlinear (heterogeneous Neo-Hookean with unilateral bed contact),
     /// linear (the linear homogeneous model LIBR assumes, same loads: a control dataset) or libr
     /// (LIBR's own free-floating model under the pattern's surface load, plus --hidden-effect).
