@@ -86,7 +86,12 @@ fn accelerated_icp_reaches_the_plain_fixed_point_in_fewer_iterations() {
         assert!(plain.converged && fast.converged);
         assert!(apart < 0.1, "{apart} mm between the two fixed points");
         // The same fit: its residual within a hundredth of a millimetre.
-        assert!((fast.rms_mm - plain.rms_mm).abs() < 1e-2, "{} vs {}", fast.rms_mm, plain.rms_mm);
+        assert!(
+            (fast.rms_mm - plain.rms_mm).abs() < 1e-2,
+            "{} vs {}",
+            fast.rms_mm,
+            plain.rms_mm
+        );
         plain_its += plain.iterations;
         fast_its += fast.iterations;
     }
@@ -143,7 +148,11 @@ fn a_dense_cloud_reduced_registers_as_the_whole_cloud() {
             truth(&whole),
             truth(&reduced)
         );
-        assert!(info.used * 4 < info.received, "{info:?}");
+        // Within the budget: the floor of 4,000 points (the model's half-triangle count is below).
+        assert!(
+            info.used <= 4200 && 2 * info.used < info.received,
+            "{info:?}"
+        );
         assert!(apart < 0.5, "the answers are {apart} mm apart");
         assert!((truth(&whole) - truth(&reduced)).abs() < 0.25);
     }

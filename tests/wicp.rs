@@ -611,7 +611,10 @@ fn garbage_inputs_give_errors_or_degenerate_flags() {
     let (mean0, _) = tre(&s.initial_alignment, &s.image_to_physical);
     // As the other noisy scenarios (1 mm surface noise, one ultrasound plane): well inside the
     // start's error.
-    assert!(mean < 3.0 && mean < 0.5 * mean0, "TRE {mean} (start {mean0})");
+    assert!(
+        mean < 3.0 && mean < 0.5 * mean0,
+        "TRE {mean} (start {mean0})"
+    );
 
     // All points on one spot.
     let mut m = good.clone();

@@ -84,7 +84,7 @@ fn reduce_points(
     }
     let corr = &case.correspondence;
     let triangles = corr.surface_triangles(&params.wicp.correspondence);
-    let budget = (params.reduce_above * triangles as f64).ceil() as usize;
+    let budget = ((params.reduce_above * triangles as f64).ceil() as usize).max(REDUCE_FLOOR);
     let start = 0.25 * corr.mean_boundary_edge_mm();
     crate::register::reduce::reduce_to_budget(meas, budget, start)
 }
@@ -194,7 +194,11 @@ impl Method {
 pub const REFIT_ITERATIONS: usize = 5;
 
 /// The point budget, in points per surface-target triangle ([`PipelineParams::reduce_above`]).
-pub const REDUCE_ABOVE: f64 = 1.0;
+pub const REDUCE_ABOVE: f64 = 0.5;
+
+/// Surface clouds of at most this many points are never reduced: a navigation system's own
+/// clouds are registered as sent, whatever the model's resolution.
+pub const REDUCE_FLOOR: usize = 4000;
 
 /// Parameters of the whole pipeline.
 #[derive(Debug, Clone)]
@@ -230,10 +234,10 @@ pub struct PipelineParams {
     /// decided from the data ([`side`]).
     pub side: side::SideParams,
     /// A surface cloud with more points than this many per triangle of the model's surface
-    /// target is reduced to about that many before every stage: one weighted centroid per cubic
-    /// cell, the cells as small as the budget allows ([`crate::register::reduce`]), so that a
-    /// dense cloud costs what the model can use of it; 0: every point as received. Default
-    /// [`REDUCE_ABOVE`].
+    /// target, and more than [`REDUCE_FLOOR`], is reduced to about that many (at least the
+    /// floor) before every stage: one weighted centroid per cubic cell, the cells as small as
+    /// the budget allows ([`crate::register::reduce`]), so that a dense cloud costs what the
+    /// model can use of it; 0: every point as received. Default [`REDUCE_ABOVE`].
     pub reduce_above: f64,
 }
 

@@ -12,7 +12,7 @@
 //! A registration returns `image_to_physical` (rigid) and node displacements `u` in the image frame,
 //! so the intraoperative position of node i is `image_to_physical.apply(X_i + u_i)`.
 
-mod accelerate;
+pub mod accelerate;
 pub mod anatomy;
 pub mod correspondence;
 pub mod equilibrium;

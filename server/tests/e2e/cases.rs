@@ -336,5 +336,11 @@ async fn auto_is_answered_with_its_choice_and_audited() {
         Some(6)
     );
     assert_eq!(reg.detail["surface"]["target"], wire.target.as_str());
-    assert_eq!(reg.detail["surface"]["anterior_mm2"], wire.anterior_mm2);
+    // Read back from the log's JSON (serde_json's parser may be one ulp off the written value).
+    let logged = reg.detail["surface"]["anterior_mm2"].as_f64().unwrap();
+    assert!(
+        (logged - wire.anterior_mm2).abs() <= 1e-12 * wire.anterior_mm2.abs(),
+        "{logged} logged, {} answered",
+        wire.anterior_mm2
+    );
 }

@@ -124,14 +124,15 @@ pub(crate) struct LibrOpts {
     /// the data (the anterior surface unless it leaves clearly more unexplained)
     #[arg(long, value_enum, value_name = "TARGET")]
     pub(crate) surface_target: Option<SurfaceTargetArg>,
-    /// A surface cloud with more points than this many per triangle of the model's surface is
-    /// reduced to about that many weighted cell centroids before every stage (default 1; 0:
-    /// every point as sent)
+    /// A surface cloud with more points than this many per triangle of the model's surface
+    /// (and than 4,000) is reduced to about that many weighted cell centroids before every
+    /// stage (default 0.5; 0: every point as sent)
     #[arg(long, value_name = "PER_TRIANGLE")]
     pub(crate) reduce_above: Option<f64>,
-    /// The rigid stage's ICP iterations without Anderson acceleration (plain fixed-point steps)
+    /// The rigid stage's ICP iterations with Anderson acceleration (2–7 × fewer iterations;
+    /// the answers move: docs/registration.md)
     #[arg(long)]
-    pub(crate) plain_icp: bool,
+    pub(crate) accelerate: bool,
 }
 
 /// `--surface-target`'s values.
@@ -184,7 +185,7 @@ impl LibrOpts {
         if let Some(c) = self.reduce_above {
             p.reduce_above = c;
         }
-        p.wicp.accelerate = !self.plain_icp;
+        p.wicp.accelerate = self.accelerate;
         if let Some(w) = self.tangential_weight {
             p.libr.fit.tangential_weight = w;
         }
