@@ -85,8 +85,7 @@ fn reduce_points(
     let corr = &case.correspondence;
     let triangles = corr.surface_triangles(&params.wicp.correspondence);
     let budget = ((params.reduce_above * triangles as f64).ceil() as usize).max(REDUCE_FLOOR);
-    let start = 0.25 * corr.mean_boundary_edge_mm();
-    crate::register::reduce::reduce_to_budget(meas, budget, start)
+    crate::register::reduce::reduce_to_budget(meas, budget, || 0.25 * corr.mean_boundary_edge_mm())
 }
 
 /// Why a case could not be prepared or a registration did not run, by stage.

@@ -33,13 +33,13 @@ pub struct Reduction {
 }
 
 /// `meas` reduced to at most about `budget` surface points ([`reduce_surface`] with the
-/// smallest cell, from `start_mm` up, whose count of occupied cells is within the budget); None
-/// when the surface points are within it already. Fails on a `start_mm` that is not finite and
-/// positive.
+/// smallest cell, from `start_mm()` up, whose count of occupied cells is within the budget);
+/// None when the surface points are within it already (`start_mm` is then not called). Fails
+/// on a start that is not finite and positive.
 pub fn reduce_to_budget(
     meas: &Checked,
     budget: usize,
-    start_mm: f64,
+    start_mm: impl FnOnce() -> f64,
 ) -> Result<Option<(Checked, Reduction)>, RegisterError> {
     let surface = meas
         .kind
@@ -50,7 +50,7 @@ pub fn reduce_to_budget(
         return Ok(None);
     }
     let budget = budget.max(1);
-    let mut cell = start_mm;
+    let mut cell = start_mm();
     // Occupied cells fall about as 1 / cell² on a surface: a few steps reach the budget.
     for _ in 0..32 {
         let count = occupied(meas, cell)?;
@@ -220,8 +220,12 @@ mod tests {
             .collect();
         let n = points.len();
         let c = cloud(points, vec![MeasuredKind::Surface; n]);
-        assert!(reduce_to_budget(&c, n, 0.5).unwrap().is_none());
-        let (r, info) = reduce_to_budget(&c, 400, 0.5).unwrap().unwrap();
+        assert!(
+            reduce_to_budget(&c, n, || unreachable!())
+                .unwrap()
+                .is_none()
+        );
+        let (r, info) = reduce_to_budget(&c, 400, || 0.5).unwrap().unwrap();
         assert!(info.used <= 400 && info.used > 150, "{info:?}");
         assert_eq!(r.represented(), n as f64);
         // The centroid of the whole patch is kept: the weighted mean of the centroids.
