@@ -221,8 +221,7 @@ pub fn time_in_pool(
     threads: usize,
     case: &Prepared,
     scenarios: &BenchScenarios,
-    method: Method,
-    params: &PipelineParams,
+    asked: Asked<'_>,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<RegistrationBench, EvalError> {
     let pool = rayon::ThreadPoolBuilder::new()
@@ -231,24 +230,32 @@ pub fn time_in_pool(
         .map_err(|e| EvalError::Parameter(format!("building the thread pool: {e}")))?;
     let picked = scenarios.picked();
     let geo = &scenarios.geo;
-    pool.install(|| {
-        time_registrations(
-            case,
-            &picked,
-            &geo.surface,
-            &geo.targets,
-            method,
-            params,
-            progress,
-        )
-    })
+    pool.install(|| time_registrations(case, &picked, &geo.surface, &geo.targets, asked, progress))
+}
+
+/// What each timed registration runs.
+#[derive(Clone, Copy)]
+pub struct Asked<'a> {
+    /// The method.
+    pub method: Method,
+    /// Its parameters.
+    pub params: &'a PipelineParams,
+    /// In two answers where the pose search follows
+    /// ([`crate::pipeline::register_progressive`]; the time to the first answer is then
+    /// [`RegistrationTimings::first_s`]).
+    pub progressive: bool,
 }
 
 /// Stage timings of one registration (seconds), from what [`Registration`] reports.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct RegistrationTimings {
-    /// Whole registration (validation, wICP, LIBR).
+    /// Whole registration (validation, wICP, LIBR); with two answers, both.
     pub total_s: f64,
+    /// Time to the first answer: the provisional one where the pose search followed
+    /// ([`Asked::progressive`]), else the whole registration.
+    pub first_s: f64,
+    /// Whether the registration answered twice (a provisional answer, then the searched one).
+    pub answered_twice: bool,
     /// Rigid wICP.
     pub wicp_s: f64,
     /// LIBR: re-matching the points to the deformed model (all iterations).
@@ -283,6 +290,8 @@ impl From<&Registration> for RegistrationTimings {
         let l = r.libr.clone().unwrap_or_default();
         Self {
             total_s: r.seconds,
+            first_s: r.seconds,
+            answered_twice: false,
             wicp_s: r.rigid.seconds,
             libr_matching_s: l.matching_s,
             libr_assemble_s: l.assemble_s,
@@ -360,6 +369,10 @@ pub struct RegistrationBench {
     pub per_category: std::collections::BTreeMap<String, usize>,
     /// Total seconds per registration.
     pub total_s: Spread,
+    /// Seconds to the first answer ([`RegistrationTimings::first_s`]).
+    pub first_s: Spread,
+    /// Registrations that answered twice.
+    pub answered_twice: usize,
     /// Medians of the stage timings.
     pub median: RegistrationTimings,
     /// Mean wICP iterations.
@@ -381,12 +394,11 @@ pub fn time_registrations(
     scenarios: &[&ScenarioData],
     surface: &[bool],
     targets: &[u32],
-    method: Method,
-    params: &PipelineParams,
+    asked: Asked<'_>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<RegistrationBench, EvalError> {
     if let Some(first) = scenarios.first() {
-        let _ = register(case, &first.measurements, method, params);
+        let _ = timed(case, &first.measurements, asked);
     }
     let mut runs = Vec::new();
     let mut failed = 0;
@@ -394,9 +406,9 @@ pub fn time_registrations(
     let mut tres = Vec::new();
     let mut per_category = std::collections::BTreeMap::new();
     for (k, sc) in scenarios.iter().enumerate() {
-        match register(case, &sc.measurements, method, params) {
-            Ok(r) => {
-                runs.push(RegistrationTimings::from(&r));
+        match timed(case, &sc.measurements, asked) {
+            Ok((r, t)) => {
+                runs.push(t);
                 converged += usize::from(r.libr.as_ref().is_some_and(|l| l.converged));
                 *per_category.entry(sc.category.clone()).or_insert(0) += 1;
                 tres.push(
@@ -425,8 +437,12 @@ pub fn time_registrations(
         failed,
         per_category,
         total_s: Spread::of(&runs.iter().map(|r| r.total_s).collect::<Vec<_>>()),
+        first_s: Spread::of(&runs.iter().map(|r| r.first_s).collect::<Vec<_>>()),
+        answered_twice: runs.iter().filter(|r| r.answered_twice).count(),
         median: RegistrationTimings {
             total_s: med(|r| r.total_s),
+            first_s: med(|r| r.first_s),
+            answered_twice: false,
             wicp_s: med(|r| r.wicp_s),
             libr_matching_s: med(|r| r.libr_matching_s),
             libr_assemble_s: med(|r| r.libr_assemble_s),
@@ -447,4 +463,32 @@ pub fn time_registrations(
         tre_mm_mean: Spread::of(&tres).mean,
         runs,
     })
+}
+
+/// One registration as `asked`, with its timings; in two answers, the time to the first and
+/// the whole (wall clock, both answers).
+fn timed(
+    case: &Prepared,
+    meas: &crate::register::Checked,
+    asked: Asked<'_>,
+) -> Result<(Registration, RegistrationTimings), crate::pipeline::PipelineError> {
+    if !asked.progressive {
+        let r = register(case, meas, asked.method, asked.params)?;
+        let t = RegistrationTimings::from(&r);
+        return Ok((r, t));
+    }
+    let t0 = std::time::Instant::now();
+    let mut first = None;
+    let r =
+        crate::pipeline::register_progressive(case, meas, asked.method, asked.params, &mut |_| {
+            first = Some(crate::util::secs(t0))
+        })?;
+    let total = crate::util::secs(t0);
+    let t = RegistrationTimings {
+        total_s: total,
+        first_s: first.unwrap_or(total),
+        answered_twice: first.is_some(),
+        ..RegistrationTimings::from(&r)
+    };
+    Ok((r, t))
 }

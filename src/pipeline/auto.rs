@@ -384,6 +384,7 @@ fn rigid_candidate(
                 error: None,
                 auto: None,
                 search_skipped_mm2: l.search_skipped_mm2,
+                search_follows: false,
                 surface: None,
                 points: None,
                 seconds: l.rigid.seconds,

@@ -25,10 +25,12 @@ pub mod auto;
 mod correct;
 pub mod hold;
 pub mod pose;
+pub mod progressive;
 pub mod quality;
 mod run;
 pub mod side;
 pub use correct::{LibrAnswer, correct_libr, refit};
+pub use progressive::register_progressive;
 use std::time::Instant;
 
 /// Registers measurements to a prepared case ([`Method::Auto`]: every candidate, the one that
@@ -541,6 +543,9 @@ pub struct Registration {
     /// [`pose::PoseParams::start_angles_deg`]: asked for, or a time budget too tight for it):
     /// the search would have run. None otherwise.
     pub search_skipped_mm2: Option<f64>,
+    /// A provisional answer: the navigation start's fit, given before the pose search it
+    /// needs ([`progressive`]); the searched answer follows.
+    pub search_follows: bool,
     /// Which side of the organ the surface patch was matched to, when it was decided from the
     /// data ([`side`]; None: not tested).
     pub surface: Option<side::SideInfo>,

@@ -6,10 +6,12 @@
 //! matched to the right lobe's surface) with a residual that looks no worse than a deformation's:
 //! the deformable fit then bends the wrong pose into the points. So the rigid stage also starts
 //! from the navigation start turned by [`PoseParams::start_angles_deg`] about each axis through
-//! the measured points' centroid (in parallel). The distinct poses they reach (closer than
-//! [`PoseParams::same_pose_mm`] RMS over the organ's nodes is one pose) are ranked by their rigid
-//! [`score`]; the best [`PoseParams::max_candidates`] (the navigation start's own result always
-//! among them) are each carried through the deformable fit and scored again on what it leaves: the
+//! the measured points' centroid (in parallel), each on a subsample of the points
+//! ([`PoseParams::search_points`]). The distinct poses they reach (closer than
+//! [`PoseParams::same_pose_mm`] RMS over the organ's nodes is one pose) are refined on every
+//! point best subsample score first, only until [`PoseParams::max_candidates`] distinct poses are
+//! in hand (the navigation start's own result always among them). Each is carried through the
+//! deformable fit and scored again on what it leaves: the
 //! robust mean squared distance of every measured point to the deformed model (each capped at
 //! [`PoseParams::cap_mm`], unmatched points counting the cap) plus the fit's regularisation term,
 //! in mm² both. The lowest wins. When the runner-up scores within [`PoseParams::ambiguous_ratio`]
@@ -43,7 +45,8 @@ pub struct PoseParams {
     pub ambiguous_mm: f64,
     /// The extra starts' wICP runs on at most this many of the points (every k-th, so all
     /// kinds keep their share), with a looser tolerance; the distinct poses they reach are
-    /// refined on every point from there. Default 200.
+    /// refined on every point from there, best subsample score first, until
+    /// `max_candidates - 1` distinct poses are in hand. Default 200.
     pub search_points: usize,
     /// The search runs only when the navigation start's own deformable fit scores above this
     /// ([`score`] plus the fit's regularisation term, mm²); a start whose fit explains the
@@ -136,7 +139,8 @@ impl PoseParams {
 pub struct PoseInfo {
     /// Rigid starts run (the navigation start and the turned ones).
     pub starts: usize,
-    /// Distinct poses they reached.
+    /// Distinct poses the coarse search reached on its subsample (the navigation start's result
+    /// counted); only the best of them were refined on every point.
     pub distinct: usize,
     /// Scores (mm²) of the candidates carried through the fit, in the order tried (the
     /// navigation start's first).
@@ -282,80 +286,118 @@ pub fn candidates_from(
         });
     }
     let extra = starts(meas, params).split_off(1);
-    // The search on a subsample, with a looser tolerance.
-    let sub = subsample(meas, params.search_points);
-    let search = WicpParams {
-        tolerance_mm: wicp_params.tolerance_mm.max(1e-2),
-        max_iterations: wicp_params.max_iterations.min(60),
-        ..*wicp_params
-    };
-    let reached: Vec<WicpResult> = extra
-        .par_iter()
-        .filter_map(|s| {
-            let m = sub.with_alignment(Some(*s)).ok()?;
-            wicp(model, corr, &m, &search)
-                .ok()
-                .filter(|r| r.degenerate.is_none())
-        })
-        .collect();
-    // Distinct from the navigation start's result and from each other, then refined.
-    let distinct_starts = distinct_poses(model, &first.image_to_physical, &reached, params);
-    let others: Vec<WicpResult> = distinct_starts
-        .par_iter()
-        .filter_map(|s| {
-            let m = meas.with_alignment(Some(*s)).ok()?;
-            wicp(model, corr, &m, wicp_params)
-                .ok()
-                .filter(|r| r.degenerate.is_none())
-        })
-        .collect();
-    let cap = params.cap_mm;
-    let cp = &wicp_params.correspondence;
-    let mut scored: Vec<(f64, WicpResult)> = others
-        .into_iter()
-        .filter_map(|r| {
-            score(corr, meas, cp, None, &r.image_to_physical, cap)
-                .ok()
-                .map(|s| (s, r))
-        })
-        .collect();
-    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let first_pose = first.image_to_physical;
+    let reached = search(model, corr, meas, &first_pose, &extra, wicp_params, params);
+    let found = 1 + reached.len();
     let mut out = vec![first];
-    for (_, r) in scored {
-        let same = out.iter().any(|o| {
-            pose_gap(model, &o.image_to_physical, &r.image_to_physical) < params.same_pose_mm
-        });
-        if !same {
-            out.push(r);
-        }
-    }
-    let distinct = out.len();
+    out.extend(refine_best(
+        model,
+        corr,
+        meas,
+        &first_pose,
+        reached,
+        wicp_params,
+        params,
+    ));
     out.truncate(params.max_candidates);
     Ok(Candidates {
         poses: out,
         starts: 1 + extra.len(),
-        distinct,
+        distinct: found,
     })
 }
 
 /// Every `len / n`-th measured point (rounded up), at least one step: the search's subsample.
-fn subsample(meas: &Checked, n: usize) -> Checked {
+pub(super) fn subsample(meas: &Checked, n: usize) -> Checked {
     let step = meas.points.len().div_ceil(n).max(1);
     let keep: Vec<usize> = (0..meas.points.len()).step_by(step).collect();
     meas.subset(&keep)
 }
 
-/// The poses `reached` that differ from `first` and from each other by `same_pose_mm` or more,
-/// in order.
-fn distinct_poses(
+/// The coarse search's poses (`reached`, best first) refined on every point, a batch at a time
+/// (in parallel), until `max_candidates - 1` distinct from `first` and from each other are in
+/// hand: a refinement that lands on a pose already held is dropped and the next one tried.
+/// Those, by their rigid [`score`] on every point.
+fn refine_best(
     model: &PreopModel,
+    corr: &Correspondence,
+    meas: &Checked,
     first: &Rigid,
-    reached: &[WicpResult],
+    reached: Vec<Rigid>,
+    wicp_params: &WicpParams,
+    params: &PoseParams,
+) -> Vec<WicpResult> {
+    let cap = params.cap_mm;
+    let cp = &wicp_params.correspondence;
+    let wanted = params.max_candidates.saturating_sub(1);
+    let mut refined: Vec<(f64, WicpResult)> = Vec::new();
+    let mut next = reached.into_iter();
+    while refined.len() < wanted {
+        let batch: Vec<Rigid> = next.by_ref().take(wanted - refined.len()).collect();
+        if batch.is_empty() {
+            break;
+        }
+        let done: Vec<(f64, WicpResult)> = batch
+            .par_iter()
+            .filter_map(|s| {
+                let m = meas.with_alignment(Some(*s)).ok()?;
+                let r = wicp(model, corr, &m, wicp_params)
+                    .ok()
+                    .filter(|r| r.degenerate.is_none())?;
+                let sc = score(corr, meas, cp, None, &r.image_to_physical, cap).ok()?;
+                Some((sc, r))
+            })
+            .collect();
+        for (sc, r) in done {
+            let t = r.image_to_physical;
+            let held = std::iter::once(first)
+                .chain(refined.iter().map(|(_, o)| &o.image_to_physical))
+                .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
+            if !held {
+                refined.push((sc, r));
+            }
+        }
+    }
+    refined.sort_by(|a, b| a.0.total_cmp(&b.0));
+    refined.into_iter().map(|(_, r)| r).collect()
+}
+
+/// The coarse search: every extra start's wICP on a subsample of the points
+/// ([`PoseParams::search_points`]) with a looser tolerance, in parallel; the poses reached,
+/// best subsample [`score`] first, each at least `same_pose_mm` from `first` and from every
+/// better one.
+fn search(
+    model: &PreopModel,
+    corr: &Correspondence,
+    meas: &Checked,
+    first: &Rigid,
+    extra: &[Rigid],
+    wicp_params: &WicpParams,
     params: &PoseParams,
 ) -> Vec<Rigid> {
+    let sub = subsample(meas, params.search_points);
+    let coarse = WicpParams {
+        tolerance_mm: wicp_params.tolerance_mm.max(1e-2),
+        max_iterations: wicp_params.max_iterations.min(60),
+        ..*wicp_params
+    };
+    let cap = params.cap_mm;
+    let cp = &wicp_params.correspondence;
+    let mut reached: Vec<(f64, Rigid)> = extra
+        .par_iter()
+        .filter_map(|s| {
+            let m = sub.with_alignment(Some(*s)).ok()?;
+            let r = wicp(model, corr, &m, &coarse)
+                .ok()
+                .filter(|r| r.degenerate.is_none())?;
+            let t = r.image_to_physical;
+            score(corr, &sub, cp, None, &t, cap).ok().map(|s| (s, t))
+        })
+        .collect();
+    // Stable: equal scores keep the starts' order.
+    reached.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut distinct: Vec<Rigid> = Vec::new();
-    for r in reached {
-        let t = r.image_to_physical;
+    for (_, t) in reached {
         let seen = std::iter::once(first)
             .chain(&distinct)
             .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
@@ -373,7 +415,8 @@ pub struct Candidates {
     pub poses: Vec<WicpResult>,
     /// Starts run.
     pub starts: usize,
-    /// Distinct poses reached (before the cut to `max_candidates`).
+    /// Distinct poses the coarse search reached on its subsample, the navigation start's
+    /// result counted (only the best of them are refined on every point).
     pub distinct: usize,
 }
 

@@ -6,7 +6,8 @@
 //! The first that applies, most severe first: degenerate data, a fallback the caller made (the
 //! data stopped LIBR, the rigid answer given), an ambiguous pose, a likely failure (the error
 //! estimate), an ambiguous model ([`Method::Auto`] could not decide between candidates whose
-//! answers differ), a planned degradation (a time budget), a failed or cut-short refit, LIBR cut
+//! answers differ), a planned degradation (a time budget), a provisional first answer (the pose
+//! search follows, [`super::progressive`]), a failed or cut-short refit, LIBR cut
 //! short, LIBR not settled, the rigid stage not converged; else OK.
 
 use super::{Method, PipelineParams, Registration, pose::PoseInfo};
@@ -133,6 +134,13 @@ pub fn judge(reg: &Registration, params: &PipelineParams, c: &Circumstances) -> 
         j(Quality::AmbiguousModel, r)
     } else if let Some(r) = &c.degraded {
         j(Quality::Degraded, r.clone())
+    } else if reg.search_follows {
+        let why = format!(
+            "a first answer from the navigation start alone: its fit scored {:.1} mm² (the pose search runs above {:.1} mm²); the searched answer follows",
+            reg.search_skipped_mm2.unwrap_or(f64::NAN),
+            params.pose.search_above_mm2
+        );
+        j(Quality::Degraded, why)
     } else if let Some(e) = gcn.and_then(|c| c.refit_error.as_deref()) {
         let why =
             format!("LIBR+'s refit failed ({e}); the answer is the network's correction of LIBR");
@@ -208,6 +216,7 @@ mod tests {
             error: None,
             auto: None,
             search_skipped_mm2: None,
+            search_follows: false,
             surface: None,
             points: None,
             seconds: 0.0,

@@ -167,6 +167,7 @@ impl<'a> Run<'a> {
             error: None,
             auto: None,
             search_skipped_mm2: self.search_skipped.get().copied(),
+            search_follows: false,
             surface: None,
             points: None,
             seconds: secs(self.t0),

@@ -9,7 +9,10 @@
 //! anterior surface as the target and with the whole boundary, and each pose is scored by what
 //! its own hypothesis leaves unexplained ([`super::pose::score`], each point's squared distance
 //! capped). The anterior hypothesis is kept unless it leaves clearly more:
-//! `anterior > ratio × boundary + margin` ([`SideParams`]). Then every stage — the pose search,
+//! `anterior > ratio × boundary + margin` ([`SideParams`]). The boundary's wICP runs first on a
+//! subsample of the points (as the pose search's starts do), its pose scored on every point;
+//! only where that estimate comes within half of taking the boundary is it run on every point
+//! and the test decided on that. Then every stage — the pose search,
 //! the deformable fits, every candidate of [`super::Method::Auto`] — matches surface points to
 //! the whole boundary, and the registration reports it ([`SideInfo`]).
 
@@ -67,7 +70,8 @@ pub struct SideInfo {
     pub target: SurfaceTarget,
     /// The anterior hypothesis' score at its rigid pose (mm², capped mean squared distance).
     pub anterior_mm2: f64,
-    /// The whole boundary's score at its rigid pose (mm²).
+    /// The whole boundary's score at its rigid pose (mm²; the pose its wICP reached on a
+    /// subsample, where that was far from deciding: see the module doc).
     pub boundary_mm2: f64,
 }
 
@@ -115,10 +119,19 @@ fn test(
         .ok()?;
         Some((s, r))
     };
-    let (a, b) = rayon::join(|| fit(&anterior), || fit(&boundary));
+    // The boundary hypothesis first on a subsample ([`coarse`]); run on every point only where
+    // that could decide (it would take the boundary, or comes within half of it).
+    let (a, b) = rayon::join(|| fit(&anterior), || coarse(case, meas, &boundary, params));
     let (anterior_mm2, ra) = a?;
-    let (boundary_mm2, rb) = b?;
-    let whole = anterior_mm2 > side.ratio * boundary_mm2 + side.margin_mm2;
+    let threshold = |b: f64| side.ratio * b + side.margin_mm2;
+    let (boundary_mm2, rb) = match b {
+        Some(b) if anterior_mm2 <= 0.5 * threshold(b) => (b, None),
+        _ => {
+            let (s, r) = fit(&boundary)?;
+            (s, Some(r))
+        }
+    };
+    let whole = anterior_mm2 > threshold(boundary_mm2);
     let info = SideInfo {
         target: if whole {
             SurfaceTarget::Boundary
@@ -128,7 +141,40 @@ fn test(
         anterior_mm2,
         boundary_mm2,
     };
-    Some((info, if whole { rb } else { ra }))
+    let start = match (whole, rb) {
+        (true, Some(rb)) => rb,
+        _ => ra,
+    };
+    Some((info, start))
+}
+
+/// The whole-boundary hypothesis' score (on every point) at the pose its wICP reaches on a
+/// subsample of the points ([`pose::PoseParams::search_points`]) with the pose search's
+/// looser tolerance; None where that wICP fails. The pose lies near the one a fit to every
+/// point converges to, so the score is near that pose's, a little above it as a rule: the
+/// test runs the fit on every point whenever this estimate comes within half of deciding.
+fn coarse(
+    case: &Prepared,
+    meas: &Checked,
+    boundary: &WicpParams,
+    params: &PipelineParams,
+) -> Option<f64> {
+    let sub = pose::subsample(meas, params.pose.search_points);
+    let w = WicpParams {
+        tolerance_mm: boundary.tolerance_mm.max(1e-2),
+        max_iterations: boundary.max_iterations.min(60),
+        ..*boundary
+    };
+    let r = wicp(&case.model, &case.correspondence, &sub, &w).ok()?;
+    pose::score(
+        &case.correspondence,
+        meas,
+        &boundary.correspondence,
+        None,
+        &r.image_to_physical,
+        params.pose.cap_mm,
+    )
+    .ok()
 }
 
 /// `w` with surface points matched to `target`.

@@ -172,7 +172,12 @@ pub(crate) fn bench_register(a: &BenchRegisterArgs) -> Result<()> {
     let (preload, case, method, model_prepare_s) = prepare_case(a, &params, &scenarios, &cache)?;
     let bar =
         indicatif::ProgressBar::new(scenarios.picked.len() as u64).with_message("registrations");
-    let r = time_in_pool(a.threads, &case, &scenarios, method, &params, &|done, _| {
+    let asked = librplus::eval::bench::Asked {
+        method,
+        params: &params,
+        progressive: a.progressive,
+    };
+    let r = time_in_pool(a.threads, &case, &scenarios, asked, &|done, _| {
         bar.set_position(done as u64)
     });
     bar.finish_and_clear();
@@ -287,6 +292,8 @@ impl Timed<'_> {
                 "failed": r.failed,
                 "per_category": r.per_category,
                 "total_s": r.total_s,
+                "first_answer_s": r.first_s,
+                "answered_twice": r.answered_twice,
                 "median_s": {
                     "total": r.median.total_s,
                     "wicp": r.median.wicp_s,
@@ -348,6 +355,17 @@ fn print_registrations(r: &RegistrationBench, method: Method) {
         r.total_s.max,
         r.failed
     );
+    if r.answered_twice > 0 || r.first_s != r.total_s {
+        println!(
+            "first answer (s): median {:.4}, p90 {:.4}, p99 {:.4}, max {:.4}; {} of {} answered twice (a provisional answer, then the pose search's)",
+            r.first_s.median,
+            r.first_s.p90,
+            r.first_s.p99,
+            r.first_s.max,
+            r.answered_twice,
+            r.count
+        );
+    }
     println!(
         "  stage medians (s): wicp {:.4}, libr {:.4} (matching {:.4}, assemble {:.4}, solve {:.4}, other {:.4}), gcn {:.4} (network {:.4}, refit {:.4})",
         r.median.wicp_s,

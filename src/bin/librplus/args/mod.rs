@@ -469,6 +469,10 @@ pub(crate) struct BenchRegisterArgs {
     /// An augmented model (`physics.json`): LIBR's basis carries its effects.
     #[arg(long, value_name = "FILE")]
     pub(crate) physics: Option<PathBuf>,
+    /// Answer in two where the pose search follows (the navigation start's fit first, flagged
+    /// provisional, then the searched answer): times the first answer as well as the whole.
+    #[arg(long)]
+    pub(crate) progressive: bool,
     #[command(flatten)]
     pub(crate) common: Common,
     // Last: `--help` shows these under their own heading, after the command's own options.
