@@ -1,7 +1,7 @@
 //! Two answers where the pose search would run: the navigation start's fit at once, flagged
 //! provisional, then the searched answer.
 //!
-//! The gated pose search ([`pose::PoseParams::search_above_mm2`]) runs on about one registration
+//! The gated pose search ([`super::pose::PoseParams::search_above_mm2`]) runs on about one registration
 //! in ten, and costs 4–10 single registrations (its extra starts, their refinement and the
 //! candidates' deformable fits). Answered in one piece, those registrations are the latency's
 //! whole tail. [`register_progressive`] answers them in two: first the registration with the
