@@ -272,3 +272,99 @@ fn libr_residual_on_nonlinear_truth_is_well_above_its_linear_error() {
         mean(&nonlin)
     );
 }
+
+/// A basis built on the boundary meshed again with coarser tets and carried to the case's nodes
+/// (`libr::coarse_basis`): on the linear homogeneous truth under the phantom's loads (dense
+/// noiseless data) LIBR with it is far better than rigid and close to LIBR with the case's own
+/// basis; its columns are interpolations (no larger than the coarse columns' 1 mm peak) on every
+/// node of the case, and its energy matrix is the coarse mesh's.
+#[test]
+fn a_basis_from_a_coarser_mesh_registers_nearly_as_well_as_the_cases_own() {
+    use librplus::fem::LameField;
+    use librplus::phantom::patterns::{Pattern, PatternParams, load_case};
+    use librplus::phantom::tissue::TissueParams;
+    use librplus::phantom::truth::{LoadParts, solve_linear};
+    use librplus::register::libr::coarse_basis;
+
+    let (mesh, labels, vessels) = liver(8.0);
+    let params = PipelineParams::default();
+    let full = Prepared::new(model(&mesh, &labels, &vessels), Some(&params.libr), None).unwrap();
+    let fb = full.basis.as_ref().unwrap();
+    let (lam, mu) = TissueParams::default().parenchyma.lame();
+    let surface = boundary_flags(&labels);
+    for edge in [16.0, 12.0] {
+        let c = coarse_basis(&mesh, &params.libr, edge).unwrap();
+        let cb = &c.basis;
+        assert!(
+            c.coarse_nodes < mesh.num_nodes() / 2,
+            "{} nodes",
+            c.coarse_nodes
+        );
+        assert_eq!(cb.nodes, mesh.num_nodes());
+        assert_eq!(cb.phi.len(), 3 * mesh.num_nodes() * cb.columns());
+        assert_eq!(cb.columns(), fb.columns());
+        assert_ne!(
+            cb.params_hash, fb.params_hash,
+            "a carried basis passes for the case's own"
+        );
+        let peak = cb.phi.iter().fold(0.0f64, |m, &x| m.max(x.abs()));
+        assert!(peak <= 1.0 + 1e-9 && peak > 0.5, "carried peak {peak} mm");
+        let mut coarse = Prepared::new(model(&mesh, &labels, &vessels), None, None).unwrap();
+        coarse.basis = Some(c.basis.clone());
+        for (k, pattern) in [Pattern::L, Pattern::R].into_iter().enumerate() {
+            let lc = load_case(
+                &mesh,
+                &labels,
+                pattern,
+                &PatternParams::default(),
+                31 + k as u64,
+            )
+            .unwrap();
+            let u = solve_linear(&mesh, &LameField::Uniform(lam, mu), &lc, LoadParts::ALL).unwrap();
+            let sc = simulate(
+                &mesh,
+                &labels,
+                &vessels,
+                &u,
+                Category::Planes16,
+                &dense(),
+                41 + k as u64,
+            )
+            .unwrap();
+            let meas = measurements(&sc);
+            let truth = (&sc.image_to_physical, u.as_slice());
+            let e = |case: &Prepared, m: Method| {
+                let r = register(case, &meas, m, &params).unwrap();
+                let t = tre(
+                    mesh.nodes(),
+                    (&r.image_to_physical, &r.u),
+                    truth,
+                    &surface,
+                    &labels.targets,
+                );
+                t.tre_mm
+            };
+            let (rigid, own, carried) = (
+                e(&full, Method::Rigid),
+                e(&full, Method::Libr),
+                e(&coarse, Method::Libr),
+            );
+            eprintln!(
+                "{pattern:?}, coarse {edge} mm ({} nodes against {}): TRE rigid {rigid:.2} mm, LIBR own basis {own:.2}, carried basis {carried:.2} (coarse mesh {:.2} s, basis {:.2} s, carried over {:.3} s)",
+                c.coarse_nodes,
+                mesh.num_nodes(),
+                c.mesh_s,
+                c.basis_s,
+                c.transfer_s
+            );
+            assert!(
+                carried < 0.6 * rigid,
+                "carried {carried} against rigid {rigid}"
+            );
+            assert!(
+                carried < 1.5 * own + 0.5,
+                "carried {carried} against own {own}"
+            );
+        }
+    }
+}

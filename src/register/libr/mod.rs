@@ -51,6 +51,7 @@
 mod adaptive;
 mod basis;
 mod cache;
+mod coarse;
 mod cv;
 mod fit;
 mod iterate;
@@ -60,6 +61,7 @@ mod solve;
 pub use adaptive::*;
 pub use basis::*;
 pub use cache::*;
+pub use coarse::*;
 pub use cv::*;
 pub use fit::*;
 pub use refit::*;

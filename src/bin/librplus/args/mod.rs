@@ -473,6 +473,11 @@ pub(crate) struct BenchRegisterArgs {
     /// provisional, then the searched answer): times the first answer as well as the whole.
     #[arg(long)]
     pub(crate) progressive: bool,
+    /// Register with a LIBR basis built on the case's boundary meshed again with tets of this
+    /// edge (mm) and carried to its nodes, as a large case answers while its own basis builds;
+    /// its build time is reported (with --mesh: that alone)
+    #[arg(long, value_name = "MM")]
+    pub(crate) coarse_edge_mm: Option<f64>,
     #[command(flatten)]
     pub(crate) common: Common,
     // Last: `--help` shows these under their own heading, after the command's own options.
