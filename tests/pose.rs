@@ -202,12 +202,8 @@ fn starts_that_lead_wicp_astray_are_recovered_by_the_search() {
     );
 }
 
-#[test]
-fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
-    let l = liver();
-    let case = Prepared::new(l.model.clone(), Some(&LibrParams::default()), None).unwrap();
-    let c = centroid(&l.meas.points);
-    let gate = 2.0;
+/// The default parameters with the search's gate at `gate` mm², and the same with no search.
+fn gate_at(gate: f64) -> (PipelineParams, PipelineParams) {
     let gated = PipelineParams {
         pose: PoseParams {
             search_above_mm2: gate,
@@ -215,14 +211,18 @@ fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
         },
         ..PipelineParams::default()
     };
-    let single = PipelineParams {
-        pose: PoseParams {
-            start_angles_deg: Vec::new(),
-            search_above_mm2: gate,
-            ..PoseParams::default()
-        },
-        ..PipelineParams::default()
-    };
+    let mut single = gated.clone();
+    single.pose.start_angles_deg.clear();
+    (gated, single)
+}
+
+#[test]
+fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
+    let l = liver();
+    let case = Prepared::new(l.model.clone(), Some(&LibrParams::default()), None).unwrap();
+    let c = centroid(&l.meas.points);
+    let gate = 2.0;
+    let (gated, single) = gate_at(gate);
     // A good start on noise-free points: its fit scores below the gate, so the answer is the
     // single start's, bit for bit.
     let good = register(&case, &l.meas, Method::Libr, &gated).unwrap();
@@ -285,16 +285,7 @@ fn a_registration_the_gate_searches_answers_twice_the_second_bit_for_bit_the_sea
     let l = liver();
     let case = Prepared::new(l.model.clone(), Some(&LibrParams::default()), None).unwrap();
     let c = centroid(&l.meas.points);
-    let gate = 2.0;
-    let gated = PipelineParams {
-        pose: PoseParams {
-            search_above_mm2: gate,
-            ..PoseParams::default()
-        },
-        ..PipelineParams::default()
-    };
-    let mut single = gated.clone();
-    single.pose.start_angles_deg.clear();
+    let (gated, single) = gate_at(2.0);
     // A good start: one answer, the one-piece registration's.
     let mut firsts = 0;
     let good =
