@@ -5,12 +5,18 @@ loads, assembly, factorization, 75 solves, energy) on each, records the peak mem
 fits the log-log slope and draws time and memory against node count.
 
     python3 benches/basis_scaling.py --librplus target/release/librplus --out SCALING \
-        [--surface assets/livers/sofa_liver.vtk] [--edges 13,10,8,6.5,5.3,4.5,3.8] [--repeat 2]
+        [--surface assets/livers/sofa_liver.vtk] [--edges 13,10,8,6.5,5.3,4.5,3.8] [--repeat 2] \
+        [--coarse-edge 11]
+
+With --coarse-edge, each run also times the basis built on the mesh's boundary meshed again with
+tets of that edge and carried to its nodes (`bench register --mesh M --coarse-edge-mm E`: how
+soon a case can answer while its own basis builds), as the column `coarse` and a series of the
+plot.
 
 Writes SCALING/scaling.csv (one row per run) and, when matplotlib is importable, SCALING/scaling.png.
 Peak memory is the child's maximum resident set (Linux `wait4`).
 """
-import argparse, csv, math, os, re, statistics, subprocess, sys
+import argparse, csv, json, math, os, re, statistics, subprocess, sys
 
 
 def run(cmd):
@@ -34,6 +40,14 @@ def preload(binary, mesh):
     return nodes, stages, mib
 
 
+def coarse(binary, mesh, edge):
+    """The coarse basis of `mesh` at `edge` mm: seconds in all (meshing again, basis, carrying)."""
+    out, _ = run([binary, "bench", "register", "--mesh", mesh, "--coarse-edge-mm", edge, "--json"])
+    line = next(l for l in out.splitlines() if l.startswith("{"))
+    c = json.loads(line)["coarse_basis"]
+    return c["mesh_s"] + c["basis_s"] + c["transfer_s"]
+
+
 def slope(xs, ys):
     """Least-squares slope of log y against log x."""
     lx, ly = [math.log(x) for x in xs], [math.log(y) for y in ys]
@@ -49,6 +63,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", required=True)
     ap.add_argument("--from-csv", help="plot an earlier run's scaling.csv instead of measuring")
+    ap.add_argument("--coarse-edge", help="also time the basis carried from a mesh of this edge (mm)")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     rows = []
@@ -61,6 +76,8 @@ def main():
         run([a.librplus, "mesh", "tetra", a.surface, "--edge-mm", h, "--out", mesh])
         for r in range(a.repeat):
             nodes, st, mib = preload(a.librplus, mesh)
+            if a.coarse_edge:
+                st["coarse"] = coarse(a.librplus, mesh, a.coarse_edge)
             rows.append(dict(edge_mm=h, run=r + 1, nodes=nodes, peak_mib=round(mib, 1), **st))
             print(f"edge {h} mm, run {r + 1}: {nodes} nodes, total {st['total']:.3f} s, "
                   f"factor {st['factor']:.3f} s, solve {st['solve']:.3f} s, peak {mib:.0f} MiB",
@@ -74,8 +91,8 @@ def main():
     for r in rows:
         med.setdefault(r["nodes"], []).append(r)
     n = sorted(med)
-    series = {k: [statistics.median(x[k] for x in med[v]) for v in n]
-              for k in ("total", "factor", "solve", "peak_mib")}
+    keys = ("total", "factor", "solve", "peak_mib") + (("coarse",) if "coarse" in rows[0] else ())
+    series = {k: [statistics.median(x[k] for x in med[v]) for v in n] for k in keys}
     for k, ys in series.items():
         big = [(x, y) for x, y in zip(n, ys) if x >= 10000]
         tail = slope(*zip(*big)) if len(big) >= 2 else float("nan")
@@ -91,6 +108,9 @@ def main():
     fig, (ax, am) = plt.subplots(1, 2, figsize=(11, 4.2))
     for k, style in (("total", "o-"), ("factor", "s--"), ("solve", "^:")):
         ax.loglog(n, series[k], style, label=f"{k} (slope {slope(n, series[k]):.2f})")
+    if "coarse" in series:
+        ax.loglog(n, series["coarse"], "d-", label=f"basis carried from a coarse mesh "
+                  f"(slope {slope(n, series['coarse']):.2f})")
     ax.set_xlabel("mesh nodes")
     ax.set_ylabel("cold preload (s)")
     ax.set_title("LIBR basis preload, 75 columns")
