@@ -202,6 +202,14 @@ fn starts_that_lead_wicp_astray_are_recovered_by_the_search() {
     );
 }
 
+/// Turns of the navigation start (axis, degrees) that can lead a single wICP astray.
+const ASTRAY: [([f64; 3], f64); 4] = [
+    ([0.0, 0.0, 1.0], 90.0),
+    ([0.0, 0.0, 1.0], -90.0),
+    ([1.0, 0.0, 0.0], 90.0),
+    ([0.0, 1.0, 0.0], 90.0),
+];
+
 /// The default parameters with the search's gate at `gate` mm², and the same with no search.
 fn gate_at(gate: f64) -> (PipelineParams, PipelineParams) {
     let gated = PipelineParams {
@@ -238,12 +246,7 @@ fn the_gate_searches_only_when_the_navigation_starts_fit_scores_badly() {
     // Starts that lead the single start astray: its fit scores above the gate, the search runs
     // and reaches the truth.
     let mut astray = 0;
-    for (axis, deg) in [
-        ([0.0, 0.0, 1.0], 90.0),
-        ([0.0, 0.0, 1.0], -90.0),
-        ([1.0, 0.0, 0.0], 90.0),
-        ([0.0, 1.0, 0.0], 90.0),
-    ] {
+    for (axis, deg) in ASTRAY {
         let m = l
             .meas
             .with_alignment(Some(turned(&l.truth, axis, deg, c)))
@@ -297,11 +300,7 @@ fn a_registration_the_gate_searches_answers_twice_the_second_bit_for_bit_the_sea
     assert_eq!(good.u, whole.u);
     // An astray start: the navigation start's fit first, flagged provisional, then the search's.
     let mut twice = 0;
-    for (axis, deg) in [
-        ([0.0, 0.0, 1.0], 90.0),
-        ([1.0, 0.0, 0.0], 90.0),
-        ([0.0, 1.0, 0.0], 90.0),
-    ] {
+    for (axis, deg) in ASTRAY {
         let m = l
             .meas
             .with_alignment(Some(turned(&l.truth, axis, deg, c)))
