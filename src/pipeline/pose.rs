@@ -350,10 +350,8 @@ fn refine_best(
             .collect();
         for (sc, r) in done {
             let t = r.image_to_physical;
-            let held = std::iter::once(first)
-                .chain(refined.iter().map(|(_, o)| &o.image_to_physical))
-                .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
-            if !held {
+            let held = refined.iter().map(|(_, o)| &o.image_to_physical);
+            if !near_any(model, first, held, &t, params.same_pose_mm) {
                 refined.push((sc, r));
             }
         }
@@ -376,11 +374,7 @@ fn search(
     params: &PoseParams,
 ) -> Vec<Rigid> {
     let sub = subsample(meas, params.search_points);
-    let coarse = WicpParams {
-        tolerance_mm: wicp_params.tolerance_mm.max(1e-2),
-        max_iterations: wicp_params.max_iterations.min(60),
-        ..*wicp_params
-    };
+    let coarse = coarse_params(wicp_params);
     let cap = params.cap_mm;
     let cp = &wicp_params.correspondence;
     let mut reached: Vec<(f64, Rigid)> = extra
@@ -398,14 +392,35 @@ fn search(
     reached.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut distinct: Vec<Rigid> = Vec::new();
     for (_, t) in reached {
-        let seen = std::iter::once(first)
-            .chain(&distinct)
-            .any(|o| pose_gap(model, o, &t) < params.same_pose_mm);
-        if !seen {
+        if !near_any(model, first, distinct.iter(), &t, params.same_pose_mm) {
             distinct.push(t);
         }
     }
     distinct
+}
+
+/// The search's wICP settings where a pose is only approximate (the extra starts on the
+/// subsample; the side test's boundary hypothesis): tolerance at least 0.01 mm, at most 60
+/// iterations.
+pub(super) fn coarse_params(w: &WicpParams) -> WicpParams {
+    WicpParams {
+        tolerance_mm: w.tolerance_mm.max(1e-2),
+        max_iterations: w.max_iterations.min(60),
+        ..*w
+    }
+}
+
+/// Whether `t` lies within `d` (RMS over the organ's nodes) of `first` or of any of `others`.
+fn near_any<'a>(
+    model: &PreopModel,
+    first: &'a Rigid,
+    others: impl Iterator<Item = &'a Rigid>,
+    t: &Rigid,
+    d: f64,
+) -> bool {
+    std::iter::once(first)
+        .chain(others)
+        .any(|o| pose_gap(model, o, t) < d)
 }
 
 /// What [`rigid_candidates`] found.

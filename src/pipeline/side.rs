@@ -160,11 +160,7 @@ fn coarse(
     params: &PipelineParams,
 ) -> Option<f64> {
     let sub = pose::subsample(meas, params.pose.search_points);
-    let w = WicpParams {
-        tolerance_mm: boundary.tolerance_mm.max(1e-2),
-        max_iterations: boundary.max_iterations.min(60),
-        ..*boundary
-    };
+    let w = pose::coarse_params(boundary);
     let r = wicp(&case.model, &case.correspondence, &sub, &w).ok()?;
     pose::score(
         &case.correspondence,
