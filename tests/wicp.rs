@@ -1008,3 +1008,39 @@ fn hinted_matching_gives_the_matches_of_an_unhinted_one() {
         }
     }
 }
+
+/// A deadline stops the iterations where they are and says so: one already past runs none (the
+/// answer is the start, not converged); one far away changes nothing.
+#[test]
+fn a_deadline_stops_the_iterations_and_says_so() {
+    use std::time::{Duration, Instant};
+    let s = scenario(Category::Surface, &MeasureParams::default(), 21);
+    let meas = measurements(&s);
+    let free = run(&meas, &WicpParams::default());
+    assert!(free.converged && !free.stopped_at_deadline, "{free:?}");
+    assert!(free.iterations > 1, "{free:?}");
+    let past = run(
+        &meas,
+        &WicpParams {
+            deadline: Some(Instant::now()),
+            ..WicpParams::default()
+        },
+    );
+    assert!(past.stopped_at_deadline && !past.converged, "{past:?}");
+    assert_eq!(past.iterations, 0);
+    assert_eq!(past.image_to_physical, s.initial_alignment);
+    let far = run(
+        &meas,
+        &WicpParams {
+            deadline: Some(Instant::now() + Duration::from_secs(3600)),
+            ..WicpParams::default()
+        },
+    );
+    assert!(!far.stopped_at_deadline);
+    assert_eq!(far.iterations, free.iterations);
+    assert_eq!(far.image_to_physical, free.image_to_physical);
+    eprintln!(
+        "deadline: none {} iterations (rms {:.3} mm), past 0 (rms {:.3} mm, the start's), an hour away {}",
+        free.iterations, free.rms_mm, past.rms_mm, far.iterations
+    );
+}

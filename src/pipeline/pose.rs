@@ -332,7 +332,13 @@ fn refine_best(
     let wanted = params.max_candidates.saturating_sub(1);
     let mut refined: Vec<(f64, WicpResult)> = Vec::new();
     let mut next = reached.into_iter();
-    while refined.len() < wanted {
+    // Past the rigid stage's deadline no further batch starts (the candidates so far stand).
+    let late = || {
+        wicp_params
+            .deadline
+            .is_some_and(|d| std::time::Instant::now() >= d)
+    };
+    while refined.len() < wanted && !late() {
         let batch: Vec<Rigid> = next.by_ref().take(wanted - refined.len()).collect();
         if batch.is_empty() {
             break;

@@ -153,6 +153,14 @@ pub fn judge(reg: &Registration, params: &PipelineParams, c: &Circumstances) -> 
             params.refit_iterations
         );
         j(Quality::Degraded, why)
+    } else if reg.rigid.stopped_at_deadline {
+        let why = format!(
+            "{}: the rigid stage stopped after {} of {} iterations",
+            budget(c),
+            reg.rigid.iterations,
+            params.wicp.max_iterations
+        );
+        j(Quality::Degraded, why)
     } else if let Some(i) = reg.libr.as_ref().filter(|i| i.stopped_at_deadline) {
         let why = format!(
             "{}: LIBR stopped after {} of {} iterations",
@@ -319,6 +327,18 @@ mod tests {
         assert_eq!(j.quality, Quality::Degraded);
         assert!(
             j.reason.starts_with("the deadline: LIBR stopped"),
+            "{}",
+            j.reason
+        );
+        // The rigid stage stopped at its deadline: DEGRADED, saying how far it got.
+        let mut rigid_cut = answer(Some(settled()), None);
+        rigid_cut.rigid.stopped_at_deadline = true;
+        rigid_cut.rigid.converged = false;
+        let j = judge(&rigid_cut, &params, &c);
+        assert_eq!(j.quality, Quality::Degraded);
+        assert!(
+            j.reason
+                .starts_with("time budget 250 ms: the rigid stage stopped after 10 of 200"),
             "{}",
             j.reason
         );

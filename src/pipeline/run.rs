@@ -143,13 +143,24 @@ impl<'a> Run<'a> {
                 distinct: 1,
             });
         }
-        pose::rigid_candidates(
-            &case.model,
-            &case.correspondence,
-            self.meas,
-            &self.rigid,
-            &self.params.pose,
-        )
+        match self.start {
+            // The side test's fit from the navigation start is this run's first.
+            Some(r) => pose::candidates_from(
+                r.clone(),
+                &case.model,
+                &case.correspondence,
+                self.meas,
+                &self.rigid,
+                &self.params.pose,
+            ),
+            None => pose::rigid_candidates(
+                &case.model,
+                &case.correspondence,
+                self.meas,
+                &self.rigid,
+                &self.params.pose,
+            ),
+        }
         .map_err(PipelineError::Rigid)
     }
 

@@ -120,12 +120,16 @@ fn test(
         Some((s, r))
     };
     // The boundary hypothesis first on a subsample ([`coarse`]); run on every point only where
-    // that could decide (it would take the boundary, or comes within half of it).
+    // that could decide (it would take the boundary, or comes within half of it) and the
+    // rigid stage's deadline has not passed (the estimate decides then).
     let (a, b) = rayon::join(|| fit(&anterior), || coarse(case, meas, &boundary, params));
     let (anterior_mm2, ra) = a?;
     let threshold = |b: f64| side.ratio * b + side.margin_mm2;
+    let late = anterior
+        .deadline
+        .is_some_and(|d| std::time::Instant::now() >= d);
     let (boundary_mm2, rb) = match b {
-        Some(b) if anterior_mm2 <= 0.5 * threshold(b) => (b, None),
+        Some(b) if anterior_mm2 <= 0.5 * threshold(b) || late => (b, None),
         _ => {
             let (s, r) = fit(&boundary)?;
             (s, Some(r))

@@ -69,6 +69,11 @@ pub struct WicpParams {
     /// discovery workflow named an effect on a cohort with nothing hidden). Default false.
     #[serde(default = "default_accelerate")]
     pub accelerate: bool,
+    /// Stop iterating at this instant (a time budget): the result is the pose reached, with
+    /// [`WicpResult::stopped_at_deadline`] set, and the ill-posed refit (above) does not run
+    /// past it. Default None: no deadline. Not serialised (an instant of this process).
+    #[serde(skip)]
+    pub deadline: Option<Instant>,
 }
 
 fn default_accelerate() -> bool {
@@ -94,6 +99,7 @@ impl Default for WicpParams {
             trusted_alignment_mm: None,
             min_conditioning: MIN_CONDITIONING,
             accelerate: false,
+            deadline: None,
         }
     }
 }
@@ -143,6 +149,9 @@ pub struct WicpResult {
     /// Wall-clock time (s) of this run (in a registration with a pose search, of the chosen
     /// pose's run; the pipeline reports the whole search's separately).
     pub seconds: f64,
+    /// Whether the iterations stopped at [`WicpParams::deadline`] before converging.
+    #[serde(default)]
+    pub stopped_at_deadline: bool,
 }
 
 /// RMS spread (mm) across the principal line below which measured points count as collinear:
@@ -218,8 +227,7 @@ pub fn wicp(
         &matching,
     )?;
     let mut ill_posed = false;
-    if declared.is_none() && run.degenerate.is_none() && run.conditioning < params.min_conditioning
-    {
+    if declared.is_none() && run.leaves_motion_free(params) {
         // The data leave a rigid direction free: trust the start instead of sliding along it.
         let prior = RigidPrior::new(nodes, start, ILL_POSED_SIGMA_MM, initial_stats.rms_mm);
         let free = run.conditioning;
@@ -304,6 +312,7 @@ impl WicpResult {
             prior: None,
             ill_posed: false,
             moved_from_start_mm: 0.0,
+            stopped_at_deadline: false,
         }
     }
 
@@ -311,6 +320,7 @@ impl WicpResult {
     fn ended(&mut self, run: LoopEnd) {
         self.iterations = run.iterations;
         self.converged = run.converged;
+        self.stopped_at_deadline = run.stopped_at_deadline;
         self.degenerate = run.degenerate;
         self.conditioning = run.conditioning;
         self.prior = run.prior;
@@ -397,6 +407,22 @@ struct LoopEnd {
     degenerate: Option<String>,
     conditioning: f64,
     prior: Option<RigidPrior>,
+    stopped_at_deadline: bool,
+}
+
+impl LoopEnd {
+    /// Whether the fit left a rigid direction free ([`WicpParams::min_conditioning`]) and
+    /// there is time to fit again with the start trusted.
+    fn leaves_motion_free(&self, params: &WicpParams) -> bool {
+        self.degenerate.is_none()
+            && self.conditioning < params.min_conditioning
+            && !past(params.deadline)
+    }
+}
+
+/// Whether `deadline` has passed.
+fn past(deadline: Option<Instant>) -> bool {
+    deadline.is_some_and(|d| Instant::now() >= d)
 }
 
 /// The ICP iterations from `start` (match, weighted Kabsch fit with the prior's pose pairs,
@@ -417,6 +443,7 @@ fn icp_loop(
         degenerate: None,
         conditioning: 0.0,
         prior: prior.copied(),
+        stopped_at_deadline: false,
     };
     let mut prev_rms = f64::INFINITY;
     let (mut matches, _) = matching(&start)?;
@@ -429,6 +456,10 @@ fn icp_loop(
             break;
         }
         if end.iterations >= params.max_iterations {
+            break;
+        }
+        if past(params.deadline) {
+            end.stopped_at_deadline = true;
             break;
         }
         if matches.len() < 3 {
