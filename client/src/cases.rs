@@ -49,8 +49,11 @@ pub struct UploadSummary {
     pub tets: u32,
     /// Seconds until the server stored it.
     pub upload_s: f64,
-    /// Seconds until READY (or FAILED), with `wait`.
+    /// Seconds until READY (or FAILED), with `wait`: on the case's own basis.
     pub ready_s: Option<f64>,
+    /// Seconds until it first answered, with `wait`: READY on a coarse basis while its own
+    /// built (a large upload), else the same as `ready_s`.
+    pub first_ready_s: Option<f64>,
     /// The last state.
     pub state: String,
     /// Why FAILED.
@@ -146,6 +149,7 @@ pub async fn upload(o: &UploadOptions) -> Result<UploadSummary> {
         tets: r.tet_count,
         upload_s,
         ready_s: None,
+        first_ready_s: None,
         state: r
             .status
             .as_ref()
@@ -169,36 +173,7 @@ pub async fn upload(o: &UploadOptions) -> Result<UploadSummary> {
     if !o.wait {
         return Ok(out);
     }
-    let mut w = client
-        .watch_case(request(
-            pb::WatchCaseRequest {
-                case_id: r.case_id.clone(),
-            },
-            &o.token,
-        )?)
-        .await
-        .map_err(|s| anyhow::anyhow!("WatchCase: {}: {}", crate::code_name(s.code()), s.message()))?
-        .into_inner();
-    let mut last_shown = (String::new(), -1.0f64);
-    while let Some(s) = w.message().await.map_err(|s| {
-        anyhow::anyhow!("WatchCase: {}: {}", crate::code_name(s.code()), s.message())
-    })? {
-        out.state = s.state().as_str_name().to_string();
-        out.error = s.error.clone();
-        // Each stage, and every 10 % within one.
-        if o.progress
-            && s.state() == pb::CaseState::Loading
-            && (s.stage != last_shown.0 || s.fraction >= last_shown.1 + 0.1)
-        {
-            eprintln!(
-                "  {:>6.2} s  loading: {} ({:.0} %)",
-                t0.elapsed().as_secs_f64(),
-                s.stage,
-                100.0 * s.fraction
-            );
-            last_shown = (s.stage.clone(), s.fraction);
-        }
-    }
+    follow(&mut client, o, &r.case_id, t0, &mut out).await?;
     out.ready_s = Some(t0.elapsed().as_secs_f64());
     if o.progress {
         eprintln!(
@@ -213,6 +188,57 @@ pub async fn upload(o: &UploadOptions) -> Result<UploadSummary> {
         );
     }
     Ok(out)
+}
+
+/// Follows an upload's preload (WatchCase) to READY on its own basis or FAILED, into `out`
+/// (its last state and error, when it first answered), with progress on stderr.
+async fn follow(
+    client: &mut crate::session::Client,
+    o: &UploadOptions,
+    case_id: &str,
+    t0: Instant,
+    out: &mut UploadSummary,
+) -> Result<()> {
+    let mut w = client
+        .watch_case(request(
+            pb::WatchCaseRequest {
+                case_id: case_id.to_string(),
+            },
+            &o.token,
+        )?)
+        .await
+        .map_err(|s| anyhow::anyhow!("WatchCase: {}: {}", crate::code_name(s.code()), s.message()))?
+        .into_inner();
+    let mut last_shown = (String::new(), -1.0f64);
+    while let Some(s) = w.message().await.map_err(|s| {
+        anyhow::anyhow!("WatchCase: {}: {}", crate::code_name(s.code()), s.message())
+    })? {
+        out.state = s.state().as_str_name().to_string();
+        out.error = s.error.clone();
+        if s.state() == pb::CaseState::Ready && out.first_ready_s.is_none() {
+            out.first_ready_s = Some(t0.elapsed().as_secs_f64());
+            if o.progress && s.coarse_basis {
+                eprintln!(
+                    "  {:>6.2} s  READY on a coarse basis (answers DEGRADED); its own basis builds",
+                    t0.elapsed().as_secs_f64()
+                );
+            }
+        }
+        // Each stage, and every 10 % within one.
+        if o.progress
+            && s.state() == pb::CaseState::Loading
+            && (s.stage != last_shown.0 || s.fraction >= last_shown.1 + 0.1)
+        {
+            eprintln!(
+                "  {:>6.2} s  loading: {} ({:.0} %)",
+                t0.elapsed().as_secs_f64(),
+                s.stage,
+                100.0 * s.fraction
+            );
+            last_shown = (s.stage.clone(), s.fraction);
+        }
+    }
+    Ok(())
 }
 
 /// Deletes an uploaded case; its version and how many sessions recorded on it can no longer be

@@ -20,6 +20,9 @@ pub struct Estimates {
     pub libr_iteration_ms: f64,
     /// LIBR's fixed cost (the final displacement of every node).
     pub libr_fixed_ms: f64,
+    /// What a deformable registration spends outside its rigid stage and LIBR's iterations
+    /// (the side test's other fits, the fit's score, the error estimate).
+    pub other_ms: f64,
 }
 
 /// A preloaded case.
@@ -46,6 +49,12 @@ pub struct Case {
     /// When a request last used it (ms since the Unix epoch): an uploaded case idle for
     /// `evict_idle_s` leaves memory.
     pub last_used: std::sync::atomic::AtomicI64,
+    /// Set while the case serves from a coarse basis (a large upload whose own basis builds;
+    /// [`load_serving_early`]): its figures. Registrations on it are flagged DEGRADED.
+    pub coarse: Option<librplus::register::libr::CoarseFigures>,
+    /// A coarse case's successor, the same content with its own basis, once it is ready:
+    /// sessions on the coarse case swap to it before their next registration.
+    pub full: std::sync::OnceLock<Arc<Case>>,
 }
 
 impl Case {
@@ -66,11 +75,14 @@ impl Case {
     }
 
     /// Folds measured durations into the estimates.
-    pub fn observe(&self, rigid_ms: f64, libr: Option<(f64, usize)>) {
+    pub fn observe(&self, rigid_ms: f64, libr: Option<(f64, usize)>, other_ms: Option<f64>) {
         let mut e = self.estimates.lock().unwrap_or_else(|p| p.into_inner());
         let a = 0.2;
         if rigid_ms.is_finite() {
             e.rigid_ms = (1.0 - a) * e.rigid_ms + a * rigid_ms;
+        }
+        if let Some(ms) = other_ms.filter(|m| m.is_finite()) {
+            e.other_ms = (1.0 - a) * e.other_ms + a * ms.max(0.0);
         }
         if let Some((ms, it)) = libr
             && it > 0
@@ -254,11 +266,108 @@ pub fn load_with_progress(
     learned: &Learned,
     progress: &dyn Fn(&str, f64),
 ) -> Result<Case, CaseError> {
+    load_serving_early(id, source, config, learned, progress, None)
+}
+
+/// [`load_with_progress`] that, for a case `coarse_first` picks, hands `early` a case that
+/// serves from a coarse basis (its [`Case::coarse`] set) before the case's own basis builds.
+/// A coarse basis that cannot be built is logged and skipped: the case's own still is.
+pub fn load_serving_early(
+    id: &str,
+    source: &CaseSource,
+    config: &ServerConfig,
+    learned: &Learned,
+    progress: &dyn Fn(&str, f64),
+    early: Option<&dyn Fn(Case)>,
+) -> Result<Case, CaseError> {
     // The library's defaults, made in one place; the case keeps them.
     let params = PipelineParams::default();
     progress("reading", 0.0);
-    let mut version = String::new();
-    let (model, path, cache, physics_path) = match source {
+    let read = read_source(source, config, progress)?;
+    let prepare = |source| CaseError::Prepare {
+        path: read.path.clone(),
+        source,
+    };
+    // The augmented model beside the case (`physics.json`, from `librplus discover`), if any.
+    let physics = if read.physics_path.is_file() {
+        Physics::read(&read.physics_path).map_err(|source| CaseError::Physics {
+            path: read.physics_path.clone(),
+            source,
+        })?
+    } else {
+        Physics::none()
+    };
+    let version = match &read.version {
+        Some(v) => v.clone(),
+        // A case the server was started with: the SHA-256 of its mesh and physics, so that a
+        // session recorded on other content (the files changed across a restart) is not resumed.
+        None => content_version(&read.model, &read.physics_path),
+    };
+    let default_method = config.method()?;
+    if let Some(early) = early
+        && coarse_first(config, &read, &physics, &params)
+    {
+        progress("coarse basis", 0.15);
+        let edge = config.coarse_basis_edge_mm;
+        match Prepared::with_coarse_basis(read.model.clone(), &params.libr, edge) {
+            Ok((prepared, figures)) => {
+                let prepared = learned_models(prepared, learned, config, &params, None, progress)
+                    .map_err(prepare)?;
+                let mut c = case(id, &read.path, prepared, &params, default_method, &version);
+                c.coarse = Some(figures);
+                early(c);
+            }
+            Err(e) => {
+                tracing::warn!(case = %id, error = %e, "no coarse basis; the case's own basis builds")
+            }
+        }
+    }
+    progress("preparing", 0.2);
+    let prepared =
+        Prepared::with_physics(read.model, Some(&params.libr), &physics, Some(&read.cache))
+            .map_err(prepare)?;
+    let prepared = learned_models(
+        prepared,
+        learned,
+        config,
+        &params,
+        Some(&read.cache),
+        progress,
+    )
+    .map_err(prepare)?;
+    if default_method == Method::LibrPlus && prepared.librplus.is_none() {
+        return Err(CaseError::NoModel);
+    }
+    Ok(case(
+        id,
+        &read.path,
+        prepared,
+        &params,
+        default_method,
+        &version,
+    ))
+}
+
+/// A case's model as read from its source, and where its files are.
+struct Read {
+    model: PreopModel,
+    /// The mesh file.
+    path: PathBuf,
+    /// Its basis cache folder.
+    cache: PathBuf,
+    /// Where its `physics.json` would be.
+    physics_path: PathBuf,
+    /// Its content version when the source gives one (an upload's).
+    version: Option<String>,
+}
+
+/// Reads a case's model from its source.
+fn read_source(
+    source: &CaseSource,
+    config: &ServerConfig,
+    progress: &dyn Fn(&str, f64),
+) -> Result<Read, CaseError> {
+    let read = match source {
         CaseSource::Dataset { dir, geometry } => {
             let m = librplus::dataset::read::open(dir)?;
             let g = librplus::dataset::read::load_geometry(dir, &m, geometry)?;
@@ -270,8 +379,13 @@ pub fn load_with_progress(
                     path: dir.clone(),
                     problem: format!("no geometry {geometry}"),
                 })?;
-            let physics = dir.join("physics").join(format!("{geometry}.json"));
-            (g.model, dir.join(&entry.preop), dir.join("cache"), physics)
+            Read {
+                model: g.model,
+                path: dir.join(&entry.preop),
+                cache: dir.join("cache"),
+                physics_path: dir.join("physics").join(format!("{geometry}.json")),
+                version: None,
+            }
         }
         CaseSource::Mesh { path } => {
             let unit = config.unit()?;
@@ -282,74 +396,96 @@ pub fn load_with_progress(
                 .file_stem()
                 .map(|s| s.to_string_lossy().to_string())
                 .unwrap_or_default();
-            let physics = parent.join(format!("{stem}.physics.json"));
-            (model, path.clone(), parent.join("cache"), physics)
+            Read {
+                model,
+                path: path.clone(),
+                cache: parent.join("cache"),
+                physics_path: parent.join(format!("{stem}.physics.json")),
+                version: None,
+            }
         }
         CaseSource::Stored(s) => {
             let path = s.mesh_path();
             let file = io::read(&path, s.unit())?;
             progress("labelling", 0.1);
             let model = model_from_mesh_file(&path, &file, s.unit())?;
-            version = s.version.clone();
-            (
+            // A stored case keeps its basis in its own folder (deleted with it).
+            return Ok(Read {
                 model,
                 path,
-                s.dir.join("cache"),
-                s.dir.join("mesh.physics.json"),
-            )
+                cache: s.dir.join("cache"),
+                physics_path: s.dir.join("mesh.physics.json"),
+                version: Some(s.version.clone()),
+            });
         }
     };
-    // A stored case keeps its basis in its own folder (deleted with it).
-    let cache = match source {
-        CaseSource::Stored(_) => cache,
-        _ => config.cache_dir.clone().unwrap_or(cache),
-    };
-    progress("preparing", 0.2);
-    let prepare = |source| CaseError::Prepare {
-        path: path.clone(),
-        source,
-    };
-    // The augmented model beside the case (`physics.json`, from `librplus discover`), if any.
-    let physics = if physics_path.is_file() {
-        Physics::read(&physics_path).map_err(|source| CaseError::Physics {
-            path: physics_path.clone(),
-            source,
-        })?
-    } else {
-        Physics::none()
-    };
-    let mut prepared = Prepared::with_physics(model, Some(&params.libr), &physics, Some(&cache))
-        .map_err(prepare)?
-        .with_error_model(librplus::register::uncertainty::builtin());
+    Ok(Read {
+        cache: config.cache_dir.clone().unwrap_or(read.cache),
+        ..read
+    })
+}
+
+/// Whether a case serves from a coarse basis first: more nodes than
+/// `coarse_basis_above_nodes` (0: never), plain physics (a carried basis has no supports or effects), and
+/// its own basis not in its cache (a cached one loads in a second).
+fn coarse_first(
+    config: &ServerConfig,
+    read: &Read,
+    physics: &Physics,
+    params: &PipelineParams,
+) -> bool {
+    let mesh = &read.model.mesh;
+    config.coarse_basis_above_nodes > 0
+        && mesh.num_nodes() > config.coarse_basis_above_nodes
+        && physics.is_empty()
+        && !librplus::register::libr::LibrBasis::cache_path(mesh, &params.libr, &read.cache)
+            .is_file()
+}
+
+/// `prepared` with the learned models and the error model the server gives every case, and
+/// adaptive LIBR's basis when the server prepares it and `cache` is given (a coarse case, given
+/// none, answers without adaptive LIBR until its own basis is ready).
+fn learned_models(
+    prepared: Prepared,
+    learned: &Learned,
+    config: &ServerConfig,
+    params: &PipelineParams,
+    cache: Option<&Path>,
+    progress: &dyn Fn(&str, f64),
+) -> Result<Prepared, librplus::pipeline::PipelineError> {
+    let mut prepared = prepared.with_error_model(librplus::register::uncertainty::builtin());
     if let Some(m) = &learned.gcn {
         progress("sr-gcn", 0.9);
-        prepared = prepared.with_models(m.clone()).map_err(prepare)?;
+        prepared = prepared.with_models(m.clone())?;
     }
     if let Some(m) = &learned.v2s {
         progress("v2s", 0.95);
-        prepared = prepared.with_v2s(m.clone()).map_err(prepare)?;
+        prepared = prepared.with_v2s(m.clone())?;
     }
-    if config.adaptive {
+    if config.adaptive
+        && let Some(cache) = cache
+    {
         progress("adaptive basis", 0.97);
-        prepared = prepared
-            .with_adaptive(&params.libr, &params.adaptive, Some(&cache))
-            .map_err(prepare)?;
+        prepared = prepared.with_adaptive(&params.libr, &params.adaptive, Some(cache))?;
     }
-    let default_method = config.method()?;
-    if default_method == Method::LibrPlus && prepared.librplus.is_none() {
-        return Err(CaseError::NoModel);
-    }
-    if version.is_empty() {
-        // A case the server was started with: the SHA-256 of its mesh and physics, so that a
-        // session recorded on other content (the files changed across a restart) is not resumed.
-        version = content_version(&prepared, &physics_path);
-    }
+    Ok(prepared)
+}
+
+/// A case of a prepared model.
+fn case(
+    id: &str,
+    path: &Path,
+    prepared: Prepared,
+    params: &PipelineParams,
+    default_method: Method,
+    version: &str,
+) -> Case {
     let n = prepared.model.mesh.num_nodes() as f64;
-    Ok(Case {
+    Case {
         id: id.to_string(),
-        source: path,
+        source: path.to_path_buf(),
         prepared,
-        params,
+        params: params.clone(),
         default_method,
         // First guesses, per 10,000 nodes on one core of this machine kind (BENCHMARKS.md);
         // replaced by measurements after the first registrations.
@@ -357,17 +493,20 @@ pub fn load_with_progress(
             rigid_ms: 25.0 * n / 1e4,
             libr_iteration_ms: 3.0 * n / 1e4,
             libr_fixed_ms: 4.0 * n / 1e4,
+            other_ms: 0.0,
         }),
-        version,
+        version: version.to_string(),
         sessions: Default::default(),
         last_used: crate::audit::now_ms().into(),
-    })
+        coarse: None,
+        full: std::sync::OnceLock::new(),
+    }
 }
 
 /// SHA-256 (hex) of a prepared case's content: node positions, tetrahedra and the
 /// `physics.json` beside it (its bytes, when present).
-fn content_version(prepared: &Prepared, physics_path: &Path) -> String {
-    let mesh = &prepared.model.mesh;
+fn content_version(model: &PreopModel, physics_path: &Path) -> String {
+    let mesh = &model.mesh;
     let mut bytes = Vec::with_capacity(mesh.num_nodes() * 24 + mesh.num_tets() * 16 + 64);
     bytes.extend_from_slice(b"librplus-case 1\n");
     for p in mesh.nodes() {

@@ -51,6 +51,7 @@ fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) ->
         fraction,
         error: String::new(),
         seconds: t0.elapsed().as_secs_f64(),
+        coarse_basis: false,
     };
     let first = status("queued", 0.0);
     shared.registry.set_uploaded(&stored.case_id);
@@ -61,19 +62,40 @@ fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) ->
         let id = stored.case_id.clone();
         let version = stored.version.clone();
         let nodes = stored.nodes;
+        // Once a coarse case serves (a large upload, `coarse_basis_above_nodes`), the status
+        // stays READY on it while the case's own basis builds.
+        let early_case = std::sync::Mutex::new(None::<Arc<cases::Case>>);
         let set = |stage: &str, fraction: f64| {
+            let coarse = early_case
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .is_some();
             shared.registry.set(
                 pb::CaseStatus {
                     case_id: id.clone(),
                     version: version.clone(),
-                    state: pb::CaseState::Loading as i32,
+                    state: if coarse {
+                        pb::CaseState::Ready as i32
+                    } else {
+                        pb::CaseState::Loading as i32
+                    },
                     stage: stage.into(),
                     fraction,
                     error: String::new(),
                     seconds: t0.elapsed().as_secs_f64(),
+                    coarse_basis: coarse,
                 },
                 None,
             )
+        };
+        let early = |c: cases::Case| {
+            let c = Arc::new(c);
+            tracing::info!(case = %id, seconds = t0.elapsed().as_secs_f64(), nodes, "uploaded case READY on a coarse basis; its own basis builds");
+            let mut s = crate::registry::ready_status(&c);
+            s.stage = "coarse basis; its own basis builds".into();
+            s.seconds = t0.elapsed().as_secs_f64();
+            *early_case.lock().unwrap_or_else(|e| e.into_inner()) = Some(c.clone());
+            shared.registry.set(s, Some(c));
         };
         // The `preparing` stage (correspondence and LIBR basis) reports no progress of its own:
         // its fraction moves with the time it is expected to take (measured here: 5.5 s for
@@ -100,12 +122,13 @@ fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) ->
                     }
                 }
             });
-            let r = cases::load_with_progress(
+            let r = cases::load_serving_early(
                 &id,
                 &CaseSource::Stored(Box::new(stored)),
                 &shared.config,
                 &learned,
                 &progress,
+                Some(&early),
             );
             done.store(true, Ordering::Release);
             r
@@ -116,57 +139,148 @@ fn preload_with(shared: Arc<Shared>, stored: Stored, remove_on_failure: bool) ->
                 let c = Arc::new(c);
                 let mut s = crate::registry::ready_status(&c);
                 s.seconds = t0.elapsed().as_secs_f64();
+                let coarse = early_case.lock().unwrap_or_else(|e| e.into_inner()).take();
+                if let Some(coarse) = &coarse {
+                    // Sessions on the coarse case swap to this one before their next update.
+                    let _ = coarse.full.set(c.clone());
+                }
                 shared.registry.set(s, Some(c));
+                if let Some(coarse) = coarse {
+                    record_swap(
+                        &shared,
+                        &runtime,
+                        &principal,
+                        &coarse,
+                        t0.elapsed().as_secs_f64(),
+                    );
+                }
             }
             Err(e) => {
-                // Removed from the store: it would fail again at every start and hold its
-                // quota. Its FAILED status keeps the reason until it is uploaded again.
-                let removed = shared
-                    .store
-                    .as_ref()
-                    .filter(|_| remove_on_failure)
-                    .map(|s| s.remove_version(&id, Some(&version)));
-                let error = match removed {
-                    Some(Ok(Some(_))) => format!(
-                        "{e}; the upload was removed from the case store: upload it again once fixed"
-                    ),
-                    Some(Err(r)) => {
-                        tracing::error!(case = %id, error = %r, "could not remove the failed upload from the case store");
-                        e.to_string()
-                    }
-                    _ => e.to_string(),
+                if early_case
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .take()
+                    .is_some()
+                {
+                    // Its coarse basis served meanwhile; a case that failed is not served.
+                    shared.registry.unserve(&id);
+                }
+                let failed = Failed {
+                    id,
+                    version,
+                    principal,
+                    remove: remove_on_failure,
+                    seconds: t0.elapsed().as_secs_f64(),
                 };
-                tracing::error!(case = %id, error = %error, "uploaded case failed to preload");
-                shared.registry.set(
-                    pb::CaseStatus {
-                        case_id: id.clone(),
-                        version: version.clone(),
-                        state: pb::CaseState::Failed as i32,
-                        error: error.clone(),
-                        seconds: t0.elapsed().as_secs_f64(),
-                        ..Default::default()
-                    },
-                    None,
-                );
-                let sh = shared.clone();
-                runtime.spawn(async move {
-                    let r = sh
-                        .record(vec![Record::Event {
-                            kind: "case_failed",
-                            principal,
-                            case_id: Some(id.clone()),
-                            session_id: None,
-                            detail: serde_json::json!({ "version": version, "error": error }),
-                        }])
-                        .await;
-                    if let Err(e) = r {
-                        tracing::error!(case = %id, error = ?e, "could not record the failed preload");
-                    }
-                });
+                preload_failed(&shared, &runtime, failed, &e);
             }
         }
     });
     first
+}
+
+/// An upload whose preload failed: its id, version, uploader, whether it is removed from the
+/// store (a new upload) and the seconds since it was stored.
+struct Failed {
+    id: String,
+    version: String,
+    principal: String,
+    remove: bool,
+    seconds: f64,
+}
+
+/// A failed preload: removed from the store when new, FAILED with the reason, audited.
+fn preload_failed(
+    shared: &Arc<Shared>,
+    runtime: &tokio::runtime::Handle,
+    f: Failed,
+    e: &cases::CaseError,
+) {
+    let Failed {
+        id,
+        version,
+        principal,
+        remove,
+        seconds,
+    } = f;
+    // Removed from the store: it would fail again at every start and hold its
+    // quota. Its FAILED status keeps the reason until it is uploaded again.
+    let removed = shared
+        .store
+        .as_ref()
+        .filter(|_| remove)
+        .map(|s| s.remove_version(&id, Some(&version)));
+    let error = match removed {
+        Some(Ok(Some(_))) => {
+            format!("{e}; the upload was removed from the case store: upload it again once fixed")
+        }
+        Some(Err(r)) => {
+            tracing::error!(case = %id, error = %r, "could not remove the failed upload from the case store");
+            e.to_string()
+        }
+        _ => e.to_string(),
+    };
+    tracing::error!(case = %id, error = %error, "uploaded case failed to preload");
+    shared.registry.set(
+        pb::CaseStatus {
+            case_id: id.clone(),
+            version: version.clone(),
+            state: pb::CaseState::Failed as i32,
+            error: error.clone(),
+            seconds,
+            ..Default::default()
+        },
+        None,
+    );
+    let sh = shared.clone();
+    runtime.spawn(async move {
+        let r = sh
+            .record(vec![Record::Event {
+                kind: "case_failed",
+                principal,
+                case_id: Some(id.clone()),
+                session_id: None,
+                detail: serde_json::json!({ "version": version, "error": error }),
+            }])
+            .await;
+        if let Err(e) = r {
+            tracing::error!(case = %id, error = ?e, "could not record the failed preload");
+        }
+    });
+}
+
+/// Audits a coarse case's swap to its own basis (`seconds` after the upload was stored).
+fn record_swap(
+    shared: &Arc<Shared>,
+    runtime: &tokio::runtime::Handle,
+    principal: &str,
+    coarse: &cases::Case,
+    seconds: f64,
+) {
+    let figures = coarse.coarse.expect("a coarse case");
+    let detail = serde_json::json!({
+        "version": coarse.version,
+        "coarse_edge_mm": figures.edge_mm,
+        "coarse_nodes": figures.coarse_nodes,
+        "coarse_basis_s": figures.seconds,
+        "own_basis_after_s": seconds,
+    });
+    tracing::info!(case = %coarse.id, seconds, "the case's own basis is ready; sessions swap to it");
+    let (sh, id, principal) = (shared.clone(), coarse.id.clone(), principal.to_string());
+    runtime.spawn(async move {
+        let r = sh
+            .record(vec![Record::Event {
+                kind: "case_basis_swapped",
+                principal,
+                case_id: Some(id.clone()),
+                session_id: None,
+                detail,
+            }])
+            .await;
+        if let Err(e) = r {
+            tracing::error!(case = %id, error = ?e, "could not record the swap to the case's own basis");
+        }
+    });
 }
 
 // The preload at start: every configured and stored case, the learned models, and the

@@ -123,6 +123,7 @@ impl Registry {
                 fraction: 0.0,
                 error: String::new(),
                 seconds: 0.0,
+                coarse_basis: false,
             },
             None,
         );
@@ -154,6 +155,17 @@ impl Registry {
             switched
         });
         switched
+    }
+
+    /// Serves case `id` no more, keeping its state (a coarse case whose own basis failed: the
+    /// FAILED status set next says why).
+    pub fn unserve(&self, id: &str) {
+        let mut r = self.ready.write().unwrap_or_else(|e| e.into_inner());
+        if r.contains_key(id) {
+            let mut m = (**r).clone();
+            m.remove(id);
+            *r = Arc::new(m);
+        }
     }
 
     /// Forgets a case (served no more); its watchers see it FAILED "deleted".
@@ -208,5 +220,6 @@ pub(crate) fn ready_status(c: &Case) -> pb::CaseStatus {
         fraction: 1.0,
         error: String::new(),
         seconds: c.prepared.seconds,
+        coarse_basis: c.coarse.is_some(),
     }
 }

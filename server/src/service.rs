@@ -297,7 +297,8 @@ impl LibRPlus for Svc {
         tokio::spawn(async move {
             loop {
                 let s = rx.borrow_and_update().clone();
-                let done = s.state != pb::CaseState::Loading as i32;
+                // A case READY on a coarse basis is followed on to its own basis.
+                let done = s.state != pb::CaseState::Loading as i32 && !s.coarse_basis;
                 if tx.send(Ok(s)).await.is_err() || done {
                     return;
                 }

@@ -356,6 +356,34 @@ impl Prepared {
         })
     }
 
+    /// [`Prepared::new`] with a basis built on the model's boundary meshed again with tets of
+    /// `edge_mm` and carried to its nodes ([`libr::coarse_basis`]): an answer within seconds of
+    /// a large case's upload, while its own basis builds. Plain physics only (the carried basis
+    /// has no supports or effects); the coarse basis's figures are returned beside it.
+    pub fn with_coarse_basis(
+        model: PreopModel,
+        libr: &LibrParams,
+        edge_mm: f64,
+    ) -> Result<(Self, libr::CoarseFigures), PipelineError> {
+        let t0 = Instant::now();
+        let correspondence = Correspondence::new(&model).map_err(PipelineError::Case)?;
+        let coarse = libr::coarse_basis(&model.mesh, libr, edge_mm).map_err(PipelineError::Case)?;
+        let figures = coarse.figures();
+        let prepared = Self {
+            model,
+            correspondence,
+            basis: Some(coarse.basis),
+            basis_from_cache: false,
+            librplus: None,
+            v2s: None,
+            adaptive: None,
+            physics: Physics::none(),
+            error_model: None,
+            seconds: crate::util::secs(t0),
+        };
+        Ok((prepared, figures))
+    }
+
     /// Sets the error model of the case's registrations' estimates (None: none).
     pub fn with_error_model(mut self, model: Option<Arc<ErrorModel>>) -> Self {
         self.error_model = model;

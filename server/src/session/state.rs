@@ -17,8 +17,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// Session state after a valid start. Changed only through its methods: [`accept`] (a message),
-/// [`Session::replayed`] (a resumed session's discovery message), [`Session::start_discovery`]
-/// and [`Session::switch_to`] (discovery's model).
+/// [`Session::replayed`] (a resumed session's discovery message), [`Session::start_discovery`],
+/// [`Session::switch_to`] (discovery's model) and [`Session::swap_to_own_basis`].
 pub(crate) struct Session {
     case: Arc<Case>,
     /// The start's method and options, and every point accepted so far.
@@ -136,6 +136,14 @@ impl Session {
         self.pending = Some(rx);
     }
 
+    /// A session on a coarse case takes the case's own basis once it is ready
+    /// ([`Case::full`]); the case it took, when it did.
+    pub fn swap_to_own_basis(&mut self) -> Option<Arc<Case>> {
+        let full = self.case.full.get()?.clone();
+        self.case = full.clone();
+        Some(full)
+    }
+
     /// Discovery's augmented model replaces the session's.
     pub fn switch_to(&mut self, prepared: Arc<librplus::pipeline::Prepared>) {
         self.augmented = Some(prepared);
@@ -213,7 +221,8 @@ pub(crate) fn check_method(case: &Case, m: i32, field: &str) -> Result<Method, S
         case.prepared.v2s.is_some(),
         field,
     )?;
-    if method == Method::Adaptive && case.prepared.adaptive.is_none() {
+    // A case serving from a coarse basis gets adaptive LIBR's with its own.
+    if method == Method::Adaptive && case.prepared.adaptive.is_none() && case.coarse.is_none() {
         return Err(ServiceError::precondition(
             "CASE",
             field,

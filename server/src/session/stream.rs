@@ -96,7 +96,7 @@ pub(crate) struct Stream {
     lease: crate::live::Lease,
     resumed: bool,
     out: Outbox,
-    _in_use: InUse,
+    in_use: InUse,
 }
 
 impl Stream {
@@ -121,7 +121,7 @@ impl Stream {
             no_data: Duration::from_secs_f64(shared.config.session_no_data_timeout_s),
             started: Instant::now(),
             out: Outbox::new(tx, &session_id),
-            _in_use: InUse::new(session.case()),
+            in_use: InUse::new(session.case()),
             shared,
             who,
             inbound,
@@ -276,6 +276,7 @@ impl Stream {
     /// Registers the session's points, records the answer (acknowledged only once recorded)
     /// and sends it.
     async fn register(&mut self, seq: u64, arrival: Instant) -> Result<(), Halt> {
+        self.swap_to_own_basis().await?;
         let update = register_session(&self.shared, &self.s, arrival, self.deadline, seq).await;
         if self.shared.audit.is_some() {
             let record = match &update {
@@ -301,6 +302,30 @@ impl Stream {
             }
         }
         self.out.send(&self.s, update, arrival).await?;
+        Ok(())
+    }
+
+    /// A session on a case that served from a coarse basis takes the case's own basis once it
+    /// is ready; the swap is audited before the registration it changes.
+    async fn swap_to_own_basis(&mut self) -> Result<(), Halt> {
+        let Some(full) = self.s.swap_to_own_basis() else {
+            return Ok(());
+        };
+        self.in_use = InUse::new(&full);
+        tracing::info!(session = %self.sid, case = %full.id, "session swapped to the case's own basis");
+        if self.shared.audit.is_some() {
+            let record = Record::Event {
+                kind: "session_basis_swapped",
+                principal: self.who.name.clone(),
+                case_id: Some(full.id.clone()),
+                session_id: Some(self.sid.clone()),
+                detail: serde_json::json!({
+                    "version": full.version,
+                    "after_client_seq": self.s.last_seq(),
+                }),
+            };
+            lease_record(&self.shared, &self.lease, &self.sid, vec![record]).await?;
+        }
         Ok(())
     }
 

@@ -8,6 +8,7 @@ mod adversary;
 mod auth;
 mod bad_input;
 mod cases;
+mod coarse;
 mod demo_load;
 mod discovery;
 mod igtl;

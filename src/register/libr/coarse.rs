@@ -42,6 +42,28 @@ pub struct CoarseBasis {
     pub transfer_s: f64,
 }
 
+/// A [`CoarseBasis`]'s figures without its basis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CoarseFigures {
+    /// Nodes of the coarse mesh.
+    pub coarse_nodes: usize,
+    /// The coarse mesh's edge length (mm).
+    pub edge_mm: f64,
+    /// Seconds it took in all: meshing again, the coarse basis, carrying it over.
+    pub seconds: f64,
+}
+
+impl CoarseBasis {
+    /// Its figures.
+    pub fn figures(&self) -> CoarseFigures {
+        CoarseFigures {
+            coarse_nodes: self.coarse_nodes,
+            edge_mm: self.edge_mm,
+            seconds: self.mesh_s + self.basis_s + self.transfer_s,
+        }
+    }
+}
+
 /// The LIBR basis of `fine` built on its boundary meshed again with tets of `edge_mm`, carried
 /// to `fine`'s nodes (module doc). Fails with a message naming the step: a mesh without a
 /// closed boundary, an edge that is not finite and positive, a coarse mesh the basis cannot be
