@@ -236,6 +236,7 @@ struct Plan {
 fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let prepared = job.prepared.as_deref().unwrap_or(&job.case.prepared);
     let mut plan = plan(&job, prepared, Instant::now());
+    coarse_plan(&job, prepared, &mut plan);
     let meas = &job.request.measurements;
     let mut result = register(prepared, meas, plan.method, &plan.params);
     let mut fallback: Option<String> = None;
@@ -250,9 +251,16 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         result = register(prepared, meas, plan.method, &plan.params);
     }
     let reg = result?;
+    // A deformable answer's time outside its rigid stage, LIBR and the SR-GCN (the search's,
+    // when one ran, is the rigid stage's: no other estimate counts it).
+    let other_ms = reg.libr.as_ref().filter(|_| reg.pose.is_none()).map(|l| {
+        let gcn = reg.correction.as_ref().map_or(0.0, |c| c.seconds);
+        (reg.seconds - reg.rigid.seconds - l.total_s - gcn) * 1e3
+    });
     job.case.observe(
         reg.rigid.seconds * 1e3,
         reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
+        other_ms,
     );
     if let (Some(why), Some(score)) = (&plan.search_off, reg.search_skipped_mm2) {
         // Never silently: the registration the gate would have searched says it was not.
@@ -306,7 +314,8 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         .map_or(0.0, |g| 1e3 * g.expected_seconds());
     let left = ms(deadline.saturating_duration_since(start));
     if method == Method::LibrPlus {
-        let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + gcn_ms;
+        let need =
+            est.rigid_ms + est.other_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + gcn_ms;
         if left < need {
             method = Method::Libr;
             degraded = Some(format!(
@@ -329,7 +338,7 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         degraded = Some(why);
     }
     if matches!(method, Method::Libr | Method::LibrPlus | Method::Auto) {
-        let need = est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
+        let need = est.rigid_ms + est.other_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
         if left < need {
             method = Method::Rigid;
             degraded = Some(format!(
@@ -337,19 +346,19 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
                 ms(job.request.options.budget)
             ));
         } else {
-            params.deadline =
-                Some(deadline - Duration::from_secs_f64(est.libr_fixed_ms.max(0.0) / 1e3));
+            let after_libr_ms = est.libr_fixed_ms.max(0.0) + est.other_ms.max(0.0);
+            params.deadline = deadline.checked_sub(Duration::from_secs_f64(after_libr_ms / 1e3));
         }
     }
+    params.wicp.deadline = rigid_deadline(method, &est, gcn_ms, deadline);
     // The pose search (`librplus::pipeline::pose`) costs about six single registrations: it
     // runs when the budget left holds that many, otherwise the navigation start alone.
     let left = ms(deadline.saturating_duration_since(Instant::now()));
+    let single = est.rigid_ms + est.other_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms;
     let one = match method {
         Method::Rigid | Method::V2s => est.rigid_ms,
-        Method::Auto => {
-            AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms)
-        }
-        _ => est.rigid_ms + est.libr_fixed_ms + 10.0 * est.libr_iteration_ms,
+        Method::Auto => AUTO_COST * single,
+        _ => single,
     };
     let mut search_off = None;
     if left < POSE_SEARCH_COST * one {
@@ -369,11 +378,56 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
     }
 }
 
+/// Where the rigid stage (the side test's fits, wICP, the pose search's refinements) stops, in
+/// time for what follows it: LIBR's fixed cost and two iterations and the rest of the
+/// registration (for auto, its candidates'; for LIBR+, the SR-GCN's too).
+fn rigid_deadline(
+    method: Method,
+    est: &crate::cases::Estimates,
+    gcn_ms: f64,
+    deadline: Instant,
+) -> Option<Instant> {
+    let libr_ms = est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + est.other_ms;
+    let after_rigid_ms = match method {
+        // What follows a rigid answer (its candidates' scores, the error estimate) is about
+        // what follows a deformable one's LIBR.
+        Method::Rigid | Method::V2s | Method::Initial => est.other_ms,
+        Method::Auto => AUTO_COST * libr_ms,
+        Method::LibrPlus => libr_ms + gcn_ms,
+        _ => libr_ms,
+    };
+    deadline.checked_sub(Duration::from_secs_f64(after_rigid_ms.max(0.0) / 1e3))
+}
+
+/// A registration on a case that serves from a coarse basis while its own builds
+/// ([`Case::coarse`]) says so; adaptive LIBR, whose basis comes with the case's own, answers as
+/// LIBR meanwhile.
+fn coarse_plan(job: &Job, prepared: &librplus::pipeline::Prepared, plan: &mut Plan) {
+    if plan.method == Method::Adaptive && prepared.adaptive.is_none() {
+        plan.method = Method::Libr;
+        plan.degraded
+            .get_or_insert_with(|| "adaptive LIBR's basis is not ready: LIBR result".to_string());
+    }
+    let Some(f) = job.case.coarse.filter(|_| job.prepared.is_none()) else {
+        return;
+    };
+    let why = format!(
+        "the case's own basis is still building: answered from a basis built on its boundary meshed again at {} mm ({} nodes)",
+        crate::convert::num(f.edge_mm),
+        f.coarse_nodes
+    );
+    plan.degraded = Some(match plan.degraded.take() {
+        Some(r) => format!("{r}; {why}"),
+        None => why,
+    });
+}
+
 /// Why the automatic choice does not fit the `left` ms of the budget (None: it does), by the
 /// case's running estimates.
 fn auto_does_not_fit(job: &Job, left: f64) -> Option<String> {
     let est = job.case.estimates();
-    let need = AUTO_COST * (est.rigid_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms);
+    let need =
+        AUTO_COST * (est.rigid_ms + est.other_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms);
     (left < need).then(|| {
         format!(
             "time budget {:.0} ms: {left:.0} ms left, the automatic choice needs about {need:.0} ms; LIBR result",
@@ -445,6 +499,18 @@ fn record_stages(
         }
     }
     stage("total", total_ms);
+    tracing::debug!(
+        method = plan.method.name(),
+        quality = quality.as_str_name(),
+        total_ms,
+        queue_ms = plan.queue_ms,
+        rigid_ms = reg.rigid.seconds * 1e3,
+        libr_ms = reg.libr.as_ref().map_or(0.0, |l| l.total_s * 1e3),
+        libr_iterations = reg.libr.as_ref().map_or(0, |l| l.iterations),
+        gcn_ms = reg.correction.as_ref().map_or(0.0, |c| c.seconds * 1e3),
+        pipeline_ms = reg.seconds * 1e3,
+        "registration"
+    );
     metrics::counter!("librplus_registrations_total", "method" => plan.method.name(), "quality" => quality.as_str_name()).increment(1);
 }
 
@@ -472,6 +538,7 @@ fn answer(
         method_used: method_to_pb(plan.method) as i32,
         choice: reg.auto.as_ref().map(crate::convert::choice_to_pb),
         surface: reg.surface.as_ref().map(crate::convert::side_to_pb),
+        coarse_basis: job.case.coarse.is_some() && job.prepared.is_none(),
         residual_rms_mm: refit.or(info).map_or(reg.rigid.rms_mm, |i| i.rms_mm),
         points_used: job.request.measurements.points.len() as u32,
         points_matched: reg.rigid.matched as u32,

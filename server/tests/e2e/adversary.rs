@@ -295,8 +295,23 @@ async fn budgets_are_kept_or_explained_and_clients_are_served_fairly() {
         r.quality(),
         r.quality_reason
     );
-    assert_eq!(r.quality(), pb::Quality::Degraded);
-    assert!(!r.quality_reason.is_empty());
+    // The rigid stage stops at the deadline: the answer is about the start, flagged DEGRADED,
+    // or LIKELY_FAILED when the error estimate reads the start as far off; either way the
+    // reason names the budget.
+    assert!(
+        matches!(
+            r.quality(),
+            pb::Quality::Degraded | pb::Quality::LikelyFailed
+        ),
+        "{:?}: {}",
+        r.quality(),
+        r.quality_reason
+    );
+    assert!(
+        r.quality_reason.contains("time budget"),
+        "{}",
+        r.quality_reason
+    );
     // A burst of 12 large requests on one connection, then another client's small one.
     let big = request(&case, pb::Method::Rigid, points(20_000));
     let mut tasks = Vec::new();
