@@ -232,21 +232,8 @@ fn preload_failed(
         },
         None,
     );
-    let sh = shared.clone();
-    runtime.spawn(async move {
-        let r = sh
-            .record(vec![Record::Event {
-                kind: "case_failed",
-                principal,
-                case_id: Some(id.clone()),
-                session_id: None,
-                detail: serde_json::json!({ "version": version, "error": error }),
-            }])
-            .await;
-        if let Err(e) = r {
-            tracing::error!(case = %id, error = ?e, "could not record the failed preload");
-        }
-    });
+    let detail = serde_json::json!({ "version": version, "error": error });
+    record_case_event(shared, runtime, "case_failed", principal, id, detail);
 }
 
 /// Audits a coarse case's swap to its own basis (`seconds` after the upload was stored).
@@ -266,11 +253,25 @@ fn record_swap(
         "own_basis_after_s": seconds,
     });
     tracing::info!(case = %coarse.id, seconds, "the case's own basis is ready; sessions swap to it");
-    let (sh, id, principal) = (shared.clone(), coarse.id.clone(), principal.to_string());
+    let (id, principal) = (coarse.id.clone(), principal.to_string());
+    record_case_event(shared, runtime, "case_basis_swapped", principal, id, detail);
+}
+
+/// Records a case event of the preload in the audit log, in the background (a failure is
+/// logged).
+fn record_case_event(
+    shared: &Arc<Shared>,
+    runtime: &tokio::runtime::Handle,
+    kind: &'static str,
+    principal: String,
+    id: String,
+    detail: serde_json::Value,
+) {
+    let sh = shared.clone();
     runtime.spawn(async move {
         let r = sh
             .record(vec![Record::Event {
-                kind: "case_basis_swapped",
+                kind,
                 principal,
                 case_id: Some(id.clone()),
                 session_id: None,
@@ -278,7 +279,7 @@ fn record_swap(
             }])
             .await;
         if let Err(e) = r {
-            tracing::error!(case = %id, error = ?e, "could not record the swap to the case's own basis");
+            tracing::error!(case = %id, kind, error = ?e, "could not record a case event");
         }
     });
 }
