@@ -71,6 +71,135 @@ pub struct TriangleBvh {
     degenerate: Vec<bool>,
     /// Sorted vertex indices of each slot (for [`TriangleBvh::refit`]).
     verts: Vec<[u32; 3]>,
+    /// Which geometry a [`Certificate`] was issued for: new for every tree built or refitted
+    /// (a clone keeps it: same triangles, same positions).
+    geometry_id: u64,
+}
+
+/// Source of [`TriangleBvh`]'s geometry ids.
+static GEOMETRY_IDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+
+fn next_geometry_id() -> u64 {
+    GEOMETRY_IDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+}
+
+/// How many of the closest triangles a [`Certificate`] keeps: enough for a vertex's fan, where a
+/// point outside a convex patch often has its closest point (several triangles then tie).
+pub const CERTIFIED: usize = 8;
+
+/// What a closest-point query learnt at one position, so that a query at a nearby position can be
+/// answered without searching ([`TriangleBvh::closest_certified`]): from `at`, the [`CERTIFIED`]
+/// closest triangles were `slots`, the closest at `best` (mm), and every other triangle at least
+/// `outside` away. From a point `δ` away every other triangle is at least `outside − δ` away and
+/// the closest kept one at most `best + δ`, so while `best + 2δ < outside` the answer is among the
+/// kept ones: evaluating just those, with the same rule for ties, gives the answer a full search
+/// would, bit for bit. An iterative fit whose points move a little each step (ICP) then searches
+/// only when a point has moved far enough to make the choice uncertain.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Certificate {
+    at: [f64; 3],
+    best: f64,
+    outside: f64,
+    slots: [u32; CERTIFIED],
+    count: u8,
+    geometry_id: u64,
+}
+
+/// What a tree walk collects from the triangles it is offered.
+trait Collector {
+    /// Squared distance beyond which a box cannot change what is collected.
+    fn bound(&self) -> f64;
+    /// Offers the triangle in `slot`, whose closest point to the query is `q` at squared distance `d2`.
+    fn offer(&mut self, bvh: &TriangleBvh, slot: u32, q: [f64; 3], d2: f64);
+}
+
+/// The closest triangle; ties go to the lower triangle index, so the answer does not depend on the
+/// order of the offers (nor on a hint).
+#[derive(Debug, Clone, Copy)]
+struct Best {
+    d2: f64,
+    slot: Option<u32>,
+    point: [f64; 3],
+}
+
+impl Default for Best {
+    fn default() -> Self {
+        Best {
+            d2: f64::INFINITY,
+            slot: None,
+            point: [0.0; 3],
+        }
+    }
+}
+
+impl Collector for Best {
+    fn bound(&self) -> f64 {
+        self.d2
+    }
+
+    fn offer(&mut self, bvh: &TriangleBvh, slot: u32, q: [f64; 3], d2: f64) {
+        let better = match self.slot {
+            None => true,
+            Some(b) => {
+                d2 < self.d2 || (d2 == self.d2 && bvh.ids[slot as usize] < bvh.ids[b as usize])
+            }
+        };
+        if better {
+            *self = Best {
+                d2,
+                slot: Some(slot),
+                point: q,
+            };
+        }
+    }
+}
+
+/// The [`CERTIFIED`] + 1 closest triangles, in the order of [`Best`] (distance, then triangle index).
+#[derive(Debug, Clone, Copy)]
+struct Nearest {
+    items: [(f64, u32, [f64; 3]); CERTIFIED + 1],
+    count: usize,
+}
+
+impl Default for Nearest {
+    fn default() -> Self {
+        Nearest {
+            items: [(f64::INFINITY, 0, [0.0; 3]); CERTIFIED + 1],
+            count: 0,
+        }
+    }
+}
+
+impl Collector for Nearest {
+    fn bound(&self) -> f64 {
+        if self.count > CERTIFIED {
+            self.items[CERTIFIED].0
+        } else {
+            f64::INFINITY
+        }
+    }
+
+    fn offer(&mut self, bvh: &TriangleBvh, slot: u32, q: [f64; 3], d2: f64) {
+        let before = |a: &(f64, u32, [f64; 3])| {
+            d2 < a.0 || (d2 == a.0 && bvh.ids[slot as usize] < bvh.ids[a.1 as usize])
+        };
+        let len = self.count.min(CERTIFIED + 1);
+        let at = self.items[..len].iter().position(before).unwrap_or(len);
+        if at > CERTIFIED {
+            return;
+        }
+        let end = len.min(CERTIFIED);
+        self.items.copy_within(at..end, at + 1);
+        self.items[at] = (d2, slot, q);
+        self.count += 1;
+    }
+}
+
+/// Squared distance between two points.
+#[inline]
+fn distance2(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let d = sub(a, b);
+    dot(d, d)
 }
 
 impl TriangleBvh {
@@ -102,6 +231,7 @@ impl TriangleBvh {
             slot_of: vec![0; tris.len()],
             degenerate: Vec::with_capacity(tris.len()),
             verts: Vec::with_capacity(tris.len()),
+            geometry_id: next_geometry_id(),
         };
         if !items.is_empty() {
             bvh.build(&mut items, &sorted);
@@ -174,6 +304,7 @@ impl TriangleBvh {
     /// than a rebuild, and exact (only the tree's balance degrades under large motion). Queries
     /// then answer for the moved surface.
     pub fn refit(&mut self, xyz: &[[f64; 3]]) {
+        self.geometry_id = next_geometry_id();
         for (slot, v) in self.verts.iter().enumerate() {
             let c = v.map(|i| xyz[i as usize]);
             self.degenerate[slot] = is_sliver(&c);
@@ -228,52 +359,106 @@ impl TriangleBvh {
     /// e.g. the answer for a nearby point) only speeds the search up; the answer does not depend on it
     /// except among triangles at exactly the same distance.
     pub fn closest(&self, p: [f64; 3], hint: Option<u32>) -> Option<Closest> {
-        if self.ids.is_empty() {
+        let mut best = Best::default();
+        if let Some(slot) = self.hint_slot(hint) {
+            let q = self.closest_in_slot(p, slot as usize);
+            best.offer(self, slot, q, distance2(p, q));
+        }
+        let skip = best.slot;
+        self.walk(p, &mut best, skip);
+        best.slot.map(|slot| self.answer(slot, best.point, best.d2))
+    }
+
+    /// [`TriangleBvh::closest`], answered from `certificate` where it still decides (see
+    /// [`Certificate`]), else searched in full for the [`CERTIFIED`] closest triangles and a new
+    /// certificate left in `certificate`. The answer is always the one `closest` gives.
+    pub fn closest_certified(
+        &self,
+        p: [f64; 3],
+        certificate: &mut Option<Certificate>,
+    ) -> Option<Closest> {
+        if let Some(c) = certificate.filter(|c| c.geometry_id == self.geometry_id) {
+            let moved = distance2(p, c.at).sqrt();
+            // A relative margin for the rounding of the distances involved.
+            if (c.best + 2.0 * moved) * (1.0 + 1e-9) + 1e-12 < c.outside {
+                let mut best = Best::default();
+                for &slot in &c.slots[..c.count as usize] {
+                    let q = self.closest_in_slot(p, slot as usize);
+                    best.offer(self, slot, q, distance2(p, q));
+                }
+                return best.slot.map(|slot| self.answer(slot, best.point, best.d2));
+            }
+        }
+        let mut near = Nearest::default();
+        self.walk(p, &mut near, None);
+        let count = near.count.min(CERTIFIED);
+        if count == 0 {
+            *certificate = None;
             return None;
         }
-        let mut best_d2 = f64::INFINITY;
-        let mut best: Option<(u32, [f64; 3])> = None;
-        if let Some(h) = hint.filter(|&h| (h as usize) < self.slot_of.len()) {
-            let slot = self.slot_of[h as usize];
-            let q = self.closest_in_slot(p, slot as usize);
-            let d = sub(p, q);
-            best_d2 = dot(d, d);
-            best = Some((slot, q));
+        let mut slots = [0u32; CERTIFIED];
+        for (k, s) in slots.iter_mut().enumerate().take(count) {
+            *s = near.items[k].1;
+        }
+        let (d2, slot, point) = near.items[0];
+        *certificate = Some(Certificate {
+            at: p,
+            best: d2.sqrt(),
+            outside: if near.count > CERTIFIED {
+                near.items[CERTIFIED].0.sqrt()
+            } else {
+                f64::INFINITY
+            },
+            slots,
+            count: count as u8,
+            geometry_id: self.geometry_id,
+        });
+        Some(self.answer(slot, point, d2))
+    }
+
+    fn hint_slot(&self, hint: Option<u32>) -> Option<u32> {
+        hint.filter(|&h| (h as usize) < self.slot_of.len())
+            .map(|h| self.slot_of[h as usize])
+    }
+
+    fn answer(&self, slot: u32, point: [f64; 3], d2: f64) -> Closest {
+        Closest {
+            point,
+            distance: d2.sqrt(),
+            triangle: self.ids[slot as usize],
+        }
+    }
+
+    /// Offers every triangle that may matter to `collector`, nearer boxes first, skipping boxes
+    /// farther than its bound and the slot `skip` (already offered).
+    fn walk(&self, p: [f64; 3], collector: &mut impl Collector, skip: Option<u32>) {
+        if self.ids.is_empty() {
+            return;
         }
         let mut stack: [(u32, f64); 64] = [(0, 0.0); 64];
         let mut top = 0usize;
         let root_d2 = box_distance2(p, &self.nodes[0]);
-        if root_d2 <= best_d2 {
+        if root_d2 <= collector.bound() {
             stack[0] = (0, root_d2);
             top = 1;
         }
         while top > 0 {
             top -= 1;
             let (ni, nd2) = stack[top];
-            if nd2 > best_d2 {
+            if nd2 > collector.bound() {
                 continue;
             }
             let node = &self.nodes[ni as usize];
             if node.count > 0 {
-                let start = node.start_or_right as usize;
-                for slot in start..start + node.count as usize {
-                    let q = self.closest_in_slot(p, slot);
-                    let d = sub(p, q);
-                    let d2 = dot(d, d);
-                    // Ties go to the lower triangle index so the answer does not depend on the hint.
-                    let better = match best {
-                        None => true,
-                        Some((bs, _)) => {
-                            d2 < best_d2
-                                || (d2 == best_d2 && self.ids[slot] < self.ids[bs as usize])
-                        }
-                    };
-                    if better {
-                        best_d2 = d2;
-                        best = Some((slot as u32, q));
+                let start = node.start_or_right as u32;
+                for slot in start..start + node.count {
+                    if skip != Some(slot) {
+                        let q = self.closest_in_slot(p, slot as usize);
+                        collector.offer(self, slot, q, distance2(p, q));
                     }
                 }
             } else {
+                let bound = collector.bound();
                 let left = ni + 1;
                 let right = node.start_or_right;
                 let dl = box_distance2(p, &self.nodes[left as usize]);
@@ -283,21 +468,16 @@ impl TriangleBvh {
                 } else {
                     (right, dr, left, dl)
                 };
-                if df <= best_d2 && top < stack.len() {
+                if df <= bound && top < stack.len() {
                     stack[top] = (far, df);
                     top += 1;
                 }
-                if dn <= best_d2 && top < stack.len() {
+                if dn <= bound && top < stack.len() {
                     stack[top] = (near, dn);
                     top += 1;
                 }
             }
         }
-        best.map(|(slot, point)| Closest {
-            point,
-            distance: best_d2.sqrt(),
-            triangle: self.ids[slot as usize],
-        })
     }
 
     fn closest_in_slot(&self, p: [f64; 3], slot: usize) -> [f64; 3] {
@@ -310,18 +490,14 @@ impl TriangleBvh {
     }
 }
 
-/// Squared distance from `p` to a node's box (0 inside).
+/// Squared distance from `p` to a node's box (0 inside). Written without branches (a query tests
+/// two boxes per level, and which side of a box the point lies on is not predictable).
 #[inline]
 fn box_distance2(p: [f64; 3], n: &Node) -> f64 {
     let mut d2 = 0.0;
     for k in 0..3 {
-        let e = if p[k] < n.lo[k] {
-            n.lo[k] - p[k]
-        } else if p[k] > n.hi[k] {
-            p[k] - n.hi[k]
-        } else {
-            0.0
-        };
+        // At most one of the two is positive.
+        let e = (n.lo[k] - p[k]).max(0.0) + (p[k] - n.hi[k]).max(0.0);
         d2 += e * e;
     }
     d2
@@ -693,6 +869,59 @@ mod tests {
             );
             assert!((norm(sub(c.point, p)) - c.distance).abs() < 1e-12);
         }
+    }
+
+    /// Points wandering near the real liver's surface (where closest points often sit on shared
+    /// edges and vertices, so several triangles tie): the certified query gives the plain query's
+    /// answer bit for bit at every step, answers most small steps from its certificate, and never
+    /// uses a certificate issued before the tree was refitted.
+    #[test]
+    fn certified_query_is_the_plain_query_bit_for_bit() {
+        let surface = crate::assets::default_liver().unwrap();
+        let mut bvh = TriangleBvh::new(&surface);
+        let nodes = surface.nodes();
+        let mut rng = crate::util::SplitMix64::new(11);
+        let (mut hits, mut queries) = (0usize, 0usize);
+        let mut check = |bvh: &TriangleBvh, p: [f64; 3], cert: &mut Option<Certificate>| {
+            let before = *cert;
+            let c = bvh.closest_certified(p, cert).unwrap();
+            assert_eq!(c, bvh.closest(p, None).unwrap(), "at {p:?}");
+            queries += 1;
+            if before.is_some() && *cert == before {
+                hits += 1;
+            }
+        };
+        for walk in 0..200 {
+            let v = nodes[rng.below(nodes.len())];
+            let mut p = v.map(|x| x + 6.0 * rng.next_f64() - 3.0);
+            let mut cert = None;
+            // Steps from 2 mm down to a micrometre, as an ICP run's points move.
+            for step in 0..40 {
+                let size = 2.0 * 0.75f64.powi(step) + if walk % 2 == 0 { 0.0 } else { 1e-3 };
+                p = p.map(|x| x + size * (2.0 * rng.next_f64() - 1.0));
+                check(&bvh, p, &mut cert);
+            }
+            // A moved geometry: the old certificate names the old tree and is not used.
+            if walk % 50 == 0 {
+                let moved: Vec<[f64; 3]> = nodes
+                    .iter()
+                    .map(|q| [q[0] + 0.3, q[1], q[2] - 0.2])
+                    .collect();
+                bvh.refit(&moved);
+                let stale = cert;
+                check(&bvh, p, &mut cert);
+                assert_ne!(
+                    cert, stale,
+                    "a certificate of the tree before the refit was used"
+                );
+                bvh = TriangleBvh::new(&surface);
+            }
+        }
+        assert!(
+            hits * 2 > queries,
+            "certificates answered {hits} of {queries} queries: the small steps should mostly be \
+             answered without a search"
+        );
     }
 
     /// Distance to the plane of a triangle when the foot of the perpendicular lies inside it.

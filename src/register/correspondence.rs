@@ -37,7 +37,7 @@ pub use super::preop_file::preop_model_from_file;
 use super::{Checked, Match, MeasuredKind, Measurements, PreopModel};
 use crate::mesh::TriSurface;
 use crate::mesh::locate::TetLocator;
-use crate::mesh::spatial::TriangleBvh;
+use crate::mesh::spatial::{Certificate, TriangleBvh};
 use crate::mesh::vec3::{add, cross, dot, norm, sub};
 
 /// Weights and trimming of correspondences.
@@ -545,6 +545,9 @@ impl Correspondence {
     }
 
     /// Each point's closest model point and its distance, untrimmed; and how many have none.
+    /// Clouds of [`PARALLEL_MATCH_POINTS`] points or more are matched in parallel: each point's
+    /// answer depends only on itself and its own hint, so the result is the same whatever the
+    /// thread count.
     fn match_candidates(
         &self,
         points_image: &[[f64; 3]],
@@ -552,6 +555,40 @@ impl Correspondence {
         call: &Call<'_>,
         hints: &mut Hints,
     ) -> (Vec<(Match, f64)>, usize) {
+        let one = |(i, (&p, hint)): (usize, (&[f64; 3], &mut PointHint))| {
+            self.match_one(i, p, meas, call, hint)
+        };
+        let found: Vec<Option<(Match, f64)>> = if points_image.len() >= PARALLEL_MATCH_POINTS {
+            use rayon::prelude::*;
+            points_image
+                .par_iter()
+                .zip(hints.0.par_iter_mut())
+                .enumerate()
+                .with_min_len(PARALLEL_MATCH_POINTS / 4)
+                .map(one)
+                .collect()
+        } else {
+            points_image
+                .iter()
+                .zip(hints.0.iter_mut())
+                .enumerate()
+                .map(one)
+                .collect()
+        };
+        let unmatched = found.iter().filter(|f| f.is_none()).count();
+        (found.into_iter().flatten().collect(), unmatched)
+    }
+
+    /// Point `i` (at `p`) matched to its closest model point, with the distance; the triangle it
+    /// matched, if any, is left in `hint` for the next call.
+    fn match_one(
+        &self,
+        i: usize,
+        p: [f64; 3],
+        meas: &Checked,
+        call: &Call<'_>,
+        hint: &mut PointHint,
+    ) -> Option<(Match, f64)> {
         let Call {
             u,
             params,
@@ -560,57 +597,47 @@ impl Correspondence {
         } = call;
         let u = *u;
         let feature_target = |f: usize| call.feature_sets[f].as_ref().unwrap_or(&self.features[f]);
-        let mut candidates: Vec<(Match, f64)> = Vec::with_capacity(points_image.len());
-        let mut unmatched = 0usize;
-        for (i, &p) in points_image.iter().enumerate() {
-            let kind = meas.kind[i];
-            let (set, bvh, w) = match kind {
-                MeasuredKind::Surface => match designated(meas, i) {
-                    Some(f) if !feature_target(f).tris.is_empty() => (
-                        feature_target(f),
-                        call.feat_bvh[f].as_ref(),
-                        params.surface_weight * params.feature_weight,
-                    ),
-                    _ => (
-                        self.surface_set(params),
-                        call.ant_bvh.as_ref(),
-                        params.surface_weight,
-                    ),
-                },
-                MeasuredKind::PosteriorContour => (
-                    &self.posterior,
-                    call.post_bvh.as_ref(),
-                    params.contour_weight,
+        let (set, bvh, w) = match meas.kind[i] {
+            MeasuredKind::Surface => match designated(meas, i) {
+                Some(f) if !feature_target(f).tris.is_empty() => (
+                    feature_target(f),
+                    call.feat_bvh[f].as_ref(),
+                    params.surface_weight * params.feature_weight,
                 ),
-                MeasuredKind::Vessel => {
-                    let vd = call.vessel_deformed.as_deref().unwrap_or(&[]);
-                    match self.match_vessel(p, vd) {
-                        Some(mut m) => {
-                            m.point = i;
-                            m.weight = params.vessel_weight * meas.weight(i);
-                            let d = norm(sub(p, m.model_point_or_anchor(u)));
-                            candidates.push((m, d));
-                        }
-                        None => unmatched += 1,
-                    }
-                    continue;
-                }
-            };
-            let target = Target {
-                set,
-                bvh: bvh.unwrap_or(&set.bvh),
-                // A reduced cloud's centroid counts for the points it stands for.
-                weight: w * meas.weight(i),
-            };
-            let Some((m, tri)) = self.match_triangle(i, p, &target, geometry, hints.get(i)) else {
-                unmatched += 1;
-                continue;
-            };
-            hints.0[i] = tri;
-            let d = norm(sub(p, m.model_point_or_anchor(u)));
-            candidates.push((m, d));
-        }
-        (candidates, unmatched)
+                _ => (
+                    self.surface_set(params),
+                    call.ant_bvh.as_ref(),
+                    params.surface_weight,
+                ),
+            },
+            MeasuredKind::PosteriorContour => (
+                &self.posterior,
+                call.post_bvh.as_ref(),
+                params.contour_weight,
+            ),
+            MeasuredKind::Vessel => {
+                let vd = call.vessel_deformed.as_deref().unwrap_or(&[]);
+                return self.match_vessel(p, vd).map(|mut m| {
+                    m.point = i;
+                    m.weight = params.vessel_weight * meas.weight(i);
+                    let d = norm(sub(p, m.model_point_or_anchor(u)));
+                    (m, d)
+                });
+            }
+        };
+        let target = Target {
+            set,
+            // A tree refitted to this call's geometry moves with every call: certificates would
+            // never be used again, so its searches do not track them.
+            certify: bvh.is_none(),
+            bvh: bvh.unwrap_or(&set.bvh),
+            // A reduced cloud's centroid counts for the points it stands for.
+            weight: w * meas.weight(i),
+        };
+        let (m, tri) = self.match_triangle(i, p, &target, geometry, hint)?;
+        hint.triangle = Some(tri);
+        let d = norm(sub(p, m.model_point_or_anchor(u)));
+        Some((m, d))
     }
 
     /// Point `i` (at `p`) matched to the closest point of `target` (the search started from
@@ -621,14 +648,21 @@ impl Correspondence {
         p: [f64; 3],
         target: &Target<'_>,
         geometry: &[[f64; 3]],
-        hint: Option<u32>,
+        hint: &mut PointHint,
     ) -> Option<(Match, u32)> {
         let Target {
             set,
             bvh,
+            certify,
             weight: w,
         } = *target;
-        let c = bvh.closest(p, hint)?;
+        // A certificate names its tree's geometry, so one from another target or a moved
+        // geometry is never used.
+        let c = if certify {
+            bvh.closest_certified(p, &mut hint.certificate)?
+        } else {
+            bvh.closest(p, hint.triangle)?
+        };
         let tri = self.tris[set.tris[c.triangle as usize] as usize];
         let corners = tri.map(|v| geometry[v as usize]);
         let b = triangle_barycentric(c.point, corners);
@@ -700,26 +734,31 @@ impl Correspondence {
     }
 }
 
+/// Clouds with at least this many points are matched in parallel (below it the threads' start-up
+/// costs more than it saves).
+const PARALLEL_MATCH_POINTS: usize = 1024;
+
 /// Where each measured point's closest-triangle search starts ([`Correspondence::match_points_hinted`]):
 /// the triangle (of the point's target set) it matched last time. Start empty and pass the same
 /// hints to every call of one loop over the same measurements.
 #[derive(Debug, Clone, Default)]
-pub struct Hints(Vec<u32>);
+pub struct Hints(Vec<PointHint>);
+
+/// One point's hint: the triangle it matched last, and what that search learnt (on a tree that
+/// does not move between calls: the undeformed model's).
+#[derive(Debug, Clone, Copy, Default)]
+struct PointHint {
+    triangle: Option<u32>,
+    certificate: Option<Certificate>,
+}
 
 impl Hints {
-    const NONE: u32 = u32::MAX;
-
     /// One slot per point: kept when the count is unchanged, else cleared.
     fn fit(&mut self, points: usize) {
         if self.0.len() != points {
             self.0.clear();
-            self.0.resize(points, Self::NONE);
+            self.0.resize(points, PointHint::default());
         }
-    }
-
-    /// Point `i`'s hint, if any.
-    fn get(&self, i: usize) -> Option<u32> {
-        self.0.get(i).copied().filter(|&h| h != Self::NONE)
     }
 }
 
@@ -739,6 +778,8 @@ struct Call<'a> {
 struct Target<'a> {
     set: &'a TargetSet,
     bvh: &'a TriangleBvh,
+    /// Whether the search keeps a [`Certificate`] (a tree that does not move between calls).
+    certify: bool,
     weight: f64,
 }
 
