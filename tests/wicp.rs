@@ -12,6 +12,7 @@ mod common;
 use librplus::mesh::TetMesh;
 use librplus::mesh::io::{DataArray, MeshFile};
 use librplus::mesh::rigid::Rigid;
+use librplus::mesh::spatial::{Certificate, TriangleBvh};
 use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::phantom::measure::{Category, MeasureParams, Scenario, simulate};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
@@ -1042,5 +1043,58 @@ fn a_deadline_stops_the_iterations_and_says_so() {
     eprintln!(
         "deadline: none {} iterations (rms {:.3} mm), past 0 (rms {:.3} mm, the start's), an hour away {}",
         free.iterations, free.rms_mm, past.rms_mm, far.iterations
+    );
+}
+
+/// Points wandering near the real liver's surface (where closest points often sit on shared
+/// edges and vertices, so several triangles tie): the certified query gives the plain query's
+/// answer bit for bit at every step, answers most small steps from its certificate, and never
+/// uses a certificate issued before the tree was refitted.
+#[test]
+fn certified_query_is_the_plain_query_bit_for_bit() {
+    let surface = librplus::assets::default_liver().unwrap();
+    let mut bvh = TriangleBvh::new(&surface);
+    let nodes = surface.nodes();
+    let mut rng = librplus::util::SplitMix64::new(11);
+    let (mut hits, mut queries) = (0usize, 0usize);
+    let mut check = |bvh: &TriangleBvh, p: [f64; 3], cert: &mut Option<Certificate>| {
+        let before = *cert;
+        let c = bvh.closest_certified(p, cert).unwrap();
+        assert_eq!(c, bvh.closest(p, None).unwrap(), "at {p:?}");
+        queries += 1;
+        if before.is_some() && *cert == before {
+            hits += 1;
+        }
+    };
+    for walk in 0..200 {
+        let v = nodes[rng.below(nodes.len())];
+        let mut p = v.map(|x| x + 6.0 * rng.next_f64() - 3.0);
+        let mut cert = None;
+        // Steps from 2 mm down to a micrometre, as an ICP run's points move.
+        for step in 0..40 {
+            let size = 2.0 * 0.75f64.powi(step) + if walk % 2 == 0 { 0.0 } else { 1e-3 };
+            p = p.map(|x| x + size * (2.0 * rng.next_f64() - 1.0));
+            check(&bvh, p, &mut cert);
+        }
+        // A moved geometry: the old certificate names the old tree and is not used.
+        if walk % 50 == 0 {
+            let moved: Vec<[f64; 3]> = nodes
+                .iter()
+                .map(|q| [q[0] + 0.3, q[1], q[2] - 0.2])
+                .collect();
+            bvh.refit(&moved);
+            let stale = cert;
+            check(&bvh, p, &mut cert);
+            assert_ne!(
+                cert, stale,
+                "a certificate of the tree before the refit was used"
+            );
+            bvh = TriangleBvh::new(&surface);
+        }
+    }
+    assert!(
+        hits * 2 > queries,
+        "certificates answered {hits} of {queries} queries: the small steps should mostly be \
+         answered without a search"
     );
 }
