@@ -544,10 +544,8 @@ impl Correspondence {
         }
     }
 
-    /// Each point's closest model point and its distance, untrimmed; and how many have none.
-    /// Clouds of [`PARALLEL_MATCH_POINTS`] points or more are matched in parallel: each point's
-    /// answer depends only on itself and its own hint, so the result is the same whatever the
-    /// thread count.
+    /// Each point's closest model point and its distance, untrimmed; and how many have none. Clouds
+    /// of [`PARALLEL_MATCH_POINTS`] points or more are matched in parallel (same result).
     fn match_candidates(
         &self,
         points_image: &[[f64; 3]],
@@ -627,8 +625,7 @@ impl Correspondence {
         };
         let target = Target {
             set,
-            // A tree refitted to this call's geometry moves with every call: certificates would
-            // never be used again, so its searches do not track them.
+            // A tree refitted to this call's geometry moves every call: no certificates.
             certify: bvh.is_none(),
             bvh: bvh.unwrap_or(&set.bvh),
             // A reduced cloud's centroid counts for the points it stands for.
@@ -656,8 +653,7 @@ impl Correspondence {
             certify,
             weight: w,
         } = *target;
-        // A certificate names its tree's geometry, so one from another target or a moved
-        // geometry is never used.
+        // A certificate names its tree's geometry: one from another tree is never used.
         let c = if certify {
             bvh.closest_certified(p, &mut hint.certificate)?
         } else {
