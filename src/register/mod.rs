@@ -19,6 +19,7 @@ pub mod equilibrium;
 mod error;
 pub mod libr;
 pub mod measured;
+pub mod nonlinear;
 pub mod physics;
 mod preop_file;
 pub mod prior;

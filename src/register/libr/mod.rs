@@ -55,6 +55,7 @@ mod coarse;
 mod cv;
 mod fit;
 mod iterate;
+mod nonlinear;
 mod refit;
 mod solve;
 
@@ -64,6 +65,7 @@ pub use cache::*;
 pub use coarse::*;
 pub use cv::*;
 pub use fit::*;
+pub use nonlinear::*;
 pub use refit::*;
 pub use solve::*;
 

@@ -396,7 +396,7 @@ fn check_hold_and_offset(
 
 /// The measured points in the image frame of `t`, with the held pairs appended (to `matches`
 /// too) and the offset taken off.
-fn step_targets(
+pub(super) fn step_targets(
     mesh: &TetMesh,
     measured_physical: &[[f64; 3]],
     t: &Rigid,
@@ -439,7 +439,7 @@ fn stepped_displacement(
 
 /// Largest movement of an active node in the image frame of the old estimate:
 /// `|δ(X + u_new) − (X + u_old)|`.
-fn movement(mesh: &TetMesh, active: &[u32], u: &[f64], u_new: &[f64], delta: &Rigid) -> f64 {
+pub(super) fn movement(mesh: &TetMesh, active: &[u32], u: &[f64], u_new: &[f64], delta: &Rigid) -> f64 {
     let mut moved = 0.0f64;
     for &i in active {
         let (i, x) = (i as usize, mesh.nodes()[i as usize]);

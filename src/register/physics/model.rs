@@ -323,6 +323,12 @@ impl ModelSolver {
         &self.system
     }
 
+    /// The factorized system (the 3-2-1 support's dofs constrained on a free-floating model):
+    /// the preconditioner of the nonlinear model ([`crate::register::nonlinear`]).
+    pub fn factorized(&self) -> &FactorizedSystem {
+        &self.fact
+    }
+
     /// Prepares a load for the solve: its self-equilibrated part (inertia relief). Every load
     /// is balanced so, as LIBR's own model assumes: what pushes the organ is held by its
     /// surroundings. A support adds the stiffness that holds the organ where it acts; it does not

@@ -1,0 +1,385 @@
+//! The nonlinear refinement of a linear answer ([`refine_nonlinear`]): the same loads, fitted
+//! again through the geometrically nonlinear model of the case
+//! ([`crate::register::nonlinear::NonlinearModel`]).
+//!
+//! **Unknowns.** The linear answer's own: the weights α of the basis columns it used (LIBR's
+//! whole basis, or the columns adaptive LIBR kept), whose balanced loads are `f(α) = KΦα`, and the
+//! rigid pose. The displacement is the nonlinear equilibrium `u(α)` under `f(α)`. The objective
+//! is the linear fit's: the weighted mean squared misfit of the matched points (and the hold's
+//! pairs) plus `λ αᵀẼα`, with the linear answer's λ, so that the refinement answers the same
+//! question with a better forward model.
+//!
+//! **Iteration (a frozen-Jacobian Gauss–Newton).** `u(α) = Φα + d(α)`, with `d` the nonlinear
+//! correction. Each iteration re-matches on the current nonlinear shape, fits α and the rigid
+//! correction by the linear step with `d` held at its current value (the targets offset by it,
+//! as LIBR+'s refit does), then solves the nonlinear equilibrium under the new loads from a warm
+//! start (the last equilibrium plus the linear change). The Jacobian `∂u/∂α = K_T⁻¹KΦ` is
+//! replaced by `Φ`: exact at small strain, and a contraction while the tangent stays near the
+//! linear stiffness, so no tangent system with `3K` right-hand sides is solved. It stops as
+//! LIBR's iterations do (movement below the tolerance, or settled), at the cap, or before the
+//! deadline.
+//!
+//! **Never worse than its start.** The refined answer is kept only when its objective, measured
+//! by the same matching and rows as the linear answer's, is lower; otherwise the linear answer is
+//! returned unchanged, bit for bit, and [`NonlinearInfo::kept_linear`] says why.
+
+use super::iterate::{Iterated, Stepper, iterate};
+use super::solve::{checked_active, movement, step_targets};
+use super::*;
+use crate::mesh::TetMesh;
+use crate::mesh::rigid::Rigid;
+use crate::register::Match;
+use crate::register::nonlinear::{ForwardInfo, ForwardParams, NonlinearModel};
+use std::time::Instant;
+
+/// Parameters of the nonlinear refinement.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RefineParams {
+    /// The equilibrium solves.
+    pub forward: ForwardParams,
+    /// Most refinement iterations (each one matching, one step, one equilibrium). Default 6.
+    pub max_iterations: usize,
+    /// Stops when no node moved more than this in an iteration (mm). Default 0.05.
+    pub tolerance_mm: f64,
+}
+
+impl Default for RefineParams {
+    fn default() -> Self {
+        Self {
+            forward: ForwardParams::default(),
+            max_iterations: 6,
+            tolerance_mm: 0.05,
+        }
+    }
+}
+
+impl RefineParams {
+    /// Checks the parameters; the message names the bad field.
+    pub fn validate(&self) -> Result<(), RegisterError> {
+        self.forward.validate()?;
+        if self.max_iterations == 0 {
+            return Err(RegisterError::Parameter(
+                "nonlinear max_iterations must be at least 1".into(),
+            ));
+        }
+        if !(self.tolerance_mm.is_finite() && self.tolerance_mm >= 0.0) {
+            return Err(RegisterError::Parameter(format!(
+                "nonlinear tolerance_mm must be finite and >= 0, got {}",
+                self.tolerance_mm
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// What the refinement did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct NonlinearInfo {
+    /// The refinement's iterations (as LIBR's: matching, step, equilibrium).
+    pub iterations: LibrInfo,
+    /// Equilibrium solves, the first (under the linear answer's loads) included.
+    pub solves: usize,
+    /// Newton iterations over all solves.
+    pub newton: usize,
+    /// CG iterations over all solves.
+    pub cg: usize,
+    /// Solves that stopped short of their tolerance (their last iterate was used).
+    pub unconverged_solves: usize,
+    /// Time in the equilibrium solves (s).
+    pub forward_s: f64,
+    /// The linear answer's objective: weighted mean squared misfit plus prior (mm²).
+    pub linear_objective_mm2: f64,
+    /// The refined answer's objective, measured the same way (mm²).
+    pub refined_objective_mm2: f64,
+    /// RMS over nodes of how far the refinement moved the linear answer (mm; 0 when kept).
+    pub change_rms_mm: f64,
+    /// Why the linear answer was kept (None: the refined answer is returned).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kept_linear: Option<String>,
+    /// Total time (s).
+    pub seconds: f64,
+}
+
+/// The linear answer a refinement starts from: its solution on `basis` (the basis it was
+/// fitted on, all its columns; adaptive LIBR's weights are zero on the columns it did not keep).
+#[derive(Clone, Copy)]
+pub struct LinearAnswer<'a> {
+    /// The basis the answer's weights are on.
+    pub basis: &'a LibrBasis,
+    /// The linear answer.
+    pub solution: &'a LibrSolution,
+}
+
+/// Refines `start` through `model` (see the module doc). Returns the refined solution (its
+/// `alpha` on `start`'s basis, its `u` the nonlinear equilibrium, its `info` the refinement's
+/// iterations) or `start` unchanged, and what the refinement did. `run` is the linear fit's
+/// (hold, rigid prior, active nodes, deadline); its offset must be None.
+#[allow(clippy::too_many_arguments)]
+pub fn refine_nonlinear(
+    mesh: &TetMesh,
+    start: LinearAnswer<'_>,
+    model: &NonlinearModel,
+    params: &LibrParams,
+    refine: &RefineParams,
+    measured_physical: &[[f64; 3]],
+    run: RunLimits<'_>,
+    mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
+) -> Result<(LibrSolution, NonlinearInfo), RegisterError> {
+    let t0 = Instant::now();
+    refine.validate()?;
+    if run.offset.is_some() {
+        return Err(RegisterError::Parameter(
+            "the nonlinear refinement starts from a linear answer without an offset".into(),
+        ));
+    }
+    let LinearAnswer { basis, solution } = start;
+    if solution.alpha.len() != basis.columns() || model.dofs() != 3 * basis.nodes {
+        return Err(RegisterError::Inconsistent(format!(
+            "nonlinear refinement: {} weights for {} columns, a model of {} dofs for {} nodes",
+            solution.alpha.len(),
+            basis.columns(),
+            model.dofs(),
+            basis.nodes
+        )));
+    }
+    let active = checked_active(mesh, basis, params, run.active)?;
+    // The columns the answer used, and the prior weight it was fitted with.
+    let cols: Vec<usize> = (0..basis.columns())
+        .filter(|&j| solution.alpha[j] != 0.0)
+        .collect();
+    let all: Vec<u32> = (0..basis.nodes as u32).collect();
+    let reduced = restrict(basis, &cols, &all);
+    let alpha0: Vec<f64> = cols.iter().map(|&j| solution.alpha[j]).collect();
+    let weight = prior_weight(&solution.info, &reduced, params);
+    let mut fit_params = *params;
+    fit_params.fit.regularization = weight * reduced.energy_scale();
+    fit_params.fit.max_iterations = refine.max_iterations;
+    fit_params.fit.tolerance_mm = refine.tolerance_mm;
+    let mut info = NonlinearInfo::default();
+    let objective_of = |u: &[f64], alpha: &[f64], t: &Rigid, m: Vec<Match>| {
+        objective(mesh, &reduced, &fit_params, measured_physical, &run, (u, alpha, t), m)
+    };
+    let linear_matches = rematch(&solution.u, &solution.image_to_physical)?;
+    info.linear_objective_mm2 = objective_of(
+        &solution.u,
+        &alpha0,
+        &solution.image_to_physical,
+        linear_matches,
+    );
+    if cols.is_empty() {
+        info.kept_linear = Some("the linear answer has no deformation to refine".into());
+        info.seconds = crate::util::secs(t0);
+        return Ok((solution.clone(), info));
+    }
+    // The nonlinear shape under the linear answer's loads: where the iterations start.
+    let lin = reduced.displacement(&alpha0);
+    let (u0, f0) = model.equilibrium(&model.load_of(&lin), Some(&lin), &refine.forward)?;
+    info.add(&f0);
+    let mut fit = Refining {
+        mesh,
+        basis: &reduced,
+        params: &fit_params,
+        measured_physical,
+        run,
+        active: &active,
+        model,
+        forward: &refine.forward,
+        d: u0.iter().zip(&lin).map(|(a, b)| a - b).collect(),
+        u: u0,
+        alpha: alpha0.clone(),
+        solves: Vec::new(),
+        failure: None,
+    };
+    let limits = (run.deadline, false);
+    let Iterated { t, info: mut it, .. } =
+        iterate(&mut fit, &fit_params, &solution.image_to_physical, limits, &mut rematch)?;
+    for f in &fit.solves {
+        info.add(f);
+    }
+    it.strain_energy_uj = reduced.strain_energy(&fit.alpha);
+    it.regularization = fit_params.fit.regularization;
+    it.columns = cols.len();
+    it.prior_mm2 = weight * 2.0 * it.strain_energy_uj;
+    it.held_nodes = run.hold.map_or(0, |h| h.nodes.len());
+    it.settled = it.converged || settled(&it.rms_history_mm, &it.movement_history_mm);
+    let refined_matches = rematch(&fit.u, &t)?;
+    info.refined_objective_mm2 = objective_of(&fit.u, &fit.alpha, &t, refined_matches);
+    info.iterations = it.clone();
+    let keep_linear = match &fit.failure {
+        Some(why) => Some(why.clone()),
+        None if !(info.refined_objective_mm2 < info.linear_objective_mm2) => Some(format!(
+            "the refined fit's objective {:.3} mm² is not below the linear answer's {:.3} mm²",
+            info.refined_objective_mm2, info.linear_objective_mm2
+        )),
+        None => None,
+    };
+    info.seconds = crate::util::secs(t0);
+    if let Some(why) = keep_linear {
+        info.kept_linear = Some(why);
+        return Ok((solution.clone(), info));
+    }
+    info.change_rms_mm = rms_change(&solution.u, &fit.u);
+    let mut alpha = vec![0.0; basis.columns()];
+    for (&j, &a) in cols.iter().zip(&fit.alpha) {
+        alpha[j] = a;
+    }
+    it.total_s = info.seconds;
+    Ok((
+        LibrSolution {
+            alpha,
+            u: fit.u,
+            image_to_physical: t,
+            info: it,
+        },
+        info,
+    ))
+}
+
+impl NonlinearInfo {
+    fn add(&mut self, f: &ForwardInfo) {
+        self.solves += 1;
+        self.newton += f.newton;
+        self.cg += f.cg;
+        self.unconverged_solves += usize::from(!f.converged);
+        self.forward_s += f.total_s;
+    }
+}
+
+/// The prior weight `λ / ē` the answer was fitted with: its recorded prior over its strain
+/// energy (adaptive LIBR chooses λ per registration), else LIBR's λ over the basis's scale.
+fn prior_weight(info: &LibrInfo, reduced: &LibrBasis, params: &LibrParams) -> f64 {
+    if info.strain_energy_uj > 0.0 && info.prior_mm2.is_finite() && info.prior_mm2 >= 0.0 {
+        info.prior_mm2 / (2.0 * info.strain_energy_uj)
+    } else {
+        params.fit.regularization / reduced.energy_scale().max(1e-300)
+    }
+}
+
+/// RMS over nodes of the distance between two displacements (mm).
+fn rms_change(a: &[f64], b: &[f64]) -> f64 {
+    let n = (a.len() / 3).max(1) as f64;
+    (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / n).sqrt()
+}
+
+/// The fit's objective at `(u, α, t)` from `matches` made there: the weighted mean squared
+/// misfit of the matched points and the hold's pairs, by the step's rows (point-to-plane with
+/// the tangential weight, point-to-point without a normal), plus `λ αᵀẼα`.
+fn objective(
+    mesh: &TetMesh,
+    basis: &LibrBasis,
+    params: &LibrParams,
+    measured_physical: &[[f64; 3]],
+    run: &RunLimits<'_>,
+    (u, alpha, t): (&[f64], &[f64], &Rigid),
+    mut matches: Vec<Match>,
+) -> f64 {
+    let targets = step_targets(mesh, measured_physical, t, run.hold, None, &mut matches);
+    let tw = params.fit.tangential_weight.sqrt();
+    let mut wsum = 0.0;
+    let mut sum = 0.0;
+    for mt in matches.iter().filter(|m| m.weight > 0.0) {
+        let q = mt.model_point(u);
+        let y = targets[mt.point];
+        let r = [0, 1, 2].map(|a| q[a] - y[a]);
+        let frame = row_frame(mt.normal, tw);
+        let rr: f64 = frame
+            .iter()
+            .take(rows_of(mt, tw))
+            .map(|f| (f[0] * r[0] + f[1] * r[1] + f[2] * r[2]).powi(2))
+            .sum();
+        wsum += mt.weight;
+        sum += mt.weight * rr;
+    }
+    let misfit = if wsum > 0.0 { sum / wsum } else { f64::INFINITY };
+    let prior = params.fit.regularization / basis.energy_scale().max(1e-300)
+        * 2.0
+        * basis.strain_energy(alpha);
+    misfit + prior
+}
+
+/// The refinement's step ([`iterate`]): the linear step with the nonlinear correction `d` held,
+/// then the equilibrium under the new loads.
+struct Refining<'a> {
+    mesh: &'a TetMesh,
+    basis: &'a LibrBasis,
+    params: &'a LibrParams,
+    measured_physical: &'a [[f64; 3]],
+    run: RunLimits<'a>,
+    active: &'a [u32],
+    model: &'a NonlinearModel,
+    forward: &'a ForwardParams,
+    /// The nonlinear correction `u − Φα` at the current loads.
+    d: Vec<f64>,
+    u: Vec<f64>,
+    alpha: Vec<f64>,
+    solves: Vec<ForwardInfo>,
+    /// Why an equilibrium failed (the iterations then stop, and the linear answer stands).
+    failure: Option<String>,
+}
+
+impl Stepper for Refining<'_> {
+    type Last = ();
+
+    fn u(&self) -> &[f64] {
+        &self.u
+    }
+
+    fn step(
+        &mut self,
+        mut matches: Vec<Match>,
+        t: &Rigid,
+        _: &mut LibrInfo,
+    ) -> Result<(StepResult, f64, ()), RegisterError> {
+        let targets = step_targets(
+            self.mesh,
+            self.measured_physical,
+            t,
+            self.run.hold,
+            Some(&self.d),
+            &mut matches,
+        );
+        let prior = PriorPairs::of(self.run.rigid_prior, t);
+        let step = fit_step_with_prior(self.basis, &matches, &targets, self.params, prior.as_ref())?;
+        let lin = self.basis.displacement(&step.alpha);
+        let old = self.basis.displacement(&self.alpha);
+        let warm: Vec<f64> = self
+            .u
+            .iter()
+            .zip(lin.iter().zip(&old))
+            .map(|(u, (a, b))| u + a - b)
+            .collect();
+        let (u_new, f) = match self
+            .model
+            .equilibrium(&self.model.load_of(&lin), Some(&warm), self.forward)
+        {
+            Ok(x) => x,
+            Err(e) => {
+                self.failure = Some(format!("an equilibrium failed: {e}"));
+                return Ok((step, 0.0, ()));
+            }
+        };
+        self.solves.push(f);
+        let moved = movement(self.mesh, self.active, &self.u, &u_new, &step.rigid_correction);
+        self.d = u_new.iter().zip(&lin).map(|(a, b)| a - b).collect();
+        self.u = u_new;
+        Ok((step, moved, ()))
+    }
+
+    fn keep(&mut self, step: StepResult, _: &mut LibrInfo) {
+        if self.failure.is_none() {
+            self.alpha = step.alpha;
+        }
+    }
+
+    fn done(&mut self, info: &mut LibrInfo, moved: f64, params: &LibrParams) -> bool {
+        if self.failure.is_some() {
+            return true;
+        }
+        if moved <= params.fit.tolerance_mm {
+            info.converged = true;
+            return true;
+        }
+        settled(&info.rms_history_mm, &info.movement_history_mm)
+            && !shrinking(&info.movement_history_mm)
+    }
+}
