@@ -493,3 +493,75 @@ fn without_a_trusted_start_the_hold_is_a_hypothesis_ranked_after_the_free_fits()
         a.ambiguous
     );
 }
+
+/// The nonlinear refinement ([`Method::Nonlinear`]) on the held organ: it returns the refined
+/// answer only where its objective (misfit plus prior, measured the same way) is lower than the
+/// adaptive fit it started from, and that fit bit for bit otherwise.
+#[test]
+fn the_nonlinear_refinement_never_fits_worse_than_its_linear_start() {
+    let c = case();
+    for seed in [11, 12] {
+        let (meas, truth) = measured(&c.u, seed);
+        let linear = register(&c.prepared, &meas, Method::Adaptive, &held_params()).unwrap();
+        let r = register(&c.prepared, &meas, Method::Nonlinear, &held_params()).unwrap();
+        let n = r.nonlinear.as_ref().expect("the refinement's record");
+        eprintln!(
+            "pushed 40 mm, held, seed {seed}: adaptive {:.2} mm, refined {:.2} mm; objective {:.3} -> {:.3} mm², {} solves, {} Newton, {} CG, {:.2} s{}",
+            tre(&linear, &c.u, &truth),
+            tre(&r, &c.u, &truth),
+            n.linear_objective_mm2,
+            n.refined_objective_mm2,
+            n.solves,
+            n.newton,
+            n.cg,
+            n.seconds,
+            n.kept_linear
+                .as_ref()
+                .map_or(String::new(), |w| format!("; kept the linear answer: {w}"))
+        );
+        match &n.kept_linear {
+            Some(_) => {
+                assert_eq!(r.u, linear.u, "a kept linear answer must be the same bits");
+                assert_eq!(r.image_to_physical, linear.image_to_physical);
+            }
+            None => assert!(
+                n.refined_objective_mm2 < n.linear_objective_mm2,
+                "{} >= {}",
+                n.refined_objective_mm2,
+                n.linear_objective_mm2
+            ),
+        }
+    }
+}
+
+#[test]
+fn the_nonlinear_refinement_leaves_an_undeformed_or_rigidly_moved_organ_unbent() {
+    let c = case();
+    let zero = vec![0.0; c.u.len()];
+    let (meas, truth) = measured(&zero, 3);
+    let r = register(&c.prepared, &meas, Method::Nonlinear, &held_params()).unwrap();
+    let e = tre(&r, &zero, &truth);
+    eprintln!("undeformed, held, refined: the answer moves the organ {e:.2} mm on average");
+    assert!(
+        e < 1.0,
+        "an undeformed held organ moved {e:.2} mm on average"
+    );
+    let shift = [2.0, -2.0, 2.0 * 2f64.sqrt()];
+    let (meas, truth) = measured(&zero, 4);
+    let mut meas = meas.into_inner();
+    for p in &mut meas.points {
+        for a in 0..3 {
+            p[a] += shift[a];
+        }
+    }
+    let meas = common::checked(meas);
+    let moved = truth.then(&Rigid {
+        rotation: Rigid::identity().rotation,
+        translation: shift,
+    });
+    let nothing = register(&c.prepared, &meas, Method::Initial, &held_params()).unwrap();
+    let r = register(&c.prepared, &meas, Method::Nonlinear, &held_params()).unwrap();
+    let (e0, e1) = (tre(&nothing, &zero, &moved), tre(&r, &zero, &moved));
+    eprintln!("moved 4 mm rigidly, held, refined: doing nothing {e0:.2} mm, refined {e1:.2}");
+    assert!(e1 <= e0, "refined {e1:.2} mm, doing nothing {e0:.2}");
+}

@@ -8,17 +8,16 @@
 //! Mesh: a jittered 60 × 40 × 30 mm box; loads: LIBR basis columns (balanced surface tractions)
 //! scaled to a 12 mm peak, large for a 30 mm thick block.
 
-
 use librplus::fem::hyperelastic::{HyperelasticModel, NewtonParams};
 use librplus::fem::{Dirichlet, LameField, LinearMaterial};
 use librplus::mesh::TetMesh;
 use librplus::mesh::procedural::box_mesh;
-use nalgebra::{DMatrix, DVector};
 use librplus::register::equilibrium::lumped_volumes;
 use librplus::register::libr::{LibrBasis, LibrParams};
 use librplus::register::nonlinear::{ForwardParams, NonlinearModel};
 use librplus::register::physics::Physics;
 use librplus::register::physics::boundary::Sites;
+use nalgebra::{DMatrix, DVector};
 use std::sync::OnceLock;
 
 /// The large load's peak linear displacement (mm): 20 % of the block's thickness.
@@ -42,9 +41,8 @@ fn block() -> &'static Block {
             posterior: &none,
             falciform: &none,
         };
-        let model =
-            NonlinearModel::new(&mesh, &LinearMaterial::default(), sites, &Physics::none())
-                .unwrap();
+        let model = NonlinearModel::new(&mesh, &LinearMaterial::default(), sites, &Physics::none())
+            .unwrap();
         Block { mesh, basis, model }
     })
 }
@@ -133,9 +131,9 @@ fn reference(f: &[f64], pins: &[f64]) -> Vec<f64> {
     let n = c.mesh.num_nodes();
     let mut bc = Dirichlet::new(n);
     let free = c.model.linear().factorized().free_dofs();
-    for d in 0..3 * n {
+    for (d, &value) in pins.iter().enumerate().take(3 * n) {
         if free.binary_search(&d).is_err() {
-            bc.prescribe_dof((d / 3) as u32, d % 3, pins[d]);
+            bc.prescribe_dof((d / 3) as u32, d % 3, value);
         }
     }
     let (u, _) = solid

@@ -523,6 +523,7 @@ impl ServerConfig {
             "rigid" => Ok(Method::Rigid),
             "libr" => Ok(Method::Libr),
             "auto" => Ok(Method::Auto),
+            "nonlinear" => Ok(Method::Nonlinear),
             "adaptive" if self.adaptive => Ok(Method::Adaptive),
             "librplus" if self.librplus => Ok(Method::LibrPlus),
             "v2s" if self.v2s => Ok(Method::V2s),

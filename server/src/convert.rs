@@ -355,10 +355,11 @@ pub fn method_from_pb(
         // Whether the case has adaptive LIBR's basis is checked with the case.
         Ok(pb::Method::Adaptive) => Ok(Method::Adaptive),
         Ok(pb::Method::Auto) => Ok(Method::Auto),
+        Ok(pb::Method::Nonlinear) => Ok(Method::Nonlinear),
         Err(_) => Err(ServiceError::field(
             field,
             format!(
-                "{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S, 5 adaptive, 6 auto)"
+                "{m} is not a Method (0 default, 1 rigid, 2 LIBR, 3 LIBR+, 4 V2S, 5 adaptive, 6 auto, 7 nonlinear)"
             ),
         )),
     }
@@ -375,6 +376,7 @@ pub fn method_to_pb(m: librplus::pipeline::Method) -> pb::Method {
         librplus::pipeline::Method::V2s => pb::Method::V2s,
         librplus::pipeline::Method::Adaptive => pb::Method::Adaptive,
         librplus::pipeline::Method::Auto => pb::Method::Auto,
+        librplus::pipeline::Method::Nonlinear => pb::Method::Nonlinear,
     }
 }
 

@@ -373,9 +373,10 @@ fn register_cause(e: &RegisterError) -> Cause {
 
 fn pipeline_cause(e: &PipelineError) -> Cause {
     match e {
-        PipelineError::Rigid(r) | PipelineError::Libr(r) | PipelineError::Refit(r) => {
-            register_cause(r)
-        }
+        PipelineError::Rigid(r)
+        | PipelineError::Libr(r)
+        | PipelineError::Refit(r)
+        | PipelineError::Nonlinear(r) => register_cause(r),
         PipelineError::Degenerate { .. } => Cause::Data,
         PipelineError::NoBasis
         | PipelineError::NoAdaptiveBasis
@@ -531,6 +532,7 @@ pub fn libr_can_fall_back(e: &PipelineError) -> bool {
         | PipelineError::Model(_)
         | PipelineError::Rigid(_)
         | PipelineError::Refit(_)
+        | PipelineError::Nonlinear(_)
         | PipelineError::NoBasis
         | PipelineError::NoAdaptiveBasis
         | PipelineError::NoModel

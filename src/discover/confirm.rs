@@ -137,6 +137,7 @@ pub(super) fn confirm_once(
         adaptive: None,
         physics: physics.clone(),
         error_model: None,
+        nonlinear: std::sync::OnceLock::new(),
         seconds: 0.0,
     };
     let rows = match linearize(

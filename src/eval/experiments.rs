@@ -157,6 +157,7 @@ pub fn scenario_results(test: &Value) -> Vec<ScenarioResult> {
                 quality: None,
                 quality_reason: None,
                 surface: None,
+                nonlinear: None,
             });
         }
     }

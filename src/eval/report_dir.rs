@@ -155,9 +155,10 @@ fn parse_methods(names: &str) -> Result<(Vec<Method>, bool), EvalError> {
             "v2s" => methods.push(Method::V2s),
             "adaptive" => methods.push(Method::Adaptive),
             "auto" => methods.push(Method::Auto),
+            "nonlinear" => methods.push(Method::Nonlinear),
             other => {
                 return Err(param(format!(
-                    "--methods: unknown method {other:?} (initial, rigid, libr, adaptive, auto, v2s, librplus)"
+                    "--methods: unknown method {other:?} (initial, rigid, libr, adaptive, nonlinear, auto, v2s, librplus)"
                 )));
             }
         }

@@ -381,6 +381,7 @@ fn rigid_candidate(
                 libr: None,
                 correction: None,
                 v2s: None,
+                nonlinear: None,
                 error: None,
                 auto: None,
                 search_skipped_mm2: l.search_skipped_mm2,

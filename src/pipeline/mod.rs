@@ -8,6 +8,7 @@ use crate::gcn::io::TrainedModel;
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
 use crate::register::libr::{self, AdaptiveParams, LibrBasis, LibrInfo, LibrParams};
+use crate::register::nonlinear::NonlinearModel;
 use crate::register::physics::Physics;
 use crate::register::physics::kinds::Hold;
 use crate::register::physics::model::Sites;
@@ -129,6 +130,9 @@ pub enum PipelineError {
     /// The case's V2S network could not be prepared, or its prediction failed.
     #[error(transparent)]
     V2s(V2sError),
+    /// The nonlinear model could not be built, or its refinement could not run.
+    #[error("nonlinear refinement: {0}")]
+    Nonlinear(RegisterError),
     /// The refit was asked with no iterations.
     #[error("refit_iterations is 0")]
     NoRefitIterations,
@@ -155,6 +159,11 @@ pub enum Method {
     /// prior's strength chosen by the data's evidence ([`crate::register::libr::solve_adaptive`];
     /// needs a case prepared with [`Prepared::with_adaptive`]).
     Adaptive,
+    /// The nonlinear refinement of the deformable fit ([`libr::refine_nonlinear`]): adaptive
+    /// LIBR's answer (LIBR's when the case has no adaptive basis) fitted again through the
+    /// geometrically nonlinear model of the case, kept only where it fits the data and prior
+    /// better ([`Prepared::nonlinear_model`]).
+    Nonlinear,
     /// The method chosen per registration from the data ([`auto`]): doing nothing, the rigid
     /// answer, LIBR, adaptive LIBR (when prepared) and, with a trusted start, their held
     /// variants, each scored by how well it predicts measured points it did not see.
@@ -171,6 +180,7 @@ impl Method {
             Method::LibrPlus => "librplus",
             Method::V2s => "v2s",
             Method::Adaptive => "adaptive",
+            Method::Nonlinear => "nonlinear",
             Method::Auto => "auto",
         }
     }
@@ -184,6 +194,7 @@ impl Method {
             Method::LibrPlus,
             Method::V2s,
             Method::Adaptive,
+            Method::Nonlinear,
             Method::Auto,
         ]
         .into_iter()
@@ -226,6 +237,8 @@ pub struct PipelineParams {
     pub held: bool,
     /// How a held organ's unseen surface is held.
     pub hold: hold::HoldParams,
+    /// The nonlinear refinement ([`Method::Nonlinear`]).
+    pub nonlinear: libr::RefineParams,
     /// How [`Method::Auto`] scores and chooses its candidates.
     pub auto: auto::AutoParams,
     /// LIBR+ abstains, answering LIBR's result flagged, when a registration lies outside what
@@ -253,6 +266,7 @@ impl Default for PipelineParams {
             pose: pose::PoseParams::default(),
             held: false,
             hold: hold::HoldParams::default(),
+            nonlinear: libr::RefineParams::default(),
             auto: auto::AutoParams::default(),
             abstain: true,
             side: side::SideParams::default(),
@@ -297,6 +311,9 @@ pub struct Prepared {
     pub physics: Physics,
     /// The error model every registration's estimate comes from (None: no estimate).
     pub error_model: Option<Arc<ErrorModel>>,
+    /// The nonlinear model of [`Method::Nonlinear`], built on first use or by
+    /// [`Prepared::with_nonlinear`] (its linear factorization is the refinement's preconditioner).
+    pub nonlinear: std::sync::OnceLock<Result<NonlinearModel, String>>,
     /// Preparation time (s).
     pub seconds: f64,
 }
@@ -352,6 +369,7 @@ impl Prepared {
             adaptive: None,
             physics: physics.clone(),
             error_model: None,
+            nonlinear: std::sync::OnceLock::new(),
             seconds: crate::util::secs(t0),
         })
     }
@@ -379,9 +397,39 @@ impl Prepared {
             adaptive: None,
             physics: Physics::none(),
             error_model: None,
+            nonlinear: std::sync::OnceLock::new(),
             seconds: crate::util::secs(t0),
         };
         Ok((prepared, figures))
+    }
+
+    /// The nonlinear model of the case with `material` (LIBR's), built on first use: the
+    /// linear model factorized once (about as long as one factorization of the basis build) and
+    /// the hyperelastic solid. An error names why it could not be built.
+    pub fn nonlinear_model(
+        &self,
+        material: &crate::fem::LinearMaterial,
+    ) -> Result<&NonlinearModel, PipelineError> {
+        let sites = Sites {
+            posterior: &self.model.posterior,
+            falciform: &self.model.falciform,
+        };
+        self.nonlinear
+            .get_or_init(|| {
+                NonlinearModel::new(&self.model.mesh, material, sites, &self.physics)
+                    .map_err(|e| e.to_string())
+            })
+            .as_ref()
+            .map_err(|e| PipelineError::Nonlinear(RegisterError::Model(e.clone())))
+    }
+
+    /// Builds the nonlinear model now (a case preloaded for [`Method::Nonlinear`] answers its
+    /// first registration without the build), adding its time to [`Prepared::seconds`].
+    pub fn with_nonlinear(mut self, libr: &LibrParams) -> Result<Self, PipelineError> {
+        let t0 = Instant::now();
+        self.nonlinear_model(&libr.basis.material)?;
+        self.seconds += crate::util::secs(t0);
+        Ok(self)
     }
 
     /// Sets the error model of the case's registrations' estimates (None: none).
@@ -566,6 +614,9 @@ pub struct Registration {
     pub error: Option<ErrorEstimate>,
     /// How [`Method::Auto`] chose (None for the other methods).
     pub auto: Option<auto::AutoInfo>,
+    /// The nonlinear refinement, for [`Method::Nonlinear`]; when it was kept, [`Registration::libr`]
+    /// records its iterations, else the linear fit's.
+    pub nonlinear: Option<libr::NonlinearInfo>,
     /// The navigation start's fit score (mm²) when it was above
     /// [`pose::PoseParams::search_above_mm2`] but no pose search was configured (no
     /// [`pose::PoseParams::start_angles_deg`]: asked for, or a time budget too tight for it):

@@ -24,7 +24,7 @@ use crate::register::Checked;
 pub fn can_follow(method: Method, params: &PipelineParams) -> bool {
     let deformable = matches!(
         method,
-        Method::Libr | Method::LibrPlus | Method::Adaptive | Method::Auto
+        Method::Libr | Method::LibrPlus | Method::Adaptive | Method::Nonlinear | Method::Auto
     );
     deformable && !params.pose.start_angles_deg.is_empty() && params.pose.search_above_mm2 > 0.0
 }

@@ -221,6 +221,7 @@ mod tests {
                 ..Default::default()
             }),
             v2s: None,
+            nonlinear: None,
             error: None,
             auto: None,
             search_skipped_mm2: None,

@@ -175,6 +175,7 @@ impl<'a> Run<'a> {
             libr: r.libr,
             correction: r.correction,
             v2s: r.v2s,
+            nonlinear: r.nonlinear,
             error: None,
             auto: None,
             search_skipped_mm2: self.search_skipped.get().copied(),
@@ -219,6 +220,7 @@ impl<'a> Run<'a> {
             libr: None,
             correction: None,
             v2s,
+            nonlinear: None,
         }))
     }
 
@@ -477,7 +479,7 @@ impl<'a> Run<'a> {
         };
         let mut hints = Hints::default();
         let rematch = |u: &[f64], t: &Rigid| self.rematch(u, t, &mut hints);
-        if self.method == Method::Adaptive {
+        if self.fits_adaptive() {
             let ad = case
                 .adaptive
                 .as_ref()
@@ -511,6 +513,64 @@ impl<'a> Run<'a> {
         .map_err(PipelineError::Libr)
     }
 
+    /// Whether the deformable fit is adaptive LIBR: for adaptive LIBR, and for the nonlinear
+    /// refinement of a case with adaptive LIBR's basis.
+    fn fits_adaptive(&self) -> bool {
+        match self.method {
+            Method::Adaptive => true,
+            Method::Nonlinear => self.case.adaptive.is_some(),
+            _ => false,
+        }
+    }
+
+    /// The nonlinear refinement of the chosen fit ([`libr::refine_nonlinear`]) from the pose it
+    /// reached, with its hold and prior; its time counts against the deadline.
+    fn refine(
+        &self,
+        rigid: &WicpResult,
+        sol: &LibrSolution,
+    ) -> Result<(LibrSolution, libr::NonlinearInfo), PipelineError> {
+        let case = self.case;
+        let basis = if self.fits_adaptive() {
+            &case
+                .adaptive
+                .as_ref()
+                .ok_or(PipelineError::NoAdaptiveBasis)?
+                .basis
+        } else {
+            case.basis.as_ref().ok_or(PipelineError::NoBasis)?
+        };
+        let model = case.nonlinear_model(&self.params.libr.basis.material)?;
+        let held = held_at(case, self.meas, self.params, &rigid.image_to_physical)?;
+        let run = libr::RunLimits {
+            active: Some(case.correspondence.active_nodes()),
+            deadline: self.params.deadline,
+            offset: None,
+            rigid_prior: if held.is_some() {
+                None
+            } else {
+                rigid.prior.as_ref()
+            },
+            hold: held.as_ref(),
+            held_out: None,
+        };
+        let mut hints = Hints::default();
+        libr::refine_nonlinear(
+            &case.model.mesh,
+            libr::LinearAnswer {
+                basis,
+                solution: sol,
+            },
+            model,
+            &self.params.libr,
+            &self.params.nonlinear,
+            &self.meas.points,
+            run,
+            |u: &[f64], t: &Rigid| self.rematch(u, t, &mut hints),
+        )
+        .map_err(PipelineError::Nonlinear)
+    }
+
     /// What a fit leaves: the capped residual of its matches plus its prior energy, weighted.
     fn fitted_score(&self, sol: &LibrSolution) -> Result<f64, PipelineError> {
         let s = pose::score(
@@ -533,6 +593,19 @@ impl<'a> Run<'a> {
         sol: LibrSolution,
         pose: Option<pose::PoseInfo>,
     ) -> Registration {
+        let (sol, nonlinear) = match self.method {
+            Method::Nonlinear => match self.refine(&rigid, &sol) {
+                Ok((refined, info)) => (refined, Some(info)),
+                Err(e) => {
+                    let info = libr::NonlinearInfo {
+                        kept_linear: Some(e.to_string()),
+                        ..Default::default()
+                    };
+                    (sol, Some(info))
+                }
+            },
+            _ => (sol, None),
+        };
         let mut u = sol.u;
         let mut image_to_physical = sol.image_to_physical;
         let correction: Option<CorrectionInfo> = gcn.map(|g| {
@@ -555,6 +628,7 @@ impl<'a> Run<'a> {
             libr: Some(sol.info),
             correction,
             v2s: None,
+            nonlinear,
         })
     }
 }
@@ -568,4 +642,5 @@ struct Answer {
     libr: Option<libr::LibrInfo>,
     correction: Option<CorrectionInfo>,
     v2s: Option<V2sInfo>,
+    nonlinear: Option<libr::NonlinearInfo>,
 }

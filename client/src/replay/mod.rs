@@ -35,11 +35,12 @@ pub fn method_name(m: pb::Method) -> &'static str {
         pb::Method::V2s => "v2s",
         pb::Method::Adaptive => "adaptive",
         pb::Method::Auto => "auto",
+        pb::Method::Nonlinear => "nonlinear",
     }
 }
 
 /// A method from its short name (`rigid`, `libr`, `libr_plus` or `libr+`, `v2s`, `adaptive`,
-/// `auto`, `default`).
+/// `auto`, `nonlinear`, `default`).
 pub fn parse_method(s: &str) -> Result<pb::Method> {
     Ok(match s.trim() {
         "rigid" => pb::Method::Rigid,
@@ -48,10 +49,11 @@ pub fn parse_method(s: &str) -> Result<pb::Method> {
         "v2s" => pb::Method::V2s,
         "adaptive" => pb::Method::Adaptive,
         "auto" => pb::Method::Auto,
+        "nonlinear" => pb::Method::Nonlinear,
         "default" => pb::Method::Unspecified,
         other => {
             bail!(
-                "unknown method {other:?}: expected rigid, libr, libr_plus, v2s, adaptive, auto or default"
+                "unknown method {other:?}: expected rigid, libr, libr_plus, v2s, adaptive, auto, nonlinear or default"
             )
         }
     })

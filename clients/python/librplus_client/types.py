@@ -36,6 +36,7 @@ _METHODS = {
     "v2s": pb.METHOD_V2S,
     "adaptive": pb.METHOD_ADAPTIVE,
     "auto": pb.METHOD_AUTO,
+    "nonlinear": pb.METHOD_NONLINEAR,
 }
 
 _FEATURES = {

@@ -255,7 +255,7 @@ fn prepare_case(
     bar.finish_and_clear();
     let (pre, mut case) = pre?;
     let (method, learned) = crate::register::method_and_model(a.method, a.model.as_deref())?;
-    if matches!(method, Method::Adaptive | Method::Auto) {
+    if matches!(method, Method::Adaptive | Method::Auto | Method::Nonlinear) {
         let t = std::time::Instant::now();
         case = case.with_adaptive(&params.libr, &params.adaptive, None)?;
         // On stderr: `--json` keeps stdout one JSON object.

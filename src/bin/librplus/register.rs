@@ -42,6 +42,7 @@ pub(crate) fn method_and_model(
         MethodArg::Librplus => Method::LibrPlus,
         MethodArg::V2s => Method::V2s,
         MethodArg::Adaptive => Method::Adaptive,
+        MethodArg::Nonlinear => Method::Nonlinear,
         MethodArg::Auto => Method::Auto,
     };
     let learned = match (model, method) {
@@ -174,7 +175,7 @@ fn prepare_case(
         Some(cache),
     )?
     .with_error_model(librplus::register::uncertainty::builtin());
-    let case = if matches!(method, Method::Adaptive | Method::Auto) {
+    let case = if matches!(method, Method::Adaptive | Method::Auto | Method::Nonlinear) {
         case.with_adaptive(&params.libr, &params.adaptive, Some(cache))?
     } else {
         case

@@ -93,6 +93,9 @@ pub struct ScenarioResult {
     /// ([`crate::pipeline::side`]; None when it did not run).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub surface: Option<crate::pipeline::side::SideInfo>,
+    /// The nonlinear refinement, for `nonlinear` (None otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nonlinear: Option<crate::register::libr::NonlinearInfo>,
 }
 
 /// What [`crate::pipeline::Method::Auto`] chose in one registration, with each candidate's
@@ -658,6 +661,7 @@ mod tests {
             quality: None,
             quality_reason: None,
             surface: None,
+            nonlinear: None,
         }
     }
 

@@ -202,7 +202,7 @@ impl Run<'_> {
         let mut case =
             Prepared::with_physics(geo.model.clone(), libr, self.physics, Some(&self.cache))?
                 .with_error_model(crate::register::uncertainty::builtin());
-        if auto || methods.contains(&Method::Adaptive) {
+        if auto || methods.contains(&Method::Adaptive) || methods.contains(&Method::Nonlinear) {
             case = case.with_adaptive(&params.libr, &params.adaptive, Some(&self.cache))?;
         }
         if let Some(v) = self.v2s.filter(|_| methods.contains(&Method::V2s)) {
@@ -326,6 +326,7 @@ impl Run<'_> {
             quality: None,
             quality_reason: None,
             surface: None,
+            nonlinear: None,
         };
         match corrected {
             Ok((u, transform, outside, abstained)) => {
@@ -468,6 +469,7 @@ fn scored(
         quality: None,
         quality_reason: None,
         surface: None,
+        nonlinear: None,
     };
     match r {
         Ok(r) => {
@@ -487,6 +489,7 @@ fn scored(
                     quality: Some(judged.quality),
                     quality_reason: Some(judged.reason),
                     surface: r.surface.clone(),
+                    nonlinear: r.nonlinear.clone(),
                     ..base
                 },
                 Some(err),

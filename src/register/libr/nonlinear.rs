@@ -126,6 +126,107 @@ pub fn refine_nonlinear(
     mut rematch: impl FnMut(&[f64], &Rigid) -> Result<Vec<Match>, RegisterError>,
 ) -> Result<(LibrSolution, NonlinearInfo), RegisterError> {
     let t0 = Instant::now();
+    check_start(start, model, refine, &run)?;
+    let LinearAnswer { basis, solution } = start;
+    let active = checked_active(mesh, basis, params, run.active)?;
+    let (cols, reduced, alpha0, weight, fit_params) = restricted(basis, solution, params, refine);
+    let mut info = NonlinearInfo::default();
+    let cx = (mesh, &reduced, &fit_params, measured_physical, &run);
+    let objective_of = |u: &[f64], alpha: &[f64], t: &Rigid, m| objective(cx, (u, alpha, t), m);
+    let (lin_u, lin_t) = (&solution.u, &solution.image_to_physical);
+    info.linear_objective_mm2 = objective_of(lin_u, &alpha0, lin_t, rematch(lin_u, lin_t)?);
+    if cols.is_empty() {
+        let why = "the linear answer has no deformation to refine".to_string();
+        return Ok((solution.clone(), info.kept(why, t0)));
+    }
+    let lin = reduced.displacement(&alpha0); // where the iterations start: its nonlinear shape
+    let (u0, f0) = model.equilibrium(&model.load_of(&lin), Some(&lin), &refine.forward)?;
+    info.add(&f0);
+    let mut fit = Refining {
+        mesh,
+        basis: &reduced,
+        params: &fit_params,
+        measured_physical,
+        run,
+        active: &active,
+        model,
+        forward: &refine.forward,
+        d: u0.iter().zip(&lin).map(|(a, b)| a - b).collect(),
+        u: u0,
+        alpha: alpha0,
+        solves: Vec::new(),
+        failure: None,
+        stalled: false,
+    };
+    let limits = (run.deadline, false); // no held-out check of the last step
+    let Iterated {
+        t, info: mut it, ..
+    } = iterate(
+        &mut fit,
+        &fit_params,
+        &solution.image_to_physical,
+        limits,
+        &mut rematch,
+    )?;
+    fit.solves.iter().for_each(|f| info.add(f));
+    let lambda = (fit_params.fit.regularization, weight);
+    finish_iterations(&mut it, &reduced, &fit.alpha, lambda, run.hold);
+    let refined_matches = rematch(&fit.u, &t)?;
+    info.refined_objective_mm2 = objective_of(&fit.u, &fit.alpha, &t, refined_matches);
+    info.iterations = it.clone();
+    if let Some(why) = kept_reason(&info, fit.failure.as_ref()) {
+        return Ok((solution.clone(), info.kept(why, t0)));
+    }
+    info.seconds = crate::util::secs(t0);
+    info.change_rms_mm = rms_change(&solution.u, &fit.u);
+    it.total_s = info.seconds;
+    let mut alpha = vec![0.0; basis.columns()];
+    cols.iter()
+        .zip(&fit.alpha)
+        .for_each(|(&j, &a)| alpha[j] = a);
+    let (u, image_to_physical) = (fit.u, t);
+    Ok((
+        LibrSolution {
+            alpha,
+            u,
+            image_to_physical,
+            info: it,
+        },
+        info,
+    ))
+}
+
+/// The refinement's unknowns: the columns the answer used, the basis restricted to them, their
+/// weights, the prior weight `λ/ē` it was fitted with, and the fit's parameters with that λ and
+/// the refinement's iterations.
+fn restricted(
+    basis: &LibrBasis,
+    solution: &LibrSolution,
+    params: &LibrParams,
+    refine: &RefineParams,
+) -> (Vec<usize>, LibrBasis, Vec<f64>, f64, LibrParams) {
+    let cols: Vec<usize> = (0..basis.columns())
+        .filter(|&j| solution.alpha[j] != 0.0)
+        .collect();
+    let all: Vec<u32> = (0..basis.nodes as u32).collect();
+    let reduced = restrict(basis, &cols, &all);
+    let alpha0: Vec<f64> = cols.iter().map(|&j| solution.alpha[j]).collect();
+    let weight = prior_weight(&solution.info, &reduced, params);
+    let mut fit_params = *params;
+    fit_params.fit.regularization = weight * reduced.energy_scale();
+    fit_params.fit.max_iterations = refine.max_iterations;
+    fit_params.fit.tolerance_mm = refine.tolerance_mm;
+    (cols, reduced, alpha0, weight, fit_params)
+}
+
+/// Checks the refinement's inputs: its parameters, no offset, the answer's weights and the
+/// model against the basis.
+fn check_start(
+    start: LinearAnswer<'_>,
+    model: &NonlinearModel,
+    refine: &RefineParams,
+    run: &RunLimits<'_>,
+) -> Result<(), RegisterError> {
     refine.validate()?;
     if run.offset.is_some() {
         return Err(RegisterError::Parameter(
@@ -142,100 +243,50 @@ pub fn refine_nonlinear(
             basis.nodes
         )));
     }
-    let active = checked_active(mesh, basis, params, run.active)?;
-    // The columns the answer used, and the prior weight it was fitted with.
-    let cols: Vec<usize> = (0..basis.columns())
-        .filter(|&j| solution.alpha[j] != 0.0)
-        .collect();
-    let all: Vec<u32> = (0..basis.nodes as u32).collect();
-    let reduced = restrict(basis, &cols, &all);
-    let alpha0: Vec<f64> = cols.iter().map(|&j| solution.alpha[j]).collect();
-    let weight = prior_weight(&solution.info, &reduced, params);
-    let mut fit_params = *params;
-    fit_params.fit.regularization = weight * reduced.energy_scale();
-    fit_params.fit.max_iterations = refine.max_iterations;
-    fit_params.fit.tolerance_mm = refine.tolerance_mm;
-    let mut info = NonlinearInfo::default();
-    let objective_of = |u: &[f64], alpha: &[f64], t: &Rigid, m: Vec<Match>| {
-        objective(mesh, &reduced, &fit_params, measured_physical, &run, (u, alpha, t), m)
-    };
-    let linear_matches = rematch(&solution.u, &solution.image_to_physical)?;
-    info.linear_objective_mm2 = objective_of(
-        &solution.u,
-        &alpha0,
-        &solution.image_to_physical,
-        linear_matches,
-    );
-    if cols.is_empty() {
-        info.kept_linear = Some("the linear answer has no deformation to refine".into());
-        info.seconds = crate::util::secs(t0);
-        return Ok((solution.clone(), info));
+    Ok(())
+}
+
+/// Why the linear answer stands: an equilibrium failed, or the refined objective is not lower.
+fn kept_reason(info: &NonlinearInfo, failure: Option<&String>) -> Option<String> {
+    if let Some(why) = failure {
+        return Some(why.clone());
     }
-    // The nonlinear shape under the linear answer's loads: where the iterations start.
-    let lin = reduced.displacement(&alpha0);
-    let (u0, f0) = model.equilibrium(&model.load_of(&lin), Some(&lin), &refine.forward)?;
-    info.add(&f0);
-    let mut fit = Refining {
-        mesh,
-        basis: &reduced,
-        params: &fit_params,
-        measured_physical,
-        run,
-        active: &active,
-        model,
-        forward: &refine.forward,
-        d: u0.iter().zip(&lin).map(|(a, b)| a - b).collect(),
-        u: u0,
-        alpha: alpha0.clone(),
-        solves: Vec::new(),
-        failure: None,
-    };
-    let limits = (run.deadline, false);
-    let Iterated { t, info: mut it, .. } =
-        iterate(&mut fit, &fit_params, &solution.image_to_physical, limits, &mut rematch)?;
-    for f in &fit.solves {
-        info.add(f);
-    }
-    it.strain_energy_uj = reduced.strain_energy(&fit.alpha);
-    it.regularization = fit_params.fit.regularization;
-    it.columns = cols.len();
-    it.prior_mm2 = weight * 2.0 * it.strain_energy_uj;
-    it.held_nodes = run.hold.map_or(0, |h| h.nodes.len());
-    it.settled = it.converged || settled(&it.rms_history_mm, &it.movement_history_mm);
-    let refined_matches = rematch(&fit.u, &t)?;
-    info.refined_objective_mm2 = objective_of(&fit.u, &fit.alpha, &t, refined_matches);
-    info.iterations = it.clone();
-    let keep_linear = match &fit.failure {
-        Some(why) => Some(why.clone()),
-        None if !(info.refined_objective_mm2 < info.linear_objective_mm2) => Some(format!(
+    let lower = info
+        .refined_objective_mm2
+        .partial_cmp(&info.linear_objective_mm2)
+        == Some(std::cmp::Ordering::Less);
+    (!lower).then(|| {
+        format!(
             "the refined fit's objective {:.3} mm² is not below the linear answer's {:.3} mm²",
             info.refined_objective_mm2, info.linear_objective_mm2
-        )),
-        None => None,
-    };
-    info.seconds = crate::util::secs(t0);
-    if let Some(why) = keep_linear {
-        info.kept_linear = Some(why);
-        return Ok((solution.clone(), info));
-    }
-    info.change_rms_mm = rms_change(&solution.u, &fit.u);
-    let mut alpha = vec![0.0; basis.columns()];
-    for (&j, &a) in cols.iter().zip(&fit.alpha) {
-        alpha[j] = a;
-    }
-    it.total_s = info.seconds;
-    Ok((
-        LibrSolution {
-            alpha,
-            u: fit.u,
-            image_to_physical: t,
-            info: it,
-        },
-        info,
-    ))
+        )
+    })
+}
+
+/// The refinement's record of its iterations: the fit's summary fields filled in.
+fn finish_iterations(
+    it: &mut LibrInfo,
+    reduced: &LibrBasis,
+    alpha: &[f64],
+    (lambda, weight): (f64, f64),
+    hold: Option<&Hold>,
+) {
+    it.strain_energy_uj = reduced.strain_energy(alpha);
+    it.regularization = lambda;
+    it.columns = reduced.columns();
+    it.prior_mm2 = weight * 2.0 * it.strain_energy_uj;
+    it.held_nodes = hold.map_or(0, |h| h.nodes.len());
+    it.settled = it.converged || settled(&it.rms_history_mm, &it.movement_history_mm);
 }
 
 impl NonlinearInfo {
+    /// This record with the linear answer kept for `why`, timed from `t0`.
+    fn kept(mut self, why: String, t0: Instant) -> Self {
+        self.kept_linear = Some(why);
+        self.seconds = crate::util::secs(t0);
+        self
+    }
+
     fn add(&mut self, f: &ForwardInfo) {
         self.solves += 1;
         self.newton += f.newton;
@@ -261,15 +312,21 @@ fn rms_change(a: &[f64], b: &[f64]) -> f64 {
     (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / n).sqrt()
 }
 
+/// What [`objective`] reads besides the state: the mesh, the restricted basis, the fit's
+/// parameters, the measured points and the run's hold.
+type ObjectiveContext<'a> = (
+    &'a TetMesh,
+    &'a LibrBasis,
+    &'a LibrParams,
+    &'a [[f64; 3]],
+    &'a RunLimits<'a>,
+);
+
 /// The fit's objective at `(u, α, t)` from `matches` made there: the weighted mean squared
 /// misfit of the matched points and the hold's pairs, by the step's rows (point-to-plane with
 /// the tangential weight, point-to-point without a normal), plus `λ αᵀẼα`.
 fn objective(
-    mesh: &TetMesh,
-    basis: &LibrBasis,
-    params: &LibrParams,
-    measured_physical: &[[f64; 3]],
-    run: &RunLimits<'_>,
+    (mesh, basis, params, measured_physical, run): ObjectiveContext<'_>,
     (u, alpha, t): (&[f64], &[f64], &Rigid),
     mut matches: Vec<Match>,
 ) -> f64 {
@@ -290,7 +347,11 @@ fn objective(
         wsum += mt.weight;
         sum += mt.weight * rr;
     }
-    let misfit = if wsum > 0.0 { sum / wsum } else { f64::INFINITY };
+    let misfit = if wsum > 0.0 {
+        sum / wsum
+    } else {
+        f64::INFINITY
+    };
     let prior = params.fit.regularization / basis.energy_scale().max(1e-300)
         * 2.0
         * basis.strain_energy(alpha);
@@ -315,6 +376,39 @@ struct Refining<'a> {
     solves: Vec<ForwardInfo>,
     /// Why an equilibrium failed (the iterations then stop, and the linear answer stands).
     failure: Option<String>,
+    /// No shortened step lowered the objective (the iterations then stop).
+    stalled: bool,
+}
+
+/// How many times a refinement step is halved before the refinement stops.
+const SHORTENINGS: usize = 3;
+
+impl Refining<'_> {
+    /// `Φα` and the equilibrium under its loads, warm-started from the current one moved by the
+    /// linear change (`old` = `Φα` of the current weights); None when the solve failed
+    /// ([`Refining::failure`] says why).
+    fn equilibrium_at(&mut self, alpha: &[f64], old: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
+        let lin = self.basis.displacement(alpha);
+        let warm: Vec<f64> = self
+            .u
+            .iter()
+            .zip(lin.iter().zip(old))
+            .map(|(u, (a, b))| u + a - b)
+            .collect();
+        match self
+            .model
+            .equilibrium(&self.model.load_of(&lin), Some(&warm), self.forward)
+        {
+            Ok((u, f)) => {
+                self.solves.push(f);
+                Some((lin, u))
+            }
+            Err(e) => {
+                self.failure = Some(format!("an equilibrium failed: {e}"));
+                None
+            }
+        }
+    }
 }
 
 impl Stepper for Refining<'_> {
@@ -330,6 +424,7 @@ impl Stepper for Refining<'_> {
         t: &Rigid,
         _: &mut LibrInfo,
     ) -> Result<(StepResult, f64, ()), RegisterError> {
+        let raw = matches.clone();
         let targets = step_targets(
             self.mesh,
             self.measured_physical,
@@ -339,40 +434,65 @@ impl Stepper for Refining<'_> {
             &mut matches,
         );
         let prior = PriorPairs::of(self.run.rigid_prior, t);
-        let step = fit_step_with_prior(self.basis, &matches, &targets, self.params, prior.as_ref())?;
-        let lin = self.basis.displacement(&step.alpha);
+        let mut step =
+            fit_step_with_prior(self.basis, &matches, &targets, self.params, prior.as_ref())?;
+        let run = self.run;
+        let cx = (
+            self.mesh,
+            self.basis,
+            self.params,
+            self.measured_physical,
+            &run,
+        );
+        let objective_at =
+            |u: &[f64], alpha: &[f64], pose: &Rigid| objective(cx, (u, alpha, pose), raw.clone());
+        let now = objective_at(&self.u, &self.alpha, t);
+        let moved_pose = step.rigid_correction.then(t);
         let old = self.basis.displacement(&self.alpha);
-        let warm: Vec<f64> = self
-            .u
-            .iter()
-            .zip(lin.iter().zip(&old))
-            .map(|(u, (a, b))| u + a - b)
-            .collect();
-        let (u_new, f) = match self
-            .model
-            .equilibrium(&self.model.load_of(&lin), Some(&warm), self.forward)
-        {
-            Ok(x) => x,
-            Err(e) => {
-                self.failure = Some(format!("an equilibrium failed: {e}"));
+        // The frozen Jacobian's step, shortened while it does not lower the objective on these
+        // matches (the nonlinear response may be softer or stiffer than Φ says).
+        let mut fraction = 1.0;
+        for _ in 0..SHORTENINGS {
+            let alpha: Vec<f64> = self
+                .alpha
+                .iter()
+                .zip(&step.alpha)
+                .map(|(a, b)| a + fraction * (b - a))
+                .collect();
+            let Some((lin, u_new)) = self.equilibrium_at(&alpha, &old) else {
                 return Ok((step, 0.0, ()));
+            };
+            if objective_at(&u_new, &alpha, &moved_pose) < now {
+                let moved = movement(
+                    self.mesh,
+                    self.active,
+                    &self.u,
+                    &u_new,
+                    &step.rigid_correction,
+                );
+                self.d = u_new.iter().zip(&lin).map(|(a, b)| a - b).collect();
+                self.u = u_new;
+                step.alpha = alpha;
+                return Ok((step, moved, ()));
             }
-        };
-        self.solves.push(f);
-        let moved = movement(self.mesh, self.active, &self.u, &u_new, &step.rigid_correction);
-        self.d = u_new.iter().zip(&lin).map(|(a, b)| a - b).collect();
-        self.u = u_new;
-        Ok((step, moved, ()))
+            fraction *= 0.5;
+        }
+        // No shortened step lowers the objective: the refinement has gone as far as it can.
+        self.stalled = true;
+        step.alpha = self.alpha.clone();
+        step.rigid_correction = Rigid::identity();
+        Ok((step, 0.0, ()))
     }
 
     fn keep(&mut self, step: StepResult, _: &mut LibrInfo) {
-        if self.failure.is_none() {
+        if self.failure.is_none() && !self.stalled {
             self.alpha = step.alpha;
         }
     }
 
     fn done(&mut self, info: &mut LibrInfo, moved: f64, params: &LibrParams) -> bool {
-        if self.failure.is_some() {
+        if self.failure.is_some() || self.stalled {
+            info.converged = self.stalled;
             return true;
         }
         if moved <= params.fit.tolerance_mm {

@@ -439,7 +439,13 @@ fn stepped_displacement(
 
 /// Largest movement of an active node in the image frame of the old estimate:
 /// `|δ(X + u_new) − (X + u_old)|`.
-pub(super) fn movement(mesh: &TetMesh, active: &[u32], u: &[f64], u_new: &[f64], delta: &Rigid) -> f64 {
+pub(super) fn movement(
+    mesh: &TetMesh,
+    active: &[u32],
+    u: &[f64],
+    u_new: &[f64],
+    delta: &Rigid,
+) -> f64 {
     let mut moved = 0.0f64;
     for &i in active {
         let (i, x) = (i as usize, mesh.nodes()[i as usize]);

@@ -50,7 +50,7 @@ pub fn pcg(
         let q = a(&p);
         it += 1;
         let pq = dot(&p, &q);
-        if !(pq > 0.0) || !rz.is_finite() {
+        if pq.is_nan() || pq <= 0.0 || !rz.is_finite() {
             negative = true;
             if it == 1 {
                 x = z;

@@ -534,6 +534,9 @@ pub(crate) enum MethodArg {
     /// LIBR and (with a trusted start) their held variants, each scored by how well it predicts
     /// the points it did not see.
     Auto,
+    /// wICP, adaptive LIBR, then the nonlinear refinement: the same loads fitted again through
+    /// the case's Neo-Hookean model (the linear answer kept unless the refinement fits better).
+    Nonlinear,
 }
 
 #[derive(Subcommand)]
