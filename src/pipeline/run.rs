@@ -462,21 +462,7 @@ impl<'a> Run<'a> {
     ) -> Result<LibrSolution, PipelineError> {
         let case = self.case;
         let held = held_at(case, self.meas, self.params, &rigid.image_to_physical)?;
-        let run = libr::RunLimits {
-            active: Some(case.correspondence.active_nodes()),
-            deadline,
-            offset: None,
-            // A held organ is anchored by its hold: the fit's rigid correction is then free to
-            // carry the rigid part the free-floating basis leaves out of a dent (a trusted
-            // pose prior against it made the held fits worse than doing nothing).
-            rigid_prior: if held.is_some() {
-                None
-            } else {
-                rigid.prior.as_ref()
-            },
-            hold: held.as_ref(),
-            held_out: self.folds,
-        };
+        let run = self.limits(rigid, held.as_ref(), deadline, self.folds);
         let mut hints = Hints::default();
         let rematch = |u: &[f64], t: &Rigid| self.rematch(u, t, &mut hints);
         if self.fits_adaptive() {
@@ -513,6 +499,32 @@ impl<'a> Run<'a> {
         .map_err(PipelineError::Libr)
     }
 
+    /// What a deformable fit from `rigid` reads besides its data: the active nodes, the
+    /// deadline, the hold and the pose prior, and the folds of its held-out check.
+    fn limits<'b>(
+        &'b self,
+        rigid: &'b WicpResult,
+        held: Option<&'b libr::Hold>,
+        deadline: Option<Instant>,
+        folds: Option<&'b Folds>,
+    ) -> libr::RunLimits<'b> {
+        libr::RunLimits {
+            active: Some(self.case.correspondence.active_nodes()),
+            deadline,
+            offset: None,
+            // A held organ is anchored by its hold: the fit's rigid correction is then free to
+            // carry the rigid part the free-floating basis leaves out of a dent (a trusted
+            // pose prior against it made the held fits worse than doing nothing).
+            rigid_prior: if held.is_some() {
+                None
+            } else {
+                rigid.prior.as_ref()
+            },
+            hold: held,
+            held_out: folds,
+        }
+    }
+
     /// Whether the deformable fit is adaptive LIBR: for adaptive LIBR, and for the nonlinear
     /// refinement of a case with adaptive LIBR's basis.
     fn fits_adaptive(&self) -> bool {
@@ -542,18 +554,7 @@ impl<'a> Run<'a> {
         };
         let model = case.nonlinear_model(&self.params.libr.basis.material)?;
         let held = held_at(case, self.meas, self.params, &rigid.image_to_physical)?;
-        let run = libr::RunLimits {
-            active: Some(case.correspondence.active_nodes()),
-            deadline: self.params.deadline,
-            offset: None,
-            rigid_prior: if held.is_some() {
-                None
-            } else {
-                rigid.prior.as_ref()
-            },
-            hold: held.as_ref(),
-            held_out: None,
-        };
+        let run = self.limits(rigid, held.as_ref(), self.params.deadline, None);
         let mut hints = Hints::default();
         libr::refine_nonlinear(
             &case.model.mesh,
