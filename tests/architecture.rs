@@ -494,6 +494,7 @@ const SERVER_ORDER: &[&str] = &[
     "counted",
     "live",
     "metrics_http",
+    "refine",
     "compute",
     "discovery",
     "shared",

@@ -22,7 +22,7 @@ use librplus::mesh::tetra::{TetraParams, tetrahedralize};
 use librplus::phantom::measure::{Category, MeasureParams, simulate_focused};
 use librplus::phantom::vessels::{VesselParams, VesselTree};
 use librplus::pipeline::hold::{HoldParams, hold};
-use librplus::pipeline::{Method, PipelineParams, Prepared, register};
+use librplus::pipeline::{Method, PipelineParams, Prepared, register, register_progressive};
 use librplus::register::Checked;
 use librplus::register::anatomy::{AnatomyLabels, LabelParams, label};
 use librplus::register::libr::{AdaptiveParams, LibrParams};
@@ -496,14 +496,38 @@ fn without_a_trusted_start_the_hold_is_a_hypothesis_ranked_after_the_free_fits()
 
 /// The nonlinear refinement ([`Method::Nonlinear`]) on the held organ: it returns the refined
 /// answer only where its objective (misfit plus prior, measured the same way) is lower than the
-/// adaptive fit it started from, and that fit bit for bit otherwise.
+/// adaptive fit it started from, and that fit bit for bit otherwise. Answered in two
+/// ([`register_progressive`]), the first answer is the adaptive fit bit for bit, flagged as
+/// followed by its refinement, and the second [`register`]'s.
 #[test]
 fn the_nonlinear_refinement_never_fits_worse_than_its_linear_start() {
     let c = case();
     for seed in [11, 12] {
         let (meas, truth) = measured(&c.u, seed);
         let linear = register(&c.prepared, &meas, Method::Adaptive, &held_params()).unwrap();
-        let r = register(&c.prepared, &meas, Method::Nonlinear, &held_params()).unwrap();
+        let first = OnceLock::new();
+        let r = register_progressive(
+            &c.prepared,
+            &meas,
+            Method::Nonlinear,
+            &held_params(),
+            &|a| {
+                assert!(first.set(a.clone()).is_ok(), "one linear answer");
+            },
+        )
+        .unwrap();
+        let first = first
+            .into_inner()
+            .expect("the linear answer was handed over");
+        assert!(first.refinement_follows && !r.refinement_follows);
+        assert_eq!(first.method, Method::Adaptive);
+        assert_eq!(first.u, linear.u, "the first answer is the adaptive fit");
+        assert_eq!(first.image_to_physical, linear.image_to_physical);
+        let whole = register(&c.prepared, &meas, Method::Nonlinear, &held_params()).unwrap();
+        assert_eq!(
+            r.u, whole.u,
+            "the second answer is the one-piece registration's"
+        );
         let n = r.nonlinear.as_ref().expect("the refinement's record");
         eprintln!(
             "pushed 40 mm, held, seed {seed}: adaptive {:.2} mm, refined {:.2} mm; objective {:.3} -> {:.3} mm², {} solves, {} Newton, {} CG, {:.2} s{}",

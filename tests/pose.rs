@@ -290,11 +290,17 @@ fn a_registration_the_gate_searches_answers_twice_the_second_bit_for_bit_the_sea
     let c = centroid(&l.meas.points);
     let (gated, single) = gate_at(2.0);
     // A good start: one answer, the one-piece registration's.
-    let mut firsts = 0;
-    let good =
-        register_progressive(&case, &l.meas, Method::Libr, &gated, &mut |_| firsts += 1).unwrap();
+    let firsts = std::sync::atomic::AtomicUsize::new(0);
+    let good = register_progressive(&case, &l.meas, Method::Libr, &gated, &|_| {
+        firsts.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    })
+    .unwrap();
     let whole = register(&case, &l.meas, Method::Libr, &gated).unwrap();
-    assert_eq!(firsts, 0, "a good start's answer was given twice");
+    assert_eq!(
+        firsts.into_inner(),
+        0,
+        "a good start's answer was given twice"
+    );
     assert!(!good.search_follows);
     assert_eq!(good.image_to_physical, whole.image_to_physical);
     assert_eq!(good.u, whole.u);
@@ -310,13 +316,17 @@ fn a_registration_the_gate_searches_answers_twice_the_second_bit_for_bit_the_sea
             continue;
         }
         twice += 1;
-        let mut first: Option<librplus::pipeline::Registration> = None;
-        let last = register_progressive(&case, &m, Method::Libr, &gated, &mut |r| {
-            assert!(first.is_none(), "more than one provisional answer");
-            first = Some(r.clone());
+        let first = std::sync::OnceLock::new();
+        let last = register_progressive(&case, &m, Method::Libr, &gated, &|r| {
+            assert!(
+                first.set(r.clone()).is_ok(),
+                "more than one provisional answer"
+            );
         })
         .unwrap();
-        let first = first.expect("the provisional answer was given");
+        let first = first
+            .into_inner()
+            .expect("the provisional answer was given");
         assert!(first.search_follows && !last.search_follows);
         assert_eq!(first.image_to_physical, alone.image_to_physical);
         assert_eq!(first.u, alone.u);

@@ -137,6 +137,10 @@ struct Common {
     /// the points do not come near
     #[arg(long)]
     held: bool,
+    /// METHOD_NONLINEAR answers once, with the refined answer, instead of the linear answer
+    /// at once and its refinement after it
+    #[arg(long)]
+    single_answer: bool,
     /// Resume a session whose stream is lost (the server restarted or the network dropped):
     /// reconnect with backoff and go on from what the server recorded (it needs --audit).
     #[arg(long)]
@@ -219,13 +223,13 @@ fn seconds(name: &str, s: f64) -> Result<Duration> {
 }
 
 fn options(c: &Common) -> Option<pb::RegisterOptions> {
-    (c.time_budget_ms.is_some() || c.trusted_alignment.is_some() || c.held).then(|| {
-        pb::RegisterOptions {
-            time_budget_ms: c.time_budget_ms.unwrap_or(0),
-            omit_displacements: false,
-            trusted_alignment_mm: c.trusted_alignment.unwrap_or(0.0),
-            held: c.held,
-        }
+    let any = c.time_budget_ms.is_some() || c.trusted_alignment.is_some();
+    (any || c.held || c.single_answer).then(|| pb::RegisterOptions {
+        time_budget_ms: c.time_budget_ms.unwrap_or(0),
+        omit_displacements: false,
+        trusted_alignment_mm: c.trusted_alignment.unwrap_or(0.0),
+        held: c.held,
+        single_answer: c.single_answer,
     })
 }
 

@@ -387,6 +387,7 @@ mod tests {
             omit_displacements: false,
             trusted_alignment_mm: 0.0,
             held: false,
+            single_answer: false,
         };
         let msgs = stream_messages("liver", pb::Method::Libr, Some(opts), &sc, &pl, 3);
         // Start, ceil(7 / 3) = 3 surface batches, 3 planes.

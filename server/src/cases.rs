@@ -23,6 +23,9 @@ pub struct Estimates {
     /// What a deformable registration spends outside its rigid stage and LIBR's iterations
     /// (the side test's other fits, the fit's score, the error estimate).
     pub other_ms: f64,
+    /// METHOD_NONLINEAR's refinement of a linear answer (the nonlinear model's first build
+    /// included the first time).
+    pub refine_ms: f64,
 }
 
 /// A preloaded case.
@@ -72,6 +75,14 @@ impl Case {
     /// Current stage-duration estimates.
     pub fn estimates(&self) -> Estimates {
         *self.estimates.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Folds a measured refinement time into its estimate (ms).
+    pub fn observe_refine(&self, ms: f64) {
+        let mut e = self.estimates.lock().unwrap_or_else(|p| p.into_inner());
+        if ms.is_finite() && ms >= 0.0 {
+            e.refine_ms = 0.8 * e.refine_ms + 0.2 * ms;
+        }
     }
 
     /// Folds measured durations into the estimates.
@@ -468,6 +479,12 @@ fn learned_models(
         progress("adaptive basis", 0.97);
         prepared = prepared.with_adaptive(&params.libr, &params.adaptive, Some(cache))?;
     }
+    let nonlinear = config.method().ok() == Some(librplus::pipeline::Method::Nonlinear);
+    if nonlinear && cache.is_some() {
+        // The nonlinear model built now, not in the first registration's budget.
+        progress("nonlinear model", 0.99);
+        prepared = prepared.with_nonlinear(&params.libr, &params.nonlinear)?;
+    }
     Ok(prepared)
 }
 
@@ -494,6 +511,9 @@ fn case(
             libr_iteration_ms: 3.0 * n / 1e4,
             libr_fixed_ms: 4.0 * n / 1e4,
             other_ms: 0.0,
+            // 0.9 s p50 on the 9,089-node paper liver (BENCHMARKS.md), with the nonlinear
+            // model's first build (about as long again) when it was not preloaded.
+            refine_ms: 2_000.0 * n / 1e4,
         }),
         version: version.to_string(),
         sessions: Default::default(),

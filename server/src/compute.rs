@@ -7,7 +7,7 @@ use crate::convert::{method_to_pb, rigid_to_pb};
 use crate::counted::{KeyHold, PerKey};
 use crate::error::{Internal, ServiceError, Unavailable, libr_can_fall_back};
 use librplus::pipeline::quality::Circumstances;
-use librplus::pipeline::{Method, PipelineParams, register};
+use librplus::pipeline::{Method, PipelineParams, Registration, register};
 use librplus::register::Checked;
 use librplus_proto::v1 as pb;
 use std::sync::Arc;
@@ -41,6 +41,8 @@ pub struct Options {
     pub trusted_alignment_mm: Option<f64>,
     /// The organ is held in place, when the client says so ([`librplus::pipeline::hold`]).
     pub held: bool,
+    /// METHOD_NONLINEAR answers once (the refined answer) even in a stream.
+    pub single_answer: bool,
 }
 
 /// One registration to compute: a case and a request.
@@ -54,6 +56,9 @@ pub struct Job {
     /// The session's own model (in-surgery discovery switched it to an augmented one), in place
     /// of the case's.
     pub prepared: Option<Arc<librplus::pipeline::Prepared>>,
+    /// Where METHOD_NONLINEAR's linear answer goes as soon as it is made, its refinement to
+    /// follow (a stream's; None: one answer, the refined one).
+    pub first: Option<tokio::sync::mpsc::UnboundedSender<pb::Registration>>,
 }
 
 /// Bounded pool of compute slots.
@@ -238,7 +243,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     let mut plan = plan(&job, prepared, Instant::now());
     coarse_plan(&job, prepared, &mut plan);
     let meas = &job.request.measurements;
-    let mut result = register(prepared, meas, plan.method, &plan.params);
+    let mut result = register_job(&job, prepared, &plan);
     let mut fallback: Option<String> = None;
     if let (Err(e), Method::Libr | Method::LibrPlus | Method::Auto) = (&result, plan.method)
         && libr_can_fall_back(e)
@@ -262,6 +267,7 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
         reg.libr.as_ref().map(|i| (i.total_s * 1e3, i.iterations)),
         other_ms,
     );
+    crate::refine::observe(&job.case, &reg);
     if let (Some(why), Some(score)) = (&plan.search_off, reg.search_skipped_mm2) {
         // Never silently: the registration the gate would have searched says it was not.
         plan.degraded.get_or_insert_with(|| {
@@ -281,17 +287,71 @@ fn compute(job: Job) -> Result<pb::Registration, ServiceError> {
     }
     let circumstances = Circumstances {
         fallback,
-        degraded: plan.degraded.take(),
+        degraded: plan.degraded.clone(),
         budget_ms: Some(ms(job.request.options.budget)),
     };
-    let judged = librplus::pipeline::quality::judge(&reg, &plan.params, &circumstances);
+    let mut out = judged_answer(&job, prepared, &reg, &plan, circumstances);
+    let asked = job.request.method;
+    let refines = job.first.is_some() && !job.request.options.single_answer;
+    out.refinement = crate::refine::refinement_pb(asked, refines, &reg, plan.degraded.as_deref());
+    Ok(out)
+}
+
+/// Runs a job's registration as planned: METHOD_NONLINEAR with somewhere to send its linear
+/// answer hands it over there first (judged and put on the wire as any answer, with
+/// `refinement.follows` set); every other registration answers once.
+fn register_job(
+    job: &Job,
+    prepared: &librplus::pipeline::Prepared,
+    plan: &Plan,
+) -> Result<Registration, librplus::pipeline::PipelineError> {
+    let to = job
+        .first
+        .as_ref()
+        .filter(|_| !job.request.options.single_answer);
+    let send = |r: &Registration| {
+        let circumstances = Circumstances {
+            degraded: plan.degraded.clone(),
+            budget_ms: Some(ms(job.request.options.budget)),
+            ..Default::default()
+        };
+        let mut out = judged_answer(job, prepared, r, plan, circumstances);
+        out.refinement = Some(pb::Refinement {
+            follows: true,
+            ..Default::default()
+        });
+        // The session may have ended meanwhile: nothing then waits for it.
+        if let Some(tx) = to {
+            let _ = tx.send(out);
+        }
+    };
+    let first = to.map(|_| &send as librplus::pipeline::FirstAnswer<'_>);
+    let meas = &job.request.measurements;
+    crate::refine::register_planned(prepared, meas, (plan.method, &plan.params), first)
+}
+
+/// A registration judged (its quality and reason, late or not) and put on the wire.
+fn judged_answer(
+    job: &Job,
+    prepared: &librplus::pipeline::Prepared,
+    reg: &Registration,
+    plan: &Plan,
+    circumstances: Circumstances,
+) -> pb::Registration {
+    let judged = librplus::pipeline::quality::judge(reg, &plan.params, &circumstances);
     let (quality, reason) = (quality_to_pb(judged.quality), judged.reason);
     let total_ms = ms(job.arrival.elapsed());
-    let (quality, reason) = late(&job, &reg, &plan, quality, reason, total_ms);
-    record_stages(&reg, &plan, quality, total_ms);
-    Ok(answer(
-        &job, prepared, &reg, &plan, quality, reason, total_ms,
-    ))
+    let (quality, reason) = late(job, reg, plan, quality, reason, total_ms);
+    if !reg.refinement_follows {
+        // One registration counted, at its final answer.
+        record_stages(reg, plan, quality, total_ms);
+    }
+    let mut out = answer(job, prepared, reg, plan, quality, reason, total_ms);
+    // A provisional answer names its own method (the linear fit the refinement follows).
+    if reg.refinement_follows {
+        out.method_used = method_to_pb(reg.method) as i32;
+    }
+    out
 }
 
 /// The method and parameters that fit the time left: LIBR+ only when the SR-GCN fits, LIBR
@@ -311,31 +371,23 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
     let gcn_ms = prepared
         .librplus
         .as_ref()
-        .map_or(0.0, |g| 1e3 * g.expected_seconds());
+        .map_or(0.0, |g| g.expected_seconds());
+    let gcn_ms = 1e3 * gcn_ms;
     let left = ms(deadline.saturating_duration_since(start));
-    if method == Method::LibrPlus {
-        let need =
-            est.rigid_ms + est.other_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + gcn_ms;
-        if left < need {
-            method = Method::Libr;
-            degraded = Some(format!(
-                "time budget {:.0} ms: {left:.0} ms left, LIBR+ needs about {need:.0} ms (SR-GCN {gcn_ms:.0} ms); LIBR result",
-                ms(job.request.options.budget)
-            ));
-            if left >= need - gcn_ms {
-                // The SR-GCN estimate alone did not fit: let it fall slowly, so that a
-                // correction once timed slow (a busy machine) is tried and timed again.
-                if let Some(g) = &prepared.librplus {
-                    g.relax_estimate();
-                }
-            }
-        }
+    if method == Method::LibrPlus
+        && let Some(why) = librplus_does_not_fit(job, prepared, &est, left, gcn_ms)
+    {
+        (method, degraded) = (Method::Libr, Some(why));
     }
     if method == Method::Auto
         && let Some(why) = auto_does_not_fit(job, left)
     {
-        method = Method::Libr;
-        degraded = Some(why);
+        (method, degraded) = (Method::Libr, Some(why));
+    }
+    if method == Method::Nonlinear
+        && let Err(why) = crate::refine::plan_nonlinear(prepared, &est, left, deadline, &mut params)
+    {
+        (method, degraded) = why;
     }
     if matches!(method, Method::Libr | Method::LibrPlus | Method::Auto) {
         let need = est.rigid_ms + est.other_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms;
@@ -376,6 +428,33 @@ fn plan(job: &Job, prepared: &librplus::pipeline::Prepared, start: Instant) -> P
         queue_ms,
         search_off,
     }
+}
+
+/// Why LIBR+ does not fit the `left` ms of the budget (None: it does), by the case's running
+/// estimates and the SR-GCN's (`gcn_ms`).
+fn librplus_does_not_fit(
+    job: &Job,
+    prepared: &librplus::pipeline::Prepared,
+    est: &crate::cases::Estimates,
+    left: f64,
+    gcn_ms: f64,
+) -> Option<String> {
+    let need =
+        est.rigid_ms + est.other_ms + est.libr_fixed_ms + 2.0 * est.libr_iteration_ms + gcn_ms;
+    if left >= need {
+        return None;
+    }
+    if left >= need - gcn_ms {
+        // The SR-GCN estimate alone did not fit: let it fall slowly, so that a
+        // correction once timed slow (a busy machine) is tried and timed again.
+        if let Some(g) = &prepared.librplus {
+            g.relax_estimate();
+        }
+    }
+    Some(format!(
+        "time budget {:.0} ms: {left:.0} ms left, LIBR+ needs about {need:.0} ms (SR-GCN {gcn_ms:.0} ms); LIBR result",
+        ms(job.request.options.budget)
+    ))
 }
 
 /// Where the rigid stage (the side test's fits, wICP, the pose search's refinements) stops, in
@@ -563,6 +642,8 @@ fn answer(
             .error
             .as_ref()
             .map(|e| error_estimate(e, job.request.options.omit_displacements)),
+        // Set by the caller for METHOD_NONLINEAR.
+        refinement: None,
     }
 }
 
@@ -655,6 +736,7 @@ mod tests {
                 omit_displacements: true,
                 trusted_alignment_mm: Some(3.0),
                 held: false,
+                single_answer: false,
             },
         };
         let job = Job {
@@ -662,6 +744,7 @@ mod tests {
             request,
             arrival: Instant::now(),
             prepared: None,
+            first: None,
         };
         let planned = plan(&job, &case.prepared, Instant::now()).params;
         assert_eq!(planned.libr.basis.hash(), built);

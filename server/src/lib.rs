@@ -26,6 +26,7 @@ pub mod journal;
 pub mod live;
 pub mod metrics_http;
 pub mod preload;
+pub mod refine;
 pub mod registry;
 pub mod service;
 pub(crate) mod session;

@@ -237,6 +237,7 @@ impl LibRPlus for Svc {
                 },
                 arrival,
                 prepared: None,
+                first: None,
             };
             let reg = self.0.engine.run(job, Some(&client)).await?;
             // Acknowledged only once recorded.

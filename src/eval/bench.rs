@@ -478,11 +478,11 @@ fn timed(
         return Ok((r, t));
     }
     let t0 = std::time::Instant::now();
-    let mut first = None;
-    let r =
-        crate::pipeline::register_progressive(case, meas, asked.method, asked.params, &mut |_| {
-            first = Some(crate::util::secs(t0))
-        })?;
+    let first_at = std::sync::OnceLock::new();
+    let r = crate::pipeline::register_progressive(case, meas, asked.method, asked.params, &|_| {
+        let _ = first_at.set(crate::util::secs(t0));
+    })?;
+    let first = first_at.get().copied();
     let total = crate::util::secs(t0);
     let t = RegistrationTimings {
         total_s: total,

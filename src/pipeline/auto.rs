@@ -272,6 +272,7 @@ pub(super) fn register_auto(
             let shared = Shared {
                 folds: Some(&folds),
                 start,
+                first: None,
             };
             let reg = register_scored(case, meas, c.method(), p, shared);
             let score = match &reg {
@@ -386,6 +387,7 @@ fn rigid_candidate(
                 auto: None,
                 search_skipped_mm2: l.search_skipped_mm2,
                 search_follows: false,
+                refinement_follows: false,
                 surface: None,
                 points: None,
                 seconds: l.rigid.seconds,

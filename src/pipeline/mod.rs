@@ -8,7 +8,7 @@ use crate::gcn::io::TrainedModel;
 use crate::mesh::rigid::Rigid;
 use crate::register::correspondence::{Correspondence, CorrespondenceParams};
 use crate::register::libr::{self, AdaptiveParams, LibrBasis, LibrInfo, LibrParams};
-use crate::register::nonlinear::NonlinearModel;
+use crate::register::nonlinear::NonlinearMap;
 use crate::register::physics::Physics;
 use crate::register::physics::kinds::Hold;
 use crate::register::physics::model::Sites;
@@ -42,6 +42,22 @@ pub fn register(
     method: Method,
     params: &PipelineParams,
 ) -> Result<Registration, PipelineError> {
+    register_with(case, meas, method, params, None)
+}
+
+/// A registration's provisional answer, handed over before the registration goes on
+/// ([`progressive`]).
+pub type FirstAnswer<'a> = &'a (dyn Fn(&Registration) + Sync);
+
+/// [`register`], handing the linear answer of [`Method::Nonlinear`] to `first` (with
+/// [`Registration::refinement_follows`] set) before its refinement runs.
+pub(crate) fn register_with(
+    case: &Prepared,
+    meas: &Checked,
+    method: Method,
+    params: &PipelineParams,
+    first: Option<FirstAnswer<'_>>,
+) -> Result<Registration, PipelineError> {
     let t0 = Instant::now();
     let reduced = reduce_points(case, meas, method, params).map_err(PipelineError::Rigid)?;
     let meas = reduced.as_ref().map_or(meas, |(m, _)| m);
@@ -54,14 +70,29 @@ pub fn register(
         Some((info, start)) => (side::params_for(params, info.target), Some(start)),
         None => (params.clone(), None),
     };
+    let surface = side.as_ref().map(|(info, _)| info.clone());
+    let points = reduced.as_ref().map(|(_, r)| *r);
+    // The provisional answer says what the final one will of the side and the points.
+    let wrapped = |r: &Registration| {
+        let mut r = r.clone();
+        r.surface = surface.clone();
+        r.points = points;
+        r.seconds = crate::util::secs(t0);
+        first.expect("called only when set")(&r)
+    };
     let mut reg = if method == Method::Auto {
         auto::register_auto(case, meas, &params, start)?
     } else {
-        let shared = run::Shared { folds: None, start };
+        let first = first.map(|_| &wrapped as FirstAnswer<'_>);
+        let shared = run::Shared {
+            folds: None,
+            start,
+            first,
+        };
         run::register_scored(case, meas, method, &params, shared)?
     };
-    reg.surface = side.map(|(info, _)| info);
-    reg.points = reduced.map(|(_, r)| r);
+    reg.surface = surface;
+    reg.points = points;
     // The side test's time counts in the registration's.
     reg.seconds = crate::util::secs(t0);
     Ok(reg)
@@ -239,6 +270,10 @@ pub struct PipelineParams {
     pub hold: hold::HoldParams,
     /// The nonlinear refinement ([`Method::Nonlinear`]).
     pub nonlinear: libr::RefineParams,
+    /// The nonlinear refinement stops before an iteration or solve that would end past this
+    /// instant, keeping the linear answer unless what it reached fits better (the service's time
+    /// budget); None: [`PipelineParams::deadline`].
+    pub refine_deadline: Option<Instant>,
     /// How [`Method::Auto`] scores and chooses its candidates.
     pub auto: auto::AutoParams,
     /// LIBR+ abstains, answering LIBR's result flagged, when a registration lies outside what
@@ -267,6 +302,7 @@ impl Default for PipelineParams {
             held: false,
             hold: hold::HoldParams::default(),
             nonlinear: libr::RefineParams::default(),
+            refine_deadline: None,
             auto: auto::AutoParams::default(),
             abstain: true,
             side: side::SideParams::default(),
@@ -313,7 +349,7 @@ pub struct Prepared {
     pub error_model: Option<Arc<ErrorModel>>,
     /// The nonlinear model of [`Method::Nonlinear`], built on first use or by
     /// [`Prepared::with_nonlinear`] (its linear factorization is the refinement's preconditioner).
-    pub nonlinear: std::sync::OnceLock<Result<NonlinearModel, String>>,
+    pub nonlinear: std::sync::OnceLock<Result<NonlinearMap, String>>,
     /// Preparation time (s).
     pub seconds: f64,
 }
@@ -403,20 +439,24 @@ impl Prepared {
         Ok((prepared, figures))
     }
 
-    /// The nonlinear model of the case with `material` (LIBR's), built on first use: the
-    /// linear model factorized once (about as long as one factorization of the basis build) and
-    /// the hyperelastic solid. An error names why it could not be built.
+    /// The nonlinear model of the case with `material` (LIBR's), built on first use with
+    /// `refine`'s mesh settings (a large case's on a coarse mesh of its boundary,
+    /// [`NonlinearMap`]): the linear model factorized once and the hyperelastic solid. An error
+    /// names why it could not be built.
     pub fn nonlinear_model(
         &self,
         material: &crate::fem::LinearMaterial,
-    ) -> Result<&NonlinearModel, PipelineError> {
+        refine: &libr::RefineParams,
+    ) -> Result<&NonlinearMap, PipelineError> {
+        let mesh_settings = (refine.coarse_above, refine.coarse_nodes);
         let sites = Sites {
             posterior: &self.model.posterior,
             falciform: &self.model.falciform,
         };
         self.nonlinear
             .get_or_init(|| {
-                NonlinearModel::new(&self.model.mesh, material, sites, &self.physics)
+                let mesh = &self.model.mesh;
+                NonlinearMap::for_case(mesh, material, sites, &self.physics, mesh_settings)
                     .map_err(|e| e.to_string())
             })
             .as_ref()
@@ -425,9 +465,13 @@ impl Prepared {
 
     /// Builds the nonlinear model now (a case preloaded for [`Method::Nonlinear`] answers its
     /// first registration without the build), adding its time to [`Prepared::seconds`].
-    pub fn with_nonlinear(mut self, libr: &LibrParams) -> Result<Self, PipelineError> {
+    pub fn with_nonlinear(
+        mut self,
+        libr: &LibrParams,
+        refine: &libr::RefineParams,
+    ) -> Result<Self, PipelineError> {
         let t0 = Instant::now();
-        self.nonlinear_model(&libr.basis.material)?;
+        self.nonlinear_model(&libr.basis.material, refine)?;
         self.seconds += crate::util::secs(t0);
         Ok(self)
     }
@@ -625,6 +669,10 @@ pub struct Registration {
     /// A provisional answer: the navigation start's fit, given before the pose search it
     /// needs ([`progressive`]); the searched answer follows.
     pub search_follows: bool,
+    /// A provisional answer: the linear fit of [`Method::Nonlinear`] (its method the fit's,
+    /// adaptive LIBR or LIBR), given before its refinement runs ([`progressive`]); the
+    /// refined answer follows.
+    pub refinement_follows: bool,
     /// Which side of the organ the surface patch was matched to, when it was decided from the
     /// data ([`side`]; None: not tested).
     pub surface: Option<side::SideInfo>,

@@ -12,11 +12,20 @@
 //! included. A registration the gate does not search is answered once, as [`register`] answers
 //! it.
 //!
+//! [`Method::Nonlinear`] answers in two as well: its linear fit (adaptive LIBR, or LIBR), with
+//! [`Registration::refinement_follows`] set, as soon as it is made; then the refinement of that
+//! fit, [`register`]'s answer. Nothing is repeated: the refinement starts from the answer
+//! handed over. Its pose search, when the gate runs one, is inside the linear fit (no
+//! provisional pose answer of its own).
+//!
 //! The second answer repeats the first's work (the side test, the navigation start's wICP and
 //! its fit) before it searches: about one unsearched registration more, on searched
 //! registrations only, so that it is [`register`]'s answer bit for bit.
 
-use super::{Method, PipelineError, PipelineParams, Prepared, Registration, register};
+use super::{
+    FirstAnswer, Method, PipelineError, PipelineParams, Prepared, Registration, register,
+    register_with,
+};
 use crate::register::Checked;
 
 /// Whether `method` under `params` can answer in two: a deformable method with the gated pose
@@ -30,15 +39,18 @@ pub fn can_follow(method: Method, params: &PipelineParams) -> bool {
 }
 
 /// [`register`] in one or two answers (module doc): `first` receives the provisional answer
-/// when the pose search follows, before the search runs; the returned registration is the
-/// final answer, [`register`]'s.
+/// when the pose search or the nonlinear refinement follows, before it runs; the returned
+/// registration is the final answer, [`register`]'s.
 pub fn register_progressive(
     case: &Prepared,
     meas: &Checked,
     method: Method,
     params: &PipelineParams,
-    first: &mut dyn FnMut(&Registration),
+    first: FirstAnswer<'_>,
 ) -> Result<Registration, PipelineError> {
+    if method == Method::Nonlinear {
+        return register_with(case, meas, method, params, Some(first));
+    }
     if !can_follow(method, params) {
         return register(case, meas, method, params);
     }

@@ -226,6 +226,7 @@ mod tests {
             auto: None,
             search_skipped_mm2: None,
             search_follows: false,
+            refinement_follows: false,
             surface: None,
             points: None,
             seconds: 0.0,

@@ -4,8 +4,8 @@
 //! LIBR+'s correction on it.
 
 use super::{
-    CorrectionInfo, LibrAnswer, Method, PipelineError, PipelineParams, Prepared, Registration,
-    V2sInfo, correct_libr, held_at, pose, rigid_params,
+    CorrectionInfo, FirstAnswer, LibrAnswer, Method, PipelineError, PipelineParams, Prepared,
+    Registration, V2sInfo, correct_libr, held_at, pose, rigid_params,
 };
 use crate::gcn::infer::LibrPlusCase;
 use crate::mesh::rigid::Rigid;
@@ -27,6 +27,9 @@ pub(super) struct Shared<'a> {
     /// The rigid stage from the navigation start, already run with these parameters' rigid
     /// settings ([`rigid_params`]); used where the run starts from the navigation start alone.
     pub start: Option<&'a WicpResult>,
+    /// Where [`Method::Nonlinear`]'s linear answer goes before its refinement runs (None: it
+    /// is not handed over).
+    pub first: Option<FirstAnswer<'a>>,
 }
 
 /// [`super::register`] with one method (not [`Method::Auto`]), with what it shares.
@@ -42,6 +45,7 @@ pub(super) fn register_scored(
     let mut run = Run::new(case, meas, method, params, t0);
     run.folds = shared.folds;
     run.start = shared.start;
+    run.first = shared.first;
     let v2s = match method {
         Method::V2s => Some(case.v2s.as_ref().ok_or(PipelineError::NoV2sModel)?),
         _ => None,
@@ -73,6 +77,8 @@ struct Run<'a> {
     folds: Option<&'a Folds>,
     /// The rigid stage from the navigation start, run already ([`Shared::start`]).
     start: Option<&'a WicpResult>,
+    /// Where the linear answer goes before the refinement ([`Shared::first`]).
+    first: Option<FirstAnswer<'a>>,
 }
 
 /// The deformable fits of every candidate pose: each pose's solution and score (None and
@@ -113,6 +119,7 @@ impl<'a> Run<'a> {
             search_skipped: std::sync::OnceLock::new(),
             folds: None,
             start: None,
+            first: None,
         }
     }
 
@@ -180,6 +187,7 @@ impl<'a> Run<'a> {
             auto: None,
             search_skipped_mm2: self.search_skipped.get().copied(),
             search_follows: false,
+            refinement_follows: false,
             surface: None,
             points: None,
             seconds: secs(self.t0),
@@ -552,9 +560,11 @@ impl<'a> Run<'a> {
         } else {
             case.basis.as_ref().ok_or(PipelineError::NoBasis)?
         };
-        let model = case.nonlinear_model(&self.params.libr.basis.material)?;
+        let model =
+            case.nonlinear_model(&self.params.libr.basis.material, &self.params.nonlinear)?;
         let held = held_at(case, self.meas, self.params, &rigid.image_to_physical)?;
-        let run = self.limits(rigid, held.as_ref(), self.params.deadline, None);
+        let deadline = self.params.refine_deadline.or(self.params.deadline);
+        let run = self.limits(rigid, held.as_ref(), deadline, None);
         let mut hints = Hints::default();
         libr::refine_nonlinear(
             &case.model.mesh,
@@ -570,6 +580,32 @@ impl<'a> Run<'a> {
             |u: &[f64], t: &Rigid| self.rematch(u, t, &mut hints),
         )
         .map_err(PipelineError::Nonlinear)
+    }
+
+    /// The linear fit [`Method::Nonlinear`] refines, as an answer of its own method with the
+    /// refinement to follow.
+    fn linear_answer(
+        &self,
+        rigid: &WicpResult,
+        sol: &LibrSolution,
+        pose: Option<pose::PoseInfo>,
+    ) -> Registration {
+        let mut r = self.answer(Answer {
+            image_to_physical: sol.image_to_physical,
+            u: sol.u.clone(),
+            rigid: rigid.clone(),
+            pose,
+            libr: Some(sol.info.clone()),
+            correction: None,
+            v2s: None,
+            nonlinear: None,
+        });
+        r.method = match self.fits_adaptive() {
+            true => Method::Adaptive,
+            false => Method::Libr,
+        };
+        r.refinement_follows = true;
+        r
     }
 
     /// What a fit leaves: the capped residual of its matches plus its prior energy, weighted.
@@ -594,6 +630,11 @@ impl<'a> Run<'a> {
         sol: LibrSolution,
         pose: Option<pose::PoseInfo>,
     ) -> Registration {
+        if self.method == Method::Nonlinear
+            && let Some(first) = self.first
+        {
+            first(&self.linear_answer(&rigid, &sol, pose.clone()));
+        }
         let (sol, nonlinear) = match self.method {
             Method::Nonlinear => match self.refine(&rigid, &sol) {
                 Ok((refined, info)) => (refined, Some(info)),

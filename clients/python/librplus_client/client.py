@@ -289,7 +289,9 @@ _END = object()
 class Session:
     """A streamed intraoperative session (``StreamRegister``), in lockstep: each ``add_*``
     sends one message and waits for the update that answers it (the first registration whose
-    ``last_client_seq`` reaches the message's ``client_seq``, or the rejection of that message).
+    ``last_client_seq`` reaches the message's ``client_seq``, or the rejection of that message;
+    for ``nonlinear``, the refined answer that follows the linear one, which stays in
+    ``updates``).
     Made by :meth:`Client.session`; a context manager that closes the stream on exit (or
     cancels it when the block raised anything but a :class:`RejectedError`). Use a session from
     one thread at a time.
@@ -402,7 +404,12 @@ class Session:
                     update=u,
                 )
             if kind == "registration" and u.last_client_seq >= seq:
-                return Registration.from_message(u.registration, u)
+                r = u.registration
+                if r.HasField("refinement") and r.refinement.follows:
+                    # METHOD_NONLINEAR's linear answer (kept in ``updates``): its refinement
+                    # follows for the same message and is the answer returned.
+                    continue
+                return Registration.from_message(r, u)
             # A discovery report, or an update answering an earlier message: not this answer.
 
     # -- messages ---------------------------------------------------------------------------

@@ -79,6 +79,7 @@ impl Session {
             request,
             arrival,
             prepared: self.augmented.clone(),
+            first: None,
         }
     }
 
@@ -177,6 +178,7 @@ pub(crate) fn options(
         omit_displacements: options.is_some_and(|o| o.omit_displacements),
         trusted_alignment_mm: trusted(options, field)?,
         held: options.is_some_and(|o| o.held),
+        single_answer: options.is_some_and(|o| o.single_answer),
     })
 }
 
@@ -196,6 +198,7 @@ fn budget(
              omit_displacements: _,
              trusted_alignment_mm: _,
              held: _,
+             single_answer: _,
          }| *time_budget_ms,
     );
     if ms > config.max_time_budget_ms {

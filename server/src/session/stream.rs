@@ -273,11 +273,45 @@ impl Stream {
         Ok(())
     }
 
-    /// Registers the session's points, records the answer (acknowledged only once recorded)
-    /// and sends it.
+    /// Registers the session's points, records each answer (acknowledged only once recorded)
+    /// and sends it: METHOD_NONLINEAR's linear answer as soon as it is made, then the refined
+    /// one.
     async fn register(&mut self, seq: u64, arrival: Instant) -> Result<(), Halt> {
         self.swap_to_own_basis().await?;
-        let update = register_session(&self.shared, &self.s, arrival, self.deadline, seq).await;
+        let (tx, mut firsts) = mpsc::unbounded_channel();
+        let work = register_session(
+            &self.shared,
+            &self.s,
+            (arrival, self.deadline),
+            seq,
+            Some(tx),
+        );
+        tokio::pin!(work);
+        let update = loop {
+            tokio::select! {
+                biased;
+                u = &mut work => break u,
+                Some(r) = firsts.recv() => {
+                    let first = pb::stream_update::Update::Registration(r);
+                    self.deliver(first, arrival).await?;
+                }
+            }
+        };
+        // A linear answer handed over just before the work ended goes first.
+        while let Ok(r) = firsts.try_recv() {
+            self.deliver(pb::stream_update::Update::Registration(r), arrival)
+                .await?;
+        }
+        self.deliver(update, arrival).await
+    }
+
+    /// Records an answer of the session's registration (acknowledged only once recorded) and
+    /// sends it.
+    async fn deliver(
+        &self,
+        update: pb::stream_update::Update,
+        arrival: Instant,
+    ) -> Result<(), Halt> {
         if self.shared.audit.is_some() {
             let record = match &update {
                 pb::stream_update::Update::Registration(r) => {
@@ -356,7 +390,8 @@ impl Stream {
         // The switch shows at once: the session's points registered with its new model.
         if switched && !self.s.measurements().points.is_empty() {
             let seq = self.s.last_seq();
-            let update = register_session(&self.shared, &self.s, arrival, self.deadline, seq).await;
+            let update =
+                register_session(&self.shared, &self.s, (arrival, self.deadline), seq, None).await;
             self.out.send(&self.s, update, arrival).await?;
         }
         Ok(())

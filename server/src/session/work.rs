@@ -6,14 +6,16 @@ use crate::shared::{Shared, count_error};
 use librplus::pipeline::Method;
 use librplus_proto::v1 as pb;
 use std::time::Instant;
+use tokio::sync::mpsc::UnboundedSender;
 
 /// Registers every point of the session with its current model; the update to send.
+/// METHOD_NONLINEAR's linear answer goes to `first` before its refinement runs.
 pub(crate) async fn register_session(
     shared: &Shared,
     s: &Session,
-    arrival: Instant,
-    deadline: Option<Instant>,
+    (arrival, deadline): (Instant, Option<Instant>),
     seq: u64,
+    first: Option<UnboundedSender<pb::Registration>>,
 ) -> pb::stream_update::Update {
     if s.measurements().points.is_empty() {
         // Nothing measured yet (an ultrasound frame in which nothing was found): the answer is
@@ -40,7 +42,9 @@ pub(crate) async fn register_session(
         });
     }
     s.case().touch();
-    match shared.engine.run(s.job(arrival, deadline), None).await {
+    let mut job = s.job(arrival, deadline);
+    job.first = first;
+    match shared.engine.run(job, None).await {
         Ok(r) => pb::stream_update::Update::Registration(r),
         Err(b) => {
             count_error(b.code());

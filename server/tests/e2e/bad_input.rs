@@ -116,6 +116,7 @@ async fn bad_unary_input_gets_its_status_and_field() {
         omit_displacements: false,
         trusted_alignment_mm: 0.0,
         held: false,
+        single_answer: false,
     });
     cases.push((
         "budget too large",

@@ -16,6 +16,7 @@ mod interop;
 mod limits;
 mod probe;
 mod probe_errors;
+mod refine;
 mod replicas;
 mod resume;
 mod safety;

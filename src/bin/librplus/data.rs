@@ -328,6 +328,12 @@ fn truth_options(a: &GenerateArgs, config: &mut GenerateConfig) -> Result<()> {
                 .map_err(|e| anyhow::anyhow!("--hidden-effect: {e}"))
         })
         .collect::<Result<_>>()?;
+    if let Some(x) = a.load_scale {
+        if !(x.is_finite() && x > 0.0) {
+            bail!("--load-scale: {x} must be finite and > 0");
+        }
+        config.patterns.load_scale = x;
+    }
     if let Some(f) = &a.families {
         if !matches!(a.truth, TruthArg::Nonlinear) {
             bail!("--families needs the nonlinear truth: the families are other nonlinear solids");

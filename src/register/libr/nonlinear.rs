@@ -29,11 +29,12 @@ use super::*;
 use crate::mesh::TetMesh;
 use crate::mesh::rigid::Rigid;
 use crate::register::Match;
-use crate::register::nonlinear::{ForwardInfo, ForwardParams, NonlinearModel};
+use crate::register::nonlinear::{ForwardInfo, ForwardParams, NonlinearMap};
 use std::time::Instant;
 
 /// Parameters of the nonlinear refinement.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct RefineParams {
     /// The equilibrium solves.
     pub forward: ForwardParams,
@@ -41,17 +42,38 @@ pub struct RefineParams {
     pub max_iterations: usize,
     /// Stops when no node moved more than this in an iteration (mm). Default 0.05.
     pub tolerance_mm: f64,
+    /// A case with more nodes than this solves its nonlinear response on a coarse mesh of its
+    /// boundary of about `coarse_nodes` nodes ([`NonlinearMap`]); 0: always on its own mesh.
+    /// Default [`crate::register::nonlinear::COARSE_ABOVE`].
+    pub coarse_above: usize,
+    /// See `coarse_above`. Default [`crate::register::nonlinear::COARSE_NODES`].
+    pub coarse_nodes: usize,
 }
 
 impl Default for RefineParams {
     fn default() -> Self {
         Self {
-            forward: ForwardParams::default(),
+            forward: REFINE_FORWARD,
             max_iterations: 6,
             tolerance_mm: 0.05,
+            coarse_above: crate::register::nonlinear::COARSE_ABOVE,
+            coarse_nodes: crate::register::nonlinear::COARSE_NODES,
         }
     }
 }
+
+/// The refinement's equilibria: inexact, since each warm-starts from the last and the objective
+/// judges every step: at most 3 Newton iterations, each solved by CG to half its residual (on
+/// the paper liver's 30 registrations this took the refinement from 422 CG iterations to about
+/// 50 at the same answers, `docs/registration.md`).
+const REFINE_FORWARD: ForwardParams = ForwardParams {
+    tolerance: 1e-3,
+    max_newton: 3,
+    max_cg: 25,
+    eta: 0.5,
+    max_halvings: 12,
+    deadline: None,
+};
 
 impl RefineParams {
     /// Checks the parameters; the message names the bad field.
@@ -85,8 +107,18 @@ pub struct NonlinearInfo {
     pub cg: usize,
     /// Solves that stopped short of their tolerance (their last iterate was used).
     pub unconverged_solves: usize,
+    /// The relative force residual `‖r‖ / ‖f‖` of the equilibrium behind the refined answer (0
+    /// when none was solved).
+    pub residual: f64,
+    /// Nodes of the coarse mesh the equilibria were solved on (None: the case's own mesh).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coarse_nodes: Option<usize>,
     /// Time in the equilibrium solves (s).
     pub forward_s: f64,
+    /// Of it, in the preconditioner's solves (s).
+    pub precondition_s: f64,
+    /// Of it, assembling forces and tangents (s).
+    pub assemble_s: f64,
     /// The linear answer's objective: weighted mean squared misfit plus prior (mm²).
     pub linear_objective_mm2: f64,
     /// The refined answer's objective, measured the same way (mm²).
@@ -118,7 +150,7 @@ pub struct LinearAnswer<'a> {
 pub fn refine_nonlinear(
     mesh: &TetMesh,
     start: LinearAnswer<'_>,
-    model: &NonlinearModel,
+    model: &NonlinearMap,
     params: &LibrParams,
     refine: &RefineParams,
     measured_physical: &[[f64; 3]],
@@ -139,9 +171,15 @@ pub fn refine_nonlinear(
         let why = "the linear answer has no deformation to refine".to_string();
         return Ok((solution.clone(), info.kept(why, t0)));
     }
+    // Every equilibrium stops at the run's deadline; one that did is not an answer.
+    let forward = ForwardParams {
+        deadline: run.deadline,
+        ..refine.forward
+    };
     let lin = reduced.displacement(&alpha0); // where the iterations start: its nonlinear shape
-    let (u0, f0) = model.equilibrium(&model.load_of(&lin), Some(&lin), &refine.forward)?;
-    info.add(&f0);
+    let Some((u0, state, f0)) = first_response(model, &lin, &forward, &mut info)? else {
+        return Ok((solution.clone(), info.kept(OUT_OF_TIME.into(), t0)));
+    };
     let mut fit = Refining {
         mesh,
         basis: &reduced,
@@ -150,24 +188,21 @@ pub fn refine_nonlinear(
         run,
         active: &active,
         model,
-        forward: &refine.forward,
+        forward: &forward,
         d: u0.iter().zip(&lin).map(|(a, b)| a - b).collect(),
         u: u0,
+        state,
+        residual: f0.relative_residual,
         alpha: alpha0,
         solves: Vec::new(),
         failure: None,
         stalled: false,
     };
     let limits = (run.deadline, false); // no held-out check of the last step
+    let pose = &solution.image_to_physical;
     let Iterated {
         t, info: mut it, ..
-    } = iterate(
-        &mut fit,
-        &fit_params,
-        &solution.image_to_physical,
-        limits,
-        &mut rematch,
-    )?;
+    } = iterate(&mut fit, &fit_params, pose, limits, &mut rematch)?;
     fit.solves.iter().for_each(|f| info.add(f));
     let lambda = (fit_params.fit.regularization, weight);
     finish_iterations(&mut it, &reduced, &fit.alpha, lambda, run.hold);
@@ -179,21 +214,44 @@ pub fn refine_nonlinear(
     }
     info.seconds = crate::util::secs(t0);
     info.change_rms_mm = rms_change(&solution.u, &fit.u);
+    info.residual = fit.residual;
     it.total_s = info.seconds;
-    let mut alpha = vec![0.0; basis.columns()];
-    cols.iter()
-        .zip(&fit.alpha)
-        .for_each(|(&j, &a)| alpha[j] = a);
-    let (u, image_to_physical) = (fit.u, t);
-    Ok((
-        LibrSolution {
-            alpha,
-            u,
-            image_to_physical,
-            info: it,
-        },
-        info,
-    ))
+    let alpha = widened(&cols, &fit.alpha, basis.columns());
+    let sol = LibrSolution {
+        alpha,
+        u: fit.u,
+        image_to_physical: t,
+        info: it,
+    };
+    Ok((sol, info))
+}
+
+/// The weights `alpha` of the columns `cols`, as weights of all `columns` (zero elsewhere).
+fn widened(cols: &[usize], alpha: &[f64], columns: usize) -> Vec<f64> {
+    let mut out = vec![0.0; columns];
+    cols.iter().zip(alpha).for_each(|(&j, &a)| out[j] = a);
+    out
+}
+
+/// A response of the nonlinear model: the displacement of the case's nodes, the model's own
+/// equilibrium (the next warm start) and what the solve did ([`NonlinearMap::response`]).
+type Response = (Vec<f64>, Vec<f64>, ForwardInfo);
+
+/// The response to the linear answer's own loads, where the iterations start (its solve
+/// recorded in `info`); None when the deadline came first.
+fn first_response(
+    model: &NonlinearMap,
+    lin: &[f64],
+    forward: &ForwardParams,
+    info: &mut NonlinearInfo,
+) -> Result<Option<Response>, RegisterError> {
+    if forward.deadline.is_some_and(|d| Instant::now() >= d) {
+        return Ok(None);
+    }
+    let (u, state, f) = model.response(lin, None, forward)?;
+    info.add(&f);
+    info.coarse_nodes = model.coarse_mesh().map(|(n, _)| n);
+    Ok((!f.out_of_time).then_some((u, state, f)))
 }
 
 /// The refinement's unknowns: the columns the answer used, the basis restricted to them, their
@@ -223,7 +281,7 @@ fn restricted(
 /// model against the basis.
 fn check_start(
     start: LinearAnswer<'_>,
-    model: &NonlinearModel,
+    model: &NonlinearMap,
     refine: &RefineParams,
     run: &RunLimits<'_>,
 ) -> Result<(), RegisterError> {
@@ -293,6 +351,8 @@ impl NonlinearInfo {
         self.cg += f.cg;
         self.unconverged_solves += usize::from(!f.converged);
         self.forward_s += f.total_s;
+        self.precondition_s += f.precondition_s;
+        self.assemble_s += f.assemble_s;
     }
 }
 
@@ -367,11 +427,15 @@ struct Refining<'a> {
     measured_physical: &'a [[f64; 3]],
     run: RunLimits<'a>,
     active: &'a [u32],
-    model: &'a NonlinearModel,
+    model: &'a NonlinearMap,
     forward: &'a ForwardParams,
     /// The nonlinear correction `u − Φα` at the current loads.
     d: Vec<f64>,
     u: Vec<f64>,
+    /// The model's equilibrium behind `u` (on its own mesh): the next solve's warm start.
+    state: Vec<f64>,
+    /// Its relative force residual.
+    residual: f64,
     alpha: Vec<f64>,
     solves: Vec<ForwardInfo>,
     /// Why an equilibrium failed (the iterations then stop, and the linear answer stands).
@@ -380,28 +444,34 @@ struct Refining<'a> {
     stalled: bool,
 }
 
+/// Why the linear answer stands when the deadline stopped the refinement.
+const OUT_OF_TIME: &str = "the time budget ran out before the refinement's equilibrium";
+
 /// How many times a refinement step is halved before the refinement stops.
 const SHORTENINGS: usize = 3;
 
 impl Refining<'_> {
-    /// `Φα` and the equilibrium under its loads, warm-started from the current one moved by the
-    /// linear change (`old` = `Φα` of the current weights); None when the solve failed
-    /// ([`Refining::failure`] says why).
-    fn equilibrium_at(&mut self, alpha: &[f64], old: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
+    /// `Φα`, the response to it and the model's equilibrium behind that, warm-started from the
+    /// current one moved by the linear change (`old` = `Φα` of the current weights); None when
+    /// the solve failed ([`Refining::failure`] says why).
+    fn equilibrium_at(&mut self, alpha: &[f64], old: &[f64]) -> Option<[Vec<f64>; 3]> {
         let lin = self.basis.displacement(alpha);
+        let change: Vec<f64> = lin.iter().zip(old).map(|(a, b)| a - b).collect();
         let warm: Vec<f64> = self
-            .u
+            .state
             .iter()
-            .zip(lin.iter().zip(old))
-            .map(|(u, (a, b))| u + a - b)
+            .zip(self.model.restrict(&change))
+            .map(|(s, c)| s + c)
             .collect();
-        match self
-            .model
-            .equilibrium(&self.model.load_of(&lin), Some(&warm), self.forward)
-        {
-            Ok((u, f)) => {
+        match self.model.response(&lin, Some(&warm), self.forward) {
+            Ok((_, _, f)) if f.out_of_time => {
                 self.solves.push(f);
-                Some((lin, u))
+                self.failure = Some(OUT_OF_TIME.into());
+                None
+            }
+            Ok((u, state, f)) => {
+                self.solves.push(f);
+                Some([lin, u, state])
             }
             Err(e) => {
                 self.failure = Some(format!("an equilibrium failed: {e}"));
@@ -459,7 +529,7 @@ impl Stepper for Refining<'_> {
                 .zip(&step.alpha)
                 .map(|(a, b)| a + fraction * (b - a))
                 .collect();
-            let Some((lin, u_new)) = self.equilibrium_at(&alpha, &old) else {
+            let Some([lin, u_new, state]) = self.equilibrium_at(&alpha, &old) else {
                 return Ok((step, 0.0, ()));
             };
             if objective_at(&u_new, &alpha, &moved_pose) < now {
@@ -472,6 +542,8 @@ impl Stepper for Refining<'_> {
                 );
                 self.d = u_new.iter().zip(&lin).map(|(a, b)| a - b).collect();
                 self.u = u_new;
+                self.state = state;
+                self.residual = self.solves.last().map_or(0.0, |f| f.relative_residual);
                 step.alpha = alpha;
                 return Ok((step, moved, ()));
             }

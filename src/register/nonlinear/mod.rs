@@ -32,8 +32,10 @@
 //!
 //! Units: mm, kPa, mN. Frames: the image frame, node-major `3n` vectors.
 
+mod map;
 mod pcg;
 
+pub use map::{COARSE_ABOVE, COARSE_NODES, NonlinearMap, coarse_edge};
 pub use pcg::{Pcg, pcg};
 
 use super::RegisterError;
@@ -61,6 +63,10 @@ pub struct ForwardParams {
     pub eta: f64,
     /// Line-search halvings per Newton step. Default 12.
     pub max_halvings: usize,
+    /// No Newton iteration starts past this instant (the solve then ends unconverged, with
+    /// [`ForwardInfo::out_of_time`] set); None: no deadline.
+    #[serde(skip)]
+    pub deadline: Option<Instant>,
 }
 
 impl Default for ForwardParams {
@@ -71,6 +77,7 @@ impl Default for ForwardParams {
             max_cg: 25,
             eta: 0.1,
             max_halvings: 12,
+            deadline: None,
         }
     }
 }
@@ -114,6 +121,8 @@ pub struct ForwardInfo {
     pub relative_residual: f64,
     /// Whether the tolerance was met.
     pub converged: bool,
+    /// The solve stopped at [`ForwardParams::deadline`] before meeting its tolerance.
+    pub out_of_time: bool,
     /// Time assembling forces and tangents (s).
     pub assemble_s: f64,
     /// Time in the preconditioner's solves (s).
@@ -214,6 +223,10 @@ impl NonlinearModel {
         let fnorm = norm(&fb).max(1e-300);
         info.relative_residual = norm(&r) / fnorm;
         while info.relative_residual > params.tolerance && info.newton < params.max_newton {
+            if params.deadline.is_some_and(|d| Instant::now() >= d) {
+                info.out_of_time = true;
+                break;
+            }
             info.newton += 1;
             let ta = Instant::now();
             let values = self
@@ -311,7 +324,7 @@ impl NonlinearModel {
     }
 
     /// `P u` on a free-floating model (the linearized rigid part removed); as it is otherwise.
-    fn project(&self, u: &mut [f64]) {
+    pub(crate) fn project(&self, u: &mut [f64]) {
         if self.linear.is_free() {
             self.linear.remove_rigid(u);
         }

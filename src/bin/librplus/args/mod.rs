@@ -627,6 +627,11 @@ pub(crate) struct GenerateArgs {
     /// deformation as `truth_family`, so `--split family:NAME` can hold one out of training.
     #[arg(long, value_name = "all|NAME,...")]
     pub(crate) families: Option<String>,
+    /// Multiplies every pattern's load magnitudes (the left lobe's lift, pack forces, pressures,
+    /// a held organ's tool depth; not gravity), e.g. 1.5 for larger deformations, where the
+    /// linear model's error shows (default 1)
+    #[arg(long, value_name = "X")]
+    pub(crate) load_scale: Option<f64>,
     /// The five scenarios of each block (one per category) share the surface patch, noise,
     /// misalignment and landmarks and differ only in their ultrasound planes, so the categories
     /// are compared on the same draws (off by default: every scenario is drawn on its own).
