@@ -731,7 +731,8 @@ impl Registration {
 
     /// Fills [`Registration::error`] from the case's error model (left None when the case has
     /// none, it has no calibration for the method, or the case carries physics effects: the
-    /// model is calibrated on plain LIBR).
+    /// model is calibrated on plain LIBR). The nonlinear refinement is estimated with the
+    /// calibration of the linear method it refines.
     pub fn estimate_error(&mut self, case: &Prepared, meas: &Checked) {
         let Some(model) = &case.error_model else {
             return;
@@ -747,6 +748,10 @@ impl Registration {
                 Some(a) => a.chosen.method(),
                 None => return,
             },
+            // The refinement of the linear fit, within a few millimetres of it (the fit itself
+            // where it was kept): judged by the linear method's calibration.
+            (_, Method::Nonlinear) if case.adaptive.is_some() => Method::Adaptive,
+            (_, Method::Nonlinear) => Method::Libr,
             (_, m) => m,
         };
         if !model.methods.contains_key(answered_by.name()) {
