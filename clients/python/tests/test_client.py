@@ -209,7 +209,20 @@ class FakeServer(pb_grpc.LibRPlusServicer):
                         last_client_seq=m.client_seq,
                         discovery=pb.DiscoveryReport(state=pb.DISCOVERY_STATE_RUNNING))
                     u.sequence = sequence
-                u.registration.CopyFrom(self.answer(points, m))
+                if first.start.method == pb.METHOD_NONLINEAR:
+                    # Two answers, as the server gives them: the linear fit, then its refinement.
+                    linear = registration(method=pb.METHOD_ADAPTIVE, points=points)
+                    linear.refinement.follows = True
+                    sequence += 1
+                    yield pb.StreamUpdate(
+                        sequence=sequence - 1, session_id=SESSION_ID,
+                        last_client_seq=m.client_seq, registration=linear, points_total=points)
+                    u.sequence = sequence
+                    refined = registration(method=pb.METHOD_NONLINEAR, points=points)
+                    refined.refinement.refines = True
+                    u.registration.CopyFrom(refined)
+                else:
+                    u.registration.CopyFrom(self.answer(points, m))
             elif kind == "ultrasound":
                 points += (len(m.ultrasound.contour_uv_mm) + len(m.ultrasound.vessel_uv_mm)) // 2
                 if self.answer_ultrasound is not None:
@@ -524,6 +537,20 @@ class SessionTest(WithServer):
         self.assertEqual(r.last_client_seq, 2)
         self.assertEqual([u.WhichOneof("update") for u in s.updates],
                          ["discovery", "registration"])
+
+    def test_nonlinear_answers_with_the_refinement_the_linear_answer_kept_in_updates(self) -> None:
+        with self.client.session("g1", "nonlinear") as s:
+            r = s.add_surface([[1.0, 2.0, 3.0]])
+            self.assertEqual(r.method_used, "METHOD_NONLINEAR")
+            self.assertEqual(r.last_client_seq, 2)
+            first, last = s.updates
+            self.assertTrue(first.registration.refinement.follows)
+            self.assertEqual(first.registration.method_used, pb.METHOD_ADAPTIVE)
+            self.assertTrue(last.registration.refinement.refines)
+            # The next message is answered by its own refinement, not the previous one's.
+            r = s.add_surface([[4.0, 5.0, 6.0]])
+            self.assertEqual((r.last_client_seq, r.method_used), (3, "METHOD_NONLINEAR"))
+            self.assertEqual(len(s.updates), 4)
 
     def test_no_answer_times_out(self) -> None:
         c = lc.Client(self.url, timeout_s=0.5)
