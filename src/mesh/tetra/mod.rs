@@ -276,6 +276,17 @@ pub fn tetrahedralize(surface: &TriSurface, params: &TetraParams) -> Result<TetM
     tetrahedralize_with_report(surface, params).map(|(mesh, _)| mesh)
 }
 
+/// `mesh`'s boundary meshed again with tets of `edge_mm`: another mesh of the same organ (a
+/// coarse one for a large case's quick basis or nonlinear response). The message names the step
+/// that failed: the boundary, or the meshing.
+pub fn remesh(mesh: &TetMesh, edge_mm: f64) -> Result<TetMesh, String> {
+    let surface = mesh
+        .boundary_surface()
+        .map_err(|e| format!("the case's boundary: {e}"))?;
+    tetrahedralize(&surface, &TetraParams::with_edge(edge_mm))
+        .map_err(|e| format!("meshing the boundary with {edge_mm} mm tets: {e}"))
+}
+
 /// Long lattice edges from a lattice point, in doubled coordinates.
 const LONG: [[i64; 3]; 6] = [
     [-2, 0, 0],

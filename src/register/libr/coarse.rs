@@ -19,7 +19,7 @@
 use super::{LibrBasis, LibrParams, mesh_hash};
 use crate::mesh::TetMesh;
 use crate::mesh::locate::TetLocator;
-use crate::mesh::tetra::{TetraParams, tetrahedralize};
+use crate::mesh::tetra::remesh;
 use crate::register::RegisterError;
 use crate::util::secs;
 use rayon::prelude::*;
@@ -79,14 +79,8 @@ pub fn coarse_basis(
         )));
     }
     let t0 = Instant::now();
-    let surface = fine
-        .boundary_surface()
-        .map_err(|e| RegisterError::Model(format!("coarse basis: the case's boundary: {e}")))?;
-    let coarse = tetrahedralize(&surface, &TetraParams::with_edge(edge_mm)).map_err(|e| {
-        RegisterError::Model(format!(
-            "coarse basis: meshing the boundary with {edge_mm} mm tets: {e}"
-        ))
-    })?;
+    let coarse =
+        remesh(fine, edge_mm).map_err(|e| RegisterError::Model(format!("coarse basis: {e}")))?;
     let mesh_s = secs(t0);
     let t1 = Instant::now();
     let cb = LibrBasis::build(&coarse, params)?;

@@ -20,7 +20,7 @@ use super::{ForwardInfo, ForwardParams, NonlinearModel};
 use crate::fem::LinearMaterial;
 use crate::mesh::TetMesh;
 use crate::mesh::locate::TetLocator;
-use crate::mesh::tetra::{TetraParams, tetrahedralize};
+use crate::mesh::tetra::remesh;
 use crate::register::RegisterError;
 use crate::register::physics::Physics;
 use crate::register::physics::boundary::Sites;
@@ -129,14 +129,8 @@ impl NonlinearMap {
                 "nonlinear coarse edge_mm must be finite and > 0, got {edge_mm}"
             )));
         }
-        let surface = mesh
-            .boundary_surface()
+        let coarse = remesh(mesh, edge_mm)
             .map_err(|e| RegisterError::Model(format!("nonlinear coarse mesh: {e}")))?;
-        let coarse = tetrahedralize(&surface, &TetraParams::with_edge(edge_mm)).map_err(|e| {
-            RegisterError::Model(format!(
-                "nonlinear coarse mesh: meshing the boundary with {edge_mm} mm tets: {e}"
-            ))
-        })?;
         let flags = coarse_sites(mesh, &coarse, sites)?;
         let coarse_sites = Sites {
             posterior: &flags.0,
